@@ -1,0 +1,1 @@
+"""The ``triplet`` command line (installed as ``triplet_cl.cli``)."""

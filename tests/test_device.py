@@ -1,0 +1,148 @@
+"""Device layer and kernel loader (issue: foundation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pytest
+from triplet_cl.cli.main import main as cli_main
+
+from triplet_cl import device as devmod
+from triplet_cl.device import Device, get_device, list_devices, resolve_spec
+from triplet_cl.errors import DeviceSelectionError, KernelBuildError
+
+
+def test_list_devices_reports_fields():
+    infos = list_devices()
+    assert infos, "at least one OpenCL device (PoCL in CI)"
+    for i in infos:
+        assert i.compute_units > 0 and i.global_mem_bytes > 0 and i.max_alloc_bytes > 0
+        assert i.type in {"GPU", "CPU", "ACCELERATOR", "OTHER"}
+        assert i.opencl_c_version
+
+
+def test_select_by_index_and_name(monkeypatch):
+    monkeypatch.delenv("TRIPLET_DEVICE", raising=False)
+    first = list_devices()[0]
+    info, _, _ = resolve_spec(first.index)
+    assert info.index == first.index
+    # a substring of the device name, in another case
+    info2, _, _ = resolve_spec(first.device_name[:6].upper())
+    assert info2.device_name[:6].lower() == first.device_name[:6].lower()
+    # a substring of the platform name
+    info3, _, _ = resolve_spec(first.platform_name.split()[0].lower())
+    assert first.platform_name.split()[0].lower() in info3.full_name.lower()
+
+
+def test_select_from_environment(monkeypatch):
+    first = list_devices()[0]
+    monkeypatch.setenv("TRIPLET_DEVICE", first.index)
+    info, _, _ = resolve_spec(None)
+    assert info.index == first.index
+    monkeypatch.setenv("TRIPLET_DEVICE", "no-such-device-xyz")
+    with pytest.raises(DeviceSelectionError):
+        resolve_spec(None)
+
+
+def test_default_prefers_gpu_then_cpu(monkeypatch):
+    monkeypatch.delenv("TRIPLET_DEVICE", raising=False)
+    infos = list_devices()
+    info, _, _ = resolve_spec(None)
+    gpus = [i for i in infos if i.type == "GPU"]
+    cpus = [i for i in infos if i.type == "CPU"]
+    expected = gpus[0] if gpus else (cpus[0] if cpus else infos[0])
+    assert info.index == expected.index
+
+
+def test_no_match_lists_devices(monkeypatch):
+    monkeypatch.delenv("TRIPLET_DEVICE", raising=False)
+    with pytest.raises(DeviceSelectionError) as ei:
+        resolve_spec("definitely-not-a-device")
+    msg = str(ei.value)
+    assert "definitely-not-a-device" in msg
+    assert list_devices()[0].device_name in msg  # the error lists what exists
+    with pytest.raises(DeviceSelectionError, match="does not exist"):
+        resolve_spec("97:3")
+
+
+def test_get_device_is_one_object_per_device(device):
+    assert get_device(device.info.index) is device
+
+
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_reduction_kernel_matches_numpy(device, rng, real):
+    if real == np.float64 and not device.fp64:
+        pytest.skip("no fp64 on this device")
+    n, groups, lsz = 10_007, 8, 64
+    x = rng.standard_normal(n).astype(real)
+    mf = cl.mem_flags
+    x_buf = cl.Buffer(device.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=x)
+    out = np.empty(groups, real)
+    out_buf = cl.Buffer(device.ctx, mf.WRITE_ONLY, out.nbytes)
+    k = device.kernel("reduce", "block_sum_fwd", real=real)
+    k(device.queue, (groups * lsz,), (lsz,), x_buf, np.int32(n), out_buf, cl.LocalMemory(lsz * x.itemsize))
+    cl.enqueue_copy(device.queue, out, out_buf)
+    tol = 1e-4 if real == np.float32 else 1e-11
+    np.testing.assert_allclose(out.sum(), x.astype(np.float64).sum(), rtol=tol, atol=tol)
+    # and the adjoint: v_x = v_out[group of x]
+    v_out = rng.standard_normal(groups).astype(real)
+    v_out_buf = cl.Buffer(device.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v_out)
+    v_x = np.empty(n, real)
+    v_x_buf = cl.Buffer(device.ctx, mf.WRITE_ONLY, v_x.nbytes)
+    kb = device.kernel("reduce", "block_sum_bwd", real=real)
+    kb(device.queue, (groups * lsz,), (lsz,), v_out_buf, np.int32(n), v_x_buf)
+    cl.enqueue_copy(device.queue, v_x, v_x_buf)
+    expected = v_out[(np.arange(n) % (groups * lsz)) // lsz]
+    np.testing.assert_array_equal(v_x, expected)
+
+
+def test_build_error_names_file_options_and_log(device, tmp_path, monkeypatch):
+    (tmp_path / "common").mkdir()
+    (tmp_path / "broken.cl").write_text("__kernel void f(__global float* x) { x[0] = 1.0f +; }\n")
+    monkeypatch.setattr(devmod, "kernel_dir", lambda: tmp_path)
+    d = Device(device.info, device.platform, device.cl_device)
+    with pytest.raises(KernelBuildError) as ei:
+        d.program("broken", defines={"K_MAX": 30})
+    e = ei.value
+    assert e.path.endswith("broken.cl")
+    assert "-DK_MAX=30" in e.options and "-DREAL=float" in e.options
+    assert "broken.cl" in str(e) and "-DK_MAX=30" in str(e)
+    assert "error" in e.log.lower() and e.log in str(e)
+
+
+def test_missing_kernel_file(device):
+    with pytest.raises(FileNotFoundError, match="no_such_op"):
+        device.program("no_such_op")
+
+
+def test_loader_builds_each_program_once(device):
+    d = Device(device.info, device.platform, device.cl_device)  # a fresh memo
+    assert d.build_count == 0
+    k1 = d.kernel("reduce", "block_sum_fwd")
+    k2 = d.kernel("reduce", "block_sum_fwd")
+    d.kernel("reduce", "block_sum_bwd")
+    assert k1 is k2
+    assert d.build_count == 1
+    d.kernel("reduce", "block_sum_fwd", defines={"K_MAX": 7})  # new options: a new program
+    assert d.build_count == 2
+    d.program("reduce", defines={"K_MAX": 7})
+    assert d.build_count == 2
+    assert len(d._programs) == 2
+
+
+def test_bad_define_name_is_rejected(device):
+    with pytest.raises(ValueError, match="define"):
+        device.program("reduce", defines={"BAD NAME": 1})
+
+
+def test_cli_devices(capsys, device):
+    assert cli_main(["devices"]) == 0
+    out = capsys.readouterr().out
+    assert device.info.device_name in out and "chosen" in out and "fp64" in out
+    assert cli_main(["devices", "--device", "no-such-device-xyz"]) == 2
+    assert "no-such-device-xyz" in capsys.readouterr().err
+
+
+def test_alloc_check(device):
+    with pytest.raises(MemoryError, match="depth buffer"):
+        device.check_alloc(device.info.max_alloc_bytes + 1, "depth buffer")

@@ -1,0 +1,1 @@
+"""Host side of every kernel pair: validating wrappers around ``kernels_cl/<op>.cl``."""
