@@ -217,6 +217,8 @@ class Device:
         self._kernels: dict[tuple[str, tuple[str, ...], str], cl.Kernel] = {}
         self._lock = threading.Lock()
         self.build_count = 0
+        self._cache: dict = {}
+        self._allocator = None
 
     # ---- properties ---------------------------------------------------------------------------
     @property
@@ -296,7 +298,23 @@ class Device:
             self._kernels[key] = k
         return k
 
+    def cached(self, key, factory):
+        """Memoise a per-device object (a scan kernel, a constant buffer ...) under ``key``."""
+        obj = self._cache.get(key)
+        if obj is None:
+            obj = self._cache[key] = factory()
+        return obj
+
     # ---- memory -------------------------------------------------------------------------------
+    @property
+    def allocator(self):
+        """A pooled allocator: device buffers are recycled by size class across iterations."""
+        if self._allocator is None:
+            from pyopencl.tools import ImmediateAllocator, MemoryPool
+
+            self._allocator = MemoryPool(ImmediateAllocator(self.queue))
+        return self._allocator
+
     def check_alloc(self, nbytes: int, what: str) -> None:
         """Raise a clear ``MemoryError`` when one buffer would exceed the device's limits."""
         if nbytes > self.info.max_alloc_bytes:

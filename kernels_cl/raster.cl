@@ -1,0 +1,264 @@
+/* raster.cl — tile binning, K-nearest fragments per pixel, and the adjoint of the fragment
+ * geometry (barycentrics, depth, soft-coverage window) back to screen-space vertices.
+ *
+ * Tiles are TILE x TILE pixels (TILE = 8 unless defined). One "entry" is one (tile, face) pair.
+ *
+ * bin_count   per face: cull (any vertex z < near, all z > far, |A| tiny, back-facing when
+ *             CULL_BACK, no pixel centre in its bounding box); count the tiles of its bounding box;
+ *             atomically count faces per tile (int atomics only: core OpenCL 1.1).
+ * bin_fill    per face: write the entries of each overlapped tile (tile-major lists, their order
+ *             inside a tile is arbitrary) with the face's edge-function set-up, and the face-major
+ *             list face_entries (entry ids of each face, in tile order) used by the adjoint gather.
+ * raster_fwd  one work-item per pixel, one 8x8 work-group per tile: the K nearest fragments by
+ *             (depth, face id) — the face id breaks ties so the result never depends on the
+ *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
+ * raster_bwd  one work-item per tile, serial over the tile's pixels and fragments: the adjoints of
+ *             barycentrics (v_bary, 2-parameter form lam2 = 1 - lam0 - lam1), depth (v_depth) and
+ *             window (v_win) go to the screen vertices of the fragment's face (bary_persp_vjp,
+ *             edge_window_vjp) and are added to partial[entry] — no other work-item owns the entry,
+ *             so no atomics are needed, and sums happen in a fixed order (deterministic).
+ * gather_vertex  per (vertex, channel): sum partial[entry, corner, channel] over every face corner of
+ *             the vertex (CSR) and every entry of that face. Adjoint of "vertex -> fragment".
+ */
+#include "real.h"
+#include "raster_math.h"
+
+#ifndef TILE
+#define TILE 8
+#endif
+#ifndef K_MAX
+#define K_MAX 1
+#endif
+#define SETUP 9  /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2 :  b0 = 1 + A0 dx + B0 dy, b1 = A1 dx + B1 dy */
+
+__kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
+                        __global const int* F,          // [M, 3]
+                        const int m, const int width, const int height,
+                        const int tiles_x,
+                        const REAL near, const REAL far, const int cull_back,
+                        __global int* face_ntiles,      // [M]
+                        __global int* face_bbox,        // [M, 4] tile bbox tx0 ty0 tx1 ty1
+                        __global int* tile_count)       // [T]  (atomic increments)
+{
+    const int f = get_global_id(0);
+    if (f >= m) return;
+    const int i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+    const REAL3 p0 = LOAD3(vs, i0), p1 = LOAD3(vs, i1), p2 = LOAD3(vs, i2);
+    int ok = p0.z >= near && p1.z >= near && p2.z >= near;
+    ok = ok && !(p0.z > far && p1.z > far && p2.z > far);
+    const REAL2 a0 = p0.xy, a1 = p1.xy, a2 = p2.xy;
+    const REAL A = cross2(a1 - a0, a2 - a0);
+    ok = ok && isfinite(A) && fabs(A) > (REAL)1e-10;
+    ok = ok && !(cull_back && A > (REAL)0);   /* A > 0 on screen (y down) = facing away */
+    int x0 = 0, y0 = 0, x1 = -1, y1 = -1;
+    if (ok) {
+        /* pixels whose centre (i + 0.5) lies inside the bounding box */
+        const REAL minu = fmin(a0.x, fmin(a1.x, a2.x)), maxu = fmax(a0.x, fmax(a1.x, a2.x));
+        const REAL minv = fmin(a0.y, fmin(a1.y, a2.y)), maxv = fmax(a0.y, fmax(a1.y, a2.y));
+        x0 = (int)ceil(fmax(minu - (REAL)0.5, (REAL)0));
+        y0 = (int)ceil(fmax(minv - (REAL)0.5, (REAL)0));
+        x1 = (int)floor(fmin(maxu - (REAL)0.5, (REAL)(width - 1)));
+        y1 = (int)floor(fmin(maxv - (REAL)0.5, (REAL)(height - 1)));
+        if (maxu - (REAL)0.5 < (REAL)0 || maxv - (REAL)0.5 < (REAL)0 ||
+            minu - (REAL)0.5 > (REAL)(width - 1) || minv - (REAL)0.5 > (REAL)(height - 1))
+            x1 = -1;
+    }
+    int n = 0;
+    if (x0 <= x1 && y0 <= y1) {
+        const int tx0 = x0 / TILE, ty0 = y0 / TILE, tx1 = x1 / TILE, ty1 = y1 / TILE;
+        face_bbox[4 * f] = tx0; face_bbox[4 * f + 1] = ty0;
+        face_bbox[4 * f + 2] = tx1; face_bbox[4 * f + 3] = ty1;
+        for (int ty = ty0; ty <= ty1; ++ty)
+            for (int tx = tx0; tx <= tx1; ++tx)
+                atomic_inc(&tile_count[ty * tiles_x + tx]);
+        n = (tx1 - tx0 + 1) * (ty1 - ty0 + 1);
+    }
+    face_ntiles[f] = n;
+}
+
+__kernel void bin_fill(__global const REAL* vs,         // [N, 3]
+                       __global const int* F,           // [M, 3]
+                       const int m, const int tiles_x,
+                       __global const int* face_ntiles, // [M]
+                       __global const int* face_bbox,   // [M, 4]
+                       __global const int* face_off,    // [M + 1]
+                       __global const int* tile_off,    // [T + 1]
+                       __global int* tile_cursor,       // [T]  zeroed before the call
+                       __global int* entry_face,        // [E]
+                       __global REAL* entry_setup,      // [E, SETUP]
+                       __global int* face_entries)      // [E]
+{
+    const int f = get_global_id(0);
+    if (f >= m || face_ntiles[f] == 0) return;
+    const int i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+    const REAL3 p0 = LOAD3(vs, i0), p1 = LOAD3(vs, i1), p2 = LOAD3(vs, i2);
+    const REAL2 d1 = p1.xy - p0.xy, d2 = p2.xy - p0.xy;
+    const REAL iA = (REAL)1 / cross2(d1, d2);
+    REAL s[SETUP];
+    s[0] = p0.x; s[1] = p0.y;
+    s[2] = (d1.y - d2.y) * iA; s[3] = (d2.x - d1.x) * iA;
+    s[4] = d2.y * iA;          s[5] = -d2.x * iA;
+    s[6] = (REAL)1 / p0.z; s[7] = (REAL)1 / p1.z; s[8] = (REAL)1 / p2.z;
+    const int tx0 = face_bbox[4 * f], ty0 = face_bbox[4 * f + 1];
+    const int tx1 = face_bbox[4 * f + 2], ty1 = face_bbox[4 * f + 3];
+    int j = face_off[f];
+    for (int ty = ty0; ty <= ty1; ++ty)
+        for (int tx = tx0; tx <= tx1; ++tx) {
+            const int t = ty * tiles_x + tx;
+            const int e = tile_off[t] + atomic_inc(&tile_cursor[t]);
+            entry_face[e] = f;
+            for (int q = 0; q < SETUP; ++q) entry_setup[e * SETUP + q] = s[q];
+            face_entries[j++] = e;
+        }
+}
+
+__kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
+                         __global const int* entry_face,    // [E]
+                         __global const REAL* entry_setup,  // [E, SETUP]
+                         const int width, const int height, const int tiles_x,
+                         const int K, const REAL far,
+                         __global int* frag_face,           // [H, W, K]  -1 = empty
+                         __global int* frag_entry,          // [H, W, K]
+                         __global REAL* frag_bary,          // [H, W, K, 2]  lam0, lam1
+                         __global REAL* frag_depth,         // [H, W, K]
+                         __global int* frag_count)          // [H, W]
+{
+    const int tx = get_group_id(0), ty = get_group_id(1);
+    const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
+    if (x >= width || y >= height) return;
+    const int t = ty * tiles_x + tx;
+    const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
+
+    REAL dk[K_MAX];
+    int fk[K_MAX], ek[K_MAX];
+    int cnt = 0;
+    const int e_end = tile_off[t + 1];
+    for (int e = tile_off[t]; e < e_end; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL dx = px - s[0], dy = py - s[1];
+        const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL b1 = s[4] * dx + s[5] * dy;
+        const REAL b2 = (REAL)1 - b0 - b1;
+        if (b0 < (REAL)0 || b1 < (REAL)0 || b2 < (REAL)0) continue;
+        const REAL zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
+        if (!(zp <= far)) continue;
+        const int f = entry_face[e];
+        if (cnt == K && !(zp < dk[K - 1] || (zp == dk[K - 1] && f < fk[K - 1]))) continue;
+        int j = cnt < K ? cnt : K - 1;
+        while (j > 0 && (dk[j - 1] > zp || (dk[j - 1] == zp && fk[j - 1] > f))) {
+            dk[j] = dk[j - 1]; fk[j] = fk[j - 1]; ek[j] = ek[j - 1];
+            --j;
+        }
+        dk[j] = zp; fk[j] = f; ek[j] = e;
+        if (cnt < K) ++cnt;
+    }
+    const int pix = y * width + x;
+    frag_count[pix] = cnt;
+    for (int k = 0; k < K; ++k) {
+        const int o = pix * K + k;
+        if (k < cnt) {
+            __global const REAL* s = entry_setup + ek[k] * SETUP;
+            const REAL dx = px - s[0], dy = py - s[1];
+            const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+            const REAL b1 = s[4] * dx + s[5] * dy;
+            const REAL b2 = (REAL)1 - b0 - b1;
+            const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+            const REAL is = (REAL)1 / (w0 + w1 + w2);
+            frag_face[o] = fk[k];
+            frag_entry[o] = ek[k];
+            frag_bary[2 * o] = w0 * is;
+            frag_bary[2 * o + 1] = w1 * is;
+            frag_depth[o] = dk[k];
+        } else {
+            frag_face[o] = -1;
+            frag_entry[o] = -1;
+            frag_bary[2 * o] = (REAL)0;
+            frag_bary[2 * o + 1] = (REAL)0;
+            frag_depth[o] = (REAL)0;
+        }
+    }
+}
+
+/* Load the screen triangle of face f. */
+inline void load_tri(__global const REAL* vs, __global const int* F, int f,
+                     REAL2* a0, REAL2* a1, REAL2* a2, REAL3* z)
+{
+    const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
+    *a0 = p0.xy; *a1 = p1.xy; *a2 = p2.xy;
+    *z = (REAL3)(p0.z, p1.z, p2.z);
+}
+
+__kernel void raster_bwd(__global const REAL* vs,           // [N, 3]
+                         __global const int* F,             // [M, 3]
+                         __global const int* tile_off,      // [T + 1]
+                         __global const int* frag_face,     // [H, W, K]
+                         __global const int* frag_entry,    // [H, W, K]
+                         __global const int* frag_count,    // [H, W]
+                         __global const REAL* v_bary,       // [H, W, K, 2]  (if has_bary)
+                         __global const REAL* v_depth,      // [H, W, K]     (if has_depth)
+                         __global const REAL* v_win,        // [H, W, K]     (if has_win)
+                         const int has_bary, const int has_depth, const int has_win,
+                         const REAL sigma,
+                         const int width, const int height, const int tiles_x, const int num_tiles,
+                         const int K,
+                         __global REAL* partial,            // [E, 3, 3]  v_(u, v, z) per corner
+                         __global REAL* v_sigma_tile)       // [T]
+{
+    const int t = get_global_id(0);
+    if (t >= num_tiles) return;
+    const int e0 = tile_off[t], e1 = tile_off[t + 1];
+    for (int q = e0 * 9; q < e1 * 9; ++q) partial[q] = (REAL)0;
+    REAL vsig = (REAL)0;
+    const int tx = t % tiles_x, ty = t / tiles_x;
+    const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
+    for (int y = ty * TILE; y < ye; ++y)
+        for (int x = tx * TILE; x < xe; ++x) {
+            const int pix = y * width + x;
+            const int cnt = frag_count[pix];
+            const REAL2 p = (REAL2)((REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5);
+            for (int k = 0; k < cnt; ++k) {
+                const int o = pix * K + k;
+                const REAL vb0 = has_bary ? v_bary[2 * o] : (REAL)0;
+                const REAL vb1 = has_bary ? v_bary[2 * o + 1] : (REAL)0;
+                const REAL vzp = has_depth ? v_depth[o] : (REAL)0;
+                const REAL vw = has_win ? v_win[o] : (REAL)0;
+                if (vb0 == (REAL)0 && vb1 == (REAL)0 && vzp == (REAL)0 && vw == (REAL)0) continue;
+                REAL2 a0, a1, a2;
+                REAL3 z;
+                load_tri(vs, F, frag_face[o], &a0, &a1, &a2, &z);
+                REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
+                REAL3 gz = (REAL3)(0, 0, 0);
+                if (vb0 != (REAL)0 || vb1 != (REAL)0 || vzp != (REAL)0) {
+                    REAL vl[3] = {vb0, vb1, (REAL)0};
+                    bary_persp_vjp(p, a0, a1, a2, z, vl, vzp, &g0, &g1, &g2, &gz);
+                }
+                if (vw != (REAL)0)
+                    vsig += edge_window_vjp(p, a0, a1, a2, sigma, vw, &g0, &g1, &g2);
+                __global REAL* d = partial + frag_entry[o] * 9;
+                d[0] += g0.x; d[1] += g0.y; d[2] += gz.x;
+                d[3] += g1.x; d[4] += g1.y; d[5] += gz.y;
+                d[6] += g2.x; d[7] += g2.y; d[8] += gz.z;
+            }
+        }
+    v_sigma_tile[t] = vsig;
+}
+
+__kernel void gather_vertex(__global const REAL* partial,      // [E, 3, C]
+                            __global const int* face_off,      // [M + 1]
+                            __global const int* face_entries,  // [E]
+                            __global const int* csr_off,       // [N + 1]
+                            __global const int* csr_corner,    // [3M]  3 * face + corner
+                            const int n, const int C,
+                            __global REAL* out)                // [N, C]
+{
+    const int v = get_global_id(0), c = get_global_id(1);
+    if (v >= n || c >= C) return;
+    REAL acc = (REAL)0;
+    for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
+        const int corner = csr_corner[q];
+        const int f = corner / 3, i = corner - 3 * f;
+        for (int j = face_off[f]; j < face_off[f + 1]; ++j)
+            acc += partial[(face_entries[j] * 3 + i) * C + c];
+    }
+    out[v * C + c] = acc;
+}

@@ -1,0 +1,1 @@
+"""numpy references of the OpenCL ops (one module per op family)."""

@@ -1,0 +1,429 @@
+"""Rasterization chain: project → bin → K-nearest raster → interpolate → coverage → composite.
+
+Each op: forward against the numpy reference (tests/reference/raster.py), adjoint against the
+reference through a random cotangent, and the whole chain against float64 central differences of
+the kernels themselves (perturbations small enough not to change coverage; checked).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.reference import raster as ref
+from triplet_cl.camera import Camera
+from triplet_cl.ops.composite import composite, composite_backward, coverage
+from triplet_cl.ops.interpolate import interpolate, interpolate_backward
+from triplet_cl.ops.mesh import DeviceMesh
+from triplet_cl.ops.raster import (camera_params, project, project_backward, raster_backward, rasterize,
+                                   read_fragments)
+
+W, H = 23, 19
+
+
+def soup(rng, M=40, spread=0.6, size=0.25, z0=0.0):
+    c = rng.uniform(-spread, spread, (M, 1, 3)) + np.array([0, 0, z0])
+    V = (c + rng.normal(0, size, (M, 3, 3))).reshape(-1, 3)
+    return V, np.arange(3 * M).reshape(M, 3)
+
+
+def cam(w=W, h=H):
+    return Camera.look_at([0.3, -0.2, 3.0], [0, 0, 0], [0, 1, 0], 45, w, h)
+
+
+def run_raster(device, V, F, K, real=np.float64, camera=None, **kw):
+    camera = camera or cam()
+    mesh = DeviceMesh(device, F, len(V))
+    vs = project(device, np.asarray(V, real), camera)
+    fr = rasterize(device, vs, mesh, camera.width, camera.height, K, **kw)
+    return camera, mesh, vs, fr
+
+
+# ------------------------------------------------------------------------------------------------ project
+
+
+def test_project_forward_and_adjoint(device64, rng):
+    V, _ = soup(rng)
+    c = cam()
+    vs = project(device64, V, c).get()
+    np.testing.assert_allclose(vs, ref.project_ref(V, camera_params(c, np.float64)), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(vs, c.project_points(V), rtol=1e-12, atol=1e-9)
+    v = rng.standard_normal(vs.shape)
+    v_V, v_w2c = project_backward(device64, V, c, v, pose_grad=True)
+    eps = 1e-6
+    num = np.zeros_like(V)
+    for i in range(V.shape[0]):
+        for j in range(3):
+            Vp, Vm = V.copy(), V.copy()
+            Vp[i, j] += eps
+            Vm[i, j] -= eps
+            num[i, j] = ((ref.project_ref(Vp, camera_params(c, np.float64)) -
+                          ref.project_ref(Vm, camera_params(c, np.float64))) * v).sum() / (2 * eps)
+    np.testing.assert_allclose(v_V.get(), num, rtol=1e-6, atol=1e-6)
+    # pose gradient: perturb the 3x4 block of w2c
+    for i, j in [(0, 0), (1, 2), (2, 1), (0, 3), (2, 3)]:
+        Wp, Wm = c.w2c.copy(), c.w2c.copy()
+        Wp[i, j] += eps
+        Wm[i, j] -= eps
+        cp = camera_params(c, np.float64)
+        cm = cp.copy()
+        cp[(i * 3 + j) if j < 3 else 9 + i] += eps
+        cm[(i * 3 + j) if j < 3 else 9 + i] -= eps
+        fd = ((ref.project_ref(V, cp) - ref.project_ref(V, cm)) * v).sum() / (2 * eps)
+        assert v_w2c[i, j] == pytest.approx(fd, rel=1e-6, abs=1e-6)
+
+
+def test_project_float32_matches(device, rng):
+    V, _ = soup(rng)
+    c = cam()
+    vs = project(device, V.astype(np.float32), c).get()
+    assert vs.dtype == np.float32
+    np.testing.assert_allclose(vs, c.project_points(V), rtol=1e-5, atol=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------ raster
+
+
+@pytest.mark.parametrize("K", [1, 4, 30])
+def test_raster_forward_matches_reference_float64(device64, rng, K):
+    V, F = soup(rng, M=60)
+    c, mesh, vs, fr = run_raster(device64, V, F, K)
+    h = read_fragments(fr)
+    face, bary, depth, count = ref.raster_ref(vs.get(), F, W, H, K)
+    assert h["count"].sum() > 50, "the scene must produce fragments"
+    np.testing.assert_array_equal(h["count"], count)
+    np.testing.assert_array_equal(h["face"], face)
+    np.testing.assert_allclose(h["bary"], bary, atol=1e-9)
+    np.testing.assert_allclose(h["depth"], depth, rtol=1e-12)
+    if K == 30:
+        assert count.max() < K, "K larger than the faces at every pixel: slots stay empty"
+        assert (h["face"][..., count.max():] == -1).all()
+
+
+def test_raster_forward_float32_agrees(device, rng):
+    V, F = soup(rng, M=60)
+    c, mesh, vs, fr = run_raster(device, V, F, 8, real=np.float32)
+    h = read_fragments(fr)
+    face, bary, depth, count = ref.raster_ref(vs.get(), F, W, H, 8)
+    # float32 edge functions may flip pixels whose centre lies within ~1e-5 px of an edge
+    assert (h["face"] != face).any(axis=-1).mean() < 0.01
+    same = (h["face"] == face) & (face >= 0)
+    np.testing.assert_allclose(h["bary"][same], bary[same], atol=2e-4)
+    np.testing.assert_allclose(h["depth"][same], depth[same], rtol=1e-5)
+
+
+def test_raster_many_tiles_and_large_K(device, rng):
+    """Dense scene spanning many tiles, K=150 (the method's warm-up setting)."""
+    V, F = soup(rng, M=2000, spread=0.5, size=0.4)
+    c = cam(70, 45)
+    _, _, vs, fr = run_raster(device, V, F, 150, real=np.float32, camera=c)
+    h = read_fragments(fr)
+    face, _, depth, count = ref.raster_ref(vs.get(), F, 70, 45, 150)
+    assert count.max() > 30
+    assert (h["count"] != count).mean() < 0.01
+    ok = h["count"] == count
+    np.testing.assert_array_equal((h["face"] >= 0)[ok], (face >= 0)[ok])
+
+
+def test_raster_empty_and_degenerate(device):
+    c = cam()
+    # no faces at all
+    _, _, _, fr = run_raster(device, np.zeros((0, 3)), np.zeros((0, 3), np.int32), 4, camera=c)
+    h = read_fragments(fr)
+    assert (h["count"] == 0).all() and (h["face"] == -1).all()
+    # degenerate faces: repeated vertex, collinear vertices
+    V = np.array([[0, 0, 0], [0, 0, 0], [0.5, 0.2, 0], [-0.5, -0.5, 0], [0, 0, 0], [0.5, 0.5, 0]], float)
+    _, _, _, fr = run_raster(device, V, np.array([[0, 1, 2], [3, 4, 5]]), 4, camera=c)
+    assert (read_fragments(fr)["count"] == 0).all()
+
+
+def test_raster_near_plane_culls_and_behind_camera(device):
+    c = Camera.look_at([0, 0, 2], [0, 0, 0], [0, 1, 0], 60, W, H, near=0.1)
+    big = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], float)
+    behind = big + [0, 0, 3.0]  # z = 3 in world = 1 unit behind the camera
+    crossing = np.array([[-0.3, -0.3, 1.0], [0.3, -0.3, 1.0], [0, 0.3, 2.5]])  # one vertex behind
+    V = np.concatenate([big, behind, crossing])
+    F = np.arange(9).reshape(3, 3)
+    _, _, _, fr = run_raster(device, V, F, 4, camera=c)
+    h = read_fragments(fr)
+    assert set(np.unique(h["face"])) <= {-1, 0}, "only the face in front is drawn"
+    assert (h["face"] == 0).sum() > 20
+
+
+def test_raster_face_covering_whole_screen_and_culling(device):
+    c = Camera.look_at([0, 0, 2], [0, 0, 0], [0, 1, 0], 60, W, H)
+    V = np.array([[-50, -50, 0], [50, -50, 0], [0, 50, 0]], float)
+    _, _, vs, fr = run_raster(device, V, np.array([[0, 1, 2]]), 2, camera=c)
+    h = read_fragments(fr)
+    assert (h["count"] == 1).all() and (h["face"][..., 0] == 0).all()
+    np.testing.assert_allclose(h["depth"][..., 0], 2.0, rtol=1e-12)
+    # this face's normal (+z) points towards the camera at z=2: front-facing, kept by culling;
+    # the reversed winding is back-facing and culled only when asked
+    _, _, _, fr = run_raster(device, V, np.array([[0, 1, 2]]), 2, camera=c, cull_backface=True)
+    assert (read_fragments(fr)["count"] == 1).all()
+    _, _, _, fr = run_raster(device, V, np.array([[0, 2, 1]]), 2, camera=c, cull_backface=True)
+    assert (read_fragments(fr)["count"] == 0).all()
+    _, _, _, fr = run_raster(device, V, np.array([[0, 2, 1]]), 2, camera=c)
+    assert (read_fragments(fr)["count"] == 1).all()
+
+
+# ------------------------------------------------------------------------------------------------ interpolate
+
+
+def test_interpolate_forward_and_vjp(device64, rng):
+    V, F = soup(rng, M=50)
+    _, mesh, vs, fr = run_raster(device64, V, F, 6)
+    h = read_fragments(fr)
+    attr = rng.standard_normal((len(V), 5))
+    out = interpolate(device64, attr, fr).get()
+    np.testing.assert_allclose(out, ref.interpolate_ref(attr, F, h["face"], h["bary"]), atol=1e-12)
+    v = rng.standard_normal(out.shape)
+    v_attr, v_bary = interpolate_backward(device64, attr, fr, v)
+    ra, rb = ref.interpolate_vjp_ref(attr, F, h["face"], h["bary"], v)
+    np.testing.assert_allclose(v_attr.get(), ra, atol=1e-10)
+    np.testing.assert_allclose(v_bary.get(), rb, atol=1e-10)
+
+
+def test_interpolate_shared_vertices(device64, rng):
+    """A connected grid: vertices shared by up to 6 faces gather every corner's adjoint."""
+    n = 6
+    g = np.stack(np.meshgrid(np.linspace(-1, 1, n), np.linspace(-0.8, 0.8, n)), -1).reshape(-1, 2)
+    V = np.concatenate([g, 0.1 * np.sin(3 * g[:, :1])], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    F = np.concatenate([np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:]], -1).reshape(-1, 3),
+                        np.stack([idx[:-1, :-1], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 3)])
+    _, mesh, vs, fr = run_raster(device64, V, F, 3)
+    h = read_fragments(fr)
+    attr = rng.standard_normal((len(V), 3))
+    v = rng.standard_normal((H, W, 3, 3))
+    v_attr, _ = interpolate_backward(device64, attr, fr, v)
+    ra, _ = ref.interpolate_vjp_ref(attr, F, h["face"], h["bary"], v)
+    assert h["count"].sum() > 100
+    np.testing.assert_allclose(v_attr.get(), ra, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------ coverage + geometry adjoint
+
+
+def test_coverage_forward(device64, rng):
+    V, F = soup(rng, M=50)
+    _, _, vs, fr = run_raster(device64, V, F, 6)
+    h = read_fragments(fr)
+    win = coverage(device64, fr, 0.7).get()
+    r = ref.fragment_geometry_ref(vs.get(), F, h["face"], sigma=0.7)
+    np.testing.assert_allclose(win, r["win"], atol=1e-12)
+    assert (win[h["face"] >= 0] > 0).mean() > 0.9 and (win <= 1).all()
+    # sigma -> infinity is the hard edge: every covered fragment gets weight 1
+    hard = coverage(device64, fr, 1e9).get()
+    assert np.allclose(hard[(h["face"] >= 0) & (r["win"] > 0)], 1.0)
+
+
+def test_raster_backward_vjp_matches_reference_fd(device64, rng):
+    """Adjoint of (barycentrics, depth, window) w.r.t. projected vertices vs central differences of
+    the independent numpy formulas, on the kernel's own fragments."""
+    V, F = soup(rng, M=25)
+    _, _, vs, fr = run_raster(device64, V, F, 4)
+    h = read_fragments(fr)
+    sigma = 0.8
+    v_b = rng.standard_normal((H, W, 4, 2))
+    v_d = rng.standard_normal((H, W, 4))
+    v_w = rng.standard_normal((H, W, 4))
+    v_vs, v_sigma = raster_backward(device64, fr, v_bary=v_b, v_depth=v_d, v_win=v_w, sigma=sigma)
+    vs0 = vs.get()
+
+    def loss(vsx, s=sigma):
+        r = ref.fragment_geometry_ref(vsx, F, h["face"], sigma=s)
+        return (r["bary"] * v_b).sum() + (r["depth"] * v_d).sum() + (r["win"] * v_w).sum()
+
+    eps = 1e-6
+    num = np.zeros_like(vs0)
+    for i in range(vs0.shape[0]):
+        for j in range(3):
+            p, m = vs0.copy(), vs0.copy()
+            p[i, j] += eps
+            m[i, j] -= eps
+            num[i, j] = (loss(p) - loss(m)) / (2 * eps)
+    np.testing.assert_allclose(v_vs.get(), num, rtol=1e-5, atol=1e-5)
+    assert v_sigma == pytest.approx((loss(vs0, sigma + eps) - loss(vs0, sigma - eps)) / (2 * eps), rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ composite
+
+
+def _frag_inputs(device, rng, K=5, real=np.float64):
+    V, F = soup(rng, M=50)
+    _, _, vs, fr = run_raster(device, V, F, K, real=real)
+    h = read_fragments(fr)
+    C = 4
+    feat = rng.uniform(0, 1, (H, W, K, C))
+    alpha = rng.uniform(0.05, 0.95, (H, W, K))
+    valid = h["face"] >= 0
+    return fr, h, np.where(valid[..., None], feat, 0), np.where(valid, alpha, 0)
+
+
+def test_composite_forward_and_vjp(device64, rng):
+    fr, h, feat, alpha = _frag_inputs(device64, rng)
+    bg = np.array([1.0, 0.5, 0.25, 0.0])
+    img, trans, ncon = composite(device64, fr, feat, alpha, bg, t_min=0.0)
+    r_img, r_trans, r_n = ref.composite_ref(feat, alpha, h["count"], bg)
+    np.testing.assert_allclose(img.get(), r_img, atol=1e-12)
+    np.testing.assert_allclose(trans.get(), r_trans, atol=1e-12)
+    np.testing.assert_array_equal(ncon.get(), r_n)
+    v_img = rng.standard_normal(r_img.shape)
+    v_acc = rng.standard_normal(r_trans.shape)
+    v_feat, v_alpha, v_win, v_bg = composite_backward(device64, fr, feat, alpha, bg, ncon, trans, v_img, v_acc)
+    rf, ra = ref.composite_vjp_ref(feat, alpha, h["count"], bg, v_img, v_acc)
+    np.testing.assert_allclose(v_feat.get(), rf, atol=1e-12)
+    np.testing.assert_allclose(v_alpha.get(), ra, atol=1e-10)
+    np.testing.assert_allclose(v_bg, (v_img * r_trans[..., None]).reshape(-1, 4).sum(0), rtol=1e-12)
+    assert v_win is None
+
+
+def test_composite_with_window_and_early_stop(device64, rng):
+    fr, h, feat, alpha = _frag_inputs(device64, rng)
+    win = coverage(device64, fr, 1.3)
+    bg = np.zeros(4)
+    img, trans, ncon = composite(device64, fr, feat, alpha, bg, win=win, t_min=0.3)
+    a_eff = alpha * win.get()
+    r_img, r_trans, r_n = ref.composite_ref(feat, a_eff, h["count"], bg, t_min=0.3)
+    np.testing.assert_allclose(img.get(), r_img, atol=1e-12)
+    np.testing.assert_array_equal(ncon.get(), r_n)
+    assert (r_n < h["count"]).any(), "early termination must trigger somewhere in this scene"
+    v_img = rng.standard_normal(r_img.shape)
+    v_feat, v_alpha, v_win, _ = composite_backward(device64, fr, feat, alpha, bg, ncon, trans, v_img, win=win)
+    rf, ra = ref.composite_vjp_ref(feat, a_eff, h["count"], bg, v_img, t_min=0.3)
+    np.testing.assert_allclose(v_feat.get(), rf, atol=1e-12)
+    np.testing.assert_allclose(v_alpha.get(), ra * win.get(), atol=1e-10)
+    np.testing.assert_allclose(v_win.get(), ra * alpha, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------ whole chain
+
+
+def render_chain(device, V, F, col, alv, sigma, K, bg, camera, want_grad=None):
+    """Forward (and optionally backward) of the whole chain, float64. Returns image, fragments, grads."""
+    mesh = DeviceMesh(device, F, len(V))
+    vs = project(device, V, camera)
+    fr = rasterize(device, vs, mesh, camera.width, camera.height, K)
+    feat = interpolate(device, col, fr)
+    a = interpolate(device, alv, fr).reshape(fr.shape)
+    win = coverage(device, fr, sigma)
+    img, trans, ncon = composite(device, fr, feat, a, bg, win=win, t_min=0.0)
+    if want_grad is None:
+        return img.get(), read_fragments(fr)
+    v_feat, v_a, v_win, _ = composite_backward(device, fr, feat, a, bg, ncon, trans, want_grad, win=win)
+    v_col, vb1 = interpolate_backward(device, col, fr, v_feat)
+    v_alv, vb2 = interpolate_backward(device, alv, fr, v_a.reshape(*fr.shape, 1))
+    v_vs, v_sigma = raster_backward(device, fr, v_bary=vb1 + vb2, v_win=v_win, sigma=sigma)
+    v_V = project_backward(device, V, camera, v_vs)
+    return img.get(), read_fragments(fr), {"V": v_V.get(), "col": v_col.get(), "alpha": v_alv.get(),
+                                           "sigma": v_sigma}
+
+
+def test_whole_chain_central_differences(device64, rng):
+    """d(sum(image * v)) / d{positions, colours, alphas, sigma} against float64 central differences."""
+    V, F = soup(rng, M=12, size=0.35)
+    c = cam(17, 13)
+    col = rng.uniform(0, 1, (len(V), 3))
+    alv = rng.uniform(0.2, 0.8, (len(V), 1))
+    sigma, K, bg = 0.9, 6, np.array([0.2, 0.7, 1.0])
+    v = rng.standard_normal((13, 17, 3))
+    img, fr0, g = render_chain(device64, V, F, col, alv, sigma, K, bg, c, want_grad=v)
+    assert fr0["count"].sum() > 40
+
+    def f(Vx=V, colx=col, alx=alv, s=sigma):
+        im, frx = render_chain(device64, Vx, F, colx, alx, s, K, bg, c)
+        stable = np.array_equal(frx["face"], fr0["face"])
+        return (im * v).sum(), stable
+
+    eps = 1e-6
+    checked = 0
+    for name, x in (("V", V), ("col", col), ("alpha", alv)):
+        num = np.zeros_like(x)
+        mask = np.ones(x.shape, bool)
+        for idx in np.ndindex(*x.shape):
+            xp, xm = x.copy(), x.copy()
+            xp[idx] += eps
+            xm[idx] -= eps
+            (lp, sp), (lm, sm) = f(**{{"V": "Vx", "col": "colx", "alpha": "alx"}[name]: xp}), \
+                f(**{{"V": "Vx", "col": "colx", "alpha": "alx"}[name]: xm})
+            mask[idx] = sp and sm
+            num[idx] = (lp - lm) / (2 * eps)
+        assert mask.mean() > 0.95, f"{name}: perturbations must rarely change coverage"
+        np.testing.assert_allclose(g[name][mask], num[mask], rtol=1e-5, atol=1e-6, err_msg=name)
+        checked += mask.sum()
+    (lp, _), (lm, _) = f(s=sigma + eps), f(s=sigma - eps)
+    assert g["sigma"] == pytest.approx((lp - lm) / (2 * eps), rel=1e-5)
+    assert np.abs(g["V"]).sum() > 0 and checked > 100
+
+
+def test_backward_is_deterministic(device, rng):
+    V, F = soup(rng, M=300, size=0.3)
+    V = V.astype(np.float32)
+    col = rng.uniform(0, 1, (len(V), 3)).astype(np.float32)
+    alv = np.full((len(V), 1), 0.6, np.float32)
+    c = cam(40, 32)
+    v = rng.standard_normal((32, 40, 3)).astype(np.float32)
+    _, _, g1 = render_chain(device, V, F, col, alv, 1.0, 8, np.zeros(3), c, want_grad=v)
+    _, _, g2 = render_chain(device, V, F, col, alv, 1.0, 8, np.zeros(3), c, want_grad=v)
+    for k in ("V", "col", "alpha"):
+        np.testing.assert_array_equal(g1[k], g2[k])
+
+
+# ------------------------------------------------------------------------------------------------ validation
+
+
+def test_validation_errors(device, rng):
+    c = cam()
+    with pytest.raises(ValueError, match="V must have shape"):
+        project(device, np.zeros((4, 2), np.float32), c)
+    with pytest.raises(ValueError, match="finite"):
+        project(device, np.full((2, 3), np.nan, np.float32), c)
+    with pytest.raises(ValueError, match="floating"):
+        project(device, np.zeros((2, 3), np.int32), c)
+    with pytest.raises(ValueError, match=r"faces indices must lie in \[0, 2\]"):
+        DeviceMesh(device, np.array([[0, 1, 3]]), 3)
+    with pytest.raises(ValueError, match="faces must be an integer"):
+        DeviceMesh(device, np.zeros((1, 3), np.float32), 3)
+    V, F = soup(rng, M=3)
+    mesh = DeviceMesh(device, F, len(V))
+    vs = project(device, V.astype(np.float32), c)
+    with pytest.raises(ValueError, match="K must be in"):
+        rasterize(device, vs, mesh, W, H, 0)
+    with pytest.raises(ValueError, match="near < far"):
+        rasterize(device, vs, mesh, W, H, 2, near=1.0, far=0.5)
+    fr = rasterize(device, vs, mesh, W, H, 2)
+    with pytest.raises(ValueError, match="attr must have shape"):
+        interpolate(device, np.zeros((len(V) + 1, 2), np.float32), fr)
+    with pytest.raises(ValueError, match="sigma"):
+        coverage(device, fr, -1.0)
+    with pytest.raises(ValueError, match="alpha must have shape"):
+        composite(device, fr, np.zeros((H, W, 2, 3), np.float32), np.zeros((H, W, 3), np.float32), 0.0)
+
+
+def test_camera_conventions():
+    # NeRF camera at +Z looking at the origin (identity rotation in Blender convention)
+    c2w = np.eye(4)
+    c2w[2, 3] = 3.0
+    cn = Camera.from_nerf(c2w, 100, 80, camera_angle_x=np.radians(40))
+    cl = Camera.look_at([0, 0, 3], [0, 0, 0], [0, 1, 0], 40, 100, 80)
+    pts = np.array([[0.3, 0.2, 0.1], [-0.4, 0.5, -0.2]])
+    np.testing.assert_allclose(cn.project_points(pts), cl.project_points(pts), atol=1e-9)
+    assert cn.project_points(np.array([[0.5, 0, 0]]))[0, 0] > 50, "+X world appears to the right"
+    assert cn.project_points(np.array([[0, 0.5, 0]]))[0, 1] < 40, "+Y world appears upwards"
+    np.testing.assert_allclose(cn.center, [0, 0, 3])
+    # COLMAP: w2c rotation from the quaternion, same camera
+    from scipy.spatial.transform import Rotation
+
+    q_xyzw = Rotation.from_matrix(cl.w2c[:3, :3]).as_quat()
+    cc = Camera.from_colmap([q_xyzw[3], *q_xyzw[:3]], cl.w2c[:3, 3], cl.fx, cl.fy, cl.cx, cl.cy, 100, 80)
+    np.testing.assert_allclose(cc.project_points(pts), cl.project_points(pts), atol=1e-9)
+    co = Camera.from_opencv([[cl.fx, 0, 49.5], [0, cl.fy, 39.5], [0, 0, 1]], cl.w2c, 100, 80)
+    np.testing.assert_allclose(co.project_points(pts), cl.project_points(pts), atol=1e-9)
+    half = cn.scaled(0.5)
+    assert (half.width, half.height) == (50, 40)
+    np.testing.assert_allclose(half.project_points(pts)[:, :2], cn.project_points(pts)[:, :2] / 2, atol=1e-9)
+    with pytest.raises(ValueError, match="w2c must be a 4x4"):
+        Camera(1, 1, 0, 0, 2, 2, np.eye(3)[:2])
+    with pytest.raises(ValueError, match="near < far"):
+        Camera(1, 1, 0, 0, 2, 2, np.eye(4), near=2, far=1)

@@ -1,0 +1,409 @@
+"""Image losses with adjoints (DESIGN.md sections 4 and 5). Images are ``[H, W, C]``.
+
+===================  ======================================================================
+loss                 definition
+===================  ======================================================================
+``l1_loss``          ``mean |pred - target|`` over all ``H·W·C`` entries
+``ssim``             mean SSIM map, 11×11 Gaussian window (σ = 1.5), C1 = 0.01², C2 = 0.03²
+``photometric_loss`` ``(1 − λ)·L1 + λ·(1 − SSIM)``, λ = 0.2 (the method's and 3DGS's loss)
+``image_tv``         ``Σ_c Σ_{i<H-1, j≥1} sqrt((x[i,j−1] − x[i,j])² + (x[i+1,j] − x[i,j])² + eps)``
+``normal_consistency`` ``mean_pixels Σ_k w_k (1 − n_kᵀ N)`` (soup fragments vs rendered normal)
+===================  ======================================================================
+
+SSIM follows 3D Gaussian Splatting's ``ssim()``: per channel, the local means, variances and
+covariance are Gaussian-filtered with an 11-tap separable window (σ = 1.5, normalised to 1),
+"same"-size output with **zero padding** (3DGS's ``conv2d(padding=5)``), the map
+``((2μxμy + C1)(2σxy + C2)) / ((μx² + μy² + C1)(σx² + σy² + C2))`` (population moments,
+``σx² = G*x² − μx²``) averaged over every pixel and channel (``padding="zero"``).
+``padding="valid"`` averages only over pixels at least 5 px from the border: that is what
+``skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=1, channel_axis=-1)`` returns (skimage filters with
+reflect padding and then crops 5 px, so the padding never reaches the pixels it averages).
+The data range is 1 (images in [0, 1]).
+
+Adjoint of SSIM: with ``A1 = 2μxμy + C1``, ``A2 = 2(sxy − μxμy) + C2``, ``B1 = μx² + μy² + C1``,
+``B2 = sxx − μx² + syy − μy² + C2`` (``s·· = G * (··)`` raw second moments) and the map
+``m = A1 A2 / (B1 B2)``, each pixel's weight ``g = v / count`` (0 outside the averaged region)
+gives ``∂A1 = g A2/(B1 B2)``, ``∂A2 = g A1/(B1 B2)``, ``∂B1 = −g m/B1``, ``∂B2 = −g m/B2``,
+``∂μx = 2μy(∂A1 − ∂A2) + 2μx(∂B1 − ∂B2)``, ``∂sxx = ∂B2``, ``∂sxy = 2∂A2``; because the
+zero-padded symmetric Gaussian filter is its own transpose, ``v_x = G*∂μx + 2x·G*∂sxx + y·G*∂sxy``
+(and symmetrically for ``v_y``).
+
+Backends: ``"numpy"`` (scipy.ndimage separable filters, vectorised numpy) and ``"opencl"``
+(``kernels_cl/losses.cl``, images on a device). ``backend=None`` picks the kind of the input: device
+arrays run on the device (no download), host arrays on the host — measured by ``bench/losses.py``.
+
+Every function validates its inputs and raises ``ValueError`` naming the argument (shape, dims,
+dtype, NaN/Inf on host data).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import scipy.ndimage
+
+from triplet_cl.autodiff import Function
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+SSIM_RADIUS = SSIM_WINDOW // 2
+DEFAULT_LAMBDA = 0.2
+TV_EPS = 1e-8
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+# ---------------------------------------------------------------------------------------------
+def _check_array(name: str, a, ndim: int | None = None):
+    """A floating host array (finite) or device array; ``ValueError`` naming ``name`` otherwise."""
+    if isinstance(a, cla.Array):
+        if a.dtype not in (np.float32, np.float64):
+            raise ValueError(f"{name} must be a float32/float64 device array, got {a.dtype}")
+        out = a
+    else:
+        out = np.asarray(a)
+        if out.dtype.kind != "f":
+            raise ValueError(f"{name} must be a floating-point array, got dtype {out.dtype}")
+        if out.size and not np.isfinite(out).all():
+            raise ValueError(f"{name} must be finite, found {int((~np.isfinite(out)).sum())} NaN/Inf value(s)")
+    if ndim is not None and len(out.shape) != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {list(out.shape)}")
+    return out
+
+
+def _check_image(name: str, img, min_size: int = 1):
+    img = _check_array(name, img, ndim=3)
+    h, w, c = img.shape
+    if h < min_size or w < min_size or c < 1:
+        raise ValueError(f"{name} must have shape [H>={min_size}, W>={min_size}, C>=1], got {list(img.shape)}")
+    return img
+
+
+def _check_pair(pred, target, min_size: int = 1):
+    pred = _check_image("pred", pred, min_size)
+    target = _check_image("target", target, min_size)
+    if tuple(pred.shape) != tuple(target.shape):
+        raise ValueError(f"target must have the shape of pred {list(pred.shape)}, got {list(target.shape)}")
+    if isinstance(pred, cla.Array) != isinstance(target, cla.Array):
+        raise ValueError("pred and target must both be host arrays or both device arrays")
+    return pred, target
+
+
+def _float_dtype(*arrays):
+    return np.result_type(*[a.dtype for a in arrays], np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# L1
+# ---------------------------------------------------------------------------------------------
+def _l1_fwd(pred, target):
+    return np.asarray(np.mean(np.abs(pred - target), dtype=np.float64))
+
+
+def _l1_bwd(pred, target, v):
+    v_pred = np.sign(pred - target) * (float(v) / pred.size)
+    return v_pred.astype(_float_dtype(pred, target), copy=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# SSIM (numpy)
+# ---------------------------------------------------------------------------------------------
+def gaussian_window_1d(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.ndarray:
+    """``[size]`` float64 Gaussian taps ``exp(−(k − size//2)² / 2σ²)`` normalised to sum 1 (3DGS)."""
+    k = np.arange(size, dtype=np.float64) - size // 2
+    g = np.exp(-(k**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+def gaussian_filter_zero(x: np.ndarray, window: np.ndarray | None = None) -> np.ndarray:
+    """``[H, W, ...] -> [H, W, ...]``: separable Gaussian over axes 0 and 1, zero padding, same size.
+
+    Symmetric taps + zero padding make this linear map its own transpose (used by the adjoints).
+    """
+    w = gaussian_window_1d() if window is None else window
+    w = w.astype(x.dtype)
+    out = scipy.ndimage.correlate1d(x, w, axis=0, mode="constant", cval=0.0)
+    return scipy.ndimage.correlate1d(out, w, axis=1, mode="constant", cval=0.0)
+
+
+def _ssim_mask(shape, padding: str) -> tuple[tuple[slice, slice], int]:
+    """The averaged region (rows, cols) and its entry count for ``padding`` ("zero" or "valid")."""
+    h, w, c = shape
+    if padding == "zero":
+        return (slice(0, h), slice(0, w)), h * w * c
+    if padding == "valid":
+        r = SSIM_RADIUS
+        if h <= 2 * r or w <= 2 * r:
+            raise ValueError(f"padding='valid' needs images larger than {2 * r}×{2 * r}, got {list(shape)}")
+        return (slice(r, h - r), slice(r, w - r)), (h - 2 * r) * (w - 2 * r) * c
+    raise ValueError(f"padding must be 'zero' (3DGS) or 'valid' (skimage), got {padding!r}")
+
+
+def _ssim_fwd(pred: np.ndarray, target: np.ndarray, padding: str):
+    """SSIM value and what the adjoint needs (the filtered moments and the A/B factors)."""
+    region, count = _ssim_mask(pred.shape, padding)
+    c = pred.shape[2]
+    dtype = _float_dtype(pred, target)
+    x, y = pred.astype(dtype, copy=False), target.astype(dtype, copy=False)
+    f = gaussian_filter_zero(np.concatenate([x, y, x * x, y * y, x * y], axis=2))
+    mu_x, mu_y, s_xx, s_yy, s_xy = (f[..., k * c:(k + 1) * c] for k in range(5))
+    mu_xy = mu_x * mu_y
+    a1 = 2.0 * mu_xy + SSIM_C1
+    a2 = 2.0 * (s_xy - mu_xy) + SSIM_C2
+    b1 = mu_x * mu_x + mu_y * mu_y + SSIM_C1
+    b2 = (s_xx + s_yy - mu_x * mu_x - mu_y * mu_y) + SSIM_C2
+    ssim_map = (a1 * a2) / (b1 * b2)
+    value = np.asarray(np.sum(ssim_map[region], dtype=np.float64) / count)
+    return value, (x, y, mu_x, mu_y, a1, a2, b1, b2, ssim_map, region, count)
+
+
+def _ssim_bwd(saved, v, need_target: bool = True):
+    """``(v_pred, v_target)`` of the mean SSIM for the scalar adjoint ``v`` (see module docstring)."""
+    x, y, mu_x, mu_y, a1, a2, b1, b2, ssim_map, region, count = saved
+    g = np.zeros_like(ssim_map)
+    g[region] = float(v) / count
+    d = g / (b1 * b2)
+    d_a1, d_a2 = d * a2, d * a1  # ∂m/∂A1, ∂m/∂A2 (times g)
+    d_b1, d_b2 = -g * ssim_map / b1, -g * ssim_map / b2
+    # A1, A2, B1, B2 through μx, μy, sxx (=syy share ∂B2), sxy
+    d_mu_x = 2.0 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
+    maps = [d_mu_x, d_b2, 2.0 * d_a2]
+    if need_target:
+        maps.append(2.0 * (mu_x * (d_a1 - d_a2) + mu_y * (d_b1 - d_b2)))
+    c = x.shape[2]
+    f = gaussian_filter_zero(np.concatenate(maps, axis=2))
+    f_mu_x, f_ss, f_xy = (f[..., k * c:(k + 1) * c] for k in range(3))
+    v_x = f_mu_x + 2.0 * x * f_ss + y * f_xy
+    v_y = f[..., 3 * c:] + 2.0 * y * f_ss + x * f_xy if need_target else None
+    return v_x, v_y
+
+
+# ---------------------------------------------------------------------------------------------
+# image TV
+# ---------------------------------------------------------------------------------------------
+def _tv_terms(img: np.ndarray, eps: float):
+    dx = img[:-1, :-1] - img[:-1, 1:]  # x[i, j-1] - x[i, j]  for i < H-1, j >= 1
+    dy = img[1:, 1:] - img[:-1, 1:]  # x[i+1, j] - x[i, j]
+    return dx, dy, np.sqrt(dx * dx + dy * dy + eps)
+
+
+def _tv_bwd(img: np.ndarray, eps: float, scale: float) -> np.ndarray:
+    dx, dy, t = _tv_terms(img, eps)
+    a = scale / t
+    v = np.zeros_like(img)
+    v[:-1, :-1] += a * dx
+    v[:-1, 1:] -= a * (dx + dy)
+    v[1:, 1:] += a * dy
+    return v
+
+
+def _reduction_scale(reduction: str, count: int) -> float:
+    if reduction == "mean":
+        return 1.0 / max(count, 1)
+    if reduction == "sum":
+        return 1.0
+    raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# normal consistency
+# ---------------------------------------------------------------------------------------------
+def _check_normal_inputs(normals, weights, rendered_normal):
+    normals = _to_host(_check_array("normals", normals))
+    weights = _to_host(_check_array("weights", weights))
+    rendered_normal = _to_host(_check_array("rendered_normal", rendered_normal))
+    if normals.ndim < 2 or normals.shape[-1] != 3:
+        raise ValueError(f"normals must have shape [..., K, 3], got {list(normals.shape)}")
+    if tuple(weights.shape) != tuple(normals.shape[:-1]):
+        raise ValueError(f"weights must have shape {list(normals.shape[:-1])} (normals without the 3), "
+                         f"got {list(weights.shape)}")
+    if tuple(rendered_normal.shape) != tuple(normals.shape[:-2]) + (3,):
+        raise ValueError(f"rendered_normal must have shape {list(normals.shape[:-2]) + [3]}, "
+                         f"got {list(rendered_normal.shape)}")
+    return normals, weights, rendered_normal
+
+
+def _to_host(a):
+    return a.get() if isinstance(a, cla.Array) else a
+
+
+# ---------------------------------------------------------------------------------------------
+# tape functions
+# ---------------------------------------------------------------------------------------------
+def _resolve_backend(backend: str | None, data) -> str:
+    if backend is None:
+        return "opencl" if isinstance(data, cla.Array) else "numpy"
+    if backend not in ("numpy", "opencl"):
+        raise ValueError(f"backend must be None, 'numpy' or 'opencl', got {backend!r}")
+    return backend
+
+
+class PhotometricLoss(Function):
+    """Tape op ``(pred [H,W,C], target [H,W,C]) -> (1 − λ)·mean|pred − target| + λ·(1 − SSIM)``.
+
+    ``lam=0`` is the L1 loss, ``lam=1`` the D-SSIM loss. ``padding``: "zero" (3DGS) or "valid"
+    (skimage's cropped mean). ``backend``: None (the kind of ``pred``), "numpy" or "opencl".
+    """
+
+    def __init__(self, lam: float = DEFAULT_LAMBDA, padding: str = "zero", backend: str | None = None):
+        if not 0.0 <= float(lam) <= 1.0:
+            raise ValueError(f"lam must lie in [0, 1], got {lam}")
+        _ssim_mask((100, 100, 1), padding)  # validates the name
+        self.lam, self.padding, self.backend = float(lam), padding, backend
+
+    def forward(self, ctx, pred, target):
+        pred, target = _check_pair(pred, target, min_size=2 * SSIM_RADIUS + 1 if self.padding == "valid" else 1)
+        ctx.backend = _resolve_backend(self.backend, pred)
+        if ctx.backend == "opencl":
+            return _cl_photometric_fwd(ctx, pred, target, self.lam, self.padding)
+        pred, target = _to_host(pred), _to_host(target)
+        value = 0.0
+        ctx.l1 = ctx.ssim = None
+        if self.lam < 1.0:
+            ctx.l1 = (pred, target)
+            value += (1.0 - self.lam) * float(_l1_fwd(pred, target))
+        if self.lam > 0.0:
+            s, ctx.ssim = _ssim_fwd(pred, target, self.padding)
+            value += self.lam * (1.0 - float(s))
+        return np.asarray(value)
+
+    def backward(self, ctx, v):
+        if ctx.backend == "opencl":
+            return _cl_photometric_bwd(ctx, v)
+        need_t = ctx.needs_input_grad[1]
+        v_pred = v_target = None
+        if ctx.l1 is not None:
+            v_pred = _l1_bwd(*ctx.l1, (1.0 - self.lam) * float(v))
+            v_target = -v_pred if need_t else None
+        if ctx.ssim is not None:
+            sx, sy = _ssim_bwd(ctx.ssim, -self.lam * float(v), need_t)
+            v_pred = sx if v_pred is None else v_pred + sx
+            if need_t:
+                v_target = sy if v_target is None else v_target + sy
+        return v_pred, v_target
+
+
+class L1Loss(PhotometricLoss):
+    """Tape op ``(pred [H,W,C], target [H,W,C]) -> mean |pred − target|`` (scalar)."""
+
+    def __init__(self, backend: str | None = None):
+        super().__init__(lam=0.0, backend=backend)
+
+
+class SSIM(Function):
+    """Tape op ``(pred [H,W,C], target [H,W,C]) -> mean SSIM`` (scalar; see module docstring)."""
+
+    def __init__(self, padding: str = "zero", backend: str | None = None):
+        self.dssim = PhotometricLoss(lam=1.0, padding=padding, backend=backend)
+
+    def forward(self, ctx, pred, target):
+        return np.asarray(1.0 - float(self.dssim.forward(ctx, pred, target)))
+
+    def backward(self, ctx, v):
+        return self.dssim.backward(ctx, -v)
+
+
+class ImageTV(Function):
+    """Tape op ``img [H,W,C] -> TV`` (scalar): ``Σ sqrt(dx² + dy² + eps)`` over the ``(H−1)(W−1)C``
+    pixels with both neighbours (``dx = x[i,j−1] − x[i,j]``, ``dy = x[i+1,j] − x[i,j]``), divided
+    by their count when ``reduction="mean"`` (default; the scale the method's 0.01 weight expects)."""
+
+    def __init__(self, eps: float = TV_EPS, reduction: str = "mean"):
+        if eps <= 0:
+            raise ValueError(f"eps must be > 0, got {eps}")
+        _reduction_scale(reduction, 1)
+        self.eps, self.reduction = float(eps), reduction
+
+    def forward(self, ctx, img):
+        img = _to_host(_check_image("img", img))
+        h, w, c = img.shape
+        ctx.img, ctx.scale = img, _reduction_scale(self.reduction, (h - 1) * (w - 1) * c)
+        return np.asarray(np.sum(_tv_terms(img, self.eps)[2], dtype=np.float64) * ctx.scale)
+
+    def backward(self, ctx, v):
+        return _tv_bwd(ctx.img, self.eps, ctx.scale * float(v))
+
+
+class NormalConsistencyLoss(Function):
+    """Tape op for the soup's normal consistency (mean over pixels of ``Σ_k w_k (1 − n_kᵀ N)``).
+
+    Inputs (``P...`` = any pixel shape, e.g. ``[H, W]``; ``K`` fragments per pixel):
+        normals ``[P..., K, 3]``: unit normal of the face in fragment slot k (anything where w = 0),
+        weights ``[P..., K]``: its blend weight ``w_k = α_k Π_{j<k}(1 − α_j)`` (0 for empty slots),
+        rendered_normal ``[P..., 3]``: the rendered normal ``N`` (e.g. ``normalize(Σ_k w_k n_k)``).
+    Adjoints: ``v_w_k = (1 − n_k·N)/P``, ``v_n_k = −w_k N/P``, ``v_N = −Σ_k w_k n_k / P`` with ``P``
+    the pixel count; pass ``N`` as a constant to treat it as a target (stop-gradient).
+    """
+
+    def forward(self, ctx, normals, weights, rendered_normal):
+        n, w, big_n = _check_normal_inputs(normals, weights, rendered_normal)
+        pixels = max(int(np.prod(w.shape[:-1])), 1)
+        cos = np.einsum("...kd,...d->...k", n, big_n)
+        ctx.save(n, w, big_n, cos, 1.0 / pixels)
+        return np.asarray(np.sum(w * (1.0 - cos), dtype=np.float64) / pixels)
+
+    def backward(self, ctx, v):
+        n, w, big_n, cos, inv_p = ctx.saved
+        s = float(v) * inv_p
+        v_n = -s * w[..., None] * big_n[..., None, :] if ctx.needs_input_grad[0] else None
+        v_w = s * (1.0 - cos) if ctx.needs_input_grad[1] else None
+        v_big_n = -s * np.einsum("...k,...kd->...d", w, n) if ctx.needs_input_grad[2] else None
+        return v_n, v_w, v_big_n
+
+
+# ---------------------------------------------------------------------------------------------
+# functional forms (arrays or Variables)
+# ---------------------------------------------------------------------------------------------
+def l1_loss(pred, target, backend: str | None = None):
+    """``mean |pred − target|`` of ``[H,W,C]`` images; a 0-d array (a Variable for Variable inputs)."""
+    return L1Loss(backend)(pred, target)
+
+
+def ssim(pred, target, padding: str = "zero", backend: str | None = None):
+    """Mean SSIM of ``[H,W,C]`` images in [0, 1] (see module docstring for ``padding``)."""
+    return SSIM(padding, backend)(pred, target)
+
+
+def dssim_loss(pred, target, padding: str = "zero", backend: str | None = None):
+    """``1 − SSIM`` of ``[H,W,C]`` images."""
+    return PhotometricLoss(1.0, padding, backend)(pred, target)
+
+
+def photometric_loss(pred, target, lam: float = DEFAULT_LAMBDA, padding: str = "zero", backend: str | None = None):
+    """``(1 − λ)·L1 + λ·(1 − SSIM)`` of ``[H,W,C]`` images (λ = 0.2 by default)."""
+    return PhotometricLoss(lam, padding, backend)(pred, target)
+
+
+def photometric_loss_and_grad(pred, target, lam: float = DEFAULT_LAMBDA, padding: str = "zero",
+                              backend: str | None = None):
+    """``(loss: float, v_pred [H,W,C])`` without a tape (the training loop's one-liner)."""
+    from triplet_cl.autodiff import Context
+
+    fn = PhotometricLoss(lam, padding, backend)
+    ctx = Context((True, False))
+    value = fn.forward(ctx, pred, target)
+    return float(value), fn.backward(ctx, np.asarray(1.0))[0]
+
+
+def image_tv(img, eps: float = TV_EPS, reduction: str = "mean"):
+    """Total variation of an ``[H,W,C]`` image (see :class:`ImageTV`)."""
+    return ImageTV(eps, reduction)(img)
+
+
+def normal_consistency(normals, weights, rendered_normal):
+    """Soup normal consistency (see :class:`NormalConsistencyLoss` for shapes)."""
+    return NormalConsistencyLoss()(normals, weights, rendered_normal)
+
+
+# ---------------------------------------------------------------------------------------------
+# OpenCL backend (kernels_cl/losses.cl)
+# ---------------------------------------------------------------------------------------------
+def _cl_photometric_fwd(ctx, pred, target, lam, padding):
+    raise NotImplementedError("the OpenCL loss backend is not built yet")
+
+
+def _cl_photometric_bwd(ctx, v):
+    raise NotImplementedError

@@ -1,0 +1,121 @@
+"""Soft coverage window and front-to-back alpha compositing (``coverage.cl``, ``composite.cl``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..device import Device
+from .common import buf, check_real, check_shape, to_device
+from .raster import Fragments
+
+
+def _dev(device: Device, name: str, a, shape, real):
+    if isinstance(a, cla.Array):
+        check_shape(name, a, shape)
+        if a.dtype != real:
+            raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
+        return a
+    return to_device(device.queue, check_real(name, a, shape, real))
+
+
+def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
+    """Soft edge window per fragment: ``1 − exp(−σ·d)``, d the pixel distance to the nearest edge.
+
+    Args:
+        frags: the fragments of the view; ``sigma`` > 0 the sharpness in 1/pixels (σ → ∞: hard edge).
+
+    Returns:
+        ``win [H, W, K]`` device array (0 for empty slots). Its adjoint is part of
+        :func:`~triplet_cl.ops.raster.raster_backward` (``v_win``, ``sigma``).
+    """
+    if not (isinstance(sigma, int | float) and math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a finite positive number, got {sigma!r}")
+    H, W, K = frags.shape
+    win = cla.empty(device.queue, (H, W, K), frags.real, allocator=device.allocator)
+    device.kernel("coverage", "coverage_fwd", real=frags.real)(
+        device.queue, (H * W * K,), None, frags.vs.data, frags.mesh.F.data, frags.face.data,
+        np.int32(W), np.int32(H), np.int32(K), frags.real.type(sigma), win.data)
+    return win
+
+
+def _c_max(C: int) -> int:
+    return max(4, -(-C // 4) * 4)
+
+
+def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min: float = 1e-4):
+    """Front-to-back alpha blending of the K fragments of each pixel over a background.
+
+    Args:
+        feat: ``[H, W, K, C]`` per-fragment features (colour, and e.g. depth / normal channels).
+        alpha: ``[H, W, K]`` per-fragment opacity in [0, 1].
+        bg: ``[C]`` background (use 0 for channels such as depth).
+        win: optional ``[H, W, K]`` coverage window multiplying ``alpha``.
+        t_min: compositing stops once the transmittance drops below it (0 disables).
+
+    Returns:
+        ``(image [H, W, C], trans [H, W], n_contrib [H, W] int32)`` device arrays;
+        accumulated alpha is ``1 − trans``.
+    """
+    H, W, K = frags.shape
+    real = frags.real
+    if not hasattr(feat, "shape") or len(feat.shape) != 4:
+        raise ValueError(f"feat must have shape [{H}, {W}, {K}, C], got {list(getattr(feat, 'shape', []))}")
+    C = int(feat.shape[3])
+    if not 1 <= C <= 64:
+        raise ValueError(f"feat must have between 1 and 64 channels, got {C}")
+    f = _dev(device, "feat", feat, (H, W, K, C), real)
+    a = _dev(device, "alpha", alpha, (H, W, K), real)
+    w = None if win is None else _dev(device, "win", win, (H, W, K), real)
+    b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,)) if np.ndim(bg) <= 1 else None
+    if b is None:
+        raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
+    bgd = cla.to_device(device.queue, check_real("bg", b, (C,), real))
+    if not (0 <= t_min < 1):
+        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    q, alloc = device.queue, device.allocator
+    npix = H * W
+    out = cla.empty(q, (H, W, C), real, allocator=alloc)
+    trans = cla.empty(q, (H, W), real, allocator=alloc)
+    ncon = cla.empty(q, (H, W), np.int32, allocator=alloc)
+    device.kernel("composite", "composite_fwd", {"C_MAX": _c_max(C)}, real)(
+        q, (npix,), None, f.data, a.data, buf(w, q), frags.count.data, bgd.data, np.int32(npix), np.int32(K),
+        np.int32(C), np.int32(w is not None), real.type(t_min), out.data, trans.data, ncon.data)
+    return out, trans, ncon
+
+
+def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_contrib, trans, v_image,
+                       v_acc=None, win=None):
+    """Adjoint of :func:`composite`.
+
+    Args:
+        feat, alpha, bg, win: the inputs of the forward pass; ``n_contrib``, ``trans`` its outputs.
+        v_image: ``[H, W, C]`` adjoint of the image; v_acc: optional ``[H, W]`` adjoint of the
+            accumulated alpha ``1 − trans``.
+
+    Returns:
+        ``(v_feat [H, W, K, C], v_alpha [H, W, K], v_win [H, W, K] or None, v_bg [C] numpy)``.
+    """
+    H, W, K = frags.shape
+    real = frags.real
+    C = int(feat.shape[3])
+    f = _dev(device, "feat", feat, (H, W, K, C), real)
+    a = _dev(device, "alpha", alpha, (H, W, K), real)
+    w = None if win is None else _dev(device, "win", win, (H, W, K), real)
+    g = _dev(device, "v_image", v_image, (H, W, C), real)
+    va = None if v_acc is None else _dev(device, "v_acc", v_acc, (H, W), real)
+    b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,))
+    bgd = cla.to_device(device.queue, b.astype(real))
+    q, alloc = device.queue, device.allocator
+    v_feat = cla.empty(q, (H, W, K, C), real, allocator=alloc)
+    v_alpha = cla.empty(q, (H, W, K), real, allocator=alloc)
+    v_win = cla.empty(q, (H, W, K), real, allocator=alloc) if w is not None else None
+    device.kernel("composite", "composite_bwd", {"C_MAX": _c_max(C)}, real)(
+        q, (H * W,), None, f.data, a.data, buf(w, q), n_contrib.data, bgd.data, g.data, buf(va, q),
+        np.int32(H * W), np.int32(K), np.int32(C), np.int32(w is not None), np.int32(va is not None),
+        v_feat.data, v_alpha.data, buf(v_win, q))
+    # v_bg_c = sum over pixels of v_image_c * T_n  (small host reduction)
+    v_bg = (g.get().astype(np.float64) * trans.get().astype(np.float64)[..., None]).reshape(-1, C).sum(0)
+    return v_feat, v_alpha, v_win, v_bg

@@ -1,0 +1,73 @@
+"""Per-vertex attributes → fragments, and the adjoint (``kernels_cl/interpolate.cl``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..device import Device
+from .common import check_real, check_shape, to_device
+from .raster import TILE, Fragments, gather_to_vertices
+
+
+def _attr(device: Device, attr, frags: Fragments) -> cla.Array:
+    n = frags.mesh.num_vertices
+    if isinstance(attr, cla.Array):
+        if attr.ndim != 2 or attr.shape[0] != n:
+            raise ValueError(f"attr must have shape [{n}, C], got {list(attr.shape)}")
+        if attr.dtype != frags.real:
+            raise ValueError(f"attr must have dtype {frags.real} (as the fragments), got {attr.dtype}")
+        return attr
+    return to_device(device.queue, check_real("attr", attr, (n, None), frags.real))
+
+
+def interpolate(device: Device, attr, frags: Fragments) -> cla.Array:
+    """Interpolate per-vertex attributes to every fragment.
+
+    Args:
+        attr: ``[N, C]`` per-vertex attributes (any C ≥ 1).
+        frags: the :class:`~triplet_cl.ops.raster.Fragments` of the view.
+
+    Returns:
+        ``[H, W, K, C]`` device array; empty slots are 0.
+    """
+    a = _attr(device, attr, frags)
+    H, W, K = frags.shape
+    C = a.shape[1]
+    out = cla.empty(device.queue, (H, W, K, max(C, 1)), frags.real, allocator=device.allocator)
+    P = H * W * K
+    if C:
+        device.kernel("interpolate", "interpolate_fwd", {"TILE": TILE}, frags.real)(
+            device.queue, (P,), None, a.data, frags.mesh.F.data, frags.face.data, frags.bary.data,
+            np.int32(P), np.int32(C), out.data)
+    return out[..., :C] if C != out.shape[3] else out
+
+
+def interpolate_backward(device: Device, attr, frags: Fragments, v_out):
+    """Adjoint of :func:`interpolate`.
+
+    Args:
+        attr: ``[N, C]`` the attributes of the forward pass.
+        v_out: ``[H, W, K, C]`` adjoint of the interpolated attributes.
+
+    Returns:
+        ``(v_attr [N, C], v_bary [H, W, K, 2])`` device arrays; pass ``v_bary`` (summed over every
+        interpolation of the view) to :func:`~triplet_cl.ops.raster.raster_backward`.
+    """
+    a = _attr(device, attr, frags)
+    H, W, K = frags.shape
+    C = a.shape[1]
+    if isinstance(v_out, cla.Array):
+        check_shape("v_out", v_out, (H, W, K, C))
+        g = v_out
+    else:
+        g = to_device(device.queue, check_real("v_out", v_out, (H, W, K, C), frags.real))
+    q, alloc = device.queue, device.allocator
+    E, T = frags.num_entries, frags.num_tiles
+    partial = cla.empty(q, (max(E, 1), 3, max(C, 1)), frags.real, allocator=alloc)
+    v_bary = cla.empty(q, (H, W, K, 2), frags.real, allocator=alloc)
+    device.kernel("interpolate", "interpolate_bwd", {"TILE": TILE}, frags.real)(
+        q, (T,), None, a.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
+        frags.bary.data, frags.count.data, g.data, np.int32(frags.width), np.int32(frags.height),
+        np.int32(frags.tiles_x), np.int32(T), np.int32(K), np.int32(C), partial.data, v_bary.data)
+    return gather_to_vertices(device, frags, partial, C), v_bary

@@ -1,0 +1,39 @@
+"""Device copy of a mesh's topology, built once per topology and reused every iteration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..device import Device
+from ..topology import vertex_corner_csr
+from .common import check_faces
+
+
+class DeviceMesh:
+    """Faces ``[M, 3]`` on the device plus the vertex → face-corner CSR table of the adjoint gather.
+
+    Args:
+        device: the :class:`~triplet_cl.device.Device`.
+        faces: ``[M, 3]`` integer vertex indices (validated against ``num_vertices``).
+        num_vertices: ``N``.
+
+    Rebuild it whenever the topology changes (density control, mesh phase); vertex positions and
+    attributes are passed separately to every op.
+    """
+
+    def __init__(self, device: Device, faces, num_vertices: int):
+        if int(num_vertices) < 0:
+            raise ValueError(f"num_vertices must be >= 0, got {num_vertices}")
+        self.device = device
+        self.num_vertices = int(num_vertices)
+        self.faces = check_faces("faces", faces, self.num_vertices)
+        self.num_faces = int(self.faces.shape[0])
+        q = device.queue
+        self.F = cla.to_device(q, self.faces if self.num_faces else np.zeros((1, 3), np.int32))
+        off, corners = vertex_corner_csr(self.faces, self.num_vertices)
+        self.csr_off = cla.to_device(q, off)
+        self.csr_corner = cla.to_device(q, corners if corners.size else np.zeros(1, np.int32))
+
+    def __repr__(self) -> str:
+        return f"DeviceMesh(N={self.num_vertices}, M={self.num_faces})"

@@ -1,0 +1,305 @@
+"""Projection, tile binning, K-nearest fragments, and the adjoint of the fragment geometry.
+
+Kernels: ``kernels_cl/project.cl`` and ``kernels_cl/raster.cl`` (formulas at the top of each).
+
+Design (chosen for CPUs through PoCL, correct on every OpenCL 1.2 device):
+
+* faces are binned into 8×8-pixel tiles with int atomics (counts → prefix sums with
+  ``pyopencl.scan`` → per-tile face lists), so each pixel tests only the faces of its tile;
+* the forward pass runs one work-item per pixel in 8×8 work-groups and keeps the K nearest
+  fragments sorted by (depth, face id) in private memory;
+* adjoints that land on vertices are never accumulated with float atomics (PoCL and many GPUs have
+  none): a backward kernel runs one work-item per tile, owns the partial sums of that tile's
+  (tile, face) entries, and a gather kernel sums the entries of every face corner of each vertex.
+  Every sum happens in a fixed order, so gradients are bit-for-bit deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+from pyopencl.scan import InclusiveScanKernel
+
+from ..camera import Camera
+from ..device import Device
+from .common import buf, check_real, check_shape, to_device
+from .mesh import DeviceMesh
+
+TILE = 8
+K_LIMIT = 1024
+
+
+def _real_of(a) -> np.dtype:
+    dt = np.dtype(a.dtype)
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"expected float32 or float64 data, got {dt}")
+    return dt
+
+
+def camera_params(camera: Camera, real=np.float32) -> np.ndarray:
+    """The 16 numbers the kernels read: R (row-major), t, fx, fy, cx, cy."""
+    w = camera.w2c
+    return np.concatenate([w[:3, :3].reshape(-1), w[:3, 3], [camera.fx, camera.fy, camera.cx, camera.cy]]).astype(real)
+
+
+def _cam_buffer(device: Device, camera: Camera, real) -> cla.Array:
+    return cla.to_device(device.queue, camera_params(camera, real))
+
+
+# ------------------------------------------------------------------------------------------------
+# project
+# ------------------------------------------------------------------------------------------------
+
+
+def project(device: Device, V, camera: Camera) -> cla.Array:
+    """Project world vertices to screen.
+
+    Args:
+        V: ``[N, 3]`` world positions (numpy or device array; float32 or float64 selects REAL).
+        camera: the :class:`~triplet_cl.camera.Camera`.
+
+    Returns:
+        ``vs [N, 3]`` device array of (u, v, z): pixel coordinates and camera-space depth.
+    """
+    real = _real_of(V) if hasattr(V, "dtype") and np.dtype(V.dtype).kind == "f" else np.float32
+    V = check_real("V", V, (None, 3), real)
+    n = V.shape[0]
+    Vd = to_device(device.queue, V)
+    vs = cla.empty(device.queue, (max(n, 1), 3), real, allocator=device.allocator)[:n]
+    if n:
+        k = device.kernel("project", "project_fwd", real=real)
+        k(device.queue, (n,), None, Vd.data, _cam_buffer(device, camera, real).data, np.int32(n), vs.data)
+    return vs
+
+
+def project_backward(device: Device, V, camera: Camera, v_vs, pose_grad: bool = False):
+    """Adjoint of :func:`project`.
+
+    Args:
+        V: ``[N, 3]`` world positions (as given to :func:`project`).
+        v_vs: ``[N, 3]`` adjoint of (u, v, z).
+        pose_grad: also return the adjoint of the world-to-camera matrix.
+
+    Returns:
+        ``v_V [N, 3]`` device array, and with ``pose_grad`` also ``v_w2c [4, 4]`` numpy (float64;
+        only the top 3×4 block is non-zero).
+    """
+    real = _real_of(V)
+    V = check_real("V", V, (None, 3), real)
+    n = V.shape[0]
+    check_shape("v_vs", v_vs, (n, 3))
+    q = device.queue
+    Vd, gd = to_device(q, V), to_device(q, np.asarray(v_vs, real) if not isinstance(v_vs, cla.Array) else v_vs)
+    v_V = cla.empty(q, (max(n, 1), 3), real, allocator=device.allocator)[:n]
+    v_pc = cla.empty(q, (max(n, 1), 3), real, allocator=device.allocator)[:n]
+    if n:
+        k = device.kernel("project", "project_bwd", real=real)
+        k(q, (n,), None, Vd.data, _cam_buffer(device, camera, real).data, gd.data, np.int32(n), v_V.data, v_pc.data)
+    if not pose_grad:
+        return v_V
+    vp = v_pc.get().astype(np.float64)
+    Vh = Vd.get().astype(np.float64)
+    g = np.zeros((4, 4))
+    g[:3, :3] = vp.T @ Vh
+    g[:3, 3] = vp.sum(0)
+    return v_V, g
+
+
+# ------------------------------------------------------------------------------------------------
+# binning + K-nearest fragments
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Fragments:
+    """The K nearest fragments of every pixel, plus the binning the adjoint needs.
+
+    Device arrays (``H, W`` image size, ``K`` slots, nearest first; ``E`` (tile, face) entries):
+        face ``[H, W, K] int32`` (−1 = empty), bary ``[H, W, K, 2]`` perspective-correct
+        (λ0, λ1; λ2 = 1 − λ0 − λ1), depth ``[H, W, K]`` camera-space depth, count ``[H, W] int32``;
+        entry ``[H, W, K] int32``, tile_off ``[T+1]``, face_off ``[M+1]``, face_entries ``[E]``.
+    """
+
+    width: int
+    height: int
+    K: int
+    tiles_x: int
+    tiles_y: int
+    num_entries: int
+    real: np.dtype
+    face: cla.Array
+    entry: cla.Array
+    bary: cla.Array
+    depth: cla.Array
+    count: cla.Array
+    tile_off: cla.Array
+    face_off: cla.Array
+    face_entries: cla.Array
+    vs: cla.Array
+    mesh: DeviceMesh
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.height, self.width, self.K)
+
+
+def _scan_kernel(device: Device) -> InclusiveScanKernel:
+    return device.cached(("scan", "int32-sum"), lambda: InclusiveScanKernel(device.ctx, np.int32, "a+b", neutral="0"))
+
+
+def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
+    """Exclusive prefix sum as an ``[n+1]`` offsets array, and the total (one small read back)."""
+    n = counts.shape[0]
+    q = device.queue
+    off = cla.zeros(q, n + 1, np.int32, allocator=device.allocator)
+    if n:
+        incl = cla.empty(q, n, np.int32, allocator=device.allocator)
+        _scan_kernel(device)(counts, incl, queue=q)
+        # off[1:] = incl  (a sliced array's .data would not carry the offset into the scan kernel)
+        cl.enqueue_copy(q, off.data, incl.data, dst_offset=4, byte_count=4 * n)
+        tail = np.empty(1, np.int32)
+        cl.enqueue_copy(q, tail, incl.data, src_offset=4 * (n - 1))
+        total = int(tail[0])
+    else:
+        total = 0
+    return off, total
+
+
+def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
+              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False) -> Fragments:
+    """The K nearest fragments per pixel (discrete: no adjoint of its own; see :func:`raster_backward`).
+
+    Args:
+        vs: ``[N, 3]`` projected vertices (u, v, z) from :func:`project`.
+        mesh: the :class:`DeviceMesh` (faces).
+        width, height: image size in pixels; K: fragments kept per pixel (1 ≤ K ≤ 1024).
+        near, far: depth range; faces with a vertex nearer than ``near`` are culled (not clipped).
+        cull_backface: drop faces whose normal (right-hand rule) points away from the camera.
+            Off by default: a triangle soup is seen from both sides.
+    """
+    K = int(K)
+    if not 1 <= K <= K_LIMIT:
+        raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be at least 1x1, got {width}x{height}")
+    if not (0 < near < far):
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    if not isinstance(vs, cla.Array):
+        vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), _real_of(np.asarray(vs))))
+    check_shape("vs", vs, (mesh.num_vertices, 3))
+    real = _real_of(vs)
+    q, alloc = device.queue, device.allocator
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    T = tiles_x * tiles_y
+    M = mesh.num_faces
+    npx = width * height
+    device.check_alloc(npx * K * 8 * (2 if real == np.float64 else 1), f"fragment buffers ({width}x{height}, K={K})")
+
+    defines = {"TILE": TILE, "K_MAX": K}
+    tile_count = cla.zeros(q, T, np.int32, allocator=alloc)
+    face_ntiles = cla.empty(q, max(M, 1), np.int32, allocator=alloc)[:M]
+    face_bbox = cla.empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
+    if M:
+        device.kernel("raster", "bin_count", defines, real)(
+            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(width), np.int32(height),
+            np.int32(tiles_x), real.type(near), real.type(far), np.int32(bool(cull_backface)),
+            face_ntiles.data, face_bbox.data, tile_count.data)
+    tile_off, E = _offsets(device, tile_count)
+    face_off, E2 = _offsets(device, face_ntiles)
+    assert E == E2, (E, E2)
+    device.check_alloc(E * 9 * real.itemsize, f"binned face list ({E} tile-face entries)")
+    entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_setup = cla.empty(q, (max(E, 1), 9), real, allocator=alloc)
+    face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    if E:
+        tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
+        device.kernel("raster", "bin_fill", defines, real)(
+            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(tiles_x), face_ntiles.data,
+            face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
+            entry_setup.data, face_entries.data)
+
+    face = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
+    entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
+    bary = cla.empty(q, (height, width, K, 2), real, allocator=alloc)
+    depth = cla.empty(q, (height, width, K), real, allocator=alloc)
+    count = cla.empty(q, (height, width), np.int32, allocator=alloc)
+    device.kernel("raster", "raster_fwd", defines, real)(
+        q, (tiles_x * TILE, tiles_y * TILE), (TILE, TILE), tile_off.data, entry_face.data, entry_setup.data,
+        np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
+        face.data, entry.data, bary.data, depth.data, count.data)
+    return Fragments(width, height, K, tiles_x, tiles_y, E, real, face, entry, bary, depth, count,
+                     tile_off, face_off, face_entries, vs, mesh)
+
+
+def _device_or_none(device: Device, name: str, a, shape, real):
+    if a is None:
+        return None
+    if isinstance(a, cla.Array):
+        check_shape(name, a, shape)
+        if a.dtype != real:
+            raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
+        return a
+    return to_device(device.queue, check_real(name, a, shape, real))
+
+
+def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
+    """Sum per-entry partial adjoints ``[E, 3, C]`` to vertices ``[N, C]`` (deterministic, no atomics)."""
+    mesh = frags.mesh
+    n = mesh.num_vertices
+    out = cla.empty(device.queue, (max(n, 1), max(C, 1)), frags.real, allocator=device.allocator)[:n, :C]
+    if n and C:
+        device.kernel("raster", "gather_vertex", {"TILE": TILE, "K_MAX": frags.K}, frags.real)(
+            device.queue, (n, C), None, partial.data, frags.face_off.data, frags.face_entries.data,
+            mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(C), out.data)
+    return out
+
+
+def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None, v_win=None,
+                    sigma: float = 0.0):
+    """Adjoint of the fragment geometry (barycentrics, depth, coverage window) to projected vertices.
+
+    Args:
+        frags: the :class:`Fragments` of the forward pass.
+        v_bary: ``[H, W, K, 2]`` adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
+        v_depth: ``[H, W, K]`` adjoint of the fragment depth, or None.
+        v_win: ``[H, W, K]`` adjoint of the coverage window, or None; ``sigma`` its sharpness.
+
+    Returns:
+        ``(v_vs [N, 3] device array, v_sigma float)``.
+    """
+    H, W, K = frags.shape
+    real = frags.real
+    vb = _device_or_none(device, "v_bary", v_bary, (H, W, K, 2), real)
+    vd = _device_or_none(device, "v_depth", v_depth, (H, W, K), real)
+    vw = _device_or_none(device, "v_win", v_win, (H, W, K), real)
+    q, alloc = device.queue, device.allocator
+    T, E = frags.num_tiles, frags.num_entries
+    partial = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
+    v_sig_tile = cla.empty(q, T, real, allocator=alloc)
+    device.kernel("raster", "raster_bwd", {"TILE": TILE, "K_MAX": K}, real)(
+        q, (T,), None, frags.vs.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
+        frags.count.data, buf(vb, q), buf(vd, q), buf(vw, q),
+        np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None), real.type(sigma),
+        np.int32(W), np.int32(H), np.int32(frags.tiles_x), np.int32(T), np.int32(K),
+        partial.data, v_sig_tile.data)
+    v_vs = gather_to_vertices(device, frags, partial, 3)
+    v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if vw is not None else 0.0
+    return v_vs, v_sigma
+
+
+def read_fragments(frags: Fragments) -> dict[str, np.ndarray]:
+    """Host copies of the fragment buffers (tests, debugging, tools)."""
+    return {"face": frags.face.get(), "bary": frags.bary.get(), "depth": frags.depth.get(),
+            "count": frags.count.get(), "entry": frags.entry.get()}
+
+
+__all__ = ["Fragments", "camera_params", "gather_to_vertices", "project", "project_backward", "rasterize",
+           "raster_backward", "read_fragments", "TILE"]

@@ -1,0 +1,201 @@
+"""Mesh regularisers with adjoints for the connected-mesh phase (DESIGN.md section 6), host-side.
+
+``V [N, 3]`` vertex positions, ``F [M, 3]`` int faces, ``X [N, C]`` per-vertex attributes.
+Each energy is a tape :class:`~triplet_cl.autodiff.Function` built once per topology (the
+connectivity is precomputed in the constructor) and a functional form. ``reduction="mean"``
+(default) divides the sum by the number of terms named below, ``"sum"`` keeps the sum.
+
+=======================  =========================================================  ==============
+energy                   definition                                                  mean over
+=======================  =========================================================  ==============
+face-normal consistency  ``Σ_{(a,b) edge-adjacent} 1 − n_a·n_b``, ``n = normalize(   P face pairs
+                         (v1−v0)×(v2−v0))``; gradient wrt ``V``
+uniform Laplacian        ``Σ_i |δ_i|²``, ``δ_i = Σ_{j∈N(i)} (x_j − x_i) / |N(i)|``    N vertices
+                         (``δ = L X`` with ``L = D⁻¹A − I``; ``δ_i = 0`` for isolated
+                         vertices); gradient ``2 Lᵀ L X``; any ``X [N, D]`` (positions)
+graph TV on materials    ``Σ_i Σ_{j∈N(i)} sqrt(w_ij)·|x_i − x_j|₁`` (each undirected    2·E·C terms
+                         edge counted twice, as the double sum says); gradient
+                         ``sign(x_i − x_j)`` (0 at ties); weights below
+=======================  =========================================================  ==============
+
+GTV weights ``w_ij``: ``"uniform"`` (1) or ``"inverse_length"``: ``w_ij = ℓ̄ / |v_i − v_j|`` with
+``ℓ̄`` the mean edge length (scale-free; shorter edges — finer detail — are tied more strongly);
+or an explicit ``[E]`` array aligned with :func:`mesh_edges`. Weights are constants (no gradient
+flows to the positions through them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from triplet_cl.activations import normalize, normalize_bwd
+from triplet_cl.autodiff import Function
+from triplet_cl.ops.common import check_faces
+from triplet_cl.topology import edge_adjacent_faces
+
+FACE_NORMAL_EPS = 1e-30  # smooths normalize() only for (near-)degenerate faces
+
+
+def _check_attr(name: str, a, num_rows: int | None = None, cols: int | None = None) -> np.ndarray:
+    a = np.asarray(a)
+    if a.dtype.kind != "f":
+        raise ValueError(f"{name} must be a floating-point array, got dtype {a.dtype}")
+    if a.ndim != 2 or (cols is not None and a.shape[1] != cols) or (num_rows is not None and a.shape[0] != num_rows):
+        want = f"[{num_rows if num_rows is not None else 'N'}, {cols if cols is not None else 'C'}]"
+        raise ValueError(f"{name} must have shape {want}, got {list(a.shape)}")
+    if a.size and not np.isfinite(a).all():
+        raise ValueError(f"{name} must be finite, found {int((~np.isfinite(a)).sum())} NaN/Inf value(s)")
+    return a
+
+
+def _scale(reduction: str, count: int) -> float:
+    if reduction == "mean":
+        return 1.0 / max(count, 1)
+    if reduction == "sum":
+        return 1.0
+    raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """``F [M, 3] -> [E, 2] int64``: the unique undirected edges, each as ``(i, j)`` with ``i < j``,
+    sorted lexicographically."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=0)
+    e.sort(axis=1)
+    return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
+
+
+def _scatter_rows(num_rows: int, index: np.ndarray, values: np.ndarray) -> np.ndarray:
+    out = np.zeros((num_rows, values.shape[1]), dtype=values.dtype)
+    np.add.at(out, index, values)
+    return out
+
+
+# ---- face-normal consistency --------------------------------------------------------------------
+class FaceNormalConsistency(Function):
+    """Tape op ``V [N,3] -> Σ_pairs 1 − n_a·n_b`` for the edge-adjacent face pairs of ``faces``."""
+
+    def __init__(self, faces, num_vertices: int | None = None, reduction: str = "mean"):
+        f = np.asarray(faces)
+        n = int(f.max()) + 1 if num_vertices is None and f.size else int(num_vertices or 0)
+        self.faces = check_faces("faces", f, n).astype(np.int64)
+        self.pairs = edge_adjacent_faces(self.faces)  # [P, 2]
+        self.scale = _scale(reduction, len(self.pairs))
+
+    def forward(self, ctx, vertices):
+        v = _check_attr("vertices", vertices, cols=3)
+        if self.faces.size and self.faces.max() >= len(v):
+            raise ValueError(f"vertices has {len(v)} rows but faces index up to {int(self.faces.max())}")
+        tri = v[self.faces]  # [M, 3, 3]
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        c = np.cross(e1, e2)
+        n = normalize(c, FACE_NORMAL_EPS)
+        a, b = self.pairs[:, 0], self.pairs[:, 1]
+        ctx.save(len(v), e1, e2, c, n)
+        return np.asarray(np.sum(1.0 - np.sum(n[a] * n[b], axis=1)) * self.scale)
+
+    def backward(self, ctx, v_out):
+        num_v, e1, e2, c, n = ctx.saved
+        a, b = self.pairs[:, 0], self.pairs[:, 1]
+        s = -float(v_out) * self.scale
+        v_n = _scatter_rows(len(n), np.concatenate([a, b]), s * np.concatenate([n[b], n[a]]))
+        v_c = normalize_bwd(c, v_n, FACE_NORMAL_EPS)
+        v_e1, v_e2 = np.cross(e2, v_c), np.cross(v_c, e1)  # adjoints of c = e1 × e2
+        corner = np.stack([-(v_e1 + v_e2), v_e1, v_e2], axis=1)  # [M, 3, 3]
+        return _scatter_rows(num_v, self.faces.reshape(-1), corner.reshape(-1, 3))
+
+
+def face_normal_consistency(vertices, faces, reduction: str = "mean"):
+    """``Σ_{edge-adjacent faces} 1 − cos(n_a, n_b)`` of a mesh ``V [N,3]``, ``F [M,3]``."""
+    return FaceNormalConsistency(faces, len(np.asarray(getattr(vertices, "data", vertices))), reduction)(vertices)
+
+
+# ---- uniform Laplacian --------------------------------------------------------------------------
+def uniform_laplacian_matrix(faces, num_vertices: int) -> sp.csr_matrix:
+    """``[N, N]`` sparse ``L = D⁻¹A − I`` (A: 1-ring adjacency, D: valence; rows of isolated
+    vertices are zero), so ``(L X)_i = mean_{j∈N(i)} x_j − x_i``."""
+    e = mesh_edges(check_faces("faces", faces, num_vertices))
+    i = np.concatenate([e[:, 0], e[:, 1]])
+    j = np.concatenate([e[:, 1], e[:, 0]])
+    adj = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(num_vertices, num_vertices))
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    inv = np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)
+    has_ring = (deg > 0).astype(np.float64)
+    return (sp.diags(inv) @ adj - sp.diags(has_ring)).tocsr()
+
+
+class UniformLaplacian(Function):
+    """Tape op ``X [N,D] -> Σ_i |(L X)_i|²`` with the uniform Laplacian of ``faces``."""
+
+    def __init__(self, faces, num_vertices: int, reduction: str = "mean"):
+        self.num_vertices = int(num_vertices)
+        self.lap = uniform_laplacian_matrix(faces, self.num_vertices)
+        self.lap_t = self.lap.T.tocsr()
+        self.scale = _scale(reduction, self.num_vertices)
+
+    def forward(self, ctx, x):
+        x = _check_attr("x", x, num_rows=self.num_vertices)
+        delta = self.lap @ x
+        ctx.delta = delta
+        return np.asarray(np.sum(delta * delta) * self.scale)
+
+    def backward(self, ctx, v_out):
+        return (self.lap_t @ ctx.delta) * (2.0 * float(v_out) * self.scale)
+
+
+def uniform_laplacian(x, faces, reduction: str = "mean"):
+    """Uniform Laplacian energy of per-vertex ``x [N, D]`` over the mesh ``faces [M, 3]``."""
+    return UniformLaplacian(faces, len(np.asarray(getattr(x, "data", x))), reduction)(x)
+
+
+# ---- graph total variation ----------------------------------------------------------------------
+def gtv_edge_weights(vertices, edges: np.ndarray, kind: str = "inverse_length") -> np.ndarray:
+    """``[E]`` weights ``w_ij`` for :class:`MaterialGTV`: ``"uniform"`` (ones) or
+    ``"inverse_length"`` (``mean edge length / |v_i − v_j|``, degenerate edges get the largest
+    finite weight)."""
+    if kind == "uniform":
+        return np.ones(len(edges))
+    if kind != "inverse_length":
+        raise ValueError(f"kind must be 'uniform' or 'inverse_length', got {kind!r}")
+    v = _check_attr("vertices", vertices, cols=3)
+    length = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+    mean = float(length.mean()) if len(length) else 1.0
+    w = np.divide(mean, length, out=np.zeros_like(length), where=length > 0)
+    if (length <= 0).any():
+        w[length <= 0] = w.max() if (length > 0).any() else 1.0
+    return w
+
+
+class MaterialGTV(Function):
+    """Tape op ``X [N,C] -> Σ_i Σ_{j∈N(i)} sqrt(w_ij)·|x_i − x_j|₁`` over the 1-rings of ``faces``.
+
+    ``weights``: None (uniform) or ``[E]`` aligned with ``mesh_edges(faces)`` (see
+    :func:`gtv_edge_weights`).
+    """
+
+    def __init__(self, faces, num_vertices: int, weights=None, reduction: str = "mean"):
+        self.num_vertices = int(num_vertices)
+        self.edges = mesh_edges(check_faces("faces", faces, self.num_vertices))
+        w = np.ones(len(self.edges)) if weights is None else np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(self.edges),) or (w < 0).any() or not np.isfinite(w).all():
+            raise ValueError(f"weights must be finite, >= 0, with shape [{len(self.edges)}] (one per mesh edge), "
+                             f"got shape {list(w.shape)}")
+        self.sqrt_w = 2.0 * np.sqrt(w)[:, None]  # both directions of the double sum
+        self.reduction = reduction
+
+    def forward(self, ctx, x):
+        x = _check_attr("x", x, num_rows=self.num_vertices)
+        ctx.scale = _scale(self.reduction, 2 * len(self.edges) * x.shape[1])
+        ctx.diff = x[self.edges[:, 0]] - x[self.edges[:, 1]]
+        return np.asarray(np.sum(self.sqrt_w * np.abs(ctx.diff)) * ctx.scale)
+
+    def backward(self, ctx, v_out):
+        g = self.sqrt_w * np.sign(ctx.diff) * (float(v_out) * ctx.scale)
+        idx = np.concatenate([self.edges[:, 0], self.edges[:, 1]])
+        return _scatter_rows(self.num_vertices, idx, np.concatenate([g, -g]))
+
+
+def material_gtv(x, faces, weights=None, reduction: str = "mean"):
+    """Graph total variation of per-vertex materials ``x [N, C]`` over the mesh ``faces [M, 3]``."""
+    return MaterialGTV(faces, len(np.asarray(getattr(x, "data", x))), weights, reduction)(x)
