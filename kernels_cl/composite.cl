@@ -56,6 +56,7 @@ __kernel void composite_bwd(__global const REAL* feat,      // [H, W, K, C]
                             __global const REAL* alpha,     // [H, W, K]
                             __global const REAL* win,       // [H, W, K]
                             __global const int* n_contrib,  // [H, W]
+                            __global const int* frag_count, // [H, W]
                             __global const REAL* bg,        // [C]
                             __global const REAL* v_out,     // [H, W, C]
                             __global const REAL* v_acc,     // [H, W]  (if has_vacc)
@@ -96,7 +97,9 @@ __kernel void composite_bwd(__global const REAL* feat,      // [H, W, K, C]
         v_alpha[o] = v_a * wv;
         if (has_win) v_winout[o] = v_a * ab;
     }
-    for (int i = n; i < K; ++i) {
+    /* fragments behind the early-termination point get zero adjoints (slots >= count untouched) */
+    const int cnt = frag_count[pix];
+    for (int i = n; i < cnt; ++i) {
         const int o = pix * K + i;
         for (int c = 0; c < C; ++c) v_feat[(long)o * C + c] = (REAL)0;
         v_alpha[o] = (REAL)0;

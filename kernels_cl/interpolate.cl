@@ -2,7 +2,8 @@
  *
  * Forward (per fragment o with face f = frag_face[o] >= 0, lam2 = 1 - lam0 - lam1):
  *   out[o, c] = lam0 attr[F[f,0], c] + lam1 attr[F[f,1], c] + lam2 attr[F[f,2], c]
- *   empty slots (f < 0) give 0.
+ *   One work-item per pixel, over its frag_count fragments; slots k >= count are not written
+ *   (every consumer stops at count: writing them would cost more than the interpolation).
  * Adjoint:
  *   v_attr[F[f,i], c] += lam_i v_out[o, c]                       (scatter: see below)
  *   v_bary[o] = ( sum_c v_out[o,c] (a0_c - a2_c),  sum_c v_out[o,c] (a1_c - a2_c) )
@@ -18,23 +19,25 @@
 
 __kernel void interpolate_fwd(__global const REAL* attr,       // [N, C]
                               __global const int* F,           // [M, 3]
-                              __global const int* frag_face,   // [P]
-                              __global const REAL* frag_bary,  // [P, 2]
-                              const int P, const int C,
-                              __global REAL* out)              // [P, C]
+                              __global const int* frag_face,   // [H, W, K]
+                              __global const REAL* frag_bary,  // [H, W, K, 2]
+                              __global const int* frag_count,  // [H, W]
+                              const int npix, const int K, const int C,
+                              __global REAL* out)              // [H, W, K, C]
 {
-    const int o = get_global_id(0);
-    if (o >= P) return;
-    const int f = frag_face[o];
-    if (f < 0) {
-        for (int c = 0; c < C; ++c) out[o * C + c] = (REAL)0;
-        return;
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    const int cnt = frag_count[pix];
+    for (int k = 0; k < cnt; ++k) {
+        const int o = pix * K + k;
+        const int f = frag_face[o];
+        const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1], l2 = (REAL)1 - l0 - l1;
+        __global const REAL* a0 = attr + F[3 * f] * C;
+        __global const REAL* a1 = attr + F[3 * f + 1] * C;
+        __global const REAL* a2 = attr + F[3 * f + 2] * C;
+        __global REAL* d = out + (long)o * C;
+        for (int c = 0; c < C; ++c) d[c] = l0 * a0[c] + l1 * a1[c] + l2 * a2[c];
     }
-    const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1], l2 = (REAL)1 - l0 - l1;
-    __global const REAL* a0 = attr + F[3 * f] * C;
-    __global const REAL* a1 = attr + F[3 * f + 1] * C;
-    __global const REAL* a2 = attr + F[3 * f + 2] * C;
-    for (int c = 0; c < C; ++c) out[o * C + c] = l0 * a0[c] + l1 * a1[c] + l2 * a2[c];
 }
 
 __kernel void interpolate_bwd(__global const REAL* attr,       // [N, C]
@@ -46,9 +49,9 @@ __kernel void interpolate_bwd(__global const REAL* attr,       // [N, C]
                               __global const int* frag_count,  // [H, W]
                               __global const REAL* v_out,      // [H, W, K, C]
                               const int width, const int height, const int tiles_x, const int num_tiles,
-                              const int K, const int C,
+                              const int K, const int C, const int accumulate,
                               __global REAL* partial,          // [E, 3, C]
-                              __global REAL* v_bary)           // [H, W, K, 2]
+                              __global REAL* v_bary)           // [H, W, K, 2]  (+= when accumulate)
 {
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
@@ -60,13 +63,8 @@ __kernel void interpolate_bwd(__global const REAL* attr,       // [N, C]
         for (int x = tx * TILE; x < xe; ++x) {
             const int pix = y * width + x;
             const int cnt = frag_count[pix];
-            for (int k = 0; k < K; ++k) {
+            for (int k = 0; k < cnt; ++k) {
                 const int o = pix * K + k;
-                if (k >= cnt) {
-                    v_bary[2 * o] = (REAL)0;
-                    v_bary[2 * o + 1] = (REAL)0;
-                    continue;
-                }
                 const int f = frag_face[o];
                 const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1], l2 = (REAL)1 - l0 - l1;
                 __global const REAL* a0 = attr + F[3 * f] * C;
@@ -82,8 +80,13 @@ __kernel void interpolate_bwd(__global const REAL* attr,       // [N, C]
                     g0 += g * (a0[c] - a2[c]);
                     g1 += g * (a1[c] - a2[c]);
                 }
-                v_bary[2 * o] = g0;
-                v_bary[2 * o + 1] = g1;
+                if (accumulate) {
+                    v_bary[2 * o] += g0;
+                    v_bary[2 * o + 1] += g1;
+                } else {
+                    v_bary[2 * o] = g0;
+                    v_bary[2 * o + 1] = g1;
+                }
             }
         }
 }

@@ -28,7 +28,7 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
         frags: the fragments of the view; ``sigma`` > 0 the sharpness in 1/pixels (σ → ∞: hard edge).
 
     Returns:
-        ``win [H, W, K]`` device array (0 for empty slots). Its adjoint is part of
+        ``win [H, W, K]`` device array (slots beyond ``frags.count`` undefined). Its adjoint is part of
         :func:`~triplet_cl.ops.raster.raster_backward` (``v_win``, ``sigma``).
     """
     if not (isinstance(sigma, int | float) and math.isfinite(sigma) and sigma > 0):
@@ -36,7 +36,7 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
     H, W, K = frags.shape
     win = cla.empty(device.queue, (H, W, K), frags.real, allocator=device.allocator)
     device.kernel("coverage", "coverage_fwd", real=frags.real)(
-        device.queue, (H * W * K,), None, frags.vs.data, frags.mesh.F.data, frags.face.data,
+        device.queue, (H * W,), None, frags.vs.data, frags.mesh.F.data, frags.face.data, frags.count.data,
         np.int32(W), np.int32(H), np.int32(K), frags.real.type(sigma), win.data)
     return win
 
@@ -50,6 +50,7 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
 
     Args:
         feat: ``[H, W, K, C]`` per-fragment features (colour, and e.g. depth / normal channels).
+            Only the first ``frags.count`` slots of each pixel are read (the others may hold anything).
         alpha: ``[H, W, K]`` per-fragment opacity in [0, 1].
         bg: ``[C]`` background (use 0 for channels such as depth).
         win: optional ``[H, W, K]`` coverage window multiplying ``alpha``.
@@ -113,7 +114,7 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     v_alpha = cla.empty(q, (H, W, K), real, allocator=alloc)
     v_win = cla.empty(q, (H, W, K), real, allocator=alloc) if w is not None else None
     device.kernel("composite", "composite_bwd", {"C_MAX": _c_max(C)}, real)(
-        q, (H * W,), None, f.data, a.data, buf(w, q), n_contrib.data, bgd.data, g.data, buf(va, q),
+        q, (H * W,), None, f.data, a.data, buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data, buf(va, q),
         np.int32(H * W), np.int32(K), np.int32(C), np.int32(w is not None), np.int32(va is not None),
         v_feat.data, v_alpha.data, buf(v_win, q))
     # v_bg_c = sum over pixels of v_image_c * T_n  (small host reduction)

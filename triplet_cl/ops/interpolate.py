@@ -29,26 +29,29 @@ def interpolate(device: Device, attr, frags: Fragments) -> cla.Array:
         frags: the :class:`~triplet_cl.ops.raster.Fragments` of the view.
 
     Returns:
-        ``[H, W, K, C]`` device array; empty slots are 0.
+        ``[H, W, K, C]`` device array. Like every per-fragment array, only the first
+        ``frags.count[y, x]`` slots of a pixel are defined (the others are never read).
     """
     a = _attr(device, attr, frags)
     H, W, K = frags.shape
     C = a.shape[1]
     out = cla.empty(device.queue, (H, W, K, max(C, 1)), frags.real, allocator=device.allocator)
-    P = H * W * K
     if C:
         device.kernel("interpolate", "interpolate_fwd", {"TILE": TILE}, frags.real)(
-            device.queue, (P,), None, a.data, frags.mesh.F.data, frags.face.data, frags.bary.data,
-            np.int32(P), np.int32(C), out.data)
+            device.queue, (H * W,), None, a.data, frags.mesh.F.data, frags.face.data, frags.bary.data,
+            frags.count.data, np.int32(H * W), np.int32(K), np.int32(C), out.data)
     return out[..., :C] if C != out.shape[3] else out
 
 
-def interpolate_backward(device: Device, attr, frags: Fragments, v_out):
+def interpolate_backward(device: Device, attr, frags: Fragments, v_out, v_bary_acc=None):
     """Adjoint of :func:`interpolate`.
 
     Args:
         attr: ``[N, C]`` the attributes of the forward pass.
         v_out: ``[H, W, K, C]`` adjoint of the interpolated attributes.
+
+        v_bary_acc: optional ``[H, W, K, 2]`` device array that the barycentric adjoint is added to
+            (several interpolations of one view share it) and returned.
 
     Returns:
         ``(v_attr [N, C], v_bary [H, W, K, 2])`` device arrays; pass ``v_bary`` (summed over every
@@ -65,9 +68,14 @@ def interpolate_backward(device: Device, attr, frags: Fragments, v_out):
     q, alloc = device.queue, device.allocator
     E, T = frags.num_entries, frags.num_tiles
     partial = cla.empty(q, (max(E, 1), 3, max(C, 1)), frags.real, allocator=alloc)
-    v_bary = cla.empty(q, (H, W, K, 2), frags.real, allocator=alloc)
+    if v_bary_acc is not None:
+        check_shape("v_bary_acc", v_bary_acc, (H, W, K, 2))
+        if not isinstance(v_bary_acc, cla.Array) or v_bary_acc.dtype != frags.real:
+            raise ValueError(f"v_bary_acc must be a device array of dtype {frags.real}")
+    v_bary = v_bary_acc if v_bary_acc is not None else cla.empty(q, (H, W, K, 2), frags.real, allocator=alloc)
     device.kernel("interpolate", "interpolate_bwd", {"TILE": TILE}, frags.real)(
         q, (T,), None, a.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
         frags.bary.data, frags.count.data, g.data, np.int32(frags.width), np.int32(frags.height),
-        np.int32(frags.tiles_x), np.int32(T), np.int32(K), np.int32(C), partial.data, v_bary.data)
+        np.int32(frags.tiles_x), np.int32(T), np.int32(K), np.int32(C),
+        np.int32(v_bary_acc is not None), partial.data, v_bary.data)
     return gather_to_vertices(device, frags, partial, C), v_bary

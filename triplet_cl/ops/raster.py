@@ -121,6 +121,10 @@ class Fragments:
         face ``[H, W, K] int32`` (−1 = empty), bary ``[H, W, K, 2]`` perspective-correct
         (λ0, λ1; λ2 = 1 − λ0 − λ1), depth ``[H, W, K]`` camera-space depth, count ``[H, W] int32``;
         entry ``[H, W, K] int32``, tile_off ``[T+1]``, face_off ``[M+1]``, face_entries ``[E]``.
+
+    Every per-fragment array derived from these (interpolated attributes, windows, shaded colours,
+    adjoints) is defined only in the first ``count[y, x]`` slots of a pixel: kernels never read or
+    write the others, so their cost follows the fragments, not K.
     """
 
     width: int

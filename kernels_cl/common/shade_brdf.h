@@ -1,0 +1,415 @@
+/* shade_brdf.h — the BRDFs and light terms of the shading op, as pairs f() / f_vjp().
+ *
+ * Compile-time choice: -DBRDF=BRDF_COOK_TORRANCE (default) or -DBRDF=BRDF_BLINN_PHONG.
+ * Material channels per fragment (already activated by the parameter model):
+ *   Cook-Torrance (NMAT 6):  albedo r,g,b | roughness r | metallic m | ambient occlusion ao
+ *   Blinn-Phong  (NMAT 10):  kd r,g,b | ks r,g,b | shininess s (softplus'd) | ka r,g,b
+ * N (unit shading normal), V (unit, surface -> camera), L (unit, surface -> light), Li (rgb).
+ *
+ * brdf_direct(N, V, L, Li, m): radiance reflected towards V from a light Li arriving along L.
+ *   Both BRDFs return 0 (and zero gradients) when N.L <= 0.
+ *   Cook-Torrance:  a = r^2, nv = relu(N.V), nl = N.L, H = safe_normalize(L + V), nh = relu(N.H),
+ *     hv = clamp(H.V, 0, 1),  D = a^2 / (pi (nh^2 (a^2 - 1) + 1)^2 + 1e-6),
+ *     k = (r+1)^2/8, G = G1(nv) G1(nl), G1(x) = x / (x (1 - k) + k),
+ *     F0 = 0.04 (1 - m) + m albedo,  F = F0 + (1 - F0)(1 - hv)^5,
+ *     out = [D F G / (4 nv nl + 1e-4) nl + relu(1 - F)(1 - m) albedo / pi nl] Li
+ *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd nl] Li
+ *     (the (N.L > 0) gate of DESIGN.md section 5 is the early return)
+ * ambient(La, m):  Cook-Torrance La albedo ao;  Blinn-Phong La ka.
+ * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
+ *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
+ *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
+ *   g_l = exp(-l (l + 1) sigma^2 / 2)   (heat-kernel / Gaussian-lobe band attenuation; sigma^2 is
+ *   the lobe variance: Cook-Torrance sigma^2 = a^2 = r^4, Blinn-Phong sigma^2 = 2/(e + 2), the
+ *   GGX-equivalent a^2 of a Blinn-Phong exponent e)
+ *   Cook-Torrance:  Fe = F0 + (1 - F0)(1 - r)(1 - nv)^5  (roughness-damped Schlick on N.V),
+ *                   out = ao [(1 - Fe)(1 - m) albedo / pi E + Fe Gl]
+ *   Blinn-Phong:    out = kd / pi E + ks Gl
+ *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
+ *   ao [(1 - Fe)(1 - m) albedo + Fe] <= 1 for albedo <= 1.) E and Gl are not clamped.
+ *
+ * Adjoints (_vjp) are the hand-derived reverse of the statements above, line by line; relu, clamp
+ * and fmax pass the gradient where their argument is inside the active range.
+ */
+#ifndef TRIPLET_SHADE_BRDF_H
+#define TRIPLET_SHADE_BRDF_H
+
+#include "real.h"
+#include "shade_math.h"
+#include "sh.h"
+
+#define BRDF_COOK_TORRANCE 0
+#define BRDF_BLINN_PHONG 1
+#ifndef BRDF
+#define BRDF BRDF_COOK_TORRANCE
+#endif
+
+#if BRDF == BRDF_COOK_TORRANCE
+#define NMAT 6
+#else
+#define NMAT 10
+#endif
+
+/* light types of the light table (triplet_cl/lights.py) */
+#define LIGHT_AMBIENT 0
+#define LIGHT_DIRECTIONAL 1
+#define LIGHT_POINT 2
+#define LIGHT_SH_ENV 3
+#define LIGHT_VERTEX_SH 4
+
+#define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))
+
+inline REAL pow5(const REAL x)
+{
+    const REAL x2 = x * x;
+    return x2 * x2 * x;
+}
+
+#if BRDF == BRDF_COOK_TORRANCE
+/* ------------------------------------------------------------------------------------------ */
+
+inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m)
+{
+    const REAL nl = dot(N, L);
+    if (!(nl > (REAL)0)) return (REAL3)(0);
+    const REAL3 alb = LOAD_RGB(m, 0);
+    const REAL r = m[3], met = m[4];
+    const REAL nv = fmax(dot(N, V), (REAL)0);
+    const REAL3 H = safe_normalize(L + V);
+    const REAL nh = fmax(dot(N, H), (REAL)0);
+    const REAL hv = clamp(dot(H, V), (REAL)0, (REAL)1);
+    const REAL a2 = r * r * r * r;
+    const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
+    const REAL D = a2 / (R_PI * t * t + (REAL)1e-6);
+    const REAL k = (r + (REAL)1) * (r + (REAL)1) * (REAL)0.125;
+    const REAL G = nv / (nv * ((REAL)1 - k) + k) * (nl / (nl * ((REAL)1 - k) + k));
+    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+    const REAL3 F = F0 + ((REAL)1 - F0) * pow5((REAL)1 - hv);
+    const REAL S = D * G * nl / ((REAL)4 * nv * nl + (REAL)1e-4);
+    const REAL3 kd = fmax((REAL3)(1) - F, (REAL3)(0)) * ((REAL)1 - met) * alb * (nl / R_PI);
+    return (S * F + kd) * Li;
+}
+
+inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m,
+                            const REAL3 v_out, REAL3* v_N, REAL3* v_V, REAL3* v_L, REAL3* v_Li, REAL* v_m)
+{
+    const REAL nl = dot(N, L);
+    if (!(nl > (REAL)0)) return;
+    const REAL3 alb = LOAD_RGB(m, 0);
+    const REAL r = m[3], met = m[4];
+    const REAL nvr = dot(N, V);
+    const REAL nv = fmax(nvr, (REAL)0);
+    const REAL3 Hu = L + V;
+    const REAL3 H = safe_normalize(Hu);
+    const REAL nhr = dot(N, H);
+    const REAL nh = fmax(nhr, (REAL)0);
+    const REAL hvr = dot(H, V);
+    const REAL hv = clamp(hvr, (REAL)0, (REAL)1);
+    const REAL a2 = r * r * r * r;
+    const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
+    const REAL Dden = R_PI * t * t + (REAL)1e-6;
+    const REAL D = a2 / Dden;
+    const REAL k = (r + (REAL)1) * (r + (REAL)1) * (REAL)0.125;
+    const REAL qv = nv * ((REAL)1 - k) + k, ql = nl * ((REAL)1 - k) + k;
+    const REAL g1v = nv / qv, g1l = nl / ql;
+    const REAL G = g1v * g1l;
+    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+    const REAL omh = (REAL)1 - hv;
+    const REAL f5 = pow5(omh);
+    const REAL3 F = F0 + ((REAL)1 - F0) * f5;
+    const REAL den = (REAL)4 * nv * nl + (REAL)1e-4;
+    const REAL S = D * G * nl / den;
+    const REAL3 omF = fmax((REAL)1 - F, (REAL3)(0));
+    const REAL3 kd = omF * ((REAL)1 - met) * alb * (nl / R_PI);
+
+    *v_Li += v_out * (S * F + kd);
+    const REAL3 g = v_out * Li;
+    /* kd = relu(1 - F)(1 - m) alb nl / pi */
+    const REAL3 dmask = (REAL3)((REAL)(1 - F.x > 0), (REAL)(1 - F.y > 0), (REAL)(1 - F.z > 0));
+    REAL3 v_F = g * S - g * dmask * ((REAL)1 - met) * alb * (nl / R_PI);
+    REAL v_met = -dot(g, omF * alb) * (nl / R_PI);
+    REAL3 v_alb = g * omF * ((REAL)1 - met) * (nl / R_PI);
+    REAL v_nl = dot(g, omF * alb) * ((REAL)1 - met) / R_PI;
+    const REAL v_S = dot(g, F);
+    /* F = F0 + (1 - F0) f5 */
+    const REAL3 v_F0 = v_F * ((REAL)1 - f5);
+    const REAL v_f5 = dot(v_F, (REAL)1 - F0);
+    v_met += dot(v_F0, alb - (REAL)0.04);
+    v_alb += v_F0 * met;
+    const REAL v_hv = (hvr > (REAL)0 && hvr < (REAL)1) ? -(REAL)5 * omh * omh * omh * omh * v_f5 : (REAL)0;
+    /* S = D G nl / den */
+    const REAL v_D = v_S * G * nl / den;
+    const REAL v_G = v_S * D * nl / den;
+    v_nl += v_S * D * G / den;
+    const REAL v_den = -v_S * S / den;
+    REAL v_nv = v_den * (REAL)4 * nl;
+    v_nl += v_den * (REAL)4 * nv;
+    /* G = G1(nv) G1(nl) */
+    const REAL v_g1v = v_G * g1l, v_g1l = v_G * g1v;
+    v_nv += v_g1v * k / (qv * qv);
+    v_nl += v_g1l * k / (ql * ql);
+    const REAL v_k = -v_g1v * nv * ((REAL)1 - nv) / (qv * qv) - v_g1l * nl * ((REAL)1 - nl) / (ql * ql);
+    REAL v_r = v_k * (r + (REAL)1) * (REAL)0.25;
+    /* D = a2 / Dden */
+    REAL v_a2 = v_D / Dden;
+    const REAL v_t = -v_D * D / Dden * (REAL)2 * R_PI * t;
+    const REAL v_nh = v_t * (REAL)2 * nh * (a2 - (REAL)1);
+    v_a2 += v_t * nh * nh;
+    v_r += v_a2 * (REAL)4 * r * r * r;
+    /* dot products */
+    REAL3 v_H = (REAL3)(0);
+    if (nhr > (REAL)0) {
+        *v_N += v_nh * H;
+        v_H += v_nh * N;
+    }
+    v_H += v_hv * V;
+    *v_V += v_hv * H;
+    const REAL3 v_Hu = safe_normalize_vjp(Hu, v_H);
+    *v_L += v_Hu;
+    *v_V += v_Hu;
+    if (nvr > (REAL)0) {
+        *v_N += v_nv * V;
+        *v_V += v_nv * N;
+    }
+    *v_N += v_nl * L;
+    *v_L += v_nl * N;
+    v_m[0] += v_alb.x;
+    v_m[1] += v_alb.y;
+    v_m[2] += v_alb.z;
+    v_m[3] += v_r;
+    v_m[4] += v_met;
+}
+
+inline REAL3 ambient_term(const REAL3 La, const REAL* m)
+{
+    return La * LOAD_RGB(m, 0) * m[5];
+}
+
+inline void ambient_term_vjp(const REAL3 La, const REAL* m, const REAL3 v_out, REAL3* v_La, REAL* v_m)
+{
+    const REAL3 alb = LOAD_RGB(m, 0);
+    *v_La += v_out * alb * m[5];
+    const REAL3 v_alb = v_out * La * m[5];
+    v_m[0] += v_alb.x;
+    v_m[1] += v_alb.y;
+    v_m[2] += v_alb.z;
+    v_m[5] += dot(v_out, La * alb);
+}
+
+inline REAL env_sigma2(const REAL* m)
+{
+    const REAL r = m[3];
+    return r * r * r * r;
+}
+
+/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales */
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
+{
+    const REAL3 alb = LOAD_RGB(m, 0);
+    const REAL r = m[3], met = m[4], ao = m[5];
+    const REAL nv = fmax(dot(N, V), (REAL)0);
+    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * pow5((REAL)1 - nv);
+    *s_d = ao * ((REAL)1 - Fe) * ((REAL)1 - met) * alb / R_PI;
+    *s_g = ao * Fe;
+}
+
+/* adjoint of env_scales and of sigma2(m): v_sd, v_sg, v_sigma2 -> v_N, v_V, v_m */
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
+                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m)
+{
+    const REAL3 alb = LOAD_RGB(m, 0);
+    const REAL r = m[3], met = m[4], ao = m[5];
+    const REAL nvr = dot(N, V);
+    const REAL nv = fmax(nvr, (REAL)0);
+    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+    const REAL omv = (REAL)1 - nv;
+    const REAL f5 = pow5(omv);
+    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * f5;
+    /* s_d = ao (1 - Fe)(1 - m) alb / pi,  s_g = ao Fe */
+    v_m[5] += dot(v_sd, ((REAL)1 - Fe) * ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
+    const REAL3 v_Fe = ao * (v_sg - v_sd * ((REAL)1 - met) * alb / R_PI);
+    REAL v_met = -ao * dot(v_sd, ((REAL)1 - Fe) * alb) / R_PI;
+    REAL3 v_alb = ao * v_sd * ((REAL)1 - Fe) * ((REAL)1 - met) / R_PI;
+    /* Fe = F0 + (1 - F0)(1 - r) f5 */
+    const REAL3 v_F0 = v_Fe * ((REAL)1 - ((REAL)1 - r) * f5);
+    const REAL w = dot(v_Fe, (REAL)1 - F0);
+    REAL v_r = -w * f5;
+    const REAL v_f5 = w * ((REAL)1 - r);
+    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_f5;
+    if (nvr > (REAL)0) {
+        *v_N += v_nv * V;
+        *v_V += v_nv * N;
+    }
+    v_met += dot(v_F0, alb - (REAL)0.04);
+    v_alb += v_F0 * met;
+    v_r += v_sigma2 * (REAL)4 * r * r * r;
+    v_m[0] += v_alb.x;
+    v_m[1] += v_alb.y;
+    v_m[2] += v_alb.z;
+    v_m[3] += v_r;
+    v_m[4] += v_met;
+}
+
+#else /* BRDF_BLINN_PHONG ------------------------------------------------------------------- */
+
+inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m)
+{
+    const REAL nl = dot(N, L);
+    if (!(nl > (REAL)0)) return (REAL3)(0);
+    const REAL3 H = safe_normalize(L + V);
+    const REAL nh = fmax(dot(N, H), (REAL)0);
+    const REAL e = fmax(m[6], (REAL)0) + (REAL)1;
+    return (LOAD_RGB(m, 3) * safe_pow(nh, e) + LOAD_RGB(m, 0) * nl) * Li;
+}
+
+inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m,
+                            const REAL3 v_out, REAL3* v_N, REAL3* v_V, REAL3* v_L, REAL3* v_Li, REAL* v_m)
+{
+    const REAL nl = dot(N, L);
+    if (!(nl > (REAL)0)) return;
+    const REAL3 kd = LOAD_RGB(m, 0), ks = LOAD_RGB(m, 3);
+    const REAL3 Hu = L + V;
+    const REAL3 H = safe_normalize(Hu);
+    const REAL nhr = dot(N, H);
+    const REAL nh = fmax(nhr, (REAL)0);
+    const REAL e = fmax(m[6], (REAL)0) + (REAL)1;
+    const REAL sp = safe_pow(nh, e);
+    *v_Li += v_out * (ks * sp + kd * nl);
+    const REAL3 g = v_out * Li;
+    const REAL3 v_ks = g * sp, v_kd = g * nl;
+    REAL v_nh = (REAL)0, v_e = (REAL)0;
+    safe_pow_vjp(nh, e, dot(g, ks), &v_nh, &v_e);
+    const REAL v_nl = dot(g, kd);
+    if (nhr > (REAL)0) {
+        *v_N += v_nh * H;
+        const REAL3 v_Hu = safe_normalize_vjp(Hu, v_nh * N);
+        *v_L += v_Hu;
+        *v_V += v_Hu;
+    }
+    *v_N += v_nl * L;
+    *v_L += v_nl * N;
+    v_m[0] += v_kd.x;
+    v_m[1] += v_kd.y;
+    v_m[2] += v_kd.z;
+    v_m[3] += v_ks.x;
+    v_m[4] += v_ks.y;
+    v_m[5] += v_ks.z;
+    if (m[6] > (REAL)0) v_m[6] += v_e;
+}
+
+inline REAL3 ambient_term(const REAL3 La, const REAL* m)
+{
+    return La * LOAD_RGB(m, 7);
+}
+
+inline void ambient_term_vjp(const REAL3 La, const REAL* m, const REAL3 v_out, REAL3* v_La, REAL* v_m)
+{
+    *v_La += v_out * LOAD_RGB(m, 7);
+    const REAL3 v_ka = v_out * La;
+    v_m[7] += v_ka.x;
+    v_m[8] += v_ka.y;
+    v_m[9] += v_ka.z;
+}
+
+inline REAL env_sigma2(const REAL* m)
+{
+    return (REAL)2 / (fmax(m[6], (REAL)0) + (REAL)3);
+}
+
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
+{
+    *s_d = LOAD_RGB(m, 0) / R_PI;
+    *s_g = LOAD_RGB(m, 3);
+}
+
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
+                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m)
+{
+    v_m[0] += v_sd.x / R_PI;
+    v_m[1] += v_sd.y / R_PI;
+    v_m[2] += v_sd.z / R_PI;
+    v_m[3] += v_sg.x;
+    v_m[4] += v_sg.y;
+    v_m[5] += v_sg.z;
+    if (m[6] > (REAL)0) {
+        const REAL q = fmax(m[6], (REAL)0) + (REAL)3;
+        v_m[6] += -v_sigma2 * (REAL)2 / (q * q);
+    }
+}
+
+#endif /* BRDF */
+
+/* ---- SH environment (shared by both BRDFs through env_scales) ----------------------------- */
+
+#ifndef ENV_MAX_DEG
+#define ENV_MAX_DEG 0
+#endif
+#define ENV_NK ((ENV_MAX_DEG + 1) * (ENV_MAX_DEG + 1))
+
+/* Evaluates Yn = Y(N), Yr = Y(R) [ENV_NK], gl [ENV_MAX_DEG + 1]; returns E (irradiance) and Gl. */
+inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
+                     const int stride, REAL* Yn, REAL* Yr, REAL* gl, REAL3* E, REAL3* Gl)
+{
+    const REAL3 R = (REAL)2 * dot(N, V) * N - V;
+    sh_eval(deg, N, Yn);
+    sh_eval(deg, R, Yr);
+    const REAL s2 = env_sigma2(m);
+    for (int l = 0; l <= deg; ++l) gl[l] = exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * s2);
+    REAL3 e = (REAL3)(0), g = (REAL3)(0);
+    for (int l = 0; l <= deg; ++l)
+        for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+            const REAL3 ck = (REAL3)(c[k], c[stride + k], c[2 * stride + k]);
+            e += SH_BAND_A[l] * Yn[k] * ck;
+            g += gl[l] * Yr[k] * ck;
+        }
+    *E = e;
+    *Gl = g;
+}
+
+inline REAL3 env_term(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
+                      const int stride)
+{
+    REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
+    REAL3 E, Gl, s_d, s_g;
+    env_eval(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_scales(N, V, m, &s_d, &s_g);
+    return s_d * E + s_g * Gl;
+}
+
+/* Adjoint of env_term. Leaves Yn, Yr, gl and the coefficient weights gE = v_out s_d,
+ * gG = v_out s_g for the coefficient gradients v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k. */
+inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
+                         const int stride, const REAL3 v_out, REAL* Yn, REAL* Yr, REAL* gl, REAL3* gE,
+                         REAL3* gG, REAL3* v_N, REAL3* v_V, REAL* v_m)
+{
+    REAL3 E, Gl, s_d, s_g;
+    env_eval(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_scales(N, V, m, &s_d, &s_g);
+    *gE = v_out * s_d;
+    *gG = v_out * s_g;
+    REAL v_Yn[ENV_NK], v_Yr[ENV_NK];
+    REAL v_s2 = (REAL)0;
+    const REAL s2 = env_sigma2(m);
+    for (int l = 0; l <= deg; ++l) {
+        REAL v_gl = (REAL)0;
+        for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+            const REAL3 ck = (REAL3)(c[k], c[stride + k], c[2 * stride + k]);
+            v_Yn[k] = SH_BAND_A[l] * dot(*gE, ck);
+            v_Yr[k] = gl[l] * dot(*gG, ck);
+            v_gl += Yr[k] * dot(*gG, ck);
+        }
+        v_s2 += v_gl * gl[l] * (-(REAL)0.5 * (REAL)(l * (l + 1)));
+    }
+    (void)s2;
+    const REAL nvr = dot(N, V);
+    const REAL3 R = (REAL)2 * nvr * N - V;
+    *v_N += sh_eval_vjp(deg, N, v_Yn);
+    const REAL3 v_R = sh_eval_vjp(deg, R, v_Yr);
+    const REAL rn = dot(v_R, N);
+    *v_N += (REAL)2 * nvr * v_R + (REAL)2 * rn * V;
+    *v_V += (REAL)2 * rn * N - v_R;
+    env_scales_vjp(N, V, m, v_out * E, v_out * Gl, v_s2, v_N, v_V, v_m);
+}
+
+#endif /* TRIPLET_SHADE_BRDF_H */

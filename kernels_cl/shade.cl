@@ -1,0 +1,252 @@
+/* shade.cl — physically based shading of a flat list of P fragments under a packed light table.
+ *
+ * Defines: BRDF (BRDF_COOK_TORRANCE | BRDF_BLINN_PHONG), ENV_MAX_DEG (largest active SH degree of
+ * the environment lights, sizes private arrays), RED_W (width of the light-gradient reduction).
+ * The BRDF and light maths, their formulas and adjoints are in common/shade_brdf.h.
+ *
+ * Forward, per fragment p with face_id[p] >= 0 (else rgb = 0):
+ *   V = safe_normalize(cam - x),  N = s safe_normalize(n)   (s = -1 when two_sided and N.V < 0)
+ *   rgb = sum over lights of
+ *     ambient     (La)                   ambient_term(La, m)
+ *     directional (d, I)                 brdf_direct(N, V, safe_normalize(d), I, m)
+ *     point       (q, I, falloff)        w = q - x, brdf_direct(N, V, safe_normalize(w),
+ *                                               falloff ? I / max(|w|^2, 1e-6) : I, m)
+ *     SH env      (c [3, stride], deg)   env_term(N, V, m, deg, c)
+ *     vertex SH   (vlight[p] = rad, wi)  brdf_direct(N, V, safe_normalize(wi), rad, m)
+ *
+ * Adjoint (v_rgb): each light's vjp gives v_N, v_V, v_L, v_Li, v_m; then
+ *   directional: v_d = safe_normalize_vjp(d, v_L), v_I = v_Li
+ *   point:       v_w = safe_normalize_vjp(w, v_L) - 2 w (I . v_Li) / |w|^4 [falloff, |w|^2 > 1e-6],
+ *                v_q = v_w, v_x -= v_w, v_I = v_Li / max(|w|^2, 1e-6) (or v_Li)
+ *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
+ *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
+ *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
+ * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
+ * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
+ * a time, one column per item, fixed order: deterministic) and writes one row of v_light_part
+ * [num_groups, T]; the host sums the rows. No atomics.
+ */
+#include "real.h"
+#include "shade_math.h"
+#include "sh.h"
+#include "shade_brdf.h"
+
+#ifndef RED_W
+#define RED_W 16
+#endif
+#define POINT_D2_EPS ((REAL)1e-6)
+
+inline int light_nparams(const int type, const int a)
+{
+    if (type == LIGHT_AMBIENT) return 3;
+    if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) return 6;
+    return 0;
+}
+
+/* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
+inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
+                         const REAL3 cam, const int two_sided, REAL3* x, REAL3* V, REAL3* N, REAL* sgn, REAL* m)
+{
+    *x = LOAD3(pos, p);
+    *V = safe_normalize(cam - *x);
+    *N = safe_normalize(LOAD3(nrm, p));
+    *sgn = (two_sided && dot(*N, *V) < (REAL)0) ? -(REAL)1 : (REAL)1;
+    *N *= *sgn;
+    for (int j = 0; j < NMAT; ++j) m[j] = mat[(size_t)p * NMAT + j];
+    return 1;
+}
+
+__kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
+                        __global const REAL* nrm,     // [P, 3]
+                        __global const REAL* mat,     // [P, NMAT]
+                        __global const REAL* vlight,  // [P, 6] (unused without a vertex-SH light)
+                        __global const int* face_id,  // [P]
+                        const int P,
+                        const REAL cx, const REAL cy, const REAL cz,
+                        const int two_sided,
+                        __global const int* lt_i,     // [L, 4] (type, offset, a, b)
+                        __global const REAL* lt_f,    // [T]
+                        const int L,
+                        __global REAL* rgb)           // [P, 3]
+{
+    const int p = get_global_id(0);
+    if (p >= P) return;
+    if (face_id[p] < 0) {
+        STORE3((REAL3)(0), rgb, p);
+        return;
+    }
+    REAL3 x, V, N;
+    REAL sgn, m[NMAT];
+    load_fragment(p, pos, nrm, mat, (REAL3)(cx, cy, cz), two_sided, &x, &V, &N, &sgn, m);
+    REAL3 out = (REAL3)(0);
+    for (int li = 0; li < L; ++li) {
+        const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
+        __global const REAL* q = lt_f + off;
+        if (type == LIGHT_AMBIENT) {
+            out += ambient_term(LOAD_RGB(q, 0), m);
+        } else if (type == LIGHT_DIRECTIONAL) {
+            out += brdf_direct(N, V, safe_normalize(LOAD_RGB(q, 0)), LOAD_RGB(q, 3), m);
+        } else if (type == LIGHT_POINT) {
+            const REAL3 w = LOAD_RGB(q, 0) - x;
+            const REAL sc = a ? (REAL)1 / fmax(dot(w, w), POINT_D2_EPS) : (REAL)1;
+            out += brdf_direct(N, V, safe_normalize(w), LOAD_RGB(q, 3) * sc, m);
+        } else if (type == LIGHT_SH_ENV) {
+            out += env_term(N, V, m, a, q, b);
+        } else if (type == LIGHT_VERTEX_SH) {
+            const REAL3 rad = LOAD_RGB(vlight, 6 * p), wi = LOAD_RGB(vlight, 6 * p + 3);
+            out += brdf_direct(N, V, safe_normalize(wi), rad, m);
+        }
+    }
+    STORE3(out, rgb, p);
+}
+
+/* Sum g[0..n) over the work-group into out[0..n) (one column per item, fixed order). All items
+ * of the group must call it (it holds barriers). */
+inline void group_sum_store(const REAL* g, const int n, __local REAL* scratch, __global REAL* out)
+{
+    const int lid = get_local_id(0), lsz = get_local_size(0);
+    for (int j = 0; j < RED_W; ++j) scratch[lid * RED_W + j] = g[j];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid < n) {
+        REAL s = (REAL)0;
+        for (int r = 0; r < lsz; ++r) s += scratch[r * RED_W + lid];
+        out[lid] = s;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+}
+
+__kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
+                        __global const REAL* nrm,       // [P, 3]
+                        __global const REAL* mat,       // [P, NMAT]
+                        __global const REAL* vlight,    // [P, 6]
+                        __global const int* face_id,    // [P]
+                        const int P,
+                        const REAL cx, const REAL cy, const REAL cz,
+                        const int two_sided,
+                        __global const int* lt_i,       // [L, 4]
+                        __global const REAL* lt_f,      // [T]
+                        const int L,
+                        const int T,
+                        __global const REAL* v_rgb,     // [P, 3]
+                        __global REAL* v_pos,           // [P, 3]
+                        __global REAL* v_nrm,           // [P, 3]
+                        __global REAL* v_mat,           // [P, NMAT]
+                        const int has_vlight,           // 0: v_vlight is a placeholder, not written
+                        __global REAL* v_vlight,        // [P, 6]
+                        __global REAL* v_light_part,    // [num_groups, T]
+                        __local REAL* scratch)          // [local_size * RED_W]
+{
+    const int p = get_global_id(0);
+    const int valid = p < P && face_id[p] >= 0;
+    const REAL3 cam = (REAL3)(cx, cy, cz);
+    REAL3 x = (REAL3)(0), V = (REAL3)(0), N = (REAL3)(0), v_o = (REAL3)(0);
+    REAL sgn = (REAL)1, m[NMAT], v_m[NMAT];
+    for (int j = 0; j < NMAT; ++j) m[j] = v_m[j] = (REAL)0;
+    if (valid) {
+        load_fragment(p, pos, nrm, mat, cam, two_sided, &x, &V, &N, &sgn, m);
+        v_o = LOAD3(v_rgb, p);
+    }
+    REAL3 v_x = (REAL3)(0), v_V = (REAL3)(0), v_N = (REAL3)(0), v_rad = (REAL3)(0), v_wi = (REAL3)(0);
+    __global REAL* part = v_light_part + (size_t)get_group_id(0) * T;
+
+    for (int li = 0; li < L; ++li) {
+        const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
+        __global const REAL* q = lt_f + off;
+        if (type == LIGHT_SH_ENV) {
+            const int nk = (a + 1) * (a + 1);
+            REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
+            REAL3 gE = (REAL3)(0), gG = (REAL3)(0);
+            for (int k = 0; k < ENV_NK; ++k) Yn[k] = Yr[k] = (REAL)0;
+            for (int l = 0; l <= ENV_MAX_DEG; ++l) gl[l] = (REAL)0;
+            if (valid) env_term_vjp(N, V, m, a, q, b, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+            /* coefficient j = ch * nk + k of the active bands, RED_W at a time */
+            for (int j0 = 0; j0 < 3 * nk; j0 += RED_W) {
+                REAL g[RED_W];
+                for (int jj = 0; jj < RED_W; ++jj) {
+                    const int j = j0 + jj, ch = j / nk, k = j - ch * nk;
+                    REAL val = (REAL)0;
+                    if (j < 3 * nk) {
+                        const int l = (int)floor(sqrt((REAL)k + (REAL)0.5));
+                        const REAL ge = ch == 0 ? gE.x : (ch == 1 ? gE.y : gE.z);
+                        const REAL gg = ch == 0 ? gG.x : (ch == 1 ? gG.y : gG.z);
+                        val = ge * SH_BAND_A[l] * Yn[k] + gg * gl[l] * Yr[k];
+                    }
+                    g[jj] = val;
+                }
+                /* write into the [3, stride] layout of this light */
+                const int lid = get_local_id(0), lsz = get_local_size(0);
+                for (int jj = 0; jj < RED_W; ++jj) scratch[lid * RED_W + jj] = g[jj];
+                barrier(CLK_LOCAL_MEM_FENCE);
+                if (lid < RED_W && j0 + lid < 3 * nk) {
+                    REAL s = (REAL)0;
+                    for (int r = 0; r < lsz; ++r) s += scratch[r * RED_W + lid];
+                    const int j = j0 + lid, ch = j / nk;
+                    part[off + ch * b + (j - ch * nk)] = s;
+                }
+                barrier(CLK_LOCAL_MEM_FENCE);
+            }
+            continue;
+        }
+        REAL g[RED_W];
+        for (int j = 0; j < RED_W; ++j) g[j] = (REAL)0;
+        if (valid) {
+            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0);
+            if (type == LIGHT_AMBIENT) {
+                ambient_term_vjp(LOAD_RGB(q, 0), m, v_o, &v_Li, v_m);
+                g[0] = v_Li.x;
+                g[1] = v_Li.y;
+                g[2] = v_Li.z;
+            } else if (type == LIGHT_DIRECTIONAL) {
+                const REAL3 d = LOAD_RGB(q, 0);
+                brdf_direct_vjp(N, V, safe_normalize(d), LOAD_RGB(q, 3), m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                const REAL3 v_d = safe_normalize_vjp(d, v_L);
+                g[0] = v_d.x;
+                g[1] = v_d.y;
+                g[2] = v_d.z;
+                g[3] = v_Li.x;
+                g[4] = v_Li.y;
+                g[5] = v_Li.z;
+            } else if (type == LIGHT_POINT) {
+                const REAL3 I = LOAD_RGB(q, 3);
+                const REAL3 w = LOAD_RGB(q, 0) - x;
+                const REAL d2 = dot(w, w);
+                const REAL sc = a ? (REAL)1 / fmax(d2, POINT_D2_EPS) : (REAL)1;
+                brdf_direct_vjp(N, V, safe_normalize(w), I * sc, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                REAL3 v_w = safe_normalize_vjp(w, v_L);
+                if (a && d2 > POINT_D2_EPS) v_w -= (REAL)2 * w * (dot(I, v_Li) * sc * sc);
+                v_x -= v_w;
+                g[0] = v_w.x;
+                g[1] = v_w.y;
+                g[2] = v_w.z;
+                g[3] = v_Li.x * sc;
+                g[4] = v_Li.y * sc;
+                g[5] = v_Li.z * sc;
+            } else if (type == LIGHT_VERTEX_SH) {
+                const REAL3 wi = LOAD_RGB(vlight, 6 * p + 3);
+                brdf_direct_vjp(N, V, safe_normalize(wi), LOAD_RGB(vlight, 6 * p), m, v_o, &v_N, &v_V, &v_L, &v_Li,
+                                v_m);
+                v_rad += v_Li;
+                v_wi += safe_normalize_vjp(wi, v_L);
+            }
+        }
+        const int n = light_nparams(type, a);
+        if (n > 0) group_sum_store(g, n, scratch, part + off);
+    }
+
+    if (p < P) {
+        if (valid) {
+            v_x -= safe_normalize_vjp(cam - x, v_V);
+            const REAL3 v_n = safe_normalize_vjp(LOAD3(nrm, p), sgn * v_N);
+            STORE3(v_x, v_pos, p);
+            STORE3(v_n, v_nrm, p);
+        } else {
+            STORE3((REAL3)(0), v_pos, p);
+            STORE3((REAL3)(0), v_nrm, p);
+        }
+        for (int j = 0; j < NMAT; ++j) v_mat[(size_t)p * NMAT + j] = v_m[j];
+        if (has_vlight) {
+            STORE3(v_rad, v_vlight, 2 * p);
+            STORE3(v_wi, v_vlight, 2 * p + 1);
+        }
+    }
+}
