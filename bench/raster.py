@@ -40,17 +40,18 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
 
 
-def make_soup(kind: str, M: int, seed: int = 0, frag_target: float | None = None):
+def make_soup(kind: str, M: int, seed: int = 0):
     """A triangle soup of M faces: 'surface' (thin shell, radius 1) or 'dense' (filled ball)."""
     rng = np.random.default_rng(seed)
     if kind == "surface":
         c = fibonacci_sphere(M) * (1 + rng.normal(0, 0.01, (M, 1)))
-        # edge length so that the shell is covered ~3.5x per side: area(sphere) * 3.5 / M
-        r = math.sqrt(4 * math.pi * 3.5 / M / 0.43) / 2
+        # triangle size chosen so that a covered pixel sees ~7 fragments (front and back of the shell)
+        r = 1.65 * math.sqrt(4 * math.pi * 3.5 / M / 0.43) / 2
     else:
         c = rng.normal(0, 1, (M, 3))
         c *= (rng.uniform(0, 1, (M, 1)) ** (1 / 3)) / np.linalg.norm(c, axis=1, keepdims=True)
-        r = (frag_target or 1.0) * math.sqrt(30 * math.pi / M / 0.43 * 0.75) / 2
+        # triangle size chosen so that a covered pixel sees ~25-35 fragments
+        r = 3.0 * math.sqrt(30 * math.pi / M / 0.43 * 0.75) / 2
     d = rng.normal(0, 1, (M, 3, 3))
     d /= np.linalg.norm(d, axis=2, keepdims=True)
     V = (c[:, None, :] + r * d).reshape(-1, 3).astype(np.float32)

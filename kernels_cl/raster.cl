@@ -12,6 +12,7 @@
  * raster_fwd  one work-item per pixel, one 8x8 work-group per tile: the K nearest fragments by
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
+ *             (GPU-shaped; raster_fwd_rows is the CPU-shaped twin with the same results.)
  * raster_bwd  one work-item per tile, serial over the tile's pixels and fragments: the adjoints of
  *             barycentrics (v_bary, 2-parameter form lam2 = 1 - lam0 - lam1), depth (v_depth) and
  *             window (v_win) go to the screen vertices of the fragment's face (bary_persp_vjp,
@@ -22,6 +23,10 @@
  */
 #include "real.h"
 #include "raster_math.h"
+
+/* No a*b+c contraction into FMA here: the per-pixel and the 8-wide row variants must produce
+ * bit-identical depths (the compiler contracts scalar and vector code differently). */
+#pragma OPENCL FP_CONTRACT OFF
 
 #ifndef TILE
 #define TILE 8
@@ -178,6 +183,98 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
         }
     }
 }
+
+#if TILE == 8
+/* CPU-shaped variant of raster_fwd: one work-item per 8-pixel tile row, the edge tests of the 8
+ * pixels done as one REAL8 vector operation (a scalar insertion only for the lanes that are hit).
+ * Same arithmetic as raster_fwd, same results; chosen on CPU devices, where it is several times
+ * faster because PoCL does not vectorise the per-pixel kernel across work-items. */
+__kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
+                              __global const int* entry_face,    // [E]
+                              __global const REAL* entry_setup,  // [E, SETUP]
+                              const int width, const int height, const int tiles_x,
+                              const int K, const REAL far,
+                              __global int* frag_face,           // [H, W, K]
+                              __global int* frag_entry,          // [H, W, K]
+                              __global REAL* frag_bary,          // [H, W, K, 2]
+                              __global REAL* frag_depth,         // [H, W, K]
+                              __global int* frag_count)          // [H, W]
+{
+    const int tx = get_group_id(0), ty = get_group_id(1);
+    const int y = ty * TILE + get_local_id(1);
+    if (y >= height) return;
+    const int x0 = tx * TILE;
+    const int t = ty * tiles_x + tx;
+    const REAL8 lane = (REAL8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const REAL8 px = (REAL)x0 + (REAL)0.5 + lane;
+    const REAL py = (REAL)y + (REAL)0.5;
+    const int nl = min(8, width - x0);
+
+    REAL dk[8][K_MAX];
+    int fk[8][K_MAX], ek[8][K_MAX];
+    int cnt[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    const int e_end = tile_off[t + 1];
+    for (int e = tile_off[t]; e < e_end; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL8 dx = px - s[0];
+        const REAL dy = py - s[1];
+        const REAL8 b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL8 b1 = s[4] * dx + s[5] * dy;
+        const REAL8 b2 = (REAL)1 - b0 - b1;
+        if (!any((b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0))) continue;
+        const REAL8 zp8 = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
+        REAL zs[8], c0[8], c1[8], c2[8];
+        vstore8(zp8, 0, zs);
+        vstore8(b0, 0, c0);
+        vstore8(b1, 0, c1);
+        vstore8(b2, 0, c2);
+        const int f = entry_face[e];
+        for (int l = 0; l < nl; ++l) {
+            if (c0[l] < (REAL)0 || c1[l] < (REAL)0 || c2[l] < (REAL)0) continue;
+            const REAL zp = zs[l];
+            if (!(zp <= far)) continue;
+            int n = cnt[l];
+            if (n == K && !(zp < dk[l][K - 1] || (zp == dk[l][K - 1] && f < fk[l][K - 1]))) continue;
+            int j = n < K ? n : K - 1;
+            while (j > 0 && (dk[l][j - 1] > zp || (dk[l][j - 1] == zp && fk[l][j - 1] > f))) {
+                dk[l][j] = dk[l][j - 1]; fk[l][j] = fk[l][j - 1]; ek[l][j] = ek[l][j - 1];
+                --j;
+            }
+            dk[l][j] = zp; fk[l][j] = f; ek[l][j] = e;
+            if (n < K) cnt[l] = n + 1;
+        }
+    }
+    for (int l = 0; l < nl; ++l) {
+        const int x = x0 + l;
+        const int pix = y * width + x;
+        const REAL pxl = (REAL)x + (REAL)0.5;
+        frag_count[pix] = cnt[l];
+        for (int k = 0; k < K; ++k) {
+            const int o = pix * K + k;
+            if (k < cnt[l]) {
+                __global const REAL* s = entry_setup + ek[l][k] * SETUP;
+                const REAL dx = pxl - s[0], dy = py - s[1];
+                const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+                const REAL b1 = s[4] * dx + s[5] * dy;
+                const REAL b2 = (REAL)1 - b0 - b1;
+                const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+                const REAL is = (REAL)1 / (w0 + w1 + w2);
+                frag_face[o] = fk[l][k];
+                frag_entry[o] = ek[l][k];
+                frag_bary[2 * o] = w0 * is;
+                frag_bary[2 * o + 1] = w1 * is;
+                frag_depth[o] = dk[l][k];
+            } else {
+                frag_face[o] = -1;
+                frag_entry[o] = -1;
+                frag_bary[2 * o] = (REAL)0;
+                frag_bary[2 * o + 1] = (REAL)0;
+                frag_depth[o] = (REAL)0;
+            }
+        }
+    }
+}
+#endif
 
 /* Load the screen triangle of face f. */
 inline void load_tri(__global const REAL* vs, __global const int* F, int f,

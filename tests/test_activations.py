@@ -6,9 +6,9 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 import scipy.special
+from triplet_cl.autodiff import assert_gradcheck
 
 from triplet_cl import activations as act
-from triplet_cl.autodiff import assert_gradcheck
 
 CASES = [
     ("sigmoid", act.Sigmoid, lambda x: scipy.special.expit(x)),

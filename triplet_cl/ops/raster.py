@@ -176,8 +176,12 @@ def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
     return off, total
 
 
+RASTER_VARIANTS = ("auto", "pixel", "rows")
+
+
 def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
-              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False) -> Fragments:
+              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False,
+              variant: str = "auto") -> Fragments:
     """The K nearest fragments per pixel (discrete: no adjoint of its own; see :func:`raster_backward`).
 
     Args:
@@ -187,7 +191,14 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         near, far: depth range; faces with a vertex nearer than ``near`` are culled (not clipped).
         cull_backface: drop faces whose normal (right-hand rule) points away from the camera.
             Off by default: a triangle soup is seen from both sides.
+        variant: ``"pixel"`` (one work-item per pixel: GPU-shaped), ``"rows"`` (one work-item per
+            8-pixel row with vector edge tests: CPU-shaped), or ``"auto"`` (rows on CPU devices).
+            Both give identical fragments.
     """
+    if variant not in RASTER_VARIANTS:
+        raise ValueError(f"variant must be one of {RASTER_VARIANTS}, got {variant!r}")
+    if variant == "auto":
+        variant = "rows" if device.is_cpu else "pixel"
     K = int(K)
     if not 1 <= K <= K_LIMIT:
         raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
@@ -235,8 +246,12 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     bary = cla.empty(q, (height, width, K, 2), real, allocator=alloc)
     depth = cla.empty(q, (height, width, K), real, allocator=alloc)
     count = cla.empty(q, (height, width), np.int32, allocator=alloc)
-    device.kernel("raster", "raster_fwd", defines, real)(
-        q, (tiles_x * TILE, tiles_y * TILE), (TILE, TILE), tile_off.data, entry_face.data, entry_setup.data,
+    if variant == "rows":
+        kern, gsize, lsize = "raster_fwd_rows", (tiles_x, tiles_y * TILE), (1, TILE)
+    else:
+        kern, gsize, lsize = "raster_fwd", (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
+    device.kernel("raster", kern, defines, real)(
+        q, gsize, lsize, tile_off.data, entry_face.data, entry_setup.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         face.data, entry.data, bary.data, depth.data, count.data)
     return Fragments(width, height, K, tiles_x, tiles_y, E, real, face, entry, bary, depth, count,

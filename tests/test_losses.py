@@ -1,0 +1,147 @@
+"""Image losses: values against references (3DGS loops, skimage), float64 gradchecks, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from skimage.metrics import structural_similarity
+from triplet_cl.autodiff import assert_gradcheck
+
+from tests.reference import losses as ref
+from triplet_cl import losses
+
+
+def _pair(rng, shape=(16, 18, 3)):
+    x = rng.random(shape)
+    y = np.clip(x + 0.15 * rng.standard_normal(shape), 0, 1)
+    return x, y
+
+
+def test_ssim_zero_padding_matches_3dgs_reference(rng):
+    x, y = _pair(rng)
+    assert float(losses.ssim(x, y)) == pytest.approx(ref.ssim_3dgs(x, y), rel=1e-12)
+
+
+def test_ssim_valid_matches_skimage(rng):
+    x, y = _pair(rng, (24, 21, 3))
+    expected = structural_similarity(x, y, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                     data_range=1, channel_axis=-1)
+    assert float(losses.ssim(x, y, padding="valid")) == pytest.approx(expected, rel=1e-12)
+    assert float(losses.ssim(x, x, padding="valid")) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_photometric_combination_and_l1(rng):
+    x, y = _pair(rng)
+    l1, s = ref.l1(x, y), ref.ssim_3dgs(x, y)
+    assert float(losses.l1_loss(x, y)) == pytest.approx(l1, rel=1e-12)
+    assert float(losses.dssim_loss(x, y)) == pytest.approx(1 - s, rel=1e-10)
+    assert float(losses.photometric_loss(x, y)) == pytest.approx(0.8 * l1 + 0.2 * (1 - s), rel=1e-10)
+    value, v_pred = losses.photometric_loss_and_grad(x, y, lam=0.3)
+    assert value == pytest.approx(0.7 * l1 + 0.3 * (1 - s), rel=1e-10) and v_pred.shape == x.shape
+
+
+def test_float32_images_give_float32_adjoints(rng):
+    x, y = (a.astype(np.float32) for a in _pair(rng))
+    value, v_pred = losses.photometric_loss_and_grad(x, y)
+    assert v_pred.dtype == np.float32
+    assert value == pytest.approx(float(losses.photometric_loss(x.astype(np.float64), y.astype(np.float64))),
+                                  rel=1e-5)
+
+
+@pytest.mark.parametrize(("lam", "padding"), [(0.0, "zero"), (0.2, "zero"), (1.0, "zero"), (0.2, "valid")])
+def test_photometric_gradcheck(lam, padding, rng):
+    # L1 is kinked at pred == target; random images keep |pred - target| far from 0 relative to eps.
+    x, y = rng.random((13, 12, 2)), rng.random((13, 12, 2))
+    assert_gradcheck(lambda a, b: losses.PhotometricLoss(lam, padding)(a, b), {"pred": x, "target": y},
+                     rtol=1e-5, atol=1e-10)
+
+
+def test_ssim_gradcheck(rng):
+    x, y = rng.random((9, 11, 3)), rng.random((9, 11, 3))
+    assert_gradcheck(lambda a, b: losses.SSIM()(a, b), {"pred": x, "target": y}, rtol=1e-5, atol=1e-10)
+
+
+def test_image_tv_value_and_gradcheck(rng):
+    img = rng.random((7, 9, 2))
+    eps = 1e-6
+    assert float(losses.image_tv(img, eps, "sum")) == pytest.approx(ref.image_tv_sum(img, eps), rel=1e-12)
+    assert float(losses.image_tv(img, eps)) == pytest.approx(ref.image_tv_sum(img, eps) / (6 * 8 * 2), rel=1e-12)
+    assert_gradcheck(lambda a: losses.ImageTV(eps, "sum")(a), {"img": img}, rtol=1e-6, atol=1e-9)
+
+
+def test_normal_consistency_value_and_gradcheck(rng):
+    n = rng.standard_normal((4, 5, 3, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    w = rng.random((4, 5, 3)) / 3
+    big_n = np.einsum("hwk,hwkd->hwd", w, n)
+    expected = np.mean(np.sum(w * (1 - np.einsum("hwkd,hwd->hwk", n, big_n)), axis=-1))
+    assert float(losses.normal_consistency(n, w, big_n)) == pytest.approx(expected, rel=1e-12)
+    # a fragment aligned with N costs nothing
+    same = np.broadcast_to(np.array([0, 0, 1.0]), (2, 2, 1, 3))
+    assert float(losses.normal_consistency(same, np.ones((2, 2, 1)), same[:, :, 0])) == pytest.approx(0.0)
+    assert_gradcheck(lambda a, b, c: losses.NormalConsistencyLoss()(a, b, c),
+                     {"normals": n, "weights": w, "rendered_normal": big_n})
+
+
+@pytest.mark.parametrize(
+    ("pred", "target", "match"),
+    [
+        (np.zeros((4, 4, 3)), np.zeros((4, 5, 3)), "target must have the shape"),
+        (np.zeros((4, 4)), np.zeros((4, 4)), "pred must have 3 dimensions"),
+        (np.full((4, 4, 3), np.nan), np.zeros((4, 4, 3)), "pred must be finite"),
+        (np.zeros((4, 4, 3)), np.zeros((4, 4, 3), np.int32), "target must be a floating-point"),
+    ],
+)
+def test_bad_images_raise_value_error_naming_the_argument(pred, target, match):
+    with pytest.raises(ValueError, match=match):
+        losses.photometric_loss(pred, target)
+
+
+def test_bad_options_raise(rng):
+    x = rng.random((6, 6, 3))
+    with pytest.raises(ValueError, match="padding"):
+        losses.ssim(x, x, padding="reflect")
+    with pytest.raises(ValueError, match=r"pred must have shape \[H>=11"):
+        losses.ssim(x, x, padding="valid")
+    with pytest.raises(ValueError, match="lam"):
+        losses.photometric_loss(x, x, lam=1.5)
+    with pytest.raises(ValueError, match="img must have 3 dimensions"):
+        losses.image_tv(x[..., 0])
+    with pytest.raises(ValueError, match="weights must have shape"):
+        losses.normal_consistency(np.zeros((2, 2, 3, 3)), np.zeros((2, 2, 4)), np.zeros((2, 2, 3)))
+
+
+@pytest.mark.parametrize(("lam", "padding"), [(0.2, "zero"), (0.0, "zero"), (1.0, "valid")])
+def test_opencl_backend_matches_numpy(lam, padding, device64, rng):
+    import pyopencl.array as cla
+    from triplet_cl.autodiff import Context
+
+    x, y = rng.random((17, 19, 3)), rng.random((17, 19, 3))
+    fh, fd = losses.PhotometricLoss(lam, padding), losses.PhotometricLoss(lam, padding)
+    ch, cd = Context((True, True)), Context((True, True))
+    q = device64.queue
+    value_h = float(fh.forward(ch, x, y))
+    value_d = float(fd.forward(cd, cla.to_device(q, x), cla.to_device(q, y)))
+    assert value_d == pytest.approx(value_h, rel=1e-12)
+    (gx_h, gy_h), (gx_d, gy_d) = fh.backward(ch, np.asarray(1.3)), fd.backward(cd, np.asarray(1.3))
+    assert isinstance(gx_d, cla.Array)
+    np.testing.assert_allclose(gx_d.get(), gx_h, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(gy_d.get(), gy_h, rtol=1e-10, atol=1e-15)
+
+
+def test_opencl_backend_gradcheck_and_float32(device64, rng):
+    import pyopencl.array as cla
+
+    q = device64.queue
+    x, y = rng.random((12, 13, 3)), rng.random((12, 13, 3))
+    yd = cla.to_device(q, y)
+    rep = assert_gradcheck(lambda a: losses.PhotometricLoss(0.2)(a, yd), {"pred": cla.to_device(q, x)},
+                           rtol=1e-5, atol=1e-10, max_checks=60)
+    assert rep["pred"].checked == 60
+    # production float32 on the device agrees with float64 numpy to float32 precision
+    x32, y32 = (cla.to_device(q, a.astype(np.float32)) for a in (x, y))
+    value, v_pred = losses.photometric_loss_and_grad(x32, y32)
+    ref_value, ref_v = losses.photometric_loss_and_grad(x, y)
+    assert value == pytest.approx(ref_value, rel=1e-5)
+    assert v_pred.dtype == np.float32
+    np.testing.assert_allclose(v_pred.get(), ref_v, rtol=1e-3, atol=1e-6 * np.abs(ref_v).max())

@@ -1,0 +1,179 @@
+"""Adam: a hand-written reference on a quadratic, clipping, schedules, checkpoints and remap."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import numpy as np
+import pytest
+from triplet_cl.autodiff import Param
+
+from triplet_cl.optim import Adam, Constant, ExponentialDecay, StepUp, schedule_from_dict, schedule_to_dict
+
+
+def reference_adam(x0, grad_fn, lrs, b1, b2, eps, steps, max_norm=None):
+    """Textbook Adam (Kingma & Ba) with PyTorch's eps placement and clip_grad_norm_."""
+    x, m, v = x0.copy(), np.zeros_like(x0), np.zeros_like(x0)
+    for t in range(1, steps + 1):
+        g = grad_fn(x)
+        if max_norm is not None:
+            n = np.sqrt(np.sum(g * g))
+            if n > max_norm:
+                g = g * (max_norm / (n + 1e-6))
+        m = b1 * m + (1 - b1) * g
+        v = b2 * v + (1 - b2) * g * g
+        mh, vh = m / (1 - b1**t), v / (1 - b2**t)
+        x = x - lrs(t - 1) * mh / (np.sqrt(vh) + eps)
+    return x
+
+
+A = np.diag([1.0, 3.0, 10.0])
+
+
+def quad_grad(x):  # f = ½ xᵀAx − 1ᵀx per row
+    return x @ A - 1.0
+
+
+def _run(opt, p, steps):
+    for _ in range(steps):
+        p.grad = quad_grad(p.data)
+        opt.step()
+        opt.zero_grad()
+
+
+@pytest.mark.parametrize(
+    ("lr", "max_norm"),
+    [(0.05, None), (ExponentialDecay(0.1, 0.001, 20), None), (StepUp(Constant(0.01), {5: 5.0, 9: 0.5}), None),
+     (0.05, 0.3)],
+)
+def test_adam_matches_reference(lr, max_norm, rng):
+    x0 = rng.standard_normal((4, 3))
+    p = Param(x0.copy(), "x")
+    opt = Adam()
+    opt.add_group("x", [p], lr=lr, betas=(0.8, 0.99), eps=1e-8, max_grad_norm=max_norm)
+    _run(opt, p, 12)
+    sched = opt.group("x").schedule
+    np.testing.assert_allclose(p.data, reference_adam(x0, quad_grad, sched, 0.8, 0.99, 1e-8, 12, max_norm),
+                               rtol=1e-12, atol=1e-14)
+    if max_norm is not None:
+        assert opt.group("x").last_grad_norm > max_norm  # clipping was active
+
+
+def test_adam_converges_on_quadratic():
+    p = Param(np.zeros((2, 3)), "x")
+    opt = Adam()
+    opt.add_group("x", [p], lr=ExponentialDecay(0.1, 1e-4, 2000))
+    _run(opt, p, 2000)
+    np.testing.assert_allclose(p.data, np.tile(1.0 / np.diag(A), (2, 1)), atol=1e-3)
+
+
+def test_clipping_is_per_group_global_norm():
+    a, b, c = Param(np.zeros(2), "a"), Param(np.zeros(2), "b"), Param(np.zeros(2), "c")
+    opt = Adam()
+    opt.add_group("ab", [a, b], lr=1.0, max_grad_norm=1.0)
+    opt.add_group("c", [c], lr=1.0)
+    a.grad, b.grad, c.grad = np.array([3.0, 0.0]), np.array([0.0, 4.0]), np.array([3.0, 4.0])
+    opt.step()
+    assert opt.group("ab").last_grad_norm == pytest.approx(5.0)
+    # first Adam step moves by lr·sign(g) whatever the scale: check the moments instead
+    np.testing.assert_allclose(opt.group("ab").exp_avg[0], 0.1 * np.array([3.0, 0.0]) / (5 + 1e-6))
+    np.testing.assert_allclose(opt.group("c").exp_avg[0], 0.1 * np.array([3.0, 4.0]))
+
+
+def test_schedules():
+    e = ExponentialDecay(1e-2, 1e-4, 100)
+    assert e(0) == pytest.approx(1e-2) and e(100) == pytest.approx(1e-4) and e(500) == pytest.approx(1e-4)
+    assert e(50) == pytest.approx(1e-3)  # log-linear: the geometric mean halfway
+    d = ExponentialDecay(1e-2, 1e-4, 100, delay_steps=10, delay_mult=0.01)
+    assert d(0) == pytest.approx(1e-4) and d(10) == pytest.approx(e(10))
+    s = StepUp(Constant(0.01), {10_000: 5.0})
+    assert s(9_999) == pytest.approx(0.01) and s(10_000) == pytest.approx(0.05)
+    for sched in (e, d, s):
+        assert schedule_from_dict(schedule_to_dict(sched)) == sched
+    opt = Adam()
+    opt.add_group("x", [Param(np.zeros(1), "x")], lr=e)
+    assert opt.lr("x") == pytest.approx(1e-2) and opt.lr("x", 100) == pytest.approx(1e-4)
+
+
+def test_state_dict_roundtrip_resumes_identically(rng):
+    x0 = rng.standard_normal((3, 3))
+
+    def make():
+        p = Param(x0.copy(), "x")
+        opt = Adam()
+        opt.add_group("x", [p], lr=StepUp(ExponentialDecay(0.1, 0.01, 10), {4: 2.0}), betas=(0.5, 0.999))
+        return p, opt
+
+    p1, o1 = make()
+    _run(o1, p1, 10)
+    p2, o2 = make()
+    _run(o2, p2, 5)
+    state = pickle.loads(pickle.dumps(o2.state_dict()))
+    data = p2.data.copy()
+    p3, o3 = make()
+    p3.data[...] = data
+    o3.group("x").schedule = Constant(123.0)  # overwritten by the checkpoint
+    o3.load_state_dict(state)
+    assert o3.t == 5
+    _run(o3, p3, 5)
+    np.testing.assert_allclose(p3.data, p1.data, rtol=1e-14)
+    bad = o2.state_dict()
+    bad["groups"]["x"]["exp_avg"] = [np.zeros((2, 3))]
+    with pytest.raises(ValueError, match="does not match"):
+        o3.load_state_dict(bad)
+
+
+def test_remap_keeps_surviving_moments_and_zeroes_new_rows(rng):
+    pos = Param(rng.standard_normal((5, 3)), "pos")
+    col = Param(rng.standard_normal((5, 2)).astype(np.float32), "col")
+    opt = Adam()
+    opt.add_group("soup", [pos, col], lr=0.01)
+    for _ in range(3):
+        pos.grad, col.grad = rng.standard_normal((5, 3)), rng.standard_normal((5, 2))
+        opt.step()
+    g = opt.group("soup")
+    m_old = [m.copy() for m in g.exp_avg]
+    v_old = [v.copy() for v in g.exp_avg_sq]
+    old_pos, old_col = pos.data.copy(), col.data.copy()
+    # prune rows 1 and 3, duplicate row 4, add two brand-new rows
+    index_map = np.array([0, 2, 4, 4, -1, -1])
+    new_pos, new_col = rng.standard_normal((2, 3)), rng.standard_normal((2, 2))
+    opt.remap("soup", index_map, {"pos": new_pos, "col": new_col})
+    keep = index_map >= 0
+    for k, (m0, v0) in enumerate(zip(m_old, v_old, strict=True)):
+        np.testing.assert_array_equal(g.exp_avg[k][keep], m0[index_map[keep]])
+        np.testing.assert_array_equal(g.exp_avg_sq[k][keep], v0[index_map[keep]])
+        assert not g.exp_avg[k][~keep].any() and not g.exp_avg_sq[k][~keep].any()
+        assert g.exp_avg[k].dtype == (np.float64, np.float32)[k]
+    np.testing.assert_array_equal(pos.data[keep], old_pos[index_map[keep]])
+    np.testing.assert_array_equal(pos.data[~keep], new_pos)
+    np.testing.assert_array_equal(col.data[~keep], new_col.astype(np.float32))
+    np.testing.assert_array_equal(col.data[keep], old_col[index_map[keep]])
+    assert pos.grad is None and col.data.dtype == np.float32
+    # full new arrays (a split that moves the children) are accepted too; the step still works
+    opt.remap("soup", np.array([0, 0, 1]), [np.zeros((3, 3)), np.zeros((3, 2))])
+    assert pos.data.shape == (3, 3) and g.exp_avg[0].shape == (3, 3)
+    pos.grad, col.grad = np.ones((3, 3)), np.ones((3, 2))
+    opt.step()
+    assert np.isfinite(pos.data).all() and math.isfinite(float(col.data.sum()))
+
+
+def test_remap_and_group_errors():
+    p = Param(np.zeros((3, 2)), "p")
+    opt = Adam()
+    opt.add_group("g", [p], lr=0.1)
+    with pytest.raises(ValueError, match="new_rows is required"):
+        opt.remap("g", np.array([0, -1]))
+    with pytest.raises(ValueError, match=r"index_map values must lie in \[-1, 2\]"):
+        opt.remap("g", np.array([0, 3]))
+    with pytest.raises(ValueError, match="group_name 'nope'"):
+        opt.remap("nope", np.array([0]))
+    with pytest.raises(ValueError, match=r"new_rows\[0\] must have shape"):
+        opt.remap("g", np.array([0, -1]), [np.zeros((4, 2))])
+    with pytest.raises(ValueError, match="name must be a new"):
+        opt.add_group("g", [p])
+    with pytest.raises(ValueError, match="lr must be"):
+        opt.add_group("h", [Param(np.zeros(1), "q")], lr=-1.0)
+    with pytest.raises(ValueError, match="betas"):
+        opt.add_group("h", [Param(np.zeros(1), "q")], betas=(1.0, 0.9))

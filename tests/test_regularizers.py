@@ -1,0 +1,71 @@
+"""Mesh regularisers: closed-form values on tiny meshes, float64 gradchecks, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from triplet_cl.autodiff import assert_gradcheck
+
+from triplet_cl import regularizers as reg
+
+# an octahedron: 6 vertices, 8 faces, 12 edges, every vertex of valence 4
+OCTA_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+OCTA_F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+
+
+def _noisy(rng, scale=0.1):
+    return OCTA_V + scale * rng.standard_normal(OCTA_V.shape)
+
+
+def test_mesh_edges_of_octahedron():
+    e = reg.mesh_edges(OCTA_F)
+    assert e.shape == (12, 2) and (e[:, 0] < e[:, 1]).all() and len(np.unique(e, axis=0)) == 12
+
+
+def test_normal_consistency_flat_is_zero_and_octahedron_closed_form():
+    quad_v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]])
+    quad_f = np.array([[0, 1, 2], [0, 2, 3]])
+    assert float(reg.face_normal_consistency(quad_v, quad_f)) == pytest.approx(0.0, abs=1e-15)
+    # adjacent octahedron faces meet at cos = 1/3 (dihedral angle arccos(-1/3)): 12 pairs of 1 - 1/3
+    assert float(reg.face_normal_consistency(OCTA_V, OCTA_F, "sum")) == pytest.approx(12 * (2 / 3))
+
+
+def test_normal_consistency_gradcheck(rng):
+    assert_gradcheck(lambda v: reg.FaceNormalConsistency(OCTA_F, 6)(v), {"vertices": _noisy(rng)},
+                     rtol=1e-6, atol=1e-10)
+
+
+def test_laplacian_closed_form_and_gradcheck(rng):
+    # vertex 4 = (0,0,1): its ring {0,1,2,3} averages to the origin, so δ_4 = -(0,0,1); by symmetry
+    # every vertex has |δ|² = 1, energy 6 (sum) / 1 (mean)
+    assert float(reg.uniform_laplacian(OCTA_V, OCTA_F, "sum")) == pytest.approx(6.0)
+    assert float(reg.uniform_laplacian(OCTA_V, OCTA_F)) == pytest.approx(1.0)
+    lap = reg.uniform_laplacian_matrix(OCTA_F, 7).toarray()  # vertex 6 isolated → zero row
+    assert np.allclose(lap[6], 0) and np.allclose(lap[:6].sum(axis=1), 0)
+    assert_gradcheck(lambda v: reg.UniformLaplacian(OCTA_F, 6)(v), {"x": _noisy(rng)}, rtol=1e-6, atol=1e-10)
+
+
+def test_material_gtv_closed_form_and_gradcheck(rng):
+    x = np.zeros((6, 2))
+    x[4] = [1.0, -2.0]  # only the 4 edges at vertex 4 differ, |Δ|₁ = 3, counted in both directions
+    assert float(reg.material_gtv(x, OCTA_F, reduction="sum")) == pytest.approx(2 * 4 * 3.0)
+    w = np.full(12, 4.0)
+    assert float(reg.material_gtv(x, OCTA_F, w, reduction="sum")) == pytest.approx(2 * 2 * 4 * 3.0)
+    v = _noisy(rng, 0.2)
+    weights = reg.gtv_edge_weights(v, reg.mesh_edges(OCTA_F))
+    assert weights.shape == (12,) and np.mean(1 / weights) == pytest.approx(1.0)  # ℓ̄/ℓ: harmonic normalisation
+    assert_gradcheck(lambda a: reg.MaterialGTV(OCTA_F, 6, weights)(a), {"x": rng.random((6, 3))},
+                     rtol=1e-6, atol=1e-10)
+
+
+def test_bad_input_raises():
+    with pytest.raises(ValueError, match="vertices must have shape"):
+        reg.face_normal_consistency(OCTA_V[:, :2], OCTA_F)
+    with pytest.raises(ValueError, match="faces indices"):
+        reg.UniformLaplacian(OCTA_F, 4)
+    with pytest.raises(ValueError, match="x must be finite"):
+        reg.material_gtv(np.full((6, 1), np.nan), OCTA_F)
+    with pytest.raises(ValueError, match="weights must be"):
+        reg.MaterialGTV(OCTA_F, 6, np.ones(5))
+    with pytest.raises(ValueError, match="reduction"):
+        reg.uniform_laplacian(OCTA_V, OCTA_F, "max")
