@@ -28,9 +28,9 @@ import numpy as np
 from triplet_cl import get_device
 from triplet_cl.camera import Camera
 from triplet_cl.ops.composite import composite, composite_backward, coverage
-from triplet_cl.ops.interpolate import interpolate, interpolate_backward
+from triplet_cl.ops.interpolate import interpolate
 from triplet_cl.ops.mesh import DeviceMesh
-from triplet_cl.ops.raster import project, project_backward, raster_backward, rasterize
+from triplet_cl.ops.raster import fragments_backward, project, project_backward, rasterize
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
@@ -65,39 +65,82 @@ def camera(res: int) -> Camera:
 
 
 class Chain:
+    """The renderer's raster path: one packed interpolation (RGB + alpha), coverage, compositing;
+    backward through composite and the fused fragment adjoint to positions, colours, alphas, sigma."""
+
     def __init__(self, dev, V, F, cam, K, sigma=1.0):
-        self.dev, self.V, self.cam, self.K, self.sigma = dev, V, cam, K, sigma
+        import pyopencl.array as cla
+
+        self.dev, self.cam, self.K, self.sigma = dev, cam, K, sigma
         self.mesh = DeviceMesh(dev, F, len(V))
         rng = np.random.default_rng(1)
         self.col = rng.uniform(0, 1, (len(V), 3)).astype(np.float32)
-        self.alv = np.full((len(V), 1), 0.5, np.float32)
-        import pyopencl.array as cla
-
+        self.attr = np.concatenate([self.col, np.full((len(V), 1), 0.5, np.float32)], 1)
         q = dev.queue
         self.Vd = cla.to_device(q, V)
-        self.cold = cla.to_device(q, self.col)
-        self.ald = cla.to_device(q, self.alv)
+        self.attrd = cla.to_device(q, self.attr)
         self.v_img = cla.to_device(q, rng.standard_normal((cam.height, cam.width, 3)).astype(np.float32))
+        self.bg = np.ones(4)
+
+    def set_alpha(self, a: float):
+        self.attr[:, 3] = a
+        self.attrd.set(self.attr)
 
     def forward(self):
         d = self.dev
         self.vs = project(d, self.Vd, self.cam)
         self.fr = rasterize(d, self.vs, self.mesh, self.cam.width, self.cam.height, self.K)
-        self.feat = interpolate(d, self.cold, self.fr)
-        self.a = interpolate(d, self.ald, self.fr).reshape(self.fr.shape)
+        # colour + alpha in one interpolation; compositing reads channel 3 as alpha ("feat" C=4,
+        # alpha taken from the same buffer through a view would need strides: composite 4 channels
+        # with the alpha channel's own blend being harmless)
+        self.fa = interpolate(d, self.attrd, self.fr)
+        self.a = _channel(d, self.fa, 3)
         self.win = coverage(d, self.fr, self.sigma)
-        self.img, self.trans, self.ncon = composite(d, self.fr, self.feat, self.a, np.ones(3), win=self.win)
+        self.img, self.trans, self.ncon = composite(d, self.fr, self.fa, self.a, self.bg, win=self.win)
         d.queue.finish()
 
     def backward(self):
         d, fr = self.dev, self.fr
-        vf, va, vw, _ = composite_backward(d, fr, self.feat, self.a, np.ones(3), self.ncon, self.trans, self.v_img,
+        v_img4 = _pad_channel(d, self.v_img)
+        vf, va, vw, _ = composite_backward(d, fr, self.fa, self.a, self.bg, self.ncon, self.trans, v_img4,
                                            win=self.win)
-        _, vb = interpolate_backward(d, self.cold, fr, vf)
-        _, vb = interpolate_backward(d, self.ald, fr, va.reshape(*fr.shape, 1), v_bary_acc=vb)
-        v_vs, _ = raster_backward(d, fr, v_bary=vb, v_win=vw, sigma=self.sigma)
+        _add_to_channel(d, vf, va, 3)
+        _, v_vs, _ = fragments_backward(d, fr, self.attrd, vf, v_win=vw, sigma=self.sigma)
         project_backward(d, self.Vd, self.cam, v_vs)
         d.queue.finish()
+
+
+def _channel(d, x, c):
+    from pyopencl.elementwise import ElementwiseKernel
+
+    t = "float" if x.dtype == np.float32 else "double"
+    k = d.cached(("bench-ch", x.dtype.str), lambda: ElementwiseKernel(
+        d.ctx, f"{t} *out, const {t} *x, int C, int c", "out[i] = x[i * C + c]", "channel"))
+    import pyopencl.array as cla
+
+    out = cla.empty(d.queue, x.shape[:-1], x.dtype, allocator=d.allocator)
+    k(out, x, np.int32(x.shape[-1]), np.int32(c))
+    return out
+
+
+def _pad_channel(d, v):
+    import pyopencl.array as cla
+
+    key = ("bench-pad", v.shape)
+    out = d.cached(key, lambda: cla.zeros(d.queue, v.shape[:-1] + (4,), v.dtype))
+    h = np.zeros(v.shape[:-1] + (4,), v.dtype.type)
+    h[..., :3] = v.get()
+    out.set(h)
+    return out
+
+
+def _add_to_channel(d, x, y, c):
+    from pyopencl.elementwise import ElementwiseKernel
+
+    t = "float" if x.dtype == np.float32 else "double"
+    k = d.cached(("bench-add", x.dtype.str), lambda: ElementwiseKernel(
+        d.ctx, f"{t} *x, const {t} *y, int C, int c", "x[i * C + c] += y[i]", "addch"))
+    k(x, y, np.int32(x.shape[-1]), np.int32(c), range=slice(0, y.size))
 
 
 def timed(fn, runs):
@@ -116,59 +159,123 @@ def frag_stats(ch: Chain):
     return float(cnt[cov].mean()) if cov.any() else 0.0, float(cov.mean())
 
 
-def mitsuba_opaque(V, F, col, cam: Camera, runs: int):
-    """Mitsuba 3 llvm_ad_rgb: per-vertex colour, direct integrator 1 spp, d(image·v)/d(colour)."""
+def mitsuba_opaque(V, F, col, cam: Camera, runs: int, v_img=None, setup: str = "direct", ref=None):
+    """Mitsuba 3 (llvm_ad_rgb) doing the opaque job: per-vertex colour, 1 spp, d(Σ image·v_img)/d(colour).
+
+    ``setup``:
+      direct   the ``direct`` integrator on a ``diffuse`` BSDF whose reflectance is the ``mesh_attribute``
+               ``vertex_color``, lit by a ``constant`` emitter of radiance 1, one cosine-weighted BSDF
+               sample and no emitter sample (``emitter_samples=0``): the escaping BSDF ray returns exactly
+               albedo·1, so the image is the vertex colour without noise (the convex sphere never
+               shadows itself). Cost per pixel: one camera ray + one BSDF ray.
+      primary  the lower bound: the colour as the ``radiance`` of an ``area`` emitter, ``path`` integrator
+               with ``max_depth=1`` (directly visible emission only): one camera ray per pixel.
+    Both differentiate through ``mi.render`` + ``dr.backward`` (Mitsuba re-renders the primal with AD
+    enabled in the backward pass; that is its documented way). Scene construction (Embree BVH) and the
+    first call (LLVM compilation of the kernels) are outside the timing.
+
+    ``v_img`` [H, W, 3] is the cotangent image (random if None). ``ref = (rgb [H,W,3], alpha [H,W],
+    v_col [N,3])`` (ours) adds sanity numbers: silhouette IoU, mean |Δrgb| where both cover, the
+    correlation of the colour gradients. Returns ``(median ms, description, checks)`` or
+    ``(None, reason, {})`` when Mitsuba is unavailable or fails.
+    """
+    import os
+
+    for lib in ("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"):
+        if "DRJIT_LIBLLVM_PATH" not in os.environ and os.path.exists(lib):
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib  # Debian's libllvm19 (drjit usually finds it anyway)
     try:
         import drjit as dr
         import mitsuba as mi
 
         mi.set_variant("llvm_ad_rgb")
     except Exception as exc:  # noqa: BLE001
-        return None, f"mitsuba unavailable ({type(exc).__name__}: {exc})"
-    fov = math.degrees(2 * math.atan(cam.width / 2 / cam.fx))
+        return None, f"mitsuba unavailable ({type(exc).__name__}: {exc})", {}
+    try:
+        return _mitsuba_opaque(dr, mi, V, F, col, cam, runs, v_img, setup, ref)
+    except Exception as exc:  # noqa: BLE001
+        return None, f"mitsuba failed ({type(exc).__name__}: {exc})", {}
+
+
+def _mitsuba_opaque(dr, mi, V, F, col, cam, runs, v_img, setup, ref):
+    H, W = cam.height, cam.width
+    if abs(cam.fx - cam.fy) > 1e-6 * cam.fx or abs(cam.cx - W / 2) > 1e-6 or abs(cam.cy - H / 2) > 1e-6:
+        raise ValueError("the Mitsuba peer needs fx = fy and a centred principal point")
+    fov = math.degrees(2 * math.atan(W / 2 / cam.fx))
+    # ours: OpenCV camera (+X right, +Y down, +Z forward); Mitsuba's: +X left, +Y up, +Z forward
     c2w = cam.c2w.copy()
-    c2w[:3, 0] *= -1  # Mitsuba camera: +X left, +Y up, +Z forward
+    c2w[:3, 0] *= -1
     c2w[:3, 1] *= -1
-    mesh = mi.Mesh("soup", len(V), len(F), has_vertex_normals=False, has_vertex_texcoords=False)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
-    params["faces"] = dr.ravel(mi.Vector3u(F[:, 0], F[:, 1], F[:, 2]))
+    props = mi.Properties()
+    colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    if setup == "direct":
+        props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": colour})
+        integrator = {"type": "direct", "emitter_samples": 0, "bsdf_samples": 1}
+        extra = {"light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}}
+        what = "llvm_ad_rgb, direct (diffuse × constant emitter, 1 BSDF ray), 1 spp"
+    elif setup == "primary":
+        props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}})
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": colour})
+        integrator = {"type": "path", "max_depth": 1}
+        extra = {}
+        what = "llvm_ad_rgb, path max_depth=1 (emissive colour, camera rays only), 1 spp"
+    else:
+        raise ValueError(f"unknown setup {setup!r}")
+    V = np.ascontiguousarray(V, np.float32)
+    F = np.ascontiguousarray(F, np.uint32)
+    col = np.ascontiguousarray(col, np.float32)
+    mesh = mi.Mesh("soup", len(V), len(F), props=props, has_vertex_normals=False, has_vertex_texcoords=False)
+    mp = mi.traverse(mesh)
+    mp["vertex_positions"] = dr.ravel(mi.Point3f(V[:, 0], V[:, 1], V[:, 2]))
+    mp["faces"] = dr.ravel(mi.Vector3u(F[:, 0], F[:, 1], F[:, 2]))
     mesh.add_attribute("vertex_color", 3, dr.ravel(mi.Color3f(col[:, 0], col[:, 1], col[:, 2])))
-    params.update()
+    mp.update()
     scene = mi.load_dict({
         "type": "scene",
-        "integrator": {"type": "direct"},
+        "integrator": integrator,
         "sensor": {"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mi.ScalarTransform4f(c2w),
-                   "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height, "rfilter": {"type": "box"}},
+                   "near_clip": cam.near, "far_clip": cam.far,
+                   "film": {"type": "hdrfilm", "width": W, "height": H, "pixel_format": "rgba",
+                            "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent", "sample_count": 1}},
-        "emitter": {"type": "constant"},
-        "soup": {"type": "ply", "filename": _write_ply(V, F, col), "bsdf": {
-            "type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}},
+        "soup": mesh,
+        **extra,
     })
     sp = mi.traverse(scene)
     key = "soup.vertex_color"
     dr.enable_grad(sp[key])
     sp.update()
+    if v_img is None:
+        v_img = np.random.default_rng(1).standard_normal((H, W, 3)).astype(np.float32)
+    # cotangent on RGB; 0 on the alpha channel of the rgba film
+    v = mi.TensorXf(np.concatenate([np.asarray(v_img, np.float32), np.zeros((H, W, 1), np.float32)], -1))
+    out = {}
 
     def step():
+        dr.set_grad(sp[key], 0)
         img = mi.render(scene, sp, spp=1, seed=0)
-        dr.backward(dr.sum(img))
+        loss = dr.sum(img * v, axis=None)
+        dr.eval(img, loss)  # the primal image and loss are part of the job (drjit is lazy)
+        dr.backward(loss)
         g = dr.grad(sp[key])
         dr.eval(g)
         dr.sync_thread()
+        out["img"], out["g"] = img, g
 
-    return timed(step, runs), "llvm_ad_rgb, direct, 1 spp"
-
-
-def _write_ply(V, F, col):
-    import tempfile
-
-    import trimesh
-
-    path = tempfile.NamedTemporaryFile(suffix=".ply", delete=False).name
-    m = trimesh.Trimesh(V, F, vertex_colors=(np.clip(col, 0, 1) * 255).astype(np.uint8), process=False)
-    m.export(path)
-    return path
+    ms = timed(step, runs)
+    checks = {"threads": dr.thread_count()}
+    if ref is not None:
+        rgb, alpha, v_col = ref
+        im = np.asarray(out["img"], np.float32)
+        mo, mm = np.asarray(alpha) > 0.5, im[..., 3] > 0.5
+        both = mo & mm
+        checks["iou"] = float((mo & mm).sum() / max(1, (mo | mm).sum()))
+        d_rgb = np.abs(im[..., :3][both] - np.asarray(rgb)[both])
+        checks["drgb"] = float(d_rgb.mean()) if both.any() else float("nan")
+        if v_col is not None:
+            g = np.asarray(out["g"], np.float32).ravel()  # ravelled [N, 3], like ours
+            checks["gcorr"] = float(np.corrcoef(g, np.asarray(v_col, np.float32).ravel())[0, 1])
+    return ms, what, checks
 
 
 def main(argv=None):
@@ -203,12 +310,13 @@ def main(argv=None):
                         print(f"{scene:8} {res:5d} {M:8d} {K:4d}  skipped: {exc}")
                         continue
                     fpp, cov = frag_stats(ch)
-                    peak = dev.allocator.managed_bytes / 2**20 if hasattr(dev.allocator, "managed_bytes") else float("nan")
+                    peak = getattr(dev.allocator, "managed_bytes", float("nan")) / 2**20
                     print(f"{scene:8} {res:5d} {M:8d} {K:4d} {fpp:7.1f} {cov:6.2f} {fwd:8.1f} {bwd:8.1f} "
                           f"{fwd + bwd:8.1f} {peak:9.0f}", flush=True)
                     dev.allocator.free_held()
     if not args.no_peer:
-        # the opaque K=1 job on an 82k-face icosphere-like surface, 400²
+        # the opaque K=1 job on an 82k-face icosphere, 400²: hard coverage (sigma huge), alpha 1
+        import pyopencl.array as cla
         import trimesh
 
         ico = trimesh.creation.icosphere(subdivisions=6)  # 81,920 faces
@@ -216,20 +324,44 @@ def main(argv=None):
         F = np.asarray(ico.faces, np.int32)
         cam = camera(400)
         ch = Chain(dev, V, F, cam, 1, sigma=1e6)
-        ch.alv[:] = 1.0
+        ch.set_alpha(1.0)
 
         def ours():
             ch.forward()
             ch.backward()
 
         t_ours = timed(ours, args.runs)
-        t_peer, what = mitsuba_opaque(V, F, ch.col, cam, args.runs)
-        print(f"\nopaque job (K=1, per-vertex colour, {len(F)} faces, 400²), fwd+bwd median ms:")
-        print(f"  triplet_cl: {t_ours:8.1f}")
-        if t_peer is None:
-            print(f"  mitsuba 3:  n/a — {what}")
-        else:
-            print(f"  mitsuba 3:  {t_peer:8.1f}  ({what})   ratio ours/mitsuba = {t_ours / t_peer:.2f}")
+
+        def reference():
+            """Our image [H,W,3], silhouette [H,W] and colour gradient [N,3] (None where it fails)."""
+            ch.forward()
+            H, W = cam.height, cam.width
+            rgb, alpha = ch.img.get()[..., :3], 1.0 - ch.trans.get().reshape(H, W)
+            try:
+                v4 = np.zeros((H, W, ch.fa.shape[-1]), np.float32)
+                v4[..., :3] = ch.v_img.get()
+                vf, _, _, _ = composite_backward(dev, ch.fr, ch.fa, ch.a, ch.bg, ch.ncon, ch.trans,
+                                                 cla.to_device(dev.queue, v4), win=ch.win)
+                v_attr = fragments_backward(dev, ch.fr, ch.attrd, vf, geometry=False)[0]
+                v_col = v_attr.get()[:, :3]
+            except Exception:  # noqa: BLE001 - the gradient check is optional
+                v_col = None
+            return rgb, alpha, v_col
+
+        ref = reference()
+        print(f"\nopaque job (K=1, per-vertex colour, {len(F)} faces, 400², d/d colours), fwd+bwd median ms:")
+        print(f"  triplet_cl: {t_ours:8.1f}  (also computes the gradients w.r.t. positions and alphas)")
+        for setup in ("direct", "primary"):
+            t_peer, what, chk = mitsuba_opaque(V, F, ch.col, cam, args.runs, v_img=ch.v_img.get(), setup=setup,
+                                               ref=ref)
+            if t_peer is None:
+                print(f"  mitsuba 3:  n/a — {what}")
+                break
+            print(f"  mitsuba 3:  {t_peer:8.1f}  ({what}, {chk['threads']} threads)   "
+                  f"ratio ours/mitsuba = {t_ours / t_peer:.2f}")
+            gc = f"{chk['gcorr']:.3f}" if "gcorr" in chk else "n/a"
+            print(f"    sanity: silhouette IoU {chk['iou']:.4f}, mean |Δrgb| where both cover {chk['drgb']:.3f} "
+                  f"(Mitsuba jitters its sample in the pixel), colour-gradient correlation {gc}")
     return 0
 
 

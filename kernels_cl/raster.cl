@@ -13,11 +13,8 @@
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
  *             (GPU-shaped; raster_fwd_rows is the CPU-shaped twin with the same results.)
- * raster_bwd  one work-item per tile, serial over the tile's pixels and fragments: the adjoints of
- *             barycentrics (v_bary, 2-parameter form lam2 = 1 - lam0 - lam1), depth (v_depth) and
- *             window (v_win) go to the screen vertices of the fragment's face (bary_persp_vjp,
- *             edge_window_vjp) and are added to partial[entry] — no other work-item owns the entry,
- *             so no atomics are needed, and sums happen in a fixed order (deterministic).
+ * (adjoint)   fragment_bwd.cl: one pass over the fragments for interpolation, barycentrics,
+ *             depth and window, into per-entry partial sums (no atomics, deterministic).
  * gather_vertex  per (vertex, channel): sum partial[entry, corner, channel] over every face corner of
  *             the vertex (CSR) and every entry of that face. Adjoint of "vertex -> fragment".
  */
@@ -275,70 +272,6 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
     }
 }
 #endif
-
-/* Load the screen triangle of face f. */
-inline void load_tri(__global const REAL* vs, __global const int* F, int f,
-                     REAL2* a0, REAL2* a1, REAL2* a2, REAL3* z)
-{
-    const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
-    *a0 = p0.xy; *a1 = p1.xy; *a2 = p2.xy;
-    *z = (REAL3)(p0.z, p1.z, p2.z);
-}
-
-__kernel void raster_bwd(__global const REAL* vs,           // [N, 3]
-                         __global const int* F,             // [M, 3]
-                         __global const int* tile_off,      // [T + 1]
-                         __global const int* frag_face,     // [H, W, K]
-                         __global const int* frag_entry,    // [H, W, K]
-                         __global const int* frag_count,    // [H, W]
-                         __global const REAL* v_bary,       // [H, W, K, 2]  (if has_bary)
-                         __global const REAL* v_depth,      // [H, W, K]     (if has_depth)
-                         __global const REAL* v_win,        // [H, W, K]     (if has_win)
-                         const int has_bary, const int has_depth, const int has_win,
-                         const REAL sigma,
-                         const int width, const int height, const int tiles_x, const int num_tiles,
-                         const int K,
-                         __global REAL* partial,            // [E, 3, 3]  v_(u, v, z) per corner
-                         __global REAL* v_sigma_tile)       // [T]
-{
-    const int t = get_global_id(0);
-    if (t >= num_tiles) return;
-    const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    for (int q = e0 * 9; q < e1 * 9; ++q) partial[q] = (REAL)0;
-    REAL vsig = (REAL)0;
-    const int tx = t % tiles_x, ty = t / tiles_x;
-    const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
-    for (int y = ty * TILE; y < ye; ++y)
-        for (int x = tx * TILE; x < xe; ++x) {
-            const int pix = y * width + x;
-            const int cnt = frag_count[pix];
-            const REAL2 p = (REAL2)((REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5);
-            for (int k = 0; k < cnt; ++k) {
-                const int o = pix * K + k;
-                const REAL vb0 = has_bary ? v_bary[2 * o] : (REAL)0;
-                const REAL vb1 = has_bary ? v_bary[2 * o + 1] : (REAL)0;
-                const REAL vzp = has_depth ? v_depth[o] : (REAL)0;
-                const REAL vw = has_win ? v_win[o] : (REAL)0;
-                if (vb0 == (REAL)0 && vb1 == (REAL)0 && vzp == (REAL)0 && vw == (REAL)0) continue;
-                REAL2 a0, a1, a2;
-                REAL3 z;
-                load_tri(vs, F, frag_face[o], &a0, &a1, &a2, &z);
-                REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
-                REAL3 gz = (REAL3)(0, 0, 0);
-                if (vb0 != (REAL)0 || vb1 != (REAL)0 || vzp != (REAL)0) {
-                    REAL vl[3] = {vb0, vb1, (REAL)0};
-                    bary_persp_vjp(p, a0, a1, a2, z, vl, vzp, &g0, &g1, &g2, &gz);
-                }
-                if (vw != (REAL)0)
-                    vsig += edge_window_vjp(p, a0, a1, a2, sigma, vw, &g0, &g1, &g2);
-                __global REAL* d = partial + frag_entry[o] * 9;
-                d[0] += g0.x; d[1] += g0.y; d[2] += gz.x;
-                d[3] += g1.x; d[4] += g1.y; d[5] += gz.y;
-                d[6] += g2.x; d[7] += g2.y; d[8] += gz.z;
-            }
-        }
-    v_sigma_tile[t] = vsig;
-}
 
 __kernel void gather_vertex(__global const REAL* partial,      // [E, 3, C]
                             __global const int* face_off,      // [M + 1]

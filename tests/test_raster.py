@@ -15,8 +15,15 @@ from triplet_cl.camera import Camera
 from triplet_cl.ops.composite import composite, composite_backward, coverage
 from triplet_cl.ops.interpolate import interpolate, interpolate_backward
 from triplet_cl.ops.mesh import DeviceMesh
-from triplet_cl.ops.raster import (camera_params, project, project_backward, raster_backward, rasterize,
-                                   read_fragments)
+from triplet_cl.ops.raster import (
+    camera_params,
+    fragments_backward,
+    project,
+    project_backward,
+    raster_backward,
+    rasterize,
+    read_fragments,
+)
 
 W, H = 23, 19
 
@@ -330,19 +337,20 @@ def render_chain(device, V, F, col, alv, sigma, K, bg, camera, want_grad=None):
     mesh = DeviceMesh(device, F, len(V))
     vs = project(device, V, camera)
     fr = rasterize(device, vs, mesh, camera.width, camera.height, K)
-    feat = interpolate(device, col, fr)
-    a = interpolate(device, alv, fr).reshape(fr.shape)
+    packed = np.concatenate([col, alv], 1)  # one interpolation of colour + alpha
+    fa = interpolate(device, packed, fr).get()
+    feat, a = np.ascontiguousarray(fa[..., :3]), np.ascontiguousarray(fa[..., 3])
     win = coverage(device, fr, sigma)
     img, trans, ncon = composite(device, fr, feat, a, bg, win=win, t_min=0.0)
     if want_grad is None:
         return img.get(), read_fragments(fr)
     v_feat, v_a, v_win, _ = composite_backward(device, fr, feat, a, bg, ncon, trans, want_grad, win=win)
-    v_col, vb = interpolate_backward(device, col, fr, v_feat)
-    v_alv, vb = interpolate_backward(device, alv, fr, v_a.reshape(*fr.shape, 1), v_bary_acc=vb)
-    v_vs, v_sigma = raster_backward(device, fr, v_bary=vb, v_win=v_win, sigma=sigma)
+    v_fa = np.concatenate([v_feat.get(), v_a.get()[..., None]], -1)
+    v_packed, v_vs, v_sigma = fragments_backward(device, fr, packed, v_fa, v_win=v_win, sigma=sigma)
     v_V = project_backward(device, V, camera, v_vs)
-    return img.get(), read_fragments(fr), {"V": v_V.get(), "col": v_col.get(), "alpha": v_alv.get(),
-                                           "sigma": v_sigma}
+    vp = v_packed.get()
+    grads = {"V": v_V.get(), "col": vp[:, :3], "alpha": vp[:, 3:], "sigma": v_sigma}
+    return img.get(), read_fragments(fr), grads
 
 
 def test_whole_chain_central_differences(device64, rng):
@@ -380,6 +388,22 @@ def test_whole_chain_central_differences(device64, rng):
     (lp, _), (lm, _) = f(s=sigma + eps), f(s=sigma - eps)
     assert g["sigma"] == pytest.approx((lp - lm) / (2 * eps), rel=1e-5)
     assert np.abs(g["V"]).sum() > 0 and checked > 100
+
+
+def test_fused_fragments_backward_equals_separate_ops(device64, rng):
+    V, F = soup(rng, M=60)
+    _, _, vs, fr = run_raster(device64, V, F, 5)
+    attr = rng.standard_normal((len(V), 4))
+    v_out = rng.standard_normal((H, W, 5, 4))
+    v_d, v_w = rng.standard_normal((H, W, 5)), rng.standard_normal((H, W, 5))
+    va_sep, vb = interpolate_backward(device64, attr, fr, v_out)
+    vvs_sep, vsig_sep = raster_backward(device64, fr, v_bary=vb, v_depth=v_d, v_win=v_w, sigma=0.5)
+    va, vvs, vsig = fragments_backward(device64, fr, attr, v_out, v_depth=v_d, v_win=v_w, sigma=0.5)
+    np.testing.assert_allclose(va.get(), va_sep.get(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(vvs.get(), vvs_sep.get(), rtol=1e-10, atol=1e-12)
+    assert vsig == pytest.approx(vsig_sep, rel=1e-12)
+    with pytest.raises(ValueError, match="v_attr_frag is required"):
+        fragments_backward(device64, fr, attr)
 
 
 def test_backward_is_deterministic(device, rng):

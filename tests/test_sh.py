@@ -41,11 +41,16 @@ def test_low_degrees_match_3dgs_constants(rng):
     np.testing.assert_allclose(Y[:, 8], 0.5462742152960396 * (x * x - y * y), atol=1e-14)
 
 
-def test_orthonormal(rng):
-    d = _unit(rng, 200_000)  # Monte-Carlo estimate of the Gram matrix on the sphere
-    Y = ref.sh_eval(4, d)
-    G = 4 * np.pi * Y.T @ Y / len(d)
-    np.testing.assert_allclose(G, np.eye(25), atol=0.03)
+def test_orthonormal():
+    # Gauss-Legendre in cos(theta) x uniform in phi: exact for polynomials of this degree
+    z, w = np.polynomial.legendre.leggauss(12)
+    phi = (np.arange(24) + 0.5) * 2 * np.pi / 24
+    Z, PH = np.meshgrid(z, phi, indexing="ij")
+    s = np.sqrt(1 - Z**2)
+    d = np.stack([s * np.cos(PH), s * np.sin(PH), Z], -1).reshape(-1, 3)
+    wt = np.repeat(w, 24) * 2 * np.pi / 24
+    Y = ref.sh_eval(5, d)
+    np.testing.assert_allclose(Y.T @ (Y * wt[:, None]), np.eye(36), atol=1e-12)
 
 
 @pytest.mark.parametrize("deg", [0, 3, 8])

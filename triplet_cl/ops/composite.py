@@ -13,12 +13,14 @@ from .raster import Fragments
 
 
 def _dev(device: Device, name: str, a, shape, real):
+    """Per-fragment arrays: slots beyond a pixel's count are undefined (may hold NaN), so only the
+    shape and dtype are checked here."""
     if isinstance(a, cla.Array):
         check_shape(name, a, shape)
         if a.dtype != real:
             raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
         return a
-    return to_device(device.queue, check_real(name, a, shape, real))
+    return to_device(device.queue, check_real(name, a, shape, real, finite=False))
 
 
 def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:

@@ -6,8 +6,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import check_real, check_shape, to_device
-from .raster import TILE, Fragments, gather_to_vertices
+from .common import check_real, to_device
+from .raster import TILE, Fragments, fragments_backward
 
 
 def _attr(device: Device, attr, frags: Fragments) -> cla.Array:
@@ -49,33 +49,12 @@ def interpolate_backward(device: Device, attr, frags: Fragments, v_out, v_bary_a
     Args:
         attr: ``[N, C]`` the attributes of the forward pass.
         v_out: ``[H, W, K, C]`` adjoint of the interpolated attributes.
-
-        v_bary_acc: optional ``[H, W, K, 2]`` device array that the barycentric adjoint is added to
-            (several interpolations of one view share it) and returned.
+        v_bary_acc: optional ``[H, W, K, 2]`` barycentric adjoint of other interpolations of the
+            view, added to this one's.
 
     Returns:
-        ``(v_attr [N, C], v_bary [H, W, K, 2])`` device arrays; pass ``v_bary`` (summed over every
-        interpolation of the view) to :func:`~triplet_cl.ops.raster.raster_backward`.
+        ``(v_attr [N, C], v_bary [H, W, K, 2])`` device arrays; pass ``v_bary`` to
+        :func:`~triplet_cl.ops.raster.raster_backward`. (A renderer that packs its attributes
+        into one array calls :func:`~triplet_cl.ops.raster.fragments_backward` once instead.)
     """
-    a = _attr(device, attr, frags)
-    H, W, K = frags.shape
-    C = a.shape[1]
-    if isinstance(v_out, cla.Array):
-        check_shape("v_out", v_out, (H, W, K, C))
-        g = v_out
-    else:
-        g = to_device(device.queue, check_real("v_out", v_out, (H, W, K, C), frags.real))
-    q, alloc = device.queue, device.allocator
-    E, T = frags.num_entries, frags.num_tiles
-    partial = cla.empty(q, (max(E, 1), 3, max(C, 1)), frags.real, allocator=alloc)
-    if v_bary_acc is not None:
-        check_shape("v_bary_acc", v_bary_acc, (H, W, K, 2))
-        if not isinstance(v_bary_acc, cla.Array) or v_bary_acc.dtype != frags.real:
-            raise ValueError(f"v_bary_acc must be a device array of dtype {frags.real}")
-    v_bary = v_bary_acc if v_bary_acc is not None else cla.empty(q, (H, W, K, 2), frags.real, allocator=alloc)
-    device.kernel("interpolate", "interpolate_bwd", {"TILE": TILE}, frags.real)(
-        q, (T,), None, a.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
-        frags.bary.data, frags.count.data, g.data, np.int32(frags.width), np.int32(frags.height),
-        np.int32(frags.tiles_x), np.int32(T), np.int32(K), np.int32(C),
-        np.int32(v_bary_acc is not None), partial.data, v_bary.data)
-    return gather_to_vertices(device, frags, partial, C), v_bary
+    return fragments_backward(device, frags, attr=attr, v_attr_frag=v_out, v_bary=v_bary_acc, geometry=False)

@@ -259,6 +259,8 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
 
 
 def _device_or_none(device: Device, name: str, a, shape, real):
+    """A per-fragment adjoint on the device (shape and dtype checked; slots beyond a pixel's count
+    are undefined, so values are not)."""
     if a is None:
         return None
     if isinstance(a, cla.Array):
@@ -266,7 +268,7 @@ def _device_or_none(device: Device, name: str, a, shape, real):
         if a.dtype != real:
             raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
         return a
-    return to_device(device.queue, check_real(name, a, shape, real))
+    return to_device(device.queue, check_real(name, a, shape, real, finite=False))
 
 
 def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
@@ -281,6 +283,68 @@ def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: 
     return out
 
 
+def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
+                       v_depth=None, v_win=None, sigma: float = 0.0, geometry: bool = True):
+    """The one backward pass over a view's fragments (``kernels_cl/fragment_bwd.cl``).
+
+    Fuses the adjoints of :func:`~triplet_cl.ops.interpolate.interpolate` (one packed attribute
+    array), of the perspective-correct barycentrics and depth, and of the coverage window.
+
+    Args:
+        frags: the :class:`Fragments` of the forward pass.
+        attr: ``[N, C]`` per-vertex attributes that were interpolated, with ``v_attr_frag``
+            ``[H, W, K, C]`` the adjoint of the interpolated values (or both None).
+        v_bary: ``[H, W, K, 2]`` extra adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
+        v_depth: ``[H, W, K]`` adjoint of the fragment depth, or None.
+        v_win: ``[H, W, K]`` adjoint of the coverage window (``sigma`` its sharpness), or None.
+        geometry: carry the barycentric/depth/window adjoints on to the projected vertices;
+            when False they are returned per fragment instead.
+
+    Returns:
+        ``geometry=True``: ``(v_attr [N, C] or None, v_vs [N, 3], v_sigma float)``;
+        ``geometry=False``: ``(v_attr [N, C] or None, v_bary [H, W, K, 2])``. Device arrays.
+    """
+    H, W, K = frags.shape
+    real = frags.real
+    q, alloc = device.queue, device.allocator
+    C = 0
+    a = g = None
+    if attr is not None:
+        n = frags.mesh.num_vertices
+        if isinstance(attr, cla.Array):
+            if attr.ndim != 2 or attr.shape[0] != n:
+                raise ValueError(f"attr must have shape [{n}, C], got {list(attr.shape)}")
+            if attr.dtype != real:
+                raise ValueError(f"attr must have dtype {real} (as the fragments), got {attr.dtype}")
+            a = attr
+        else:
+            a = to_device(q, check_real("attr", attr, (n, None), real))
+        C = a.shape[1]
+        if v_attr_frag is None:
+            raise ValueError("v_attr_frag is required with attr")
+        g = _device_or_none(device, "v_attr_frag", v_attr_frag, (H, W, K, C), real)
+    vb = _device_or_none(device, "v_bary", v_bary, (H, W, K, 2), real)
+    vd = _device_or_none(device, "v_depth", v_depth, (H, W, K), real)
+    vw = _device_or_none(device, "v_win", v_win, (H, W, K), real)
+    T, E = frags.num_tiles, frags.num_entries
+    p_attr = cla.empty(q, (max(E, 1), 3, max(C, 1)), real, allocator=alloc) if C else None
+    p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc) if geometry else None
+    v_sig_tile = cla.empty(q, T, real, allocator=alloc) if geometry else None
+    v_bary_out = None if geometry else cla.empty(q, (H, W, K, 2), real, allocator=alloc)
+    device.kernel("fragment_bwd", "fragment_bwd", {"TILE": TILE}, real)(
+        q, (T,), (1,), frags.vs.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
+        frags.bary.data, frags.count.data, buf(a, q), buf(g, q), buf(vb, q), buf(vd, q), buf(vw, q),
+        np.int32(C), np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None),
+        np.int32(bool(geometry)), real.type(sigma), np.int32(W), np.int32(H), np.int32(frags.tiles_x),
+        np.int32(T), np.int32(K), buf(p_attr, q), buf(p_geom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
+    v_attr = gather_to_vertices(device, frags, p_attr, C) if C else None
+    if not geometry:
+        return v_attr, v_bary_out
+    v_vs = gather_to_vertices(device, frags, p_geom, 3)
+    v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if vw is not None else 0.0
+    return v_attr, v_vs, v_sigma
+
+
 def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None, v_win=None,
                     sigma: float = 0.0):
     """Adjoint of the fragment geometry (barycentrics, depth, coverage window) to projected vertices.
@@ -292,25 +356,11 @@ def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None,
         v_win: ``[H, W, K]`` adjoint of the coverage window, or None; ``sigma`` its sharpness.
 
     Returns:
-        ``(v_vs [N, 3] device array, v_sigma float)``.
+        ``(v_vs [N, 3] device array, v_sigma float)``. :func:`fragments_backward` does this and the
+        interpolation adjoint in one pass.
     """
-    H, W, K = frags.shape
-    real = frags.real
-    vb = _device_or_none(device, "v_bary", v_bary, (H, W, K, 2), real)
-    vd = _device_or_none(device, "v_depth", v_depth, (H, W, K), real)
-    vw = _device_or_none(device, "v_win", v_win, (H, W, K), real)
-    q, alloc = device.queue, device.allocator
-    T, E = frags.num_tiles, frags.num_entries
-    partial = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
-    v_sig_tile = cla.empty(q, T, real, allocator=alloc)
-    device.kernel("raster", "raster_bwd", {"TILE": TILE, "K_MAX": K}, real)(
-        q, (T,), None, frags.vs.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
-        frags.count.data, buf(vb, q), buf(vd, q), buf(vw, q),
-        np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None), real.type(sigma),
-        np.int32(W), np.int32(H), np.int32(frags.tiles_x), np.int32(T), np.int32(K),
-        partial.data, v_sig_tile.data)
-    v_vs = gather_to_vertices(device, frags, partial, 3)
-    v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if vw is not None else 0.0
+    _, v_vs, v_sigma = fragments_backward(device, frags, v_bary=v_bary, v_depth=v_depth, v_win=v_win,
+                                          sigma=sigma, geometry=True)
     return v_vs, v_sigma
 
 
@@ -320,5 +370,5 @@ def read_fragments(frags: Fragments) -> dict[str, np.ndarray]:
             "count": frags.count.get(), "entry": frags.entry.get()}
 
 
-__all__ = ["Fragments", "camera_params", "gather_to_vertices", "project", "project_backward", "rasterize",
-           "raster_backward", "read_fragments", "TILE"]
+__all__ = ["Fragments", "camera_params", "fragments_backward", "gather_to_vertices", "project", "project_backward",
+           "rasterize", "raster_backward", "read_fragments", "TILE"]

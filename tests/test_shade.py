@@ -1,0 +1,277 @@
+"""Shading op: forward per (BRDF x light type) against the numpy reference, adjoints against the
+reference's complex-step derivative (float32) and central differences of the kernel (float64),
+and physical sanity checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.reference import shade as ref
+from triplet_cl.lights import (
+    AmbientLight,
+    DirectionalLight,
+    PointLight,
+    SHEnvironmentLight,
+    VertexSHLight,
+    pack_lights,
+)
+from triplet_cl.ops.shade import num_material_channels, shade, shade_backward
+
+CAM = np.array([0.2, -0.4, 3.0])
+BRDFS = ["cook_torrance", "blinn_phong"]
+
+
+def make_lights(kind, rng, env_degree=2):
+    if kind == "ambient":
+        return [AmbientLight([0.2, 0.5, 0.8])]
+    if kind == "directional":
+        return [DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7])]
+    if kind == "point":
+        return [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0], falloff=True)]
+    if kind == "point_nofalloff":
+        return [PointLight([-1.0, 0.5, 2.0], [0.9, 0.8, 1.1], falloff=False)]
+    if kind == "env":
+        c = rng.standard_normal((3, (env_degree + 1) ** 2)) * 0.3
+        c[:, 0] += 2.0
+        return [SHEnvironmentLight(c)]
+    if kind == "vertex_sh":
+        return [VertexSHLight()]
+    if kind == "mix":
+        return [l for k in ("ambient", "directional", "point", "point_nofalloff", "env", "vertex_sh")
+                for l in make_lights(k, rng, env_degree)]
+    raise KeyError(kind)
+
+
+def make_fragments(rng, brdf, P=96, rough_lo=0.2):
+    pos = rng.uniform(-0.5, 0.5, (P, 3))
+    nrm = rng.standard_normal((P, 3))
+    nrm[:, 2] += 1.0  # mostly towards the camera and the lights
+    nrm *= rng.uniform(0.5, 2.0, (P, 1))  # not unit
+    mat = rng.uniform(0.05, 0.95, (P, num_material_channels(brdf)))
+    if brdf == "cook_torrance":
+        mat[:, 3] = rng.uniform(rough_lo, 1.0, P)
+    else:
+        mat[:, 6] = rng.uniform(0.5, 30.0, P)  # shininess
+    face_id = rng.integers(0, 50, P).astype(np.int32)
+    face_id[::11] = -1
+    vlight = np.concatenate([rng.uniform(0.2, 1.5, (P, 3)), rng.standard_normal((P, 3)) + [0, 0, 1.5]], 1)
+    return pos, nrm, mat, face_id, vlight
+
+
+def ref_shade(frag, lights, brdf, **kw):
+    pos, nrm, mat, face_id, vlight = frag
+    t = pack_lights(lights)
+    return ref.shade(pos, nrm, mat, face_id, CAM, t.ints, t.params, brdf, vlight, **kw)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+@pytest.mark.parametrize("kind", ["ambient", "directional", "point", "point_nofalloff", "env", "vertex_sh", "mix"])
+def test_forward_float32(device, rng, brdf, kind):
+    frag = make_fragments(rng, brdf)
+    lights = make_lights(kind, rng)
+    got = shade(*frag[:4], CAM, lights, brdf=brdf, vlight=frag[4], device=device)
+    want = ref_shade(frag, lights, brdf)
+    assert np.abs(want).max() > 0.05  # the configuration lights something
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=2e-5 * max(1.0, np.abs(want).max()))
+    assert np.all(got[frag[3] < 0] == 0)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+def test_forward_env_degree8_and_one_sided(device, rng, brdf):
+    frag = make_fragments(rng, brdf)
+    lights = make_lights("env", rng, env_degree=8) + [SHEnvironmentLight(rng.standard_normal((3, 25)) * 0.2, 3)]
+    got = shade(*frag[:4], CAM, lights, brdf=brdf, vlight=frag[4], two_sided=False, device=device)
+    want = ref_shade(frag, lights, brdf, two_sided=False)
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-4 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+def test_vjp_float32_vs_reference(device, rng, brdf):
+    P = 64
+    frag = make_fragments(rng, brdf, P=P)
+    pos, nrm, mat, face_id, vlight = frag
+    lights = make_lights("mix", rng)
+    t = pack_lights(lights)
+    v_rgb = rng.standard_normal((P, 3))
+    got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, brdf=brdf, vlight=vlight, device=device)
+    want = ref.vjp(pos, nrm, mat, face_id, CAM, t.ints, t.params, v_rgb, brdf, vlight)
+    for name in ("v_pos", "v_nrm", "v_mat", "v_vlight"):
+        w, g = want[name], getattr(got, name)
+        np.testing.assert_allclose(g, w, rtol=2e-3, atol=2e-4 * np.abs(w).max(), err_msg=name)
+    w = want["v_params"]
+    np.testing.assert_allclose(got.v_light_params, w, rtol=2e-3, atol=2e-4 * np.abs(w).max())
+    assert set(got.v_lights[1]) == {"direction", "intensity"} and got.v_lights[4]["coeffs"].shape == (3, 9)
+
+
+def _fd_columns(f, x, h):
+    """Central differences of the per-fragment map ``f`` for each column of ``x`` (all rows at once)."""
+    cols = []
+    for j in range(x.shape[1]):
+        xp, xm = x.copy(), x.copy()
+        xp[:, j] += h
+        xm[:, j] -= h
+        cols.append((f(xp) - f(xm)) / (2 * h))
+    return cols
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+def test_vjp_float64_finite_differences(device64, rng, brdf):
+    """Every parameter family: positions, normals, each material channel, vertex-SH light, and each
+    light parameter (ambient, directional, point position/intensity with and without falloff, SH env
+    coefficients)."""
+    P, h = 40, 1e-6
+    frag = make_fragments(rng, brdf, P=P)
+    pos, nrm, mat, face_id, vlight = frag
+    lights = make_lights("mix", rng)
+    v_rgb = rng.standard_normal((P, 3))
+    kw = {"brdf": brdf, "device": device64, "real": np.float64}
+    got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, vlight=vlight, **kw)
+
+    def run(pos=pos, nrm=nrm, mat=mat, vlight=vlight, lights=lights):
+        return shade(pos, nrm, mat, face_id, CAM, lights, vlight=vlight, **kw)
+
+    for name, x, g in (("pos", pos, got.v_pos), ("nrm", nrm, got.v_nrm), ("mat", mat, got.v_mat),
+                       ("vlight", vlight, got.v_vlight)):
+        cols = _fd_columns(lambda y, name=name: run(**{name: y}), x, h)
+        fd = np.stack([np.sum(v_rgb * c, axis=1) for c in cols], 1)
+        np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max(), err_msg=name)
+
+    for i, light in enumerate(lights):
+        for pname, grad in got.v_lights[i].items():
+            base = getattr(light, pname)
+            fd = np.zeros(base.shape)
+            for idx in np.ndindex(base.shape):
+                vals = []
+                for s in (1, -1):
+                    arr = base.copy()
+                    arr[idx] += s * h
+                    mod = [type(light)(**{**light.__dict__, pname: arr}) if k == i else l
+                           for k, l in enumerate(lights)]
+                    vals.append(np.sum(v_rgb * run(lights=mod)))
+                fd[idx] = (vals[0] - vals[1]) / (2 * h)
+            np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6 * max(np.abs(fd).max(), 1e-3),
+                                       err_msg=f"light {i} {pname}")
+
+
+def test_inactive_sh_bands_get_no_gradient(device, rng):
+    frag = make_fragments(rng, "cook_torrance", P=32)
+    lights = [SHEnvironmentLight(rng.standard_normal((3, 16)), degree=1)]
+    g = shade_backward(*frag[:4], CAM, lights, np.ones((32, 3)), device=device)
+    c = g.v_lights[0]["coeffs"]
+    assert np.all(c[:, 4:] == 0) and np.all(np.abs(c[:, :4]) > 0)
+
+
+# ---- physical sanity ------------------------------------------------------------------------
+
+
+def _sphere_dirs(rng, n):
+    d = rng.standard_normal((n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_white_furnace_cook_torrance(device, rng):
+    """metallic 0, roughness 1, white environment: reflects at most the albedo plus the F0 specular
+    (Fe = F0 at roughness 1), i.e. (1 - F0) albedo + F0 <= 1 — exactly 1 for a white albedo."""
+    P = 256
+    nrm = _sphere_dirs(rng, P)
+    pos = np.zeros((P, 3))
+    for albedo in (1.0, 0.5):
+        mat = np.tile([albedo, albedo, albedo, 1.0, 0.0, 1.0], (P, 1))
+        rgb = shade(pos, nrm, mat, np.zeros(P, np.int32), CAM, [SHEnvironmentLight.constant(1.0, 2)], device=device)
+        np.testing.assert_allclose(rgb, 0.96 * albedo + 0.04, rtol=1e-5)
+        assert rgb.max() <= 1 + 1e-5
+
+
+def test_point_light_inverse_square(device, rng):
+    P = 16
+    pos = rng.uniform(-0.1, 0.1, (P, 3))
+    nrm = np.tile([0.0, 0.0, 1.0], (P, 1))
+    mat = np.tile([0.7, 0.6, 0.5, 0.8, 0.1, 1.0], (P, 1))
+    d0 = np.array([0.0, 0.3, 1.0]) / np.linalg.norm([0.0, 0.3, 1.0])
+    out = []
+    for dist in (1.0, 2.0, 4.0):
+        # keep the light direction of fragment 0 fixed by moving the light along the ray from it
+        light = PointLight(pos[0] + dist * d0, [2.0, 2.0, 2.0], falloff=True)
+        out.append(shade(pos[:1], nrm[:1], mat[:1], [0], CAM, [light], device=device)[0])
+    np.testing.assert_allclose(out[0] / out[1], 4.0, rtol=1e-5)
+    np.testing.assert_allclose(out[0] / out[2], 16.0, rtol=1e-5)
+    no = [shade(pos[:1], nrm[:1], mat[:1], [0], CAM, [PointLight(pos[0] + d * d0, [2.0] * 3, falloff=False)],
+                device=device)[0] for d in (1.0, 4.0)]
+    np.testing.assert_allclose(no[0], no[1], rtol=1e-5)
+
+
+@pytest.mark.parametrize("degree", [2, 8])
+def test_sh_irradiance_of_constant_environment_is_constant(device, rng, degree):
+    P = 200
+    mat = np.tile([0.3, 0.6, 0.9, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], (P, 1))  # Blinn-Phong, ks = 0
+    rgb = shade(rng.uniform(-1, 1, (P, 3)), _sphere_dirs(rng, P), mat, np.zeros(P, np.int32), CAM,
+                [SHEnvironmentLight.constant([1.0, 2.0, 0.5], degree)], brdf="blinn_phong", device=device)
+    np.testing.assert_allclose(rgb, np.tile([0.3, 1.2, 0.45], (P, 1)), rtol=1e-5)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+def test_degenerate_configurations_stay_finite(device, brdf):
+    C = num_material_channels(brdf)
+    n = np.array([0.0, 0.0, 1.0])
+    cases = [  # (pos, nrm, roughness/shininess)
+        ([0, 0, 0], n, 0.0),  # zero roughness / shininess
+        ([0, 0, 0], [1.0, 0, 0], 0.5),  # grazing: N orthogonal to the light and nearly to V
+        ([0, 0, 0], [0.0, 0, 0], 0.5),  # zero normal
+        (CAM, n, 0.5),  # fragment at the camera centre (V = 0)
+        ([1.0, 1.0, 1.0], n, 0.0),  # fragment at the point light
+        ([0, 0, 0], -n, 1e-4),  # normal facing away
+    ]
+    pos = np.array([c[0] for c in cases], float)
+    nrm = np.array([c[1] for c in cases], float)
+    mat = np.full((len(cases), C), 0.5)
+    mat[:, 3 if brdf == "cook_torrance" else 6] = [c[2] for c in cases]
+    vlight = np.tile([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], (len(cases), 1))  # zero direction
+    lights = [DirectionalLight([1.0, 0.0, 0.0], [1.0] * 3), DirectionalLight([0.0, 0.0, -3.0], [1.0] * 3),
+              PointLight([1.0, 1.0, 1.0], [1.0] * 3), SHEnvironmentLight.constant(0.5, 2), AmbientLight(),
+              VertexSHLight()]
+    for two_sided in (True, False):
+        kw = {"brdf": brdf, "vlight": vlight, "two_sided": two_sided, "device": device}
+        rgb = shade(pos, nrm, mat, np.zeros(len(cases), np.int32), CAM, lights, **kw)
+        g = shade_backward(pos, nrm, mat, np.zeros(len(cases), np.int32), CAM, lights, np.ones_like(rgb), **kw)
+        assert np.isfinite(rgb).all()
+        for a in (g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params):
+            assert np.isfinite(a).all()
+
+
+def test_empty_slots_and_determinism(device, rng):
+    frag = make_fragments(rng, "cook_torrance", P=200)
+    lights = make_lights("mix", rng)
+    v = rng.standard_normal((200, 3))
+    g1 = shade_backward(*frag[:4], CAM, lights, v, vlight=frag[4], device=device)
+    g2 = shade_backward(*frag[:4], CAM, lights, v, vlight=frag[4], device=device)
+    empty = frag[3] < 0
+    for a, b in ((g1.v_pos, g2.v_pos), (g1.v_mat, g2.v_mat), (g1.v_light_params, g2.v_light_params)):
+        assert np.array_equal(a, b)
+    assert np.all(g1.v_pos[empty] == 0) and np.all(g1.v_mat[empty] == 0) and np.all(g1.v_vlight[empty] == 0)
+
+
+def test_validation(device):
+    P = 4
+    pos, nrm, mat = np.zeros((P, 3)), np.ones((P, 3)), np.full((P, 6), 0.5)
+    fid = np.zeros(P, np.int32)
+    with pytest.raises(ValueError, match=r"pos must have shape \[\*, 3\], got \[5, 2\]"):
+        shade(np.zeros((5, 2)), nrm, mat, fid, CAM, [], device=device)
+    with pytest.raises(ValueError, match=r"mat must have shape \[4, 10\]"):
+        shade(pos, nrm, mat, fid, CAM, [], brdf="blinn_phong", device=device)
+    with pytest.raises(ValueError, match="brdf must be one of"):
+        shade(pos, nrm, mat, fid, CAM, [], brdf="phong", device=device)
+    with pytest.raises(ValueError, match="face_id must be >= -1"):
+        shade(pos, nrm, mat, [0, -2, 0, 0], CAM, [], device=device)
+    with pytest.raises(ValueError, match="vlight"):
+        shade(pos, nrm, mat, fid, CAM, [VertexSHLight()], device=device)
+    with pytest.raises(ValueError, match="nrm must be finite"):
+        shade(pos, np.full((P, 3), np.inf), mat, fid, CAM, [], device=device)
+    with pytest.raises(ValueError, match="SHEnvironmentLight.degree"):
+        SHEnvironmentLight(np.zeros((3, 9)), degree=3)
+    with pytest.raises(ValueError, match=r"DirectionalLight.direction must have shape \[3\]"):
+        DirectionalLight([0, 1])
+    with pytest.raises(ValueError, match=r"v_rgb must have shape \[4, 3\]"):
+        shade_backward(pos, nrm, mat, fid, CAM, [], np.zeros((3, 3)), device=device)
+    assert shade(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 6)), np.zeros(0, np.int32), CAM, [],
+                 device=device).shape == (0, 3)

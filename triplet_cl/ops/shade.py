@@ -1,0 +1,209 @@
+"""Physically based shading of fragments under a packed light table (``kernels_cl/shade.cl``).
+
+The op works on a flat list of ``P`` fragments (the rasterizer's ``[H, W, K]`` flattened), with
+per-fragment attributes already interpolated by the rasterizer and materials already activated
+by the parameter model:
+
+* ``pos [P, 3]`` world position, ``nrm [P, 3]`` shading normal (any length; normalised inside),
+* ``mat [P, C]`` material channels, layout per BRDF (``MATERIAL_LAYOUT``):
+  ``"cook_torrance"`` (C = 6): albedo r, g, b | roughness | metallic | ambient occlusion;
+  ``"blinn_phong"`` (C = 10): kd r, g, b | ks r, g, b | shininess (softplus'd, >= 0) | ka r, g, b,
+* ``face_id [P] int32``: ``-1`` marks an empty slot (colour 0, zero gradients),
+* ``vlight [P, 6]`` (only with a :class:`~triplet_cl.lights.VertexSHLight`): per-fragment
+  vertex-SH radiance (rgb) and direction ``wi`` (normalised inside),
+* ``cam [3]`` camera centre; ``lights``: a sequence of :mod:`triplet_cl.lights` objects.
+
+``two_sided`` (default True, right for triangle soups) flips a normal that faces away from the
+camera. Output ``rgb [P, 3]``; the backward pass returns per-fragment adjoints and the gradient of
+every light parameter (per-work-group partial sums, summed on the host: deterministic, no atomics).
+Formulas: ``kernels_cl/common/shade_brdf.h`` and ``kernels_cl/shade.cl``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from ..device import Device, get_device
+from ..lights import LightTable, pack_lights, unpack_gradients
+from .common import check_real, check_shape, empty, round_up, to_device, to_host
+from .vertex_sh import check_cam
+
+LOCAL_SIZE = 64
+RED_W = 16
+BRDFS = {"cook_torrance": 0, "blinn_phong": 1}
+MATERIAL_LAYOUT = {
+    "cook_torrance": ("albedo_r", "albedo_g", "albedo_b", "roughness", "metallic", "ao"),
+    "blinn_phong": ("kd_r", "kd_g", "kd_b", "ks_r", "ks_g", "ks_b", "shininess", "ka_r", "ka_g", "ka_b"),
+}
+
+
+def num_material_channels(brdf: str) -> int:
+    """6 for ``"cook_torrance"``, 10 for ``"blinn_phong"``."""
+    return len(MATERIAL_LAYOUT[_check_brdf(brdf)])
+
+
+def _check_brdf(brdf: str) -> str:
+    if brdf not in BRDFS:
+        raise ValueError(f"brdf must be one of {sorted(BRDFS)}, got {brdf!r}")
+    return brdf
+
+
+def _env_bucket(deg: int) -> int:
+    """Compiled ENV_MAX_DEG for the largest active degree (-1: no env): few program variants (2, 4, 8)."""
+    return 2 if deg <= 2 else (4 if deg <= 4 else 8)
+
+
+@dataclass
+class ShadeInputs:
+    """Validated device-side inputs of one shading call."""
+
+    pos: cla.Array  # [P, 3]
+    nrm: cla.Array  # [P, 3]
+    mat: cla.Array  # [P, C]
+    face_id: cla.Array  # [P] int32
+    vlight: cla.Array | None  # [P, 6]
+    cam: np.ndarray  # [3]
+    table: LightTable
+    lt_i: cla.Array  # [L, 4] int32
+    lt_f: cla.Array  # [T]
+    brdf: str
+    two_sided: bool
+    real: type
+
+    @property
+    def P(self) -> int:
+        return self.pos.shape[0]
+
+
+@dataclass
+class ShadeGrads:
+    """Adjoints of :func:`shade` (numpy)."""
+
+    v_pos: np.ndarray  # [P, 3]
+    v_nrm: np.ndarray  # [P, 3]
+    v_mat: np.ndarray  # [P, C]
+    v_vlight: np.ndarray | None  # [P, 6] (None without vlight)
+    v_light_params: np.ndarray  # [T] gradient of the packed light parameters
+    v_lights: list[dict[str, np.ndarray]]  # per light: {parameter name: gradient}
+
+
+def _kernel(dev: Device, inp: ShadeInputs, name: str):
+    defines = {"BRDF": BRDFS[inp.brdf], "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W}
+    return dev.kernel("shade", name, defines, inp.real)
+
+
+def _common_args(dev: Device, inp: ShadeInputs):
+    t = np.dtype(inp.real).type
+    vl = inp.vlight.data if inp.vlight is not None else inp.pos.data  # placeholder, never read then
+    return (inp.pos.data, inp.nrm.data, inp.mat.data, vl, inp.face_id.data, np.int32(inp.P),
+            t(inp.cam[0]), t(inp.cam[1]), t(inp.cam[2]), np.int32(inp.two_sided), inp.lt_i.data, inp.lt_f.data,
+            np.int32(len(inp.table.ints)))
+
+
+def forward(dev: Device, inp: ShadeInputs) -> cla.Array:
+    """``rgb [P, 3]`` (device array) for validated device inputs."""
+    rgb = empty(dev.queue, (inp.P, 3), inp.real)
+    if inp.P:
+        _kernel(dev, inp, "shade_fwd")(dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
+                                       *_common_args(dev, inp), rgb.data)
+    return rgb
+
+
+def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
+    """``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params [T] numpy)`` for ``v_rgb [P, 3]``."""
+    q, P, real = dev.queue, inp.P, inp.real
+    C = inp.mat.shape[1]
+    T = len(inp.table.params)
+    v_pos, v_nrm, v_mat = empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real)
+    v_vl = empty(q, (P, 6), real) if inp.vlight is not None else None
+    groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
+    part = empty(q, (max(groups, 1), max(T, 1)), real)
+    if P:
+        dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
+        scratch = cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize)
+        _kernel(dev, inp, "shade_bwd")(
+            q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), *_common_args(dev, inp), np.int32(T), v_rgb.data,
+            v_pos.data, v_nrm.data, v_mat.data, np.int32(v_vl is not None),
+            (v_vl if v_vl is not None else v_pos).data, part.data, scratch)
+        v_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
+    else:
+        v_params = np.zeros(T)
+    v_params[inp.table.inactive] = 0.0
+    return v_pos, v_nrm, v_mat, v_vl, v_params
+
+
+# ---- validation ------------------------------------------------------------------------------
+
+
+def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None,
+            two_sided: bool = True, device: Device | None = None, real=np.float32) -> tuple[Device, ShadeInputs]:
+    """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``."""
+    dev = device or get_device()
+    brdf = _check_brdf(brdf)
+    C = num_material_channels(brdf)
+    pos = check_real("pos", pos, (None, 3), real)
+    P = pos.shape[0]
+    nrm = check_real("nrm", nrm, (P, 3), real)
+    mat = check_real("mat", mat, (P, C), real)
+    fid = face_id if isinstance(face_id, cla.Array) else np.asarray(face_id)
+    if fid.dtype.kind not in "iu":
+        raise ValueError(f"face_id must be an integer array, got dtype {fid.dtype}")
+    check_shape("face_id", fid, (P,))
+    if not isinstance(fid, cla.Array):
+        if fid.size and int(fid.min()) < -1:
+            raise ValueError(f"face_id must be >= -1 (-1 marks an empty slot), found {int(fid.min())}")
+        fid = np.ascontiguousarray(fid, dtype=np.int32)
+    elif fid.dtype != np.int32:
+        raise ValueError(f"face_id must be a device array of dtype int32, got {fid.dtype}")
+    cam = check_cam(cam)
+    table = pack_lights(lights)
+    if table.has_vertex_sh and vlight is None:
+        raise ValueError("vlight [P, 6] is required with a VertexSHLight in lights")
+    if vlight is not None:
+        vlight = check_real("vlight", vlight, (P, 6), real)
+    q = dev.queue
+
+    def up(a):
+        return to_device(q, a) if (isinstance(a, cla.Array) or a.size) else empty(q, a.shape, a.dtype)
+
+    lt_i = table.ints if len(table.ints) else np.zeros((1, 4), np.int32)
+    lt_f = table.params.astype(real) if len(table.params) else np.zeros(1, real)
+    inp = ShadeInputs(up(pos), up(nrm), up(mat), up(fid), None if vlight is None else up(vlight), cam, table,
+                      to_device(q, lt_i), to_device(q, lt_f), brdf, bool(two_sided), real)
+    return dev, inp
+
+
+def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None, two_sided: bool = True,
+          device: Device | None = None, real=np.float32) -> np.ndarray:
+    """Shade ``P`` fragments.
+
+    Args:
+        pos: ``[P, 3]`` world positions.  nrm: ``[P, 3]`` normals (normalised inside).
+        mat: ``[P, C]`` activated materials, ``C`` = 6 (Cook-Torrance) or 10 (Blinn-Phong), see
+            ``MATERIAL_LAYOUT``.  face_id: ``[P]`` int, ``-1`` = empty slot.
+        cam: ``[3]`` camera centre.  lights: sequence of :mod:`triplet_cl.lights` objects.
+        brdf: ``"cook_torrance"`` or ``"blinn_phong"``.  vlight: ``[P, 6]`` for a VertexSHLight.
+        two_sided: flip normals facing away from the camera.
+    Returns:
+        ``rgb [P, 3]`` (linear radiance, not clamped).
+    """
+    dev, inp = prepare(pos, nrm, mat, face_id, cam, lights, brdf=brdf, vlight=vlight, two_sided=two_sided,
+                       device=device, real=real)
+    return to_host(forward(dev, inp))
+
+
+def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = "cook_torrance", vlight=None,
+                   two_sided: bool = True, device: Device | None = None, real=np.float32) -> ShadeGrads:
+    """Adjoint of :func:`shade` for the cotangent ``v_rgb [P, 3]``; returns :class:`ShadeGrads`."""
+    dev, inp = prepare(pos, nrm, mat, face_id, cam, lights, brdf=brdf, vlight=vlight, two_sided=two_sided,
+                       device=device, real=real)
+    v_rgb = check_real("v_rgb", v_rgb, (inp.P, 3), real)
+    v_rgb_d = to_device(dev.queue, v_rgb) if v_rgb.size else empty(dev.queue, (0, 3), real)
+    v_pos, v_nrm, v_mat, v_vl, v_params = backward(dev, inp, v_rgb_d)
+    lights = list(lights)
+    return ShadeGrads(to_host(v_pos), to_host(v_nrm), to_host(v_mat), None if v_vl is None else to_host(v_vl),
+                      v_params, unpack_gradients(lights, v_params))
