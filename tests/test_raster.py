@@ -231,7 +231,7 @@ def test_interpolate_shared_vertices(device64, rng):
     np.testing.assert_allclose(v_attr.get(), ra, atol=1e-10)
 
 
-# ------------------------------------------------------------------------------------------------ coverage + geometry adjoint
+# ---------------------------------------------------------------------------- coverage + geometry adjoint
 
 
 def test_coverage_forward(device64, rng):
