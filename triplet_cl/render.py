@@ -1,0 +1,396 @@
+"""``render(scene, camera, settings)``: the differentiable image formation of the method, on the tape.
+
+Graph (every box a :class:`~triplet_cl.autodiff.Function` with a hand-derived adjoint)::
+
+    V ─┬─ Normals ───────────────┐
+       ├─ VertexSH(V, vsh) ──────┤ (optional)
+    material ─ MaterialActivation┤
+    alpha ─ Sigmoid ─────────────┤
+       └─────────────────────────┴─ Concat → attr [N, C]
+    RasterInterpolate(V, attr)  → fragment attributes [H, W, K, C], coverage window [H, W, K]
+    SplitFragments              → pos, normal, material, alpha, vlight per fragment
+    Shade(…, light_params)      → rgb [H, W, K, 3]
+    Composite(rgb, alpha, win)  → image [H, W, 3], accumulated alpha [H, W]
+
+One packed per-vertex attribute array is interpolated once and its adjoint, together with those of
+the barycentrics and the coverage window, comes back in one fused pass
+(:func:`~triplet_cl.ops.raster.fragments_backward`).
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext as _nullcontext
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl.array as cla
+
+from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
+from .autodiff import Function, Tape, Variable, active_tape
+from .camera import Camera
+from .device import Device, get_device
+from .ops import columns
+from .ops import normals as normals_op
+from .ops import shade as shade_op
+from .ops import vertex_sh as vsh_op
+from .ops.composite import composite, composite_backward, coverage
+from .ops.interpolate import interpolate
+from .ops.mesh import DeviceMesh
+from .ops.raster import fragments_backward, project, project_backward, rasterize
+from .scene import Scene
+
+
+@dataclass
+class RenderSettings:
+    """How a view is rendered (every field is a run-time setting)."""
+
+    K: int = 30  # fragments kept per pixel (the method: 150 in warm-up, then 30)
+    sigma: float | None = 1.0  # soft-coverage sharpness in 1/pixels; None = hard edges (original method)
+    background: tuple = (1.0, 1.0, 1.0)  # RGB behind the scene
+    t_min: float = 1e-4  # compositing stops below this transmittance
+    normals: str = "face"  # "face": per-face normal of each triplet; "vertex": area-weighted vertex normals
+    two_sided: bool = True  # flip normals facing away from the camera (right for a soup)
+    cull_backface: bool = False  # drop back-facing triangles in the rasterizer
+    sh_degree: int | None = None  # active vertex-SH degree (None: all bands of the coefficients)
+    real: type = np.float32  # float32 in production; float64 for gradient checks
+
+    def __post_init__(self):
+        if self.normals not in ("face", "vertex"):
+            raise ValueError(f"normals must be 'face' or 'vertex', got {self.normals!r}")
+        if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
+            raise ValueError(f"sigma must be positive or None, got {self.sigma}")
+
+
+class View:
+    """Per-view state shared by the ops of one render call (fragments, device, camera)."""
+
+    def __init__(self, device: Device, mesh: DeviceMesh, camera: Camera, settings: RenderSettings):
+        self.device, self.mesh, self.camera, self.settings = device, mesh, camera, settings
+        self.frags = None
+
+
+# ---------------------------------------------------------------------------------------------- per vertex
+
+
+class Normals(Function):
+    """``V [N, 3] → n [N, 3]``: per-face normal of each vertex's triangle (soup) or area-weighted
+    vertex normals (connected mesh)."""
+
+    def __init__(self, F: np.ndarray, mode: str, real, device: Device, csr):
+        self.F, self.mode, self.real, self.device, self.csr = F, mode, real, device, csr
+        if mode == "face":
+            counts = np.bincount(F.reshape(-1), minlength=0)
+            if counts.size and counts.max() > 1:
+                raise ValueError("normals='face' needs a soup (each vertex in one face); use normals='vertex'")
+            self.face_of = np.repeat(np.arange(len(F)), 3)
+            self.order = F.reshape(-1)
+
+    def forward(self, ctx, V):
+        ctx.save(V)
+        if self.mode == "vertex":
+            return normals_op.vertex_normals(V, self.F, csr=self.csr, device=self.device, real=self.real)
+        fn = normals_op.face_normals(V, self.F, device=self.device, real=self.real)
+        n = np.zeros((V.shape[0], 3), self.real)
+        n[self.order] = fn[self.face_of]
+        return n
+
+    def backward(self, ctx, v_n):
+        (V,) = ctx.saved
+        v_n = np.asarray(v_n, self.real)
+        if self.mode == "vertex":
+            return normals_op.vertex_normals_backward(V, self.F, v_n, csr=self.csr, device=self.device, real=self.real)
+        v_fn = np.zeros((len(self.F), 3), np.float64)
+        np.add.at(v_fn, self.face_of, v_n[self.order])
+        return normals_op.face_normals_backward(V, self.F, v_fn.astype(self.real), csr=self.csr, device=self.device,
+                                                real=self.real)
+
+
+class MaterialActivation(Function):
+    """Raw ``[N, Cm]`` → activated materials: sigmoid, except Blinn-Phong shininess (softplus)."""
+
+    def __init__(self, brdf: str):
+        self.softplus_cols = [6] if brdf == "blinn_phong" else []
+
+    def forward(self, ctx, raw):
+        y = sigmoid(raw)
+        for c in self.softplus_cols:
+            y[:, c] = softplus(raw[:, c])
+        ctx.save(raw, y)
+        return y
+
+    def backward(self, ctx, v_y):
+        raw, y = ctx.saved
+        v = sigmoid_bwd(y, v_y)
+        for c in self.softplus_cols:
+            v[:, c] = softplus_bwd(raw[:, c], v_y[:, c])
+        return v
+
+
+class SigmoidHost(Function):
+    def forward(self, ctx, x):
+        y = sigmoid(x)
+        ctx.save(y)
+        return y
+
+    def backward(self, ctx, v_y):
+        (y,) = ctx.saved
+        return sigmoid_bwd(y, v_y)
+
+
+class VertexSH(Function):
+    """``(V [N, 3], coeffs [N, 6, (D+1)²]) → [N, 6]`` per-vertex SH light along the view direction."""
+
+    def __init__(self, cam_center, degree, device, real):
+        self.cam, self.degree, self.device, self.real = cam_center, degree, device, real
+
+    def forward(self, ctx, V, coeffs):
+        ctx.save(V, coeffs)
+        return vsh_op.vertex_sh(V, coeffs, self.cam, self.degree, device=self.device, real=self.real)
+
+    def backward(self, ctx, v_out):
+        V, coeffs = ctx.saved
+        v_c, v_V = vsh_op.vertex_sh_backward(V, coeffs, self.cam, np.asarray(v_out), self.degree, device=self.device,
+                                             real=self.real)
+        return v_V, v_c
+
+
+class Concat(Function):
+    """Per-vertex blocks ``[N, c_i]`` → ``[N, Σ c_i]`` (host)."""
+
+    def forward(self, ctx, *blocks):
+        ctx.sizes = [b.shape[1] for b in blocks]
+        return np.ascontiguousarray(np.concatenate(blocks, axis=1))
+
+    def backward(self, ctx, v):
+        v = np.asarray(v)
+        out, c0 = [], 0
+        for s in ctx.sizes:
+            out.append(np.ascontiguousarray(v[:, c0:c0 + s]))
+            c0 += s
+        return tuple(out)
+
+
+# ---------------------------------------------------------------------------------------------- per fragment
+
+
+class RasterInterpolate(Function):
+    """``(V [N, 3], attr [N, C]) → (frag_attr [H, W, K, C][, win [H, W, K]])`` (device arrays)."""
+
+    def __init__(self, view: View):
+        self.view = view
+
+    def forward(self, ctx, V, attr):
+        v, s = self.view, self.view.settings
+        d, cam = v.device, v.camera
+        ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, s.real))
+        ctx.attr = cla.to_device(d.queue, np.ascontiguousarray(attr, s.real))
+        vs = project(d, ctx.Vd, cam)
+        fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface)
+        v.frags = ctx.frags = fr
+        fa = interpolate(d, ctx.attr, fr)
+        if s.sigma is None:
+            return fa
+        return fa, coverage(d, fr, s.sigma)
+
+    def backward(self, ctx, v_fa, v_win=None):
+        d, s = self.view.device, self.view.settings
+        v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
+                                             sigma=s.sigma or 0.0)
+        return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
+
+
+class SplitFragments(Function):
+    """``[H, W, K, Σ s_i] → blocks [H, W, K, s_i]`` (device); the adjoint packs them back."""
+
+    def __init__(self, view: View, sizes: list[int]):
+        self.view, self.sizes = view, sizes
+
+    def forward(self, ctx, fa):
+        return tuple(columns.split(self.view.device, self.view.frags, fa, self.sizes))
+
+    def backward(self, ctx, *v_blocks):
+        blocks = [None if _is_zero_scalar(b) else b for b in v_blocks]
+        return columns.pack(self.view.device, self.view.frags, blocks, self.sizes)
+
+
+def _is_zero_scalar(b) -> bool:
+    return b is None or (not hasattr(b, "shape")) or b.shape == ()
+
+
+class Shade(Function):
+    """``(pos, nrm, mat[, vlight], light_params) → rgb [H, W, K, 3]`` for every fragment."""
+
+    def __init__(self, view: View, lights, brdf: str, has_vlight: bool):
+        self.view, self.lights, self.brdf, self.has_vlight = view, list(lights), brdf, has_vlight
+
+    def _inputs(self, pos, nrm, mat, vlight, light_params):
+        v, s = self.view, self.view.settings
+        fr = v.frags
+        P = fr.height * fr.width * fr.K
+        flat = [None if x is None else x.reshape(P, x.shape[-1]) for x in (pos, nrm, mat, vlight)]
+        dev, inp = shade_op.prepare(flat[0], flat[1], flat[2], fr.face.reshape(P), v.camera.center, self.lights,
+                                    brdf=self.brdf, vlight=flat[3], two_sided=s.two_sided, device=v.device,
+                                    real=s.real)
+        if light_params is not None and len(inp.table.params):
+            inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
+        return inp
+
+    def forward(self, ctx, pos, nrm, mat, *rest):
+        vlight = rest[0] if self.has_vlight else None
+        lp = rest[-1] if len(rest) > (1 if self.has_vlight else 0) else None
+        inp = self._inputs(pos, nrm, mat, vlight, lp)
+        ctx.inp, ctx.n_rest = inp, len(rest)
+        fr = self.view.frags
+        return shade_op.forward(self.view.device, inp).reshape(fr.height, fr.width, fr.K, 3)
+
+    def backward(self, ctx, v_rgb):
+        fr = self.view.frags
+        P = fr.height * fr.width * fr.K
+        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(self.view.device, ctx.inp, v_rgb.reshape(P, 3))
+        shp = (fr.height, fr.width, fr.K)
+        out = [v_pos.reshape(*shp, 3), v_nrm.reshape(*shp, 3), v_mat.reshape(*shp, v_mat.shape[1])]
+        if self.has_vlight:
+            out.append(v_vl.reshape(*shp, 6))
+        if ctx.n_rest > (1 if self.has_vlight else 0):
+            out.append(v_params.astype(self.view.settings.real))
+        return tuple(out)
+
+
+class Composite(Function):
+    """``(rgb [H, W, K, 3], alpha [H, W, K, 1][, win [H, W, K]]) → (image [H, W, 3], acc [H, W])``."""
+
+    def __init__(self, view: View):
+        self.view = view
+
+    def forward(self, ctx, rgb, alpha, win=None):
+        v = self.view
+        fr = v.frags
+        a = alpha.reshape(fr.shape)
+        img, trans, ncon = composite(v.device, fr, rgb, a, np.asarray(v.settings.background, np.float64), win=win,
+                                     t_min=v.settings.t_min)
+        ctx.save(rgb, a, win, trans, ncon)
+        return img, 1.0 - trans
+
+    def backward(self, ctx, v_img, v_acc):
+        rgb, a, win, trans, ncon = ctx.saved
+        v = self.view
+        fr = v.frags
+        if _is_zero_scalar(v_acc) or (isinstance(v_acc, np.ndarray) and not v_acc.any()):
+            v_acc = None
+        v_feat, v_alpha, v_win, _ = composite_backward(v.device, fr, rgb, a, np.asarray(v.settings.background),
+                                                       ncon, trans, v_img, v_acc, win=win)
+        out = (v_feat, v_alpha.reshape(*fr.shape, 1))
+        return out + ((v_win,) if win is not None else ())
+
+
+# ---------------------------------------------------------------------------------------------- render
+
+
+class Stack(Function):
+    """``(image [H, W, 3], acc [H, W]) → [H, W, 4]`` on the host: the RGBA the losses see."""
+
+    def forward(self, ctx, img, acc):
+        img = img.get() if isinstance(img, cla.Array) else np.asarray(img)
+        acc = acc.get() if isinstance(acc, cla.Array) else np.asarray(acc)
+        return np.concatenate([img, acc[..., None]], axis=-1)
+
+    def backward(self, ctx, v):
+        v = np.asarray(v)
+        return np.ascontiguousarray(v[..., :3]), np.ascontiguousarray(v[..., 3])
+
+
+@dataclass
+class RenderResult:
+    """Outputs of :func:`render`: ``rgba`` ``[H, W, 4]`` (numpy; RGB and accumulated alpha) on the tape."""
+
+    rgba: Variable
+    tape: Tape
+    scene: Scene
+    view: View
+
+    @property
+    def image(self) -> np.ndarray:
+        """``[H, W, 3]`` rendered colour."""
+        return self.rgba.data[..., :3]
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """``[H, W]`` accumulated alpha."""
+        return self.rgba.data[..., 3]
+
+    def backward(self, v_image, v_alpha=None) -> dict[str, np.ndarray]:
+        """Propagate ``v_image [H, W, 3]`` (and optionally ``v_alpha [H, W]``) to every scene
+        parameter; returns ``{param name: gradient}`` (also accumulated into each ``Param.grad``)."""
+        s = self.view.settings
+        H, W = self.view.camera.height, self.view.camera.width
+        v = np.zeros((H, W, 4), s.real)
+        v_image = np.asarray(v_image)
+        if v_image.shape != (H, W, 3):
+            raise ValueError(f"v_image must have shape [{H}, {W}, 3], got {list(v_image.shape)}")
+        v[..., :3] = v_image
+        if v_alpha is not None:
+            v_alpha = np.asarray(v_alpha)
+            if v_alpha.shape != (H, W):
+                raise ValueError(f"v_alpha must have shape [{H}, {W}], got {list(v_alpha.shape)}")
+            v[..., 3] = v_alpha
+        self.tape.backward(self.rgba, v)
+        return {p.name: _host(p.grad) for p in self.scene.params}
+
+
+def _host(g):
+    if g is None:
+        return None
+    return g.get() if isinstance(g, cla.Array) else np.asarray(g)
+
+
+_MESH_CACHE: dict = {}
+
+
+def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
+    """The :class:`DeviceMesh` of a topology, cached while the topology (array identity) is unchanged."""
+    key = (id(device), id(F), F.shape, n)
+    m = _MESH_CACHE.get(key)
+    if m is None or m.faces is not F and not np.array_equal(m.faces, F):
+        _MESH_CACHE.clear()
+        m = _MESH_CACHE[key] = DeviceMesh(device, F, n)
+    return m
+
+
+def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
+           device: Device | None = None) -> RenderResult:
+    """Render ``scene`` from ``camera``, recording on the active tape (or a new one).
+
+    Returns:
+        :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
+        ``result.backward(v_image)`` returns the gradient of every scene parameter.
+    """
+    s = settings or RenderSettings()
+    d = device or get_device()
+    N = scene.V.shape[0]
+    mesh = device_mesh(d, scene.F, N)
+    view = View(d, mesh, camera, s)
+    csr = (mesh.csr_off.get(), mesh.csr_corner.get()) if s.normals == "vertex" else None
+    cm = scene.material.shape[1]
+    outer = active_tape()
+    tape = outer if outer is not None else Tape()
+    with tape if outer is None else _nullcontext():
+        nrm = Normals(scene.F, s.normals, s.real, d, csr)(scene.V)
+        mat = MaterialActivation(scene.brdf)(scene.material)
+        alpha = SigmoidHost()(scene.alpha)
+        blocks, sizes = [scene.V, nrm, mat, alpha], [3, 3, cm, 1]
+        if scene.vertex_sh is not None:
+            blocks.append(VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh))
+            sizes.append(6)
+        attr = Concat()(*blocks)
+        ri = RasterInterpolate(view)(scene.V, attr)
+        fa, win = (ri, None) if s.sigma is None else ri
+        parts = SplitFragments(view, sizes)(fa)
+        pos_f, nrm_f, mat_f, alpha_f = parts[:4]
+        vl_f = parts[4] if scene.vertex_sh is not None else None
+        shade_in = [pos_f, nrm_f, mat_f] + ([vl_f] if vl_f is not None else [])
+        if scene.light_params is not None:
+            shade_in.append(scene.light_params)
+        rgb = Shade(view, scene.lights, scene.brdf, vl_f is not None)(*shade_in)
+        img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
+        rgba = Stack()(img, acc)
+    return RenderResult(rgba, tape, scene, view)

@@ -1,0 +1,128 @@
+"""The scene model: a triangle soup (or mesh) with raw per-vertex parameters, and learnable lights.
+
+Parameters are stored raw and activated in the render graph (DESIGN.md §5):
+
+| parameter | shape | activation | meaning |
+|---|---|---|---|
+| ``V`` | ``[N, 3]`` | — | vertex positions (world) |
+| ``material`` | ``[N, Cm]`` | sigmoid (Blinn-Phong shininess: softplus) | ``ops.shade.MATERIAL_LAYOUT`` |
+| ``alpha`` | ``[N, 1]`` | sigmoid | opacity |
+| ``vertex_sh`` | ``[N, 6, (D+1)²]`` | — | per-vertex SH light (optional) |
+| ``light_params`` | ``[T]`` | — | every light's parameters, packed (``lights.pack_lights``) |
+
+``F [M, 3]`` is the topology (not optimised). Every array parameter is an
+:class:`~triplet_cl.autodiff.Param` so that the tape fills ``.grad`` and Adam updates ``.data``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .autodiff import Param
+from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, pack_lights
+from .ops.common import check_faces, check_real
+from .ops.shade import MATERIAL_LAYOUT, num_material_channels
+
+
+def logit(p):
+    p = np.clip(np.asarray(p, np.float64), 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p))
+
+
+def inverse_softplus(y):
+    y = np.asarray(y, np.float64)
+    return np.where(y > 20, y, np.log(np.expm1(np.maximum(y, 1e-12))))
+
+
+def default_material_raw(n: int, brdf: str) -> np.ndarray:
+    """The method's initial materials, raw: albedo 0.5, roughness 0.9, metallic 0.1, AO 1 (CT);
+    kd 0.5, ks 0.7, ka 0.2, shininess 64 (Blinn-Phong, DESIGN.md §5)."""
+    if brdf == "cook_torrance":
+        act = np.array([0.5, 0.5, 0.5, 0.9, 0.1, 0.99])
+        raw = logit(act)
+    else:
+        raw = logit(np.array([0.5, 0.5, 0.5, 0.7, 0.7, 0.7, 0.5, 0.2, 0.2, 0.2]))
+        raw[6] = inverse_softplus(64.0)
+    return np.tile(raw, (n, 1))
+
+
+@dataclass
+class Scene:
+    """A triangle soup / mesh with raw parameters and lights (see the module docstring)."""
+
+    V: Param
+    F: np.ndarray
+    material: Param
+    alpha: Param
+    lights: list = field(default_factory=list)
+    light_params: Param | None = None
+    vertex_sh: Param | None = None
+    brdf: str = "cook_torrance"
+
+    @classmethod
+    def from_arrays(cls, V, F, *, material=None, alpha=None, lights=None, vertex_sh=None,
+                    brdf: str = "cook_torrance", alpha_init: float = 0.1, dtype=np.float32) -> Scene:
+        """Build a scene; omitted parameters get the method's initial values.
+
+        Args:
+            V: ``[N, 3]`` positions; F: ``[M, 3]`` faces.
+            material: raw ``[N, Cm]`` (default: :func:`default_material_raw`).
+            alpha: raw ``[N, 1]`` (default: ``logit(alpha_init)``).
+            lights: list of :mod:`triplet_cl.lights` objects (their parameters become
+                ``light_params``); vertex_sh: ``[N, 6, (D+1)²]`` coefficients for a VertexSHLight.
+        """
+        V = check_real("V", V, (None, 3), dtype)
+        n = V.shape[0]
+        F = check_faces("F", F, n)
+        if brdf not in MATERIAL_LAYOUT:
+            raise ValueError(f"brdf must be one of {sorted(MATERIAL_LAYOUT)}, got {brdf!r}")
+        cm = num_material_channels(brdf)
+        mat = default_material_raw(n, brdf) if material is None else material
+        mat = check_real("material", mat, (n, cm), dtype)
+        al = np.full((n, 1), logit(alpha_init)) if alpha is None else alpha
+        al = check_real("alpha", al, (n, 1), dtype)
+        lights = list(lights or [])
+        table = pack_lights(lights)
+        lp = Param(table.params.astype(dtype), "light_params") if len(table.params) else None
+        vsh = None
+        if vertex_sh is not None:
+            vsh_a = np.asarray(vertex_sh)
+            if vsh_a.ndim != 3 or vsh_a.shape[:2] != (n, 6):
+                raise ValueError(f"vertex_sh must have shape [{n}, 6, (D+1)^2], got {list(vsh_a.shape)}")
+            vsh = Param(check_real("vertex_sh", vsh_a, vsh_a.shape, dtype), "vertex_sh")
+        if table.has_vertex_sh and vsh is None:
+            raise ValueError("a VertexSHLight needs vertex_sh coefficients [N, 6, (D+1)^2]")
+        return cls(Param(V, "V"), F, Param(mat, "material"), Param(al, "alpha"), lights, lp, vsh, brdf)
+
+    @property
+    def params(self) -> list[Param]:
+        """Every optimisable parameter."""
+        return [p for p in (self.V, self.material, self.alpha, self.light_params, self.vertex_sh) if p is not None]
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.zero_grad()
+
+    def current_lights(self) -> list:
+        """The lights with their current (optimised) parameters written back."""
+        out, off = [], 0
+        lp = None if self.light_params is None else np.asarray(self.light_params.data, np.float64)
+        for lt in self.lights:
+            if isinstance(lt, SHEnvironmentLight):
+                n = lt.coeffs.size
+                out.append(SHEnvironmentLight(lp[off:off + n].reshape(lt.coeffs.shape), lt.degree))
+                off += n
+            elif isinstance(lt, AmbientLight):
+                out.append(AmbientLight(lp[off:off + 3]))
+                off += 3
+            elif isinstance(lt, DirectionalLight):
+                out.append(DirectionalLight(lp[off:off + 3], lp[off + 3:off + 6]))
+                off += 6
+            elif isinstance(lt, PointLight):
+                out.append(PointLight(lp[off:off + 3], lp[off + 3:off + 6], lt.falloff))
+                off += 6
+            elif isinstance(lt, VertexSHLight):
+                out.append(VertexSHLight())
+        return out
