@@ -89,7 +89,7 @@ class Chain:
     def forward(self):
         d = self.dev
         self.vs = project(d, self.Vd, self.cam)
-        self.fr = rasterize(d, self.vs, self.mesh, self.cam.width, self.cam.height, self.K)
+        self.fr = rasterize(d, self.vs, self.mesh, self.cam.width, self.cam.height, self.K, sigma=self.sigma)
         # colour + alpha in one interpolation; compositing reads channel 3 as alpha ("feat" C=4,
         # alpha taken from the same buffer through a view would need strides: composite 4 channels
         # with the alpha channel's own blend being harmless)

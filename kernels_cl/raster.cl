@@ -13,10 +13,12 @@
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
  *             (GPU-shaped; raster_fwd_rows is the CPU-shaped twin with the same results.)
+ *             With sigma > 0 it also writes the coverage window of each fragment (coverage.cl's
+ *             formula, evaluated from the set-up coefficients: no second pass, no vertex loads).
  * (adjoint)   fragment_bwd.cl: one pass over the fragments for interpolation, barycentrics,
  *             depth and window, into per-entry partial sums (no atomics, deterministic).
- * gather_vertex  per (vertex, channel): sum partial[entry, corner, channel] over every face corner of
- *             the vertex (CSR) and every entry of that face. Adjoint of "vertex -> fragment".
+ * gather_vertex  per vertex: sum partial[entry, corner, :] over every face corner of the vertex
+ *             (CSR) and every entry of that face. Adjoint of "vertex -> fragment".
  */
 #include "real.h"
 #include "raster_math.h"
@@ -31,7 +33,8 @@
 #ifndef K_MAX
 #define K_MAX 1
 #endif
-#define SETUP 9  /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2 :  b0 = 1 + A0 dx + B0 dy, b1 = A1 dx + B1 dy */
+#define SETUP 12 /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2  g0 g1 g2 :  b0 = 1 + A0 dx + B0 dy,
+                     b1 = A1 dx + B1 dy, g_k = 1 / |grad b_k| (pixel distance to edge k = b_k g_k) */
 
 __kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
                         __global const int* F,          // [M, 3]
@@ -101,6 +104,9 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     s[2] = (d1.y - d2.y) * iA; s[3] = (d2.x - d1.x) * iA;
     s[4] = d2.y * iA;          s[5] = -d2.x * iA;
     s[6] = (REAL)1 / p0.z; s[7] = (REAL)1 / p1.z; s[8] = (REAL)1 / p2.z;
+    s[9] = (REAL)1 / sqrt(s[2] * s[2] + s[3] * s[3]);
+    s[10] = (REAL)1 / sqrt(s[4] * s[4] + s[5] * s[5]);
+    s[11] = (REAL)1 / sqrt((s[2] + s[4]) * (s[2] + s[4]) + (s[3] + s[5]) * (s[3] + s[5]));
     const int tx0 = face_bbox[4 * f], ty0 = face_bbox[4 * f + 1];
     const int tx1 = face_bbox[4 * f + 2], ty1 = face_bbox[4 * f + 3];
     int j = face_off[f];
@@ -114,16 +120,29 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
         }
 }
 
+/* The coverage window of coverage.cl from a face's edge-function set-up: the pixel distance to
+ * edge k is b_k / |grad b_k| (grad b0 = (s2, s3), grad b1 = (s4, s5), grad b2 = -(grad b0 + grad b1)),
+ * the same quantity as sgn(A) E_k / L_k of raster_math.h, with no vertex loads. */
+inline REAL setup_window(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma)
+{
+    const REAL d0 = b0 * s[9];
+    const REAL d1 = b1 * s[10];
+    const REAL d2 = b2 * s[11];
+    const REAL d = fmax(fmin(d0, fmin(d1, d2)), (REAL)0);
+    return (REAL)1 - exp(-sigma * d);
+}
+
 __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
                          __global const int* entry_face,    // [E]
                          __global const REAL* entry_setup,  // [E, SETUP]
                          const int width, const int height, const int tiles_x,
-                         const int K, const REAL far,
+                         const int K, const REAL far, const REAL sigma,
                          __global int* frag_face,           // [H, W, K]  -1 = empty
                          __global int* frag_entry,          // [H, W, K]
                          __global REAL* frag_bary,          // [H, W, K, 2]  lam0, lam1
                          __global REAL* frag_depth,         // [H, W, K]
-                         __global int* frag_count)          // [H, W]
+                         __global int* frag_count,          // [H, W]
+                         __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
@@ -171,6 +190,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
             frag_bary[2 * o] = w0 * is;
             frag_bary[2 * o + 1] = w1 * is;
             frag_depth[o] = dk[k];
+            if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
         } else {
             frag_face[o] = -1;
             frag_entry[o] = -1;
@@ -190,12 +210,13 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
                               __global const int* entry_face,    // [E]
                               __global const REAL* entry_setup,  // [E, SETUP]
                               const int width, const int height, const int tiles_x,
-                              const int K, const REAL far,
+                              const int K, const REAL far, const REAL sigma,
                               __global int* frag_face,           // [H, W, K]
                               __global int* frag_entry,          // [H, W, K]
                               __global REAL* frag_bary,          // [H, W, K, 2]
                               __global REAL* frag_depth,         // [H, W, K]
-                              __global int* frag_count)          // [H, W]
+                              __global int* frag_count,          // [H, W]
+                              __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int y = ty * TILE + get_local_id(1);
@@ -261,6 +282,7 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
                 frag_bary[2 * o] = w0 * is;
                 frag_bary[2 * o + 1] = w1 * is;
                 frag_depth[o] = dk[l][k];
+                if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
             } else {
                 frag_face[o] = -1;
                 frag_entry[o] = -1;
@@ -281,14 +303,17 @@ __kernel void gather_vertex(__global const REAL* partial,      // [E, 3, C]
                             const int n, const int C,
                             __global REAL* out)                // [N, C]
 {
-    const int v = get_global_id(0), c = get_global_id(1);
-    if (v >= n || c >= C) return;
-    REAL acc = (REAL)0;
+    /* one work-item per vertex, all channels: the corner/entry indices are read once */
+    const int v = get_global_id(0);
+    if (v >= n) return;
+    __global REAL* o = out + (long)v * C;
+    for (int c = 0; c < C; ++c) o[c] = (REAL)0;
     for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
         const int corner = csr_corner[q];
         const int f = corner / 3, i = corner - 3 * f;
-        for (int j = face_off[f]; j < face_off[f + 1]; ++j)
-            acc += partial[(face_entries[j] * 3 + i) * C + c];
+        for (int j = face_off[f]; j < face_off[f + 1]; ++j) {
+            __global const REAL* p = partial + ((long)face_entries[j] * 3 + i) * C;
+            for (int c = 0; c < C; ++c) o[c] += p[c];
+        }
     }
-    out[v * C + c] = acc;
 }

@@ -234,7 +234,7 @@ def test_interpolate_shared_vertices(device64, rng):
 # ---------------------------------------------------------------------------- coverage + geometry adjoint
 
 
-def test_coverage_forward(device64, rng):
+def test_coverage_forward(device, device64, rng):
     V, F = soup(rng, M=50)
     _, _, vs, fr = run_raster(device64, V, F, 6)
     h = read_fragments(fr)
@@ -243,6 +243,13 @@ def test_coverage_forward(device64, rng):
     r = ref.fragment_geometry_ref(vs.get(), F, h["face"], sigma=0.7)
     np.testing.assert_allclose(win[ok], r["win"][ok], atol=1e-12)
     assert (win[ok] > 0).mean() > 0.9 and (win[ok] <= 1).all()
+    # the rasterizer computes the same window in its own pass (from the set-up coefficients)
+    _, _, _, fr2 = run_raster(device64, V, F, 6, sigma=0.7)
+    assert fr2.win is not None and coverage(device64, fr2, 0.7) is fr2.win
+    np.testing.assert_allclose(fr2.win.get()[ok], r["win"][ok], rtol=1e-10, atol=1e-12)
+    for variant in ("pixel", "rows"):
+        _, _, _, fr3 = run_raster(device, V.astype(np.float32), F, 6, real=np.float32, sigma=0.7, variant=variant)
+        np.testing.assert_allclose(fr3.win.get()[ok], r["win"][ok], atol=2e-4)
     # sigma -> infinity is the hard edge: every covered fragment gets weight 1
     hard = coverage(device64, fr, 1e9).get()
     assert np.allclose(hard[(h["face"] >= 0) & (r["win"] > 0)], 1.0)

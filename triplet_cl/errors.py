@@ -42,3 +42,15 @@ class KernelBuildError(TripletError):
             + f"\noptions: {' '.join(self.options)}\nbuild log:\n{log}"
         )
         super().__init__(msg)
+
+
+class DatasetError(TripletError):
+    """A dataset on disk is missing or malformed; names the file (or folder) and the problem."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(self.path, problem)  # args stay (path, problem): the error pickles
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.problem}"

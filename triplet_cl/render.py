@@ -185,7 +185,8 @@ class RasterInterpolate(Function):
         ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, s.real))
         ctx.attr = cla.to_device(d.queue, np.ascontiguousarray(attr, s.real))
         vs = project(d, ctx.Vd, cam)
-        fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface)
+        fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
+                       sigma=s.sigma)
         v.frags = ctx.frags = fr
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:

@@ -53,36 +53,34 @@ inline void bary_persp(REAL2 p, REAL2 a0, REAL2 a1, REAL2 a2, REAL3 z,
     *zp = (REAL)1 / s;
 }
 
-/* Adjoint of bary_persp: v_lam[3], v_zp -> v_a0, v_a1, v_a2 (2D) and v_z (3), accumulated. */
+/* Adjoint of bary_persp: v_lam[3], v_zp -> v_a0, v_a1, v_a2 (2D) and v_z (3), accumulated.
+ * (Recomputes the forward with reciprocals: 5 divisions in all.) */
 inline void bary_persp_vjp(REAL2 p, REAL2 a0, REAL2 a1, REAL2 a2, REAL3 z,
                            const REAL* v_lam, REAL v_zp,
                            REAL2* v_a0, REAL2* v_a1, REAL2* v_a2, REAL3* v_z)
 {
-    REAL lam[3], b[3], zp;
-    bary_persp(p, a0, a1, a2, z, lam, &zp, b);
-    const REAL s = (REAL)1 / zp;
-    const REAL dotl = v_lam[0] * lam[0] + v_lam[1] * lam[1] + v_lam[2] * lam[2];
-    const REAL base = dotl + v_zp * zp;
-    const REAL vw0 = (v_lam[0] - base) / s, vw1 = (v_lam[1] - base) / s, vw2 = (v_lam[2] - base) / s;
-    const REAL vb0 = vw0 / z.x, vb1 = vw1 / z.y, vb2 = vw2 / z.z;
-    *v_z += (REAL3)(-vb0 * b[0] / z.x, -vb1 * b[1] / z.y, -vb2 * b[2] / z.z);
-    const REAL A = cross2(a1 - a0, a2 - a0);
-    const REAL vE0 = vb0 / A, vE1 = vb1 / A, vE2 = vb2 / A;
-    const REAL vA = -(vb0 * b[0] + vb1 * b[1] + vb2 * b[2]) / A;
-    REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0), gp = (REAL2)(0, 0);
-    /* E_k = cross(x - p, y - p): d/dx = d/d(x-p), d/dp = -(d/d(x-p) + d/d(y-p)) (p is fixed) */
+    const REAL iA = (REAL)1 / cross2(a1 - a0, a2 - a0);
+    const REAL b0 = cross2(a1 - p, a2 - p) * iA, b1 = cross2(a2 - p, a0 - p) * iA, b2 = cross2(a0 - p, a1 - p) * iA;
+    const REAL iz0 = (REAL)1 / z.x, iz1 = (REAL)1 / z.y, iz2 = (REAL)1 / z.z;
+    const REAL w0 = b0 * iz0, w1 = b1 * iz1, w2 = b2 * iz2;
+    const REAL zp = (REAL)1 / (w0 + w1 + w2);
+    const REAL base = (v_lam[0] * w0 + v_lam[1] * w1 + v_lam[2] * w2) * zp + v_zp * zp;
+    /* v_w_k = (v_lam_k - base) / s = (v_lam_k - base) zp;  v_b_k = v_w_k / z_k */
+    const REAL vb0 = (v_lam[0] - base) * zp * iz0, vb1 = (v_lam[1] - base) * zp * iz1;
+    const REAL vb2 = (v_lam[2] - base) * zp * iz2;
+    *v_z -= (REAL3)(vb0 * b0 * iz0, vb1 * b1 * iz1, vb2 * b2 * iz2);
+    const REAL vE0 = vb0 * iA, vE1 = vb1 * iA, vE2 = vb2 * iA;
+    const REAL vA = -(vb0 * b0 + vb1 * b1 + vb2 * b2) * iA;
+    REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
+    /* E_k = cross(x - p, y - p) with p fixed: d/dx = d/d(x - p) */
     cross2_vjp(a1 - p, a2 - p, vE0, &g1, &g2);
     cross2_vjp(a2 - p, a0 - p, vE1, &g2, &g0);
     cross2_vjp(a0 - p, a1 - p, vE2, &g0, &g1);
     REAL2 vd1 = (REAL2)(0, 0), vd2 = (REAL2)(0, 0);
     cross2_vjp(a1 - a0, a2 - a0, vA, &vd1, &vd2);
-    g1 += vd1;
-    g2 += vd2;
-    g0 -= vd1 + vd2;
-    *v_a0 += g0;
-    *v_a1 += g1;
-    *v_a2 += g2;
-    (void)gp;
+    *v_a0 += g0 - vd1 - vd2;
+    *v_a1 += g1 + vd1;
+    *v_a2 += g2 + vd2;
 }
 
 /* Signed pixel distances of p to the three edge lines (>= 0 inside), and the window value. */

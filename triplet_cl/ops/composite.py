@@ -35,6 +35,8 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
     """
     if not (isinstance(sigma, int | float) and math.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a finite positive number, got {sigma!r}")
+    if frags.win is not None and frags.sigma == sigma:
+        return frags.win  # computed by the rasterizer in the same pass
     H, W, K = frags.shape
     win = cla.empty(device.queue, (H, W, K), frags.real, allocator=device.allocator)
     device.kernel("coverage", "coverage_fwd", real=frags.real)(

@@ -16,6 +16,7 @@ Design (chosen for CPUs through PoCL, correct on every OpenCL 1.2 device):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ from .mesh import DeviceMesh
 
 TILE = 8
 K_LIMIT = 1024
+SETUP = 12  # REALs of edge-function set-up per (tile, face) entry (raster.cl)
 
 
 def _real_of(a) -> np.dtype:
@@ -144,6 +146,8 @@ class Fragments:
     face_entries: cla.Array
     vs: cla.Array
     mesh: DeviceMesh
+    win: cla.Array | None = None  # [H, W, K] coverage window when rasterized with a sigma
+    sigma: float | None = None
 
     @property
     def num_tiles(self) -> int:
@@ -181,7 +185,7 @@ RASTER_VARIANTS = ("auto", "pixel", "rows")
 
 def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
               near: float = 0.01, far: float = 1000.0, cull_backface: bool = False,
-              variant: str = "auto") -> Fragments:
+              variant: str = "auto", sigma: float | None = None) -> Fragments:
     """The K nearest fragments per pixel (discrete: no adjoint of its own; see :func:`raster_backward`).
 
     Args:
@@ -194,7 +198,11 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         variant: ``"pixel"`` (one work-item per pixel: GPU-shaped), ``"rows"`` (one work-item per
             8-pixel row with vector edge tests: CPU-shaped), or ``"auto"`` (rows on CPU devices).
             Both give identical fragments.
+        sigma: also compute the soft-coverage window (``frags.win``) for this sharpness, in the
+            same pass (see :func:`~triplet_cl.ops.composite.coverage`).
     """
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
     if variant not in RASTER_VARIANTS:
         raise ValueError(f"variant must be one of {RASTER_VARIANTS}, got {variant!r}")
     if variant == "auto":
@@ -230,9 +238,9 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     tile_off, E = _offsets(device, tile_count)
     face_off, E2 = _offsets(device, face_ntiles)
     assert E == E2, (E, E2)
-    device.check_alloc(E * 9 * real.itemsize, f"binned face list ({E} tile-face entries)")
+    device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
     entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    entry_setup = cla.empty(q, (max(E, 1), 9), real, allocator=alloc)
+    entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
     face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     if E:
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
@@ -246,6 +254,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     bary = cla.empty(q, (height, width, K, 2), real, allocator=alloc)
     depth = cla.empty(q, (height, width, K), real, allocator=alloc)
     count = cla.empty(q, (height, width), np.int32, allocator=alloc)
+    win = cla.empty(q, (height, width, K), real, allocator=alloc) if sigma else None
     if variant == "rows":
         kern, gsize, lsize = "raster_fwd_rows", (tiles_x, tiles_y * TILE), (1, TILE)
     else:
@@ -253,9 +262,9 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     device.kernel("raster", kern, defines, real)(
         q, gsize, lsize, tile_off.data, entry_face.data, entry_setup.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
-        face.data, entry.data, bary.data, depth.data, count.data)
+        real.type(sigma or 0.0), face.data, entry.data, bary.data, depth.data, count.data, buf(win, q))
     return Fragments(width, height, K, tiles_x, tiles_y, E, real, face, entry, bary, depth, count,
-                     tile_off, face_off, face_entries, vs, mesh)
+                     tile_off, face_off, face_entries, vs, mesh, win, sigma)
 
 
 def _device_or_none(device: Device, name: str, a, shape, real):
@@ -278,7 +287,7 @@ def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: 
     out = cla.empty(device.queue, (max(n, 1), max(C, 1)), frags.real, allocator=device.allocator)[:n, :C]
     if n and C:
         device.kernel("raster", "gather_vertex", {"TILE": TILE, "K_MAX": frags.K}, frags.real)(
-            device.queue, (n, C), None, partial.data, frags.face_off.data, frags.face_entries.data,
+            device.queue, (n,), None, partial.data, frags.face_off.data, frags.face_entries.data,
             mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(C), out.data)
     return out
 

@@ -1,0 +1,187 @@
+"""Image reading through OpenImageIO, with straight alpha and area downscaling.
+
+* PNG/TIFF/… with alpha are read with ``oiio:UnassociatedAlpha = 1`` so the colour comes back as
+  stored (straight), not premultiplied by OIIO.
+* Integer files (8/16-bit PNG, JPEG, …) come back as float32 in [0, 1] (sRGB-encoded values, as
+  stored); float files (EXR, HDR) as float32 linear values. Nothing is converted.
+* ``downscale = N`` averages N×N blocks (area filter). Rows/columns beyond a multiple of N are
+  cropped off the right/bottom edge, so the pixel grid stays aligned and the intrinsics simply
+  divide by N (:func:`downscale_camera`). With alpha the colour is averaged **premultiplied** and
+  then un-premultiplied, so that compositing commutes with downscaling:
+  ``composite(down(rgb, a), bg) == down(composite(rgb, a, bg))`` for any background.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DatasetError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".webp", ".bmp")
+_FLOAT_TYPES = ("half", "float", "double")
+
+
+class Image(NamedTuple):
+    """What :func:`read_image` returns: pixels after the downscale, the file's own size."""
+
+    rgb: np.ndarray  # [h, w, 3] float32
+    alpha: np.ndarray | None  # [h, w] float32
+    color_space: str  # "srgb" or "linear"
+    width: int  # of the file, before any downscale
+    height: int
+
+
+def _oiio():
+    try:
+        import OpenImageIO as oiio
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise DatasetError("OpenImageIO", f"the OpenImageIO Python module is needed to read images ({exc})") from exc
+    return oiio
+
+
+def read_image(path, downscale: int = 1) -> Image:
+    """Read one image → :class:`Image` ``(rgb [h,w,3] float32, alpha [h,w] float32 or None,
+    color_space, width, height)`` where ``h, w = H // downscale, W // downscale``.
+
+    ``color_space`` is ``"linear"`` for float files (EXR, HDR) and ``"srgb"`` otherwise. One
+    channel is grey, two are grey + alpha, three RGB, four RGBA; with more, the first three are
+    colour and the spec's alpha channel (if any) is alpha. Raises :class:`DatasetError` naming
+    the file when it is missing, unreadable, or holds NaN/Inf.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "image file not found")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise DatasetError(path, f"cannot read the image: {oiio.geterror() or 'unknown format'}")
+    try:
+        spec = inp.spec()
+        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if px is None or (err and not isinstance(px, np.ndarray)):
+        raise DatasetError(path, f"cannot read the image: {err or oiio.geterror() or 'read failed'}")
+    px = np.asarray(px, dtype=np.float32)
+    if px.ndim == 2:
+        px = px[:, :, None]
+    if px.ndim != 3 or px.shape[0] < 1 or px.shape[1] < 1:
+        raise DatasetError(path, f"unexpected pixel array of shape {list(px.shape)}")
+    nc = px.shape[2]
+    alpha = None
+    if nc == 1:
+        rgb = np.repeat(px, 3, axis=2)
+    elif nc == 2:
+        rgb, alpha = np.repeat(px[:, :, :1], 3, axis=2), px[:, :, 1]
+    else:
+        rgb = px[:, :, :3]
+        a_ch = spec.alpha_channel if spec.alpha_channel >= 3 else (3 if nc == 4 else -1)
+        if a_ch >= 0:
+            alpha = px[:, :, a_ch]
+    if not np.isfinite(rgb).all() or (alpha is not None and not np.isfinite(alpha).all()):
+        raise DatasetError(path, "the image holds NaN or Inf values")
+    color_space = "linear" if str(spec.format) in _FLOAT_TYPES else "srgb"
+    if alpha is not None:
+        alpha = np.clip(alpha, 0.0, 1.0)
+    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
+    alpha = None if alpha is None else np.ascontiguousarray(alpha, dtype=np.float32)
+    height, width = rgb.shape[:2]
+    if downscale != 1:
+        if height < downscale or width < downscale:
+            raise DatasetError(path, f"image of {width}x{height} is smaller than downscale={downscale}")
+        rgb, alpha = downscale_image(rgb, alpha, downscale)
+    return Image(rgb, alpha, color_space, width, height)
+
+
+def _block_mean(a: np.ndarray, n: int) -> np.ndarray:
+    h, w = a.shape[0] // n, a.shape[1] // n
+    a = a[: h * n, : w * n]
+    return a.reshape(h, n, w, n, *a.shape[2:]).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
+
+def downscale_image(rgb: np.ndarray, alpha: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Average ``n × n`` blocks (cropping the remainder off the right/bottom edge).
+
+    With alpha the colour is averaged premultiplied and then un-premultiplied (colour 0 where the
+    averaged alpha is 0), so compositing over any background commutes with the downscale.
+    """
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"downscale must be a positive integer, got {n}")
+    if n == 1:
+        return rgb, alpha
+    if alpha is None:
+        return _block_mean(rgb, n), None
+    a = _block_mean(alpha, n)
+    pre = _block_mean(rgb * alpha[:, :, None], n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        straight = np.where(a[:, :, None] > 0, pre / np.maximum(a, 1e-12)[:, :, None], 0.0)
+    return np.ascontiguousarray(straight, dtype=np.float32), a
+
+
+def downscale_camera(camera: Camera, n: int) -> Camera:
+    """The camera of an image downscaled by :func:`downscale_image` (size ``W // n × H // n``)."""
+    if n == 1:
+        return camera
+    return replace(camera, fx=camera.fx / n, fy=camera.fy / n, cx=camera.cx / n, cy=camera.cy / n,
+                   width=camera.width // n, height=camera.height // n)
+
+
+def find_image(base: Path) -> Path | None:
+    """``base`` itself when it exists, else ``base`` + a known image extension (NeRF-synthetic's
+    ``file_path`` often has none), else ``None``."""
+    if base.is_file():
+        return base
+    for ext in IMAGE_EXTENSIONS:
+        for e in (ext, ext.upper()):
+            p = base.with_name(base.name + e)
+            if p.is_file():
+                return p
+    return None
+
+
+def read_images(paths: list[Path], downscale: int = 1, workers: int | None = None):
+    """:func:`read_image` over many files, in a thread pool (OpenImageIO decodes without the GIL)."""
+    if not paths:
+        return []
+    workers = workers or min(8, os.cpu_count() or 1, len(paths))
+    if workers <= 1 or len(paths) < 4:
+        return [read_image(p, downscale) for p in paths]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(lambda p: read_image(p, downscale), paths))
+
+
+def load_views(records, downscale: int = 1, split: str = "train"):
+    """Read the images of one split and build its views.
+
+    ``records`` are ``(name, image_path, make_camera)`` with ``make_camera(width, height)`` →
+    the full-resolution :class:`Camera` for an image of that size (it raises
+    :class:`DatasetError` naming the metadata file on a bad camera). Every image of a split must
+    have the same size. Returns ``(views, color_spaces)``.
+    """
+    from .base import View
+
+    records = list(records)
+    images = read_images([r[1] for r in records], downscale)
+    views, spaces = [], set()
+    first = None
+    for (name, path, make_camera), img in zip(records, images, strict=True):
+        if first is None:
+            first = (path, img.width, img.height)
+        elif (img.width, img.height) != first[1:]:
+            raise DatasetError(path, f"image is {img.width}x{img.height} but {first[0].name} in the same "
+                                     f"{split} split is {first[1]}x{first[2]}: every image of a split must have one size")
+        cam = downscale_camera(make_camera(img.width, img.height), downscale)
+        views.append(View(name, cam, img.rgb, img.alpha, path))
+        spaces.add(img.color_space)
+    return views, spaces

@@ -1,0 +1,470 @@
+"""Adaptive density control of the triangle soup (DESIGN.md section 5): split, clone, prune, alpha reset.
+
+Everything here runs on the host (numpy, vectorised over faces) between optimisation steps.
+
+The soup layout is required and kept: face ``f`` owns vertex rows ``3f, 3f+1, 3f+2`` and
+``F = arange(3M).reshape(M, 3)``; every per-vertex parameter (``V``, ``material``, ``alpha``,
+``vertex_sh``) has ``N = 3M`` rows.
+
+Statistics (:class:`DensityStats`, the analogue of 3D Gaussian Splatting's ``xyz_gradient_accum`` /
+``denom`` / ``max_radii2D``), accumulated once per rendered view between two densification steps,
+only for the faces *visible* in that view (any fragment of the face kept by the rasterizer):
+
+- ``grad_accum[f] += ‖Σ_{c=0..2} v_vs[F[f, c], :2]‖`` — the norm of the screen-space (u, v)
+  gradient of the face, i.e. the gradient of the loss w.r.t. a 2D translation of the whole
+  triangle on the image plane (the sum over its corners), like the gradient of a Gaussian's
+  projected centre;
+- ``denom[f] += 1``; ``mean_grad() = grad_accum / max(denom, 1)`` (0 for faces never seen);
+- ``world_grad_accum[f] += Σ_c v_V[F[f, c]]`` (``[M, 3]``, the world-space position gradient,
+  summed raw — not normalised per view): its negative direction is where clones are moved;
+- ``max_screen_area[f] = max(.., bbox area of the projected corners (u, v) in pixels)`` and
+  ``max_screen_frac[f]`` the same as a fraction of that view's image area (``W·H``), so that the
+  screen-size prune criterion survives the resolution schedule (¼ → ½ → full).
+
+**Unit of the gradient threshold.** ``v_vs`` is ``∂L/∂(u, v)`` with ``u, v`` in *pixels of the
+rendered resolution*, so ``grad_threshold`` is in loss units per pixel. 3DGS thresholds the
+gradient w.r.t. NDC coordinates, which is ``∂L/∂u · W/2``; pass ``grad_scale = 0.5 * W`` (and
+``0.5 * H`` is the same for square pixels) to :meth:`DensityStats.add` to accumulate in that unit
+and compare against 3DGS-style thresholds independently of the resolution. The loss normalisation
+(a mean over pixels) also enters: the per-pixel gradient scales as ``1 / (H·W)``.
+
+Order of one :func:`densify_and_prune` call (every mask is computed on the state *before* any face
+is moved, removed or added — the original implementation computed its clone mask after the split
+had reordered the faces):
+
+1. **prune** candidates: face alpha ``≤ prune_alpha``, world area ``> prune_world_area · extent²``
+   or max screen fraction ``> prune_screen_frac``; at most ``M − min_faces`` are pruned (most
+   transparent first). Pruning takes precedence: a pruned face is neither split nor cloned.
+2. **densify** candidates: ``mean_grad ≥ grad_threshold`` among the faces not pruned; those whose
+   longest edge ``> split_edge_ratio · extent`` are split, the others cloned. When the result would
+   exceed ``max_faces``, candidates are taken by decreasing gradient (a split costs +3 faces, a
+   clone +1) until the budget is spent.
+3. the new soup is written: surviving faces (not pruned, not split) in their original order, then
+   the 4 children of every split face (in parent order), then the clones (in source order).
+4. every per-vertex optimizer group is remapped (:meth:`triplet_cl.optim.Adam.remap`): surviving
+   rows keep their Adam moments, new rows (children and clones) get **zero** moments
+   (``index_map = −1``; 3DGS does the same for densified points), and the statistics are reset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import expit
+
+__all__ = [
+    "CHILDREN",
+    "DensifyReport",
+    "DensityConfig",
+    "DensityStats",
+    "densify_and_prune",
+    "face_alpha",
+    "face_areas",
+    "face_longest_edges",
+    "reset_alpha",
+    "split_faces",
+    "visible_faces",
+]
+
+# Midpoint subdivision of a parent (a, b, c) = points 0, 1, 2 with midpoints m01 = 3, m12 = 4,
+# m20 = 5: three corner children and the centre one, all with the parent's orientation.
+CHILDREN = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]], dtype=np.int64)
+_MID_PAIRS = np.array([[0, 1], [1, 2], [2, 0]], dtype=np.int64)
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration and report
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DensityConfig:
+    """Settings of density control (defaults: the method's values for objects, DESIGN.md §5)."""
+
+    interval: int = 100  # densify every `interval` iterations ...
+    densify_from: int = 500  # ... strictly after this iteration ...
+    densify_until: int = 15_000  # ... and strictly before this one (stats are accumulated until then)
+    grad_threshold: float = 7.5e-5  # mean ‖∂L/∂(u,v)‖ per face, loss per *pixel of the rendered resolution*
+    #                                 (times `grad_scale` given to DensityStats.add); 2e-4 for scenes
+    split_edge_ratio: float = 0.01  # longest edge > ratio·extent: split into 4, otherwise clone
+    clone_step: float = 0.5  # a clone is translated by clone_step × (its longest edge) along −∇_V
+    prune_alpha: float = 0.05  # prune faces whose alpha (max over its vertices) ≤ this
+    prune_world_area: float = 0.1  # prune faces whose world area > this × extent²
+    prune_screen_frac: float = 0.001  # prune faces whose max 2D bbox area > this fraction of the image
+    alpha_reset_interval: int = 3000  # every this many iterations: alpha = min(alpha, alpha_reset_value)
+    alpha_reset_value: float = 0.01  # cap of the alpha reset (activated value)
+    max_faces: int | None = None  # never densify above this many faces (None: no limit)
+    min_faces: int = 1  # never prune below this many faces (an empty soup cannot be optimised)
+    split_interp: str = "raw"  # children's midpoint attributes: "raw" (linear on raw values) or
+    #                            "activated" (linear on sigmoid/softplus values, mapped back: render-exact)
+
+    def __post_init__(self):
+        if self.interval <= 0 or self.alpha_reset_interval <= 0:
+            raise ValueError(f"interval and alpha_reset_interval must be > 0, got {self.interval}, "
+                             f"{self.alpha_reset_interval}")
+        if self.grad_threshold <= 0:
+            raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold}")
+        if not 0.0 < self.alpha_reset_value < 1.0 or not 0.0 <= self.prune_alpha < 1.0:
+            raise ValueError("alpha_reset_value must lie in (0, 1) and prune_alpha in [0, 1)")
+        if self.split_edge_ratio < 0 or self.clone_step < 0:
+            raise ValueError("split_edge_ratio and clone_step must be >= 0")
+        if self.min_faces < 0 or (self.max_faces is not None and self.max_faces < self.min_faces):
+            raise ValueError(f"need 0 <= min_faces <= max_faces, got {self.min_faces}, {self.max_faces}")
+        if self.split_interp not in ("raw", "activated"):
+            raise ValueError(f"split_interp must be 'raw' or 'activated', got {self.split_interp!r}")
+
+    def densify_at(self, iteration: int) -> bool:
+        """Whether to call :func:`densify_and_prune` after completed step ``iteration`` (1-based, 3DGS's
+        ``densify_from < it < densify_until and it % interval == 0``)."""
+        return self.densify_from < iteration < self.densify_until and iteration % self.interval == 0
+
+    def reset_alpha_at(self, iteration: int) -> bool:
+        """Whether to call :func:`reset_alpha` after completed step ``iteration`` (only while densifying)."""
+        return 0 < iteration < self.densify_until and iteration % self.alpha_reset_interval == 0
+
+
+@dataclass
+class DensifyReport:
+    """What one :func:`densify_and_prune` call did."""
+
+    faces_before: int
+    faces_after: int
+    split: int  # parents split (each replaced by 4 children: +3 faces)
+    cloned: int  # faces cloned (+1 face each)
+    pruned: int  # faces removed by the prune criteria
+    pruned_alpha: int = 0  # prune candidates by criterion (a face may meet several; before min_faces)
+    pruned_world_area: int = 0
+    pruned_screen: int = 0
+    skipped_max_faces: int = 0  # densify candidates dropped to respect max_faces
+    spared_min_faces: int = 0  # prune candidates kept to respect min_faces
+
+
+# ---------------------------------------------------------------------------------------------
+# per-face geometry
+# ---------------------------------------------------------------------------------------------
+
+
+def _host(a) -> np.ndarray:
+    return a.get() if hasattr(a, "get") and not isinstance(a, np.ndarray) else np.asarray(a)
+
+
+def _corners(V, F) -> np.ndarray:
+    return np.asarray(V, np.float64)[np.asarray(F)]  # [M, 3, 3]
+
+
+def face_areas(V, F) -> np.ndarray:
+    """``[M]`` world-space triangle areas ``½‖(b − a) × (c − a)‖``."""
+    P = _corners(V, F)
+    return 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+
+
+def face_longest_edges(V, F) -> np.ndarray:
+    """``[M]`` longest edge length of each triangle."""
+    P = _corners(V, F)
+    return np.linalg.norm(P - P[:, [1, 2, 0]], axis=2).max(axis=1)
+
+
+def face_alpha(alpha_raw, F) -> np.ndarray:
+    """``[M]`` face alpha used by the prune criterion: the **max** over the 3 vertices of
+    ``sigmoid(raw alpha)``. The renderer interpolates activated alpha linearly across the face, so this
+    bounds the alpha anywhere on it: a face is pruned only when it is transparent everywhere."""
+    a = np.asarray(alpha_raw, np.float64).reshape(-1)
+    return expit(a[np.asarray(F)].max(axis=1))
+
+
+def visible_faces(face_ids, num_faces: int) -> np.ndarray:
+    """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
+    ``[H, W, K]``, −1 = empty; numpy or device array)."""
+    f = _host(face_ids).reshape(-1)
+    f = f[f >= 0]
+    return np.bincount(f, minlength=num_faces)[:num_faces] > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# statistics
+# ---------------------------------------------------------------------------------------------
+
+
+class DensityStats:
+    """Per-face statistics between two densification steps (see the module docstring for the maths).
+
+    Attributes (all ``[M]`` unless noted): ``grad_accum`` (Σ over views of the face's screen-gradient
+    norm), ``denom`` (number of views where the face was visible), ``world_grad_accum [M, 3]``,
+    ``max_screen_area`` (pixels) and ``max_screen_frac`` (fraction of the image).
+    """
+
+    def __init__(self, num_faces: int):
+        self.reset(num_faces)
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.denom.shape[0])
+
+    def reset(self, num_faces: int) -> None:
+        """Zero every statistic for a soup of ``num_faces`` faces."""
+        if num_faces < 0:
+            raise ValueError(f"num_faces must be >= 0, got {num_faces}")
+        m = int(num_faces)
+        self.grad_accum = np.zeros(m, np.float64)
+        self.denom = np.zeros(m, np.int64)
+        self.world_grad_accum = np.zeros((m, 3), np.float64)
+        self.max_screen_area = np.zeros(m, np.float64)
+        self.max_screen_frac = np.zeros(m, np.float64)
+
+    def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0) -> None:
+        """Accumulate one rendered view.
+
+        Args:
+            v_vs: ``[N, 3]`` (or ``[N, 2]``) adjoint of each vertex's screen position (u, v[, z]) from
+                ``fragments_backward`` (numpy or device); only (u, v) is used.
+            visible: ``[M] bool`` faces visible in the view (:func:`visible_faces`); only they are updated.
+            F: ``[M, 3]`` faces.
+            vs: optional ``[N, 3]`` projected vertices (u, v, z) for the screen-size statistic; needs
+                ``image_size = (width, height)`` of that render.
+            v_V: optional ``[N, 3]`` world-space position gradient of the view (e.g. ``scene.V.grad``).
+            grad_scale: multiplies the screen gradient (e.g. ``0.5 * width`` for 3DGS's NDC units).
+        """
+        F = np.asarray(F)
+        m = self.num_faces
+        if F.shape != (m, 3):
+            raise ValueError(f"F must have shape [{m}, 3] (stats were reset for {m} faces), got {list(F.shape)}")
+        vis = np.asarray(_host(visible))
+        if vis.shape != (m,) or vis.dtype != np.bool_:
+            raise ValueError(f"visible must be a bool array of shape [{m}], got {vis.dtype} {list(vis.shape)}")
+        g = np.asarray(_host(v_vs), np.float64)
+        if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
+            raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
+        idx = np.flatnonzero(vis)
+        Fv = F[idx]
+        g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
+        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
+        self.denom[idx] += 1
+        if v_V is not None:
+            gw = np.asarray(_host(v_V), np.float64)
+            if gw.ndim != 2 or gw.shape[1] != 3 or gw.shape[0] != g.shape[0]:
+                raise ValueError(f"v_V must have shape [{g.shape[0]}, 3], got {list(gw.shape)}")
+            self.world_grad_accum[idx] += gw[Fv].sum(axis=1)
+        if vs is not None:
+            if image_size is None:
+                raise ValueError("image_size=(width, height) is required with vs")
+            w, h = (int(x) for x in image_size)
+            if w <= 0 or h <= 0:
+                raise ValueError(f"image_size must be positive, got {image_size}")
+            uv = np.asarray(_host(vs), np.float64)[Fv, :, :2]  # [m_vis, 3, 2]
+            ext = uv.max(axis=1) - uv.min(axis=1)
+            area = ext[:, 0] * ext[:, 1]
+            self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
+            self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+
+    def mean_grad(self) -> np.ndarray:
+        """``[M]`` ``grad_accum / denom`` (0 for faces never visible)."""
+        return self.grad_accum / np.maximum(self.denom, 1)
+
+
+# ---------------------------------------------------------------------------------------------
+# soup helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _vertex_params(scene) -> list:
+    return [p for p in (scene.V, scene.material, scene.alpha, scene.vertex_sh) if p is not None]
+
+
+def check_soup(scene) -> int:
+    """Raise ValueError unless ``scene`` is a soup in the canonical layout; return its face count."""
+    F = np.asarray(scene.F)
+    n = np.asarray(scene.V.data).shape[0]
+    if F.ndim != 2 or F.shape[1] != 3 or n != 3 * F.shape[0] or not np.array_equal(F, np.arange(n).reshape(-1, 3)):
+        raise ValueError("density control needs a triangle soup with F = arange(3M).reshape(M, 3) (vertices of face f "
+                         f"are 3f, 3f+1, 3f+2); got F {list(F.shape)} with {n} vertices")
+    for p in _vertex_params(scene):
+        if np.asarray(p.data).shape[0] != n:
+            raise ValueError(f"per-vertex parameter {p.name!r} has {np.asarray(p.data).shape[0]} rows, expected {n}")
+    return F.shape[0]
+
+
+def _logit(p):
+    return np.log(p) - np.log1p(-p)
+
+
+def _inv_softplus(y):
+    y = np.maximum(y, 1e-300)
+    return np.where(y > 30.0, y, np.log(np.expm1(np.minimum(y, 30.0))))
+
+
+def _midpoints(X, space: str, kind: str, brdf: str) -> np.ndarray:
+    """``X [S, 3, ...]`` raw corner values → ``[S, 3, ...]`` values at the edge midpoints (m01, m12, m20)."""
+    a, b = X[:, _MID_PAIRS[:, 0]], X[:, _MID_PAIRS[:, 1]]
+    mid = 0.5 * (a + b)
+    if space == "raw" or kind not in ("material", "alpha"):
+        return mid
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    act = _logit(np.clip(0.5 * (expit(a) + expit(b)), 1e-300, 1.0 - 1e-16))
+    if kind == "material" and brdf == "blinn_phong":  # shininess (column 6) is softplus
+        sp = np.logaddexp(0.0, a[..., 6]) + np.logaddexp(0.0, b[..., 6])
+        act[..., 6] = _inv_softplus(0.5 * sp)
+    return np.clip(act, lo, hi)  # the activated midpoint lies between the corners; clip rounding
+
+
+def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = "cook_torrance") -> np.ndarray:
+    """Children of midpoint subdivision: ``X [S, 3, ...]`` per-corner values of S parents →
+    ``[S, 4, 3, ...]`` per-corner values of their 4 children (:data:`CHILDREN`). Corner vertices are
+    copied exactly; midpoints are linear on the raw values (``space="raw"``) or, for ``kind`` in
+    ``{"material", "alpha"}`` with ``space="activated"``, linear on the activated values."""
+    X = np.asarray(X, np.float64)
+    P6 = np.concatenate([X, _midpoints(X, space, kind, brdf)], axis=1)  # [S, 6, ...]
+    return P6[:, CHILDREN]
+
+
+def _owning_groups(optimizer, vparams) -> dict[str, list]:
+    """``{group name: params}`` of the groups holding per-vertex parameters (matched by identity)."""
+    if optimizer is None:
+        return {}
+    ids = {id(p) for p in vparams}
+    out, seen = {}, set()
+    for name, g in optimizer.groups.items():
+        hit = [id(p) in ids for p in g.params]
+        if not any(hit):
+            continue
+        if not all(hit):
+            raise ValueError(f"optimizer group {name!r} mixes per-vertex parameters with others; it cannot be remapped")
+        for p in g.params:
+            if id(p) in seen:
+                raise ValueError(f"parameter {p.name!r} is in more than one optimizer group")
+            seen.add(id(p))
+        out[name] = list(g.params)
+    return out
+
+
+def _apply(scene, optimizer, index_map: np.ndarray, new_data: dict[int, np.ndarray], num_faces: int) -> None:
+    vparams = _vertex_params(scene)
+    groups = _owning_groups(optimizer, vparams)
+    done = set()
+    for name, params in groups.items():
+        optimizer.remap(name, index_map, [new_data[id(p)] for p in params])
+        done |= {id(p) for p in params}
+    for p in vparams:
+        if id(p) not in done:  # not optimised: only the values follow
+            p.data = np.ascontiguousarray(new_data[id(p)].astype(p.data.dtype, copy=False))
+            p.grad = None
+    scene.F = np.arange(3 * num_faces, dtype=np.int32).reshape(num_faces, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# density control
+# ---------------------------------------------------------------------------------------------
+
+
+def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConfig, extent: float, *,
+                      densify: bool = True, prune: bool = True, prune_screen: bool = True) -> DensifyReport:
+    """Split, clone and prune the soup of ``scene`` in place (see the module docstring for the order).
+
+    Args:
+        scene: a :class:`~triplet_cl.scene.Scene` soup (``F = arange(3M).reshape(M, 3)``, else ValueError).
+        optimizer: the :class:`~triplet_cl.optim.Adam` whose groups hold the scene's per-vertex
+            parameters (found by identity; a group must hold only per-vertex parameters), or None.
+        stats: statistics accumulated since the last call (``stats.num_faces == M``); reset on return.
+        config: thresholds; extent: the scene extent (radius of the cameras / object, world units).
+        densify, prune: switch the two halves; prune_screen: use the screen-size criterion (3DGS
+            enables it only after the first alpha reset).
+
+    Returns:
+        a :class:`DensifyReport`. ``scene.V/material/alpha/vertex_sh`` and ``scene.F`` are replaced, the
+        optimizer's moments follow (surviving rows keep theirs, new rows start at zero).
+    """
+    m = check_soup(scene)
+    if stats.num_faces != m:
+        raise ValueError(f"stats hold {stats.num_faces} faces, the scene has {m} (reset the stats after changes)")
+    if not (np.isfinite(extent) and extent > 0):
+        raise ValueError(f"extent must be > 0, got {extent}")
+    F = np.asarray(scene.F)
+    V = np.asarray(scene.V.data)
+
+    # ---- every mask on the state before any change --------------------------------------------
+    grads = stats.mean_grad()
+    longest = face_longest_edges(V, F)
+    alpha_f = face_alpha(scene.alpha.data, F)
+    by_alpha = alpha_f <= config.prune_alpha
+    by_world = face_areas(V, F) > config.prune_world_area * extent**2
+    by_screen = stats.max_screen_frac > config.prune_screen_frac if prune_screen else np.zeros(m, bool)
+    prune_cand = (by_alpha | by_world | by_screen) if prune else np.zeros(m, bool)
+    cand_idx = np.flatnonzero(prune_cand)
+    allowed = max(0, m - config.min_faces)
+    if cand_idx.size > allowed:  # most transparent first, then the largest
+        order = np.lexsort((-longest[cand_idx], alpha_f[cand_idx]))
+        cand_idx = cand_idx[order[:allowed]]
+    prune_mask = np.zeros(m, bool)
+    prune_mask[cand_idx] = True
+
+    dens = (grads >= config.grad_threshold) & ~prune_mask if densify else np.zeros(m, bool)
+    big = longest > config.split_edge_ratio * extent
+    d_idx = np.flatnonzero(dens)
+    skipped = 0
+    if config.max_faces is not None:
+        budget = config.max_faces - (m - int(prune_mask.sum()))
+        cost = np.where(big[d_idx], 3, 1)
+        if cost.sum() > budget:
+            order = np.argsort(-grads[d_idx], kind="stable")
+            take = order[np.cumsum(cost[order]) <= budget]
+            skipped = d_idx.size - take.size
+            d_idx = np.sort(d_idx[take])
+    split_idx = d_idx[big[d_idx]]
+    clone_idx = d_idx[~big[d_idx]]
+
+    # ---- new soup: survivors, children of splits, clones ----------------------------------------
+    keep = np.ones(m, bool)
+    keep[prune_mask] = False
+    keep[split_idx] = False
+    keep_idx = np.flatnonzero(keep)
+    s, c = split_idx.size, clone_idx.size
+    m_new = keep_idx.size + 4 * s + c
+    index_map = np.concatenate([(3 * keep_idx[:, None] + np.arange(3)).reshape(-1),
+                                np.full(12 * s + 3 * c, -1)]).astype(np.int64)
+
+    shift = None
+    if c:
+        g = stats.world_grad_accum[clone_idx]
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        direction = np.divide(g, norm, out=np.zeros_like(g), where=norm > 0)
+        shift = -config.clone_step * longest[clone_idx, None] * direction  # [C, 3]
+
+    new_data = {}
+    kinds = {id(scene.V): "position", id(scene.material): "material", id(scene.alpha): "alpha"}
+    for p in _vertex_params(scene):
+        X = np.asarray(p.data)
+        Xf = X.reshape(m, 3, *X.shape[1:])
+        children = split_faces(Xf[split_idx], config.split_interp, kinds.get(id(p), "linear"), scene.brdf)
+        clones = Xf[clone_idx].astype(np.float64)
+        if p is scene.V and c:
+            clones = clones + shift[:, None, :]
+        tail = X.shape[1:]
+        new_data[id(p)] = np.concatenate([Xf[keep_idx].reshape(-1, *tail),
+                                          children.reshape(-1, *tail).astype(X.dtype),
+                                          clones.reshape(-1, *tail).astype(X.dtype)]).astype(X.dtype, copy=False)
+    _apply(scene, optimizer, index_map, new_data, m_new)
+    stats.reset(m_new)
+    return DensifyReport(
+        faces_before=m, faces_after=m_new, split=s, cloned=c, pruned=int(prune_mask.sum()),
+        pruned_alpha=int((by_alpha & prune).sum()), pruned_world_area=int((by_world & prune).sum()),
+        pruned_screen=int((by_screen & prune).sum()), skipped_max_faces=int(skipped),
+        spared_min_faces=int(prune_cand.sum() - prune_mask.sum()))
+
+
+def reset_alpha(scene, optimizer=None, value: float = 0.01) -> int:
+    """``alpha = min(alpha, value)`` (activated), i.e. ``raw = min(raw, logit(value))``, and zero the Adam
+    moments of the alpha parameter (3DGS ``reset_opacity``). Returns the number of vertices lowered."""
+    if not 0.0 < value < 1.0:
+        raise ValueError(f"value must lie in (0, 1), got {value}")
+    p = scene.alpha
+    cap = float(_logit(np.float64(value)))
+    raw = np.asarray(p.data)
+    lowered = int(np.count_nonzero(raw > cap))
+    p.data = np.ascontiguousarray(np.minimum(raw, np.asarray(cap, raw.dtype)))
+    if optimizer is not None:
+        for g in optimizer.groups.values():
+            for k, q in enumerate(g.params):
+                if q is p:
+                    g.exp_avg[k] = np.zeros_like(p.data)
+                    g.exp_avg_sq[k] = np.zeros_like(p.data)
+    return lowered
