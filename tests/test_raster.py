@@ -308,7 +308,8 @@ def test_composite_forward_and_vjp(device64, rng):
     np.testing.assert_array_equal(ncon.get(), r_n)
     v_img = rng.standard_normal(r_img.shape)
     v_acc = rng.standard_normal(r_trans.shape)
-    v_feat, v_alpha, v_win, v_bg = composite_backward(device64, fr, feat, alpha, bg, ncon, trans, v_img, v_acc)
+    v_feat, v_alpha, v_win, v_bg = composite_backward(device64, fr, feat, alpha, bg, ncon, trans, v_img, v_acc,
+                                                      bg_grad=True)
     rf, ra = ref.composite_vjp_ref(feat, alpha, h["count"], bg, v_img, v_acc)
     ok = h["face"] >= 0
     np.testing.assert_allclose(v_feat.get()[ok], rf[ok], atol=1e-12)

@@ -92,16 +92,17 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
 
 
 def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_contrib, trans, v_image,
-                       v_acc=None, win=None):
+                       v_acc=None, win=None, bg_grad: bool = False):
     """Adjoint of :func:`composite`.
 
     Args:
         feat, alpha, bg, win: the inputs of the forward pass; ``n_contrib``, ``trans`` its outputs.
         v_image: ``[H, W, C]`` adjoint of the image; v_acc: optional ``[H, W]`` adjoint of the
             accumulated alpha ``1 − trans``.
+        bg_grad: also return the background's adjoint (a host reduction over the image).
 
     Returns:
-        ``(v_feat [H, W, K, C], v_alpha [H, W, K], v_win [H, W, K] or None, v_bg [C] numpy)``.
+        ``(v_feat [H, W, K, C], v_alpha [H, W, K], v_win [H, W, K] or None, v_bg [C] numpy or None)``.
     """
     H, W, K = frags.shape
     real = frags.real
@@ -121,6 +122,8 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
         q, (H * W,), None, f.data, a.data, buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data, buf(va, q),
         np.int32(H * W), np.int32(K), np.int32(C), np.int32(w is not None), np.int32(va is not None),
         v_feat.data, v_alpha.data, buf(v_win, q))
-    # v_bg_c = sum over pixels of v_image_c * T_n  (small host reduction)
-    v_bg = (g.get().astype(np.float64) * trans.get().astype(np.float64)[..., None]).reshape(-1, C).sum(0)
+    # v_bg_c = sum over pixels of v_image_c * T_n  (small host reduction, only when asked)
+    v_bg = None
+    if bg_grad:
+        v_bg = (g.get().astype(np.float64) * trans.get().astype(np.float64)[..., None]).reshape(-1, C).sum(0)
     return v_feat, v_alpha, v_win, v_bg
