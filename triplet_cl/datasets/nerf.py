@@ -1,0 +1,201 @@
+"""NeRF-synthetic ("Blender") datasets and the ``transforms*.json`` parser shared with instant-ngp.
+
+A ``transforms_{train,val,test}.json`` holds ``camera_angle_x`` (horizontal field of view in
+radians) and ``frames``: each a ``file_path`` (relative to the JSON's folder, with or without an
+extension) and a ``transform_matrix`` (4×4 camera-to-world, Blender/OpenGL axes: the camera looks
+down −Z with +Y up). The same parser reads instant-ngp's keys (``fl_x``, ``fl_y``, ``cx``, ``cy``,
+``w``, ``h``, ``camera_angle_y``; globally or per frame) and refuses lens distortion.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DatasetError
+from .base import Dataset, DatasetWarning, holdout_split
+from .images import find_image, load_views
+
+_INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_FISHEYE_MODELS = ("OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV",
+                   "EQUIRECTANGULAR")
+
+
+def read_json(path: Path) -> dict:
+    """Parse a JSON file; :class:`DatasetError` with line/column on a syntax error."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(path, f"cannot read the file: {exc}") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DatasetError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    if not isinstance(data, dict):
+        raise DatasetError(path, f"expected a JSON object at the top level, found {type(data).__name__}")
+    return data
+
+
+def _number(path: Path, where: str, key: str, value, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DatasetError(path, f"{where}{key} must be a number, found {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise DatasetError(path, f"{where}{key} must be finite, found {v}")
+    if positive and v <= 0:
+        raise DatasetError(path, f"{where}{key} must be positive, found {v}")
+    return v
+
+
+def _matrix(path: Path, where: str, value) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(path, f"{where}transform_matrix must be a 4x4 matrix of numbers") from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise DatasetError(path, f"{where}transform_matrix must be 4x4 (or 3x4), found shape {list(m.shape)}")
+    if not np.isfinite(m).all():
+        raise DatasetError(path, f"{where}transform_matrix holds NaN or Inf values")
+    return m
+
+
+def _check_distortion(path: Path, where: str, intr: dict) -> None:
+    model = intr.get("camera_model")
+    if intr.get("is_fisheye") or (isinstance(model, str) and model.upper() in _FISHEYE_MODELS):
+        raise DatasetError(path, f"{where}fisheye camera ({model or 'is_fisheye'}) is not supported: undistort the "
+                                 "images to a pinhole camera first (e.g. `colmap image_undistorter`)")
+    bad = []
+    for k in _DISTORTION_KEYS:
+        if k in intr:
+            v = _number(path, where, k, intr[k])
+            if v != 0.0:
+                bad.append(f"{k}={v:g}")
+    if bad:
+        raise DatasetError(path, f"{where}lens distortion is not supported ({', '.join(bad)}): undistort the images "
+                                 "first (e.g. `colmap image_undistorter`) and write their pinhole intrinsics "
+                                 "without distortion coefficients")
+
+
+def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
+    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON."""
+    for k in _INTRINSIC_KEYS:
+        if k in intr:
+            _number(path, where, k, intr[k], positive=k not in ("cx", "cy"))
+    if "fl_x" not in intr and "camera_angle_x" not in intr:
+        raise DatasetError(path, f"{where}missing key 'camera_angle_x' (or 'fl_x'): the focal length is unknown")
+    _check_distortion(path, where, intr)
+
+    def make(width: int, height: int, path=path, where=where) -> Camera:
+        for k, size in (("w", width), ("h", height)):
+            if k in intr and int(round(float(intr[k]))) != size:
+                raise DatasetError(path, f"{where}{k}={intr[k]:g} but the image is {width}x{height}")
+        fl_x = intr.get("fl_x")
+        if fl_x is None:
+            fl_x = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
+        fl_y = intr.get("fl_y")
+        if fl_y is None and "camera_angle_y" in intr:
+            fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
+        try:
+            return Camera.from_nerf(c2w, width, height, fl_x=float(fl_x), fl_y=None if fl_y is None else float(fl_y),
+                                    cx=intr.get("cx"), cy=intr.get("cy"))
+        except ValueError as exc:
+            raise DatasetError(path, f"{where}{exc}") from None
+
+    return make
+
+
+def transforms_records(json_path: Path, data: dict | None = None):
+    """Parse a ``transforms*.json`` → ``(records, missing)`` for :func:`load_views`.
+
+    ``records`` are ``(name, image_path, make_camera)``; frames whose image file does not exist
+    are left out and their ``file_path`` returned in ``missing``.
+    """
+    json_path = Path(json_path)
+    root = json_path.parent
+    data = read_json(json_path) if data is None else data
+    if "frames" not in data:
+        raise DatasetError(json_path, "missing key 'frames'")
+    frames = data["frames"]
+    if not isinstance(frames, list):
+        raise DatasetError(json_path, f"'frames' must be a list, found {type(frames).__name__}")
+    if not frames:
+        raise DatasetError(json_path, "no frames ('frames' is empty)")
+    top = {k: v for k, v in data.items() if k != "frames"}
+    records, missing, names = [], [], set()
+    for i, fr in enumerate(frames):
+        where = f"frames[{i}]: "
+        if not isinstance(fr, dict):
+            raise DatasetError(json_path, f"{where}each frame must be a JSON object, found {type(fr).__name__}")
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise DatasetError(json_path, f"{where}missing key '{key}'")
+        fp = fr["file_path"]
+        if not isinstance(fp, str) or not fp:
+            raise DatasetError(json_path, f"{where}file_path must be a non-empty string, found {fp!r}")
+        c2w = _matrix(json_path, where, fr["transform_matrix"])
+        intr = {**top, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
+        make = _camera_maker(json_path, where, c2w, intr)
+        image = find_image(root / fp)
+        if image is None:
+            missing.append(fp)
+            continue
+        try:
+            name = image.resolve().relative_to(root.resolve()).with_suffix("").as_posix()
+        except ValueError:
+            name = Path(fp).with_suffix("").as_posix()
+        if name in names:
+            name = f"{name}#{i}"
+        names.add(name)
+        records.append((name, image, make))
+    return records, missing
+
+
+def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
+    """Views of one ``transforms*.json``; frames with a missing image are skipped with one
+    :class:`DatasetWarning` that counts them. Returns ``(views, color_spaces)``."""
+    records, missing = transforms_records(json_path)
+    if missing:
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        warnings.warn(f"{json_path}: skipped {len(missing)} of {len(missing) + len(records)} frames whose image "
+                      f"file is missing ({shown})", DatasetWarning, stacklevel=3)
+    if not records:
+        raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
+    return load_views(records, downscale, split)
+
+
+def merge_color_spaces(root: Path, spaces: set[str]) -> str:
+    if len(spaces) > 1:
+        raise DatasetError(root, "the dataset mixes 8/16-bit (sRGB) and float (linear) images; convert them to one kind")
+    return next(iter(spaces), "srgb")
+
+
+def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:
+    """A NeRF-synthetic folder: ``transforms_train.json`` (required), ``transforms_val.json`` and
+    ``transforms_test.json`` (optional; without a test file, the LLFF hold-out of
+    :func:`~triplet_cl.datasets.base.holdout_split` makes one from the training frames)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "dataset folder not found")
+    if not (root / "transforms_train.json").is_file():
+        raise DatasetError(root / "transforms_train.json", "file not found (a NeRF-synthetic dataset needs it)")
+    splits, spaces = {}, set()
+    for s in ("train", "val", "test"):
+        p = root / f"transforms_{s}.json"
+        if p.is_file():
+            splits[s], sp = load_transforms_split(p, s, downscale)
+            spaces |= sp
+    if "test" not in splits:
+        held = holdout_split(splits["train"], split_holdout)
+        splits["train"], splits["test"] = held["train"], held["test"]
+    return Dataset(root, "nerf", splits, color_space=merge_color_spaces(root, spaces), downscale=downscale)
