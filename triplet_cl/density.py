@@ -58,6 +58,7 @@ __all__ = [
     "DensifyReport",
     "DensityConfig",
     "DensityStats",
+    "check_soup",
     "densify_and_prune",
     "face_alpha",
     "face_areas",
@@ -251,7 +252,7 @@ class DensityStats:
             w, h = (int(x) for x in image_size)
             if w <= 0 or h <= 0:
                 raise ValueError(f"image_size must be positive, got {image_size}")
-            uv = np.asarray(_host(vs), np.float64)[Fv, :, :2]  # [m_vis, 3, 2]
+            uv = np.asarray(_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
             ext = uv.max(axis=1) - uv.min(axis=1)
             area = ext[:, 0] * ext[:, 1]
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)

@@ -66,7 +66,8 @@ class View:
 
     def __init__(self, device: Device, mesh: DeviceMesh, camera: Camera, settings: RenderSettings):
         self.device, self.mesh, self.camera, self.settings = device, mesh, camera, settings
-        self.frags = None
+        self.frags = None  # Fragments of the forward pass
+        self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -197,6 +198,7 @@ class RasterInterpolate(Function):
         d, s = self.view.device, self.view.settings
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
                                              sigma=s.sigma or 0.0)
+        self.view.v_vs = v_vs  # screen-space vertex adjoint: density control's view-space gradient
         return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..errors import DatasetError
 
 SPLITS = ("train", "val", "test")
 BACKGROUNDS = ("white", "black", "random")
@@ -209,6 +210,14 @@ def composite_background(rgb: np.ndarray, alpha: np.ndarray | None, background) 
             bg = resolve_background(bg)
     a = a[..., None]
     return (rgb * a + bg * (1.0 - a)).astype(np.float32, copy=False)
+
+
+def merge_color_spaces(root, spaces: set[str]) -> str:
+    """The one colour space of a dataset's images; :class:`DatasetError` when they mix."""
+    if len(spaces) > 1:
+        raise DatasetError(root, "the dataset mixes 8/16-bit (sRGB) and float (linear) images; "
+                                 "convert them to one kind")
+    return next(iter(spaces), "srgb")
 
 
 # ---- splits -------------------------------------------------------------------------------------

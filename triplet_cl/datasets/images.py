@@ -179,8 +179,8 @@ def load_views(records, downscale: int = 1, split: str = "train"):
         if first is None:
             first = (path, img.width, img.height)
         elif (img.width, img.height) != first[1:]:
-            raise DatasetError(path, f"image is {img.width}x{img.height} but {first[0].name} in the same "
-                                     f"{split} split is {first[1]}x{first[2]}: every image of a split must have one size")
+            raise DatasetError(path, f"image is {img.width}x{img.height} but {first[0].name} in the same {split} "
+                                     f"split is {first[1]}x{first[2]}: every image of a split must have one size")
         cam = downscale_camera(make_camera(img.width, img.height), downscale)
         views.append(View(name, cam, img.rgb, img.alpha, path))
         spaces.add(img.color_space)

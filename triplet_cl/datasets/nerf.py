@@ -18,7 +18,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import DatasetError
-from .base import Dataset, DatasetWarning, holdout_split
+from .base import Dataset, DatasetWarning, holdout_split, merge_color_spaces
 from .images import find_image, load_views
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -172,12 +172,6 @@ def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
     if not records:
         raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
     return load_views(records, downscale, split)
-
-
-def merge_color_spaces(root: Path, spaces: set[str]) -> str:
-    if len(spaces) > 1:
-        raise DatasetError(root, "the dataset mixes 8/16-bit (sRGB) and float (linear) images; convert them to one kind")
-    return next(iter(spaces), "srgb")
 
 
 def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:

@@ -12,8 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import DatasetError
-from .base import Dataset, holdout_split
-from .nerf import load_transforms_split, merge_color_spaces
+from .base import Dataset, holdout_split, merge_color_spaces
+from .nerf import load_transforms_split
 
 
 def load_ngp(path, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:

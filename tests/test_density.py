@@ -1,0 +1,433 @@
+"""Density control of the soup: statistics, split, clone, prune, budgets, optimizer moments, alpha reset."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import expit
+from triplet_cl.autodiff import Param
+
+from triplet_cl.density import (
+    DensifyReport,
+    DensityConfig,
+    DensityStats,
+    check_soup,
+    densify_and_prune,
+    face_alpha,
+    face_areas,
+    face_longest_edges,
+    reset_alpha,
+    visible_faces,
+)
+from triplet_cl.optim import Adam
+from triplet_cl.scene import Scene, logit
+
+SH_K = 4
+
+
+def tri(center, size, rng=None):
+    """A triangle of roughly ``size`` around ``center``: ``[3, 3]``."""
+    base = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.8, 0.1]])
+    if rng is not None:
+        base = base + 0.1 * rng.standard_normal((3, 3))
+    return np.asarray(center, np.float64) + size * base
+
+
+def soup(tris, rng, alpha=0.5, vertex_sh=True, brdf="cook_torrance", dtype=np.float64):
+    V = np.concatenate(tris)
+    n = V.shape[0]
+    F = np.arange(n).reshape(-1, 3)
+    cm = 6 if brdf == "cook_torrance" else 10
+    mat = rng.standard_normal((n, cm))
+    al = np.full((n, 1), logit(alpha)) + 0.1 * rng.standard_normal((n, 1))
+    vsh = rng.standard_normal((n, 6, SH_K)) if vertex_sh else None
+    return Scene.from_arrays(V, F, material=mat, alpha=al, vertex_sh=vsh, brdf=brdf, dtype=dtype)
+
+
+def cfg(**kw):
+    base = dict(grad_threshold=1.0, split_edge_ratio=0.5, prune_alpha=0.05, prune_world_area=10.0,
+                prune_screen_frac=0.5, min_faces=0, clone_step=0.5)
+    base.update(kw)
+    return DensityConfig(**base)
+
+
+def set_grads(stats, F, per_face, directions=None):
+    """One view where face f has screen gradient norm ``per_face[f]`` (spread over its corners)."""
+    m = len(F)
+    v_vs = np.zeros((3 * m, 3))
+    v_vs[F[:, 0], 0] = per_face  # Σ_corners (u, v) = (g, 0)
+    v_vs[F[:, 1], 2] = 123.0  # depth component is ignored
+    v_V = None
+    if directions is not None:
+        v_V = np.zeros((3 * m, 3))
+        v_V[F[:, 2]] = directions
+    stats.add(v_vs, np.ones(m, bool), F, v_V=v_V)
+
+
+def assert_soup(scene):
+    m = check_soup(scene)
+    assert scene.F.dtype == np.int32
+    np.testing.assert_array_equal(scene.F, np.arange(3 * m).reshape(m, 3))
+    for p in scene.params:
+        if p is not scene.light_params:
+            assert p.data.shape[0] == 3 * m
+    return m
+
+
+# ---------------------------------------------------------------------------------------------- stats
+
+
+def test_stats_accumulation_maths(rng):
+    m = 3
+    F = np.arange(9).reshape(3, 3)
+    st = DensityStats(m)
+    v1 = rng.standard_normal((9, 3))
+    v2 = rng.standard_normal((9, 3))
+    w1 = rng.standard_normal((9, 3))
+    vs1 = rng.uniform(0, 50, (9, 3))
+    vis1 = np.array([True, True, False])
+    vis2 = np.array([True, False, True])
+    st.add(v1, vis1, F, vs=vs1, image_size=(100, 50), v_V=w1)
+    st.add(v2[:, :2], vis2, F, grad_scale=2.0)  # [N, 2] accepted
+
+    def gn(v, f):
+        return np.linalg.norm(v[F[f], :2].sum(axis=0))
+
+    np.testing.assert_allclose(st.grad_accum, [gn(v1, 0) + 2 * gn(v2, 0), gn(v1, 1), 2 * gn(v2, 2)])
+    np.testing.assert_array_equal(st.denom, [2, 1, 1])
+    np.testing.assert_allclose(st.mean_grad(), st.grad_accum / np.array([2, 1, 1]))
+    np.testing.assert_allclose(st.world_grad_accum, [w1[0:3].sum(0), w1[3:6].sum(0), [0, 0, 0]])
+    for f in (0, 1):
+        uv = vs1[F[f], :2]
+        ext = uv.max(0) - uv.min(0)
+        assert st.max_screen_area[f] == pytest.approx(ext[0] * ext[1])
+        assert st.max_screen_frac[f] == pytest.approx(ext[0] * ext[1] / 5000)
+    assert st.max_screen_area[2] == 0
+    # the max is a max: a smaller view does not lower it
+    before = st.max_screen_area.copy()
+    st.add(v1, np.ones(3, bool), F, vs=vs1 * 0.1, image_size=(100, 50))
+    np.testing.assert_array_equal(st.max_screen_area[:2], before[:2])
+    assert st.max_screen_area[2] > 0
+    st.reset(5)
+    assert st.num_faces == 5 and not st.grad_accum.any() and not st.denom.any()
+    assert st.mean_grad().shape == (5,) and not st.mean_grad().any()
+
+
+def test_stats_validation():
+    F = np.arange(6).reshape(2, 3)
+    st = DensityStats(2)
+    with pytest.raises(ValueError, match="visible"):
+        st.add(np.zeros((6, 3)), np.ones(3, bool), F)
+    with pytest.raises(ValueError, match="F must"):
+        st.add(np.zeros((6, 3)), np.ones(2, bool), F[:1])
+    with pytest.raises(ValueError, match="image_size"):
+        st.add(np.zeros((6, 3)), np.ones(2, bool), F, vs=np.zeros((6, 3)))
+
+
+def test_visible_faces():
+    ids = np.full((2, 2, 3), -1, np.int32)
+    ids[0, 0, :2] = [4, 1]
+    ids[1, 1, 0] = 4
+    np.testing.assert_array_equal(visible_faces(ids, 6), [False, True, False, False, True, False])
+
+
+# ---------------------------------------------------------------------------------------------- split
+
+
+@pytest.mark.parametrize("brdf", ["cook_torrance", "blinn_phong"])
+def test_split_one_face_tiles_parent_and_interpolates_raw(rng, brdf):
+    sc = soup([tri([0, 0, 0], 2.0, rng)], rng, brdf=brdf)
+    P = sc.V.data.copy()
+    mat, al, sh = sc.material.data.copy(), sc.alpha.data.copy(), sc.vertex_sh.data.copy()
+    st = DensityStats(1)
+    set_grads(st, sc.F, [5.0])
+    rep = densify_and_prune(sc, None, st, cfg(), extent=1.0)
+    assert isinstance(rep, DensifyReport)
+    assert (rep.split, rep.cloned, rep.pruned, rep.faces_before, rep.faces_after) == (1, 0, 0, 1, 4)
+    assert assert_soup(sc) == 4
+    parent_area = face_areas(P, np.arange(3).reshape(1, 3))[0]
+    areas = face_areas(sc.V.data, sc.F)
+    np.testing.assert_allclose(areas, parent_area / 4, rtol=1e-12)
+    assert areas.sum() == pytest.approx(parent_area)
+    n_parent = np.cross(P[1] - P[0], P[2] - P[0])
+    Q = sc.V.data[sc.F]
+    n_child = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+    assert np.all(n_child @ n_parent > 0)  # orientation kept
+    # every child vertex is a corner or an edge midpoint, with attributes interpolated the same way
+    pts = {0: [0], 1: [1], 2: [2], 3: [0, 1], 4: [1, 2], 5: [2, 0]}
+    kids = [[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]]
+    for k, child in enumerate(kids):
+        for c, point in enumerate(child):
+            row = 3 * k + c
+            src = pts[point]
+            np.testing.assert_allclose(sc.V.data[row], P[src].mean(0), atol=1e-14)
+            np.testing.assert_allclose(sc.material.data[row], mat[src].mean(0), atol=1e-14)
+            np.testing.assert_allclose(sc.alpha.data[row], al[src].mean(0), atol=1e-14)
+            np.testing.assert_allclose(sc.vertex_sh.data[row], sh[src].mean(0), atol=1e-14)
+    assert st.num_faces == 4 and not st.grad_accum.any()  # stats reset for the new soup
+
+
+def test_split_activated_interpolation(rng):
+    sc = soup([tri([0, 0, 0], 2.0, rng)], rng, brdf="blinn_phong")
+    sc.alpha.data[:, 0] = [-3.0, 0.5, 4.0]
+    mat, al = sc.material.data.copy(), sc.alpha.data.copy()
+    st = DensityStats(1)
+    set_grads(st, sc.F, [5.0])
+    densify_and_prune(sc, None, st, cfg(split_interp="activated"), extent=1.0)
+    # child 0 = (a, m01, m20): corner exact, midpoints mean of activated values
+    np.testing.assert_array_equal(sc.alpha.data[0], al[0])
+    np.testing.assert_allclose(expit(sc.alpha.data[1, 0]), expit(al[[0, 1], 0]).mean(), rtol=1e-12)
+    np.testing.assert_allclose(expit(sc.alpha.data[2, 0]), expit(al[[2, 0], 0]).mean(), rtol=1e-12)
+    np.testing.assert_allclose(expit(sc.material.data[1, :6]), expit(mat[[0, 1], :6]).mean(0), rtol=1e-10)
+    softplus = np.logaddexp(0, mat[[0, 1], 6]).mean()
+    assert np.logaddexp(0, sc.material.data[1, 6]) == pytest.approx(softplus, rel=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------- clone
+
+
+def test_clone_moves_along_negative_gradient_and_copies_attributes(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([3, 0, 0], 0.1, rng)], rng)
+    old = {p.name: p.data.copy() for p in sc.params}
+    st = DensityStats(2)
+    g = np.array([[1.0, -2.0, 2.0], [0.0, 0.0, 0.0]])
+    set_grads(st, sc.F, [5.0, 0.0], directions=g)
+    set_grads(st, sc.F, [5.0, 0.0], directions=g)  # accumulated over two views
+    c = cfg(clone_step=0.25)
+    rep = densify_and_prune(sc, None, st, c, extent=1.0)
+    assert (rep.split, rep.cloned, rep.faces_after) == (0, 1, 3)
+    assert_soup(sc)
+    for name, before in old.items():  # survivors untouched, in order
+        np.testing.assert_array_equal(getattr(sc, name).data[:6], before)
+    longest = face_longest_edges(old["V"][:3], np.arange(3).reshape(1, 3))[0]
+    expected = old["V"][:3] - 0.25 * longest * g[0] / 3.0  # ‖(1, −2, 2)‖ = 3
+    np.testing.assert_allclose(sc.V.data[6:9], expected, atol=1e-14)
+    for name in ("material", "alpha", "vertex_sh"):
+        np.testing.assert_array_equal(getattr(sc, name).data[6:9], old[name][:3])
+
+
+def test_clone_without_world_gradient_stays_in_place(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng)], rng)
+    V0 = sc.V.data.copy()
+    st = DensityStats(1)
+    set_grads(st, sc.F, [5.0])
+    densify_and_prune(sc, None, st, cfg(), extent=1.0)
+    np.testing.assert_array_equal(sc.V.data[3:], V0)
+
+
+def test_masks_are_computed_before_reordering(rng):
+    """Face 0 is split (big), face 1 cloned (small), face 2 left alone. With the original bug (clone mask
+    taken on the soup after the split removed face 0), index 1 would be face 2 and the wrong face cloned."""
+    sc = soup([tri([0, 0, 0], 2.0, rng), tri([5, 0, 0], 0.1, rng), tri([9, 0, 0], 0.1, rng)], rng)
+    old = {p.name: p.data.copy() for p in sc.params}
+    st = DensityStats(3)
+    set_grads(st, sc.F, [5.0, 5.0, 0.0], directions=np.array([[0, 0, 0], [0, 0, 1.0], [0, 0, 0]]))
+    rep = densify_and_prune(sc, None, st, cfg(), extent=1.0)
+    assert (rep.split, rep.cloned, rep.faces_after) == (1, 1, 7)
+    assert_soup(sc)
+    # layout: survivors (old faces 1, 2), 4 children of old face 0, clone of old face 1
+    np.testing.assert_array_equal(sc.material.data[:6], old["material"][3:9])
+    np.testing.assert_allclose(sc.V.data[6:18].mean(0), old["V"][:3].mean(0), atol=1e-12)
+    np.testing.assert_array_equal(sc.material.data[18:21], old["material"][3:6])  # clone of face 1 ...
+    np.testing.assert_array_equal(sc.vertex_sh.data[18:21], old["vertex_sh"][3:6])
+    assert sc.V.data[18:21, 0].mean() == pytest.approx(old["V"][3:6, 0].mean())  # ... near x = 5, not 9
+    assert np.all(sc.V.data[18:21, 2] < old["V"][3:6, 2])  # moved along −∇ (−z)
+
+
+# ---------------------------------------------------------------------------------------------- prune
+
+
+def test_prune_by_alpha(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 0.1, rng), tri([2, 0, 0], 0.1, rng)], rng)
+    sc.alpha.data[3:6] = logit(0.04)  # face 1: transparent everywhere
+    sc.alpha.data[6:9] = logit(0.01)
+    sc.alpha.data[7] = logit(0.2)  # face 2: one opaque corner → max alpha 0.2, kept
+    np.testing.assert_allclose(face_alpha(sc.alpha.data, sc.F)[1:], [0.04, 0.2])
+    keep = {p.name: p.data.copy() for p in sc.params}
+    st = DensityStats(3)
+    rep = densify_and_prune(sc, None, st, cfg(), extent=1.0)
+    assert (rep.pruned, rep.pruned_alpha, rep.faces_after) == (1, 1, 2)
+    assert_soup(sc)
+    np.testing.assert_array_equal(sc.V.data, np.concatenate([keep["V"][:3], keep["V"][6:]]))
+    np.testing.assert_array_equal(sc.vertex_sh.data, np.concatenate([keep["vertex_sh"][:3], keep["vertex_sh"][6:]]))
+
+
+def test_prune_by_world_area(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 3.0, rng)], rng)
+    areas = face_areas(sc.V.data, sc.F)
+    extent = 2.0
+    c = cfg(prune_world_area=0.5 * (areas[0] + areas[1]) / extent**2)
+    rep = densify_and_prune(sc, None, DensityStats(2), c, extent=extent)
+    assert (rep.pruned, rep.pruned_world_area, rep.faces_after) == (1, 1, 1)
+    assert face_areas(sc.V.data, sc.F)[0] == pytest.approx(areas[0])
+
+
+def test_prune_by_screen_size(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 0.1, rng)], rng)
+    st = DensityStats(2)
+    vs = np.zeros((6, 3))
+    vs[:3, :2] = [[0, 0], [10, 0], [0, 10]]  # 100 px² of 10 000: 1 %
+    vs[3:, :2] = [[0, 0], [2, 0], [0, 2]]  # 4 px²: 0.04 %
+    st.add(np.zeros((6, 3)), np.ones(2, bool), sc.F, vs=vs, image_size=(100, 100))
+    c = cfg(prune_screen_frac=0.001)
+    st_off = DensityStats(2)
+    st_off.max_screen_frac[:] = st.max_screen_frac
+    V0 = sc.V.data.copy()
+    assert densify_and_prune(sc, None, st_off, c, extent=1.0, prune_screen=False).pruned == 0
+    rep = densify_and_prune(sc, None, st, c, extent=1.0)
+    assert (rep.pruned, rep.pruned_screen, rep.faces_after) == (1, 1, 1)
+    np.testing.assert_array_equal(sc.V.data, V0[3:])
+
+
+def test_min_faces_spares_the_least_transparent(rng):
+    sc = soup([tri([i, 0, 0], 0.1, rng) for i in range(4)], rng)
+    for f, a in enumerate([0.03, 0.5, 0.001, 0.02]):
+        sc.alpha.data[3 * f:3 * f + 3] = logit(a)
+    rep = densify_and_prune(sc, None, DensityStats(4), cfg(min_faces=2), extent=1.0)
+    assert (rep.pruned, rep.spared_min_faces, rep.faces_after) == (2, 1, 2)
+    np.testing.assert_allclose(face_alpha(sc.alpha.data, sc.F), [0.03, 0.5], rtol=1e-6)
+
+
+def test_pruned_faces_are_not_densified(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng)], rng, alpha=0.01)
+    st = DensityStats(1)
+    set_grads(st, sc.F, [5.0])
+    rep = densify_and_prune(sc, None, st, cfg(), extent=1.0)
+    assert (rep.pruned, rep.cloned, rep.faces_after) == (1, 0, 0)
+    assert_soup(sc)
+
+
+# ---------------------------------------------------------------------------------------------- budgets
+
+
+def test_max_faces_takes_highest_gradient_first(rng):
+    # faces 0, 1 small (clone, +1), face 2 big (split, +3), face 3 below threshold
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 0.1, rng), tri([2, 0, 0], 2.0, rng),
+               tri([5, 0, 0], 0.1, rng)], rng)
+    grads = np.array([2.0, 9.0, 5.0, 0.5])
+    st = DensityStats(4)
+    set_grads(st, sc.F, grads)
+    old_mat = sc.material.data.copy()
+    # budget 4: face 1 (+1), then face 2 (+3) fit; face 0 (+1) does not
+    rep = densify_and_prune(sc, None, st, cfg(max_faces=8), extent=1.0)
+    assert (rep.split, rep.cloned, rep.skipped_max_faces, rep.faces_after) == (1, 1, 1, 8)
+    assert_soup(sc)
+    np.testing.assert_array_equal(sc.material.data[21:24], old_mat[3:6])  # the clone is of face 1
+    # budget 2: face 1 (+1) fits, face 2 (+3) does not; nothing after it is taken
+    sc2 = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 0.1, rng), tri([2, 0, 0], 2.0, rng),
+                tri([5, 0, 0], 0.1, rng)], rng)
+    st2 = DensityStats(4)
+    set_grads(st2, sc2.F, grads)
+    rep2 = densify_and_prune(sc2, None, st2, cfg(max_faces=6), extent=1.0)
+    assert (rep2.split, rep2.cloned, rep2.faces_after) == (0, 1, 5)
+    assert rep2.faces_after <= 6
+    # already at the limit: nothing added
+    st3 = DensityStats(5)
+    set_grads(st3, sc2.F, np.full(5, 9.0))
+    assert densify_and_prune(sc2, None, st3, cfg(max_faces=5), extent=1.0).faces_after == 5
+
+
+# ---------------------------------------------------------------------------------------------- optimizer
+
+
+def _adam(sc, rng):
+    opt = Adam()
+    opt.add_group("V", [sc.V], lr=1e-3)
+    opt.add_group("appearance", [sc.material, sc.vertex_sh], lr=1e-2)  # a multi-parameter group
+    opt.add_group("alpha", [sc.alpha], lr=5e-2)
+    for p in (sc.V, sc.material, sc.alpha, sc.vertex_sh):
+        p.grad = rng.standard_normal(p.data.shape)
+    opt.step()
+    return opt
+
+
+def test_optimizer_moments_follow_densification(rng):
+    sc = soup([tri([0, 0, 0], 2.0, rng), tri([5, 0, 0], 0.1, rng), tri([9, 0, 0], 0.1, rng),
+               tri([12, 0, 0], 0.1, rng)], rng)
+    sc.alpha.data[9:12] = logit(0.01)  # face 3 pruned
+    opt = _adam(sc, rng)
+    m_old = {g: [m.copy() for m in opt.groups[g].exp_avg] for g in opt.groups}
+    v_old = {g: [v.copy() for v in opt.groups[g].exp_avg_sq] for g in opt.groups}
+    vals = {p.name: p.data.copy() for p in sc.params}
+    st = DensityStats(4)
+    set_grads(st, sc.F, [5.0, 5.0, 0.0, 0.0])
+    rep = densify_and_prune(sc, opt, st, cfg(), extent=1.0)
+    assert (rep.split, rep.cloned, rep.pruned, rep.faces_after) == (1, 1, 1, 7)
+    assert_soup(sc)
+    survivors = np.arange(3, 9)  # faces 1, 2 → rows 0..5
+    for g in opt.groups.values():
+        for k, p in enumerate(g.params):
+            assert g.exp_avg[k].shape == p.data.shape == g.exp_avg_sq[k].shape
+            np.testing.assert_array_equal(g.exp_avg[k][:6], m_old[g.name][k][survivors])
+            np.testing.assert_array_equal(g.exp_avg_sq[k][:6], v_old[g.name][k][survivors])
+            assert not g.exp_avg[k][6:].any() and not g.exp_avg_sq[k][6:].any()
+            np.testing.assert_array_equal(p.data[:6], vals[p.name][survivors])
+            assert p.grad is None
+    # the optimizer still steps on the new shapes and updates the scene's own parameters
+    for p in (sc.V, sc.material, sc.alpha, sc.vertex_sh):
+        p.grad = np.ones_like(p.data)
+    before = sc.V.data.copy()
+    opt.step()
+    assert np.all(sc.V.data < before)
+
+
+def test_mixed_group_is_rejected(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng)], rng)
+    other = Param(np.zeros(3), "light_params")
+    opt = Adam()
+    opt.add_group("bad", [sc.V, other])
+    with pytest.raises(ValueError, match="mixes"):
+        densify_and_prune(sc, opt, DensityStats(1), cfg(), extent=1.0)
+
+
+def test_rejects_non_soup_and_stale_stats(rng):
+    V = rng.standard_normal((4, 3))
+    mesh = Scene.from_arrays(V, np.array([[0, 1, 2], [0, 2, 3]]))
+    with pytest.raises(ValueError, match="soup"):
+        densify_and_prune(mesh, None, DensityStats(2), cfg(), extent=1.0)
+    sc = soup([tri([0, 0, 0], 0.1, rng)], rng)
+    with pytest.raises(ValueError, match="stats"):
+        densify_and_prune(sc, None, DensityStats(2), cfg(), extent=1.0)
+
+
+def test_float32_scene(rng):
+    sc = soup([tri([0, 0, 0], 2.0, rng), tri([5, 0, 0], 0.1, rng)], rng, dtype=np.float32)
+    opt = _adam(sc, rng)
+    st = DensityStats(2)
+    set_grads(st, sc.F, [5.0, 5.0], directions=np.ones((2, 3)))
+    densify_and_prune(sc, opt, st, cfg(), extent=1.0)
+    for p in sc.params:
+        assert p.data.dtype == np.float32 and p.data.flags.c_contiguous
+    for g in opt.groups.values():
+        assert all(m.dtype == np.float32 for m in g.exp_avg)
+
+
+# ---------------------------------------------------------------------------------------------- alpha reset
+
+
+def test_reset_alpha(rng):
+    sc = soup([tri([0, 0, 0], 0.1, rng), tri([1, 0, 0], 0.1, rng)], rng)
+    opt = _adam(sc, rng)
+    sc.alpha.data[:, 0] = logit(np.array([0.9, 0.5, 0.005, 0.2, 0.001, 0.02]))
+    mat_m = opt.groups["appearance"].exp_avg[0].copy()
+    lowered = reset_alpha(sc, opt, value=0.01)
+    assert lowered == 4
+    np.testing.assert_allclose(expit(sc.alpha.data[:, 0]), [0.01, 0.01, 0.005, 0.01, 0.001, 0.01], rtol=1e-9)
+    g = opt.groups["alpha"]
+    assert not g.exp_avg[0].any() and not g.exp_avg_sq[0].any()
+    np.testing.assert_array_equal(opt.groups["appearance"].exp_avg[0], mat_m)  # other groups untouched
+
+
+# ---------------------------------------------------------------------------------------------- config
+
+
+def test_config_schedule_and_validation():
+    c = DensityConfig()
+    assert (c.interval, c.densify_from, c.densify_until, c.grad_threshold) == (100, 500, 15_000, 7.5e-5)
+    assert (c.prune_alpha, c.prune_world_area, c.prune_screen_frac) == (0.05, 0.1, 0.001)
+    assert [it for it in (400, 500, 600, 650, 14_900, 15_000) if c.densify_at(it)] == [600, 14_900]
+    assert [it for it in (0, 3000, 4500, 6000, 15_000) if c.reset_alpha_at(it)] == [3000, 6000]
+    with pytest.raises(ValueError):
+        DensityConfig(split_interp="log")
+    with pytest.raises(ValueError):
+        DensityConfig(min_faces=10, max_faces=5)

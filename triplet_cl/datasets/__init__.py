@@ -1,0 +1,105 @@
+"""Multi-view datasets: NeRF-synthetic, instant-ngp and COLMAP, into one :class:`Dataset` model.
+
+>>> ds = load_dataset("scenes/spot", downscale=2, background="white")   # doctest: +SKIP
+>>> view = ds.train[0]; view.camera, view.rgb.shape, view.alpha.shape    # doctest: +SKIP
+
+Images are kept as stored (sRGB values in [0, 1] for 8/16-bit files, linear for EXR/HDR;
+``Dataset.color_space``), with straight alpha kept apart so that the training loop composites the
+background it wants (:func:`resolve_background`, :func:`composite_background`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import DatasetError
+from .base import (
+    BACKGROUNDS,
+    Dataset,
+    DatasetWarning,
+    View,
+    composite_background,
+    holdout_split,
+    resolve_background,
+)
+from .colmap import find_model, load_colmap, read_model
+from .images import downscale_camera, downscale_image, read_image
+from .nerf import load_nerf
+from .ngp import load_ngp
+
+FORMATS = ("nerf", "ngp", "colmap")
+
+__all__ = [
+    "BACKGROUNDS",
+    "FORMATS",
+    "Dataset",
+    "DatasetError",
+    "DatasetWarning",
+    "View",
+    "composite_background",
+    "detect_format",
+    "downscale_camera",
+    "downscale_image",
+    "find_model",
+    "holdout_split",
+    "load_colmap",
+    "load_dataset",
+    "load_nerf",
+    "load_ngp",
+    "read_image",
+    "read_model",
+    "resolve_background",
+]
+
+
+def detect_format(path) -> str:
+    """``"nerf"`` (``transforms_train.json``), ``"ngp"`` (``transforms.json``, or a ``.json`` file
+    given directly) or ``"colmap"`` (a sparse model in ``sparse/0/``, ``sparse/`` or the folder)."""
+    path = Path(path)
+    if path.is_file() and path.suffix.lower() == ".json":
+        return "ngp"
+    if not path.is_dir():
+        raise DatasetError(path, "dataset folder not found")
+    if (path / "transforms_train.json").is_file():
+        return "nerf"
+    if (path / "transforms.json").is_file():
+        return "ngp"
+    if find_model(path) is not None:
+        return "colmap"
+    raise DatasetError(path, "cannot tell the dataset format: found neither transforms_train.json (NeRF-synthetic), "
+                             "transforms.json (instant-ngp) nor a COLMAP model (cameras + images .bin/.txt in "
+                             "sparse/0/, sparse/ or the folder itself)")
+
+
+def load_dataset(path, format: str = "auto", downscale: int = 1, background="white",
+                 split_holdout: int | None = 8) -> Dataset:
+    """Load a dataset folder.
+
+    Args:
+        path: the dataset folder (or an instant-ngp ``transforms.json``).
+        format: ``"auto"`` (:func:`detect_format`), ``"nerf"``, ``"ngp"`` or ``"colmap"``.
+        downscale: integer factor; images are area-averaged (``N×N`` blocks) and intrinsics divided.
+        background: ``"white"``, ``"black"``, ``"random"`` or an RGB colour — recorded on the
+            dataset as the default for :meth:`Dataset.targets` and the training loop (images keep
+            their alpha; nothing is composited at load time).
+        split_holdout: without a test split (COLMAP, instant-ngp, NeRF without
+            ``transforms_test.json``) every ``split_holdout``-th view by name (index % N == 0) is a
+            test view; 0/None keeps all views for training.
+    """
+    if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
+        raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
+    if split_holdout is not None and (isinstance(split_holdout, bool) or not isinstance(split_holdout, int)
+                                      or split_holdout < 0 or split_holdout == 1):
+        raise ValueError(f"split_holdout must be 0/None (no hold-out) or an integer >= 2, got {split_holdout!r}")
+    resolve_background(background)  # validate early
+    fmt = detect_format(path) if format == "auto" else format
+    if fmt == "nerf":
+        ds = load_nerf(path, downscale, split_holdout)
+    elif fmt == "ngp":
+        ds = load_ngp(path, downscale, split_holdout)
+    elif fmt == "colmap":
+        ds = load_colmap(path, downscale, split_holdout)
+    else:
+        raise ValueError(f"format must be 'auto' or one of {FORMATS}, got {format!r}")
+    ds.background = background
+    return ds
