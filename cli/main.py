@@ -1,9 +1,11 @@
-"""``triplet`` — the command line. Parses arguments and calls the library; no logic of its own."""
+"""``triplet`` — the command line. Parses arguments into config dataclasses and calls the library."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.errors import TripletError
@@ -11,6 +13,20 @@ from triplet_cl.errors import TripletError
 
 def _gib(n: int) -> str:
     return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
+
+
+def _env_spec() -> str:
+    return os.environ.get("TRIPLET_DEVICE", "").strip()
+
+
+def demo_data_path() -> Path:
+    """The small dataset shipped inside the package (Spot, 40 + 8 views at 96²)."""
+    import triplet_cl
+
+    return Path(triplet_cl.__file__).resolve().parent / "data" / "spot_small"
+
+
+# ---------------------------------------------------------------------------------------------- devices
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
@@ -33,10 +49,116 @@ def cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
-def _env_spec() -> str:
-    import os
+# ---------------------------------------------------------------------------------------------- train
 
-    return os.environ.get("TRIPLET_DEVICE", "").strip()
+
+def _config_from_args(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from triplet_cl.train import TrainConfig
+
+    cfg = TrainConfig()
+    over = {}
+    if args.iterations is not None:
+        over["iterations"] = args.iterations
+    if args.seed is not None:
+        over["seed"] = args.seed
+    if args.brdf:
+        over["brdf"] = args.brdf.replace("-", "_")
+    if args.lights:
+        over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
+    if args.sh_degree is not None:
+        over["sh_degree"] = args.sh_degree
+    if args.faces_per_pixel is not None:
+        over["faces_per_pixel"] = args.faces_per_pixel
+    if args.init_points is not None:
+        over["init_points"] = args.init_points
+    if args.background:
+        over["background"] = args.background
+    if args.downscale is not None:
+        over["downscale"] = args.downscale
+    if args.sigma is not None:
+        over["sigma"] = None if args.sigma <= 0 else args.sigma
+    if args.checkpoint_every is not None:
+        over["checkpoint_every"] = args.checkpoint_every
+    cfg = replace(cfg, **over)
+    if args.max_faces is not None:
+        cfg.density = replace(cfg.density, max_faces=args.max_faces)
+    return cfg
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from triplet_cl.device import get_device
+    from triplet_cl.train import Trainer
+
+    if args.demo:
+        data = demo_data_path()
+        out = Path(args.out or "runs/demo")
+        if args.iterations is None:
+            args.iterations = 1500
+    else:
+        if not args.data and not args.resume:
+            print("triplet train: error: give a DATA folder (or --demo)", file=sys.stderr)
+            return 2
+        data = args.data
+        out = Path(args.out) if args.out else None
+        if out is None:
+            print("triplet train: error: --out RUN is required", file=sys.stderr)
+            return 2
+    dev = get_device(args.device)
+    if args.resume:
+        tr = Trainer(data if args.data or args.demo else None, out, device=dev, resume=True)
+        if args.iterations is not None:
+            tr.cfg.iterations = args.iterations
+    else:
+        tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.format)
+    print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
+          f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
+    try:
+        metrics = tr.train()
+    except KeyboardInterrupt:
+        print(f"\ninterrupted at iteration {tr.it}: checkpoint saved in {out / 'checkpoints'}; "
+              f"continue with: triplet train --resume --out {out}", file=sys.stderr)
+        return 130
+    if args.save_train_renders:
+        tr.evaluate("train", write_renders=True)
+    print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
+          f"{metrics.get('wall_time_s', 0):.0f} s")
+    print(f"results in {out}/: triplets.ply, lights.json, renders/test/, metrics.json, checkpoints/, train.log")
+    return 0
+
+
+def _load_run(args):
+    from triplet_cl.device import get_device
+    from triplet_cl.train import Trainer
+
+    run = Path(args.run)
+    if not (run / "config.json").is_file():
+        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
+    return Trainer(None, run, device=get_device(args.device), resume=True, quiet=True)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    tr = _load_run(args)
+    out = Path(args.out) if args.out else Path(args.run) / "renders" / args.split
+    m = tr.evaluate(args.split, write_renders=True, out_dir=out)
+    print(f"rendered {len(m['views'])} {args.split} views to {out} (PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f})")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from triplet_cl.io import write_json
+
+    tr = _load_run(args)
+    m = tr.evaluate("test")
+    m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
+    write_json(Path(args.run) / "metrics.json", m)
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views -> "
+          f"{Path(args.run) / 'metrics.json'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- parser
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,15 +169,47 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"triplet_cl {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
+    dev_help = ("OpenCL device: 'P:D' indices or a substring of the platform/device name "
+                "(default: $TRIPLET_DEVICE, else the first GPU, else the first CPU)")
 
     d = sub.add_parser("devices", help="list OpenCL platforms/devices and the one that would be chosen")
-    d.add_argument(
-        "--device",
-        default=None,
-        help="device to mark as chosen: 'P:D' indices or a substring of the platform/device name "
-        "(default: $TRIPLET_DEVICE, else the first GPU, else the first CPU)",
-    )
+    d.add_argument("--device", default=None, help=dev_help)
     d.set_defaults(func=cmd_devices)
+
+    t = sub.add_parser("train", help="reconstruct a scene from a dataset (or --demo)")
+    t.add_argument("data", nargs="?", help="dataset folder (NeRF-synthetic, instant-ngp or COLMAP)")
+    t.add_argument("--out", help="run directory (default for --demo: runs/demo)")
+    t.add_argument("--demo", action="store_true", help="train on the small Spot dataset shipped with the package")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    t.add_argument("--format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
+    t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
+    t.add_argument("--seed", type=int, help="random seed (default 0)")
+    t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
+    t.add_argument("--lights", help="comma-separated mix of point,directional,ambient,sh-env,vertex-sh "
+                                    "(default point,ambient)")
+    t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
+    t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
+    t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
+    t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
+    t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
+    t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
+    t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
+    t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
+    t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
+    t.add_argument("--device", default=None, help=dev_help)
+    t.set_defaults(func=cmd_train)
+
+    r = sub.add_parser("render", help="render a trained run (RGBA PNGs named after the dataset's frames)")
+    r.add_argument("run", help="run directory")
+    r.add_argument("--split", default="test", choices=["test", "train", "val"])
+    r.add_argument("--out", help="output folder (default RUN/renders/SPLIT)")
+    r.add_argument("--device", default=None, help=dev_help)
+    r.set_defaults(func=cmd_render)
+
+    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean)")
+    e.add_argument("run", help="run directory")
+    e.add_argument("--device", default=None, help=dev_help)
+    e.set_defaults(func=cmd_eval)
     return p
 
 
@@ -64,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except TripletError as exc:
+    except (TripletError, FileNotFoundError, ValueError) as exc:
         print(f"triplet {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

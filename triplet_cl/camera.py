@@ -42,7 +42,7 @@ def _check_pose(name: str, m) -> np.ndarray:
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera in the internal convention (see module docstring).
 

@@ -70,7 +70,7 @@ def read_image(path, downscale: int = 1) -> Image:
         err = inp.geterror()
     finally:
         inp.close()
-    if px is None or (err and not isinstance(px, np.ndarray)):
+    if px is None or err:  # a truncated JPEG comes back filled in, with an error message
         raise DatasetError(path, f"cannot read the image: {err or oiio.geterror() or 'read failed'}")
     px = np.asarray(px, dtype=np.float32)
     if px.ndim == 2:

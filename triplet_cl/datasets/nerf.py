@@ -87,14 +87,18 @@ def _check_distortion(path: Path, where: str, intr: dict) -> None:
                                  "without distortion coefficients")
 
 
-def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
-    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON."""
+def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
     for k in _INTRINSIC_KEYS:
         if k in intr:
             _number(path, where, k, intr[k], positive=k not in ("cx", "cy"))
-    if "fl_x" not in intr and "camera_angle_x" not in intr:
-        raise DatasetError(path, f"{where}missing key 'camera_angle_x' (or 'fl_x'): the focal length is unknown")
     _check_distortion(path, where, intr)
+
+
+def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
+    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON."""
+    if "fl_x" not in intr and "camera_angle_x" not in intr:
+        raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'), at the top level or in "
+                                 f"{where.rstrip(': ')}: the focal length is unknown")
 
     def make(width: int, height: int, path=path, where=where) -> Camera:
         for k, size in (("w", width), ("h", height)):
@@ -132,6 +136,7 @@ def transforms_records(json_path: Path, data: dict | None = None):
     if not frames:
         raise DatasetError(json_path, "no frames ('frames' is empty)")
     top = {k: v for k, v in data.items() if k != "frames"}
+    _check_intrinsics(json_path, "", top)
     records, missing, names = [], [], set()
     for i, fr in enumerate(frames):
         where = f"frames[{i}]: "
@@ -144,7 +149,9 @@ def transforms_records(json_path: Path, data: dict | None = None):
         if not isinstance(fp, str) or not fp:
             raise DatasetError(json_path, f"{where}file_path must be a non-empty string, found {fp!r}")
         c2w = _matrix(json_path, where, fr["transform_matrix"])
-        intr = {**top, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
+        own = {k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}
+        _check_intrinsics(json_path, where, own)
+        intr = {**top, **own}
         make = _camera_maker(json_path, where, c2w, intr)
         image = find_image(root / fp)
         if image is None:

@@ -1,0 +1,453 @@
+"""Datasets: NeRF-synthetic, instant-ngp and COLMAP (text + binary) into one model; cameras, images,
+alpha, downscale, hold-out, backgrounds, and one clear error per malformed input."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+
+from tests import data_factory as fac
+from triplet_cl.datasets import (
+    DatasetWarning,
+    View,
+    composite_background,
+    detect_format,
+    downscale_image,
+    holdout_split,
+    load_dataset,
+    read_image,
+    resolve_background,
+)
+from triplet_cl.errors import DatasetError, TripletError
+
+POINT = np.array([0.1, -0.2, 0.3])
+Q8 = 0.5 / 255 + 1e-6  # 8-bit quantisation
+
+
+# ---- NeRF-synthetic -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("with_ext", [False, True])
+def test_nerf_loads_cameras_and_images(tmp_path, with_ext):
+    written = fac.make_nerf(tmp_path, {"train": 3, "val": 1, "test": 2}, angle_x=0.8, with_ext=with_ext)
+    ds = load_dataset(tmp_path)
+    assert ds.format == "nerf" and ds.color_space == "srgb"
+    assert [len(ds.train), len(ds.val), len(ds.test)] == [3, 1, 2]
+    f = 0.5 * fac.W / np.tan(0.4)
+    for split, recs in written.items():
+        for view, (name, c2w, px) in zip(ds[split], recs, strict=True):
+            assert view.name == name
+            assert (view.width, view.height) == (fac.W, fac.H)
+            assert view.rgb.dtype == np.float32 and view.rgb.shape == (fac.H, fac.W, 3)
+            np.testing.assert_allclose(view.rgb[px[..., 3] > 0], px[..., :3][px[..., 3] > 0], atol=Q8)
+            np.testing.assert_allclose(view.alpha, px[..., 3], atol=Q8)
+            u, v, z = view.camera.project_points(POINT[None])[0]
+            assert z > 0
+            np.testing.assert_allclose([u, v], fac.expected_nerf_pixel(c2w, f, f, fac.W / 2, fac.H / 2, POINT),
+                                       atol=1e-9)
+            # the camera looks down its −Z axis: a point straight ahead lands on the image centre
+            ahead = c2w[:3, 3] - 2.0 * c2w[:3, 2]
+            np.testing.assert_allclose(view.camera.project_points(ahead[None])[0], [fac.W / 2, fac.H / 2, 2.0],
+                                       atol=1e-9)
+
+
+def test_nerf_without_test_split_uses_holdout(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 10})
+    ds = load_dataset(tmp_path, split_holdout=8)
+    assert [v.name for v in ds.test] == ["train/r_0", "train/r_8"]
+    assert len(ds.train) == 8
+    assert len(load_dataset(tmp_path, split_holdout=0).train) == 10
+
+
+# ---- instant-ngp --------------------------------------------------------------------------------------------
+def test_ngp_intrinsics_and_holdout(tmp_path):
+    written = fac.make_ngp(tmp_path, n=9, per_frame={4: {"fl_x": 9.0, "cx": 3.5}})
+    ds = load_dataset(tmp_path)
+    assert ds.format == "ngp"
+    assert [v.name for v in ds.test] == ["images/0000", "images/0008"]
+    assert len(ds.train) == 7 and all(v.alpha is None for v in ds.train)
+    views = {v.name: v for v in ds.train + ds.test}
+    for name, c2w, px, intr in written["frames"]:
+        cam = views[name].camera
+        assert (cam.fx, cam.fy, cam.cx, cam.cy) == (intr["fl_x"], intr["fl_y"], intr["cx"], intr["cy"])
+        np.testing.assert_allclose(
+            cam.project_points(POINT[None])[0, :2],
+            fac.expected_nerf_pixel(c2w, intr["fl_x"], intr["fl_y"], intr["cx"], intr["cy"], POINT), atol=1e-9)
+        np.testing.assert_allclose(views[name].rgb, px[..., :3], atol=Q8)
+
+
+def test_ngp_missing_images_one_warning_counting_them(tmp_path):
+    fac.make_ngp(tmp_path, n=6, missing=(1, 3, 4))
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        ds = load_dataset(tmp_path, split_holdout=0)
+    ours = [w for w in rec if issubclass(w.category, DatasetWarning)]
+    assert len(ours) == 1
+    assert "skipped 3 of 6 frames" in str(ours[0].message)
+    assert len(ds.train) == 3
+
+
+def test_ngp_all_images_missing_is_an_error(tmp_path):
+    fac.make_ngp(tmp_path, n=3, missing=(0, 1, 2))
+    with pytest.warns(DatasetWarning), pytest.raises(DatasetError, match="transforms.json.*no frames left"):
+        load_dataset(tmp_path)
+
+
+def test_ngp_distortion_refused_unless_zero(tmp_path):
+    intr = {"fl_x": 7.0, "fl_y": 7.0, "cx": 4.0, "cy": 3.0, "w": fac.W, "h": fac.H,
+            "k1": 0.1, "k2": 0.0, "p1": 0.0, "p2": -0.002}
+    fac.make_ngp(tmp_path, n=3, intr=intr)
+    with pytest.raises(DatasetError) as ei:
+        load_dataset(tmp_path)
+    msg = str(ei.value)
+    assert "transforms.json" in msg and "k1=0.1" in msg and "p2=-0.002" in msg and "k2" not in msg
+    intr.update(k1=0.0, p2=0.0)
+    fac.make_ngp(tmp_path, n=3, intr=intr)
+    assert len(load_dataset(tmp_path, split_holdout=0).train) == 3
+
+
+def test_ngp_fisheye_refused(tmp_path):
+    fac.make_ngp(tmp_path, n=2, intr={"fl_x": 7.0, "camera_model": "OPENCV_FISHEYE"})
+    with pytest.raises(DatasetError, match="OPENCV_FISHEYE"):
+        load_dataset(tmp_path)
+
+
+# ---- COLMAP -------------------------------------------------------------------------------------------------
+def _same_camera(a, b):
+    # (Camera's dataclass == compares the w2c arrays with `==` and raises; compare field by field)
+    assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+    np.testing.assert_array_equal(a.w2c, b.w2c)
+
+
+def _same_datasets(a, b):
+    assert a.points is not None and b.points is not None
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.colors, b.colors)
+    for s in ("train", "val", "test"):
+        assert [v.name for v in a[s]] == [v.name for v in b[s]]
+        for va, vb in zip(a[s], b[s], strict=True):
+            _same_camera(va.camera, vb.camera)
+            np.testing.assert_array_equal(va.rgb, vb.rgb)
+
+
+def test_colmap_text_and_binary(tmp_path):
+    written = fac.make_colmap(tmp_path / "txt", n=9, binary=False)
+    fac.make_colmap(tmp_path / "bin", n=9, binary=True)
+    a, b = load_dataset(tmp_path / "txt"), load_dataset(tmp_path / "bin")
+    assert a.format == b.format == "colmap"
+    _same_datasets(a, b)
+    assert [v.name for v in a.test] == ["img_000", "img_008"] and len(a.train) == 7
+    fx, fy, cx, cy = written["params"]
+    views = {v.name: v for v in a.train + a.test}
+    for name, q, t, px in written["images"]:
+        v = views[name.removesuffix(".png")]
+        assert (v.camera.fx, v.camera.fy, v.camera.cx, v.camera.cy) == (fx, fy, cx, cy)
+        np.testing.assert_allclose(v.camera.project_points(POINT[None])[0, :2],
+                                   fac.expected_colmap_pixel(q, t, fx, fy, cx, cy, POINT), atol=1e-9)
+        np.testing.assert_allclose(v.rgb, px, atol=Q8)
+    pts = np.array([p[1] for p in written["points"]], np.float32)
+    np.testing.assert_allclose(a.points, pts, rtol=1e-6)
+    np.testing.assert_allclose(a.colors, np.array([p[2] for p in written["points"]]) / 255.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("layout", ["sparse/0", "sparse", ""])
+def test_colmap_layouts(tmp_path, layout):
+    fac.make_colmap(tmp_path, n=3, binary=True, layout=layout)
+    assert detect_format(tmp_path) == "colmap"
+    assert len(load_dataset(tmp_path, split_holdout=0).train) == 3
+
+
+def test_colmap_model_folder_given_directly_and_simple_pinhole(tmp_path):
+    written = fac.make_colmap(tmp_path, n=3, model="SIMPLE_PINHOLE")
+    ds = load_dataset(written["model_dir"], format="colmap", split_holdout=0)
+    cam = ds.train[0].camera
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (7.0, 7.0, 4.0, 3.0)
+
+
+def test_colmap_missing_image_warns(tmp_path):
+    fac.make_colmap(tmp_path, n=4, missing=(2,))
+    with pytest.warns(DatasetWarning, match="skipped 1 of 4"):
+        assert len(load_dataset(tmp_path, split_holdout=0).train) == 3
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("model, params", [("SIMPLE_RADIAL", [7.0, 4.0, 3.0, 0.05]),
+                                           ("RADIAL", [7.0, 4.0, 3.0, 0.05, 0.01]),
+                                           ("OPENCV", [7.0, 7.0, 4.0, 3.0, 0.1, 0.0, 0.0, 0.0]),
+                                           ("OPENCV_FISHEYE", [7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])])
+def test_colmap_distorting_models_refused(tmp_path, binary, model, params):
+    fac.make_colmap(tmp_path, n=2, binary=binary, model=model, params=params)
+    with pytest.raises(DatasetError) as ei:
+        load_dataset(tmp_path)
+    msg = str(ei.value)
+    assert f"cameras.{'bin' if binary else 'txt'}" in msg and model in msg and "colmap image_undistorter" in msg
+
+
+def test_colmap_zero_distortion_is_pinhole(tmp_path):
+    fac.make_colmap(tmp_path, n=2, model="OPENCV", params=[7.0, 6.0, 4.0, 3.0, 0, 0, 0, 0])
+    cam = load_dataset(tmp_path, split_holdout=0).train[0].camera
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (7.0, 6.0, 4.0, 3.0)
+
+
+# ---- detection ----------------------------------------------------------------------------------------------
+def test_detect_format(tmp_path):
+    fac.make_nerf(tmp_path / "n")
+    fac.make_ngp(tmp_path / "g", n=2)
+    fac.make_colmap(tmp_path / "c", n=2)
+    assert detect_format(tmp_path / "n") == "nerf"
+    assert detect_format(tmp_path / "g") == "ngp"
+    assert detect_format(tmp_path / "g" / "transforms.json") == "ngp"
+    assert detect_format(tmp_path / "c") == "colmap"
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="cannot tell the dataset format"):
+        detect_format(tmp_path / "empty")
+    with pytest.raises(DatasetError, match="not found"):
+        load_dataset(tmp_path / "nope")
+    with pytest.raises(DatasetError, match="transforms_train.json"):
+        load_dataset(tmp_path / "c", format="nerf")
+    with pytest.raises(ValueError, match="format"):
+        load_dataset(tmp_path / "c", format="blender")
+
+
+# ---- images: alpha, bit depths, downscale --------------------------------------------------------------------
+def test_unassociated_alpha_read_as_stored(tmp_path):
+    px = np.ones((fac.H, fac.W, 4), np.float32)
+    px[..., 3] = 0.5
+    fac.write_image(tmp_path / "a.png", px)
+    img = read_image(tmp_path / "a.png")
+    np.testing.assert_allclose(img.rgb, 1.0)  # not premultiplied to 0.5
+    np.testing.assert_allclose(img.alpha, 0.5, atol=Q8)
+
+
+def test_16bit_png_jpeg_and_exr(tmp_path):
+    px = fac.image_pixels(3, alpha=False) * 0.7
+    np.testing.assert_allclose(read_image(fac.write_image(tmp_path / "a.png", px, "uint16")).rgb, px, atol=1e-4)
+    exr = read_image(fac.write_image(tmp_path / "a.exr", px * 5.0, "half"))
+    assert exr.color_space == "linear"
+    np.testing.assert_allclose(exr.rgb, px * 5.0, rtol=2e-3)
+    jpg = read_image(fac.write_image(tmp_path / "a.jpg", px))
+    assert jpg.color_space == "srgb" and jpg.rgb.shape == (fac.H, fac.W, 3) and jpg.alpha is None
+    grey = read_image(fac.write_image(tmp_path / "g.png", px[..., :1]))
+    np.testing.assert_allclose(grey.rgb, np.repeat(px[..., :1], 3, axis=2), atol=Q8)
+
+
+def test_downscale_images_and_intrinsics(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 2, "test": 1})
+    full = load_dataset(tmp_path)
+    half = load_dataset(tmp_path, downscale=2)
+    for a, b in zip(full.train + full.test, half.train + half.test, strict=True):
+        assert (b.width, b.height) == (fac.W // 2, fac.H // 2)
+        ca, cb = a.camera, b.camera
+        assert (cb.fx, cb.fy, cb.cx, cb.cy) == (ca.fx / 2, ca.fy / 2, ca.cx / 2, ca.cy / 2)
+        assert (cb.width, cb.height) == (ca.width // 2, ca.height // 2)
+        np.testing.assert_allclose(b.alpha, a.alpha.reshape(3, 2, 4, 2).mean(axis=(1, 3)), atol=1e-6)
+        # premultiplied averaging: compositing commutes with the downscale
+        for bg in ("white", "black", (0.2, 0.5, 0.9)):
+            np.testing.assert_allclose(b.target(bg), a.target(bg).reshape(3, 2, 4, 2, 3).mean(axis=(1, 3)),
+                                       atol=1e-5)
+        # the same 3D point lands on half the pixel coordinates
+        np.testing.assert_allclose(cb.project_points(POINT[None])[0, :2], ca.project_points(POINT[None])[0, :2] / 2)
+
+
+def test_downscale_crops_the_remainder():
+    rgb = np.arange(7 * 5 * 3, dtype=np.float32).reshape(7, 5, 3)
+    out, alpha = downscale_image(rgb, None, 2)
+    assert out.shape == (3, 2, 3) and alpha is None
+    np.testing.assert_allclose(out[0, 0], rgb[:2, :2].mean(axis=(0, 1)))
+    a = np.zeros((7, 5), np.float32)
+    out, alpha = downscale_image(rgb, a, 2)
+    assert (out == 0).all() and (alpha == 0).all()
+
+
+# ---- backgrounds, bounds, splits ---------------------------------------------------------------------------
+def test_backgrounds():
+    rgb = np.full((2, 3, 3), 0.8, np.float32)
+    alpha = np.array([[0, 0.5, 1]] * 2, np.float32)
+    np.testing.assert_allclose(composite_background(rgb, alpha, "white")[0, :, 0], [1.0, 0.9, 0.8])
+    np.testing.assert_allclose(composite_background(rgb, alpha, "black")[0, :, 0], [0.0, 0.4, 0.8])
+    np.testing.assert_allclose(composite_background(rgb, alpha, [0.2, 0.2, 0.2])[0, :, 0], [0.2, 0.5, 0.8])
+    assert composite_background(rgb, None, "white") is rgb or np.array_equal(composite_background(rgb, None, "white"),
+                                                                              rgb)
+    c1 = resolve_background("random", np.random.default_rng(3))
+    c2 = resolve_background("random", np.random.default_rng(3))
+    assert c1.shape == (3,) and np.array_equal(c1, c2) and ((c1 >= 0) & (c1 < 1)).all()
+    np.testing.assert_allclose(composite_background(rgb, alpha, c1)[0, 0], c1)
+    with pytest.raises(ValueError, match="resolve_background"):
+        composite_background(rgb, alpha, "random")
+    with pytest.raises(ValueError, match="background"):
+        resolve_background("purple")
+
+
+def test_scene_extent_and_dataset_background(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 4, "test": 1})
+    ds = load_dataset(tmp_path, background="random")
+    c = ds.camera_centers()
+    np.testing.assert_allclose(ds.scene_center(), c.mean(axis=0))
+    assert ds.scene_extent() == pytest.approx(1.1 * np.linalg.norm(c - c.mean(axis=0), axis=1).max())
+    t = ds.targets("train", rng=np.random.default_rng(0))
+    assert t.shape == (4, fac.H, fac.W, 3) and t.dtype == np.float32
+
+
+def test_holdout_split_by_name():
+    views = [View(f"v{k:02d}", None, np.zeros((1, 1, 3), np.float32)) for k in reversed(range(17))]
+    s = holdout_split(views, 8)
+    assert [v.name for v in s["test"]] == ["v00", "v08", "v16"] and len(s["train"]) == 14
+    with pytest.raises(ValueError):
+        load_dataset(".", split_holdout=1)
+
+
+# ---- malformed inputs: one DatasetError naming the file and the problem -------------------------------------
+def _edit_json(path, fn):
+    data = json.loads(path.read_text())
+    fn(data)
+    path.write_text(json.dumps(data))
+
+
+def _nerf_case(tmp_path, fn):
+    fac.make_nerf(tmp_path, {"train": 3, "test": 1})
+    _edit_json(tmp_path / "transforms_train.json", fn)
+    return "transforms_train.json"
+
+
+def _set_frame(key, value, i=1):
+    def fn(d):
+        d["frames"][i][key] = value
+    return fn
+
+
+NERF_CASES = {
+    "no frames key": (lambda d: d.pop("frames"), "missing key 'frames'"),
+    "empty frames": (lambda d: d.update(frames=[]), "no frames"),
+    "no angle": (lambda d: d.pop("camera_angle_x"), "camera_angle_x"),
+    "nan angle": (lambda d: d.update(camera_angle_x=float("nan")), "must be finite"),
+    "no matrix": (lambda d: d["frames"][1].pop("transform_matrix"), "frames\\[1\\]: missing key 'transform_matrix'"),
+    "no file_path": (lambda d: d["frames"][2].pop("file_path"), "frames\\[2\\]: missing key 'file_path'"),
+    "3x3 matrix": (_set_frame("transform_matrix", np.eye(3).tolist()), "4x4.*\\[3, 3\\]"),
+    "ragged matrix": (_set_frame("transform_matrix", [[1, 0], [0, 1, 0]]), "4x4"),
+    "nan matrix": (_set_frame("transform_matrix", (np.eye(4) * np.nan).tolist()), "NaN or Inf"),
+    "scaled rotation": (_set_frame("transform_matrix", (np.eye(4) * 2).tolist()), "frames\\[1\\].*orthonormal"),
+    "string angle": (lambda d: d.update(camera_angle_x="wide"), "must be a number"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(NERF_CASES))
+def test_malformed_nerf_json(tmp_path, case):
+    fn, problem = NERF_CASES[case]
+    fname = _nerf_case(tmp_path, fn)
+    with pytest.raises(DatasetError, match=problem) as ei:
+        load_dataset(tmp_path)
+    assert fname in str(ei.value) and isinstance(ei.value, TripletError)
+
+
+def test_bad_json_reports_line_and_column(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 2, "test": 1})
+    (tmp_path / "transforms_test.json").write_text('{\n  "camera_angle_x": 0.8,\n  "frames": [,]\n}\n')
+    with pytest.raises(DatasetError, match=r"transforms_test.json: invalid JSON at line 3, column 14"):
+        load_dataset(tmp_path)
+
+
+def test_images_of_different_sizes_in_a_split(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 3, "test": 1})
+    fac.write_image(tmp_path / "train" / "r_2.png", fac.image_pixels(0, 10, 6))
+    with pytest.raises(DatasetError, match="r_2.png: image is 10x6 but r_0.png in the same train split is 8x6"):
+        load_dataset(tmp_path)
+
+
+def test_unreadable_image(tmp_path):
+    fac.make_nerf(tmp_path, {"train": 3, "test": 1})
+    (tmp_path / "train" / "r_1.png").write_bytes(b"this is not a png")
+    with pytest.raises(DatasetError, match="r_1.png: cannot read the image"):
+        load_dataset(tmp_path)
+
+
+@pytest.mark.parametrize("ext", ["png", "jpg"])
+def test_truncated_image(tmp_path, ext):
+    p = fac.write_image(tmp_path / f"t.{ext}", fac.image_pixels(0, 64, 64)[..., :3])
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.raises(DatasetError, match=f"t.{ext}: cannot read the image"):
+        read_image(p)
+
+
+def test_missing_folder_and_files(tmp_path):
+    with pytest.raises(DatasetError, match="nothing_here: dataset folder not found"):
+        load_dataset(tmp_path / "nothing_here", format="nerf")
+    (tmp_path / "x").mkdir()
+    with pytest.raises(DatasetError, match="transforms.json: file not found"):
+        load_dataset(tmp_path / "x", format="ngp")
+    with pytest.raises(DatasetError, match="no COLMAP model found"):
+        load_dataset(tmp_path / "x", format="colmap")
+    fac.make_colmap(tmp_path / "c", n=2)
+    shutil.rmtree(tmp_path / "c" / "images")
+    with pytest.raises(DatasetError, match="images folder not found"):
+        load_dataset(tmp_path / "c")
+
+
+def _colmap_text_case(tmp_path, fname, edit):
+    written = fac.make_colmap(tmp_path, n=3, binary=False)
+    p = written["model_dir"] / fname
+    p.write_text(edit(p.read_text()))
+
+
+COLMAP_TEXT_CASES = {
+    "unknown model": ("cameras.txt", lambda s: s.replace("PINHOLE", "WEIRD"), "unknown camera model 'WEIRD'"),
+    "param count": ("cameras.txt", lambda s: s.replace(" 2.75", ""), "PINHOLE takes 4 parameters, found 3"),
+    "bad number": ("cameras.txt", lambda s: s.replace("7.0", "seven"), "camera parameters must be numbers"),
+    "short image line": ("images.txt", lambda s: s.replace(" 1 img_001.png", ""), "line 6: expected 'IMAGE_ID"),
+    "nan pose": ("images.txt", lambda s: s.replace("\n2 ", "\n2 nan ", 1).replace("nan 0.", "nan ", 1), "NaN"),
+    "unknown camera": ("images.txt", lambda s: s.replace(" 1 img_002.png", " 5 img_002.png"),
+                       "refers to camera 5"),
+    "bad point": ("points3D.txt", lambda s: s.replace("\n3 ", "\n3 x "), "line 4: X Y Z R G B must be numbers"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(COLMAP_TEXT_CASES))
+def test_malformed_colmap_text(tmp_path, case):
+    fname, edit, problem = COLMAP_TEXT_CASES[case]
+    _colmap_text_case(tmp_path, fname, edit)
+    with pytest.raises(DatasetError, match=problem) as ei:
+        load_dataset(tmp_path)
+    assert fname in str(ei.value)
+
+
+@pytest.mark.parametrize("fname", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_truncated_colmap_binary(tmp_path, fname):
+    written = fac.make_colmap(tmp_path, n=3, binary=True)
+    p = written["model_dir"] / fname
+    p.write_bytes(p.read_bytes()[:-5])
+    with pytest.raises(DatasetError, match=f"{fname}: truncated binary file"):
+        load_dataset(tmp_path)
+
+
+def test_colmap_image_size_must_match_camera(tmp_path):
+    fac.make_colmap(tmp_path, n=2, w=8, h=6)
+    fac.write_image(tmp_path / "images" / "img_000.png", fac.image_pixels(0, 8, 6, alpha=False))
+    fac.make_colmap(tmp_path / "other", n=2, w=10, h=6)
+    (tmp_path / "sparse" / "0" / "cameras.txt").write_text(
+        (tmp_path / "other" / "sparse" / "0" / "cameras.txt").read_text())
+    with pytest.raises(DatasetError, match="img_000.png: image is 8x6 but camera 1 of cameras.txt is 10x6"):
+        load_dataset(tmp_path)
+
+
+def test_dataset_error_pickles():
+    e = pickle.loads(pickle.dumps(DatasetError("a/b.json", "missing key 'frames'")))
+    assert str(e) == "a/b.json: missing key 'frames'" and e.path == "a/b.json"
+
+
+# ---- the shared test scenes -------------------------------------------------------------------------------
+def test_spot_small_loads(shared_data):
+    root = shared_data / "scenes" / "spot_small"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    ds = load_dataset(root)
+    assert ds.format == "nerf" and ds.color_space == "srgb" and len(ds.train) > 0 and len(ds.test) > 0
+    for v in ds.train + ds.test:
+        cam = v.camera
+        assert np.linalg.norm(cam.center) == pytest.approx(3.2, abs=1e-3)
+        u, w, z = cam.project_points(np.zeros((1, 3)))[0]  # the origin is straight ahead
+        assert z == pytest.approx(3.2, abs=1e-3)
+        assert abs(u - cam.cx) < 1e-6 and abs(w - cam.cy) < 1e-6
+        assert v.alpha is not None and v.alpha.max() == 1.0 and v.alpha.min() == 0.0
+    assert ds.scene_extent() > 3.2

@@ -1,0 +1,534 @@
+"""Training: initialise a triangle soup, optimise it against the photos, write a run directory.
+
+One iteration: pick a training view (a seeded permutation per epoch), render it at the scheduled
+resolution and K, compare with the target (``(1−λ)·L1 + λ·D-SSIM``), back-propagate through the
+tape, step Adam, accumulate density statistics and, on schedule, split / clone / prune / reset
+alpha. Everything is a :class:`TrainConfig` field, saved to ``config.json``; checkpoints hold the
+scene, the optimizer, the density statistics and the random state, so ``resume`` continues
+bit-for-bit.
+
+Run directory: ``config.json``, ``checkpoints/ckpt_<it>.npz`` (+ ``latest``), ``triplets.ply``,
+``lights.json``, ``renders/test/*.png`` (RGBA, straight alpha), ``metrics.json``, ``train.log``.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import logging
+import math
+import signal
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .camera import Camera
+from .datasets import load_dataset
+from .datasets.base import Dataset, resolve_background
+from .density import DensityConfig, DensityStats, densify_and_prune, reset_alpha, visible_faces
+from .device import Device, get_device
+from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
+from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from .losses import photometric_loss_and_grad, ssim
+from .optim import Adam, Constant, ExponentialDecay, StepUp
+from .render import RenderSettings, render
+from .scene import Scene
+
+LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
+Y00 = 0.28209479177387814  # the constant real SH basis function
+
+
+@dataclass
+class TrainConfig:
+    """Every setting of a run (saved as ``config.json``; the CLI maps its options onto these)."""
+
+    iterations: int = 3000  # optimisation steps
+    seed: int = 0  # seeds the initial points, view order and random backgrounds
+    brdf: str = "cook_torrance"  # "cook_torrance" or "blinn_phong"
+    lights: tuple = ("point", "ambient")  # any mix of LIGHT_KINDS
+    sh_degree: int = 2  # max degree of the vertex-SH / SH-environment light
+    sh_band_every: int = 1000  # one more SH band every this many iterations (until sh_degree)
+    init_points: int = 20_000  # random initial triangles (when the dataset has no sparse points)
+    init_box: float = 0.4  # half-size of the random-point box, × the mean camera distance (3.2 → ±1.28)
+    init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
+    faces_per_pixel: int = 30  # K after the warm-up
+    warmup_faces_per_pixel: int = 150  # K during the warm-up
+    warmup_until: int = 200  # warm-up length (¼ resolution and warm-up K)
+    half_res_until: int = 600  # ½ resolution until this iteration, then full
+    sigma: float | None = 1.0  # soft-coverage sharpness (1/px); None = hard edges
+    background: str = "white"  # "white", "black" or "random" (per iteration)
+    ssim_lambda: float = 0.2  # loss = (1 − λ)·L1 + λ·(1 − SSIM)
+    lr_position: float = 1.1e-4  # × scene extent, decays exponentially to lr_position_final
+    lr_position_final: float = 1.1e-6
+    lr_position_steps: int = 30_000
+    lr_material: float = 0.01
+    lr_alpha: float = 0.05
+    lr_vertex_sh: float = 0.005
+    lr_lights: float = 0.01
+    lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
+    lr_boost: float = 5.0
+    betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
+    adam_eps: float = 1e-15
+    sh_clip: float = 1.0  # gradient-norm clipping of the vertex-SH coefficients
+    density: DensityConfig = field(default_factory=lambda: DensityConfig(
+        interval=100, densify_from=300, densify_until=2500, grad_threshold=2e-4, alpha_reset_interval=1000,
+        max_faces=200_000, min_faces=100))
+    checkpoint_every: int = 1000  # also at the end and on Ctrl-C
+    downscale: int = 1  # dataset images reduced by this integer factor at load time
+    max_test_views: int | None = None  # evaluate only the first N test views (None: all)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["lights"] = list(self.lights)
+        d["betas"] = list(self.betas)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        d = dict(d)
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown config fields: {sorted(unknown)}")
+        if "density" in d and isinstance(d["density"], dict):
+            d["density"] = DensityConfig(**d["density"])
+        for k in ("lights", "betas"):
+            if k in d:
+                d[k] = tuple(d[k])
+        return cls(**d)
+
+    def validate(self) -> None:
+        bad = [x for x in self.lights if x not in LIGHT_KINDS]
+        if bad or not self.lights:
+            raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
+        if self.brdf not in ("cook_torrance", "blinn_phong"):
+            raise ValueError(f"brdf must be cook_torrance or blinn_phong, got {self.brdf!r}")
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 8:
+            raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
+        resolve_background(self.background)
+
+
+# ------------------------------------------------------------------------------------------------ init
+
+
+def look_at_center(ds: Dataset) -> np.ndarray:
+    """The point nearest to every training camera's optical axis (least squares): the centre of an
+    object-centric capture. Falls back to the mean camera centre when the axes are parallel."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for v in ds.train:
+        c = v.camera.center
+        d = v.camera.w2c[2, :3]  # optical axis (+z of the camera) in world space
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    if np.linalg.cond(A) > 1e8:
+        return ds.scene_center()
+    return np.linalg.solve(A, b)
+
+
+def random_points(ds: Dataset, n: int, box: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` uniform points in a cube around :func:`look_at_center`, half-size ``box`` × the mean
+    camera distance from it (0.4 × 3.2 ≈ the method's ±1.3 on NeRF-synthetic objects)."""
+    c = look_at_center(ds)
+    r = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean()) * box
+    return c + rng.uniform(-r, r, (n, 3))
+
+
+def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Generator) -> np.ndarray:
+    """One small independent triangle per point: ``[P, 3] → V [3P, 3]`` (equilateral, random
+    orientation, radius ``size`` × the mean distance to the 3 nearest other points)."""
+    p = np.asarray(points, np.float64)
+    k = min(4, len(p))
+    d, _ = cKDTree(p).query(p, k=k)
+    r = size * (d[:, 1:].mean(1) if k > 1 else np.ones(len(p)))
+    n = rng.normal(size=(len(p), 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    a = np.cross(n, rng.normal(size=(len(p), 3)))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(n, a)
+    ang = np.array([0.0, 2 * math.pi / 3, 4 * math.pi / 3])
+    off = np.cos(ang)[None, :, None] * a[:, None, :] + np.sin(ang)[None, :, None] * b[:, None, :]
+    return (p[:, None, :] + r[:, None, None] * off).reshape(-1, 3)
+
+
+def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
+    c = look_at_center(ds)
+    ext = ds.scene_extent()
+    up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
+    up = up / (np.linalg.norm(up) + 1e-12)
+    lights = []
+    for kind in cfg.lights:
+        if kind == "point":
+            lights.append(PointLight(c + 0.6 * ext * up + 0.3 * ext * rng.normal(size=3), np.full(3, ext * ext)))
+        elif kind == "directional":
+            lights.append(DirectionalLight(up, np.full(3, 1.0)))
+        elif kind == "ambient":
+            lights.append(AmbientLight(np.full(3, 0.1)))
+        elif kind == "sh-env":
+            coeffs = np.zeros((3, (cfg.sh_degree + 1) ** 2))
+            coeffs[:, 0] = 0.5 / Y00
+            lights.append(SHEnvironmentLight(coeffs, 0))
+        elif kind == "vertex-sh":
+            lights.append(VertexSHLight())
+    return lights
+
+
+def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
+    """The method's initialisation: COLMAP points when present, else random points in the bounds."""
+    pts = ds.points if ds.points is not None and len(ds.points) >= 4 else None
+    if pts is None:
+        pts = random_points(ds, cfg.init_points, cfg.init_box, rng)
+    V = triangles_from_points(pts, cfg.init_size, rng)
+    F = np.arange(len(V)).reshape(-1, 3)
+    lights = initial_lights(cfg, ds, rng)
+    vsh = None
+    if "vertex-sh" in cfg.lights:
+        vsh = np.zeros((len(V), 6, (cfg.sh_degree + 1) ** 2))
+        vsh[:, 0:3, 0] = 0.5 / Y00  # radiance = relu(Y00·c + 0.5) = 1
+        vsh[:, 3:6, 0] = 0.1 * rng.normal(size=(len(V), 3))
+    return Scene.from_arrays(V, F, lights=lights, vertex_sh=vsh, brdf=cfg.brdf)
+
+
+def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
+    opt = Adam()
+    kw = {"betas": tuple(cfg.betas), "eps": cfg.adam_eps}
+    opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
+                                                      cfg.lr_position_steps), **kw)
+    boost = {cfg.lr_boost_at: cfg.lr_boost}
+    opt.add_group("material", [scene.material], lr=StepUp(Constant(cfg.lr_material), boost), **kw)
+    opt.add_group("alpha", [scene.alpha], lr=cfg.lr_alpha, **kw)
+    if scene.vertex_sh is not None:
+        opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),
+                      max_grad_norm=cfg.sh_clip, **kw)
+    if scene.light_params is not None:
+        opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, **kw)
+    return opt
+
+
+# ------------------------------------------------------------------------------------------------ schedules
+
+
+def schedule(cfg: TrainConfig, it: int) -> tuple[float, int, int]:
+    """``(resolution factor, K, active SH degree)`` at iteration ``it`` (0-based)."""
+    scale = 0.25 if it < cfg.warmup_until else (0.5 if it < cfg.half_res_until else 1.0)
+    K = cfg.warmup_faces_per_pixel if it < cfg.warmup_until else cfg.faces_per_pixel
+    deg = min(cfg.sh_degree, it // max(cfg.sh_band_every, 1))
+    return scale, K, deg
+
+
+def _downsample(img: np.ndarray, f: int) -> np.ndarray:
+    if f == 1:
+        return img
+    h, w = (img.shape[0] // f) * f, (img.shape[1] // f) * f
+    x = img[:h, :w].reshape(h // f, f, w // f, f, *img.shape[2:])
+    return x.mean(axis=(1, 3)).astype(np.float32)
+
+
+class Targets:
+    """Training images at each scheduled resolution (block-averaged once, cached)."""
+
+    def __init__(self, ds: Dataset):
+        self.ds = ds
+        self.cache: dict = {}
+
+    def get(self, i: int, scale: float, background: np.ndarray) -> tuple[Camera, np.ndarray]:
+        v = self.ds.train[i]
+        f = max(1, int(round(1 / scale)))
+        key = (i, f)
+        if key not in self.cache:
+            rgb = _downsample(v.rgb, f)
+            alpha = None if v.alpha is None else _downsample(v.alpha, f)
+            cam = v.camera if f == 1 else v.camera.scaled(rgb.shape[1] / v.camera.width)
+            cam = cam if (cam.width, cam.height) == (rgb.shape[1], rgb.shape[0]) else _fix_size(cam, rgb)
+            self.cache[key] = (cam, rgb, alpha)
+        cam, rgb, alpha = self.cache[key]
+        if alpha is None:
+            return cam, rgb
+        return cam, rgb * alpha[..., None] + background[None, None, :] * (1 - alpha[..., None])
+
+
+def _fix_size(cam: Camera, rgb: np.ndarray) -> Camera:
+    from dataclasses import replace
+
+    return replace(cam, width=rgb.shape[1], height=rgb.shape[0])
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
+    return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
+
+
+# ------------------------------------------------------------------------------------------------ trainer
+
+
+class Trainer:
+    """Runs (or resumes) a training run in ``run_dir``; see the module docstring."""
+
+    def __init__(self, data, run_dir, cfg: TrainConfig | None = None, device: Device | None = None,
+                 resume: bool = False, data_format: str = "auto", quiet: bool = False):
+        self.run_dir = Path(run_dir)
+        self.device = device or get_device()
+        self.quiet = quiet
+        if resume:
+            cfg_path = self.run_dir / "config.json"
+            if not cfg_path.is_file():
+                raise FileNotFoundError(f"cannot resume: {cfg_path} does not exist")
+            saved = json.loads(cfg_path.read_text())
+            cfg = TrainConfig.from_dict(saved["train"])
+            data = saved["data"] if data is None else data
+            data_format = saved.get("format", data_format)
+        self.cfg = cfg or TrainConfig()
+        self.cfg.validate()
+        self.data, self.data_format = str(data), data_format
+        self.ds = load_dataset(data, format=data_format, downscale=self.cfg.downscale,
+                               background=self.cfg.background)
+        if not self.ds.train:
+            raise ValueError(f"dataset {data} has no training views")
+        self.extent = self.ds.scene_extent()
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.scene = initial_scene(self.cfg, self.ds, self.rng)
+        self.opt = build_optimizer(self.cfg, self.scene, self.extent)
+        self.stats = DensityStats(len(self.scene.F))
+        self.targets = Targets(self.ds)
+        self.it = 0
+        self.order: list[int] = []
+        self.history: list[dict] = []
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.log = _file_logger(self.run_dir / "train.log")
+        if resume:
+            self.load_checkpoint(self.latest_checkpoint())
+        else:
+            write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
+                                                      "train": self.cfg.to_dict()})
+
+    # ---- one step ------------------------------------------------------------------------------
+    def next_view(self) -> int:
+        if not self.order:
+            self.order = list(self.rng.permutation(len(self.ds.train)))
+        return int(self.order.pop())
+
+    def step(self) -> dict:
+        cfg, it = self.cfg, self.it
+        scale, K, deg = schedule(cfg, it)
+        if cfg.background == "random":
+            bg = self.rng.uniform(0, 1, 3)
+        else:
+            bg = resolve_background(cfg.background)
+        i = self.next_view()
+        cam, target = self.targets.get(i, scale, np.asarray(bg, np.float32))
+        settings = RenderSettings(K=K, sigma=cfg.sigma, background=tuple(float(x) for x in bg),
+                                  sh_degree=deg if self.scene.vertex_sh is not None else None)
+        t0 = time.perf_counter()
+        r = render(self.scene, cam, settings, self.device)
+        t1 = time.perf_counter()
+        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda)
+        t2 = time.perf_counter()
+        r.backward(v_img)
+        t3 = time.perf_counter()
+        dens = cfg.density
+        if it < dens.densify_until:
+            fr = r.view.frags
+            self.stats.add(r.view.v_vs.get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
+                           vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad)
+        self.opt.step()
+        self.opt.zero_grad()
+        t4 = time.perf_counter()
+        report = None
+        if dens.densify_at(it):
+            report = densify_and_prune(self.scene, self.opt, self.stats, dens, self.extent,
+                                       prune_screen=it > dens.alpha_reset_interval)
+            self.stats = DensityStats(len(self.scene.F))
+        if dens.reset_alpha_at(it):
+            reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
+        t5 = time.perf_counter()
+        self.it += 1
+        rec = {"it": self.it, "loss": float(loss), "psnr": psnr(r.image, target), "faces": len(self.scene.F),
+               "render": t1 - t0, "loss_t": t2 - t1, "backward": t3 - t2, "step": t4 - t3, "density": t5 - t4}
+        if report is not None:
+            rec["densify"] = {"split": report.split, "cloned": report.cloned, "pruned": report.pruned}
+        return rec
+
+    # ---- loop ----------------------------------------------------------------------------------
+    def train(self) -> dict:
+        """Train to ``cfg.iterations`` (from the current iteration), then write the results."""
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        interrupted = []
+
+        def on_sigint(signum, frame):
+            interrupted.append(signum)
+
+        old = signal.signal(signal.SIGINT, on_sigint)
+        bar = tqdm(total=cfg.iterations, initial=self.it, desc="train", unit="it", disable=self.quiet,
+                   dynamic_ncols=True)
+        t_start = time.perf_counter()
+        try:
+            while self.it < cfg.iterations:
+                rec = self.step()
+                self.history.append(rec)
+                bar.update(1)
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", faces=str(rec["faces"]))
+                if self.it % 100 == 0 or "densify" in rec:
+                    self.log.info(json.dumps(rec))
+                if cfg.checkpoint_every and self.it % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if interrupted:
+                    self.save_checkpoint()
+                    self.log.info(f"interrupted at iteration {self.it}; checkpoint saved")
+                    raise KeyboardInterrupt
+        finally:
+            bar.close()
+            signal.signal(signal.SIGINT, old)
+        wall = time.perf_counter() - t_start
+        self.save_checkpoint()
+        return self.finish(wall)
+
+    def finish(self, wall: float | None = None) -> dict:
+        """Write triplets.ply, lights.json, test renders and metrics.json."""
+        self.export_scene()
+        metrics = self.evaluate(write_renders=True)
+        metrics.update({"iterations": self.it, "faces": len(self.scene.F)})
+        if wall is not None:
+            metrics["wall_time_s"] = wall
+            steps = [h for h in self.history if "render" in h]
+            if steps:
+                metrics["seconds_per_iteration"] = {k: float(np.mean([h[k] for h in steps]))
+                                                    for k in ("render", "loss_t", "backward", "step", "density")}
+        write_json(self.run_dir / "metrics.json", metrics)
+        self.log.info(f"metrics: {json.dumps({k: v for k, v in metrics.items() if k != 'views'})}")
+        return metrics
+
+    # ---- outputs -------------------------------------------------------------------------------
+    def export_scene(self) -> None:
+        from .activations import sigmoid
+
+        s = self.scene
+        mat = sigmoid(s.material.data.astype(np.float64))
+        attrs = {"alpha": sigmoid(s.alpha.data.astype(np.float64))}
+        if s.brdf == "cook_torrance":
+            attrs.update(albedo=mat[:, :3], roughness=mat[:, 3], metallic=mat[:, 4], ao=mat[:, 5])
+        else:
+            attrs.update(albedo=mat[:, :3], ks=mat[:, 3:6], ka=mat[:, 7:10])
+        write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs)
+        write_json(self.run_dir / "lights.json", {"lights": [_light_json(lt) for lt in s.current_lights()]})
+
+    def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:
+        """PSNR / SSIM of every view of ``split`` (rendered at full resolution, K after warm-up)."""
+        views = self.ds[split] or self.ds.train
+        if self.cfg.max_test_views:
+            views = views[: self.cfg.max_test_views]
+        bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
+                        np.float32)
+        settings = RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, background=tuple(bg),
+                                  sh_degree=min(self.cfg.sh_degree, self.it // max(self.cfg.sh_band_every, 1))
+                                  if self.scene.vertex_sh is not None else None)
+        out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
+        per = []
+        for v in views:
+            r = render(self.scene, v.camera, settings, self.device)
+            target = v.target(bg)
+            img = np.clip(r.image, 0, 1)
+            per.append({"name": v.name, "psnr": psnr(img, target),
+                        "ssim": float(ssim(img.astype(np.float64), target.astype(np.float64), padding="valid"))})
+            if write_renders:
+                # straight alpha: un-composite the background from the rendered colour
+                a = np.clip(r.alpha, 0, 1)
+                rgb = np.where(a[..., None] > 1e-4, (img - bg * (1 - a[..., None])) / np.maximum(a[..., None], 1e-4),
+                               0.0)
+                write_png(out_dir / f"{Path(v.name).name}.png", rgb, a)
+        return {"split": split, "psnr": float(np.mean([p["psnr"] for p in per])) if per else None,
+                "ssim": float(np.mean([p["ssim"] for p in per])) if per else None, "views": per}
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+    def latest_checkpoint(self) -> Path:
+        latest = self.run_dir / "checkpoints" / "latest"
+        if not latest.is_file():
+            raise FileNotFoundError(f"no checkpoint to resume from in {self.run_dir / 'checkpoints'}")
+        return self.run_dir / "checkpoints" / latest.read_text().strip()
+
+    def save_checkpoint(self) -> Path:
+        s = self.scene
+        arrays = {"V": s.V.data, "F": s.F, "material": s.material.data, "alpha": s.alpha.data}
+        if s.vertex_sh is not None:
+            arrays["vertex_sh"] = s.vertex_sh.data
+        if s.light_params is not None:
+            arrays["light_params"] = s.light_params.data
+        for k, v in vars(self.stats).items():
+            if isinstance(v, np.ndarray):
+                arrays[f"stats.{k}"] = v
+        opt_state = self.opt.state_dict()
+        for g, st in opt_state["groups"].items():
+            for j, (m, v) in enumerate(zip(st["exp_avg"], st["exp_avg_sq"], strict=True)):
+                arrays[f"opt.{g}.{j}.m"], arrays[f"opt.{g}.{j}.v"] = m, v
+        meta = {"it": self.it, "t": opt_state["t"], "order": [int(x) for x in self.order],
+                "rng": self.rng.bit_generator.state,
+                "opt_hyper": {g: {k: v for k, v in st.items() if k not in ("exp_avg", "exp_avg_sq")}
+                              for g, st in opt_state["groups"].items()}}
+        arrays["meta"] = np.frombuffer(json.dumps(meta, default=_json_default).encode(), np.uint8)
+        buf = _io.BytesIO()
+        np.savez(buf, **arrays)
+        name = f"ckpt_{self.it:07d}.npz"
+        atomic_write_bytes(self.run_dir / "checkpoints" / name, buf.getvalue())
+        atomic_write_bytes(self.run_dir / "checkpoints" / "latest", name.encode())
+        return self.run_dir / "checkpoints" / name
+
+    def load_checkpoint(self, path: Path) -> None:
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"checkpoint {path} does not exist")
+        with np.load(path) as z:
+            a = {k: z[k] for k in z.files}
+        meta = json.loads(bytes(a.pop("meta")).decode())
+        s = self.scene
+        s.V.data, s.F = a["V"], a["F"].astype(np.int32)
+        s.material.data, s.alpha.data = a["material"], a["alpha"]
+        if s.vertex_sh is not None:
+            s.vertex_sh.data = a["vertex_sh"]
+        if s.light_params is not None:
+            s.light_params.data = a["light_params"]
+        self.stats = DensityStats(len(s.F))
+        for k in list(vars(self.stats)):
+            if f"stats.{k}" in a:
+                setattr(self.stats, k, a[f"stats.{k}"])
+        groups = {}
+        for g, hyper in meta["opt_hyper"].items():
+            n = len(self.opt.groups[g].params)
+            groups[g] = dict(hyper, exp_avg=[a[f"opt.{g}.{j}.m"] for j in range(n)],
+                             exp_avg_sq=[a[f"opt.{g}.{j}.v"] for j in range(n)])
+        self.opt.load_state_dict({"t": meta["t"], "groups": groups})
+        self.it = int(meta["it"])
+        self.order = list(meta["order"])
+        self.rng.bit_generator.state = meta["rng"]
+
+
+def _json_default(o):
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _light_json(lt) -> dict:
+    d = {"type": type(lt).__name__}
+    for k, v in vars(lt).items():
+        d[k] = v.tolist() if isinstance(v, np.ndarray) else v
+    return d
+
+
+def _file_logger(path: Path) -> logging.Logger:
+    log = logging.getLogger(f"triplet_cl.train.{path}")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    if not log.handlers:
+        h = logging.FileHandler(path)
+        h.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
+        log.addHandler(h)
+    return log
