@@ -58,14 +58,16 @@ class TrainConfig:
     warmup_faces_per_pixel: int = 150  # K during the warm-up
     warmup_until: int = 200  # warm-up length (¼ resolution and warm-up K)
     half_res_until: int = 600  # ½ resolution until this iteration, then full
-    sigma: float | None = 1.0  # soft-coverage sharpness (1/px); None = hard edges
+    sigma: float | None = 2.0  # soft-coverage sharpness (1/px); None = hard edges (measured: much worse)
     background: str = "white"  # "white", "black" or "random" (per iteration)
     ssim_lambda: float = 0.2  # loss = (1 − λ)·L1 + λ·(1 − SSIM)
-    lr_position: float = 1.1e-4  # × scene extent, decays exponentially to lr_position_final
-    lr_position_final: float = 1.1e-6
+    # × scene extent, decays exponentially to lr_position_final. The method's 1.1e-4 is tuned for 18k
+    # iterations; measured on spot_small (300 it.): 1.1e-4 → 16 dB, 1e-3 → 29.7 dB, 3e-3 → 28.0 dB
+    lr_position: float = 1e-3
+    lr_position_final: float = 1e-5
     lr_position_steps: int = 30_000
-    lr_material: float = 0.01
-    lr_alpha: float = 0.05
+    lr_material: float = 0.05  # the method: 0.01 (measured here: 0.05 learns faster at equal final quality)
+    lr_alpha: float = 0.1  # the method: 0.05
     lr_vertex_sh: float = 0.005
     lr_lights: float = 0.01
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)

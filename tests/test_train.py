@@ -1,0 +1,117 @@
+"""Training loop, initialisation, checkpoint/resume and the CLI on the shipped demo data."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from triplet_cl.cli.main import demo_data_path
+from triplet_cl.cli.main import main as cli_main
+
+from triplet_cl.density import DensityConfig
+from triplet_cl.train import TrainConfig, Trainer, look_at_center, schedule, triangles_from_points
+
+DEMO = demo_data_path()
+
+
+def small_cfg(**kw) -> TrainConfig:
+    base = TrainConfig(iterations=40, init_points=1500, warmup_until=10, half_res_until=20, checkpoint_every=0,
+                       max_test_views=2, faces_per_pixel=16, warmup_faces_per_pixel=32,
+                       density=DensityConfig(interval=10, densify_from=15, densify_until=35, grad_threshold=2e-4,
+                                             alpha_reset_interval=30, max_faces=4000, min_faces=10))
+    return replace(base, **kw)
+
+
+def test_demo_data_is_shipped():
+    assert (DEMO / "transforms_train.json").is_file() and (DEMO / "train" / "r_0.png").is_file()
+
+
+def test_initialisation(rng):
+    pts = rng.uniform(-1, 1, (200, 3))
+    V = triangles_from_points(pts, 0.5, rng)
+    assert V.shape == (600, 3)
+    tri = V.reshape(200, 3, 3)
+    np.testing.assert_allclose(tri.mean(1), pts, atol=1e-12)  # centred on its point
+    e = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)
+    np.testing.assert_allclose(e / e[:, :1], 1.0, rtol=1e-9)  # equilateral
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    assert abs(n.mean(0)).max() < 0.2, "random orientations"
+
+
+def test_schedule_follows_the_method():
+    cfg = TrainConfig()
+    assert schedule(cfg, 0) == (0.25, 150, 0)
+    assert schedule(cfg, 199)[:2] == (0.25, 150)
+    assert schedule(cfg, 200)[:2] == (0.5, 30)
+    assert schedule(cfg, 600)[:2] == (1.0, 30)
+    assert schedule(cfg, 2500)[2] == 2 and schedule(cfg, 1000)[2] == 1
+
+
+def test_short_training_lowers_loss_and_raises_psnr(tmp_path):
+    tr = Trainer(DEMO, tmp_path / "run", small_cfg(iterations=120, init_points=3000), quiet=True)
+    np.testing.assert_allclose(look_at_center(tr.ds), 0.0, atol=0.05)  # spot is at the origin
+    recs = [tr.step() for _ in range(120)]
+    first = np.mean([r["psnr"] for r in recs[:15]])
+    last = np.mean([r["psnr"] for r in recs[-15:]])
+    assert last > first + 2.0, (first, last)
+    assert np.mean([r["loss"] for r in recs[-15:]]) < 0.8 * np.mean([r["loss"] for r in recs[:15]])
+    assert any("densify" in r for r in recs), "density control ran"
+
+
+def test_checkpoint_resume_is_bit_for_bit(tmp_path):
+    cfg = small_cfg(iterations=36)
+    a = Trainer(DEMO, tmp_path / "a", cfg, quiet=True)
+    for _ in range(36):
+        a.step()
+    b = Trainer(DEMO, tmp_path / "b", cfg, quiet=True)
+    for _ in range(17):  # stop in the middle (after a densification at 15)
+        b.step()
+    b.save_checkpoint()
+    c = Trainer(None, tmp_path / "b", quiet=True, resume=True)
+    assert c.it == 17
+    for _ in range(36 - 17):
+        c.step()
+    for name in ("V", "material", "alpha", "light_params"):
+        np.testing.assert_array_equal(getattr(a.scene, name).data, getattr(c.scene, name).data, err_msg=name)
+    np.testing.assert_array_equal(a.scene.F, c.scene.F)
+
+
+def test_run_outputs_and_cli(tmp_path, capsys):
+    out = tmp_path / "demo"
+    rc = cli_main(["train", "--demo", "--iterations", "30", "--init-points", "1500", "--out", str(out),
+                   "--checkpoint-every", "20"])
+    assert rc == 0
+    for f in ("config.json", "triplets.ply", "lights.json", "metrics.json", "train.log", "checkpoints/latest"):
+        assert (out / f).is_file(), f
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["iterations"] == 30 and len(m["views"]) == 8 and np.isfinite(m["psnr"])
+    pngs = sorted((out / "renders" / "test").glob("*.png"))
+    assert len(pngs) == 8
+    from triplet_cl.datasets.images import read_image
+
+    img = read_image(pngs[0])
+    assert img.alpha is not None and img.rgb.shape == (96, 96, 3)
+    lights = json.loads((out / "lights.json").read_text())["lights"]
+    assert {lt["type"] for lt in lights} == {"PointLight", "AmbientLight"}
+    assert cli_main(["eval", str(out)]) == 0
+    assert "PSNR" in capsys.readouterr().out
+    assert cli_main(["render", str(out), "--split", "train", "--out", str(tmp_path / "tr")]) == 0
+    assert len(list((tmp_path / "tr").glob("*.png"))) == 40
+    # resume continues to a larger iteration count
+    assert cli_main(["train", "--resume", "--out", str(out), "--iterations", "35"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iterations"] == 35
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert cli_main(["eval", str(tmp_path / "nothing")]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+    assert cli_main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "missing" in err
+    with pytest.raises(SystemExit):
+        cli_main(["train", "--demo", "--brdf", "lambert"])
+    assert cli_main(["train", "--demo", "--lights", "laser", "--out", str(tmp_path / "x")]) == 2
+    assert "lights must be" in capsys.readouterr().err
