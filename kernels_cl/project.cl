@@ -12,6 +12,14 @@
  */
 #include "real.h"
 
+/* Camera-space position R v + t. */
+inline REAL3 to_camera(__constant REAL* cam, REAL3 p)
+{
+    return (REAL3)(cam[0] * p.x + cam[1] * p.y + cam[2] * p.z + cam[9],
+                   cam[3] * p.x + cam[4] * p.y + cam[5] * p.z + cam[10],
+                   cam[6] * p.x + cam[7] * p.y + cam[8] * p.z + cam[11]);
+}
+
 __kernel void project_fwd(__global const REAL* V,     // [N, 3]
                           __constant REAL* cam,       // [16]
                           const int n,
@@ -19,10 +27,7 @@ __kernel void project_fwd(__global const REAL* V,     // [N, 3]
 {
     const int i = get_global_id(0);
     if (i >= n) return;
-    const REAL3 p = LOAD3(V, i);
-    const REAL3 pc = (REAL3)(cam[0] * p.x + cam[1] * p.y + cam[2] * p.z + cam[9],
-                             cam[3] * p.x + cam[4] * p.y + cam[5] * p.z + cam[10],
-                             cam[6] * p.x + cam[7] * p.y + cam[8] * p.z + cam[11]);
+    const REAL3 pc = to_camera(cam, LOAD3(V, i));
     const REAL iz = (REAL)1 / pc.z;
     STORE3((REAL3)(cam[12] * pc.x * iz + cam[14], cam[13] * pc.y * iz + cam[15], pc.z), vs, i);
 }
@@ -36,10 +41,7 @@ __kernel void project_bwd(__global const REAL* V,     // [N, 3]
 {
     const int i = get_global_id(0);
     if (i >= n) return;
-    const REAL3 p = LOAD3(V, i);
-    const REAL3 pc = (REAL3)(cam[0] * p.x + cam[1] * p.y + cam[2] * p.z + cam[9],
-                             cam[3] * p.x + cam[4] * p.y + cam[5] * p.z + cam[10],
-                             cam[6] * p.x + cam[7] * p.y + cam[8] * p.z + cam[11]);
+    const REAL3 pc = to_camera(cam, LOAD3(V, i));
     const REAL3 g = LOAD3(v_vs, i);
     REAL3 vp = (REAL3)(0, 0, 0);
     if (pc.z > (REAL)0 && (g.x != (REAL)0 || g.y != (REAL)0 || g.z != (REAL)0)) {

@@ -132,6 +132,48 @@ inline REAL setup_window(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL
     return (REAL)1 - exp(-sigma * d);
 }
 
+/* Insert fragment (zp, f, e) into a pixel's list of the K nearest, kept sorted by (depth, face id). */
+inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp, int f, int e)
+{
+    const int n = *cnt;
+    if (n == K && !(zp < dk[K - 1] || (zp == dk[K - 1] && f < fk[K - 1]))) return;
+    int j = n < K ? n : K - 1;
+    while (j > 0 && (dk[j - 1] > zp || (dk[j - 1] == zp && fk[j - 1] > f))) {
+        dk[j] = dk[j - 1]; fk[j] = fk[j - 1]; ek[j] = ek[j - 1];
+        --j;
+    }
+    dk[j] = zp; fk[j] = f; ek[j] = e;
+    if (n < K) *cnt = n + 1;
+}
+
+/* Write slot o of a pixel (centre px, py): the fragment of entry e, or an empty slot (e < 0). */
+inline void store_fragment(__global const REAL* entry_setup, int e, int face, REAL depth, REAL px, REAL py,
+                           REAL sigma, int o, __global int* frag_face, __global int* frag_entry,
+                           __global REAL* frag_bary, __global REAL* frag_depth, __global REAL* frag_win)
+{
+    if (e < 0) {
+        frag_face[o] = -1;
+        frag_entry[o] = -1;
+        frag_bary[2 * o] = (REAL)0;
+        frag_bary[2 * o + 1] = (REAL)0;
+        frag_depth[o] = (REAL)0;
+        return;
+    }
+    __global const REAL* s = entry_setup + e * SETUP;
+    const REAL dx = px - s[0], dy = py - s[1];
+    const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+    const REAL b1 = s[4] * dx + s[5] * dy;
+    const REAL b2 = (REAL)1 - b0 - b1;
+    const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+    const REAL is = (REAL)1 / (w0 + w1 + w2);
+    frag_face[o] = face;
+    frag_entry[o] = e;
+    frag_bary[2 * o] = w0 * is;
+    frag_bary[2 * o + 1] = w1 * is;
+    frag_depth[o] = depth;
+    if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
+}
+
 __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
                          __global const int* entry_face,    // [E]
                          __global const REAL* entry_setup,  // [E, SETUP]
@@ -163,42 +205,13 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
         if (b0 < (REAL)0 || b1 < (REAL)0 || b2 < (REAL)0) continue;
         const REAL zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
         if (!(zp <= far)) continue;
-        const int f = entry_face[e];
-        if (cnt == K && !(zp < dk[K - 1] || (zp == dk[K - 1] && f < fk[K - 1]))) continue;
-        int j = cnt < K ? cnt : K - 1;
-        while (j > 0 && (dk[j - 1] > zp || (dk[j - 1] == zp && fk[j - 1] > f))) {
-            dk[j] = dk[j - 1]; fk[j] = fk[j - 1]; ek[j] = ek[j - 1];
-            --j;
-        }
-        dk[j] = zp; fk[j] = f; ek[j] = e;
-        if (cnt < K) ++cnt;
+        insert_fragment(dk, fk, ek, &cnt, K, zp, entry_face[e], e);
     }
     const int pix = y * width + x;
     frag_count[pix] = cnt;
-    for (int k = 0; k < K; ++k) {
-        const int o = pix * K + k;
-        if (k < cnt) {
-            __global const REAL* s = entry_setup + ek[k] * SETUP;
-            const REAL dx = px - s[0], dy = py - s[1];
-            const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
-            const REAL b1 = s[4] * dx + s[5] * dy;
-            const REAL b2 = (REAL)1 - b0 - b1;
-            const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
-            const REAL is = (REAL)1 / (w0 + w1 + w2);
-            frag_face[o] = fk[k];
-            frag_entry[o] = ek[k];
-            frag_bary[2 * o] = w0 * is;
-            frag_bary[2 * o + 1] = w1 * is;
-            frag_depth[o] = dk[k];
-            if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
-        } else {
-            frag_face[o] = -1;
-            frag_entry[o] = -1;
-            frag_bary[2 * o] = (REAL)0;
-            frag_bary[2 * o + 1] = (REAL)0;
-            frag_depth[o] = (REAL)0;
-        }
-    }
+    for (int k = 0; k < K; ++k)
+        store_fragment(entry_setup, k < cnt ? ek[k] : -1, k < cnt ? fk[k] : -1, k < cnt ? dk[k] : (REAL)0,
+                       px, py, sigma, pix * K + k, frag_face, frag_entry, frag_bary, frag_depth, frag_win);
 }
 
 #if TILE == 8
@@ -249,17 +262,8 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
         const int f = entry_face[e];
         for (int l = 0; l < nl; ++l) {
             if (c0[l] < (REAL)0 || c1[l] < (REAL)0 || c2[l] < (REAL)0) continue;
-            const REAL zp = zs[l];
-            if (!(zp <= far)) continue;
-            int n = cnt[l];
-            if (n == K && !(zp < dk[l][K - 1] || (zp == dk[l][K - 1] && f < fk[l][K - 1]))) continue;
-            int j = n < K ? n : K - 1;
-            while (j > 0 && (dk[l][j - 1] > zp || (dk[l][j - 1] == zp && fk[l][j - 1] > f))) {
-                dk[l][j] = dk[l][j - 1]; fk[l][j] = fk[l][j - 1]; ek[l][j] = ek[l][j - 1];
-                --j;
-            }
-            dk[l][j] = zp; fk[l][j] = f; ek[l][j] = e;
-            if (n < K) cnt[l] = n + 1;
+            if (!(zs[l] <= far)) continue;
+            insert_fragment(dk[l], fk[l], ek[l], &cnt[l], K, zs[l], f, e);
         }
     }
     for (int l = 0; l < nl; ++l) {
@@ -267,30 +271,10 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
         const int pix = y * width + x;
         const REAL pxl = (REAL)x + (REAL)0.5;
         frag_count[pix] = cnt[l];
-        for (int k = 0; k < K; ++k) {
-            const int o = pix * K + k;
-            if (k < cnt[l]) {
-                __global const REAL* s = entry_setup + ek[l][k] * SETUP;
-                const REAL dx = pxl - s[0], dy = py - s[1];
-                const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
-                const REAL b1 = s[4] * dx + s[5] * dy;
-                const REAL b2 = (REAL)1 - b0 - b1;
-                const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
-                const REAL is = (REAL)1 / (w0 + w1 + w2);
-                frag_face[o] = fk[l][k];
-                frag_entry[o] = ek[l][k];
-                frag_bary[2 * o] = w0 * is;
-                frag_bary[2 * o + 1] = w1 * is;
-                frag_depth[o] = dk[l][k];
-                if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
-            } else {
-                frag_face[o] = -1;
-                frag_entry[o] = -1;
-                frag_bary[2 * o] = (REAL)0;
-                frag_bary[2 * o + 1] = (REAL)0;
-                frag_depth[o] = (REAL)0;
-            }
-        }
+        for (int k = 0; k < K; ++k)
+            store_fragment(entry_setup, k < cnt[l] ? ek[l][k] : -1, k < cnt[l] ? fk[l][k] : -1,
+                           k < cnt[l] ? dk[l][k] : (REAL)0, pxl, py, sigma, pix * K + k,
+                           frag_face, frag_entry, frag_bary, frag_depth, frag_win);
     }
 }
 #endif

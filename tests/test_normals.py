@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.gradients import cs_grad, fd_grad
 from tests.reference import normals as ref
 from triplet_cl.ops.normals import face_normals, face_normals_backward, vertex_normals, vertex_normals_backward
 from triplet_cl.topology import vertex_corner_csr
@@ -16,23 +17,8 @@ def _mesh(rng, n=12, m=20):
     return V, F
 
 
-def cs_grad(f, x, h=1e-30):
-    g = np.zeros(x.shape)
-    for i in np.ndindex(x.shape):
-        xc = x.astype(np.complex128)
-        xc[i] += 1j * h
-        g[i] = f(xc).imag / h
-    return g
 
 
-def fd_grad(f, x, h=1e-6):
-    g = np.zeros(x.shape)
-    for i in np.ndindex(x.shape):
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        g[i] = (f(xp) - f(xm)) / (2 * h)
-    return g
 
 
 def test_forward_float32(device, rng):

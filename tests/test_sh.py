@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.gradients import cs_grad
 from tests.reference import sh as ref
 from triplet_cl.ops.vertex_sh import sh_basis, sh_basis_backward
 
@@ -14,14 +15,6 @@ def _unit(rng, n):
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def cs_grad(f, x, h=1e-30):
-    """Gradient of the real scalar ``f`` at ``x`` by complex steps (exact to rounding)."""
-    g = np.zeros(x.shape)
-    for i in np.ndindex(x.shape):
-        xc = x.astype(np.complex128)
-        xc[i] += 1j * h
-        g[i] = f(xc).imag / h
-    return g
 
 
 def test_recurrence_matches_scipy_definition(rng):

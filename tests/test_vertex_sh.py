@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.gradients import cs_grad
 from tests.reference import sh as ref
 from triplet_cl.ops.vertex_sh import vertex_sh, vertex_sh_backward
 
@@ -17,13 +18,6 @@ def _inputs(rng, n=50, D=3):
     return V, c
 
 
-def cs_grad(f, x, h=1e-30):
-    g = np.zeros(x.shape)
-    for i in np.ndindex(x.shape):
-        xc = x.astype(np.complex128)
-        xc[i] += 1j * h
-        g[i] = f(xc).imag / h
-    return g
 
 
 @pytest.mark.parametrize("degree", [0, 2, 3])

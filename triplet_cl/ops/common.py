@@ -99,3 +99,16 @@ def buf(a: cla.Array | None, queue: cl.CommandQueue | None = None):
 
 def round_up(n: int, m: int) -> int:
     return ((int(n) + m - 1) // m) * m
+
+
+def fragment_array(queue: cl.CommandQueue, name: str, a, shape, real) -> cla.Array | None:
+    """A per-fragment array on the device (``None`` passes through). Shape and dtype are checked,
+    values are not: slots beyond a pixel's count are undefined by contract (may hold NaN)."""
+    if a is None:
+        return None
+    if isinstance(a, cla.Array):
+        check_shape(name, a, shape)
+        if a.dtype != np.dtype(real):
+            raise ValueError(f"{name} must have dtype {np.dtype(real)}, got {a.dtype}")
+        return a
+    return to_device(queue, check_real(name, a, shape, real, finite=False))

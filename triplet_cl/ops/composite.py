@@ -8,19 +8,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, check_shape, to_device
+from .common import buf, check_real, fragment_array
 from .raster import Fragments
-
-
-def _dev(device: Device, name: str, a, shape, real):
-    """Per-fragment arrays: slots beyond a pixel's count are undefined (may hold NaN), so only the
-    shape and dtype are checked here."""
-    if isinstance(a, cla.Array):
-        check_shape(name, a, shape)
-        if a.dtype != real:
-            raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
-        return a
-    return to_device(device.queue, check_real(name, a, shape, real, finite=False))
 
 
 def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
@@ -71,9 +60,9 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     C = int(feat.shape[3])
     if not 1 <= C <= 64:
         raise ValueError(f"feat must have between 1 and 64 channels, got {C}")
-    f = _dev(device, "feat", feat, (H, W, K, C), real)
-    a = _dev(device, "alpha", alpha, (H, W, K), real)
-    w = None if win is None else _dev(device, "win", win, (H, W, K), real)
+    f = fragment_array(device.queue, "feat", feat, (H, W, K, C), real)
+    a = fragment_array(device.queue, "alpha", alpha, (H, W, K), real)
+    w = None if win is None else fragment_array(device.queue, "win", win, (H, W, K), real)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,)) if np.ndim(bg) <= 1 else None
     if b is None:
         raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
@@ -107,11 +96,11 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     H, W, K = frags.shape
     real = frags.real
     C = int(feat.shape[3])
-    f = _dev(device, "feat", feat, (H, W, K, C), real)
-    a = _dev(device, "alpha", alpha, (H, W, K), real)
-    w = None if win is None else _dev(device, "win", win, (H, W, K), real)
-    g = _dev(device, "v_image", v_image, (H, W, C), real)
-    va = None if v_acc is None else _dev(device, "v_acc", v_acc, (H, W), real)
+    f = fragment_array(device.queue, "feat", feat, (H, W, K, C), real)
+    a = fragment_array(device.queue, "alpha", alpha, (H, W, K), real)
+    w = None if win is None else fragment_array(device.queue, "win", win, (H, W, K), real)
+    g = fragment_array(device.queue, "v_image", v_image, (H, W, C), real)
+    va = None if v_acc is None else fragment_array(device.queue, "v_acc", v_acc, (H, W), real)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,))
     bgd = cla.to_device(device.queue, b.astype(real))
     q, alloc = device.queue, device.allocator

@@ -26,7 +26,7 @@ from pyopencl.scan import InclusiveScanKernel
 
 from ..camera import Camera
 from ..device import Device
-from .common import buf, check_real, check_shape, to_device
+from .common import buf, check_real, check_shape, fragment_array, to_device
 from .mesh import DeviceMesh
 
 TILE = 8
@@ -267,19 +267,6 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
                      tile_off, face_off, face_entries, vs, mesh, win, sigma)
 
 
-def _device_or_none(device: Device, name: str, a, shape, real):
-    """A per-fragment adjoint on the device (shape and dtype checked; slots beyond a pixel's count
-    are undefined, so values are not)."""
-    if a is None:
-        return None
-    if isinstance(a, cla.Array):
-        check_shape(name, a, shape)
-        if a.dtype != real:
-            raise ValueError(f"{name} must have dtype {real}, got {a.dtype}")
-        return a
-    return to_device(device.queue, check_real(name, a, shape, real, finite=False))
-
-
 def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
     """Sum per-entry partial adjoints ``[E, 3, C]`` to vertices ``[N, C]`` (deterministic, no atomics)."""
     mesh = frags.mesh
@@ -331,10 +318,10 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         C = a.shape[1]
         if v_attr_frag is None:
             raise ValueError("v_attr_frag is required with attr")
-        g = _device_or_none(device, "v_attr_frag", v_attr_frag, (H, W, K, C), real)
-    vb = _device_or_none(device, "v_bary", v_bary, (H, W, K, 2), real)
-    vd = _device_or_none(device, "v_depth", v_depth, (H, W, K), real)
-    vw = _device_or_none(device, "v_win", v_win, (H, W, K), real)
+        g = fragment_array(device.queue, "v_attr_frag", v_attr_frag, (H, W, K, C), real)
+    vb = fragment_array(device.queue, "v_bary", v_bary, (H, W, K, 2), real)
+    vd = fragment_array(device.queue, "v_depth", v_depth, (H, W, K), real)
+    vw = fragment_array(device.queue, "v_win", v_win, (H, W, K), real)
     T, E = frags.num_tiles, frags.num_entries
     p_attr = cla.empty(q, (max(E, 1), 3, max(C, 1)), real, allocator=alloc) if C else None
     p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc) if geometry else None
