@@ -18,10 +18,23 @@ from triplet_cl.scene import Scene
 W, H = 15, 12
 
 
-def small_scene(rng, brdf, vertex_sh=False, M=10):
-    c = rng.uniform(-0.45, 0.45, (M, 1, 3))
-    V = (c + rng.normal(0, 0.3, (M, 3, 3))).reshape(-1, 3)
-    F = np.arange(3 * M).reshape(M, 3)
+def grid_mesh(rng, n=5):
+    """A connected, gently curved grid (vertices shared by up to 6 faces)."""
+    g = np.stack(np.meshgrid(np.linspace(-0.8, 0.8, n), np.linspace(-0.7, 0.7, n)), -1).reshape(-1, 2)
+    V = np.concatenate([g, 0.2 * np.sin(2.0 * g[:, :1]) + 0.05 * rng.normal(size=(len(g), 1))], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    F = np.concatenate([np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:]], -1).reshape(-1, 3),
+                        np.stack([idx[:-1, :-1], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 3)])
+    return V, F
+
+
+def small_scene(rng, brdf, vertex_sh=False, M=10, mesh=False):
+    if mesh:
+        V, F = grid_mesh(rng)
+    else:
+        c = rng.uniform(-0.45, 0.45, (M, 1, 3))
+        V = (c + rng.normal(0, 0.3, (M, 3, 3))).reshape(-1, 3)
+        F = np.arange(3 * M).reshape(M, 3)
     n = len(V)
     lights = [PointLight([1.5, 2.0, 3.0], [6.0, 5.0, 4.0]), DirectionalLight([0.3, 1.0, 0.5], [0.6, 0.7, 0.8]),
               AmbientLight([0.1, 0.15, 0.2]),
@@ -43,10 +56,14 @@ def cam():
     return Camera.look_at([0.4, 0.3, 3.0], [0, 0, 0], [0, 1, 0], 40, W, H)
 
 
-@pytest.mark.parametrize("brdf,vertex_sh,sigma", [("cook_torrance", True, 0.8), ("blinn_phong", False, None)])
-def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, sigma):
-    scene = small_scene(rng, brdf, vertex_sh)
-    settings = RenderSettings(K=6, sigma=sigma, real=np.float64, t_min=0.0, background=(0.3, 0.5, 0.9))
+@pytest.mark.parametrize("brdf,vertex_sh,sigma,mesh", [("cook_torrance", True, 0.8, False),
+                                                        ("blinn_phong", False, None, False),
+                                                        ("cook_torrance", False, 1.5, True)])
+def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, sigma, mesh):
+    """Soups with face normals, and a connected mesh with area-weighted vertex normals."""
+    scene = small_scene(rng, brdf, vertex_sh, mesh=mesh)
+    settings = RenderSettings(K=6, sigma=sigma, real=np.float64, t_min=0.0, background=(0.3, 0.5, 0.9),
+                              normals="vertex" if mesh else "face")
     c = cam()
     w = rng.standard_normal((H, W, 4))
     r = render(scene, c, settings, device64)
