@@ -75,12 +75,14 @@ class TrainConfig:
     betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
     adam_eps: float = 1e-15
     sh_clip: float = 1.0  # gradient-norm clipping of the vertex-SH coefficients
-    # density control; measured on spot_small (2500 it.): grad_threshold 2e-4 / 1e-4 / 5e-5 → 6k / 8k / 12k
-    # faces; alpha resets every 1000 it. with pruning at alpha <= 0.05 collapsed the soup (a white object on
-    # a white background gives no gradient that restores alpha: 29.4 dB), without them 34.8 dB; the
-    # screen-size prune at the method's 0.1 % of the image removed most faces at 200² (1 % kept)
+    # density control; grad_threshold in NDC units (× W/2). Measured on spot_small (2500 it., 96²) in pixel
+    # units: 2e-4 / 1e-4 / 5e-5 → 6k / 8k / 12k faces, 1e-4 best (34.8 dB) = 4.8e-3 in NDC; on spot (200²)
+    # 5e-3 → 32.1 dB with 3.3k faces, 2e-3 → 31.0 dB with 8.2k. Alpha resets every 1000 it. with pruning
+    # at alpha <= 0.05 collapsed the soup (a white object on a white background gives no gradient that
+    # restores alpha: 29.4 dB), without them 34.8 dB; the screen-size prune at the method's 0.1 % of the
+    # image removed most faces at 200² (1 % kept)
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
-        interval=100, densify_from=300, densify_until=2500, grad_threshold=1e-4, alpha_reset_interval=3000,
+        interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
@@ -341,8 +343,11 @@ class Trainer:
         dens = cfg.density
         if it < dens.densify_until:
             fr = r.view.frags
+            # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
+            # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
             self.stats.add(r.view.v_vs.get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad)
+                           vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
+                           grad_scale=0.5 * cam.width)
         self.opt.step()
         self.opt.zero_grad()
         t4 = time.perf_counter()

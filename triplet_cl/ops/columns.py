@@ -27,23 +27,32 @@ def copy_columns(device: Device, frags: Fragments, src: cla.Array | None, cs0: i
         np.int32(bool(accumulate)))
 
 
-def split(device: Device, frags: Fragments, x: cla.Array, sizes: list[int]) -> list[cla.Array]:
-    """Split ``[H, W, K, C]`` into blocks of ``sizes`` channels (each ``[H, W, K, s]``)."""
-    out, c0 = [], 0
-    for s in sizes:
-        y = cla.empty(device.queue, x.shape[:3] + (s,), x.dtype, allocator=device.allocator)
-        copy_columns(device, frags, x, c0, y, 0, s)
-        out.append(y)
-        c0 += s
-    return out
+class Compaction:
+    """The valid fragment slots of a view as a dense list: ``pack`` / ``unpack`` between
+    ``[H, W, K, C]`` (slots beyond a pixel's count ignored) and ``[Pv, n]``, ``Pv`` = Σ counts."""
 
+    def __init__(self, device: Device, frags: Fragments):
+        from .raster import _offsets
 
-def pack(device: Device, frags: Fragments, blocks: list[cla.Array | None], sizes: list[int]) -> cla.Array:
-    """Inverse of :func:`split`; ``None`` blocks become zeros."""
-    H, W, K = frags.shape
-    y = cla.empty(device.queue, (H, W, K, sum(sizes)), frags.real, allocator=device.allocator)
-    c0 = 0
-    for b, s in zip(blocks, sizes, strict=True):
-        copy_columns(device, frags, None if b is None else b.reshape(H, W, K, s), 0, y, c0, s)
-        c0 += s
-    return y
+        self.device, self.frags = device, frags
+        self.offsets, self.P = _offsets(device, frags.count.reshape(-1))
+
+    def pack(self, x: cla.Array, c0: int, n: int) -> cla.Array:
+        """``x[..., c0:c0+n]`` of the valid slots → ``[Pv, n]``."""
+        d, fr = self.device, self.frags
+        H, W, K = fr.shape
+        out = cla.empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)
+        d.kernel("columns", "pack_rows", real=fr.real)(
+            d.queue, (H * W,), None, x.data, np.int32(x.shape[-1]), np.int32(c0), np.int32(n), self.offsets.data,
+            fr.count.data, np.int32(H * W), np.int32(K), out.data)
+        return out[: self.P] if self.P else out[:0]
+
+    def unpack(self, src: cla.Array, dst: cla.Array, c0: int) -> None:
+        """Write ``src [Pv, n]`` into ``dst[..., c0:c0+n]`` at the valid slots."""
+        d, fr = self.device, self.frags
+        H, W, K = fr.shape
+        if self.P == 0:
+            return
+        d.kernel("columns", "unpack_rows", real=fr.real)(
+            d.queue, (H * W,), None, src.data, np.int32(src.shape[-1]), self.offsets.data, fr.count.data,
+            np.int32(H * W), np.int32(K), dst.data, np.int32(dst.shape[-1]), np.int32(c0))
