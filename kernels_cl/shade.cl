@@ -158,7 +158,17 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             REAL3 gE = (REAL3)(0), gG = (REAL3)(0);
             for (int k = 0; k < ENV_NK; ++k) Yn[k] = Yr[k] = (REAL)0;
             for (int l = 0; l <= ENV_MAX_DEG; ++l) gl[l] = (REAL)0;
-            if (valid) env_term_vjp(N, V, m, a, q, b, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+            if (valid) {
+                /* Re-load the fragment here instead of using x, V, N, m: Intel's CPU OpenCL
+                 * compiler (2026.22, optimised builds) keeps loop-invariant values derived from them
+                 * that cross the barriers of the previous lights in a single copy per work-group, so
+                 * env_term_vjp saw another work-item's V and material (wrong v_pos/v_nrm/v_mat and
+                 * env coefficient gradients whenever an env light follows a reduced light). */
+                REAL3 xe, Ve, Ne;
+                REAL se, me[NMAT];
+                load_fragment(p, pos, nrm, mat, cam, two_sided, &xe, &Ve, &Ne, &se, me);
+                env_term_vjp(Ne, Ve, me, a, q, b, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+            }
             /* coefficient j = ch * nk + k of the active bands, RED_W at a time */
             for (int j0 = 0; j0 < 3 * nk; j0 += RED_W) {
                 REAL g[RED_W];
