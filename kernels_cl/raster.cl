@@ -146,19 +146,13 @@ inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp
     if (n < K) *cnt = n + 1;
 }
 
-/* Write slot o of a pixel (centre px, py): the fragment of entry e, or an empty slot (e < 0). */
+/* Write slot o of a pixel (centre px, py): the fragment of entry e. Slots beyond the pixel's count are
+ * never written (every consumer stops at frag_count; writing K slots cost more than the raster test at
+ * K = 150). */
 inline void store_fragment(__global const REAL* entry_setup, int e, int face, REAL depth, REAL px, REAL py,
                            REAL sigma, int o, __global int* frag_face, __global int* frag_entry,
                            __global REAL* frag_bary, __global REAL* frag_depth, __global REAL* frag_win)
 {
-    if (e < 0) {
-        frag_face[o] = -1;
-        frag_entry[o] = -1;
-        frag_bary[2 * o] = (REAL)0;
-        frag_bary[2 * o + 1] = (REAL)0;
-        frag_depth[o] = (REAL)0;
-        return;
-    }
     __global const REAL* s = entry_setup + e * SETUP;
     const REAL dx = px - s[0], dy = py - s[1];
     const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
@@ -209,9 +203,9 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
     }
     const int pix = y * width + x;
     frag_count[pix] = cnt;
-    for (int k = 0; k < K; ++k)
-        store_fragment(entry_setup, k < cnt ? ek[k] : -1, k < cnt ? fk[k] : -1, k < cnt ? dk[k] : (REAL)0,
-                       px, py, sigma, pix * K + k, frag_face, frag_entry, frag_bary, frag_depth, frag_win);
+    for (int k = 0; k < cnt; ++k)
+        store_fragment(entry_setup, ek[k], fk[k], dk[k], px, py, sigma, pix * K + k, frag_face, frag_entry,
+                       frag_bary, frag_depth, frag_win);
 }
 
 #if TILE == 8
@@ -271,9 +265,8 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
         const int pix = y * width + x;
         const REAL pxl = (REAL)x + (REAL)0.5;
         frag_count[pix] = cnt[l];
-        for (int k = 0; k < K; ++k)
-            store_fragment(entry_setup, k < cnt[l] ? ek[l][k] : -1, k < cnt[l] ? fk[l][k] : -1,
-                           k < cnt[l] ? dk[l][k] : (REAL)0, pxl, py, sigma, pix * K + k,
+        for (int k = 0; k < cnt[l]; ++k)
+            store_fragment(entry_setup, ek[l][k], fk[l][k], dk[l][k], pxl, py, sigma, pix * K + k,
                            frag_face, frag_entry, frag_bary, frag_depth, frag_win);
     }
 }

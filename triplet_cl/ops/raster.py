@@ -120,12 +120,13 @@ class Fragments:
     """The K nearest fragments of every pixel, plus the binning the adjoint needs.
 
     Device arrays (``H, W`` image size, ``K`` slots, nearest first; ``E`` (tile, face) entries):
-        face ``[H, W, K] int32`` (−1 = empty), bary ``[H, W, K, 2]`` perspective-correct
+        face ``[H, W, K] int32``, bary ``[H, W, K, 2]`` perspective-correct
         (λ0, λ1; λ2 = 1 − λ0 − λ1), depth ``[H, W, K]`` camera-space depth, count ``[H, W] int32``;
         entry ``[H, W, K] int32``, tile_off ``[T+1]``, face_off ``[M+1]``, face_entries ``[E]``.
 
-    Every per-fragment array derived from these (interpolated attributes, windows, shaded colours,
-    adjoints) is defined only in the first ``count[y, x]`` slots of a pixel: kernels never read or
+    These, and every per-fragment array derived from them (interpolated attributes, windows, shaded
+    colours, adjoints), are defined only in the first ``count[y, x]`` slots of a pixel
+    (:func:`read_fragments` / :func:`valid_faces` give host copies with −1 in the empty slots): kernels never read or
     write the others, so their cost follows the fragments, not K.
     """
 
@@ -361,10 +362,26 @@ def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None,
 
 
 def read_fragments(frags: Fragments) -> dict[str, np.ndarray]:
-    """Host copies of the fragment buffers (tests, debugging, tools)."""
-    return {"face": frags.face.get(), "bary": frags.bary.get(), "depth": frags.depth.get(),
-            "count": frags.count.get(), "entry": frags.entry.get()}
+    """Host copies of the fragment buffers (tests, debugging, tools), with the slots beyond each
+    pixel's count (never written on the device) set to face/entry −1 and zero barycentrics/depth."""
+    count = frags.count.get()
+    empty = np.arange(frags.K)[None, None, :] >= count[..., None]
+    out = {"face": frags.face.get(), "bary": frags.bary.get(), "depth": frags.depth.get(), "count": count,
+           "entry": frags.entry.get()}
+    out["face"][empty] = -1
+    out["entry"][empty] = -1
+    out["bary"][empty] = 0
+    out["depth"][empty] = 0
+    return out
+
+
+def valid_faces(frags: Fragments) -> np.ndarray:
+    """``[H, W, K] int32`` face ids on the host, −1 beyond each pixel's count."""
+    count = frags.count.get()
+    face = frags.face.get()
+    face[np.arange(frags.K)[None, None, :] >= count[..., None]] = -1
+    return face
 
 
 __all__ = ["Fragments", "camera_params", "fragments_backward", "gather_to_vertices", "project", "project_backward",
-           "rasterize", "raster_backward", "read_fragments", "TILE"]
+           "rasterize", "raster_backward", "read_fragments", "valid_faces", "TILE"]
