@@ -27,6 +27,7 @@ import numpy as np
 
 from triplet_cl import get_device
 from triplet_cl.camera import Camera
+from triplet_cl.ops.columns import copy_columns
 from triplet_cl.ops.composite import composite, composite_backward, coverage
 from triplet_cl.ops.interpolate import interpolate
 from triplet_cl.ops.mesh import DeviceMesh
@@ -80,6 +81,9 @@ class Chain:
         self.Vd = cla.to_device(q, V)
         self.attrd = cla.to_device(q, self.attr)
         self.v_img = cla.to_device(q, rng.standard_normal((cam.height, cam.width, 3)).astype(np.float32))
+        v4 = np.zeros((cam.height, cam.width, 4), np.float32)  # RGB cotangent, 0 on the alpha channel
+        v4[..., :3] = self.v_img.get()
+        self.v_img4 = cla.to_device(q, v4)
         self.bg = np.ones(4)
 
     def set_alpha(self, a: float):
@@ -87,6 +91,8 @@ class Chain:
         self.attrd.set(self.attr)
 
     def forward(self):
+        import pyopencl.array as cla
+
         d = self.dev
         self.vs = project(d, self.Vd, self.cam)
         self.fr = rasterize(d, self.vs, self.mesh, self.cam.width, self.cam.height, self.K, sigma=self.sigma)
@@ -94,53 +100,21 @@ class Chain:
         # alpha taken from the same buffer through a view would need strides: composite 4 channels
         # with the alpha channel's own blend being harmless)
         self.fa = interpolate(d, self.attrd, self.fr)
-        self.a = _channel(d, self.fa, 3)
+        self.a = cla.empty(d.queue, self.fr.shape + (1,), np.float32, allocator=d.allocator)
+        copy_columns(d, self.fr, self.fa, 3, self.a, 0, 1)  # alpha = channel 3 (valid slots only)
+        self.a = self.a.reshape(self.fr.shape)
         self.win = coverage(d, self.fr, self.sigma)
         self.img, self.trans, self.ncon = composite(d, self.fr, self.fa, self.a, self.bg, win=self.win)
         d.queue.finish()
 
     def backward(self):
         d, fr = self.dev, self.fr
-        v_img4 = _pad_channel(d, self.v_img)
-        vf, va, vw, _ = composite_backward(d, fr, self.fa, self.a, self.bg, self.ncon, self.trans, v_img4,
+        vf, va, vw, _ = composite_backward(d, fr, self.fa, self.a, self.bg, self.ncon, self.trans, self.v_img4,
                                            win=self.win)
-        _add_to_channel(d, vf, va, 3)
+        copy_columns(d, fr, va.reshape(*fr.shape, 1), 0, vf, 3, 1, accumulate=True)  # + alpha's adjoint
         _, v_vs, _ = fragments_backward(d, fr, self.attrd, vf, v_win=vw, sigma=self.sigma)
         project_backward(d, self.Vd, self.cam, v_vs)
         d.queue.finish()
-
-
-def _channel(d, x, c):
-    from pyopencl.elementwise import ElementwiseKernel
-
-    t = "float" if x.dtype == np.float32 else "double"
-    k = d.cached(("bench-ch", x.dtype.str), lambda: ElementwiseKernel(
-        d.ctx, f"{t} *out, const {t} *x, int C, int c", "out[i] = x[i * C + c]", "channel"))
-    import pyopencl.array as cla
-
-    out = cla.empty(d.queue, x.shape[:-1], x.dtype, allocator=d.allocator)
-    k(out, x, np.int32(x.shape[-1]), np.int32(c))
-    return out
-
-
-def _pad_channel(d, v):
-    import pyopencl.array as cla
-
-    key = ("bench-pad", v.shape)
-    out = d.cached(key, lambda: cla.zeros(d.queue, v.shape[:-1] + (4,), v.dtype))
-    h = np.zeros(v.shape[:-1] + (4,), v.dtype.type)
-    h[..., :3] = v.get()
-    out.set(h)
-    return out
-
-
-def _add_to_channel(d, x, y, c):
-    from pyopencl.elementwise import ElementwiseKernel
-
-    t = "float" if x.dtype == np.float32 else "double"
-    k = d.cached(("bench-add", x.dtype.str), lambda: ElementwiseKernel(
-        d.ctx, f"{t} *x, const {t} *y, int C, int c", "x[i * C + c] += y[i]", "addch"))
-    k(x, y, np.int32(x.shape[-1]), np.int32(c), range=slice(0, y.size))
 
 
 def timed(fn, runs):
