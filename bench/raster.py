@@ -276,6 +276,8 @@ def main(argv=None):
                     if res * res * K * 40 > dev.info.max_alloc_bytes * 4:
                         print(f"{scene:8} {res:5d} {M:8d} {K:4d}  skipped: fragment buffers exceed device memory")
                         continue
+                    ch = None
+                    dev.allocator.free_held()  # the previous configuration's buffers go back first
                     ch = Chain(dev, V, F, camera(res), K)
                     try:
                         fwd = timed(ch.forward, args.runs)
@@ -284,6 +286,7 @@ def main(argv=None):
                         print(f"{scene:8} {res:5d} {M:8d} {K:4d}  skipped: {exc}")
                         continue
                     fpp, cov = frag_stats(ch)
+                    # device memory the pooled allocator holds after a forward + backward (≈ the peak)
                     peak = getattr(dev.allocator, "managed_bytes", float("nan")) / 2**20
                     print(f"{scene:8} {res:5d} {M:8d} {K:4d} {fpp:7.1f} {cov:6.2f} {fwd:8.1f} {bwd:8.1f} "
                           f"{fwd + bwd:8.1f} {peak:9.0f}", flush=True)
