@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.gradients import cs_grad
+from tests.gradients import cs_grad, fd_grad
 from tests.reference import sh as ref
 from triplet_cl.ops.vertex_sh import vertex_sh, vertex_sh_backward
 
@@ -57,13 +57,7 @@ def test_vjp_float64_finite_differences(device64, rng):
     v_c, v_V = vertex_sh_backward(V, c, CAM, v, **kw)
 
     def fd(f, x):
-        g = np.zeros(x.shape)
-        for i in np.ndindex(x.shape):
-            xp, xm = x.copy(), x.copy()
-            xp[i] += h
-            xm[i] -= h
-            g[i] = (f(xp) - f(xm)) / (2 * h)
-        return g
+        return fd_grad(f, x, h)
 
     np.testing.assert_allclose(v_V, fd(lambda x: np.sum(vertex_sh(x, c, CAM, **kw) * v), V), rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(v_c, fd(lambda x: np.sum(vertex_sh(V, x, CAM, **kw) * v), c), rtol=1e-6, atol=1e-8)

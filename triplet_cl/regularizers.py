@@ -34,6 +34,8 @@ from triplet_cl.autodiff import Function
 from triplet_cl.ops.common import check_faces
 from triplet_cl.topology import edge_adjacent_faces
 
+from .losses import _reduction_scale as _scale
+
 FACE_NORMAL_EPS = 1e-30  # smooths normalize() only for (near-)degenerate faces
 
 
@@ -47,14 +49,6 @@ def _check_attr(name: str, a, num_rows: int | None = None, cols: int | None = No
     if a.size and not np.isfinite(a).all():
         raise ValueError(f"{name} must be finite, found {int((~np.isfinite(a)).sum())} NaN/Inf value(s)")
     return a
-
-
-def _scale(reduction: str, count: int) -> float:
-    if reduction == "mean":
-        return 1.0 / max(count, 1)
-    if reduction == "sum":
-        return 1.0
-    raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
