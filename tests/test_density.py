@@ -431,3 +431,29 @@ def test_config_schedule_and_validation():
         DensityConfig(split_interp="log")
     with pytest.raises(ValueError):
         DensityConfig(min_faces=10, max_faces=5)
+
+
+def test_reorder_faces_keeps_rows_and_moments_aligned():
+    from triplet_cl.density import reorder_faces
+    from triplet_cl.topology import morton_order
+
+    rng = np.random.default_rng(5)
+    M = 7
+    V = rng.normal(size=(3 * M, 3))
+    scene = Scene.from_arrays(V, np.arange(3 * M).reshape(M, 3))
+    opt = Adam()
+    opt.add_group("V", [scene.V], lr=0.1)
+    opt.add_group("alpha", [scene.alpha], lr=0.1)
+    scene.V.grad = rng.normal(size=scene.V.data.shape)
+    scene.alpha.grad = rng.normal(size=scene.alpha.data.shape)
+    opt.step()
+    mV = opt.groups["V"].exp_avg[0].copy()
+    V0 = scene.V.data.copy()
+    order = morton_order(V0.reshape(M, 3, 3).mean(1))
+    assert sorted(order) == list(range(M))
+    reorder_faces(scene, opt, order)
+    idx = (3 * order[:, None] + np.arange(3)).reshape(-1)
+    np.testing.assert_array_equal(scene.V.data, V0[idx])
+    np.testing.assert_array_equal(opt.groups["V"].exp_avg[0], mV[idx])
+    with pytest.raises(ValueError, match="permutation"):
+        reorder_faces(scene, opt, np.zeros(M, int))

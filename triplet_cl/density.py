@@ -352,6 +352,18 @@ def _apply(scene, optimizer, index_map: np.ndarray, new_data: dict[int, np.ndarr
     scene.F = np.arange(3 * num_faces, dtype=np.int32).reshape(num_faces, 3)
 
 
+def reorder_faces(scene, optimizer, order: np.ndarray) -> None:
+    """Permute the soup's faces (``order[new] = old face``) with their vertices, attributes and
+    optimizer moments (e.g. by :func:`triplet_cl.topology.morton_order` of the face centroids)."""
+    M = check_soup(scene)
+    order = np.asarray(order, np.int64)
+    if order.shape != (M,) or not np.array_equal(np.sort(order), np.arange(M)):
+        raise ValueError(f"order must be a permutation of the {M} faces")
+    index_map = (3 * order[:, None] + np.arange(3)[None, :]).reshape(-1)
+    new_data = {id(p): np.asarray(p.data)[index_map] for p in _vertex_params(scene)}
+    _apply(scene, optimizer, index_map, new_data, M)
+
+
 # ---------------------------------------------------------------------------------------------
 # density control
 # ---------------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .datasets import load_dataset
 from .datasets.base import Dataset, resolve_background
-from .density import DensityConfig, DensityStats, densify_and_prune, reset_alpha, visible_faces
+from .density import DensityConfig, DensityStats, densify_and_prune, reorder_faces, reset_alpha, visible_faces
 from .device import Device, get_device
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
@@ -37,6 +37,7 @@ from .ops.raster import valid_faces
 from .optim import Adam, Constant, ExponentialDecay, StepUp
 from .render import RenderSettings, render
 from .scene import Scene
+from .topology import morton_order
 
 LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
 Y00 = 0.28209479177387814  # the constant real SH basis function
@@ -303,6 +304,7 @@ class Trainer:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         self.opt = build_optimizer(self.cfg, self.scene, self.extent)
+        self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
         self.targets = Targets(self.ds)
         self.it = 0
@@ -316,6 +318,11 @@ class Trainer:
         else:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
+
+    def spatial_sort(self) -> None:
+        """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
+        V = self.scene.V.data.reshape(-1, 3, 3)
+        reorder_faces(self.scene, self.opt, morton_order(V.mean(axis=1)))
 
     # ---- one step ------------------------------------------------------------------------------
     def next_view(self) -> int:
@@ -360,6 +367,7 @@ class Trainer:
             grace = self.last_alpha_reset is not None and it - self.last_alpha_reset < cfg.alpha_reset_grace
             report = densify_and_prune(self.scene, self.opt, self.stats, dens, self.extent, prune=not grace,
                                        prune_screen=it > dens.alpha_reset_interval)
+            self.spatial_sort()
             self.stats = DensityStats(len(self.scene.F))
         if dens.reset_alpha_at(it):
             reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
