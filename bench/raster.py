@@ -4,7 +4,7 @@ Chain: project → bin → raster (K nearest) → interpolate (RGB + alpha) → 
 the adjoint back to vertex positions, colours, alphas and sigma. Median of ``--runs`` runs after a
 warm-up, on the default device (``TRIPLET_DEVICE`` selects another).
 
-Scenes:
+Scenes (faces stored in Morton order of their centroids, as the training loop keeps them):
   surface  small triangles in a thin shell around a sphere covering about half the image
            (~7 fragments per covered pixel),
   dense    triangles filling a ball (~25–35 fragments per covered pixel).
@@ -32,6 +32,7 @@ from triplet_cl.ops.composite import composite, composite_backward, coverage
 from triplet_cl.ops.interpolate import interpolate
 from triplet_cl.ops.mesh import DeviceMesh
 from triplet_cl.ops.raster import fragments_backward, project, project_backward, rasterize
+from triplet_cl.topology import morton_order
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
@@ -55,7 +56,9 @@ def make_soup(kind: str, M: int, seed: int = 0):
         r = 3.0 * math.sqrt(30 * math.pi / M / 0.43 * 0.75) / 2
     d = rng.normal(0, 1, (M, 3, 3))
     d /= np.linalg.norm(d, axis=2, keepdims=True)
-    V = (c[:, None, :] + r * d).reshape(-1, 3).astype(np.float32)
+    tri = c[:, None, :] + r * d
+    tri = tri[morton_order(c)]  # faces in Morton order, as the training loop keeps its soup
+    V = tri.reshape(-1, 3).astype(np.float32)
     F = np.arange(3 * M, dtype=np.int32).reshape(M, 3)
     return V, F
 
