@@ -127,6 +127,8 @@ class MaterialActivation(Function):
 
 
 class SigmoidHost(Function):
+    """``[N, k] → [N, k]`` logistic activation of raw per-vertex values (alpha)."""
+
     def forward(self, ctx, x):
         y = sigmoid(x)
         ctx.save(y)

@@ -27,11 +27,13 @@ from .ops.shade import MATERIAL_LAYOUT, num_material_channels
 
 
 def logit(p):
+    """Inverse of the sigmoid, ``[...] → [...]`` (clipped to (1e-6, 1 − 1e-6))."""
     p = np.clip(np.asarray(p, np.float64), 1e-6, 1 - 1e-6)
     return np.log(p / (1 - p))
 
 
 def inverse_softplus(y):
+    """Inverse of softplus, ``[...] → [...]``."""
     y = np.asarray(y, np.float64)
     return np.where(y > 20, y, np.log(np.expm1(np.maximum(y, 1e-12))))
 

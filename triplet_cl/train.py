@@ -168,6 +168,8 @@ def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Genera
 
 
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
+    """The configured lights, placed from the cameras: a point light above the scene, a directional
+    light from the cameras' mean up direction, dim ambient, a constant SH environment."""
     c = look_at_center(ds)
     ext = ds.scene_extent()
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
@@ -206,6 +208,7 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
 
 
 def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
+    """Adam with one group per parameter family and the configured learning-rate schedules."""
     opt = Adam()
     kw = {"betas": tuple(cfg.betas), "eps": cfg.adam_eps}
     opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
@@ -270,6 +273,7 @@ def _fix_size(cam: Camera, rgb: np.ndarray) -> Camera:
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB of two ``[H, W, 3]`` images in [0, 1] (clipped)."""
     mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
     return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 

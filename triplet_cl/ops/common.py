@@ -98,6 +98,7 @@ def buf(a: cla.Array | None, queue: cl.CommandQueue | None = None):
 
 
 def round_up(n: int, m: int) -> int:
+    """``n`` rounded up to a multiple of ``m``."""
     return ((int(n) + m - 1) // m) * m
 
 
