@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.gradients import fd_grad
 from tests.reference import raster as ref
 from triplet_cl.camera import Camera
 from triplet_cl.ops.composite import composite, composite_backward, coverage
@@ -58,14 +59,7 @@ def test_project_forward_and_adjoint(device64, rng):
     v = rng.standard_normal(vs.shape)
     v_V, v_w2c = project_backward(device64, V, c, v, pose_grad=True)
     eps = 1e-6
-    num = np.zeros_like(V)
-    for i in range(V.shape[0]):
-        for j in range(3):
-            Vp, Vm = V.copy(), V.copy()
-            Vp[i, j] += eps
-            Vm[i, j] -= eps
-            num[i, j] = ((ref.project_ref(Vp, camera_params(c, np.float64)) -
-                          ref.project_ref(Vm, camera_params(c, np.float64))) * v).sum() / (2 * eps)
+    num = fd_grad(lambda x: (ref.project_ref(x, camera_params(c, np.float64)) * v).sum(), V, eps)
     np.testing.assert_allclose(v_V.get(), num, rtol=1e-6, atol=1e-6)
     # pose gradient: perturb the 3x4 block of w2c
     for i, j in [(0, 0), (1, 2), (2, 1), (0, 3), (2, 3)]:
@@ -273,13 +267,7 @@ def test_raster_backward_vjp_matches_reference_fd(device64, rng):
         return (r["bary"] * v_b).sum() + (r["depth"] * v_d).sum() + (r["win"] * v_w).sum()
 
     eps = 1e-6
-    num = np.zeros_like(vs0)
-    for i in range(vs0.shape[0]):
-        for j in range(3):
-            p, m = vs0.copy(), vs0.copy()
-            p[i, j] += eps
-            m[i, j] -= eps
-            num[i, j] = (loss(p) - loss(m)) / (2 * eps)
+    num = fd_grad(loss, vs0, eps)
     np.testing.assert_allclose(v_vs.get(), num, rtol=1e-5, atol=1e-5)
     assert v_sigma == pytest.approx((loss(vs0, sigma + eps) - loss(vs0, sigma - eps)) / (2 * eps), rel=1e-6)
 

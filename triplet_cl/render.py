@@ -74,35 +74,38 @@ class View:
 
 class Normals(Function):
     """``V [N, 3] → n [N, 3]``: per-face normal of each vertex's triangle (soup) or area-weighted
-    vertex normals (connected mesh)."""
+    vertex normals (connected mesh). Uses the :class:`DeviceMesh` (faces and vertex→corner table
+    already on the device, built once per topology)."""
 
-    def __init__(self, F: np.ndarray, mode: str, real, device: Device, csr):
-        self.F, self.mode, self.real, self.device, self.csr = F, mode, real, device, csr
-        if mode == "face":
-            counts = np.bincount(F.reshape(-1), minlength=0)
-            if counts.size and counts.max() > 1:
-                raise ValueError("normals='face' needs a soup (each vertex in one face); use normals='vertex'")
-            self.face_of = np.repeat(np.arange(len(F)), 3)
-            self.order = F.reshape(-1)
+    def __init__(self, mesh: DeviceMesh, mode: str, real, device: Device):
+        self.mesh, self.mode, self.real, self.device = mesh, mode, real, device
+        F = mesh.faces
+        if mode == "face" and F.size and np.bincount(F.reshape(-1)).max() > 1:
+            raise ValueError("normals='face' needs a soup (each vertex in one face); use normals='vertex'")
 
     def forward(self, ctx, V):
-        ctx.save(V)
-        if self.mode == "vertex":
-            return normals_op.vertex_normals(V, self.F, csr=self.csr, device=self.device, real=self.real)
-        fn = normals_op.face_normals(V, self.F, device=self.device, real=self.real)
+        d, m = self.device, self.mesh
+        ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, self.real))
         n = np.zeros((V.shape[0], 3), self.real)
-        n[self.order] = fn[self.face_of]
+        if m.num_faces == 0:
+            return n
+        if self.mode == "vertex":
+            return normals_op.vertex_forward(d, ctx.Vd, m.F, m.csr_off, m.csr_corner, self.real).get()
+        fn = normals_op.face_forward(d, ctx.Vd, m.F, True, self.real).get()
+        n[m.faces.reshape(-1)] = np.repeat(fn, 3, axis=0)  # each soup vertex takes its face's normal
         return n
 
     def backward(self, ctx, v_n):
-        (V,) = ctx.saved
+        d, m = self.device, self.mesh
         v_n = np.asarray(v_n, self.real)
+        if m.num_faces == 0:
+            return np.zeros_like(v_n)
         if self.mode == "vertex":
-            return normals_op.vertex_normals_backward(V, self.F, v_n, csr=self.csr, device=self.device, real=self.real)
-        v_fn = np.zeros((len(self.F), 3), np.float64)
-        np.add.at(v_fn, self.face_of, v_n[self.order])
-        return normals_op.face_normals_backward(V, self.F, v_fn.astype(self.real), csr=self.csr, device=self.device,
-                                                real=self.real)
+            return normals_op.vertex_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_n), m.csr_off, m.csr_corner,
+                                              self.real).get()
+        v_fn = np.ascontiguousarray(v_n[m.faces].sum(axis=1))  # adjoint of the per-corner copy
+        return normals_op.face_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_fn), m.csr_off, m.csr_corner,
+                                        True, self.real).get()
 
 
 class MaterialActivation(Function):
@@ -376,12 +379,11 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     N = scene.V.shape[0]
     mesh = device_mesh(d, scene.F, N)
     view = View(d, mesh, camera, s)
-    csr = (mesh.csr_off.get(), mesh.csr_corner.get()) if s.normals == "vertex" else None
     cm = scene.material.shape[1]
     outer = active_tape()
     tape = outer if outer is not None else Tape()
     with tape if outer is None else _nullcontext():
-        nrm = Normals(scene.F, s.normals, s.real, d, csr)(scene.V)
+        nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
         mat = MaterialActivation(scene.brdf)(scene.material)
         alpha = SigmoidHost()(scene.alpha)
         blocks, sizes = [scene.V, nrm, mat, alpha], [3, 3, cm, 1]

@@ -220,6 +220,16 @@ def merge_color_spaces(root, spaces: set[str]) -> str:
     return next(iter(spaces), "srgb")
 
 
+def warn_missing(where, missing: Sequence[str], total: int, what: str) -> None:
+    """One :class:`DatasetWarning` counting the ``missing`` image files of ``total`` ``what``s."""
+    if missing:
+        import warnings
+
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        warnings.warn(f"{where}: skipped {len(missing)} of {total} {what} whose image file is missing ({shown})",
+                      DatasetWarning, stacklevel=4)
+
+
 # ---- splits -------------------------------------------------------------------------------------
 def holdout_split(views: Sequence[View], every: int | None) -> dict[str, list[View]]:
     """LLFF-style hold-out: views sorted by name, every ``every``-th one (index % every == 0) goes

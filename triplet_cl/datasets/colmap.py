@@ -14,14 +14,13 @@ undistort with ``colmap image_undistorter`` first.
 from __future__ import annotations
 
 import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
 from ..errors import DatasetError
-from .base import Dataset, DatasetWarning, holdout_split, merge_color_spaces
+from .base import Dataset, holdout_split, merge_color_spaces, warn_missing
 from .images import load_views
 
 # COLMAP's model ids: (name, number of parameters)
@@ -345,10 +344,7 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
                 raise DatasetError(img_path, f"image {im.id} ({im.name}): {exc}") from None
 
         records.append((Path(im.name).with_suffix("").as_posix(), image_file, make))
-    if missing:
-        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
-        warnings.warn(f"{img_dir}: skipped {len(missing)} of {len(imgs)} images of {img_path.name} whose file is "
-                      f"missing ({shown})", DatasetWarning, stacklevel=3)
+    warn_missing(img_dir, missing, len(imgs), f"images of {img_path.name}")
     if not records:
         raise DatasetError(img_dir, f"no images left: none of the {len(imgs)} image files of {img_path.name} exists")
     views, spaces = load_views(records, downscale, "train")

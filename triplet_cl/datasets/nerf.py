@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
 from ..errors import DatasetError
-from .base import Dataset, DatasetWarning, holdout_split, merge_color_spaces
+from .base import Dataset, holdout_split, merge_color_spaces, warn_missing
 from .images import find_image, load_views
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -172,10 +171,7 @@ def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
     """Views of one ``transforms*.json``; frames with a missing image are skipped with one
     :class:`DatasetWarning` that counts them. Returns ``(views, color_spaces)``."""
     records, missing = transforms_records(json_path)
-    if missing:
-        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
-        warnings.warn(f"{json_path}: skipped {len(missing)} of {len(missing) + len(records)} frames whose image "
-                      f"file is missing ({shown})", DatasetWarning, stacklevel=3)
+    warn_missing(json_path, missing, len(missing) + len(records), "frames")
     if not records:
         raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
     return load_views(records, downscale, split)
