@@ -1,0 +1,14 @@
+"""The mesh phase (DESIGN.md §1.5, §6): a connected mesh from the triplet soup, its refinement as a
+mesh, and the exported PBR assets.
+
+Modules:
+    asset     :class:`MeshAsset`, the hand-over between extraction, refinement and export
+    extract   soup → connected mesh (TSDF fusion + marching cubes, or vertex welding), cleanup
+    transfer  nearest-neighbour attribute transfer soup → mesh vertices
+    remesh    gradient-driven Loop subdivision / QEM simplification with attributes carried
+    export    GLB (UV atlas + baked PBR textures), OBJ + MTL, PLY, environment map EXR
+"""
+
+from .asset import MeshAsset
+
+__all__ = ["MeshAsset"]
