@@ -5,18 +5,36 @@
  *   barycentrics lam = bary_persp(a0, a1, a2, z0, z1, z2; p)       (raster.cl, raster_math.h)
  *   depth        zp  = 1 / sum_i (b_i / z_i)
  *   window       win = 1 - exp(-sigma max(0, min_k d_k))          (coverage.cl, raster_math.h)
- * so their adjoints are computed together, in one pass:
- *   v_attr[F[f,i], c]  += lam_i v_out[o,c]
- *   v_lam0 = sum_c v_out[o,c] (a0_c - a2_c) (+ v_bary_in),  v_lam1 likewise with a1
- *   (v_lam, v_zp, v_win) -> v_(u, v, z) of the corners by bary_persp_vjp and edge_window_vjp,
- *   v_sigma = sum over fragments of edge_window_vjp's sigma term.
+ * so their adjoints are computed together, in one pass.
+ *
+ * Attributes:  v_attr[F[f,i], c] += lam_i v_out[o,c];
+ *              v_lam0 = sum_c v_out[o,c] (a0_c - a2_c) (+ v_bary_in), v_lam1 likewise with a1.
+ *
+ * Geometry, by per-entry moments (no vertex loads, no divisions per fragment). With the entry's
+ * set-up (raster.cl: a0, grad b0, grad b1, 1/z_k, g_k = 1/|grad b_k| = |A| / L_k) and
+ * (dx, dy) = p - a0:  b0 = 1 + grad b0 . (dx, dy),  b1 = grad b1 . (dx, dy),  b2 = 1 - b0 - b1.
+ * The adjoint of raster_math.h per fragment is
+ *   base  = sum_k v_lam_k lam_k + v_zp zp,   v_w_k = (v_lam_k - base) zp,   v_b_k = v_w_k / z_k,
+ *   v_z_k = -v_w_k b_k / z_k^2,   v_E_k = v_b_k / A,   v_A = -sum_k v_b_k b_k / A,
+ *   window (d = d_k* = b_k* g_k* > 0 the nearest edge): v_d = v_win sigma e^(-sigma d),
+ *     v_E_k* += v_d g_k* / A (= v_d sgn(A) / L_k*),  v_L_k* = -v_d d / L_k*,
+ *     v_sigma += v_win d e^(-sigma d).
+ * E_k = cross(x_k - p, y_k - p) is affine in p, so the sum over an entry's fragments of
+ * v_E_k dE_k/d(x_k, y_k) needs only the moments of u_k = A v_E_k:
+ *   m_k = sum u_k,  mx_k = sum u_k dx,  my_k = sum u_k dy,
+ * plus sA = sum_k,frag v_b_k b_k,  mL_k = sum v_d d (edge k nearest),  mz_k = sum v_w_k b_k:
+ * MOMENTS = 16 numbers per entry, partial_mom [E, 16]. entry_geom (one work-item per entry) then
+ * loads the face's screen vertices once and forms, with q = p - a0 = (dx, dy) and r_j = a_j - a0,
+ *   sum v_E_k cross'(x_k - p, y_k - p) = (1/A) [ m_k cross'(r_x - 0, r_y - 0) - moment terms ],
+ *   d cross(x - p, y - p)/dx = ((y - p).y, -(y - p).x),  d/dy = (-(x - p).y, (x - p).x),
+ *   v_A -> cross(a1 - a0, a2 - a0),   v_L_k -> v_e_k = v_L_k e_k / L_k,   v_z_k = -mz_k / z_k^2,
+ * into partial_geom [E, 3, 3] (corner, (u, v, z)) for gather_vertex (raster.cl).
  *
  * No float atomics: one work-item owns one tile and walks its pixels and fragments serially,
- * adding into the partial sums of that tile's (tile, face) entries,
- *   partial_attr [E, 3, C]  and  partial_geom [E, 3, 3],
- * which gather_vertex (raster.cl) then sums per vertex over the entries of each face corner, in a
- * fixed order (deterministic results). With do_geom = 0 the barycentric adjoint is written out
- * instead (v_bary_out = v_bary_in + own), for callers that chain several interpolations.
+ * adding into the partial sums of that tile's (tile, face) entries (partial_attr [E, 3, C],
+ * partial_mom [E, 16]); gather_vertex sums them per vertex in a fixed order (deterministic).
+ * With do_geom = 0 the barycentric adjoint is written out instead (v_bary_out = v_bary_in + own),
+ * for callers that chain several interpolations.
  */
 #include "real.h"
 #include "raster_math.h"
@@ -25,12 +43,16 @@
 #define TILE 8
 #endif
 
-__kernel void fragment_bwd(__global const REAL* vs,           // [N, 3]
+#define MOMENTS 16
+#define SETUP 12
+
+__kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const int* F,             // [M, 3]
                            __global const int* tile_off,      // [T + 1]
                            __global const int* frag_face,     // [H, W, K]
                            __global const int* frag_entry,    // [H, W, K]
                            __global const REAL* frag_bary,    // [H, W, K, 2]
+                           __global const REAL* frag_depth,   // [H, W, K]
                            __global const int* frag_count,    // [H, W]
                            __global const REAL* attr,         // [N, C]          (C > 0)
                            __global const REAL* v_out,        // [H, W, K, C]    (C > 0)
@@ -42,7 +64,7 @@ __kernel void fragment_bwd(__global const REAL* vs,           // [N, 3]
                            const int width, const int height, const int tiles_x, const int num_tiles,
                            const int K,
                            __global REAL* partial_attr,       // [E, 3, C]       (C > 0)
-                           __global REAL* partial_geom,       // [E, 3, 3]       (do_geom)
+                           __global REAL* partial_mom,        // [E, MOMENTS]    (do_geom)
                            __global REAL* v_sigma_tile,       // [T]             (do_geom)
                            __global REAL* v_bary_out)         // [H, W, K, 2]    (!do_geom)
 {
@@ -52,7 +74,7 @@ __kernel void fragment_bwd(__global const REAL* vs,           // [N, 3]
     if (C > 0)
         for (long q = (long)e0 * 3 * C; q < (long)e1 * 3 * C; ++q) partial_attr[q] = (REAL)0;
     if (do_geom)
-        for (int q = e0 * 9; q < e1 * 9; ++q) partial_geom[q] = (REAL)0;
+        for (long q = (long)e0 * MOMENTS; q < (long)e1 * MOMENTS; ++q) partial_mom[q] = (REAL)0;
     REAL vsig = (REAL)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
@@ -60,15 +82,15 @@ __kernel void fragment_bwd(__global const REAL* vs,           // [N, 3]
         for (int x = tx * TILE; x < xe; ++x) {
             const int pix = y * width + x;
             const int cnt = frag_count[pix];
-            const REAL2 p = (REAL2)((REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5);
             for (int k = 0; k < cnt; ++k) {
                 const int o = pix * K + k;
-                const int f = frag_face[o];
                 const int e = frag_entry[o];
+                const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1];
                 REAL vl0 = has_bary ? v_bary_in[2 * o] : (REAL)0;
                 REAL vl1 = has_bary ? v_bary_in[2 * o + 1] : (REAL)0;
                 if (C > 0) {
-                    const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1], l2 = (REAL)1 - l0 - l1;
+                    const int f = frag_face[o];
+                    const REAL l2 = (REAL)1 - l0 - l1;
                     __global const REAL* a0 = attr + F[3 * f] * C;
                     __global const REAL* a1 = attr + F[3 * f + 1] * C;
                     __global const REAL* a2 = attr + F[3 * f + 2] * C;
@@ -91,21 +113,84 @@ __kernel void fragment_bwd(__global const REAL* vs,           // [N, 3]
                 const REAL vzp = has_depth ? v_depth[o] : (REAL)0;
                 const REAL vw = has_win ? v_win[o] : (REAL)0;
                 if (vl0 == (REAL)0 && vl1 == (REAL)0 && vzp == (REAL)0 && vw == (REAL)0) continue;
-                const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
-                const REAL3 z = (REAL3)(p0.z, p1.z, p2.z);
-                REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
-                REAL3 gz = (REAL3)(0, 0, 0);
-                if (vl0 != (REAL)0 || vl1 != (REAL)0 || vzp != (REAL)0) {
-                    REAL vl[3] = {vl0, vl1, (REAL)0};
-                    bary_persp_vjp(p, p0.xy, p1.xy, p2.xy, z, vl, vzp, &g0, &g1, &g2, &gz);
+                __global const REAL* s = entry_setup + (long)e * SETUP;
+                const REAL dx = ((REAL)x + (REAL)0.5) - s[0], dy = ((REAL)y + (REAL)0.5) - s[1];
+                const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+                const REAL b1 = s[4] * dx + s[5] * dy;
+                const REAL b2 = (REAL)1 - b0 - b1;
+                const REAL zp = frag_depth[o];
+                /* v_lam2 = 0: (lam0, lam1) are the parameters, lam2 = 1 - lam0 - lam1 */
+                const REAL base = vl0 * l0 + vl1 * l1 + vzp * zp;
+                const REAL vw0 = (vl0 - base) * zp, vw1 = (vl1 - base) * zp, vw2 = -base * zp;
+                const REAL vb0 = vw0 * s[6], vb1 = vw1 * s[7], vb2 = vw2 * s[8];
+                REAL u0 = vb0, u1 = vb1, u2 = vb2;
+                __global REAL* m = partial_mom + (long)e * MOMENTS;
+                if (vw != (REAL)0) {
+                    const REAL d0 = b0 * s[9], d1 = b1 * s[10], d2 = b2 * s[11];
+                    int kk = 0;
+                    REAL dm = d0;
+                    if (d1 < dm) { dm = d1; kk = 1; }
+                    if (d2 < dm) { dm = d2; kk = 2; }
+                    if (dm > (REAL)0) {
+                        const REAL ex = exp(-sigma * dm);
+                        const REAL vd = vw * sigma * ex;
+                        vsig += vw * dm * ex;
+                        if (kk == 0) u0 += vd * s[9];
+                        else if (kk == 1) u1 += vd * s[10];
+                        else u2 += vd * s[11];
+                        m[10 + kk] += vd * dm;
+                    }
                 }
-                if (vw != (REAL)0)
-                    vsig += edge_window_vjp(p, p0.xy, p1.xy, p2.xy, sigma, vw, &g0, &g1, &g2);
-                __global REAL* d = partial_geom + e * 9;
-                d[0] += g0.x; d[1] += g0.y; d[2] += gz.x;
-                d[3] += g1.x; d[4] += g1.y; d[5] += gz.y;
-                d[6] += g2.x; d[7] += g2.y; d[8] += gz.z;
+                m[0] += u0; m[1] += u0 * dx; m[2] += u0 * dy;
+                m[3] += u1; m[4] += u1 * dx; m[5] += u1 * dy;
+                m[6] += u2; m[7] += u2 * dx; m[8] += u2 * dy;
+                m[9] += vb0 * b0 + vb1 * b1 + vb2 * b2;
+                m[13] += vw0 * b0; m[14] += vw1 * b1; m[15] += vw2 * b2;
             }
         }
     if (do_geom) v_sigma_tile[t] = vsig;
+}
+
+/* Sum over an entry's fragments of u dE/d(x, y), E = cross(x - p, y - p), p = a0 + (dx, dy),
+ * from the moments (m, mx, my) of u; rx, ry = x - a0, y - a0. Accumulates into gx, gy. */
+inline void edge_moment_vjp(REAL2 rx, REAL2 ry, REAL mm, REAL mx, REAL my, REAL2* gx, REAL2* gy)
+{
+    /* d/dx = ((y - p).y, -(y - p).x) = (ry.y - dy, -(ry.x - dx));  d/dy = (-(rx.y - dy), rx.x - dx) */
+    *gx += (REAL2)(ry.y * mm - my, -(ry.x * mm - mx));
+    *gy += (REAL2)(-(rx.y * mm - my), rx.x * mm - mx);
+}
+
+__kernel void entry_geom(__global const REAL* vs,           // [N, 3]
+                         __global const int* F,             // [M, 3]
+                         __global const int* entry_face,    // [E]
+                         __global const REAL* partial_mom,  // [E, MOMENTS]
+                         const int num_entries,
+                         __global REAL* partial_geom)       // [E, 3, 3]
+{
+    const int e = get_global_id(0);
+    if (e >= num_entries) return;
+    __global const REAL* m = partial_mom + (long)e * MOMENTS;
+    __global REAL* d = partial_geom + (long)e * 9;
+    const int f = entry_face[e];
+    const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
+    const REAL2 a0 = p0.xy, r1 = p1.xy - a0, r2 = p2.xy - a0, r0 = (REAL2)(0, 0);
+    const REAL iA = (REAL)1 / cross2(r1, r2);
+    REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
+    /* E0 = cross(a1 - p, a2 - p), E1 = cross(a2 - p, a0 - p), E2 = cross(a0 - p, a1 - p) */
+    edge_moment_vjp(r1, r2, m[0], m[1], m[2], &g1, &g2);
+    edge_moment_vjp(r2, r0, m[3], m[4], m[5], &g2, &g0);
+    edge_moment_vjp(r0, r1, m[6], m[7], m[8], &g0, &g1);
+    g0 *= iA; g1 *= iA; g2 *= iA;
+    /* v_A = -sA / A  into  A = cross(a1 - a0, a2 - a0) */
+    REAL2 vd1 = (REAL2)(0, 0), vd2 = (REAL2)(0, 0);
+    cross2_vjp(r1, r2, -m[9] * iA, &vd1, &vd2);
+    g0 -= vd1 + vd2; g1 += vd1; g2 += vd2;
+    /* edge lengths: v_L_k = -mL_k / L_k, e_k = y_k - x_k, v_e = v_L e / L */
+    const REAL2 e0 = r2 - r1, e1 = r0 - r2, e2 = r1 - r0;
+    if (m[10] != (REAL)0) { const REAL L2 = dot(e0, e0); const REAL2 ve = -m[10] / L2 * e0; g2 += ve; g1 -= ve; }
+    if (m[11] != (REAL)0) { const REAL L2 = dot(e1, e1); const REAL2 ve = -m[11] / L2 * e1; g0 += ve; g2 -= ve; }
+    if (m[12] != (REAL)0) { const REAL L2 = dot(e2, e2); const REAL2 ve = -m[12] / L2 * e2; g1 += ve; g0 -= ve; }
+    d[0] = g0.x; d[1] = g0.y; d[2] = -m[13] / (p0.z * p0.z);
+    d[3] = g1.x; d[4] = g1.y; d[5] = -m[14] / (p1.z * p1.z);
+    d[6] = g2.x; d[7] = g2.y; d[8] = -m[15] / (p2.z * p2.z);
 }

@@ -32,6 +32,7 @@ from .mesh import DeviceMesh
 TILE = 8
 K_LIMIT = 1024
 SETUP = 12  # REALs of edge-function set-up per (tile, face) entry (raster.cl)
+MOMENTS = 16  # REALs of geometric adjoint moments per entry (fragment_bwd.cl)
 
 
 def _real_of(a) -> np.dtype:
@@ -122,7 +123,8 @@ class Fragments:
     Device arrays (``H, W`` image size, ``K`` slots, nearest first; ``E`` (tile, face) entries):
         face ``[H, W, K] int32``, bary ``[H, W, K, 2]`` perspective-correct
         (λ0, λ1; λ2 = 1 − λ0 − λ1), depth ``[H, W, K]`` camera-space depth, count ``[H, W] int32``;
-        entry ``[H, W, K] int32``, tile_off ``[T+1]``, face_off ``[M+1]``, face_entries ``[E]``.
+        entry ``[H, W, K] int32`` (the (tile, face) entry of the fragment), tile_off ``[T+1]``,
+        face_off ``[M+1]``, face_entries ``[E]``, entry_setup ``[E, SETUP]`` (from :class:`Binning`).
 
     These, and every per-fragment array derived from them (interpolated attributes, windows, shaded
     colours, adjoints), are defined only in the first ``count[y, x]`` slots of a pixel
@@ -149,6 +151,8 @@ class Fragments:
     mesh: DeviceMesh
     win: cla.Array | None = None  # [H, W, K] coverage window when rasterized with a sigma
     sigma: float | None = None
+    entry_setup: cla.Array | None = None  # [E, SETUP] edge-function set-up of each entry (Binning)
+    entry_face: cla.Array | None = None  # [E] face of each entry (Binning)
 
     @property
     def num_tiles(self) -> int:
@@ -182,6 +186,68 @@ def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
 
 
 RASTER_VARIANTS = ("auto", "pixel", "rows")
+
+
+@dataclass
+class Binning:
+    """Faces binned into ``TILE``×``TILE`` screen tiles: the (tile, face) "entries".
+
+    Device arrays: ``tile_off [T+1]`` (entries of tile t: ``tile_off[t]:tile_off[t+1]``),
+    ``entry_face [E]``, ``entry_setup [E, SETUP]`` (edge-function set-up, ``kernels_cl/raster.cl``),
+    ``face_off [M+1]`` / ``face_entries [E]`` (the entries of each face, for the adjoint gather).
+    """
+
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+    num_entries: int
+    tile_off: cla.Array
+    face_off: cla.Array
+    entry_face: cla.Array
+    entry_setup: cla.Array
+    face_entries: cla.Array
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+
+def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, height: int,
+              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False) -> Binning:
+    """Bin the faces of projected vertices ``vs [N, 3]`` into screen tiles (culling as :func:`rasterize`).
+
+    Used by :func:`rasterize`, and by any renderer whose fragments need the atomics-free adjoint
+    (:func:`fragments_backward` sums per (tile, face) entry).
+    """
+    real = _real_of(vs)
+    q, alloc = device.queue, device.allocator
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    T = tiles_x * tiles_y
+    M = mesh.num_faces
+    defines = {"TILE": TILE}
+    tile_count = cla.zeros(q, T, np.int32, allocator=alloc)
+    face_ntiles = cla.empty(q, max(M, 1), np.int32, allocator=alloc)[:M]
+    face_bbox = cla.empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
+    if M:
+        device.kernel("raster", "bin_count", defines, real)(
+            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(width), np.int32(height),
+            np.int32(tiles_x), real.type(near), real.type(far), np.int32(bool(cull_backface)),
+            face_ntiles.data, face_bbox.data, tile_count.data)
+    tile_off, E = _offsets(device, tile_count)
+    face_off, E2 = _offsets(device, face_ntiles)
+    assert E == E2, (E, E2)
+    device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
+    entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
+    face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    if E:
+        tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
+        device.kernel("raster", "bin_fill", defines, real)(
+            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(tiles_x), face_ntiles.data,
+            face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
+            entry_setup.data, face_entries.data)
+    return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries)
 
 
 def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
@@ -221,34 +287,10 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     check_shape("vs", vs, (mesh.num_vertices, 3))
     real = _real_of(vs)
     q, alloc = device.queue, device.allocator
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    T = tiles_x * tiles_y
-    M = mesh.num_faces
     npx = width * height
     device.check_alloc(npx * K * 8 * (2 if real == np.float64 else 1), f"fragment buffers ({width}x{height}, K={K})")
-
-    defines = {"TILE": TILE, "K_MAX": K}
-    tile_count = cla.zeros(q, T, np.int32, allocator=alloc)
-    face_ntiles = cla.empty(q, max(M, 1), np.int32, allocator=alloc)[:M]
-    face_bbox = cla.empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
-    if M:
-        device.kernel("raster", "bin_count", defines, real)(
-            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(width), np.int32(height),
-            np.int32(tiles_x), real.type(near), real.type(far), np.int32(bool(cull_backface)),
-            face_ntiles.data, face_bbox.data, tile_count.data)
-    tile_off, E = _offsets(device, tile_count)
-    face_off, E2 = _offsets(device, face_ntiles)
-    assert E == E2, (E, E2)
-    device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
-    entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
-    face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    if E:
-        tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
-        device.kernel("raster", "bin_fill", defines, real)(
-            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(tiles_x), face_ntiles.data,
-            face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
-            entry_setup.data, face_entries.data)
+    b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface)
+    tiles_x, tiles_y = b.tiles_x, b.tiles_y
 
     face = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
     entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
@@ -260,12 +302,12 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         kern, gsize, lsize = "raster_fwd_rows", (tiles_x, tiles_y * TILE), (1, TILE)
     else:
         kern, gsize, lsize = "raster_fwd", (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
-    device.kernel("raster", kern, defines, real)(
-        q, gsize, lsize, tile_off.data, entry_face.data, entry_setup.data,
+    device.kernel("raster", kern, {"TILE": TILE, "K_MAX": K}, real)(
+        q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         real.type(sigma or 0.0), face.data, entry.data, bary.data, depth.data, count.data, buf(win, q))
-    return Fragments(width, height, K, tiles_x, tiles_y, E, real, face, entry, bary, depth, count,
-                     tile_off, face_off, face_entries, vs, mesh, win, sigma)
+    return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
+                     b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face)
 
 
 def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
@@ -324,16 +366,26 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     vd = fragment_array(device.queue, "v_depth", v_depth, (H, W, K), real)
     vw = fragment_array(device.queue, "v_win", v_win, (H, W, K), real)
     T, E = frags.num_tiles, frags.num_entries
+    if geometry and (frags.entry_setup is None or frags.entry_face is None):
+        raise ValueError("the fragments carry no entry_setup/entry_face (Binning); the geometric adjoint needs them")
     p_attr = cla.empty(q, (max(E, 1), 3, max(C, 1)), real, allocator=alloc) if C else None
-    p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc) if geometry else None
+    p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc) if geometry else None
     v_sig_tile = cla.empty(q, T, real, allocator=alloc) if geometry else None
     v_bary_out = None if geometry else cla.empty(q, (H, W, K, 2), real, allocator=alloc)
     device.kernel("fragment_bwd", "fragment_bwd", {"TILE": TILE}, real)(
-        q, (T,), (1,), frags.vs.data, frags.mesh.F.data, frags.tile_off.data, frags.face.data, frags.entry.data,
-        frags.bary.data, frags.count.data, buf(a, q), buf(g, q), buf(vb, q), buf(vd, q), buf(vw, q),
+        q, (T,), (1,), buf(frags.entry_setup, q), frags.mesh.F.data, frags.tile_off.data, frags.face.data,
+        frags.entry.data, frags.bary.data, frags.depth.data, frags.count.data, buf(a, q), buf(g, q), buf(vb, q),
+        buf(vd, q), buf(vw, q),
         np.int32(C), np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None),
         np.int32(bool(geometry)), real.type(sigma), np.int32(W), np.int32(H), np.int32(frags.tiles_x),
-        np.int32(T), np.int32(K), buf(p_attr, q), buf(p_geom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
+        np.int32(T), np.int32(K), buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
+    p_geom = None
+    if geometry:
+        p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
+        if E:
+            device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
+                q, (E,), None, frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, np.int32(E),
+                p_geom.data)
     v_attr = gather_to_vertices(device, frags, p_attr, C) if C else None
     if not geometry:
         return v_attr, v_bary_out
@@ -383,5 +435,5 @@ def valid_faces(frags: Fragments) -> np.ndarray:
     return face
 
 
-__all__ = ["Fragments", "camera_params", "fragments_backward", "gather_to_vertices", "project", "project_backward",
-           "rasterize", "raster_backward", "read_fragments", "valid_faces", "TILE"]
+__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "fragments_backward", "gather_to_vertices",
+           "project", "project_backward", "rasterize", "raster_backward", "read_fragments", "valid_faces"]
