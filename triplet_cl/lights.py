@@ -214,3 +214,33 @@ def unpack_gradients(lights, v_params: np.ndarray) -> list[dict[str, np.ndarray]
                 off += 3
         out.append(d)
     return out
+
+
+_LIGHT_CLASSES = {c.__name__: c for c in (AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight,
+                                          VertexSHLight)}
+
+
+def light_to_json(light) -> dict:
+    """``{"type": class name, field: value (lists)}`` of a light (the format of ``lights.json``)."""
+    d = {"type": type(light).__name__}
+    for k, v in vars(light).items():
+        d[k] = v.tolist() if isinstance(v, np.ndarray) else v
+    return d
+
+
+def lights_from_json(items) -> list:
+    """Lights from a list of :func:`light_to_json` dicts (or a ``{"lights": [...]}`` document)."""
+    if isinstance(items, dict):
+        items = items.get("lights", [])
+    out = []
+    for i, d in enumerate(items):
+        d = dict(d)
+        kind = d.pop("type", None)
+        cls = _LIGHT_CLASSES.get(kind)
+        if cls is None:
+            raise ValueError(f"light {i}: unknown type {kind!r} (expected one of {sorted(_LIGHT_CLASSES)})")
+        try:
+            out.append(cls(**d))
+        except TypeError as exc:
+            raise ValueError(f"light {i} ({kind}): {exc}") from None
+    return out

@@ -552,10 +552,9 @@ def _json_default(o):
 
 
 def _light_json(lt) -> dict:
-    d = {"type": type(lt).__name__}
-    for k, v in vars(lt).items():
-        d[k] = v.tolist() if isinstance(v, np.ndarray) else v
-    return d
+    from .lights import light_to_json
+
+    return light_to_json(lt)
 
 
 def _file_logger(path: Path) -> logging.Logger:
