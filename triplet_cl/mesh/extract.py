@@ -1,0 +1,404 @@
+"""Soup → connected mesh (DESIGN.md §1.5, §6): TSDF fusion of rendered depth + marching cubes, or
+vertex welding; small-component removal; the full :func:`extract_mesh` with attribute transfer.
+
+**Depth of a soup** (:func:`render_depth`, forward only, the ops of the renderer): the K nearest
+fragments of a pixel, front to back, with opacity ``a_i = α_i·w_i`` (interpolated sigmoid alpha
+times the soft coverage window when ``sigma`` is set), are composited like the colour::
+
+    D = Σ_i z_i a_i Π_{j<i}(1 − a_j),   A = 1 − Π_i (1 − a_i),   depth = D / A   (0 where A = 0)
+
+``z`` is the camera-space depth (distance along the optical axis), ``A`` the accumulated alpha.
+
+**TSDF fusion** (:func:`tsdf_fusion`, numpy, vectorised over the voxels of one view at a time):
+a regular grid over ``bounds`` (default: the opaque soup's bounding box, padded), voxel size
+``h``, truncation ``τ = truncation·h``. For every view and every voxel centre ``x`` in front of
+the camera that projects inside the image at pixel ``p`` (nearest pixel):
+
+* ``A(p) ≥ alpha_threshold`` (a surface was seen): ``s = (depth(p) − z(x)) / τ``; voxels with
+  ``s < −1`` (far behind the surface: occluded, unknown) are skipped, the others add
+  ``min(s, 1)`` with weight ``A(p)``;
+* ``A(p) < alpha_threshold`` (background or a hole): the voxel is free space, ``+1`` with weight 1
+  — views carve the silhouette (the visual hull) and holes seen through.
+
+The TSDF is the weighted mean. A voxel never observed lies behind the surface in every view that
+contains it: it is solid (−1) when at least ``min_view_fraction`` of the views contain it (the
+inside of the object, seen from all around), else empty (+1: a corner of the grid outside most
+frusta, hidden behind the object in the few that contain it — solid there would leave
+blobs). The the outer layer of the grid is forced to +1 so that
+``skimage.measure.marching_cubes`` at level 0 returns a **closed** (watertight) surface. Faces are
+oriented outward (positive signed volume).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..activations import sigmoid
+from ..camera import Camera
+from ..device import Device, get_device
+from ..ops.common import check_faces, check_real
+from ..ops.composite import composite, coverage
+from ..ops.interpolate import interpolate
+from ..ops.mesh import DeviceMesh
+from ..ops.raster import project, rasterize
+from .asset import MeshAsset
+from .transfer import transfer_attributes
+
+__all__ = ["DEPTH_MODES", "METHODS", "extract_mesh", "extract_scene", "mesh_stats", "remove_small_components", "render_depth",
+           "tsdf_fusion", "weld_vertices"]
+
+METHODS = ("tsdf", "weld")
+DEPTH_MODES = ("expected", "median")
+
+
+# ---------------------------------------------------------------------------------------------- depth
+
+
+def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, mode: str = "expected",
+                 device: Device | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Depth of the soup seen by ``camera`` (forward only; module docstring).
+
+    Args:
+        scene: a :class:`~triplet_cl.scene.Scene` (soup or mesh); its raw ``alpha`` is activated.
+        camera: the view; K: fragments per pixel; sigma: soft-coverage sharpness as in training
+            (None: hard edges).
+        mode: ``"expected"`` — the alpha-weighted expected depth ``D / A``; ``"median"`` — the depth
+            of the fragment at which the accumulated alpha reaches ½ (expected depth where it never
+            does). The expected depth of a two-sided soup is pulled behind the front surface by
+            whatever light reaches the back (e.g. ``0.05·0.95`` of the thickness at α = 0.95); the
+            median is not.
+
+    Returns:
+        ``(depth [H, W] float32, alpha [H, W] float32)``: camera-space depth (0 where nothing was
+        hit) and the accumulated alpha ``A``.
+    """
+    if mode not in DEPTH_MODES:
+        raise ValueError(f"mode must be one of {DEPTH_MODES}, got {mode!r}")
+    d = device or get_device()
+    V = check_real("scene.V", np.asarray(scene.V.data), (None, 3), np.float32)
+    n = len(V)
+    F = check_faces("scene.F", scene.F, n)
+    H, W = camera.height, camera.width
+    if len(F) == 0:
+        return np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
+    alpha = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(n, 1).astype(np.float32)
+    mesh = DeviceMesh(d, F, n)
+    vs = project(d, V, camera)
+    fr = rasterize(d, vs, mesh, W, H, K, camera.near, camera.far, False, sigma=sigma)
+    a = interpolate(d, alpha, fr).reshape(H, W, K)
+    win = None if sigma is None else coverage(d, fr, sigma)
+    feat = fr.depth.reshape(H, W, K, 1)
+    img, trans, _ = composite(d, fr, feat, a, np.zeros(1), win=win, t_min=1e-4)
+    acc = 1.0 - trans.get().astype(np.float64)
+    depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
+    if mode == "median":
+        count = fr.count.get()
+        af = a.get().astype(np.float64) * (1.0 if win is None else win.get())
+        af[np.arange(K)[None, None, :] >= count[..., None]] = 0.0
+        reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= 0.5
+        first = np.argmax(reached, axis=2)
+        med = np.take_along_axis(fr.depth.get(), first[..., None], axis=2)[..., 0]
+        depth = np.where(reached.any(axis=2), med, depth)
+    return depth.astype(np.float32), acc.astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------- TSDF
+
+
+def _soup_bounds(scene, alpha_threshold: float, pad: float) -> np.ndarray:
+    V = np.asarray(scene.V.data, np.float64)
+    F = np.asarray(scene.F)
+    a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
+    opaque = F[a[F].mean(axis=1) >= alpha_threshold] if len(F) else F
+    pts = V[np.unique(opaque)] if len(opaque) else V[np.unique(F)]
+    lo, hi = pts.min(0), pts.max(0)
+    margin = pad * float((hi - lo).max())
+    return np.stack([lo - margin, hi + margin])
+
+
+def tsdf_fusion(scene, cameras, resolution: int = 128, truncation: float = 3.0, alpha_threshold: float = 0.5,
+                bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "expected", min_view_fraction: float = 0.5,
+                device: Device | None = None, return_volume: bool = False):
+    """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
+
+    Args:
+        scene: the soup (:class:`~triplet_cl.scene.Scene`); cameras: the views (e.g. the training
+            cameras, at a resolution where a voxel covers about a pixel or more).
+        resolution: voxels along the longest side of ``bounds`` (8 … 1024).
+        truncation: half-width of the signed-distance band, in voxels (> 0).
+        alpha_threshold: accumulated alpha below which a pixel is free space (0 < t < 1); also the
+            face alpha that decides the default bounds.
+        bounds: ``[2, 3]`` (min corner, max corner) in world units, or None (opaque soup + 5 %).
+        K, sigma, depth_mode: as ``K``, ``sigma``, ``mode`` of :func:`render_depth`.
+        min_view_fraction: an unobserved voxel is solid when at least this fraction of the views
+            contain it (module docstring), in [0, 1].
+        return_volume: also return ``(tsdf [X, Y, Z] float32, origin [3], voxel size)``.
+
+    Returns:
+        ``(V [P, 3] float32, F [Q, 3] int32)`` the closed, outward-oriented surface (and the volume).
+    """
+    from skimage.measure import marching_cubes
+
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("tsdf_fusion needs at least one camera, got none")
+    if len(scene.F) == 0:
+        raise ValueError("tsdf_fusion: the soup has no faces")
+    if not (isinstance(resolution, int | np.integer) and 8 <= resolution <= 1024):
+        raise ValueError(f"resolution must be an integer in [8, 1024], got {resolution!r}")
+    if not truncation > 0:
+        raise ValueError(f"truncation must be > 0 (voxels), got {truncation}")
+    if not 0 < alpha_threshold < 1:
+        raise ValueError(f"alpha_threshold must lie in (0, 1), got {alpha_threshold}")
+    if not 0 <= min_view_fraction <= 1:
+        raise ValueError(f"min_view_fraction must lie in [0, 1], got {min_view_fraction}")
+    b = _soup_bounds(scene, alpha_threshold, 0.05) if bounds is None else check_real("bounds", bounds, (2, 3), np.float64)
+    if not (b[1] > b[0]).all():
+        raise ValueError(f"bounds must be [min corner, max corner] with max > min on every axis, got {b.tolist()}")
+    h = float((b[1] - b[0]).max()) / (resolution - 1)
+    dims = np.maximum(np.ceil((b[1] - b[0]) / h).astype(int) + 1, 2) + 2  # +1 voxel layer each side
+    origin = b[0] - h
+    tau = truncation * h
+    gx, gy, gz = (origin[i] + h * np.arange(dims[i], dtype=np.float64) for i in range(3))
+    X = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), axis=-1).reshape(-1, 3)
+    num = np.zeros(len(X), np.float64)
+    wsum = np.zeros(len(X), np.float64)
+    seen = np.zeros(len(X), np.int32)
+    for cam in cameras:
+        depth, acc = render_depth(scene, cam, K=K, sigma=sigma, mode=depth_mode, device=device)
+        pc = X @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
+        z = pc[:, 2]
+        front = z > cam.near
+        zs = np.where(front, z, 1.0)
+        u = np.floor(cam.fx * pc[:, 0] / zs + cam.cx).astype(np.int64)
+        v = np.floor(cam.fy * pc[:, 1] / zs + cam.cy).astype(np.int64)
+        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        idx = np.flatnonzero(inside)
+        seen[idx] += 1
+        pu, pv = u[idx], v[idx]
+        a = acc[pv, pu].astype(np.float64)
+        dep = depth[pv, pu].astype(np.float64)
+        surf = a >= alpha_threshold
+        s = (dep - z[idx]) / tau
+        use = ~surf | (s >= -1.0)
+        val = np.where(surf, np.minimum(s, 1.0), 1.0)
+        w = np.where(surf, a, 1.0)
+        ii = idx[use]
+        num[ii] += (w * val)[use]
+        wsum[ii] += w[use]
+    tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(seen >= min_view_fraction * len(cameras), -1.0, 1.0)).reshape(*dims).astype(np.float32)
+    for ax in range(3):  # the outer layer is outside: the level set closes inside the grid
+        sl = [slice(None)] * 3
+        sl[ax] = 0
+        tsdf[tuple(sl)] = 1.0
+        sl[ax] = -1
+        tsdf[tuple(sl)] = 1.0
+    if not (tsdf.min() < 0 < tsdf.max()):
+        raise ValueError("tsdf_fusion found no surface (the fused volume has no zero crossing): check the cameras "
+                         "see the soup and alpha_threshold")
+    verts, faces, _, _ = marching_cubes(tsdf, level=0.0, spacing=(h, h, h), allow_degenerate=False)
+    Vm = (verts + origin).astype(np.float32)
+    Fm = faces.astype(np.int32)
+    Vm, Fm = _orient_outward(Vm, Fm)
+    out = (Vm, Fm)
+    return out + ((tsdf, origin, h),) if return_volume else out
+
+
+def _signed_volume(V, F) -> float:
+    V = np.asarray(V, np.float64)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def _orient_outward(V, F):
+    """Flip every face when the (closed) surface's signed volume is negative."""
+    if len(F) and _signed_volume(V, F) < 0:
+        F = np.ascontiguousarray(F[:, ::-1])
+    return V, F
+
+
+# ---------------------------------------------------------------------------------------------- weld + clean
+
+
+def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge vertices closer than ``tolerance`` (clusters of the ``cKDTree`` pair graph, each
+    replaced by its mean), then drop degenerate faces (a repeated vertex) and duplicate faces
+    (the same three vertices in any order, also the reversed twin of a two-sided soup).
+
+    Args:
+        V: ``[N, 3]``; F: ``[M, 3]``; tolerance: merge distance in world units (≥ 0).
+
+    Returns:
+        ``(V' [N', 3] float32, F' [M', 3] int32, vertex_of [N] int64)`` with ``vertex_of[i]`` the new
+        index of old vertex ``i`` (unreferenced vertices are dropped: −1).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    V = check_real("V", V, (None, 3), np.float64)
+    F = check_faces("F", F, len(V)).astype(np.int64)
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}")
+    n = len(V)
+    if n == 0 or len(F) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.full(n, -1, np.int64)
+    pairs = cKDTree(V).query_pairs(tolerance, output_type="ndarray") if tolerance > 0 else np.zeros((0, 2), int)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    cnt = np.bincount(label)
+    Vc = np.stack([np.bincount(label, V[:, i]) for i in range(3)], axis=1) / cnt[:, None]
+    Fw = label[F]
+    ok = (Fw[:, 0] != Fw[:, 1]) & (Fw[:, 1] != Fw[:, 2]) & (Fw[:, 2] != Fw[:, 0])
+    Fw = Fw[ok]
+    _, first = np.unique(np.sort(Fw, axis=1), axis=0, return_index=True)
+    Fw = Fw[np.sort(first)]
+    used = np.unique(Fw)
+    new_of_cluster = np.full(len(Vc), -1, np.int64)
+    new_of_cluster[used] = np.arange(len(used))
+    return (Vc[used].astype(np.float32), new_of_cluster[Fw].astype(np.int32), new_of_cluster[label])
+
+
+def remove_small_components(V, F, min_fraction: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop edge-connected pieces with fewer than ``min_fraction`` of the faces (trimesh's face
+    adjacency); the largest piece is always kept.
+
+    Args:
+        V: ``[N, 3]``; F: ``[M, 3]``; min_fraction: in [0, 1).
+
+    Returns:
+        ``(V' float32, F' int32, vertex_of [N] int64)`` (−1 for removed vertices).
+    """
+    import trimesh
+
+    V = check_real("V", V, (None, 3), np.float64)
+    F = check_faces("F", F, len(V))
+    if not 0 <= min_fraction < 1:
+        raise ValueError(f"min_fraction must lie in [0, 1), got {min_fraction}")
+    if len(F) == 0:
+        return V.astype(np.float32), F, np.arange(len(V))
+    m = trimesh.Trimesh(V, F, process=False)
+    comps = trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(F)), min_len=1)
+    sizes = np.array([len(c) for c in comps])
+    keep_c = sizes >= min_fraction * len(F)
+    keep_c[np.argmax(sizes)] = True
+    keep_f = np.zeros(len(F), bool)
+    for c, k in zip(comps, keep_c, strict=True):
+        if k:
+            keep_f[c] = True
+    Fk = F[keep_f]
+    used = np.unique(Fk)
+    vertex_of = np.full(len(V), -1, np.int64)
+    vertex_of[used] = np.arange(len(used))
+    return V[used].astype(np.float32), vertex_of[Fk].astype(np.int32), vertex_of
+
+
+def mesh_stats(V, F) -> dict:
+    """``{"faces", "vertices", "watertight", "components", "area"}`` of a mesh (trimesh)."""
+    import trimesh
+
+    m = trimesh.Trimesh(np.asarray(V, np.float64), np.asarray(F), process=False)
+    comps = trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(F)), min_len=1) if len(F) else []
+    return {"faces": int(len(F)), "vertices": int(len(V)), "watertight": bool(m.is_watertight),
+            "components": int(len(comps)), "area": float(m.area)}
+
+
+# ---------------------------------------------------------------------------------------------- extract
+
+
+def _check_inputs(scene, cameras, method):
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if len(np.asarray(scene.F)) == 0 or len(np.asarray(scene.V.data)) == 0:
+        raise ValueError("cannot extract a mesh from an empty soup (0 faces)")
+    cameras = list(cameras or [])
+    if method == "tsdf" and not cameras:
+        raise ValueError("method 'tsdf' needs the training cameras (got none); use method='weld' without cameras")
+    return cameras
+
+
+def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
+              min_component_fraction, K, sigma, device):
+    V = np.asarray(scene.V.data, np.float64)
+    F = np.asarray(scene.F)
+    if method == "tsdf":
+        Vm, Fm = tsdf_fusion(scene, cameras, resolution=resolution, truncation=truncation,
+                             alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, device=device)
+    else:
+        a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
+        opaque = F[a[F].mean(axis=1) >= alpha_threshold]
+        if len(opaque) == 0:
+            raise ValueError(f"no soup face has alpha >= alpha_threshold={alpha_threshold}: nothing to weld")
+        tol = weld_tolerance
+        if tol is None:  # a fraction of the median edge length of the opaque faces
+            e = np.linalg.norm(V[opaque] - V[np.roll(opaque, 1, axis=1)], axis=-1)
+            tol = 0.25 * float(np.median(e))
+        Vm, Fm, _ = weld_vertices(V, opaque, tol)
+    if min_component_fraction > 0 and len(Fm):
+        Vm, Fm, _ = remove_small_components(Vm, Fm, min_component_fraction)
+    if len(Fm) == 0:
+        raise ValueError(f"extraction ({method}) produced an empty mesh")
+    return Vm, Fm
+
+
+def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int = 128, truncation: float = 3.0,
+                 alpha_threshold: float = 0.5, bounds=None, weld_tolerance: float | None = None,
+                 min_component_fraction: float = 0.02, k: int = 4, opaque: bool = True, K: int = 30,
+                 sigma: float | None = 1.0, device: Device | None = None) -> MeshAsset:
+    """The soup of ``scene`` → a connected :class:`MeshAsset` with activated attributes and the lights.
+
+    Args:
+        scene: the trained soup (:class:`~triplet_cl.scene.Scene`).
+        cameras: the views to fuse (``"tsdf"``; ignored by ``"weld"``).
+        method: ``"tsdf"`` (default: closed surface, see ``bench/extract.py``) or ``"weld"``.
+        resolution, truncation, bounds, K, sigma: see :func:`tsdf_fusion`.
+        alpha_threshold: free-space threshold (tsdf) / faces below it are dropped before welding.
+        weld_tolerance: merge distance (weld; default ¼ of the median edge of the opaque faces).
+        min_component_fraction: pieces with fewer faces than this fraction are removed.
+        k: donors per vertex in :func:`~triplet_cl.mesh.transfer.transfer_attributes`.
+        opaque: set the mesh's alpha to 1 (what a game engine expects); else transfer it.
+
+    Returns:
+        :class:`MeshAsset` (V, F, activated per-vertex attributes, ``brdf``, current lights).
+    """
+    cameras = _check_inputs(scene, cameras, method)
+    Vm, Fm = _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
+                       min_component_fraction, K, sigma, device)
+    src = MeshAsset.from_scene(scene)
+    alpha = src.attributes["alpha"]
+    vals = transfer_attributes(src.V, src.F, src.attributes, Vm, k=k, src_alpha=alpha)
+    if opaque:
+        vals["alpha"] = np.ones(len(Vm))
+    return MeshAsset(Vm, Fm, vals, scene.brdf, scene.current_lights())
+
+
+def extract_scene(scene, cameras=None, method: str = "tsdf", *, opaque_alpha: float | None = 0.99,
+                  k: int = 4, **kwargs):
+    """Like :func:`extract_mesh` but returns a connected-mesh :class:`~triplet_cl.scene.Scene` with the
+    soup's **raw** parameters transferred (material, alpha, vertex SH: the mesh stage starts from
+    them) and the lights with their current parameters.
+
+    Args:
+        opaque_alpha: activated alpha given to every mesh vertex (None: transfer the soup's).
+        kwargs: the geometry options of :func:`extract_mesh`.
+    """
+    from ..scene import Scene, logit
+
+    geo_keys = {"resolution", "truncation", "alpha_threshold", "bounds", "weld_tolerance", "min_component_fraction",
+                "K", "sigma", "device"}
+    bad = set(kwargs) - geo_keys
+    if bad:
+        raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(geo_keys)})")
+    opts = {"resolution": 128, "truncation": 3.0, "alpha_threshold": 0.5, "bounds": None, "weld_tolerance": None,
+            "min_component_fraction": 0.02, "K": 30, "sigma": 1.0, "device": None}
+    opts.update(kwargs)
+    cameras = _check_inputs(scene, cameras, method)
+    Vm, Fm = _geometry(scene, cameras, method, **opts)
+    raw = {"material": np.asarray(scene.material.data), "alpha": np.asarray(scene.alpha.data)}
+    if scene.vertex_sh is not None:
+        raw["vertex_sh"] = np.asarray(scene.vertex_sh.data)
+    src_alpha = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
+    vals = transfer_attributes(scene.V.data, scene.F, raw, Vm, k=k, src_alpha=src_alpha)
+    alpha = vals["alpha"] if opaque_alpha is None else np.full((len(Vm), 1), float(logit(opaque_alpha)))
+    return Scene.from_arrays(Vm, Fm, material=vals["material"], alpha=alpha, lights=scene.current_lights(),
+                             vertex_sh=vals.get("vertex_sh"), brdf=scene.brdf)
