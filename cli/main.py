@@ -105,6 +105,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if out is None:
             print("triplet train: error: --out RUN is required", file=sys.stderr)
             return 2
+    mesh_cfg = _mesh_config_from_args(args) if args.mesh_stage else None  # bad options fail before training
     dev = get_device(args.device)
     if args.resume:
         tr = Trainer(data if args.data or args.demo else None, out, device=dev, resume=True)
@@ -125,6 +126,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
           f"{metrics.get('wall_time_s', 0):.0f} s")
     print(f"results in {out}/: triplets.ply, lights.json, renders/test/, metrics.json, checkpoints/, train.log")
+    if args.mesh_stage:
+        return _run_mesh_stage(tr, mesh_cfg)
     return 0
 
 
@@ -155,6 +158,81 @@ def cmd_eval(args: argparse.Namespace) -> int:
     write_json(Path(args.run) / "metrics.json", m)
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views -> "
           f"{Path(args.run) / 'metrics.json'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- mesh phase
+
+
+def _add_mesh_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mesh-method", choices=["tsdf", "weld"], help="soup → mesh: TSDF fusion + marching cubes "
+                   "(default) or welding of coincident vertices")
+    p.add_argument("--mesh-resolution", type=int, help="TSDF grid cells along the longest side (default 160)")
+    p.add_argument("--mesh-rounds", type=int, help="extraction → refinement rounds (default 1)")
+    p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
+    p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
+                   "(default 200; 0 = never)")
+    p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
+    p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
+
+
+def _mesh_config_from_args(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from triplet_cl.mesh.refine import MeshConfig
+
+    over = {}
+    for opt, field in (("mesh_method", "method"), ("mesh_resolution", "resolution"), ("mesh_rounds", "rounds"),
+                       ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
+                       ("texture_size", "texture_size")):
+        v = getattr(args, opt, None)
+        if v is not None:
+            over[field] = v
+    if getattr(args, "formats", None):
+        over["formats"] = _formats(args.formats)
+    cfg = replace(MeshConfig(), **over)
+    cfg.validate()
+    return cfg
+
+
+def _formats(text: str) -> tuple:
+    fmts = tuple(x.strip().lower() for x in text.split(",") if x.strip())
+    bad = [f for f in fmts if f not in ("glb", "obj", "ply")]
+    if bad or not fmts:
+        raise ValueError(f"formats must be a comma-separated list of glb, obj, ply; got {text!r}")
+    return fmts
+
+
+def _run_mesh_stage(tr, cfg) -> int:
+    from triplet_cl.mesh.refine import MeshStage
+
+    stage = MeshStage(tr, cfg)
+    print(f"mesh stage: {cfg.method} extraction, {cfg.rounds} round(s) of {cfg.iterations} steps")
+    m = stage.run()
+    chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
+    print(f"mesh: {m['faces']} faces, test PSNR {m['psnr']:.2f} dB (soup {m['soup_psnr']:.2f} dB){chamfer}")
+    print(f"wrote {', '.join(m['files'])} in {tr.run_dir}/")
+    return 0
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    cfg = _mesh_config_from_args(args)
+    tr = _load_run(args)
+    tr.quiet = False
+    return _run_mesh_stage(tr, cfg)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from triplet_cl.mesh.asset import MeshAsset
+    from triplet_cl.mesh.refine import MESH_STATE, export_run_mesh, load_mesh_state
+
+    run = Path(args.run)
+    if not (run / "config.json").is_file():
+        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
+    scene = load_mesh_state(run / MESH_STATE)
+    out = Path(args.out) if args.out else run
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), _formats(args.format), args.texture_size)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 
 
@@ -196,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
+    t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
+                   "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
+    _add_mesh_options(t)
     t.add_argument("--device", default=None, help=dev_help)
     t.set_defaults(func=cmd_train)
 
@@ -210,6 +291,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run", help="run directory")
     e.add_argument("--device", default=None, help=dev_help)
     e.set_defaults(func=cmd_eval)
+
+    x = sub.add_parser("extract", help="soup → connected mesh: extract, refine as a mesh, export PBR assets")
+    x.add_argument("run", help="run directory of a trained soup")
+    _add_mesh_options(x)
+    x.add_argument("--device", default=None, help=dev_help)
+    x.set_defaults(func=cmd_extract)
+
+    o = sub.add_parser("export", help="write the refined mesh of a run (from `triplet extract`) in other formats")
+    o.add_argument("run", help="run directory")
+    o.add_argument("--format", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--out", help="output folder (default RUN)")
+    o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")
+    o.set_defaults(func=cmd_export)
     return p
 
 

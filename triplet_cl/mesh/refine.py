@@ -1,0 +1,330 @@
+"""The mesh stage (DESIGN.md §1.5, §6): extract a connected mesh from a trained soup and keep
+optimising it as a mesh, then export the PBR assets.
+
+One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extract.extract_scene`
+(connected, opaque, raw parameters transferred by nearest neighbour) → ``iterations`` steps of the
+soup stage's loop with **area-weighted vertex normals**, hard edges (a soft per-triangle window
+would open seams along the shared interior edges of a connected mesh), a few fragments per pixel,
+and the mesh regularisers (face-normal consistency, uniform Laplacian of the positions, graph TV of
+the materials); every ``remesh_every`` steps the faces with the largest accumulated position
+gradients are subdivided and the smallest simplified (:mod:`~triplet_cl.mesh.remesh`), with every
+vertex parameter and its Adam moments carried across. ``rounds > 1`` repeats extraction → refine
+from the refined mesh (the method's iterative loop).
+
+Outputs in the run directory: ``mesh.glb``, ``mesh.obj`` (+ ``mesh.mtl`` and textures),
+``mesh.ply``, ``envmap.exr`` (with an SH environment light), ``lights.json``, ``mesh_stage.npz``
+(the refined mesh and raw parameters: ``triplet export`` reads it), ``renders/mesh/*.png`` and a
+``"mesh"`` entry in ``metrics.json`` (test PSNR/SSIM of mesh and soup, faces, Chamfer distance to
+the dataset's ``gt_mesh.ply`` when there is one).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..autodiff import Tape
+from ..datasets.base import resolve_background
+from ..io import atomic_write_bytes, write_json
+from ..losses import photometric_loss_and_grad
+from ..optim import Adam, ExponentialDecay
+from ..regularizers import FaceNormalConsistency, MaterialGTV, UniformLaplacian
+from ..render import RenderSettings, render
+from ..scene import Scene
+from .asset import MeshAsset
+
+MESH_STATE = "mesh_stage.npz"
+
+
+@dataclass
+class MeshConfig:
+    """Settings of the mesh stage (saved in ``config.json`` under ``"mesh"``)."""
+
+    method: str = "tsdf"  # "tsdf" (TSDF fusion + marching cubes) or "weld" (merge coincident vertices)
+    resolution: int = 160  # TSDF grid cells along the longest side of the soup's bounds
+    rounds: int = 1  # extraction → refine rounds
+    iterations: int = 600  # refinement steps per round (0: extract and export only)
+    faces_per_pixel: int = 4  # K of the mesh renders (an opaque mesh needs few)
+    lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
+    lr_material: float = 0.02
+    lr_vertex_sh: float = 0.002
+    lr_lights: float = 0.005
+    normal_weight: float = 0.02  # face-normal consistency
+    laplacian_weight: float = 2.0  # uniform Laplacian of the positions (mean |δ|², δ in scene units)
+    gtv_weight: float = 0.002  # graph TV of the raw materials
+    remesh_every: int = 200  # steps between subdivision / simplification (0: never)
+    subdivide_fraction: float = 0.03  # faces with the largest position gradients, subdivided
+    simplify_fraction: float = 0.05  # faces with the smallest, simplified away
+    max_faces: int = 300_000
+    texture_size: int = 1024
+    formats: tuple = ("glb", "obj", "ply")
+
+    def validate(self) -> None:
+        if self.method not in ("tsdf", "weld"):
+            raise ValueError(f"mesh method must be 'tsdf' or 'weld', got {self.method!r}")
+        if self.rounds < 1:
+            raise ValueError(f"mesh rounds must be >= 1, got {self.rounds}")
+        if self.iterations < 0:
+            raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
+        if not 1 <= self.faces_per_pixel <= 1024:
+            raise ValueError(f"mesh faces_per_pixel must be in [1, 1024], got {self.faces_per_pixel}")
+        bad = [f for f in self.formats if f not in ("glb", "obj", "ply")]
+        if bad:
+            raise ValueError(f"export formats must be among glb, obj, ply; got {bad}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["formats"] = list(self.formats)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MeshConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown mesh config fields: {sorted(unknown)}")
+        d = dict(d)
+        if "formats" in d:
+            d["formats"] = tuple(d["formats"])
+        return cls(**d)
+
+
+class Regularizers:
+    """The mesh regularisers of one topology, their weighted sum and gradients (into ``.grad``)."""
+
+    def __init__(self, scene: Scene, cfg: MeshConfig):
+        n = scene.V.shape[0]
+        self.cfg = cfg
+        self.normal = FaceNormalConsistency(scene.F, n) if cfg.normal_weight > 0 else None
+        self.lap = UniformLaplacian(scene.F, n) if cfg.laplacian_weight > 0 else None
+        self.gtv = MaterialGTV(scene.F, n) if cfg.gtv_weight > 0 else None
+
+    def __call__(self, scene: Scene) -> float:
+        total = 0.0
+        for fn, x, w in ((self.normal, scene.V, self.cfg.normal_weight), (self.lap, scene.V, self.cfg.laplacian_weight),
+                         (self.gtv, scene.material, self.cfg.gtv_weight)):
+            if fn is None:
+                continue
+            with Tape() as tape:
+                e = fn(x)
+            tape.backward(e, np.asarray(w, np.float64))
+            total += w * float(np.asarray(e.data))
+        return total
+
+
+class MeshStage:
+    """Runs the mesh stage on a trained (or resumed) :class:`~triplet_cl.train.Trainer`."""
+
+    def __init__(self, trainer, cfg: MeshConfig | None = None, quiet: bool | None = None):
+        self.trainer = trainer
+        self.cfg = cfg or MeshConfig()
+        self.cfg.validate()
+        self.quiet = trainer.quiet if quiet is None else quiet
+        self.run_dir = trainer.run_dir
+        self.device = trainer.device
+        self.ds = trainer.ds
+        self.rng = np.random.default_rng(trainer.cfg.seed + 7)
+        self.scene: Scene | None = None
+        self.history: list[dict] = []
+
+    # ---- one round -----------------------------------------------------------------------------
+    def extract(self, source: Scene) -> Scene:
+        from .extract import extract_scene
+
+        cams = [v.camera for v in self.ds.train]
+        t = time.perf_counter()
+        scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution, device=self.device)
+        self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, {scene.V.shape[0]} vertices, "
+                              f"{time.perf_counter() - t:.1f} s")
+        return scene
+
+    def build_optimizer(self, scene: Scene) -> Adam:
+        tc, c = self.trainer.cfg, self.cfg
+        opt = Adam()
+        kw = {"betas": tuple(tc.betas), "eps": 1e-12}
+        ext = self.trainer.extent
+        steps = max(c.iterations, 1)
+        opt.add_group("V", [scene.V], lr=ExponentialDecay(c.lr_position * ext, 0.1 * c.lr_position * ext, steps), **kw)
+        opt.add_group("material", [scene.material], lr=c.lr_material, **kw)
+        if scene.vertex_sh is not None:
+            opt.add_group("vertex_sh", [scene.vertex_sh], lr=c.lr_vertex_sh, max_grad_norm=tc.sh_clip, **kw)
+        if scene.light_params is not None:
+            opt.add_group("lights", [scene.light_params], lr=c.lr_lights, **kw)
+        return opt
+
+    def settings(self, background) -> RenderSettings:
+        tc = self.trainer.cfg
+        sh = self.trainer.scene.vertex_sh is not None
+        return RenderSettings(K=self.cfg.faces_per_pixel, sigma=None, background=tuple(float(x) for x in background),
+                              normals="vertex", sh_degree=tc.sh_degree if sh else None)
+
+    def refine(self, scene: Scene, round_index: int) -> Scene:
+        from tqdm import tqdm
+
+        from .remesh import remesh_scene
+
+        c, tc = self.cfg, self.trainer.cfg
+        opt = self.build_optimizer(scene)
+        reg = Regularizers(scene, c)
+        grad_acc = np.zeros(len(scene.F))
+        targets = self.trainer.targets
+        order: list[int] = []
+        bar = tqdm(total=c.iterations, desc=f"mesh {round_index + 1}/{c.rounds}", unit="it", disable=self.quiet,
+                   dynamic_ncols=True)
+        try:
+            for it in range(c.iterations):
+                if not order:
+                    order = list(self.rng.permutation(len(self.ds.train)))
+                i = int(order.pop())
+                bg = self.rng.uniform(0, 1, 3) if tc.background == "random" else resolve_background(tc.background)
+                cam, target = targets.get(i, 1.0, np.asarray(bg, np.float32))
+                t0 = time.perf_counter()
+                r = render(scene, cam, self.settings(bg), self.device)
+                loss, v_img = photometric_loss_and_grad(r.image, target, lam=tc.ssim_lambda)
+                r.backward(v_img)
+                gV = np.asarray(scene.V.grad, np.float64)
+                grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
+                reg_loss = reg(scene)
+                opt.step()
+                opt.zero_grad()
+                from ..train import psnr
+
+                rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
+                       "psnr": psnr(r.image, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
+                self.history.append(rec)
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{rec['psnr']:.2f}", faces=str(len(scene.F)))
+                last = it + 1 == c.iterations
+                if c.remesh_every and (it + 1) % c.remesh_every == 0 and not last:
+                    report = remesh_scene(scene, opt, grad_acc, subdivide_fraction=c.subdivide_fraction,
+                                          simplify_fraction=c.simplify_fraction, max_faces=c.max_faces)
+                    self.trainer.log.info(f"mesh remesh at {it + 1}: {json.dumps(report)}")
+                    reg = Regularizers(scene, c)
+                    grad_acc = np.zeros(len(scene.F))
+                if (it + 1) % 100 == 0:
+                    self.trainer.log.info(json.dumps(rec))
+        finally:
+            bar.close()
+        return scene
+
+    # ---- the whole stage -----------------------------------------------------------------------
+    def run(self) -> dict:
+        """Extract → refine (``rounds`` times) → evaluate → export. Returns the ``"mesh"`` metrics."""
+        t = time.perf_counter()
+        source = self.trainer.scene
+        for k in range(self.cfg.rounds):
+            scene = self.extract(source)
+            if self.cfg.iterations:
+                scene = self.refine(scene, k)
+            source = scene
+        self.scene = source
+        self.save_state()
+        metrics = self.evaluate()
+        metrics["wall_time_s"] = time.perf_counter() - t
+        metrics["files"] = [str(p.name) for p in self.export()]
+        self._write_metrics(metrics)
+        return metrics
+
+    def evaluate(self) -> dict:
+        """Test-view PSNR/SSIM of the mesh (and of the soup, for comparison), Chamfer to ``gt_mesh.ply``."""
+        from .metrics import chamfer_distance, load_reference_mesh
+
+        tr = self.trainer
+        soup = tr.evaluate()
+        mesh = self._evaluate_scene(self.scene, write_renders=True)
+        out = {"faces": len(self.scene.F), "vertices": self.scene.V.shape[0], "method": self.cfg.method,
+               "psnr": mesh["psnr"], "ssim": mesh["ssim"], "soup_psnr": soup["psnr"], "soup_ssim": soup["ssim"],
+               "soup_faces": len(tr.scene.F), "views": mesh["views"]}
+        ref = load_reference_mesh(tr.data) if Path(tr.data).is_dir() else None
+        if ref is not None:
+            cd = chamfer_distance(self.scene.V.data, self.scene.F, *ref)
+            out.update({f"{k}_to_gt": v for k, v in cd.items()})
+        return out
+
+    def _evaluate_scene(self, scene: Scene, write_renders: bool) -> dict:
+        from ..io import write_png
+        from ..losses import ssim
+        from ..train import psnr
+
+        tr = self.trainer
+        views = tr.ds["test"] or tr.ds.train
+        if tr.cfg.max_test_views:
+            views = views[: tr.cfg.max_test_views]
+        bg = np.asarray(resolve_background("white" if tr.cfg.background == "random" else tr.cfg.background),
+                        np.float32)
+        per = []
+        for v in views:
+            r = render(scene, v.camera, self.settings(bg), self.device)
+            target = v.target(bg)
+            img = np.clip(r.image, 0, 1)
+            per.append({"name": v.name, "psnr": psnr(img, target),
+                        "ssim": float(ssim(img.astype(np.float64), target.astype(np.float64), padding="valid"))})
+            if write_renders:
+                a = np.clip(r.alpha, 0, 1)
+                rgb = np.where(a[..., None] > 1e-4, (img - bg * (1 - a[..., None])) / np.maximum(a[..., None], 1e-4),
+                               0.0)
+                write_png(self.run_dir / "renders" / "mesh" / f"{Path(v.name).name}.png", rgb, a)
+        return {"psnr": float(np.mean([p["psnr"] for p in per])), "ssim": float(np.mean([p["ssim"] for p in per])),
+                "views": per}
+
+    def export(self) -> list[Path]:
+        return export_run_mesh(self.run_dir, self.asset(), self.cfg.formats, self.cfg.texture_size)
+
+    def asset(self) -> MeshAsset:
+        return MeshAsset.from_scene(self.scene)
+
+    # ---- persistence ---------------------------------------------------------------------------
+    def save_state(self) -> Path:
+        save_mesh_state(self.run_dir / MESH_STATE, self.scene, self.cfg)
+        return self.run_dir / MESH_STATE
+
+    def _write_metrics(self, mesh_metrics: dict) -> None:
+        path = self.run_dir / "metrics.json"
+        metrics = json.loads(path.read_text()) if path.is_file() else {}
+        metrics["mesh"] = mesh_metrics
+        write_json(path, metrics)
+        self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))
+
+
+def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
+    """The refined mesh (V, F, raw parameters, lights) as one ``.npz`` (atomic)."""
+    import io as _io
+
+    from ..lights import light_to_json as _light_json
+
+    arrays = {"V": scene.V.data, "F": scene.F, "material": scene.material.data, "alpha": scene.alpha.data}
+    if scene.vertex_sh is not None:
+        arrays["vertex_sh"] = scene.vertex_sh.data
+    meta = {"brdf": scene.brdf, "lights": [_light_json(lt) for lt in scene.current_lights()], "mesh": cfg.to_dict()}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = _io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_mesh_state(path) -> Scene:
+    """The :class:`Scene` saved by :func:`save_mesh_state`."""
+    from ..lights import lights_from_json
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no mesh-stage result at {path}: run `triplet extract` on the run first")
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(a.pop("meta")).decode())
+    lights = lights_from_json(meta["lights"])
+    return Scene.from_arrays(a["V"], a["F"], material=a["material"], alpha=a["alpha"], lights=lights,
+                             vertex_sh=a.get("vertex_sh"), brdf=meta["brdf"])
+
+
+def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), texture_size: int = 1024) -> list[Path]:
+    """Write the mesh assets of a run (``mesh.glb/.obj/.ply``, ``envmap.exr``, ``lights.json``)."""
+    from .export import export_asset
+
+    if asset.num_faces == 0:
+        raise ValueError("the mesh has no faces: nothing to export")
+    return export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size)
