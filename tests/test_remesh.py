@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-
 from triplet_cl.autodiff import Param
+
 from triplet_cl.mesh.remesh import (
     mesh_edges,
     refine_scene,

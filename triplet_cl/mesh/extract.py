@@ -44,7 +44,8 @@ from ..ops.raster import project, rasterize
 from .asset import MeshAsset
 from .transfer import transfer_attributes
 
-__all__ = ["DEPTH_MODES", "METHODS", "extract_mesh", "extract_scene", "mesh_stats", "remove_small_components", "render_depth",
+__all__ = ["DEPTH_MODES", "METHODS", "extract_mesh", "extract_scene", "mesh_stats", "remove_small_components",
+           "render_depth",
            "tsdf_fusion", "weld_vertices"]
 
 METHODS = ("tsdf", "weld")
@@ -92,9 +93,9 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
     acc = 1.0 - trans.get().astype(np.float64)
     depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
     if mode == "median":
-        count = fr.count.get()
-        af = a.get().astype(np.float64) * (1.0 if win is None else win.get())
-        af[np.arange(K)[None, None, :] >= count[..., None]] = 0.0
+        valid = np.arange(K)[None, None, :] < fr.count.get()[..., None]  # slots beyond the count are undefined
+        with np.errstate(invalid="ignore", over="ignore"):
+            af = np.where(valid, a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)
         reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= 0.5
         first = np.argmax(reached, axis=2)
         med = np.take_along_axis(fr.depth.get(), first[..., None], axis=2)[..., 0]
@@ -117,8 +118,8 @@ def _soup_bounds(scene, alpha_threshold: float, pad: float) -> np.ndarray:
 
 
 def tsdf_fusion(scene, cameras, resolution: int = 128, truncation: float = 3.0, alpha_threshold: float = 0.5,
-                bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "expected", min_view_fraction: float = 0.5,
-                device: Device | None = None, return_volume: bool = False):
+                bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "median",
+                min_view_fraction: float = 0.5, device: Device | None = None, return_volume: bool = False):
     """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
 
     Args:
@@ -152,7 +153,10 @@ def tsdf_fusion(scene, cameras, resolution: int = 128, truncation: float = 3.0, 
         raise ValueError(f"alpha_threshold must lie in (0, 1), got {alpha_threshold}")
     if not 0 <= min_view_fraction <= 1:
         raise ValueError(f"min_view_fraction must lie in [0, 1], got {min_view_fraction}")
-    b = _soup_bounds(scene, alpha_threshold, 0.05) if bounds is None else check_real("bounds", bounds, (2, 3), np.float64)
+    if bounds is None:
+        b = _soup_bounds(scene, alpha_threshold, 0.05)
+    else:
+        b = check_real("bounds", bounds, (2, 3), np.float64)
     if not (b[1] > b[0]).all():
         raise ValueError(f"bounds must be [min corner, max corner] with max > min on every axis, got {b.tolist()}")
     h = float((b[1] - b[0]).max()) / (resolution - 1)
@@ -186,7 +190,8 @@ def tsdf_fusion(scene, cameras, resolution: int = 128, truncation: float = 3.0, 
         ii = idx[use]
         num[ii] += (w * val)[use]
         wsum[ii] += w[use]
-    tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(seen >= min_view_fraction * len(cameras), -1.0, 1.0)).reshape(*dims).astype(np.float32)
+    unobserved = np.where(seen >= min_view_fraction * len(cameras), -1.0, 1.0)
+    tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), unobserved).reshape(*dims).astype(np.float32)
     for ax in range(3):  # the outer layer is outside: the level set closes inside the grid
         sl = [slice(None)] * 3
         sl[ax] = 0
@@ -318,12 +323,13 @@ def _check_inputs(scene, cameras, method):
 
 
 def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
-              min_component_fraction, K, sigma, device):
+              min_component_fraction, max_faces, K, sigma, depth_mode, device):
     V = np.asarray(scene.V.data, np.float64)
     F = np.asarray(scene.F)
     if method == "tsdf":
         Vm, Fm = tsdf_fusion(scene, cameras, resolution=resolution, truncation=truncation,
-                             alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, device=device)
+                             alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, depth_mode=depth_mode,
+                             device=device)
     else:
         a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
         opaque = F[a[F].mean(axis=1) >= alpha_threshold]
@@ -338,23 +344,31 @@ def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, b
         Vm, Fm, _ = remove_small_components(Vm, Fm, min_component_fraction)
     if len(Fm) == 0:
         raise ValueError(f"extraction ({method}) produced an empty mesh")
+    if max_faces is not None and len(Fm) > max_faces:
+        from .remesh import simplify
+
+        Vm, Fm, _, _ = simplify(Vm, Fm, target_count=int(max_faces))
+        Vm = Vm.astype(np.float32)
     return Vm, Fm
 
 
 def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int = 128, truncation: float = 3.0,
                  alpha_threshold: float = 0.5, bounds=None, weld_tolerance: float | None = None,
-                 min_component_fraction: float = 0.02, k: int = 4, opaque: bool = True, K: int = 30,
-                 sigma: float | None = 1.0, device: Device | None = None) -> MeshAsset:
+                 min_component_fraction: float = 0.02, max_faces: int | None = None, k: int = 4,
+                 opaque: bool = True, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "median",
+                 device: Device | None = None) -> MeshAsset:
     """The soup of ``scene`` → a connected :class:`MeshAsset` with activated attributes and the lights.
 
     Args:
         scene: the trained soup (:class:`~triplet_cl.scene.Scene`).
         cameras: the views to fuse (``"tsdf"``; ignored by ``"weld"``).
         method: ``"tsdf"`` (default: closed surface, see ``bench/extract.py``) or ``"weld"``.
-        resolution, truncation, bounds, K, sigma: see :func:`tsdf_fusion`.
+        resolution, truncation, bounds, K, sigma, depth_mode: see :func:`tsdf_fusion` (the median
+            depth is the default here: the expected depth of a soup lies behind its surface).
         alpha_threshold: free-space threshold (tsdf) / faces below it are dropped before welding.
         weld_tolerance: merge distance (weld; default ¼ of the median edge of the opaque faces).
         min_component_fraction: pieces with fewer faces than this fraction are removed.
+        max_faces: QEM-simplify the result to at most this many faces (None: keep all).
         k: donors per vertex in :func:`~triplet_cl.mesh.transfer.transfer_attributes`.
         opaque: set the mesh's alpha to 1 (what a game engine expects); else transfer it.
 
@@ -363,7 +377,7 @@ def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int =
     """
     cameras = _check_inputs(scene, cameras, method)
     Vm, Fm = _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
-                       min_component_fraction, K, sigma, device)
+                       min_component_fraction, max_faces, K, sigma, depth_mode, device)
     src = MeshAsset.from_scene(scene)
     alpha = src.attributes["alpha"]
     vals = transfer_attributes(src.V, src.F, src.attributes, Vm, k=k, src_alpha=alpha)
@@ -384,13 +398,12 @@ def extract_scene(scene, cameras=None, method: str = "tsdf", *, opaque_alpha: fl
     """
     from ..scene import Scene, logit
 
-    geo_keys = {"resolution", "truncation", "alpha_threshold", "bounds", "weld_tolerance", "min_component_fraction",
-                "K", "sigma", "device"}
-    bad = set(kwargs) - geo_keys
-    if bad:
-        raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(geo_keys)})")
     opts = {"resolution": 128, "truncation": 3.0, "alpha_threshold": 0.5, "bounds": None, "weld_tolerance": None,
-            "min_component_fraction": 0.02, "K": 30, "sigma": 1.0, "device": None}
+            "min_component_fraction": 0.02, "max_faces": None, "K": 30, "sigma": 1.0, "depth_mode": "median",
+            "device": None}
+    bad = set(kwargs) - set(opts)
+    if bad:
+        raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(opts)})")
     opts.update(kwargs)
     cameras = _check_inputs(scene, cameras, method)
     Vm, Fm = _geometry(scene, cameras, method, **opts)

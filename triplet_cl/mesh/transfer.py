@@ -63,14 +63,16 @@ def transfer_attributes(src_V, src_F, src_values: dict, dst_V, k: int = 4, src_a
     for name, a in src_values.items():
         a = np.asarray(a)
         if a.ndim < 1 or a.shape[0] != n:
-            raise ValueError(f"src_values[{name!r}] must have {n} rows (one per soup vertex), got shape {list(a.shape)}")
+            raise ValueError(f"src_values[{name!r}] must have {n} rows (one per soup vertex), "
+                             f"got shape {list(a.shape)}")
         vals[name] = check_real(f"src_values[{name!r}]", a, a.shape, np.float64)
     if src_alpha is None:
         face_a = np.ones(len(F))
     else:
         al = np.asarray(src_alpha, np.float64).reshape(-1)
         if al.shape != (n,):
-            raise ValueError(f"src_alpha must have {n} values (one per soup vertex), got shape {list(np.shape(src_alpha))}")
+            raise ValueError(f"src_alpha must have {n} values (one per soup vertex), "
+                             f"got shape {list(np.shape(src_alpha))}")
         if not (np.isfinite(al).all() and al.min() >= 0 and al.max() <= 1):
             raise ValueError("src_alpha must be activated opacity in [0, 1] (pass sigmoid(raw alpha))")
         face_a = al[F].mean(axis=1)

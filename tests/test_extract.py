@@ -1,0 +1,264 @@
+"""Soup → mesh extraction: soup depth, TSDF fusion of a sphere's soup, welding, component removal,
+attribute transfer and the full extract_mesh / extract_scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from triplet_cl.camera import Camera
+from triplet_cl.lights import AmbientLight, PointLight
+from triplet_cl.mesh.asset import MeshAsset
+from triplet_cl.mesh.extract import (
+    extract_mesh,
+    extract_scene,
+    mesh_stats,
+    remove_small_components,
+    render_depth,
+    tsdf_fusion,
+    weld_vertices,
+)
+from triplet_cl.mesh.metrics import chamfer_distance, sample_surface
+from triplet_cl.mesh.transfer import transfer_attributes
+from triplet_cl.scene import Scene, logit
+
+RADIUS = 0.8
+
+
+def _cameras(n=10, px=40, dist=3.0):
+    """``n`` cameras on a Fibonacci sphere looking at the origin."""
+    cams = []
+    for i in range(n):
+        z = 1 - 2 * (i + 0.5) / n
+        r = np.sqrt(1 - z * z)
+        ph = i * np.pi * (3 - np.sqrt(5))
+        d = np.array([r * np.cos(ph), r * np.sin(ph), z])
+        up = [0, 0, 1] if abs(d[2]) < 0.9 else [0, 1, 0]
+        cams.append(Camera.look_at(dist * d, [0, 0, 0], up, 40, px, px))
+    return cams
+
+
+def _soup_of(mesh, alpha=0.95, material=None, lights=None):
+    V = np.asarray(mesh.vertices)[np.asarray(mesh.faces)].reshape(-1, 3)
+    F = np.arange(len(V)).reshape(-1, 3)
+    return Scene.from_arrays(V, F, alpha=np.full((len(V), 1), logit(alpha)), material=material, lights=lights)
+
+
+@pytest.fixture(scope="module")
+def sphere_soup():
+    return _soup_of(trimesh.creation.icosphere(3, radius=RADIUS))
+
+
+# ---------------------------------------------------------------------------------------------- depth
+
+
+def _quad(z, half=2.0):
+    V = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]], np.float64)
+    return V[[0, 1, 2, 0, 2, 3]]
+
+
+def test_render_depth_expected_and_median(device):
+    """Two parallel layers filling the view: front α=0.9 at z=2, back α=0.9 at z=3."""
+    V = np.concatenate([_quad(2.0), _quad(3.0)])
+    F = np.arange(12).reshape(4, 3)
+    sc = Scene.from_arrays(V, F, alpha=np.full((12, 1), logit(0.9)))
+    cam = Camera(20.0, 20.0, 8.25, 8.0, 16, 16, np.eye(4))  # no pixel centre on the quads' diagonals
+    depth, acc = render_depth(sc, cam, K=8, sigma=None, device=device)
+    a_exp = 1 - 0.1 * 0.1
+    np.testing.assert_allclose(acc, a_exp, rtol=1e-5)
+    np.testing.assert_allclose(depth, (0.9 * 2.0 + 0.1 * 0.9 * 3.0) / a_exp, rtol=1e-5)
+    med, _ = render_depth(sc, cam, K=8, sigma=None, mode="median", device=device)
+    np.testing.assert_allclose(med, 2.0, rtol=1e-5)
+    # the front layer alone below ½: the median falls back to the expected depth of both
+    sc.alpha.data[:6] = logit(0.3)
+    med, acc = render_depth(sc, cam, K=8, sigma=None, mode="median", device=device)
+    np.testing.assert_allclose(med, 3.0 * np.ones_like(med), rtol=1e-5)  # 0.3 + 0.7·0.9 ≥ ½ at the back layer
+    with pytest.raises(ValueError, match="mode"):
+        render_depth(sc, cam, mode="mean", device=device)
+
+
+def test_render_depth_empty_view(device, sphere_soup):
+    cam = Camera.look_at([0, 0, 3], [0, 0, 6], [0, 1, 0], 40, 8, 8)  # looking away
+    depth, acc = render_depth(sphere_soup, cam, sigma=None, device=device)
+    assert not depth.any() and not acc.any()
+
+
+# ---------------------------------------------------------------------------------------------- TSDF
+
+
+def test_tsdf_sphere_is_closed_and_near_the_sphere(device, sphere_soup):
+    cams = _cameras()
+    V, F, (tsdf, origin, h) = tsdf_fusion(sphere_soup, cams, resolution=40, sigma=None, device=device,
+                                          return_volume=True)
+    V, F, _ = remove_small_components(V, F)
+    st = mesh_stats(V, F)
+    assert st["watertight"] and st["components"] == 1
+    assert trimesh.Trimesh(V, F, process=False).volume > 0  # outward
+    r = np.linalg.norm(V, axis=1)
+    # the soup is an inscribed icosphere: its facets lie within 0.01 inside the sphere
+    r_soup = np.linalg.norm(sample_surface(sphere_soup.V.data, sphere_soup.F, 20000), axis=1).mean()
+    assert abs(r.mean() - r_soup) < 0.15 * h  # measured 0.10 h: marching-cubes chords on a convex surface
+    assert np.abs(r - RADIUS).max() < 1.0 * h
+    ref = trimesh.creation.icosphere(5, radius=RADIUS)
+    cd = chamfer_distance(V, F, ref.vertices, ref.faces, n=20000)["chamfer"]
+    floor = chamfer_distance(sphere_soup.V.data, sphere_soup.F, ref.vertices, ref.faces, n=20000)["chamfer"]
+    assert cd < floor + 0.1 * h  # (the sampling itself gives ~0.010 here)
+    assert tsdf.shape[0] == tsdf.shape[1] == tsdf.shape[2] and (tsdf[0] == 1).all()
+
+
+def test_tsdf_expected_depth_lies_inside(device, sphere_soup):
+    """The expected depth of a two-sided soup is pulled behind the front surface (documented bias)."""
+    cams = _cameras(8)
+    V, _ = tsdf_fusion(sphere_soup, cams, resolution=32, sigma=None, depth_mode="expected", device=device)
+    Vm, _ = tsdf_fusion(sphere_soup, cams, resolution=32, sigma=None, depth_mode="median", device=device)
+    assert np.linalg.norm(V, axis=1).mean() < np.linalg.norm(Vm, axis=1).mean() - 0.01
+
+
+def test_tsdf_errors(device, sphere_soup):
+    with pytest.raises(ValueError, match="at least one camera"):
+        tsdf_fusion(sphere_soup, [], device=device)
+    with pytest.raises(ValueError, match="resolution"):
+        tsdf_fusion(sphere_soup, _cameras(2), resolution=4, device=device)
+    with pytest.raises(ValueError, match="bounds"):
+        tsdf_fusion(sphere_soup, _cameras(2), bounds=[[1, 1, 1], [0, 0, 0]], device=device)
+    away = [Camera.look_at([0, 0, 3], [0, 0, 6], [0, 1, 0], 40, 8, 8)]
+    with pytest.raises(ValueError, match="no surface"):
+        tsdf_fusion(sphere_soup, away, resolution=16, sigma=None, min_view_fraction=1.0, device=device)
+
+
+# ---------------------------------------------------------------------------------------------- weld + clean
+
+
+def test_weld_reconnects_a_jittered_soup(rng):
+    s = trimesh.creation.icosphere(2, radius=RADIUS)
+    V = np.asarray(s.vertices)[s.faces].reshape(-1, 3)
+    V = V + rng.normal(scale=1e-5, size=V.shape)
+    F = np.arange(len(V)).reshape(-1, 3)
+    F = np.concatenate([F, F[:1, ::-1], [[0, 0, 1]]])  # a reversed duplicate and a degenerate face
+    Vw, Fw, vertex_of = weld_vertices(V, F, tolerance=1e-3)
+    assert len(Vw) == len(s.vertices) and len(Fw) == len(s.faces)
+    st = mesh_stats(Vw, Fw)
+    assert st["watertight"] and st["components"] == 1
+    np.testing.assert_allclose(Vw[vertex_of], V, atol=1e-4)
+    np.testing.assert_array_equal(Fw[: len(s.faces)], vertex_of[F[: len(s.faces)]])
+    Vn, Fn, _ = weld_vertices(V, F, tolerance=0.0)  # nothing to merge
+    assert len(Fn) == len(F) - 2 and len(Vn) == len(V)  # the degenerate and the reversed twin go
+    with pytest.raises(ValueError, match="tolerance"):
+        weld_vertices(V, F, -1.0)
+
+
+def test_remove_small_components():
+    big = trimesh.creation.icosphere(2)
+    small = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    small.apply_translation([3, 0, 0])
+    V = np.concatenate([big.vertices, small.vertices])
+    F = np.concatenate([big.faces, small.faces + len(big.vertices)])
+    Vr, Fr, vertex_of = remove_small_components(V, F, min_fraction=0.1)
+    assert len(Fr) == len(big.faces) and len(Vr) == len(big.vertices)
+    assert (vertex_of[len(big.vertices):] == -1).all()
+    Vk, Fk, _ = remove_small_components(V, F, min_fraction=0.0)
+    assert len(Fk) == len(F)
+    with pytest.raises(ValueError, match="min_fraction"):
+        remove_small_components(V, F, 1.5)
+
+
+# ---------------------------------------------------------------------------------------------- transfer
+
+
+def test_transfer_picks_nearest_opaque_donor():
+    # a transparent blue face right at the query point, an opaque red one a little further
+    V = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.5, 0, 0], [0.6, 0, 0], [0.5, 0.1, 0]], np.float64)
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    colour = np.array([[0, 0, 1]] * 3 + [[1, 0, 0]] * 3, np.float64)
+    alpha = np.array([0.02] * 3 + [0.9] * 3)
+    q = np.array([[0.03, 0.03, 0.0]])
+    out = transfer_attributes(V, F, {"c": colour}, q, k=1, src_alpha=alpha)
+    np.testing.assert_array_equal(out["c"], [[1, 0, 0]])
+    out = transfer_attributes(V, F, {"c": colour}, q, k=1)  # no alpha: every face donates
+    np.testing.assert_array_equal(out["c"], [[0, 0, 1]])
+    # every face transparent: falls back to all faces rather than failing
+    out = transfer_attributes(V, F, {"c": colour}, q, k=1, src_alpha=np.full(6, 0.01))
+    np.testing.assert_array_equal(out["c"], [[0, 0, 1]])
+
+
+def test_transfer_blends_and_keeps_shapes(rng):
+    V = rng.normal(size=(30, 3))
+    F = np.arange(30).reshape(10, 3)
+    vals = {"const": np.full((30, 2), 0.4), "sh": rng.normal(size=(30, 6, 4)), "a": rng.random(30)}
+    q = rng.normal(size=(7, 3))
+    out = transfer_attributes(V, F, vals, q, k=4, src_alpha=rng.random(30))
+    np.testing.assert_allclose(out["const"], 0.4, rtol=1e-12)
+    assert out["sh"].shape == (7, 6, 4) and out["a"].shape == (7,)
+    lo, hi = vals["a"].min(), vals["a"].max()
+    assert (out["a"] >= lo - 1e-12).all() and (out["a"] <= hi + 1e-12).all()  # a convex blend
+
+
+def test_transfer_errors():
+    V = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="at least one face"):
+        transfer_attributes(V, np.zeros((0, 3), int), {}, V)
+    with pytest.raises(ValueError, match=r"src_values\['c'\] must have 3 rows"):
+        transfer_attributes(V, [[0, 1, 2]], {"c": np.zeros(4)}, V)
+    with pytest.raises(ValueError, match="src_alpha"):
+        transfer_attributes(V, [[0, 1, 2]], {}, V, src_alpha=np.full(3, 2.0))
+    with pytest.raises(ValueError, match="k must"):
+        transfer_attributes(V, [[0, 1, 2]], {}, V, k=0)
+
+
+# ---------------------------------------------------------------------------------------------- extract
+
+
+def _coloured_sphere_soup():
+    s = trimesh.creation.icosphere(3, radius=RADIUS)
+    V = np.asarray(s.vertices)[s.faces].reshape(-1, 3)
+    act = np.where(V[:, 2:3] > 0, [[0.8, 0.2, 0.2, 0.5, 0.1, 0.9]], [[0.2, 0.2, 0.8, 0.5, 0.1, 0.9]])
+    lights = [PointLight([0, 0, 3], [5, 5, 5]), AmbientLight([0.1, 0.2, 0.3])]
+    return _soup_of(s, material=logit(act), lights=lights)
+
+
+def test_extract_mesh_tsdf_carries_attributes_and_lights(device):
+    soup = _coloured_sphere_soup()
+    soup.light_params.data[:3] = [0.5, 0.5, 3.0]  # a trained light position must be carried as is
+    A = extract_mesh(soup, _cameras(), resolution=32, sigma=None, k=1, device=device)
+    assert isinstance(A, MeshAsset) and A.brdf == "cook_torrance"
+    assert mesh_stats(A.V, A.F)["watertight"]
+    top = A.V[:, 2] > 0.1
+    bottom = A.V[:, 2] < -0.1
+    np.testing.assert_allclose(A.attributes["albedo"][top], [[0.8, 0.2, 0.2]] * int(top.sum()), atol=1e-5)
+    np.testing.assert_allclose(A.attributes["albedo"][bottom], [[0.2, 0.2, 0.8]] * int(bottom.sum()), atol=1e-5)
+    np.testing.assert_allclose(A.attributes["roughness"], 0.5, atol=1e-5)
+    assert (A.attributes["alpha"] == 1).all()
+    assert isinstance(A.lights[0], PointLight) and isinstance(A.lights[1], AmbientLight)
+    np.testing.assert_allclose(A.lights[0].position, [0.5, 0.5, 3.0], rtol=1e-6)
+    # max_faces decimates
+    B = extract_mesh(soup, _cameras(), resolution=32, sigma=None, max_faces=500, device=device)
+    assert len(B.F) <= 500 and mesh_stats(B.V, B.F)["watertight"]
+
+
+def test_extract_mesh_weld_and_extract_scene(device):
+    soup = _coloured_sphere_soup()
+    A = extract_mesh(soup, method="weld")
+    assert len(A.F) == 1280 and mesh_stats(A.V, A.F)["watertight"]
+    S = extract_scene(soup, method="weld", opaque_alpha=0.99)
+    assert isinstance(S, Scene) and len(S.F) == 1280 and S.V.data.shape == (642, 3)
+    assert S.material.data.shape == (642, 6) and S.alpha.data.shape == (642, 1)
+    np.testing.assert_allclose(S.alpha.data, logit(0.99), rtol=1e-5)
+    np.testing.assert_allclose(S.light_params.data, soup.light_params.data)
+    # a raw parameter transferred from a constant soup column stays that constant
+    np.testing.assert_allclose(S.material.data[:, 3], logit(0.5), atol=1e-6)
+
+
+def test_extract_errors(device, sphere_soup):
+    empty = Scene.from_arrays(np.zeros((0, 3)), np.zeros((0, 3), int))
+    with pytest.raises(ValueError, match="empty soup"):
+        extract_mesh(empty, _cameras(2))
+    with pytest.raises(ValueError, match="needs the training cameras"):
+        extract_mesh(sphere_soup, [])
+    with pytest.raises(ValueError, match="method"):
+        extract_mesh(sphere_soup, _cameras(2), method="poisson")
+    with pytest.raises(ValueError, match="unknown extract_scene options"):
+        extract_scene(sphere_soup, _cameras(2), resolutoin=32)
+    clear = _soup_of(trimesh.creation.icosphere(1), alpha=0.01)
+    with pytest.raises(ValueError, match="nothing to weld"):
+        extract_mesh(clear, method="weld")
