@@ -1,0 +1,179 @@
+"""UV atlas (xatlas) and texture baking of per-vertex attributes, on the host in numpy.
+
+Texture coordinates follow glTF: ``(u, v)`` in [0, 1], ``u`` along the image width, ``v`` *down*
+the image (row ``i`` covers ``v`` in ``[i/H, (i+1)/H)``); texel ``(i, j)`` has its centre at
+``uv = ((j + 0.5)/W, (i + 0.5)/H)``.
+
+Baking: every face is rasterised in texel space (a texel belongs to the face that contains its
+centre, barycentric ``w`` of the centre), and each attribute is ``sum_k w_k a[corner k]`` there.
+Texels that no face covers are then filled with the value of the *nearest* covered texel
+(``scipy.ndimage.distance_transform_edt``), out to ``dilate`` texels or everywhere: bilinear
+filtering and mip-maps near chart borders then average values of the same chart instead of the
+background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class UVAtlas:
+    """A UV atlas of a mesh ``V [N, 3]``, ``F [M, 3]``.
+
+    Attributes:
+        vmap: ``[N2] int64`` original vertex of each atlas vertex (vertices are split at seams).
+        faces: ``[M, 3] int32`` faces into the atlas vertices (same order as ``F``).
+        uv: ``[N2, 2] float32`` texture coordinates in [0, 1] (glTF convention, ``v`` down).
+        charts: number of charts; utilization: fraction of the atlas the charts cover.
+    """
+
+    vmap: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    charts: int
+    utilization: float
+
+
+def uv_atlas(V: np.ndarray, F: np.ndarray, texture_size: int = 1024, padding: int = 2) -> UVAtlas:
+    """Charts and packs a UV atlas with ``xatlas`` for a ``texture_size`` square texture.
+
+    Args:
+        V: ``[N, 3]`` positions. F: ``[M, 3]`` faces (M > 0).
+        texture_size: the texture's width = height in texels (sets xatlas' texel density).
+        padding: texels between charts.
+    Returns:
+        :class:`UVAtlas` with one atlas page (the texel density is lowered until the charts fit one).
+    """
+    import xatlas
+
+    V = np.ascontiguousarray(V, np.float32)
+    F = np.ascontiguousarray(F, np.uint32)
+    if len(F) == 0:
+        raise ValueError("uv_atlas: the mesh has no faces")
+    texels_per_unit = 0.0
+    for _ in range(8):
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(V, F)
+        pack = xatlas.PackOptions()
+        pack.resolution = int(texture_size)
+        pack.padding = int(padding)
+        pack.bilinear = True
+        pack.texels_per_unit = float(texels_per_unit)
+        atlas.generate(xatlas.ChartOptions(), pack)
+        if atlas.atlas_count <= 1:
+            break
+        # more than one page: lower the density so that everything fits one texture
+        texels_per_unit = float(atlas.texels_per_unit) * 0.9 / np.sqrt(atlas.atlas_count)
+    else:
+        raise RuntimeError(f"xatlas could not pack the charts into one {texture_size}² atlas")
+    vmap, faces, uv = atlas[0]
+    return UVAtlas(vmap.astype(np.int64), faces.astype(np.int32), np.clip(uv, 0, 1).astype(np.float32),
+                   int(atlas.chart_count), float(atlas.utilization[0]) if np.ndim(atlas.utilization)
+                   else float(atlas.utilization))
+
+
+def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
+                 max_candidates: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
+    """Rasterise triangles in texture space: the face covering each texel centre and its barycentrics.
+
+    Args:
+        uv: ``[N, 2]`` texture coordinates in [0, 1] (glTF convention). faces: ``[M, 3]`` into ``uv``.
+        width, height: texture size. max_candidates: texels tested per chunk (memory bound).
+    Returns:
+        ``face [H, W] int32`` (-1 where no face covers the centre) and ``bary [H, W, 3] float32``.
+        Where faces overlap (only on shared edges in an atlas) the later face wins.
+    """
+    uv = np.asarray(uv, np.float64)
+    faces = np.asarray(faces, np.int64)
+    face_img = np.full((height, width), -1, np.int32)
+    bary_img = np.zeros((height, width, 3), np.float32)
+    p = uv[faces] * np.array([width, height])  # [M, 3, 2] texel units; centres at j + 0.5
+    a, e1, e2 = p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    lo = np.ceil(p.min(1) - 0.5).astype(np.int64)
+    hi = np.floor(p.max(1) - 0.5).astype(np.int64)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [width - 1, height - 1])
+    n = np.maximum(hi - lo + 1, 0)
+    count = n[:, 0] * n[:, 1]
+    ok = (np.abs(det) > 1e-12) & (count > 0)
+    ids = np.flatnonzero(ok)
+    if len(ids) == 0:
+        return face_img, bary_img
+    csum = np.cumsum(count[ids])
+    start = 0
+    eps = 1e-7
+    while start < len(ids):
+        base = csum[start - 1] if start else 0
+        stop = max(int(np.searchsorted(csum, base + max_candidates, side="right")), start + 1)
+        fid = np.repeat(ids[start:stop], count[ids[start:stop]])
+        first = np.repeat(csum[start:stop] - count[ids[start:stop]] - base, count[ids[start:stop]])
+        k = np.arange(len(fid)) - first
+        nx = n[fid, 0]
+        jx = lo[fid, 0] + k % nx
+        jy = lo[fid, 1] + k // nx
+        q = np.stack([jx + 0.5, jy + 0.5], -1) - a[fid]
+        w1 = (q[:, 0] * e2[fid, 1] - q[:, 1] * e2[fid, 0]) / det[fid]
+        w2 = (e1[fid, 0] * q[:, 1] - e1[fid, 1] * q[:, 0]) / det[fid]
+        w0 = 1.0 - w1 - w2
+        inside = (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
+        jy, jx, fid = jy[inside], jx[inside], fid[inside]
+        face_img[jy, jx] = fid
+        bary_img[jy, jx] = np.stack([w0[inside], w1[inside], w2[inside]], -1)
+        start = stop
+    return face_img, bary_img
+
+
+def bake(face_img: np.ndarray, bary_img: np.ndarray, faces: np.ndarray, values: np.ndarray,
+         dilate: int | None = None, fill=None) -> np.ndarray:
+    """Bake per-vertex ``values`` into a texture from a UV rasterisation (:func:`rasterize_uv`).
+
+    Args:
+        face_img: ``[H, W]`` face per texel (-1: empty). bary_img: ``[H, W, 3]`` barycentrics.
+        faces: ``[M, 3]`` faces into the rows of ``values``. values: ``[N, C]`` per-vertex values.
+        dilate: fill empty texels within this many texels of a covered one with the nearest covered
+            value; ``None`` fills every empty texel that way (best for mip-maps).
+        fill: ``[C]`` value of the texels left empty (default: the mean of the covered texels).
+    Returns:
+        ``[H, W, C] float32``.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    values = np.asarray(values, np.float32)
+    values = values.reshape(len(values), -1)
+    h, w = face_img.shape
+    out = np.zeros((h, w, values.shape[1]), np.float32)
+    covered = face_img >= 0
+    if not covered.any():
+        out[:] = 0 if fill is None else np.asarray(fill, np.float32)
+        return out
+    f = np.asarray(faces)[face_img[covered]]  # [T, 3]
+    out[covered] = np.einsum("tk,tkc->tc", bary_img[covered], values[f])
+    if covered.all():
+        return out
+    dist, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
+    grow = ~covered if dilate is None else (~covered) & (dist <= float(dilate))
+    out[grow] = out[iy[grow], ix[grow]]
+    rest = ~covered & ~grow
+    if rest.any():
+        out[rest] = out[covered].mean(0) if fill is None else np.asarray(fill, np.float32)
+    return out
+
+
+def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[N, 3] float32`` (sum of the adjacent faces' cross products,
+    normalised; a vertex with no face or a zero sum gets ``(0, 1, 0)``, so every normal is unit)."""
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])  # 2 * area * unit normal
+    n = np.zeros_like(V)
+    for c in range(3):
+        n[:, c] = np.bincount(F.ravel(), weights=np.repeat(fn[:, c], 3), minlength=len(V))
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    good = ln[:, 0] > 1e-20
+    n[good] /= ln[good]
+    n[~good] = (0.0, 1.0, 0.0)
+    return n.astype(np.float32)
