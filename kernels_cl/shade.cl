@@ -21,6 +21,16 @@
  *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
  *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
  *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
+ * Ray-traced terms (ops/trace.py; all off in the default raster path, has_* = 0):
+ *   has_vis:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
+ *             multiplies that light's intensity: brdf_direct(N, V, L, T I sc, m);
+ *             v_T = v_Li_eff . (I sc), and the light's own adjoints see v_Li = T v_Li_eff.
+ *   has_refl: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
+ *             reflection bounce) adds s_g * refl, s_g the glossy weight of env_scales (the same
+ *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
+ *             v_s_g = v_rgb refl -> env_scales_vjp -> v_N, v_V, v_m.
+ *   has_eye:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
+ *             the reflecting point); no adjoint is returned for eye.
  * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
  * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
  * a time, one column per item, fixed order: deterministic) and writes one row of v_light_part
@@ -67,6 +77,13 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const int* lt_i,     // [L, 4] (type, offset, a, b)
                         __global const REAL* lt_f,    // [T]
                         const int L,
+                        const int NV,                 // shadowed lights (columns of vis)
+                        const int has_vis,
+                        __global const REAL* vis,     // [P, NV]  (has_vis)
+                        const int has_refl,
+                        __global const REAL* refl,    // [P, 3]   (has_refl)
+                        const int has_eye,
+                        __global const REAL* eye,     // [P, 3]   (has_eye)
                         __global REAL* rgb)           // [P, 3]
 {
     const int p = get_global_id(0);
@@ -77,25 +94,36 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
     }
     REAL3 x, V, N;
     REAL sgn, m[NMAT];
-    load_fragment(p, pos, nrm, mat, (REAL3)(cx, cy, cz), two_sided, &x, &V, &N, &sgn, m);
+    const REAL3 cam = has_eye ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
+    load_fragment(p, pos, nrm, mat, cam, two_sided, &x, &V, &N, &sgn, m);
     REAL3 out = (REAL3)(0);
+    int jv = 0;
     for (int li = 0; li < L; ++li) {
         const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
         __global const REAL* q = lt_f + off;
         if (type == LIGHT_AMBIENT) {
             out += ambient_term(LOAD_RGB(q, 0), m);
         } else if (type == LIGHT_DIRECTIONAL) {
-            out += brdf_direct(N, V, safe_normalize(LOAD_RGB(q, 0)), LOAD_RGB(q, 3), m);
+            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
+            ++jv;
+            out += brdf_direct(N, V, safe_normalize(LOAD_RGB(q, 0)), LOAD_RGB(q, 3) * tv, m);
         } else if (type == LIGHT_POINT) {
             const REAL3 w = LOAD_RGB(q, 0) - x;
             const REAL sc = a ? (REAL)1 / fmax(dot(w, w), POINT_D2_EPS) : (REAL)1;
-            out += brdf_direct(N, V, safe_normalize(w), LOAD_RGB(q, 3) * sc, m);
+            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
+            ++jv;
+            out += brdf_direct(N, V, safe_normalize(w), LOAD_RGB(q, 3) * (sc * tv), m);
         } else if (type == LIGHT_SH_ENV) {
             out += env_term(N, V, m, a, q, b);
         } else if (type == LIGHT_VERTEX_SH) {
             const REAL3 rad = LOAD_RGB(vlight, 6 * p), wi = LOAD_RGB(vlight, 6 * p + 3);
             out += brdf_direct(N, V, safe_normalize(wi), rad, m);
         }
+    }
+    if (has_refl) {
+        REAL3 s_d, s_g;
+        env_scales(N, V, m, &s_d, &s_g);
+        out += s_g * LOAD3(refl, p);
     }
     STORE3(out, rgb, p);
 }
@@ -134,11 +162,23 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         const int has_vlight,           // 0: v_vlight is a placeholder, not written
                         __global REAL* v_vlight,        // [P, 6]
                         __global REAL* v_light_part,    // [num_groups, T]
-                        __local REAL* scratch)          // [local_size * RED_W]
+                        __local REAL* scratch,          // [local_size * RED_W]
+                        const int NV,
+                        const int has_vis,
+                        __global const REAL* vis,       // [P, NV]  (has_vis)
+                        const int has_refl,
+                        __global const REAL* refl,      // [P, 3]   (has_refl)
+                        const int has_eye,
+                        __global const REAL* eye,       // [P, 3]   (has_eye)
+                        __global REAL* v_vis,           // [P, NV]  (has_vis)
+                        __global REAL* v_refl)          // [P, 3]   (has_refl)
 {
     const int p = get_global_id(0);
     const int valid = p < P && face_id[p] >= 0;
-    const REAL3 cam = (REAL3)(cx, cy, cz);
+    const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
+    int jv = 0;
+    if (has_vis && p < P)
+        for (int j = 0; j < NV; ++j) v_vis[p * NV + j] = (REAL)0;
     REAL3 x = (REAL3)(0), V = (REAL3)(0), N = (REAL3)(0), v_o = (REAL3)(0);
     REAL sgn = (REAL)1, m[NMAT], v_m[NMAT];
     for (int j = 0; j < NMAT; ++j) m[j] = v_m[j] = (REAL)0;
@@ -208,7 +248,12 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 g[2] = v_Li.z;
             } else if (type == LIGHT_DIRECTIONAL) {
                 const REAL3 d = LOAD_RGB(q, 0);
-                brdf_direct_vjp(N, V, safe_normalize(d), LOAD_RGB(q, 3), m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
+                brdf_direct_vjp(N, V, safe_normalize(d), LOAD_RGB(q, 3) * tv, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                if (has_vis) {
+                    v_vis[p * NV + jv] = dot(v_Li, LOAD_RGB(q, 3));
+                    v_Li *= tv;
+                }
                 const REAL3 v_d = safe_normalize_vjp(d, v_L);
                 g[0] = v_d.x;
                 g[1] = v_d.y;
@@ -221,7 +266,12 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 const REAL3 w = LOAD_RGB(q, 0) - x;
                 const REAL d2 = dot(w, w);
                 const REAL sc = a ? (REAL)1 / fmax(d2, POINT_D2_EPS) : (REAL)1;
-                brdf_direct_vjp(N, V, safe_normalize(w), I * sc, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
+                brdf_direct_vjp(N, V, safe_normalize(w), I * (sc * tv), m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                if (has_vis) {
+                    v_vis[p * NV + jv] = dot(v_Li, I * sc);
+                    v_Li *= tv;
+                }
                 REAL3 v_w = safe_normalize_vjp(w, v_L);
                 if (a && d2 > POINT_D2_EPS) v_w -= (REAL)2 * w * (dot(I, v_Li) * sc * sc);
                 v_x -= v_w;
@@ -239,8 +289,21 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 v_wi += safe_normalize_vjp(wi, v_L);
             }
         }
+        if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) ++jv;
         const int n = light_nparams(type, a);
         if (n > 0) group_sum_store(g, n, scratch, part + off);
+    }
+    if (has_refl && p < P) {
+        REAL3 v_r = (REAL3)(0);
+        if (valid) {
+            REAL3 xr, Vr, Nr, s_d, s_g;
+            REAL sr, mr[NMAT];
+            load_fragment(p, pos, nrm, mat, cam, two_sided, &xr, &Vr, &Nr, &sr, mr); /* see the env note */
+            env_scales(Nr, Vr, mr, &s_d, &s_g);
+            v_r = s_g * v_o;
+            env_scales_vjp(Nr, Vr, mr, (REAL3)(0), v_o * LOAD3(refl, p), (REAL)0, &v_N, &v_V, v_m);
+        }
+        STORE3(v_r, v_refl, p);
     }
 
     if (p < P) {

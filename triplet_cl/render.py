@@ -11,6 +11,14 @@ Graph (every box a :class:`~triplet_cl.autodiff.Function` with a hand-derived ad
     ShadeFragments(…, light_params) → rgb [H, W, K, 3] (on the compacted valid fragments), alpha [H, W, K]
     Composite(rgb, alpha, win)  → image [H, W, 3], accumulated alpha [H, W]
 
+Renderers (``RenderSettings.renderer``): ``"raster"`` (the graph above); ``"raytrace"``: the
+fragments come from the K nearest hits of camera rays through a BVH (``ops/trace.py``; same
+``Fragments``, so every op and adjoint after it is shared), and shading adds ray-traced shadows
+(transmittance ``Π(1−α)`` towards point/directional lights) and one mirror reflection bounce;
+``"hybrid"``: rasterized primary visibility with the ray-traced shadows and bounce. The traced terms
+live in :class:`TracedShadeFragments`, which also takes the packed attributes so that occluders and
+bounce hits receive their gradients.
+
 One packed per-vertex attribute array is interpolated once and its adjoint, together with those of
 the barycentrics and the coverage window, comes back in one fused pass
 (:func:`~triplet_cl.ops.raster.fragments_backward`).
@@ -31,12 +39,17 @@ from .device import Device, get_device
 from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
+from .ops import trace as trace_op
 from .ops import vertex_sh as vsh_op
+from .ops.bvh import BVH, build_bvh, refit
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
 from .ops.raster import fragments_backward, project, project_backward, rasterize
 from .scene import Scene
+
+
+RENDERERS = ("raster", "raytrace", "hybrid")
 
 
 @dataclass
@@ -52,8 +65,16 @@ class RenderSettings:
     cull_backface: bool = False  # drop back-facing triangles in the rasterizer
     sh_degree: int | None = None  # active vertex-SH degree (None: all bands of the coefficients)
     real: type = np.float32  # float32 in production; float64 for gradient checks
+    renderer: str = "raster"  # "raster" | "raytrace" (BVH primary rays) | "hybrid" (raster primary)
+    shadows: bool = True  # raytrace/hybrid: ray-traced shadows of point and directional lights
+    reflections: bool = True  # raytrace/hybrid: one mirror reflection bounce (glossy weight of env_scales)
+    ray_eps: float = 1e-4  # ray-start offset against self-intersection, × the scene's bounding-box diagonal
 
     def __post_init__(self):
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+        if not (np.isfinite(self.ray_eps) and self.ray_eps >= 0):
+            raise ValueError(f"ray_eps must be a finite number >= 0, got {self.ray_eps}")
         if self.normals not in ("face", "vertex"):
             raise ValueError(f"normals must be 'face' or 'vertex', got {self.normals!r}")
         if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
@@ -66,6 +87,9 @@ class View:
     def __init__(self, device: Device, mesh: DeviceMesh, camera: Camera, settings: RenderSettings):
         self.device, self.mesh, self.camera, self.settings = device, mesh, camera, settings
         self.frags = None  # Fragments of the forward pass
+        self.bvh: BVH | None = None  # ray-traced renderers: the hierarchy, refitted to this view's V
+        self.ray_eps = 0.0  # world-space ray offset
+        self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
         self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
 
 
@@ -190,8 +214,11 @@ class RasterInterpolate(Function):
         ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, s.real))
         ctx.attr = cla.to_device(d.queue, np.ascontiguousarray(attr, s.real))
         vs = project(d, ctx.Vd, cam)
-        fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
-                       sigma=s.sigma)
+        if s.renderer == "raytrace":
+            fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
+        else:
+            fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
+                           sigma=s.sigma)
         v.frags = ctx.frags = fr
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
@@ -250,6 +277,105 @@ class ShadeFragments(Function):
         v_alpha = _as_device(d, v_alpha, (H, W, K), fr.real)
         columns.copy_columns(d, fr, v_alpha.reshape(H, W, K, 1), 0, v_fa, L["alpha"][0], 1)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
+
+
+class TracedShadeFragments(ShadeFragments):
+    """``(frag_attr [H, W, K, C], attr [N, C][, light_params]) → (rgb [H, W, K, 3], alpha [H, W, K])``:
+    :class:`ShadeFragments` plus ray-traced shadows and one reflection bounce (``ops/trace.py``).
+
+    * shadows: per shaded fragment and point/directional light, ``T = Π(1 − α)`` over the triplets
+      the segment to the light crosses (own face skipped, start offset ``view.ray_eps``); T scales
+      the light's intensity. Adjoints: occluders' vertex alphas and positions, the fragment position,
+      the light position/direction.
+    * bounce: the nearest hit along the mirror direction, shaded with the same lights (seen from the
+      reflecting point, no shadows), ``L_r = α_hit · rgb_hit``, added as ``s_g · L_r`` (``s_g`` the
+      glossy weight of ``env_scales``). Adjoints: the hit's interpolated attributes (materials,
+      normal, position, alpha, vertex light) and the light parameters, and the reflecting surface's
+      materials and normal through ``s_g``; the direction and hit point are discrete (no gradient).
+    ``attr`` is the packed per-vertex attribute array (positions in its ``pos`` columns).
+    """
+
+    def forward(self, ctx, fa, attr, *rest):
+        v, s = self.view, self.view.settings
+        d, fr = v.device, v.frags
+        H, W, K = fr.shape
+        comp = columns.Compaction(d, fr)
+        L = self.layout
+        blk = {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+        face_c = trace_op.pack_faces(d, fr, comp.offsets, comp.P)
+        _, inp = shade_op.prepare(blk["pos"], blk["nrm"], blk["mat"], face_c, v.camera.center, self.lights,
+                                  brdf=self.brdf, vlight=blk.get("vlight"), two_sided=s.two_sided, device=d,
+                                  real=s.real)
+        if rest and len(inp.table.params):
+            inp.lt_f = cla.to_device(d.queue, np.ascontiguousarray(rest[0], s.real))
+        attr_h = np.ascontiguousarray(attr, s.real)
+        attr_d = cla.to_device(d.queue, attr_h)
+        p0 = L["pos"][0]
+        Vd = cla.to_device(d.queue, np.ascontiguousarray(attr_h[:, p0:p0 + 3]))
+        ctx.shadow = ctx.hits = None
+        if s.shadows and trace_op.num_shadowed_lights(inp.table) and comp.P:
+            ctx.shadow = trace_op.shadow_forward(d, v.bvh, Vd, attr_d, L["alpha"][0], blk["pos"], face_c, inp.lt_i,
+                                                 inp.lt_f, inp.table, v.ray_eps)
+            inp.vis = ctx.shadow.vis
+        if s.reflections and comp.P:
+            hf, hb = trace_op.bounce(d, v.bvh, Vd, blk["pos"], blk["nrm"], face_c, v.camera.center, s.two_sided,
+                                     v.ray_eps)
+            hblk = {k: trace_op.gather_hits(d, attr_d, *L[k], v.mesh.F, hf, hb)
+                    for k in ("pos", "nrm", "mat", "vlight", "alpha") if k in L}
+            _, hinp = shade_op.prepare(hblk["pos"], hblk["nrm"], hblk["mat"], hf, v.camera.center, self.lights,
+                                       brdf=self.brdf, vlight=hblk.get("vlight"), two_sided=s.two_sided, device=d,
+                                       real=s.real)
+            hinp.lt_f, hinp.eye = inp.lt_f, blk["pos"]
+            hrgb = shade_op.forward(d, hinp).get()
+            ha = hblk["alpha"].get()
+            inp.refl = cla.to_device(d.queue, np.ascontiguousarray(hrgb * ha, s.real))
+            ctx.hits = (hf.get(), hb.get(), hinp, hrgb, ha)
+        v.traced = {"shadow_hits": None if ctx.shadow is None else ctx.shadow.nhit.get(),
+                    "bounce_face": None if ctx.hits is None else ctx.hits[0]}  # discrete choices (tests, tools)
+        rgb = cla.empty(d.queue, (H, W, K, 3), fr.real, allocator=d.allocator)
+        comp.unpack(shade_op.forward(d, inp), rgb, 0)
+        alpha = cla.empty(d.queue, (H, W, K, 1), fr.real, allocator=d.allocator)
+        columns.copy_columns(d, fr, fa, L["alpha"][0], alpha, 0, 1)
+        ctx.comp, ctx.inp, ctx.C, ctx.n_rest, ctx.N = comp, inp, fa.shape[-1], len(rest), attr_h.shape[0]
+        return rgb, alpha.reshape(H, W, K)
+
+    def backward(self, ctx, v_rgb, v_alpha):
+        v, s = self.view, self.view.settings
+        d, fr = v.device, v.frags
+        H, W, K = fr.shape
+        comp, L, inp = ctx.comp, self.layout, ctx.inp
+        v_rgb = _as_device(d, v_rgb, (H, W, K, 3), fr.real)
+        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl = shade_op.backward_full(d, inp, comp.pack(v_rgb, 0, 3))
+        v_attr = np.zeros((ctx.N, ctx.C))
+        if ctx.shadow is not None:
+            v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
+            v_attr[:, L["alpha"][0]] += v_al
+            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += v_Vo
+            v_pos = v_pos + v_x
+            shadowed = np.nonzero(np.isin(inp.table.ints[:, 0], trace_op.SHADOWED_TYPES))[0]
+            for j, li in enumerate(shadowed):  # position (point) / direction (directional): params 0..2
+                off = int(inp.table.ints[li, 1])
+                v_params[off:off + 3] += v_light[:, j].sum(axis=0)
+        if ctx.hits is not None:
+            hf, hb, hinp, hrgb, ha = ctx.hits
+            g = v_refl.get().astype(np.float64)
+            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(g * ha, s.real))
+            hp, hn, hm, hvl, hpar, _, _ = shade_op.backward_full(d, hinp, v_hrgb)
+            v_params = v_params + hpar
+            v_hit = np.zeros((len(hf), ctx.C))
+            for key, gk in (("pos", hp), ("nrm", hn), ("mat", hm), ("vlight", hvl)):
+                if key in L:
+                    v_hit[:, L[key][0]:L[key][0] + L[key][1]] = gk.get()
+            v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
+            v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
+        v_fa = cla.empty(d.queue, (H, W, K, ctx.C), fr.real, allocator=d.allocator)
+        for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
+            if key in L:
+                comp.unpack(gk, v_fa, L[key][0])
+        v_alpha = _as_device(d, v_alpha, (H, W, K), fr.real)
+        columns.copy_columns(d, fr, v_alpha.reshape(H, W, K, 1), 0, v_fa, L["alpha"][0], 1)
+        out = (v_fa, v_attr.astype(s.real))
+        return out + ((v_params.astype(s.real),) if ctx.n_rest else ())
 
 
 def _is_zero_scalar(b) -> bool:
@@ -354,6 +480,21 @@ def _host(g):
 
 
 _MESH_CACHE: dict = {}
+_BVH_CACHE: dict = {}
+
+
+def scene_bvh(device: Device, mesh: DeviceMesh, V: np.ndarray, real) -> BVH:
+    """The :class:`BVH` of a topology: built when the topology (or dtype) changes, refitted to ``V``
+    on every call (positions move after every optimiser step)."""
+    key = (id(device), id(mesh), np.dtype(real).str)
+    b = _BVH_CACHE.get(key)
+    Vr = np.ascontiguousarray(V, real)
+    if b is None or b.mesh is not mesh:
+        _BVH_CACHE.clear()
+        b = _BVH_CACHE[key] = build_bvh(device, Vr, mesh)
+    else:
+        refit(device, b, Vr)
+    return b
 
 
 def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
@@ -379,6 +520,11 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     N = scene.V.shape[0]
     mesh = device_mesh(d, scene.F, N)
     view = View(d, mesh, camera, s)
+    if s.renderer != "raster":
+        Vh = np.asarray(scene.V.data, np.float64)
+        view.bvh = scene_bvh(d, mesh, Vh, s.real)
+        diag = float(np.linalg.norm(Vh.max(0) - Vh.min(0))) if len(Vh) else 1.0
+        view.ray_eps = s.ray_eps * max(diag, 1e-12)
     cm = scene.material.shape[1]
     outer = active_tape()
     tape = outer if outer is not None else Tape()
@@ -396,8 +542,11 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         layout = {k: (int(offsets[i]), int(sizes[i])) for i, k in enumerate(names)}
-        shade_in = [fa] + ([scene.light_params] if scene.light_params is not None else [])
-        rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(*shade_in)
+        lp = [scene.light_params] if scene.light_params is not None else []
+        if s.renderer == "raster" or not (s.shadows or s.reflections):
+            rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(fa, *lp)
+        else:
+            rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
         img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
         rgba = Stack()(img, acc)
     return RenderResult(rgba, tape, scene, view)

@@ -73,6 +73,10 @@ class ShadeInputs:
     brdf: str
     two_sided: bool
     real: type
+    # ray-traced terms (ops/trace.py), None in the raster path:
+    vis: cla.Array | None = None  # [P, NV] transmittance towards each point/directional light
+    refl: cla.Array | None = None  # [P, 3] radiance along the mirror direction (reflection bounce)
+    eye: cla.Array | None = None  # [P, 3] per-fragment viewpoint replacing cam
 
     @property
     def P(self) -> int:
@@ -89,6 +93,16 @@ class ShadeGrads:
     v_vlight: np.ndarray | None  # [P, 6] (None without vlight)
     v_light_params: np.ndarray  # [T] gradient of the packed light parameters
     v_lights: list[dict[str, np.ndarray]]  # per light: {parameter name: gradient}
+
+
+def _traced_args(dev: Device, inp: ShadeInputs):
+    """The optional ray-traced inputs (visibility, reflected radiance, per-fragment eye)."""
+    ph = inp.pos.base_data if inp.pos.size == 0 else inp.pos.data  # placeholder, never read when off
+    NV = inp.vis.shape[1] if inp.vis is not None else 0
+    return (np.int32(NV), np.int32(inp.vis is not None and NV > 0),
+            inp.vis.data if inp.vis is not None and inp.vis.size else ph,
+            np.int32(inp.refl is not None), inp.refl.data if inp.refl is not None and inp.refl.size else ph,
+            np.int32(inp.eye is not None), inp.eye.data if inp.eye is not None and inp.eye.size else ph)
 
 
 def _kernel(dev: Device, inp: ShadeInputs, name: str):
@@ -109,17 +123,26 @@ def forward(dev: Device, inp: ShadeInputs) -> cla.Array:
     rgb = empty(dev.queue, (inp.P, 3), inp.real)
     if inp.P:
         _kernel(dev, inp, "shade_fwd")(dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
-                                       *_common_args(dev, inp), rgb.data)
+                                       *_common_args(dev, inp), *_traced_args(dev, inp), rgb.data)
     return rgb
 
 
 def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
     """``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params [T] numpy)`` for ``v_rgb [P, 3]``."""
+    return backward_full(dev, inp, v_rgb)[:5]
+
+
+def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
+    """As :func:`backward`, plus the adjoints of the ray-traced inputs:
+    ``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params, v_vis [P, NV] | None, v_refl [P, 3] | None)``
+    (no adjoint for ``eye``)."""
     q, P, real = dev.queue, inp.P, inp.real
     C = inp.mat.shape[1]
     T = len(inp.table.params)
     v_pos, v_nrm, v_mat = empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real)
     v_vl = empty(q, (P, 6), real) if inp.vlight is not None else None
+    v_vis = empty(q, inp.vis.shape, real) if inp.vis is not None else None
+    v_refl = empty(q, (P, 3), real) if inp.refl is not None else None
     groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
@@ -128,20 +151,28 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
         _kernel(dev, inp, "shade_bwd")(
             q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), *_common_args(dev, inp), np.int32(T), v_rgb.data,
             v_pos.data, v_nrm.data, v_mat.data, np.int32(v_vl is not None),
-            (v_vl if v_vl is not None else v_pos).data, part.data, scratch)
+            (v_vl if v_vl is not None else v_pos).data, part.data, scratch, *_traced_args(dev, inp),
+            (v_vis if v_vis is not None and v_vis.size else v_pos).data,
+            (v_refl if v_refl is not None else v_pos).data)
         v_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
     else:
         v_params = np.zeros(T)
     v_params[inp.table.inactive] = 0.0
-    return v_pos, v_nrm, v_mat, v_vl, v_params
+    return v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl
 
 
 # ---- validation ------------------------------------------------------------------------------
 
 
 def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None,
-            two_sided: bool = True, device: Device | None = None, real=np.float32) -> tuple[Device, ShadeInputs]:
-    """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``."""
+            two_sided: bool = True, device: Device | None = None, real=np.float32, vis=None, refl=None,
+            eye=None) -> tuple[Device, ShadeInputs]:
+    """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``.
+
+    Ray-traced terms (optional): ``vis [P, NV]`` transmittance towards each point/directional
+    light in light order (NV their number), ``refl [P, 3]`` radiance along the mirror direction,
+    ``eye [P, 3]`` per-fragment viewpoint replacing ``cam``.
+    """
     dev = device or get_device()
     brdf = _check_brdf(brdf)
     C = num_material_channels(brdf)
@@ -174,6 +205,13 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     lt_f = table.params.astype(real) if len(table.params) else np.zeros(1, real)
     inp = ShadeInputs(up(pos), up(nrm), up(mat), up(fid), None if vlight is None else up(vlight), cam, table,
                       to_device(q, lt_i), to_device(q, lt_f), brdf, bool(two_sided), real)
+    if vis is not None:
+        nv = int(np.isin(table.ints[:, 0], (1, 2)).sum()) if len(table.ints) else 0
+        inp.vis = up(check_real("vis", vis, (P, nv), real))
+    if refl is not None:
+        inp.refl = up(check_real("refl", refl, (P, 3), real))
+    if eye is not None:
+        inp.eye = up(check_real("eye", eye, (P, 3), real))
     return dev, inp
 
 

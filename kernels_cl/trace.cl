@@ -1,0 +1,401 @@
+/* trace.cl — ray tracing over the BVH of bvh.cl: primary rays (K nearest hits as rasterizer
+ * fragments), shadow rays with alpha transmittance and its adjoint, the reflection bounce.
+ * Ray/box/triangle maths and the tree walk: common/ray_math.h.
+ *
+ * trace_primary (one work-item per pixel, 8x8 work-groups)
+ *   ray of pixel (x, y): o = camera centre, d = R^T ((x + 0.5 - cx) / fx, (y + 0.5 - cy) / fy, 1)
+ *   (the rasterizer's pixel-centre convention; t along d is the camera-space depth). Keeps the K
+ *   nearest hits with t <= far sorted by (t, face id) — the rasterizer's order — among the faces the
+ *   rasterizer binned into the pixel's tile (tile_off / face_off / face_entries of ops/raster.py), so
+ *   culling (near plane, degenerate, back faces) is the rasterizer's and each hit carries the
+ *   (tile, face) entry whose partial sums fragment_bwd.cl accumulates into: the adjoint of a primary
+ *   hit is the rasterizer's (its perspective-correct barycentrics equal the ray's). Discrete: no
+ *   adjoint of its own.
+ *
+ * trace_shadow_fwd (one work-item per shaded fragment p; for each point / directional light j)
+ *   point light at q: d = q - x, t in (eps / |d|, 1);  directional light towards w: d = w, t > eps / |w|
+ *   (x the fragment's world position, eps a world-space offset against self-intersection; the
+ *   fragment's own face is skipped too). Over every triangle the segment crosses:
+ *     a_k = sum_i l_ki A[F[f_k, i]]  (vertex alpha interpolated at the hit),  ac_k = clamp(a_k, 0, AMAX)
+ *     T = prod_k (1 - ac_k)           vis[p, j] = T,  nhit[p, j] = number of hits
+ *   (alpha only: the screen-space coverage window of the camera has no meaning along a shadow ray).
+ * trace_shadow_bwd (same walk, same hit order), for v_T = v_vis[p, j]:
+ *   g_k = dT/da_k v_T = -v_T T / (1 - ac_k)   (0 where the clamp is active)
+ *   alpha:     v_A[F[f_k, i]] += g_k l_ki                          -> record w[0..3)
+ *   positions: a_k depends on (u, v) = (l_k1, l_k2):  v_u = g_k (A1 - A0), v_v = g_k (A2 - A0), and
+ *     u = [s, d, e2] / D, v = [d, s, e1] / D, D = [e1, d, e2]  ([a, b, c] = a . (b x c)),
+ *     s = o - v0, e1 = v1 - v0, e2 = v2 - v0, o = x;  with grad_a [a,b,c] = b x c (cyclic):
+ *     v_s  = (v_u/D) d x e2 + (v_v/D) e1 x d
+ *     v_d  = (v_u/D) e2 x s + (v_v/D) s x e1 + v_D e2 x e1,      v_D = -(v_u u + v_v v) / D
+ *     v_e1 = (v_v/D) d x s + v_D d x e2,    v_e2 = (v_u/D) s x d + v_D e1 x d
+ *     occluder corners: v_v0 = -(v_s + v_e1 + v_e2), v_v1 = v_e1, v_v2 = v_e2 -> record w[3..12)
+ *     fragment: v_x = v_s (- v_d for a point light);  light: v_q = v_d (point), v_w = v_d (directional)
+ *   Records (face, w[12]) go to offsets from a prefix sum of nhit; the host sums them per vertex in
+ *   a fixed order (no atomics). The set of hits is discrete (no gradient for a triangle entering or
+ *   leaving the segment).
+ *
+ * trace_bounce (one work-item per shaded fragment): V = normalize(cam - x), N = normalize(n),
+ *   flipped to face V when two_sided (as shade.cl), R = 2 (N.V) N - V; the nearest hit with
+ *   t > eps (own face skipped): hit_face [P] (-1: none), hit_bary [P, 2]. Discrete (no adjoint of the
+ *   direction); the hit surface's attributes are interpolated with gather_hits, whose adjoint is the
+ *   per-corner scatter l_i v_out done on the host.
+ */
+#include "real.h"
+#include "shade_math.h"
+#include "sh.h"
+#include "shade_brdf.h"
+#include "ray_math.h"
+
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef TILE
+#define TILE 8
+#endif
+#ifndef K_MAX
+#define K_MAX 1
+#endif
+#define AMAX ((REAL)(1.0 - 1e-6))
+
+/* entry id of (tile t, face f) in the rasterizer's binning, or -1 when f is not binned into t */
+inline int find_entry(__global const int* tile_off, __global const int* face_off, __global const int* face_entries,
+                      const int t, const int f)
+{
+    int lo = face_off[f], hi = face_off[f + 1];
+    const int e0 = tile_off[t], e1 = tile_off[t + 1];
+    while (lo < hi) {   /* face_entries of a face increase with the tile */
+        const int mid = (lo + hi) >> 1;
+        const int e = face_entries[mid];
+        if (e < e0) lo = mid + 1;
+        else if (e >= e1) hi = mid;
+        else return e;
+    }
+    return -1;
+}
+
+inline void load_tri(__global const REAL* V, __global const int* F, const int f, REAL3* v0, REAL3* v1, REAL3* v2)
+{
+    *v0 = LOAD3(V, F[3 * f]);
+    *v1 = LOAD3(V, F[3 * f + 1]);
+    *v2 = LOAD3(V, F[3 * f + 2]);
+}
+
+__kernel void trace_primary(__global const REAL* nodes,       // [2P - 1, 6]
+                            __global const int* prim,         // [M]
+                            const int P, const int M,
+                            __global const REAL* V,           // [N, 3]
+                            __global const int* F,            // [M, 3]
+                            __global const REAL* cam,         // [16] R (row-major), t, fx, fy, cx, cy
+                            const REAL ox, const REAL oy, const REAL oz,   // camera centre
+                            const int width, const int height, const int tiles_x, const int K,
+                            const REAL far,
+                            __global const int* tile_off,     // [T + 1]
+                            __global const int* face_off,     // [M + 1]
+                            __global const int* face_entries, // [E]
+                            __global int* frag_face,          // [H, W, K]
+                            __global int* frag_entry,         // [H, W, K]
+                            __global REAL* frag_bary,         // [H, W, K, 2]
+                            __global REAL* frag_depth,        // [H, W, K]
+                            __global int* frag_count)         // [H, W]
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= width || y >= height) return;
+    const int t_id = (y / TILE) * tiles_x + x / TILE;
+    const REAL xc = ((REAL)x + (REAL)0.5 - cam[14]) / cam[12];
+    const REAL yc = ((REAL)y + (REAL)0.5 - cam[15]) / cam[13];
+    const REAL3 d = (REAL3)(cam[0] * xc + cam[3] * yc + cam[6],
+                            cam[1] * xc + cam[4] * yc + cam[7],
+                            cam[2] * xc + cam[5] * yc + cam[8]);
+    const REAL3 o = (REAL3)(ox, oy, oz);
+    const REAL3 inv = ray_inv_dir(d);
+    REAL dk[K_MAX], bu[K_MAX], bv[K_MAX];
+    int fk[K_MAX], ek[K_MAX];
+    int cnt = 0;
+    int stack[BVH_STACK];
+    int sp = 0;
+    const int has_tile = tile_off[t_id + 1] > tile_off[t_id];
+    if (has_tile) stack[sp++] = 0;
+    for (;;) {
+        const REAL tmax = cnt == K ? dk[K - 1] : far;
+        const int j = bvh_next_leaf(nodes, P, o, inv, (REAL)0, tmax, stack, &sp);
+        if (j < 0) break;
+        const int s1 = leaf_begin(j + 1, M, P);
+        for (int i = leaf_begin(j, M, P); i < s1; ++i) {
+            const int f = prim[i];
+            REAL3 v0, v1, v2;
+            load_tri(V, F, f, &v0, &v1, &v2);
+            REAL t, u, v;
+            const REAL tm = cnt == K ? dk[K - 1] : far;
+            if (!ray_tri(o, d, v0, v1, v2, (REAL)0, tm, &t, &u, &v)) continue;
+            if (cnt == K && t == dk[K - 1] && f > fk[K - 1]) continue;
+            const int e = find_entry(tile_off, face_off, face_entries, t_id, f);
+            if (e < 0) continue;
+            /* insert (t, f) sorted by (depth, face id), as raster.cl's insert_fragment */
+            int q = cnt < K ? cnt : K - 1;
+            while (q > 0 && (dk[q - 1] > t || (dk[q - 1] == t && fk[q - 1] > f))) {
+                dk[q] = dk[q - 1]; fk[q] = fk[q - 1]; ek[q] = ek[q - 1]; bu[q] = bu[q - 1]; bv[q] = bv[q - 1];
+                --q;
+            }
+            dk[q] = t; fk[q] = f; ek[q] = e; bu[q] = u; bv[q] = v;
+            if (cnt < K) ++cnt;
+        }
+    }
+    const int pix = y * width + x;
+    frag_count[pix] = cnt;
+    for (int k = 0; k < cnt; ++k) {
+        const int o2 = pix * K + k;
+        frag_face[o2] = fk[k];
+        frag_entry[o2] = ek[k];
+        frag_bary[2 * o2] = (REAL)1 - bu[k] - bv[k];
+        frag_bary[2 * o2 + 1] = bu[k];
+        frag_depth[o2] = dk[k];
+    }
+}
+
+/* The shadow ray of light li for a fragment at x: direction d (unnormalised), [tmin, tmax]. */
+inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const int li, const REAL3 x,
+                      const REAL eps, REAL3* d, REAL* tmin, REAL* tmax)
+{
+    const int type = lt_i[4 * li], off = lt_i[4 * li + 1];
+    __global const REAL* q = lt_f + off;
+    const REAL3 a = (REAL3)(q[0], q[1], q[2]);
+    if (type == LIGHT_POINT) {
+        *d = a - x;
+        const REAL len = length(*d);
+        *tmin = eps / fmax(len, (REAL)1e-30);
+        *tmax = (REAL)1 - *tmin;
+        return 1;
+    }
+    if (type == LIGHT_DIRECTIONAL) {
+        *d = a;
+        *tmin = eps / fmax(length(a), (REAL)1e-30);
+        *tmax = (REAL)1e30;
+        return 1;
+    }
+    return 0;
+}
+
+inline REAL hit_alpha(__global const REAL* attr, const int C, const int ca, __global const int* F, const int f,
+                      const REAL u, const REAL v, REAL3* A)
+{
+    *A = (REAL3)(attr[(long)F[3 * f] * C + ca], attr[(long)F[3 * f + 1] * C + ca], attr[(long)F[3 * f + 2] * C + ca]);
+    return ((REAL)1 - u - v) * A->x + u * A->y + v * A->z;
+}
+
+__kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
+                               __global const int* prim,     // [M]
+                               const int P, const int M,
+                               __global const REAL* V,       // [N, 3]
+                               __global const int* F,        // [M, 3]
+                               __global const REAL* attr,    // [N, C] (column ca: vertex alpha)
+                               const int C, const int ca,
+                               __global const REAL* pos,     // [Pf, 3] fragment positions
+                               __global const int* face,     // [Pf] fragment face ids
+                               const int Pf,
+                               __global const int* lt_i,     // [L, 4]
+                               __global const REAL* lt_f,    // [T]
+                               const int L, const int NV, const REAL eps,
+                               __global REAL* vis,           // [Pf, NV]
+                               __global int* nhit)           // [Pf, NV]
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const REAL3 x = LOAD3(pos, p);
+    const int own = face[p];
+    int j = 0;
+    for (int li = 0; li < L; ++li) {
+        REAL3 d;
+        REAL tmin, tmax;
+        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
+        const REAL3 inv = ray_inv_dir(d);
+        REAL T = (REAL)1;
+        int n = 0;
+        int stack[BVH_STACK];
+        int sp = 0;
+        if (own >= 0) stack[sp++] = 0;
+        for (;;) {
+            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, &sp);
+            if (lf < 0) break;
+            const int s1 = leaf_begin(lf + 1, M, P);
+            for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
+                const int f = prim[i];
+                if (f == own) continue;
+                REAL3 v0, v1, v2, A;
+                load_tri(V, F, f, &v0, &v1, &v2);
+                REAL t, u, v;
+                if (!ray_tri(x, d, v0, v1, v2, tmin, tmax, &t, &u, &v)) continue;
+                const REAL a = clamp(hit_alpha(attr, C, ca, F, f, u, v, &A), (REAL)0, AMAX);
+                T *= (REAL)1 - a;
+                ++n;
+            }
+        }
+        vis[p * NV + j] = T;
+        nhit[p * NV + j] = n;
+        ++j;
+    }
+}
+
+inline REAL3 triple_grad(REAL3 b, REAL3 c) { return cross(b, c); }
+
+__kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
+                               __global const int* prim,     // [M]
+                               const int P, const int M,
+                               __global const REAL* V,       // [N, 3]
+                               __global const int* F,        // [M, 3]
+                               __global const REAL* attr,    // [N, C]
+                               const int C, const int ca,
+                               __global const REAL* pos,     // [Pf, 3]
+                               __global const int* face,     // [Pf]
+                               const int Pf,
+                               __global const int* lt_i,     // [L, 4]
+                               __global const REAL* lt_f,    // [T]
+                               const int L, const int NV, const REAL eps,
+                               __global const REAL* vis,     // [Pf, NV]
+                               __global const REAL* v_vis,   // [Pf, NV]
+                               __global const int* rec_off,  // [Pf * NV + 1]
+                               __global int* rec_face,       // [R]
+                               __global REAL* rec_w,         // [R, 12]  v_alpha (3) | v_position (3 x 3)
+                               __global REAL* v_x,           // [Pf, 3]  fragment position adjoint
+                               __global REAL* v_light)       // [Pf, NV, 3] light position / direction
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const REAL3 x = LOAD3(pos, p);
+    const int own = face[p];
+    REAL3 gx = (REAL3)(0);
+    int j = 0;
+    for (int li = 0; li < L; ++li) {
+        REAL3 d;
+        REAL tmin, tmax;
+        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
+        const int is_point = lt_i[4 * li] == LIGHT_POINT;
+        const REAL3 inv = ray_inv_dir(d);
+        const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
+        REAL3 gd = (REAL3)(0);
+        int r = rec_off[p * NV + j];
+        int stack[BVH_STACK];
+        int sp = 0;
+        if (own >= 0) stack[sp++] = 0;
+        for (;;) {
+            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, &sp);
+            if (lf < 0) break;
+            const int s1 = leaf_begin(lf + 1, M, P);
+            for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
+                const int f = prim[i];
+                if (f == own) continue;
+                REAL3 v0, v1, v2, A;
+                load_tri(V, F, f, &v0, &v1, &v2);
+                REAL t, u, v;
+                if (!ray_tri(x, d, v0, v1, v2, tmin, tmax, &t, &u, &v)) continue;
+                const REAL a = hit_alpha(attr, C, ca, F, f, u, v, &A);
+                const REAL g = (a >= (REAL)0 && a <= AMAX) ? -vT * T / ((REAL)1 - a) : (REAL)0;
+                __global REAL* w = rec_w + (long)r * 12;
+                rec_face[r++] = f;
+                w[0] = g * ((REAL)1 - u - v);
+                w[1] = g * u;
+                w[2] = g * v;
+                /* a = (1 - u - v) A0 + u A1 + v A2 -> v_u, v_v -> geometry of the hit */
+                const REAL vu = g * (A.y - A.x), vv = g * (A.z - A.x);
+                const REAL3 e1 = v1 - v0, e2 = v2 - v0, s = x - v0;
+                const REAL D = dot(e1, cross(d, e2));
+                const REAL cu = vu / D, cv = vv / D, cD = -(vu * u + vv * v) / D;
+                const REAL3 vs = cu * cross(d, e2) + cv * cross(e1, d);
+                const REAL3 vd = cu * cross(e2, s) + cv * cross(s, e1) + cD * cross(e2, e1);
+                const REAL3 ve1 = cv * cross(d, s) + cD * cross(d, e2);
+                const REAL3 ve2 = cu * cross(s, d) + cD * cross(e1, d);
+                const REAL3 g0 = -(vs + ve1 + ve2);
+                w[3] = g0.x; w[4] = g0.y; w[5] = g0.z;
+                w[6] = ve1.x; w[7] = ve1.y; w[8] = ve1.z;
+                w[9] = ve2.x; w[10] = ve2.y; w[11] = ve2.z;
+                gx += vs;
+                gd += vd;
+            }
+        }
+        if (is_point) gx -= gd;
+        STORE3(gd, v_light, p * NV + j);
+        ++j;
+    }
+    STORE3(gx, v_x, p);
+}
+
+__kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
+                           __global const int* prim,     // [M]
+                           const int P, const int M,
+                           __global const REAL* V,       // [N, 3]
+                           __global const int* F,        // [M, 3]
+                           __global const REAL* pos,     // [Pf, 3]
+                           __global const REAL* nrm,     // [Pf, 3]
+                           __global const int* face,     // [Pf]
+                           const int Pf,
+                           const REAL cx, const REAL cy, const REAL cz, const int two_sided, const REAL eps,
+                           __global int* hit_face,       // [Pf]  -1: no hit
+                           __global REAL* hit_bary)      // [Pf, 2]  (l0, l1)
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const REAL3 x = LOAD3(pos, p);
+    const REAL3 Vd = safe_normalize((REAL3)(cx, cy, cz) - x);
+    REAL3 N = safe_normalize(LOAD3(nrm, p));
+    if (two_sided && dot(N, Vd) < (REAL)0) N = -N;
+    const REAL3 d = (REAL)2 * dot(N, Vd) * N - Vd;
+    const int own = face[p];
+    const REAL3 inv = ray_inv_dir(d);
+    REAL best = (REAL)1e30, bu = 0, bv = 0;
+    int bf = -1;
+    int stack[BVH_STACK];
+    int sp = 0;
+    if (own >= 0) stack[sp++] = 0;
+    for (;;) {
+        const int lf = bvh_next_leaf(nodes, P, x, inv, eps, best, stack, &sp);
+        if (lf < 0) break;
+        const int s1 = leaf_begin(lf + 1, M, P);
+        for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
+            const int f = prim[i];
+            if (f == own) continue;
+            REAL3 v0, v1, v2;
+            load_tri(V, F, f, &v0, &v1, &v2);
+            REAL t, u, v;
+            if (!ray_tri(x, d, v0, v1, v2, eps, best, &t, &u, &v)) continue;
+            if (t == best && f > bf) continue;
+            best = t; bf = f; bu = u; bv = v;
+        }
+    }
+    hit_face[p] = bf;
+    hit_bary[2 * p] = bf >= 0 ? (REAL)1 - bu - bv : (REAL)0;
+    hit_bary[2 * p + 1] = bf >= 0 ? bu : (REAL)0;
+}
+
+/* out[p, c] = sum_i l_i attr[F[f, i], c0 + c] at the hit (f = hit_face[p]; zeros without a hit) */
+__kernel void gather_hits(__global const REAL* attr,      // [N, C]
+                          const int C, const int c0, const int n,
+                          __global const int* F,          // [M, 3]
+                          __global const int* hit_face,   // [Pf]
+                          __global const REAL* hit_bary,  // [Pf, 2]
+                          const int Pf,
+                          __global REAL* out)             // [Pf, n]
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const int f = hit_face[p];
+    for (int c = 0; c < n; ++c) {
+        REAL s = (REAL)0;
+        if (f >= 0) {
+            const REAL l0 = hit_bary[2 * p], l1 = hit_bary[2 * p + 1], l2 = (REAL)1 - l0 - l1;
+            s = l0 * attr[(long)F[3 * f] * C + c0 + c] + l1 * attr[(long)F[3 * f + 1] * C + c0 + c] +
+                l2 * attr[(long)F[3 * f + 2] * C + c0 + c];
+        }
+        out[(long)p * n + c] = s;
+    }
+}
+
+/* face ids of the valid fragment slots, compacted: out[off[pix] + k] = face[pix, k], k < count */
+__kernel void pack_faces(__global const int* frag_face,   // [H, W, K]
+                         __global const int* frag_count,  // [H, W]
+                         __global const int* offsets,     // [H W + 1]
+                         const int npix, const int K,
+                         __global int* out)               // [Pv]
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    const int o = offsets[pix], c = frag_count[pix];
+    for (int k = 0; k < c; ++k) out[o + k] = frag_face[pix * K + k];
+}

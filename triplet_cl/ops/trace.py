@@ -1,0 +1,227 @@
+"""Ray tracing over a :class:`~triplet_cl.ops.bvh.BVH` (``kernels_cl/trace.cl``, formulas at its top).
+
+* :func:`trace_primary` — the K nearest hits of every pixel's camera ray, returned as
+  :class:`~triplet_cl.ops.raster.Fragments` (same order, same pixel-centre convention, same culling),
+  so interpolation, shading, compositing and :func:`~triplet_cl.ops.raster.fragments_backward` serve
+  both renderers. The adjoint needs the rasterizer's tile binning: :func:`~triplet_cl.ops.raster.bin_faces`
+  (reused, not duplicated); each hit is kept only if its face is binned into the pixel's tile, which
+  also gives the rasterizer's culling.
+* :func:`shadow_forward` / :func:`shadow_backward` — transmittance ``T = Π(1 − α)`` of each shaded
+  point towards each point / directional light, and its adjoint to the occluders' vertex alphas and
+  positions, the shaded point and the light position/direction.
+* :func:`bounce` / :func:`gather_hits` — the nearest hit along each fragment's mirror direction and
+  the hit surface's interpolated attributes; :func:`scatter_hits` is the adjoint of the latter.
+
+Adjoints that land on vertices are written as per-hit records and summed per vertex on the host
+with ``np.bincount`` (fixed order: deterministic; no float atomics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..camera import Camera
+from ..device import Device
+from ..lights import LightTable
+from .bvh import BVH
+from .common import check_real, round_up, to_device
+from .raster import TILE, Fragments, _offsets, bin_faces, camera_params
+
+LOCAL = 64
+SHADOWED_TYPES = (1, 2)  # LIGHT_DIRECTIONAL, LIGHT_POINT (shade_brdf.h)
+
+
+def _check_bvh(bvh: BVH, V) -> None:
+    if not isinstance(bvh, BVH):
+        raise ValueError(f"bvh must be a BVH (ops.bvh.build_bvh), got {type(bvh).__name__}")
+    if V.dtype != bvh.real:
+        raise ValueError(f"V must have the BVH's dtype {bvh.real}, got {V.dtype}")
+
+
+def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_backface: bool = False) -> Fragments:
+    """The K nearest ray hits of every pixel, as rasterizer :class:`Fragments`.
+
+    Args:
+        bvh: the hierarchy, refitted to ``V``.
+        V: ``[N, 3]`` world positions (device array or numpy, the BVH's dtype).
+        vs: ``[N, 3]`` projected vertices of ``V`` (:func:`~triplet_cl.ops.raster.project`; the
+            binning and the adjoint use them).
+        camera: the pinhole camera; K: hits kept per pixel.
+
+    Returns:
+        :class:`Fragments` (``face``, ``bary``, ``depth`` = camera depth, ``count``, and the binning).
+    """
+    mesh = bvh.mesh
+    Vd = V if isinstance(V, cla.Array) else to_device(device.queue, check_real("V", V, (mesh.num_vertices, 3), bvh.real))
+    _check_bvh(bvh, Vd)
+    W, H = camera.width, camera.height
+    binning = bin_faces(device, vs, mesh, W, H, camera.near, camera.far, cull_backface)
+    K = int(K)
+    q, alloc, real = device.queue, device.allocator, bvh.real
+    face = cla.empty(q, (H, W, K), np.int32, allocator=alloc)
+    entry = cla.empty(q, (H, W, K), np.int32, allocator=alloc)
+    bary = cla.empty(q, (H, W, K, 2), real, allocator=alloc)
+    depth = cla.empty(q, (H, W, K), real, allocator=alloc)
+    count = cla.empty(q, (H, W), np.int32, allocator=alloc)
+    c = camera.center
+    cam = cla.to_device(q, camera_params(camera, real))
+    device.kernel("trace", "trace_primary", {"TILE": TILE, "K_MAX": K}, real)(
+        q, (round_up(W, TILE), round_up(H, TILE)), (TILE, TILE), bvh.nodes.data, bvh.prim.data,
+        np.int32(bvh.num_leaves), np.int32(mesh.num_faces), Vd.data, mesh.F.data, cam.data,
+        real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(W), np.int32(H), np.int32(binning.tiles_x),
+        np.int32(K), real.type(camera.far), binning.tile_off.data, binning.face_off.data,
+        binning.face_entries.data, face.data, entry.data, bary.data, depth.data, count.data)
+    return Fragments(W, H, K, binning.tiles_x, binning.tiles_y, binning.num_entries, np.dtype(real), face, entry,
+                     bary, depth, count, binning.tile_off, binning.face_off, binning.face_entries, vs, mesh,
+                     entry_setup=binning.entry_setup, entry_face=binning.entry_face)
+
+
+def num_shadowed_lights(table: LightTable) -> int:
+    """How many lights of a packed table cast ray-traced shadows (point and directional)."""
+    return int(np.isin(table.ints[:, 0], SHADOWED_TYPES).sum()) if len(table.ints) else 0
+
+
+@dataclass
+class ShadowState:
+    """What :func:`shadow_forward` keeps for its adjoint."""
+
+    vis: cla.Array  # [P, NV] transmittance
+    nhit: cla.Array  # [P, NV] int32 hits per ray
+    NV: int
+    args: tuple  # kernel arguments shared by the forward and the backward
+
+
+def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alpha_col: int, pos: cla.Array,
+                   face: cla.Array, lt_i: cla.Array, lt_f: cla.Array, table: LightTable, eps: float) -> ShadowState:
+    """Transmittance from ``P`` points towards each point / directional light.
+
+    Args:
+        V: ``[N, 3]`` positions (device, the BVH's dtype, the BVH refitted to them).
+        attr: ``[N, C]`` per-vertex attributes (device); column ``alpha_col`` is the activated alpha.
+        pos: ``[P, 3]`` shading points; face: ``[P] int32`` their own faces (skipped; −1: no ray).
+        lt_i, lt_f: the packed light table on the device (``lights.pack_lights``); table: the same on the host.
+        eps: world-space offset of the ray start against self-intersection.
+
+    Returns:
+        :class:`ShadowState` with ``vis [P, NV]`` (NV = :func:`num_shadowed_lights`, in light order).
+    """
+    _check_bvh(bvh, V)
+    q, real = device.queue, bvh.real
+    P = pos.shape[0]
+    NV = num_shadowed_lights(table)
+    C = attr.shape[1]
+    if not 0 <= alpha_col < C:
+        raise ValueError(f"alpha_col must be in [0, {C - 1}], got {alpha_col}")
+    vis = cla.empty(q, (max(P, 1), max(NV, 1)), real, allocator=device.allocator)[:P, :NV]
+    nhit = cla.zeros(q, (max(P, 1) * max(NV, 1),), np.int32, allocator=device.allocator)
+    args = (bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves), np.int32(bvh.mesh.num_faces), V.data,
+            bvh.mesh.F.data, attr.data, np.int32(C), np.int32(alpha_col), pos.data, face.data, np.int32(P),
+            lt_i.data, lt_f.data, np.int32(len(table.ints)), np.int32(NV), real.type(eps))
+    if P and NV:
+        device.kernel("trace", "trace_shadow_fwd", real=real)(q, (round_up(P, LOCAL),), (LOCAL,), *args, vis.base_data,
+                                                              nhit.data)
+    return ShadowState(vis, nhit[: P * NV], NV, args)
+
+
+def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis):
+    """Adjoint of :func:`shadow_forward` for ``v_vis [P, NV]``.
+
+    Returns:
+        ``(v_alpha [N] numpy, v_V [N, 3] numpy, v_pos [P, 3] device, v_light [P, NV, 3] numpy)``:
+        adjoints of the vertex alphas and positions of the occluders, of the shading points and of
+        each light's position (point) or direction (directional), per shading point.
+    """
+    q, real = device.queue, bvh.real
+    P, NV = st.vis.shape
+    n = bvh.mesh.num_vertices
+    v_pos = cla.zeros(q, (max(P, 1), 3), real, allocator=device.allocator)[:P]
+    if P == 0 or NV == 0:
+        return np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3))
+    off, R = _offsets(device, st.nhit)
+    v_vis = v_vis if isinstance(v_vis, cla.Array) else to_device(q, np.ascontiguousarray(v_vis, real))
+    rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
+    rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)
+    v_light = cla.empty(q, (P, NV, 3), real, allocator=device.allocator)
+    device.kernel("trace", "trace_shadow_bwd", real=real)(
+        q, (round_up(P, LOCAL),), (LOCAL,), *st.args, st.vis.base_data, v_vis.data, off.data, rec_face.data,
+        rec_w.data, v_pos.data, v_light.data)
+    F = bvh.mesh.faces
+    if R:
+        fc = rec_face.get()[:R]
+        w = rec_w.get()[:R].astype(np.float64)
+        verts = F[fc].reshape(-1)  # [R * 3] corner vertices
+        v_alpha = np.bincount(verts, weights=w[:, :3].reshape(-1), minlength=n)
+        wp = w[:, 3:].reshape(-1, 3)
+        v_V = np.stack([np.bincount(verts, weights=wp[:, c], minlength=n) for c in range(3)], axis=1)
+    else:
+        v_alpha, v_V = np.zeros(n), np.zeros((n, 3))
+    return v_alpha, v_V, v_pos, v_light.get().astype(np.float64)
+
+
+def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Array, face: cla.Array, cam_center,
+           two_sided: bool, eps: float):
+    """Nearest hit along each point's mirror direction (about its normal, seen from ``cam_center``).
+
+    Args:
+        pos, nrm: ``[P, 3]`` shading points and normals (device); face: ``[P] int32`` own faces (−1: none).
+
+    Returns:
+        ``(hit_face [P] int32, hit_bary [P, 2])`` device arrays (−1 / zeros where nothing is hit).
+    """
+    _check_bvh(bvh, V)
+    q, real = device.queue, bvh.real
+    P = pos.shape[0]
+    hf = cla.empty(q, max(P, 1), np.int32, allocator=device.allocator)
+    hb = cla.empty(q, (max(P, 1), 2), real, allocator=device.allocator)
+    c = np.asarray(cam_center, np.float64)
+    if P:
+        device.kernel("trace", "trace_bounce", real=real)(
+            q, (round_up(P, LOCAL),), (LOCAL,), bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves),
+            np.int32(bvh.mesh.num_faces), V.data, bvh.mesh.F.data, pos.data, nrm.data, face.data, np.int32(P),
+            real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(bool(two_sided)), real.type(eps), hf.data,
+            hb.data)
+    return hf[:P], hb[:P]
+
+
+def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, hit_face: cla.Array,
+                hit_bary: cla.Array) -> cla.Array:
+    """``attr[:, c0:c0+n]`` interpolated at each hit: ``[P, n]`` device array (zeros without a hit)."""
+    q = device.queue
+    P = hit_face.shape[0]
+    real = attr.dtype
+    out = cla.empty(q, (max(P, 1), n), real, allocator=device.allocator)
+    if P:
+        device.kernel("trace", "gather_hits", real=real)(
+            q, (round_up(P, LOCAL),), (LOCAL,), attr.data, np.int32(attr.shape[1]), np.int32(c0), np.int32(n),
+            F.data, hit_face.data, hit_bary.data, np.int32(P), out.data)
+    return out[:P]
+
+
+def scatter_hits(faces: np.ndarray, num_vertices: int, hit_face: np.ndarray, hit_bary: np.ndarray,
+                 v_out: np.ndarray) -> np.ndarray:
+    """Adjoint of :func:`gather_hits` (host): ``v_out [P, n]`` → ``v_attr [N, n]`` (float64)."""
+    ok = hit_face >= 0
+    f, b, g = hit_face[ok], hit_bary[ok].astype(np.float64), np.asarray(v_out, np.float64)[ok]
+    lam = np.stack([b[:, 0], b[:, 1], 1.0 - b[:, 0] - b[:, 1]], axis=1)  # [P', 3]
+    verts = faces[f].reshape(-1)
+    out = np.zeros((num_vertices, g.shape[1]))
+    for c in range(g.shape[1]):
+        out[:, c] = np.bincount(verts, weights=(lam * g[:, c:c + 1]).reshape(-1), minlength=num_vertices)
+    return out
+
+
+def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> cla.Array:
+    """Face ids of the valid fragment slots, compacted in the order of ``columns.Compaction``: ``[P] int32``."""
+    H, W, K = frags.shape
+    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
+    device.kernel("trace", "pack_faces", real=frags.real)(
+        device.queue, (H * W,), None, frags.face.data, frags.count.data, offsets.data, np.int32(H * W), np.int32(K),
+        out.data)
+    return out[:P]
+
+
+__all__ = ["ShadowState", "bounce", "gather_hits", "num_shadowed_lights", "pack_faces", "scatter_hits",
+           "shadow_backward", "shadow_forward", "trace_primary"]
