@@ -57,13 +57,32 @@ def primary_ref(V, F, camera, K, allowed=None):
     return {"face": face, "bary": bary, "depth": depth, "count": count}
 
 
-def transmittance_ref(V, F, alpha_v, pos, own, lights, eps):
-    """``T [P, NV]`` = Π over the triangles crossed (own face skipped) of ``1 − clamp(α at the hit)``.
+def bvh_bounds_ref(V, F, prim, P):
+    """Node bounds ``[2P - 1, 6]`` of the implicit heap-ordered tree of bvh.cl for face order ``prim``."""
+    M = len(F)
+    nodes = np.zeros((2 * P - 1, 6))
+    for j in range(P):
+        s0, s1 = j * M // P, (j + 1) * M // P
+        if s1 > s0:
+            pts = V[F[prim[s0:s1]]].reshape(-1, 3)
+            lo, hi = pts.min(0), pts.max(0)
+            pad = 1e-6 * (np.abs(lo) + np.abs(hi)) + 1e-30
+            nodes[P - 1 + j] = np.concatenate([lo - pad, hi + pad])
+        else:
+            nodes[P - 1 + j] = [1e30] * 3 + [-1e30] * 3
+    for n in range(P - 2, -1, -1):
+        a, b = nodes[2 * n + 1], nodes[2 * n + 2]
+        nodes[n] = np.concatenate([np.minimum(a[:3], b[:3]), np.maximum(a[3:], b[3:])])
+    return nodes
 
-    ``lights``: list of ("point", position) or ("dir", direction towards the light)."""
+
+def transmittance_ref(V, F, alpha_v, pos, own, lights, eps):
+    """``(T [P, NV], hits [P, NV])``: T = Π over the triangles crossed (own face skipped) of
+    ``1 − clamp(α at the hit)``. ``lights``: list of ("point", position) or ("dir", direction)."""
     v0, v1, v2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     P = len(pos)
     T = np.ones((P, len(lights)))
+    n = np.zeros((P, len(lights)), np.int64)
     for j, (kind, a) in enumerate(lights):
         a = np.asarray(a, np.float64)
         for p in range(P):
@@ -72,11 +91,13 @@ def transmittance_ref(V, F, alpha_v, pos, own, lights, eps):
             tmin = eps / max(np.linalg.norm(d), 1e-30)
             tmax = 1.0 - tmin if kind == "point" else 1e30
             hit, _, u, v = ray_tri(x, d, v0, v1, v2, tmin, tmax)
-            hit[own[p]] = False
+            if 0 <= own[p] < len(F):
+                hit[own[p]] = False
+            n[p, j] = hit.sum()
             for f in np.nonzero(hit)[0]:
                 al = (1 - u[f] - v[f]) * alpha_v[F[f, 0]] + u[f] * alpha_v[F[f, 1]] + v[f] * alpha_v[F[f, 2]]
                 T[p, j] *= 1.0 - np.clip(al, 0.0, AMAX)
-    return T
+    return T, n
 
 
 def bounce_ref(V, F, pos, nrm, own, cam, eps, two_sided=True):
