@@ -30,7 +30,7 @@
  *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
  *             v_s_g = v_rgb refl -> env_scales_vjp -> v_N, v_V, v_m.
  *   has_eye:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
- *             the reflecting point); no adjoint is returned for eye.
+ *             the reflecting point); v_eye = safe_normalize_vjp(eye - x, v_V).
  * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
  * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
  * a time, one column per item, fixed order: deterministic) and writes one row of v_light_part
@@ -171,7 +171,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         const int has_eye,
                         __global const REAL* eye,       // [P, 3]   (has_eye)
                         __global REAL* v_vis,           // [P, NV]  (has_vis)
-                        __global REAL* v_refl)          // [P, 3]   (has_refl)
+                        __global REAL* v_refl,          // [P, 3]   (has_refl)
+                        __global REAL* v_eye)           // [P, 3]   (has_eye)
 {
     const int p = get_global_id(0);
     const int valid = p < P && face_id[p] >= 0;
@@ -308,13 +309,16 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
 
     if (p < P) {
         if (valid) {
-            v_x -= safe_normalize_vjp(cam - x, v_V);
+            const REAL3 v_c = safe_normalize_vjp(cam - x, v_V);
+            v_x -= v_c;
+            if (has_eye) STORE3(v_c, v_eye, p);
             const REAL3 v_n = safe_normalize_vjp(LOAD3(nrm, p), sgn * v_N);
             STORE3(v_x, v_pos, p);
             STORE3(v_n, v_nrm, p);
         } else {
             STORE3((REAL3)(0), v_pos, p);
             STORE3((REAL3)(0), v_nrm, p);
+            if (has_eye) STORE3((REAL3)(0), v_eye, p);
         }
         for (int j = 0; j < NMAT; ++j) v_mat[(size_t)p * NMAT + j] = v_m[j];
         if (has_vlight) {

@@ -36,9 +36,18 @@
  *
  * trace_bounce (one work-item per shaded fragment): V = normalize(cam - x), N = normalize(n),
  *   flipped to face V when two_sided (as shade.cl), R = 2 (N.V) N - V; the nearest hit with
- *   t > eps (own face skipped): hit_face [P] (-1: none), hit_bary [P, 2]. Discrete (no adjoint of the
- *   direction); the hit surface's attributes are interpolated with gather_hits, whose adjoint is the
- *   per-corner scatter l_i v_out done on the host.
+ *   t > eps (own face skipped): hit_face [P] (-1: none), hit_bary [P, 2]. The hit surface's
+ *   attributes h = sum_i l_i attr[F[f, i]] are interpolated with gather_hits (adjoint: the per-corner
+ *   scatter l_i v_h, on the host).
+ * bounce_bwd (one work-item per fragment with a hit), for v_h [P, C] (adjoint of every gathered
+ *   attribute column) and v_eye [P, 3] (adjoint of the hit shading's viewpoint = x):
+ *   v_u = v_h . (a1 - a0), v_v = v_h . (a2 - a0)  (a_i the hit face's corner attributes)
+ *   -> ray/triangle adjoint as in trace_shadow_bwd with o = x, d = R: v_s, v_d = v_R, v_e1, v_e2
+ *   -> hit corners' positions rec_pos [P, 3, 3];
+ *   R = 2 (N.V) N - V:  v_N = 2 (N.V) v_R + 2 (v_R . N) V,  v_V = 2 (v_R . N) N - v_R
+ *   N = s normalize(n): v_n = safe_normalize_vjp(n, s v_N);  V = normalize(cam - x):
+ *   v_x = v_s + v_eye - safe_normalize_vjp(cam - x, v_V).
+ *   (the discrete choice of the hit face has no gradient)
  */
 #include "real.h"
 #include "shade_math.h"
@@ -362,6 +371,76 @@ __kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
     hit_face[p] = bf;
     hit_bary[2 * p] = bf >= 0 ? (REAL)1 - bu - bv : (REAL)0;
     hit_bary[2 * p + 1] = bf >= 0 ? bu : (REAL)0;
+}
+
+/* ray/triangle adjoint: (v_u, v_v) of the barycentrics (u, v) of the hit of o + t d -> v_o, v_d, corners */
+inline void ray_tri_bary_vjp(const REAL3 o, const REAL3 d, const REAL3 v0, const REAL3 v1, const REAL3 v2,
+                             const REAL u, const REAL v, const REAL vu, const REAL vv, REAL3* v_o, REAL3* v_d,
+                             REAL3* g0, REAL3* g1, REAL3* g2)
+{
+    const REAL3 e1 = v1 - v0, e2 = v2 - v0, s = o - v0;
+    const REAL D = dot(e1, cross(d, e2));
+    const REAL cu = vu / D, cv = vv / D, cD = -(vu * u + vv * v) / D;
+    const REAL3 vs = cu * cross(d, e2) + cv * cross(e1, d);
+    *v_d = cu * cross(e2, s) + cv * cross(s, e1) + cD * cross(e2, e1);
+    const REAL3 ve1 = cv * cross(d, s) + cD * cross(d, e2);
+    const REAL3 ve2 = cu * cross(s, d) + cD * cross(e1, d);
+    *v_o = vs;
+    *g0 = -(vs + ve1 + ve2);
+    *g1 = ve1;
+    *g2 = ve2;
+}
+
+__kernel void bounce_bwd(__global const REAL* V,         // [N, 3]
+                         __global const int* F,          // [M, 3]
+                         __global const REAL* attr,      // [N, C]
+                         const int C,
+                         __global const REAL* pos,       // [Pf, 3]
+                         __global const REAL* nrm,       // [Pf, 3]
+                         __global const int* hit_face,   // [Pf]
+                         __global const REAL* hit_bary,  // [Pf, 2]
+                         __global const REAL* v_h,       // [Pf, C]
+                         __global const REAL* v_eye,     // [Pf, 3]
+                         const int Pf,
+                         const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+                         __global REAL* v_pos,           // [Pf, 3]
+                         __global REAL* v_nrm,           // [Pf, 3]
+                         __global REAL* rec_pos)         // [Pf, 9]  hit corners' position adjoints
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const int f = hit_face[p];
+    REAL3 gx = (REAL3)(0), gn = (REAL3)(0), g0 = (REAL3)(0), g1 = (REAL3)(0), g2 = (REAL3)(0);
+    if (f >= 0) {
+        const REAL3 x = LOAD3(pos, p), n = LOAD3(nrm, p), cam = (REAL3)(cx, cy, cz);
+        const REAL3 Vd = safe_normalize(cam - x);
+        REAL3 N = safe_normalize(n);
+        const REAL sg = (two_sided && dot(N, Vd) < (REAL)0) ? -(REAL)1 : (REAL)1;
+        N *= sg;
+        const REAL nv = dot(N, Vd);
+        const REAL3 d = (REAL)2 * nv * N - Vd;
+        const int i0 = F[3 * f], i1 = F[3 * f + 1], i2 = F[3 * f + 2];
+        REAL vu = (REAL)0, vv = (REAL)0;
+        for (int c = 0; c < C; ++c) {
+            const REAL a0 = attr[(long)i0 * C + c];
+            const REAL g = v_h[(long)p * C + c];
+            vu += g * (attr[(long)i1 * C + c] - a0);
+            vv += g * (attr[(long)i2 * C + c] - a0);
+        }
+        const REAL u = hit_bary[2 * p + 1], v = (REAL)1 - hit_bary[2 * p] - hit_bary[2 * p + 1];
+        REAL3 vo, vd;
+        ray_tri_bary_vjp(x, d, LOAD3(V, i0), LOAD3(V, i1), LOAD3(V, i2), u, v, vu, vv, &vo, &vd, &g0, &g1, &g2);
+        const REAL rn = dot(vd, N);
+        const REAL3 vN = (REAL)2 * nv * vd + (REAL)2 * rn * Vd;
+        const REAL3 vV = (REAL)2 * rn * N - vd;
+        gn = safe_normalize_vjp(n, sg * vN);
+        gx = vo + LOAD3(v_eye, p) - safe_normalize_vjp(cam - x, vV);
+    }
+    STORE3(gx, v_pos, p);
+    STORE3(gn, v_nrm, p);
+    STORE3(g0, rec_pos, 3 * p);
+    STORE3(g1, rec_pos, 3 * p + 1);
+    STORE3(g2, rec_pos, 3 * p + 2);
 }
 
 /* out[p, c] = sum_i l_i attr[F[f, i], c0 + c] at the hit (f = hit_face[p]; zeros without a hit) */

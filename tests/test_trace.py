@@ -243,7 +243,7 @@ def _signature(r):
 
 @pytest.mark.parametrize("renderer,reflections,params", [
     ("hybrid", False, ("V", "alpha", "light_params")),
-    ("raytrace", True, ("material", "alpha", "light_params")),
+    ("raytrace", True, ("V", "material", "alpha", "light_params")),
 ])
 def test_traced_render_gradients_central_differences(device64, rng, renderer, reflections, params):
     """Shadows: adjoints to occluder alphas and positions, shaded points and lights; bounce: to the hit

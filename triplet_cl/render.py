@@ -290,8 +290,9 @@ class TracedShadeFragments(ShadeFragments):
     * bounce: the nearest hit along the mirror direction, shaded with the same lights (seen from the
       reflecting point, no shadows), ``L_r = α_hit · rgb_hit``, added as ``s_g · L_r`` (``s_g`` the
       glossy weight of ``env_scales``). Adjoints: the hit's interpolated attributes (materials,
-      normal, position, alpha, vertex light) and the light parameters, and the reflecting surface's
-      materials and normal through ``s_g``; the direction and hit point are discrete (no gradient).
+      normal, position, alpha, vertex light) and the light parameters; the reflecting surface's
+      materials and normal through ``s_g``; and the bounce geometry (the hit point moves with the
+      reflecting point, its normal and the hit face's vertices; the hit face itself is discrete).
     ``attr`` is the packed per-vertex attribute array (positions in its ``pos`` columns).
     """
 
@@ -330,6 +331,7 @@ class TracedShadeFragments(ShadeFragments):
             ha = hblk["alpha"].get()
             inp.refl = cla.to_device(d.queue, np.ascontiguousarray(hrgb * ha, s.real))
             ctx.hits = (hf.get(), hb.get(), hinp, hrgb, ha)
+            ctx.bounce_dev = (Vd, attr_d, blk["pos"], blk["nrm"], hf, hb)
         v.traced = {"shadow_hits": None if ctx.shadow is None else ctx.shadow.nhit.get(),
                     "bounce_face": None if ctx.hits is None else ctx.hits[0]}  # discrete choices (tests, tools)
         rgb = cla.empty(d.queue, (H, W, K, 3), fr.real, allocator=d.allocator)
@@ -345,7 +347,8 @@ class TracedShadeFragments(ShadeFragments):
         H, W, K = fr.shape
         comp, L, inp = ctx.comp, self.layout, ctx.inp
         v_rgb = _as_device(d, v_rgb, (H, W, K, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl = shade_op.backward_full(d, inp, comp.pack(v_rgb, 0, 3))
+        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, _ = shade_op.backward_full(d, inp,
+                                                                                       comp.pack(v_rgb, 0, 3))
         v_attr = np.zeros((ctx.N, ctx.C))
         if ctx.shadow is not None:
             v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
@@ -360,7 +363,7 @@ class TracedShadeFragments(ShadeFragments):
             hf, hb, hinp, hrgb, ha = ctx.hits
             g = v_refl.get().astype(np.float64)
             v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(g * ha, s.real))
-            hp, hn, hm, hvl, hpar, _, _ = shade_op.backward_full(d, hinp, v_hrgb)
+            hp, hn, hm, hvl, hpar, _, _, heye = shade_op.backward_full(d, hinp, v_hrgb)
             v_params = v_params + hpar
             v_hit = np.zeros((len(hf), ctx.C))
             for key, gk in (("pos", hp), ("nrm", hn), ("mat", hm), ("vlight", hvl)):
@@ -368,6 +371,11 @@ class TracedShadeFragments(ShadeFragments):
                     v_hit[:, L[key][0]:L[key][0] + L[key][1]] = gk.get()
             v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
             v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
+            Vd, attr_d, bpos, bnrm, hf_d, hb_d = ctx.bounce_dev
+            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh.faces,
+                                                  v.camera.center, s.two_sided)
+            v_pos, v_nrm = v_pos + bp, v_nrm + bn
+            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV
         v_fa = cla.empty(d.queue, (H, W, K, ctx.C), fr.real, allocator=d.allocator)
         for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:

@@ -134,8 +134,8 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
 
 def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
     """As :func:`backward`, plus the adjoints of the ray-traced inputs:
-    ``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params, v_vis [P, NV] | None, v_refl [P, 3] | None)``
-    (no adjoint for ``eye``)."""
+    ``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params, v_vis [P, NV] | None, v_refl [P, 3] | None,
+    v_eye [P, 3] | None)``."""
     q, P, real = dev.queue, inp.P, inp.real
     C = inp.mat.shape[1]
     T = len(inp.table.params)
@@ -143,6 +143,7 @@ def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
     v_vl = empty(q, (P, 6), real) if inp.vlight is not None else None
     v_vis = empty(q, inp.vis.shape, real) if inp.vis is not None else None
     v_refl = empty(q, (P, 3), real) if inp.refl is not None else None
+    v_eye = empty(q, (P, 3), real) if inp.eye is not None else None
     groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
@@ -153,12 +154,12 @@ def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
             v_pos.data, v_nrm.data, v_mat.data, np.int32(v_vl is not None),
             (v_vl if v_vl is not None else v_pos).data, part.data, scratch, *_traced_args(dev, inp),
             (v_vis if v_vis is not None and v_vis.size else v_pos).data,
-            (v_refl if v_refl is not None else v_pos).data)
+            (v_refl if v_refl is not None else v_pos).data, (v_eye if v_eye is not None else v_pos).data)
         v_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
     else:
         v_params = np.zeros(T)
     v_params[inp.table.inactive] = 0.0
-    return v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl
+    return v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, v_eye
 
 
 # ---- validation ------------------------------------------------------------------------------
