@@ -228,6 +228,16 @@ def test_glb_blinn_phong_and_linear_albedo(tmp_path):
     np.testing.assert_allclose(blinn_phong_roughness(s) ** 4, 2 / (s + 3))
 
 
+def test_glb_and_obj_leave_out_index_degenerate_faces(tmp_path):
+    rng = np.random.default_rng(9)
+    a = _region_asset(rng)
+    bad = MeshAsset(a.V, np.vstack([a.F, [[0, 0, 1]], [[2, 3, 2]]]), a.attributes, lights=a.lights)
+    doc, binary = check_glb(export_glb(bad, tmp_path / "d.glb", texture_size=64))
+    assert read_accessor(doc, binary, doc["meshes"][0]["primitives"][0]["indices"]).size == 3 * a.num_faces
+    obj = export_obj(bad, tmp_path / "d.obj", texture_size=64)[0]
+    assert sum(line.startswith("f ") for line in obj.read_text().splitlines()) == a.num_faces
+
+
 def test_glb_second_parser_pygltflib(region_glb):
     pygltflib = pytest.importorskip("pygltflib", reason="pygltflib not installed (pip install pygltflib)")
     asset, path = region_glb

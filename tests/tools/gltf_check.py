@@ -15,8 +15,8 @@ Checked:
   the component size; POSITION with ``min``/``max`` equal to the data's; float data finite;
   NORMAL unit length (|len - 1| <= 5e-4, the validator's threshold); TEXCOORD_0 float VEC2.
 - primitives: mode 4 (triangles), attributes of one primitive with equal counts, indices SCALAR of
-  an unsigned type, count a multiple of 3, every index < vertex count, no degenerate index triple
-  reported as an error (the validator warns only), material index valid.
+  an unsigned type, count a multiple of 3, every index < vertex count, no triangle with a repeated
+  index (the validator only warns; we emit none), no primitive-restart value, material index valid.
 - materials: texture indices valid, ``texCoord`` naming an existing TEXCOORD set, factors in
   range, ``alphaMode`` enum; colour space: an image used as base colour (sRGB) is not also used as
   linear data (metallic-roughness, occlusion, normal).
@@ -219,6 +219,10 @@ def check_glb(src) -> tuple[dict, bytes]:
                     idx = read_accessor(doc, binary, ii)
                     if idx.size and int(idx.max()) >= nvert:
                         err(f"{where}.indices reach {int(idx.max())} >= vertex count {nvert}")
+                    tri = idx.reshape(-1, 3)
+                    ndeg = int(((tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 0] == tri[:, 2])).sum())
+                    if ndeg:
+                        err(f"{where}: {ndeg} degenerate triangle(s) (a repeated index)")
                     if ia["componentType"] == 5123 and idx.size and int(idx.max()) == 65535:
                         err(f"{where}.indices use the primitive-restart value 65535")
             if "material" in p:

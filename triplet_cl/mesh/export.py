@@ -249,7 +249,7 @@ def glb_bytes(asset: MeshAsset, baked: BakedAsset, alpha_mode: str = "OPAQUE", d
         "NORMAL": b.accessor(nrm, _FLOAT, "VEC3", _ARRAY_BUFFER),
         "TEXCOORD_0": b.accessor(np.ascontiguousarray(at.uv, np.float32), _FLOAT, "VEC2", _ARRAY_BUFFER),
     }
-    indices = b.accessor(at.faces.astype(idx_dtype).reshape(-1), idx_ctype, "SCALAR", _ELEMENT_ARRAY_BUFFER)
+    indices = b.accessor(_proper(at.faces).astype(idx_dtype).reshape(-1), idx_ctype, "SCALAR", _ELEMENT_ARRAY_BUFFER)
     images = [{"bufferView": b.view(png_bytes(baked.base)), "mimeType": "image/png", "name": "baseColor"},
               {"bufferView": b.view(png_bytes(baked.orm)), "mimeType": "image/png",
                "name": "occlusionRoughnessMetallic"}]
@@ -283,6 +283,12 @@ def glb_bytes(asset: MeshAsset, baked: BakedAsset, alpha_mode: str = "OPAQUE", d
     return b.glb(doc)
 
 
+def _proper(faces: np.ndarray) -> np.ndarray:
+    """The faces without a repeated corner index (glTF validators flag those triangles)."""
+    f = np.asarray(faces)
+    return f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+
+
 def _alpha(alpha_mode: str) -> str:
     m = str(alpha_mode).upper()
     if m not in ("OPAQUE", "BLEND"):
@@ -294,7 +300,7 @@ def export_glb(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
                alpha_mode: str = "opaque", double_sided: bool = True, baked: BakedAsset | None = None) -> Path:
     """Write ``asset`` as a glTF 2.0 binary: one mesh with POSITION, NORMAL, TEXCOORD_0 and a
     metallic-roughness material with base-colour, metallic-roughness and occlusion textures (PNG,
-    embedded), atomically.
+    embedded), atomically. Faces with a repeated vertex index are left out (also from the OBJ).
 
     Args:
         asset: the :class:`MeshAsset` (``V [N, 3]``, ``F [M > 0, 3]``, activated attributes).
@@ -351,8 +357,9 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
     V = np.asarray(asset.V, np.float64)
     uv = np.asarray(at.uv, np.float64).copy()
     uv[:, 1] = 1.0 - uv[:, 1]  # OBJ: v up
-    fv = at.vmap[at.faces] + 1
-    ft = at.faces.astype(np.int64) + 1
+    faces = _proper(at.faces)
+    fv = at.vmap[faces] + 1
+    ft = faces.astype(np.int64) + 1
     f = np.stack([fv, ft, fv], -1).reshape(len(fv), 9)
     body = "".join([
         f"# triplet_cl mesh: {asset.num_vertices} vertices, {asset.num_faces} faces\n",
