@@ -17,7 +17,16 @@ from tests.tools.gltf_check import GltfError, check_glb, read_accessor
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight
 from triplet_cl.mesh import MeshAsset
 from triplet_cl.mesh.bake import bake, rasterize_uv, vertex_normals
-from triplet_cl.mesh.envmap import eval_environment, export_envmap, latlong_directions, latlong_uv, sh_basis
+from triplet_cl.mesh.envmap import (
+    eval_environment,
+    export_envmap,
+    latlong_directions,
+    latlong_uv,
+    project_envmap,
+    read_envmap_sh,
+    render_envmap,
+    sh_basis,
+)
 from triplet_cl.mesh.export import (
     blinn_phong_roughness,
     export_asset,
@@ -392,6 +401,61 @@ def test_envmap_pixels_equal_sh_evaluation(tmp_path, dtype, rtol):
     lobe[:, 0], lobe[:, 1] = 2.0, -1.0
     top = eval_environment([SHEnvironmentLight(lobe)], latlong_directions(8))[..., 0]
     assert top[0].mean() > top[-1].mean()
+
+
+def test_envmap_convention_matches_mitsuba(tmp_path):
+    # the test scenes were rendered by Mitsuba 3's envmap emitter: our EXR, loaded by it, gives back
+    # our SH radiance in the same world directions (bilinear lookup: small error away from the poles)
+    mi = pytest.importorskip("mitsuba", reason="mitsuba not installed")
+    import drjit as dr
+
+    mi.set_variant("scalar_rgb")
+    c = np.zeros((3, 4))
+    c[:, 0] = 3.0
+    c[0, 3], c[1, 1], c[2, 2] = -2.0, -2.0, 2.0  # red towards +X, green towards +Y, blue towards +Z
+    lt = SHEnvironmentLight(c)
+    path = export_envmap([lt], tmp_path / "env.exr", height=128, dtype="float")
+    emitter = mi.load_dict({"type": "envmap", "filename": str(path)})
+    rng = np.random.default_rng(11)
+    dirs = np.vstack([np.eye(3), -np.eye(3), rng.normal(size=(20, 3))])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for d in dirs:
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wi = mi.Vector3f(*(-d))  # wi points back along the ray that left towards d
+        got = np.array(emitter.eval(si), np.float64).ravel()
+        np.testing.assert_allclose(got, np.maximum(eval_environment([lt], d), 0), atol=0.02)
+
+
+def test_project_envmap_inverts_render_envmap(tmp_path):
+    rng = np.random.default_rng(10)
+    coeffs = rng.normal(scale=0.3, size=(3, 16))
+    coeffs[:, 0] = 4.0  # positive everywhere: nothing clamped
+    lt = SHEnvironmentLight(coeffs)
+    img = render_envmap([lt], height=64)
+    assert img.min() > 0
+    np.testing.assert_allclose(project_envmap(img, 3), coeffs, atol=2e-3)
+    # through a file, and a higher requested degree finds (almost) nothing above the band limit
+    export_envmap([lt], tmp_path / "e.exr", height=64, dtype="float")
+    c5 = read_envmap_sh(tmp_path / "e.exr", 5)
+    np.testing.assert_allclose(c5[:, :16], coeffs, atol=2e-3)
+    assert np.abs(c5[:, 16:]).max() < 2e-3
+
+
+@pytest.mark.parametrize("name", ["overcast_soil_puresky_1k.hdr"])
+def test_project_shared_envmap(shared_data, name):
+    # the ground-truth map of the bob_env scene: its SH projection re-rendered is its low-pass
+    # version, whose mean radiance equals the map's mean over the sphere (the DC term)
+    from triplet_cl.datasets.images import read_image
+
+    img = read_image(shared_data / "envmaps" / name, downscale=4).rgb.astype(np.float64)
+    c = project_envmap(img, 2)
+    h = img.shape[0]
+    sin_t = np.sin(np.pi * (np.arange(h) + 0.5) / h)[:, None, None]
+    mean = (img * sin_t).sum((0, 1)) / (sin_t.sum() * img.shape[1])
+    np.testing.assert_allclose(c[:, 0] / np.sqrt(4 * np.pi), mean, rtol=1e-3)
+    up = eval_environment([SHEnvironmentLight(c)], [[0, 1, 0]])[0]
+    down = eval_environment([SHEnvironmentLight(c)], [[0, -1, 0]])[0]
+    assert up.sum() > down.sum()  # a sky above soil: brighter from +Y, the convention's up
 
 
 # ---- everything, lights, errors ----------------------------------------------------------------

@@ -119,6 +119,38 @@ def render_envmap(lights, height: int = 256, clamp_negative: bool = True) -> np.
     return img.astype(np.float32)
 
 
+def project_envmap(img, degree: int = 2) -> np.ndarray:
+    """SH coefficients of a lat-long radiance map (the inverse of :func:`render_envmap` up to the
+    band limit): ``c_k = sum_pixels L(d) Y_k(d) dOmega`` with the pixel solid angle
+    ``dOmega = (2 pi / W)(pi / H) sin(theta)`` (midpoint rule).
+
+    Args:
+        img: ``[H, W, 3]`` linear radiance in this module's lat-long convention (any ``W``).
+        degree: largest SH band of the result.
+    Returns:
+        ``coeffs [3, (degree+1)^2] float64``, ready for :class:`SHEnvironmentLight`.
+    """
+    img = np.asarray(img, np.float64)
+    if img.ndim != 3 or img.shape[2] < 3:
+        raise ValueError(f"project_envmap: img must have shape [H, W, 3], got {list(img.shape)}")
+    h, w = img.shape[:2]
+    theta = pi * (np.arange(h) + 0.5) / h
+    phi = 2 * pi * (np.arange(w) + 0.5) / w
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    d = np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)
+    dw = (2 * pi / w) * (pi / h) * np.sin(theta)  # [H]
+    Y = sh_basis(degree, d)  # [H, W, K]
+    return np.einsum("hwk,hwc,h->ck", Y, img[..., :3], dw)
+
+
+def read_envmap_sh(path, degree: int = 2) -> np.ndarray:
+    """:func:`project_envmap` of a lat-long image file (EXR / HDR, read with OpenImageIO):
+    ``coeffs [3, (degree+1)^2]``, e.g. to compare a trained SH environment with a ground-truth map."""
+    from ..datasets.images import read_image
+
+    return project_envmap(read_image(path).rgb, degree)
+
+
 def export_envmap(lights, path, height: int = 256, dtype: str = "half", clamp_negative: bool = True) -> Path:
     """Write the SH environment light(s) as a lat-long RGB OpenEXR (linear radiance), atomically.
 
