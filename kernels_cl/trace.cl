@@ -120,12 +120,12 @@ __kernel void trace_primary(__global const REAL* nodes,       // [2P - 1, 6]
     int fk[K_MAX], ek[K_MAX];
     int cnt = 0;
     int stack[BVH_STACK];
+    REAL tstack[BVH_STACK];
     int sp = 0;
-    const int has_tile = tile_off[t_id + 1] > tile_off[t_id];
-    if (has_tile) stack[sp++] = 0;
+    if (tile_off[t_id + 1] > tile_off[t_id]) bvh_begin(nodes, o, inv, (REAL)0, far, stack, tstack, &sp);
     for (;;) {
         const REAL tmax = cnt == K ? dk[K - 1] : far;
-        const int j = bvh_next_leaf(nodes, P, o, inv, (REAL)0, tmax, stack, &sp);
+        const int j = bvh_next_leaf(nodes, P, o, inv, (REAL)0, tmax, stack, tstack, &sp);
         if (j < 0) break;
         const int s1 = leaf_begin(j + 1, M, P);
         for (int i = leaf_begin(j, M, P); i < s1; ++i) {
@@ -219,10 +219,11 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
         REAL T = (REAL)1;
         int n = 0;
         int stack[BVH_STACK];
+        REAL tstack[BVH_STACK];
         int sp = 0;
-        if (own >= 0) stack[sp++] = 0;
+        if (own >= 0) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
         for (;;) {
-            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, &sp);
+            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, tstack, &sp);
             if (lf < 0) break;
             const int s1 = leaf_begin(lf + 1, M, P);
             for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
@@ -282,10 +283,11 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
         REAL3 gd = (REAL3)(0);
         int r = rec_off[p * NV + j];
         int stack[BVH_STACK];
+        REAL tstack[BVH_STACK];
         int sp = 0;
-        if (own >= 0) stack[sp++] = 0;
+        if (own >= 0) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
         for (;;) {
-            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, &sp);
+            const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, tstack, &sp);
             if (lf < 0) break;
             const int s1 = leaf_begin(lf + 1, M, P);
             for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
@@ -351,10 +353,11 @@ __kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
     REAL best = (REAL)1e30, bu = 0, bv = 0;
     int bf = -1;
     int stack[BVH_STACK];
+    REAL tstack[BVH_STACK];
     int sp = 0;
-    if (own >= 0) stack[sp++] = 0;
+    if (own >= 0) bvh_begin(nodes, x, inv, eps, best, stack, tstack, &sp);
     for (;;) {
-        const int lf = bvh_next_leaf(nodes, P, x, inv, eps, best, stack, &sp);
+        const int lf = bvh_next_leaf(nodes, P, x, inv, eps, best, stack, tstack, &sp);
         if (lf < 0) break;
         const int s1 = leaf_begin(lf + 1, M, P);
         for (int i = leaf_begin(lf, M, P); i < s1; ++i) {
