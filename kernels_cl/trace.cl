@@ -469,6 +469,28 @@ __kernel void gather_hits(__global const REAL* attr,      // [N, C]
     }
 }
 
+/* Which compacted fragments need rays: -1 where the pixel's transmittance in front of the fragment,
+ * prod_{j<k} (1 - alpha_j win_j), is already below t_min (compositing stops there: the fragment's
+ * colour has no weight and no gradient), else its face id. */
+__kernel void ray_mask(__global const int* face,       // [Pv] compacted face ids
+                       __global const REAL* alpha,     // [Pv]
+                       __global const REAL* win,       // [Pv] (has_win)
+                       const int has_win,
+                       __global const int* frag_count, // [H, W]
+                       __global const int* offsets,    // [H W + 1]
+                       const int npix, const REAL t_min,
+                       __global int* out)              // [Pv]
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    const int o = offsets[pix], c = frag_count[pix];
+    REAL T = (REAL)1;
+    for (int k = 0; k < c; ++k) {
+        out[o + k] = T < t_min ? -1 : face[o + k];
+        T *= (REAL)1 - alpha[o + k] * (has_win ? win[o + k] : (REAL)1);
+    }
+}
+
 /* face ids of the valid fragment slots, compacted: out[off[pix] + k] = face[pix, k], k < count */
 __kernel void pack_faces(__global const int* frag_face,   // [H, W, K]
                          __global const int* frag_count,  // [H, W]

@@ -300,3 +300,31 @@ def test_render_all_renderers_forward_backward_float32(device, rng):
     assert (diff > 1e-3).mean() < 0.02  # edge pixels only
     # shadows darken: the traced images differ from the raster one where light is blocked
     assert np.abs(imgs["hybrid"] - imgs["raster"]).max() > 1e-3
+
+
+def test_ray_mask_skips_fragments_behind_opaque_ones(device, rng):
+    """Fragments behind a transmittance below t_min get no rays (face −1), the others keep their face."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops.columns import Compaction
+
+    V, F = soup(rng, M=80)
+    c = cam()
+    mesh = DeviceMesh(device, F, len(V))
+    fr = rasterize(device, project(device, V.astype(np.float32), c), mesh, W, H, 12)
+    comp = Compaction(device, fr)
+    face = trace_op.pack_faces(device, fr, comp.offsets, comp.P)
+    a = rng.uniform(0.3, 0.99, comp.P).astype(np.float32)
+    w = rng.uniform(0.5, 1.0, comp.P).astype(np.float32)
+    q = device.queue
+    out = trace_op.ray_mask(device, fr, comp.offsets, face, cla.to_device(q, a), cla.to_device(q, w), 1e-2).get()
+    cnt, off, fh = fr.count.get().reshape(-1), comp.offsets.get(), face.get()
+    exp = fh.copy()
+    for p in range(len(cnt)):
+        T = 1.0
+        for k in range(cnt[p]):
+            if T < 1e-2:
+                exp[off[p] + k] = -1
+            T *= 1 - a[off[p] + k] * w[off[p] + k]
+    np.testing.assert_array_equal(out, exp)
+    assert (out < 0).sum() > 0 and (out >= 0).sum() > 0

@@ -90,6 +90,7 @@ class View:
         self.bvh: BVH | None = None  # ray-traced renderers: the hierarchy, refitted to this view's V
         self.ray_eps = 0.0  # world-space ray offset
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
+        self.win = None  # [H, W, K] coverage window of the forward pass (sigma set)
         self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
 
 
@@ -223,7 +224,8 @@ class RasterInterpolate(Function):
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
             return fa
-        return fa, coverage(d, fr, s.sigma)
+        v.win = coverage(d, fr, s.sigma)
+        return fa, v.win
 
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
@@ -304,6 +306,10 @@ class TracedShadeFragments(ShadeFragments):
         L = self.layout
         blk = {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
         face_c = trace_op.pack_faces(d, fr, comp.offsets, comp.P)
+        # rays only for fragments that composite with weight (t_min cut-off, as Composite)
+        win_c = comp.pack(v.win.reshape(H, W, K, 1), 0, 1) if v.win is not None else None
+        face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), win_c, s.t_min) \
+            if s.t_min > 0 else face_c
         _, inp = shade_op.prepare(blk["pos"], blk["nrm"], blk["mat"], face_c, v.camera.center, self.lights,
                                   brdf=self.brdf, vlight=blk.get("vlight"), two_sided=s.two_sided, device=d,
                                   real=s.real)
@@ -315,11 +321,11 @@ class TracedShadeFragments(ShadeFragments):
         Vd = cla.to_device(d.queue, np.ascontiguousarray(attr_h[:, p0:p0 + 3]))
         ctx.shadow = ctx.hits = None
         if s.shadows and trace_op.num_shadowed_lights(inp.table) and comp.P:
-            ctx.shadow = trace_op.shadow_forward(d, v.bvh, Vd, attr_d, L["alpha"][0], blk["pos"], face_c, inp.lt_i,
+            ctx.shadow = trace_op.shadow_forward(d, v.bvh, Vd, attr_d, L["alpha"][0], blk["pos"], face_r, inp.lt_i,
                                                  inp.lt_f, inp.table, v.ray_eps)
             inp.vis = ctx.shadow.vis
         if s.reflections and comp.P:
-            hf, hb = trace_op.bounce(d, v.bvh, Vd, blk["pos"], blk["nrm"], face_c, v.camera.center, s.two_sided,
+            hf, hb = trace_op.bounce(d, v.bvh, Vd, blk["pos"], blk["nrm"], face_r, v.camera.center, s.two_sided,
                                      v.ray_eps)
             hblk = {k: trace_op.gather_hits(d, attr_d, *L[k], v.mesh.F, hf, hb)
                     for k in ("pos", "nrm", "mat", "vlight", "alpha") if k in L}

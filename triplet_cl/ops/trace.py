@@ -256,6 +256,22 @@ def scatter_hits(faces: np.ndarray, num_vertices: int, hit_face: np.ndarray, hit
     return out
 
 
+def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Array, alpha: cla.Array,
+             win: cla.Array | None, t_min: float) -> cla.Array:
+    """``[P] int32``: the compacted face ids, −1 for fragments behind a transmittance below ``t_min``
+    (``Π (1 − α·win)`` of the fragments in front; compositing gives them no weight, so they need no
+    shadow or bounce ray). ``alpha``, ``win``: ``[P]`` (or ``[P, 1]``) compacted per-fragment values."""
+    H, W, K = frags.shape
+    P = face.shape[0]
+    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
+    if P:
+        device.kernel("trace", "ray_mask", real=frags.real)(
+            device.queue, (H * W,), None, face.data, alpha.data, (win if win is not None else alpha).data,
+            np.int32(win is not None), frags.count.data, offsets.data, np.int32(H * W), frags.real.type(t_min),
+            out.data)
+    return out[:P]
+
+
 def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> cla.Array:
     """Face ids of the valid fragment slots, compacted in the order of ``columns.Compaction``: ``[P] int32``."""
     H, W, K = frags.shape
@@ -266,5 +282,5 @@ def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> 
     return out[:P]
 
 
-__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "scatter_hits",
+__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "ray_mask", "scatter_hits",
            "shadow_backward", "shadow_forward", "trace_primary"]
