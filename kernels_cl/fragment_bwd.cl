@@ -45,6 +45,7 @@
 
 #define MOMENTS 16
 #define SETUP 12
+#define HARD_EDGE_DISTANCE ((REAL)1e30) /* as raster.cl: edges with g_k < 0 have no window */
 
 __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const int* F,             // [M, 3]
@@ -126,12 +127,15 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                 REAL u0 = vb0, u1 = vb1, u2 = vb2;
                 __global REAL* m = partial_mom + (long)e * MOMENTS;
                 if (vw != (REAL)0) {
-                    const REAL d0 = b0 * s[9], d1 = b1 * s[10], d2 = b2 * s[11];
+                    /* hard edges (g_k < 0, raster.cl) are not in the minimum */
+                    const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
+                    const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
+                    const REAL d2 = s[11] < (REAL)0 ? HARD_EDGE_DISTANCE : b2 * s[11];
                     int kk = 0;
                     REAL dm = d0;
                     if (d1 < dm) { dm = d1; kk = 1; }
                     if (d2 < dm) { dm = d2; kk = 2; }
-                    if (dm > (REAL)0) {
+                    if (dm > (REAL)0 && dm < HARD_EDGE_DISTANCE) {
                         const REAL ex = exp(-sigma * dm);
                         const REAL vd = vw * sigma * ex;
                         vsig += vw * dm * ex;

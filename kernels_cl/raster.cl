@@ -9,6 +9,8 @@
  * bin_fill    per face: write the entries of each overlapped tile (tile-major lists, their order
  *             inside a tile is arbitrary) with the face's edge-function set-up, and the face-major
  *             list face_entries (entry ids of each face, in tile order) used by the adjoint gather.
+ *             With soft_edges, only the marked edges of a face get the coverage window (the
+ *             silhouette edges of a connected mesh: its shared interior edges stay hard, no seams).
  * raster_fwd  one work-item per pixel, one 8x8 work-group per tile: the K nearest fragments by
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
@@ -83,6 +85,8 @@ __kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
 
 __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
                        __global const int* F,           // [M, 3]
+                       __global const int* soft_edges,  // [M] bit k: edge k has the soft window (has_soft)
+                       const int has_soft,
                        const int m, const int tiles_x,
                        __global const int* face_ntiles, // [M]
                        __global const int* face_bbox,   // [M, 4]
@@ -107,6 +111,12 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     s[9] = (REAL)1 / sqrt(s[2] * s[2] + s[3] * s[3]);
     s[10] = (REAL)1 / sqrt(s[4] * s[4] + s[5] * s[5]);
     s[11] = (REAL)1 / sqrt((s[2] + s[4]) * (s[2] + s[4]) + (s[3] + s[5]) * (s[3] + s[5]));
+    if (has_soft) {  /* hard edges (no window) are marked by g_k = -1 */
+        const int bits = soft_edges[f];
+        if (!(bits & 1)) s[9] = (REAL)-1;
+        if (!(bits & 2)) s[10] = (REAL)-1;
+        if (!(bits & 4)) s[11] = (REAL)-1;
+    }
     const int tx0 = face_bbox[4 * f], ty0 = face_bbox[4 * f + 1];
     const int tx1 = face_bbox[4 * f + 2], ty1 = face_bbox[4 * f + 3];
     int j = face_off[f];
@@ -122,12 +132,15 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
 
 /* The coverage window of coverage.cl from a face's edge-function set-up: the pixel distance to
  * edge k is b_k / |grad b_k| (grad b0 = (s2, s3), grad b1 = (s4, s5), grad b2 = -(grad b0 + grad b1)),
- * the same quantity as sgn(A) E_k / L_k of raster_math.h, with no vertex loads. */
+ * the same quantity as sgn(A) E_k / L_k of raster_math.h, with no vertex loads. Edges marked hard
+ * (g_k < 0: not a silhouette edge of a connected mesh) are left out of the minimum; with no soft edge
+ * the window is 1. */
+#define HARD_EDGE_DISTANCE ((REAL)1e30)
 inline REAL setup_window(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma)
 {
-    const REAL d0 = b0 * s[9];
-    const REAL d1 = b1 * s[10];
-    const REAL d2 = b2 * s[11];
+    const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
+    const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
+    const REAL d2 = s[11] < (REAL)0 ? HARD_EDGE_DISTANCE : b2 * s[11];
     const REAL d = fmax(fmin(d0, fmin(d1, d2)), (REAL)0);
     return (REAL)1 - exp(-sigma * d);
 }

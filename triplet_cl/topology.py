@@ -45,6 +45,51 @@ def edge_adjacent_faces(faces: np.ndarray) -> np.ndarray:
     return np.stack([face_s[same], face_s[same + 1]], axis=1)
 
 
+def face_edge_neighbors(faces: np.ndarray) -> np.ndarray:
+    """``[M, 3] int64``: the face across edge k of each face (edge k is opposite vertex k), −1 where the
+    edge is a boundary, −2 where it is non-manifold (shared by more than two faces)."""
+    f = np.asarray(faces, dtype=np.int64)
+    m = len(f)
+    out = np.full((m, 3), -1, np.int64)
+    if m == 0:
+        return out
+    e = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)  # edge k opposite vertex k
+    e.sort(axis=1)
+    key = e[:, 0] * (int(f.max()) + 1) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    start = np.r_[0, np.nonzero(ks[1:] != ks[:-1])[0] + 1]
+    size = np.diff(np.r_[start, len(ks)])
+    group = np.repeat(np.arange(len(start)), size)
+    slot = order  # flat (face, k) index of each sorted edge
+    pair = size[group] == 2
+    first = start[group]
+    second = order[np.minimum(first + 1, len(ks) - 1)]
+    other = np.where(slot == order[first], second, order[first])
+    flat = out.reshape(-1)
+    flat[slot[pair]] = other[pair] // 3
+    flat[slot[size[group] > 2]] = -2
+    return out
+
+
+def silhouette_edges(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, neighbors=None) -> np.ndarray:
+    """``[M] int32`` soft-edge bit masks for :func:`~triplet_cl.ops.raster.rasterize`: bit k set where
+    edge k (opposite vertex k) lies on the silhouette seen from ``eye`` — the faces on its two sides
+    face the camera differently, or it is a boundary / non-manifold edge. ``neighbors``: a cached
+    :func:`face_edge_neighbors`. For a soup (no shared edges) every edge is set."""
+    V = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    nb = face_edge_neighbors(f) if neighbors is None else neighbors
+    if len(f) == 0:
+        return np.zeros(0, np.int32)
+    tri = V[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    front = np.einsum("md,md->m", n, np.asarray(eye, np.float64)[None] - tri.mean(axis=1)) > 0
+    other = np.where(nb >= 0, front[np.maximum(nb, 0)], ~front[:, None])
+    soft = (nb < 0) | (other != front[:, None])
+    return (soft[:, 0] * 1 + soft[:, 1] * 2 + soft[:, 2] * 4).astype(np.int32)
+
+
 def _spread_bits(x: np.ndarray) -> np.ndarray:
     """Insert two zero bits between the low 10 bits of each value (for 30-bit 3D Morton codes)."""
     x = x.astype(np.uint64) & 0x3FF

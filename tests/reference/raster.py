@@ -104,9 +104,10 @@ def interpolate_vjp_ref(attr, F, face, bary, v_out):
     return v_attr, np.where(valid[..., None], v_bary, 0.0)
 
 
-def fragment_geometry_ref(vs, F, face, sigma=None):
+def fragment_geometry_ref(vs, F, face, sigma=None, soft_edges=None):
     """Recompute (λ0, λ1, depth, window) of given fragments from ``vs`` — differentiable reference
-    of what the kernels derive from projected vertices (used for finite-difference VJPs)."""
+    of what the kernels derive from projected vertices (used for finite-difference VJPs).
+    ``soft_edges [M]``: 3-bit masks, only edges k with bit k set enter the window's minimum."""
     vs = np.asarray(vs, np.float64)
     F = np.asarray(F, np.int64)
     H, W, K = face.shape
@@ -125,6 +126,9 @@ def fragment_geometry_ref(vs, F, face, sigma=None):
         d0 = sg * _cross(a1 - p, a2 - p) / np.linalg.norm(a2 - a1, axis=-1)
         d1 = sg * _cross(a2 - p, a0 - p) / np.linalg.norm(a0 - a2, axis=-1)
         d2 = sg * _cross(a0 - p, a1 - p) / np.linalg.norm(a1 - a0, axis=-1)
+        if soft_edges is not None:
+            bits = np.asarray(soft_edges)[f]
+            d0, d1, d2 = (np.where(bits & (1 << k), d, np.inf) for k, d in enumerate((d0, d1, d2)))
         d = np.maximum(np.minimum(np.minimum(d0, d1), d2), 0.0)
         out["win"] = np.where(valid, 1 - np.exp(-sigma * d), 0.0)
     return out

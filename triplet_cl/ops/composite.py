@@ -26,6 +26,9 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
         raise ValueError(f"sigma must be a finite positive number, got {sigma!r}")
     if frags.win is not None and frags.sigma == sigma:
         return frags.win  # computed by the rasterizer in the same pass
+    if frags.soft_edges:
+        raise ValueError("fragments rasterized with soft_edges carry their window only for the sigma given to "
+                         f"rasterize ({frags.sigma}); got sigma={sigma}")
     H, W, K = frags.shape
     win = cla.empty(device.queue, (H, W, K), frags.real, allocator=device.allocator)
     device.kernel("coverage", "coverage_fwd", real=frags.real)(

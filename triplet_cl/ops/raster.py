@@ -153,6 +153,7 @@ class Fragments:
     sigma: float | None = None
     entry_setup: cla.Array | None = None  # [E, SETUP] edge-function set-up of each entry (Binning)
     entry_face: cla.Array | None = None  # [E] face of each entry (Binning)
+    soft_edges: bool = False  # the window covers only some edges (rasterize(soft_edges=...))
 
     @property
     def num_tiles(self) -> int:
@@ -213,12 +214,24 @@ class Binning:
         return self.tiles_x * self.tiles_y
 
 
+def check_soft_edges(soft_edges, num_faces: int) -> np.ndarray | None:
+    """Validate a per-face soft-edge bit mask ``[M]`` (bit k: edge k, opposite vertex k, has the window)."""
+    if soft_edges is None:
+        return None
+    m = np.asarray(soft_edges)
+    if m.dtype.kind not in "iu" or m.shape != (num_faces,):
+        raise ValueError(f"soft_edges must be an integer array of shape [{num_faces}], got {m.dtype} {list(m.shape)}")
+    if m.size and (m.min() < 0 or m.max() > 7):
+        raise ValueError(f"soft_edges values must be 3-bit masks in [0, 7], found [{m.min()}, {m.max()}]")
+    return np.ascontiguousarray(m, np.int32)
+
+
 def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, height: int,
-              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False) -> Binning:
+              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False, soft_edges=None) -> Binning:
     """Bin the faces of projected vertices ``vs [N, 3]`` into screen tiles (culling as :func:`rasterize`).
 
     Used by :func:`rasterize`, and by any renderer whose fragments need the atomics-free adjoint
-    (:func:`fragments_backward` sums per (tile, face) entry).
+    (:func:`fragments_backward` sums per (tile, face) entry). ``soft_edges``: see :func:`rasterize`.
     """
     real = _real_of(vs)
     q, alloc = device.queue, device.allocator
@@ -241,10 +254,13 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
     face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    soft = check_soft_edges(soft_edges, M)
     if E:
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
+        soft_d = to_device(q, soft) if soft is not None else None
         device.kernel("raster", "bin_fill", defines, real)(
-            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(tiles_x), face_ntiles.data,
+            q, (M,), None, vs.data, mesh.F.data, buf(soft_d, q), np.int32(soft is not None), np.int32(M),
+            np.int32(tiles_x), face_ntiles.data,
             face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
             entry_setup.data, face_entries.data)
     return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries)
@@ -252,7 +268,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
 
 def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
               near: float = 0.01, far: float = 1000.0, cull_backface: bool = False,
-              variant: str = "auto", sigma: float | None = None) -> Fragments:
+              variant: str = "auto", sigma: float | None = None, soft_edges=None) -> Fragments:
     """The K nearest fragments per pixel (discrete: no adjoint of its own; see :func:`raster_backward`).
 
     Args:
@@ -267,6 +283,9 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
             Both give identical fragments.
         sigma: also compute the soft-coverage window (``frags.win``) for this sharpness, in the
             same pass (see :func:`~triplet_cl.ops.composite.coverage`).
+        soft_edges: ``[M]`` int bit masks (bit k: edge k, opposite vertex k): only these edges get
+            the window (``topology.silhouette_edges`` marks the silhouette of a connected mesh, so
+            that its shared interior edges stay hard and open no seams); None: every edge (a soup).
     """
     if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
@@ -289,7 +308,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     q, alloc = device.queue, device.allocator
     npx = width * height
     device.check_alloc(npx * K * 8 * (2 if real == np.float64 else 1), f"fragment buffers ({width}x{height}, K={K})")
-    b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface)
+    b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
     tiles_x, tiles_y = b.tiles_x, b.tiles_y
 
     face = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
@@ -307,7 +326,8 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         real.type(sigma or 0.0), face.data, entry.data, bary.data, depth.data, count.data, buf(win, q))
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
-                     b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face)
+                     b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
+                     soft_edges is not None)
 
 
 def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
@@ -435,5 +455,6 @@ def valid_faces(frags: Fragments) -> np.ndarray:
     return face
 
 
-__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "fragments_backward", "gather_to_vertices",
-           "project", "project_backward", "rasterize", "raster_backward", "read_fragments", "valid_faces"]
+__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "check_soft_edges", "fragments_backward",
+           "gather_to_vertices", "project", "project_backward", "rasterize", "raster_backward", "read_fragments",
+           "valid_faces"]
