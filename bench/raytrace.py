@@ -117,7 +117,7 @@ def render_table(dev, M, res, runs):
         s = RenderSettings(K=30, sigma=1.0, renderer=renderer)
         v = np.random.default_rng(4).standard_normal((res, res, 3)).astype(np.float32)
 
-        def step():
+        def step(s=s, v=v):
             scene.zero_grad()
             r = render(scene, cam, s, dev)
             r.backward(v)

@@ -47,7 +47,7 @@ from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
 from .ops.raster import fragments_backward, project, project_backward, rasterize
 from .scene import Scene
-
+from .topology import silhouette_edges
 
 RENDERERS = ("raster", "raytrace", "hybrid")
 
@@ -58,6 +58,7 @@ class RenderSettings:
 
     K: int = 30  # fragments kept per pixel (the method: 150 in warm-up, then 30)
     sigma: float | None = 1.0  # soft-coverage sharpness in 1/pixels; None = hard edges (original method)
+    soft_edges: str = "all"  # window on "all" edges (a soup) or the "silhouette" only (a connected mesh: no seams)
     background: tuple = (1.0, 1.0, 1.0)  # RGB behind the scene
     t_min: float = 1e-4  # compositing stops below this transmittance
     normals: str = "face"  # "face": per-face normal of each triplet; "vertex": area-weighted vertex normals
@@ -77,6 +78,8 @@ class RenderSettings:
             raise ValueError(f"ray_eps must be a finite number >= 0, got {self.ray_eps}")
         if self.normals not in ("face", "vertex"):
             raise ValueError(f"normals must be 'face' or 'vertex', got {self.normals!r}")
+        if self.soft_edges not in ("all", "silhouette"):
+            raise ValueError(f"soft_edges must be 'all' or 'silhouette', got {self.soft_edges!r}")
         if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
@@ -218,8 +221,11 @@ class RasterInterpolate(Function):
         if s.renderer == "raytrace":
             fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
         else:
+            soft = None
+            if s.sigma is not None and s.soft_edges == "silhouette":
+                soft = silhouette_edges(np.asarray(V), v.mesh.faces, cam.center, v.mesh.edge_neighbors)
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
-                           sigma=s.sigma)
+                           sigma=s.sigma, soft_edges=soft)
         v.frags = ctx.frags = fr
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
@@ -378,7 +384,7 @@ class TracedShadeFragments(ShadeFragments):
             v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
             v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
             Vd, attr_d, bpos, bnrm, hf_d, hb_d = ctx.bounce_dev
-            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh.faces,
+            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh,
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV

@@ -55,7 +55,8 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
         :class:`Fragments` (``face``, ``bary``, ``depth`` = camera depth, ``count``, and the binning).
     """
     mesh = bvh.mesh
-    Vd = V if isinstance(V, cla.Array) else to_device(device.queue, check_real("V", V, (mesh.num_vertices, 3), bvh.real))
+    Vd = V if isinstance(V, cla.Array) else to_device(device.queue,
+                                                      check_real("V", V, (mesh.num_vertices, 3), bvh.real))
     _check_bvh(bvh, Vd)
     W, H = camera.width, camera.height
     binning = bin_faces(device, vs, mesh, W, H, camera.near, camera.far, cull_backface)
@@ -187,7 +188,7 @@ def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Arra
 
 
 def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Array, nrm: cla.Array,
-                    hit_face: cla.Array, hit_bary: cla.Array, v_h, v_eye: cla.Array, faces: np.ndarray, cam_center,
+                    hit_face: cla.Array, hit_bary: cla.Array, v_h, v_eye: cla.Array, mesh, cam_center,
                     two_sided: bool):
     """Adjoint of the bounce geometry: how the hit point moves with the reflecting point, its normal and
     the hit face's vertices (the hit face itself is discrete).
@@ -197,7 +198,7 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
             reflecting points and normals; hit_face/hit_bary: from :func:`bounce`.
         v_h: ``[P, C]`` adjoint of every gathered attribute column at the hits; v_eye: ``[P, 3]``
             adjoint of the hit shading's viewpoint (the reflecting point).
-        faces: ``[M, 3]`` host faces (for the per-vertex sum).
+        mesh: the :class:`~triplet_cl.ops.mesh.DeviceMesh` (faces on the device and the host).
 
     Returns:
         ``(v_pos [P, 3] device, v_nrm [P, 3] device, v_V [N, 3] numpy)``.
@@ -214,19 +215,15 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
     if P == 0:
         return vp[:0], vn[:0], np.zeros((n, 3))
     device.kernel("trace", "bounce_bwd", real=real)(
-        q, (round_up(P, LOCAL),), (LOCAL,), V.data, _faces_dev(device, faces).data, attr.data, np.int32(C), pos.data,
+        q, (round_up(P, LOCAL),), (LOCAL,), V.data, mesh.F.data, attr.data, np.int32(C), pos.data,
         nrm.data, hit_face.data, hit_bary.data, v_h.data, v_eye.data, np.int32(P), real.type(c[0]), real.type(c[1]),
         real.type(c[2]), np.int32(bool(two_sided)), vp.data, vn.data, rec.data)
     hf = hit_face.get()
     ok = hf >= 0
-    verts = faces[hf[ok]].reshape(-1)
+    verts = mesh.faces[hf[ok]].reshape(-1)
     w = rec.get()[:P][ok].reshape(-1, 3).astype(np.float64)
     v_V = np.stack([np.bincount(verts, weights=w[:, k], minlength=n) for k in range(3)], axis=1)
     return vp[:P], vn[:P], v_V
-
-
-def _faces_dev(device: Device, faces: np.ndarray) -> cla.Array:
-    return cla.to_device(device.queue, np.ascontiguousarray(faces, np.int32))
 
 
 def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, hit_face: cla.Array,
@@ -282,5 +279,5 @@ def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> 
     return out[:P]
 
 
-__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "ray_mask", "scatter_hits",
-           "shadow_backward", "shadow_forward", "trace_primary"]
+__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "ray_mask",
+           "scatter_hits", "shadow_backward", "shadow_forward", "trace_primary"]
