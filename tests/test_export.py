@@ -125,19 +125,42 @@ def test_rasterize_and_bake_reproduce_a_linear_function():
     jj, ii = np.meshgrid((np.arange(40) + 0.5) / 40, (np.arange(24) + 0.5) / 24)
     np.testing.assert_allclose(tex[..., 0], 0.2 + 0.5 * jj, atol=1e-5)
     np.testing.assert_allclose(tex[..., 1], 0.9 - 0.6 * ii, atol=1e-5)
-    # a small triangle in one corner: inside texels exact, the rest filled from the nearest covered texel
+    # a small triangle in one corner: texels whose centre is inside get the exact interpolation, the
+    # texels it only overlaps its clamped values, the rest the value of a nearest reached texel
     uv2 = np.array([[0.05, 0.05], [0.5, 0.05], [0.05, 0.5]], np.float32)
-    face2, bary2 = rasterize_uv(uv2, np.array([[0, 1, 2]]), 32, 32)
-    inside = face2 >= 0
-    assert 80 < inside.sum() < 140  # area (0.45^2 / 2) * 32^2 ~ 104 texels
-    tex2 = bake(face2, bary2, np.array([[0, 1, 2]]), np.array([[1.0], [2.0], [3.0]]))[..., 0]
-    cov = np.argwhere(inside)
-    for i, j in np.argwhere(~inside):  # each empty texel holds the value of one of its nearest covered texels
+    F2, vals2 = np.array([[0, 1, 2]]), np.array([[1.0], [2.0], [3.0]])
+    face2, bary2 = rasterize_uv(uv2, F2, 32, 32)
+    cx, cy = np.meshgrid((np.arange(32) + 0.5) / 32, (np.arange(32) + 0.5) / 32)
+    w1, w2 = (cx - 0.05) / 0.45, (cy - 0.05) / 0.45
+    centre_in = (w1 >= 0) & (w2 >= 0) & (w1 + w2 <= 1)
+    reached = face2 >= 0
+    assert 80 < centre_in.sum() < 140  # area (0.45^2 / 2) * 32^2 ~ 104 texels
+    assert reached[centre_in].all() and 0 < (reached & ~centre_in).sum() < 60  # a one-texel rim
+    tex2 = bake(face2, bary2, F2, vals2)[..., 0]
+    np.testing.assert_allclose(tex2[centre_in], (1 + w1 + 2 * w2)[centre_in], atol=1e-5)
+    assert (tex2 >= 1 - 1e-6).all() and (tex2 <= 3 + 1e-6).all()
+    cov = np.argwhere(reached)
+    for i, j in np.argwhere(~reached):  # each empty texel holds the value of one of its nearest reached texels
         d2 = ((cov - (i, j)) ** 2).sum(1)
         assert np.isclose(tex2[i, j], tex2[tuple(cov[d2 == d2.min()].T)]).any()
-    limited = bake(face2, bary2, np.array([[0, 1, 2]]), np.array([[1.0], [2.0], [3.0]]), dilate=2, fill=[-1.0])
-    assert limited[31, 31, 0] == -1.0 and limited[1, 5, 0] == tex2[1, 5] and not inside[1, 5]
-    np.testing.assert_array_equal(limited[inside, 0], tex2[inside])
+    limited = bake(face2, bary2, F2, vals2, dilate=2, fill=[-1.0])
+    assert limited[31, 31, 0] == -1.0
+    ring = (~reached) & (limited[..., 0] != -1.0)
+    assert ring.any() and np.allclose(limited[ring, 0], tex2[ring])
+    np.testing.assert_array_equal(limited[reached, 0], tex2[reached])
+
+
+def test_rasterize_gives_every_face_a_texel():
+    # 200 slivers and specks far smaller than a texel, between the texel centres: each owns a texel
+    rng = np.random.default_rng(12)
+    n = 200
+    cell = rng.choice(64 * 64, size=n, replace=False)
+    corner = np.stack([cell % 64, cell // 64], 1) + 0.55  # just past a texel centre
+    tri = corner[:, None] + rng.uniform(0, 0.3, size=(n, 3, 2))
+    uv = (tri / 64).reshape(-1, 2)
+    face, bary = rasterize_uv(uv, np.arange(3 * n).reshape(n, 3), 64, 64)
+    assert set(np.unique(face[face >= 0])) == set(range(n))
+    assert np.allclose(bary[face >= 0].sum(-1), 1) and (bary >= 0).all()
 
 
 def test_vertex_normals_area_weighted_and_unit():

@@ -5,9 +5,11 @@ the image (row ``i`` covers ``v`` in ``[i/H, (i+1)/H)``); texel ``(i, j)`` has i
 ``uv = ((j + 0.5)/W, (i + 0.5)/H)``.
 
 Baking: every face is rasterised in texel space (a texel belongs to the face that contains its
-centre, barycentric ``w`` of the centre), and each attribute is ``sum_k w_k a[corner k]`` there.
-Texels that no face covers are then filled with the value of the *nearest* covered texel
-(``scipy.ndimage.distance_transform_edt``), out to ``dilate`` texels or everywhere: bilinear
+centre, barycentric ``w`` of the centre; texels that only overlap a face get its clamped
+barycentrics, so that every face, however small, owns a texel: :func:`rasterize_uv`), and each
+attribute is ``sum_k w_k a[corner k]`` there. Texels that no face reaches are then filled with
+the value of the *nearest* reached texel (``scipy.ndimage.distance_transform_edt``), out to
+``dilate`` texels or everywhere: bilinear
 filtering and mip-maps near chart borders then average values of the same chart instead of the
 background.
 """
@@ -77,32 +79,41 @@ def uv_atlas(V: np.ndarray, F: np.ndarray, texture_size: int = 1024, padding: in
 
 def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
                  max_candidates: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
-    """Rasterise triangles in texture space: the face covering each texel centre and its barycentrics.
+    """Rasterise triangles in texture space: the face of each texel and its barycentrics.
+
+    Two layers, the first winning: (1) the face containing the texel's **centre** (barycentrics
+    of the centre, exact); (2) *conservative* coverage: a face whose triangle, grown by half a
+    texel, contains the centre (the texel square overlaps the edge slabs), with the centre's
+    barycentrics clamped to the triangle (negative weights set to 0, renormalised). Layer (2) gives
+    every face at least one texel, however small or thin, and the texels along chart borders the
+    values of their own chart rather than the nearest-texel fill of :func:`bake`.
 
     Args:
         uv: ``[N, 2]`` texture coordinates in [0, 1] (glTF convention). faces: ``[M, 3]`` into ``uv``.
         width, height: texture size. max_candidates: texels tested per chunk (memory bound).
     Returns:
-        ``face [H, W] int32`` (-1 where no face covers the centre) and ``bary [H, W, 3] float32``.
-        Where faces overlap (only on shared edges in an atlas) the later face wins.
+        ``face [H, W] int32`` (-1 where no face reaches the texel) and ``bary [H, W, 3] float32``.
+        Within a layer, where faces overlap (shared edges in an atlas) the later face wins.
     """
     uv = np.asarray(uv, np.float64)
     faces = np.asarray(faces, np.int64)
-    face_img = np.full((height, width), -1, np.int32)
-    bary_img = np.zeros((height, width, 3), np.float32)
+    face_img = np.full((2, height, width), -1, np.int32)  # layer 0: centre inside; 1: conservative
+    bary_img = np.zeros((2, height, width, 3), np.float32)
     p = uv[faces] * np.array([width, height])  # [M, 3, 2] texel units; centres at j + 0.5
     a, e1, e2 = p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    lo = np.ceil(p.min(1) - 0.5).astype(np.int64)
-    hi = np.floor(p.max(1) - 0.5).astype(np.int64)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [width - 1, height - 1])
+    # half-texel support of the edge opposite each vertex, in barycentric units times |det|:
+    # the centre is within the grown triangle iff w_i |det| >= -(|dx_i| + |dy_i|) / 2 for all i
+    opp = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], 1)  # [M, 3, 2]
+    slack = 0.5 * np.abs(opp).sum(-1) / np.maximum(np.abs(det), 1e-300)[:, None]  # [M, 3]
+    lo = np.maximum(np.floor(p.min(1)).astype(np.int64), 0)  # texels whose square meets the bbox
+    hi = np.minimum(np.ceil(p.max(1)).astype(np.int64) - 1, [width - 1, height - 1])
     n = np.maximum(hi - lo + 1, 0)
     count = n[:, 0] * n[:, 1]
     ok = (np.abs(det) > 1e-12) & (count > 0)
     ids = np.flatnonzero(ok)
     if len(ids) == 0:
-        return face_img, bary_img
+        return face_img[0], bary_img[0]
     csum = np.cumsum(count[ids])
     start = 0
     eps = 1e-7
@@ -118,13 +129,16 @@ def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
         q = np.stack([jx + 0.5, jy + 0.5], -1) - a[fid]
         w1 = (q[:, 0] * e2[fid, 1] - q[:, 1] * e2[fid, 0]) / det[fid]
         w2 = (e1[fid, 0] * q[:, 1] - e1[fid, 1] * q[:, 0]) / det[fid]
-        w0 = 1.0 - w1 - w2
-        inside = (w0 >= -eps) & (w1 >= -eps) & (w2 >= -eps)
-        jy, jx, fid = jy[inside], jx[inside], fid[inside]
-        face_img[jy, jx] = fid
-        bary_img[jy, jx] = np.stack([w0[inside], w1[inside], w2[inside]], -1)
+        w = np.stack([1.0 - w1 - w2, w1, w2], -1)
+        inside = (w >= -eps).all(1)
+        grown = (w >= -slack[fid]).all(1) & ~inside
+        wc = np.maximum(w[grown], 0)
+        for layer, m, ww in ((1, grown, wc / wc.sum(1, keepdims=True)), (0, inside, w[inside])):
+            face_img[layer, jy[m], jx[m]] = fid[m]
+            bary_img[layer, jy[m], jx[m]] = ww
         start = stop
-    return face_img, bary_img
+    use = face_img[0] >= 0
+    return np.where(use, face_img[0], face_img[1]), np.where(use[..., None], bary_img[0], bary_img[1])
 
 
 def bake(face_img: np.ndarray, bary_img: np.ndarray, faces: np.ndarray, values: np.ndarray,
