@@ -88,8 +88,8 @@ def test_render_depth_empty_view(device, sphere_soup):
 
 
 def test_tsdf_sphere_is_closed_and_near_the_sphere(device, sphere_soup):
-    cams = _cameras()
-    V, F, (tsdf, origin, h) = tsdf_fusion(sphere_soup, cams, resolution=40, sigma=None, device=device,
+    cams = _cameras(px=80)  # automatic resolution: a voxel of 1.25 pixels (h ≈ 0.034)
+    V, F, (tsdf, origin, h) = tsdf_fusion(sphere_soup, cams, sigma=None, device=device,
                                           return_volume=True)
     V, F, _ = remove_small_components(V, F)
     st = mesh_stats(V, F)
@@ -98,7 +98,8 @@ def test_tsdf_sphere_is_closed_and_near_the_sphere(device, sphere_soup):
     r = np.linalg.norm(V, axis=1)
     # the soup is an inscribed icosphere: its facets lie within 0.01 inside the sphere
     r_soup = np.linalg.norm(sample_surface(sphere_soup.V.data, sphere_soup.F, 20000), axis=1).mean()
-    assert abs(r.mean() - r_soup) < 0.15 * h  # measured 0.10 h: marching-cubes chords on a convex surface
+    # measured +0.11 h (the 1-pixel carve margin leaves ~0.1 px outside; marching-cubes chords pull in)
+    assert abs(r.mean() - r_soup) < 0.2 * h
     assert np.abs(r - RADIUS).max() < 1.0 * h
     ref = trimesh.creation.icosphere(5, radius=RADIUS)
     cd = chamfer_distance(V, F, ref.vertices, ref.faces, n=20000)["chamfer"]
