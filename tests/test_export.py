@@ -16,7 +16,7 @@ from tests.reference.sh import sh_scipy
 from tests.tools.gltf_check import GltfError, check_glb, read_accessor
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight
 from triplet_cl.mesh import MeshAsset
-from triplet_cl.mesh.bake import bake, rasterize_uv, vertex_normals
+from triplet_cl.mesh.bake import bake, rasterize_uv, uv_atlas, vertex_normals
 from triplet_cl.mesh.envmap import (
     eval_environment,
     export_envmap,
@@ -161,6 +161,25 @@ def test_rasterize_gives_every_face_a_texel():
     face, bary = rasterize_uv(uv, np.arange(3 * n).reshape(n, 3), 64, 64)
     assert set(np.unique(face[face >= 0])) == set(range(n))
     assert np.allclose(bary[face >= 0].sum(-1), 1) and (bary >= 0).all()
+
+
+@pytest.mark.parametrize("piece_faces", [None, 150])
+def test_uv_atlas_pieces_keep_faces_and_do_not_overlap(piece_faces):
+    m = trimesh.creation.icosphere(subdivisions=3)  # 1280 faces: 9 pieces of ~150
+    at = uv_atlas(m.vertices, m.faces, 256, piece_faces=piece_faces)
+    np.testing.assert_array_equal(at.vmap[at.faces], m.faces)  # same faces, same order
+    assert at.uv.min() >= 0 and at.uv.max() <= 1
+    # no two UV triangles overlap: random points lie in at most one (up to shared edges)
+    tri = at.uv[at.faces].astype(np.float64)  # [M, 3, 2]
+    pts = np.random.default_rng(13).random((4000, 2))
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    q = pts[:, None] - a[None]
+    w1 = (q[..., 0] * e2[:, 1] - q[..., 1] * e2[:, 0]) / det
+    w2 = (e1[:, 0] * q[..., 1] - e1[:, 1] * q[..., 0]) / det
+    inside = (w1 > 1e-6) & (w2 > 1e-6) & (w1 + w2 < 1 - 1e-6)
+    assert inside.sum(1).max() == 1
+    assert inside.any(1).mean() > 0.3  # the charts cover a good part of the atlas
 
 
 def test_vertex_normals_area_weighted_and_unit():
