@@ -274,6 +274,15 @@ def test_glb_blinn_phong_and_linear_albedo(tmp_path):
     assert np.abs(orm[:, 1] - rough).max() < 0.02 and np.abs(orm[:, 2]).max() < 1e-9
     base = _bilinear(np.asarray(g.visual.material.baseColorTexture), cuv) / 255
     assert np.abs(base - srgb_encode(0.5 + 0.4 * cent)).max() < 0.03
+    # OBJ: ks as map_Ks, the mean exponent as Ns; PLY keeps the Blinn-Phong attributes
+    paths = export_asset(asset, tmp_path / "bp", formats=("obj", "ply"), texture_size=64)
+    mtl = paths["mtl"].read_text()
+    assert "map_Ks mesh_specular.png" in mtl and (tmp_path / "bp" / "mesh_specular.png").is_file()
+    ns = float(next(line.split()[1] for line in mtl.splitlines() if line.startswith("Ns ")))
+    assert np.isclose(ns, np.mean(asset.attributes["shininess"] + 1), rtol=1e-5)
+    raw = trimesh.load(paths["ply"], process=False).metadata["_ply_raw"]["vertex"]["data"]
+    np.testing.assert_array_equal(raw["shininess"], asset.attributes["shininess"])
+    np.testing.assert_array_equal(raw["ks_2"], asset.attributes["ks"][:, 2])
     # the formula: exponent e = s + 1, a^2 = 2 / (e + 2), roughness = sqrt(a)
     s = np.array([0.0, 7.0, 1000.0])
     np.testing.assert_allclose(blinn_phong_roughness(s) ** 4, 2 / (s + 3))
@@ -546,6 +555,10 @@ def test_clear_errors_and_nothing_written(tmp_path):
     bad.attributes["roughness"][3] = np.nan  # mutated after construction
     with pytest.raises(ValueError, match=r"attributes\['roughness'\] must be finite"):
         export_asset(bad, out)
+    nan_light = _region_asset(rng)
+    nan_light.lights[0].position[1] = np.inf
+    with pytest.raises(ValueError, match=r"lights\[0\] \(PointLight\).position must be finite"):
+        export_asset(nan_light, out)
     with pytest.raises(TypeError, match="MeshAsset"):
         export_ply({"V": good.V}, out / "x.ply")
     with pytest.raises(ValueError, match="lights\\[0\\].type"):

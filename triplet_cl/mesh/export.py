@@ -317,8 +317,9 @@ def export_glb(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
     mode = _alpha(alpha_mode)
     if baked is None:
         baked = bake_asset(asset, texture_size, albedo_space, with_alpha=mode == "BLEND")
-    data = glb_bytes(asset, baked, mode if baked.base.shape[-1] == 4 else "OPAQUE", double_sided,
-                     Path(path).stem)
+    if mode == "BLEND" and baked.base.shape[-1] != 4:
+        raise ValueError("export_glb: alpha_mode='blend' needs a bake with alpha (bake_asset(..., with_alpha=True))")
+    data = glb_bytes(asset, baked, mode, double_sided, Path(path).stem)
     atomic_write_bytes(path, data)
     return Path(path)
 
@@ -409,6 +410,8 @@ def lights_to_json(lights) -> dict:
             raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
         d = {"type": type(lt).__name__}
         for k, v in vars(lt).items():
+            if isinstance(v, np.ndarray) and not np.isfinite(v).all():
+                raise ValueError(f"lights[{i}] ({type(lt).__name__}).{k} must be finite, found NaN/Inf")
             d[k] = v.tolist() if isinstance(v, np.ndarray) else v
         out.append(d)
     return {"lights": out}
@@ -463,6 +466,7 @@ def export_asset(asset: MeshAsset, out_dir, formats=FORMATS, texture_size: int =
         kinds = ", ".join(type(lt).__name__ for lt in asset.lights) or "none"
         raise ValueError(f"export_asset: an envmap was requested but the asset has no SHEnvironmentLight "
                          f"(lights: {kinds})")
+    lights_doc = lights_to_json(asset.lights)  # validates the lights before anything is written
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
@@ -477,7 +481,7 @@ def export_asset(asset: MeshAsset, out_dir, formats=FORMATS, texture_size: int =
         paths.update(obj=obj, mtl=mtl, textures=tex)
     if "ply" in formats:
         paths["ply"] = export_ply(asset, out_dir / "mesh.ply")
-    write_json(out_dir / "lights.json", lights_to_json(asset.lights))
+    write_json(out_dir / "lights.json", lights_doc)
     paths["lights"] = out_dir / "lights.json"
     if has_env and envmap is not False:
         paths["envmap"] = export_envmap(asset.lights, out_dir / "envmap.exr", envmap_height)
