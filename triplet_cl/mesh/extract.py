@@ -210,9 +210,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     origin = b[0] - h
     tau = truncation * h
     gx, gy, gz = (origin[i] + h * np.arange(dims[i], dtype=np.float64) for i in range(3))
-    X = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), axis=-1).reshape(-1, 3)
-    num = np.zeros(len(X), np.float64)
-    wsum = np.zeros(len(X), np.float64)
+    X = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
+    num = np.zeros(len(X), np.float32)
+    wsum = np.zeros(len(X), np.float32)
     seen = np.zeros(len(X), np.int32)
     hidden = np.zeros(len(X), np.int32)
     for cam in cameras:
@@ -223,29 +223,18 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         free_px = acc < alpha_threshold
         if carve_margin > 0:
             free_px = binary_erosion(free_px, iterations=int(carve_margin), border_value=1)
-        pc = X @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
-        z = pc[:, 2]
-        front = z > cam.near
-        zs = np.where(front, z, 1.0)
-        u = np.floor(cam.fx * pc[:, 0] / zs + cam.cx).astype(np.int64)
-        v = np.floor(cam.fy * pc[:, 1] / zs + cam.cy).astype(np.int64)
-        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        idx = np.flatnonzero(inside)
+        idx, pix, z = _project_voxels(X, cam)
         seen[idx] += 1
-        pu, pv = u[idx], v[idx]
-        a = acc[pv, pu].astype(np.float64)
-        dep = depth[pv, pu].astype(np.float64)
+        a = acc.reshape(-1)[pix]
         surf = a >= alpha_threshold
-        free = free_px[pv, pu]  # background away from the silhouette (eroded by carve_margin pixels)
-        s = (dep - z[idx]) / tau
+        s = (depth.reshape(-1)[pix] - z) * np.float32(1.0 / tau)
         behind = surf & (s < -1.0)
         hidden[idx[behind]] += 1
-        use = free | (surf & ~behind)
-        val = np.where(surf, np.minimum(s, 1.0), 1.0)
-        w = np.where(surf, a, 1.0)
+        use = free_px.reshape(-1)[pix] | (surf & ~behind)
+        w = np.where(surf, a, np.float32(1.0))[use]
         ii = idx[use]
-        num[ii] += (w * val)[use]
-        wsum[ii] += w[use]
+        num[ii] += w * np.where(surf[use], np.minimum(s[use], np.float32(1.0)), np.float32(1.0))
+        wsum[ii] += w
     inside = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
     tsdf = np.where(inside, -1.0, tsdf).reshape(*dims).astype(np.float32)
@@ -265,6 +254,22 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     Vm, Fm = _drop_cavities(Vm, Fm)
     out = (Vm, Fm)
     return out + ((tsdf, origin, h),) if return_volume else out
+
+
+def _project_voxels(X: np.ndarray, cam: Camera):
+    """Voxel centres ``X [P, 3] float32`` seen by ``cam``: ``(idx [Q] voxel ids in front of the
+    camera and inside the image, pix [Q] flat pixel index (nearest pixel), z [Q] camera depth)``."""
+    R = cam.w2c[:3, :3].astype(np.float32)
+    t = cam.w2c[:3, 3].astype(np.float32)
+    z = X @ R[2] + t[2]
+    idx = np.flatnonzero(z > cam.near)
+    Xi = X[idx]
+    z = z[idx]
+    u = np.floor((Xi @ R[0] + t[0]) / z * np.float32(cam.fx) + np.float32(cam.cx))
+    v = np.floor((Xi @ R[1] + t[1]) / z * np.float32(cam.fy) + np.float32(cam.cy))
+    ok = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    pix = v[ok].astype(np.int64) * cam.width + u[ok].astype(np.int64)
+    return idx[ok], pix, z[ok]
 
 
 def _drop_cavities(V, F):
