@@ -330,6 +330,41 @@ def test_glb_third_parser_gltfpack(region_glb, tmp_path):
     check_glb(tmp_path / "packed.glb")  # and our checker accepts a third party's GLB
 
 
+def _khronos_validate(paths) -> list[dict]:
+    """Reports of the Khronos glTF-Validator (tests/tools/gltf_validate.js) or a pytest skip when
+    node or the npm package is missing (NODE_PATH, or ~/.cache/triplet_cl/node/node_modules)."""
+    import os
+    from pathlib import Path
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node not installed: the Khronos glTF-Validator needs it")
+    env = dict(os.environ)
+    env["NODE_PATH"] = os.pathsep.join(filter(None, [env.get("NODE_PATH"),
+                                                     str(Path.home() / ".cache/triplet_cl/node/node_modules")]))
+    script = Path(__file__).parent / "tools" / "gltf_validate.js"
+    res = subprocess.run([node, str(script), *map(str, paths)], capture_output=True, text=True, env=env,
+                         timeout=120)
+    if res.returncode == 2:
+        pytest.skip("Khronos glTF-Validator not installed: npm install --prefix ~/.cache/triplet_cl/node "
+                    "gltf-validator")
+    return [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
+
+
+def test_glb_passes_the_khronos_validator(region_glb, tmp_path):
+    rng = np.random.default_rng(14)
+    blend = export_glb(_sphere_asset(rng), tmp_path / "blend.glb", texture_size=64, alpha_mode="blend")
+    bp = export_glb(_sphere_asset(rng, "blinn_phong"), tmp_path / "bp.glb", texture_size=64)
+    broken = tmp_path / "broken.glb"  # and the harness does see errors
+    broken.write_bytes(_replace_json(region_glb[1].read_bytes(),
+                                     lambda d: d["accessors"][0].__setitem__("max", [9.0, 9.0, 9.0])))
+    reports = _khronos_validate([region_glb[1], blend, bp, broken])
+    assert len(reports) == 4
+    for r in reports[:3]:
+        assert (r["errors"], r["warnings"], r["infos"], r["hints"]) == (0, 0, 0, 0), r
+    assert reports[3]["errors"] > 0 and any("ACCESSOR_MAX_MISMATCH" in m for m in reports[3]["messages"])
+
+
 def _replace_json(glb: bytes, edit) -> bytes:
     jlen = struct.unpack_from("<I", glb, 12)[0]
     doc = json.loads(glb[20:20 + jlen])
