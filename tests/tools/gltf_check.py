@@ -1,6 +1,7 @@
 """A strict checker for the GLB files we write: the rules of the glTF 2.0 specification that the
-Khronos glTF-Validator checks for what our exporter emits (the validator itself, a JS tool, cannot
-be installed here).
+Khronos glTF-Validator checks for what our exporter emits, in Python, so that they are enforced on
+every machine. (The validator itself, a JS tool, runs too where node and its npm package are
+installed: ``tests/tools/gltf_validate.js``, ``test_glb_passes_the_khronos_validator``.)
 
 ``check_glb(path_or_bytes)`` returns ``(doc, bin)`` or raises ``GltfError`` listing every problem.
 
