@@ -311,9 +311,10 @@ def _orient_outward(V, F):
 
 
 def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge vertices closer than ``tolerance`` (clusters of the ``cKDTree`` pair graph, each
-    replaced by its mean), then drop degenerate faces (a repeated vertex) and duplicate faces
-    (the same three vertices in any order, also the reversed twin of a two-sided soup).
+    """Merge vertices closer than ``tolerance`` (``cKDTree`` pairs; each vertex joins its
+    lowest-numbered neighbour — one hop, so no cluster chains across the soup — and a cluster is
+    replaced by its mean), then drop degenerate faces (a repeated vertex) and duplicate faces (the
+    same three vertices in any order, also the reversed twin of a two-sided soup).
 
     Args:
         V: ``[N, 3]``; F: ``[M, 3]``; tolerance: merge distance in world units (≥ 0).
@@ -322,8 +323,6 @@ def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.nd
         ``(V' [N', 3] float32, F' [M', 3] int32, vertex_of [N] int64)`` with ``vertex_of[i]`` the new
         index of old vertex ``i`` (unreferenced vertices are dropped: −1).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     V = check_real("V", V, (None, 3), np.float64)
@@ -334,8 +333,13 @@ def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.nd
     if n == 0 or len(F) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.full(n, -1, np.int64)
     pairs = cKDTree(V).query_pairs(tolerance, output_type="ndarray") if tolerance > 0 else np.zeros((0, 2), int)
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, label = connected_components(g, directed=False)
+    # one hop, not the transitive closure: each vertex joins its lowest-numbered neighbour, so a
+    # cluster lies within ``tolerance`` of one vertex (a closure would chain a dense soup into a point)
+    label = np.arange(n)
+    if len(pairs):
+        lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+        np.minimum.at(label, hi, lo)
+    _, label = np.unique(label, return_inverse=True)
     cnt = np.bincount(label)
     Vc = np.stack([np.bincount(label, V[:, i]) for i in range(3)], axis=1) / cnt[:, None]
     Fw = label[F]
@@ -428,7 +432,9 @@ def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, b
     if min_component_fraction > 0 and len(Fm):
         Vm, Fm, _ = remove_small_components(Vm, Fm, min_component_fraction)
     if len(Fm) == 0:
-        raise ValueError(f"extraction ({method}) produced an empty mesh")
+        raise ValueError(f"extraction ({method}) produced an empty mesh" + (
+            " (every welded face was degenerate: the soup's triangles do not share vertices; use method='tsdf')"
+            if method == "weld" else ""))
     if max_faces is not None and len(Fm) > max_faces:
         from .remesh import simplify
 
