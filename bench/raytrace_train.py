@@ -82,12 +82,18 @@ def gt_albedo_and_shadow(scene_dir: Path, points: np.ndarray, dev):
     return colour, dist, facing, shadowed
 
 
-def run(renderer: str, data: Path, iterations: int, out: Path, dev) -> dict:
-    train_mod.RenderSettings = functools.partial(RenderSettings, renderer=renderer)
+def run(renderer: str, data: Path, iterations: int, out: Path, dev, gt_light: bool = False,
+        ray_eps: float = 1e-4) -> dict:
+    train_mod.RenderSettings = functools.partial(RenderSettings, renderer=renderer, ray_eps=ray_eps)
     try:
         cfg = train_mod.TrainConfig(iterations=iterations, seed=0)
         cfg.density.densify_until = min(cfg.density.densify_until, int(iterations * 0.8))
         tr = train_mod.Trainer(str(data), out / renderer, cfg, device=dev, quiet=True)
+        if gt_light:  # start the (learned) point light at the ground-truth position
+            gt = json.loads((data / "ground_truth.json").read_text())
+            q = [lt for lt in gt["lights"] if lt["type"] == "point"][0]["position"]
+            lp = tr.scene.light_params.data
+            lp[0:3] = q  # lights ("point", "ambient"): the point light's position comes first
         t0 = time.perf_counter()
         tr.train()
         wall = time.perf_counter() - t0
@@ -107,15 +113,19 @@ def main(argv=None):
     ap.add_argument("--data", default=str(DATA / "scenes" / "spot_small"))
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--renderers", nargs="*", default=["raster", "hybrid", "raytrace"])
+    ap.add_argument("--ray-eps", type=float, default=1e-4, help="RenderSettings.ray_eps (× scene diagonal)")
+    ap.add_argument("--gt-light", action="store_true", help="start the point light at the ground-truth position")
     args = ap.parse_args(argv)
     dev = get_device()
     data = Path(args.data)
-    print(f"device: {dev.name}; data: {data}; {args.iterations} iterations")
+    print(f"device: {dev.name}; data: {data}; {args.iterations} iterations"
+          + ("; point light starts at the ground-truth position" if args.gt_light else "")
+          + f"; ray_eps {args.ray_eps:g}")
     print(f"{'renderer':9} {'test PSNR':>9} {'s/it':>6} {'faces':>6} {'albedo MAE':>10} {'shadow bias':>11} "
           f"{'(shadowed/lit pts)':>18}")
     with tempfile.TemporaryDirectory() as tmp:
         for r in args.renderers:
-            res = run(r, data, args.iterations, Path(tmp), dev)
+            res = run(r, data, args.iterations, Path(tmp), dev, args.gt_light, args.ray_eps)
             keep = res["alpha"] > 0.5
             colour, dist, facing, shadowed = gt_albedo_and_shadow(data, res["V"][keep], dev)
             near = dist < 0.02 * 2.0

@@ -48,6 +48,9 @@
  *   N = s normalize(n): v_n = safe_normalize_vjp(n, s v_N);  V = normalize(cam - x):
  *   v_x = v_s + v_eye - safe_normalize_vjp(cam - x, v_V).
  *   (the discrete choice of the hit face has no gradient)
+ *
+ * ray_mask / pack_faces (helpers, discrete): the compacted face ids of a view's fragments, -1 for
+ *   fragments behind a transmittance prod_{j<k} (1 - alpha_j win_j) below t_min (no rays for them).
  */
 #include "real.h"
 #include "shade_math.h"
