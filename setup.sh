@@ -2,7 +2,8 @@
 # Set up triplet_cl on this machine: an OpenCL runtime (Debian's PoCL when no platform exists),
 # a virtual environment in .venv and the package installed into it (editable).
 #   ./setup.sh          runtime dependencies
-#   ./setup.sh --test   plus the test extra (pytest, hypothesis, ruff)
+#   ./setup.sh --test   plus the test extra (pytest, hypothesis, ruff, pygltflib) and, best effort, the
+#                       glTF checkers gltfpack (apt) and the Khronos glTF-Validator (npm)
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -43,5 +44,19 @@ if ! have_platform; then
         exit 1
     fi
     have_platform || { echo "setup.sh: PoCL was installed but OpenCL still reports no device" >&2; exit 1; }
+fi
+if [ -n "$extra" ]; then
+    # Optional third-party checkers of the exported glTF (tests skip without them): Debian's gltfpack and the
+    # Khronos glTF-Validator (npm). Best effort: no network or no node only means those tests skip.
+    if ! command -v gltfpack >/dev/null 2>&1 && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+        { DEBIAN_FRONTEND=noninteractive timeout 300 apt-get install -y -qq gltfpack >/dev/null 2>&1 \
+          || { timeout 300 apt-get update -qq >/dev/null 2>&1 \
+               && DEBIAN_FRONTEND=noninteractive timeout 300 apt-get install -y -qq gltfpack >/dev/null 2>&1; }; } \
+            || echo "setup.sh: gltfpack not installed (its test will skip)"
+    fi
+    if command -v npm >/dev/null 2>&1 && [ ! -d "$HOME/.cache/triplet_cl/node/node_modules/gltf-validator" ]; then
+        timeout 300 npm install -s --prefix "$HOME/.cache/triplet_cl/node" gltf-validator >/dev/null 2>&1 \
+            || echo "setup.sh: Khronos glTF-Validator not installed (its test will skip)"
+    fi
 fi
 echo "setup.sh: ready (.venv/bin/triplet)"

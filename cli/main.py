@@ -81,6 +81,8 @@ def _config_from_args(args: argparse.Namespace):
         over["sigma"] = None if args.sigma <= 0 else args.sigma
     if args.checkpoint_every is not None:
         over["checkpoint_every"] = args.checkpoint_every
+    if args.renderer:
+        over["renderer"] = args.renderer
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -143,6 +145,8 @@ def _load_run(args):
 
 def cmd_render(args: argparse.Namespace) -> int:
     tr = _load_run(args)
+    if args.renderer:
+        tr.cfg.renderer = args.renderer
     out = Path(args.out) if args.out else Path(args.run) / "renders" / args.split
     m = tr.evaluate(args.split, write_renders=True, out_dir=out)
     print(f"rendered {len(m['views'])} {args.split} views to {out} (PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f})")
@@ -167,7 +171,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-method", choices=["tsdf", "weld"], help="soup → mesh: TSDF fusion + marching cubes "
                    "(default) or welding of coincident vertices")
-    p.add_argument("--mesh-resolution", type=int, help="TSDF grid cells along the longest side (default 160)")
+    p.add_argument("--mesh-resolution", type=int, help="TSDF voxels along the longest side (default: a voxel ≈ a "
+                   "pixel of the training views)")
+    p.add_argument("--mesh-faces", type=int, help="simplify the extracted mesh to at most this many faces "
+                   "(default 50000)")
     p.add_argument("--mesh-rounds", type=int, help="extraction → refinement rounds (default 1)")
     p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
@@ -182,7 +189,8 @@ def _mesh_config_from_args(args: argparse.Namespace):
     from triplet_cl.mesh.refine import MeshConfig
 
     over = {}
-    for opt, field in (("mesh_method", "method"), ("mesh_resolution", "resolution"), ("mesh_rounds", "rounds"),
+    for opt, field in (("mesh_method", "method"), ("mesh_resolution", "resolution"), ("mesh_faces", "extract_faces"),
+                       ("mesh_rounds", "rounds"),
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
                        ("texture_size", "texture_size")):
         v = getattr(args, opt, None)
@@ -247,6 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"triplet_cl {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
+    renderer_help = ("raster (default): K-nearest rasterization; raytrace: BVH primary rays, ray-traced shadows and "
+                     "a reflection bounce; hybrid: rasterized primary visibility, ray-traced shadows and reflection")
     dev_help = ("OpenCL device: 'P:D' indices or a substring of the platform/device name "
                 "(default: $TRIPLET_DEVICE, else the first GPU, else the first CPU)")
 
@@ -273,6 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
+    t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
@@ -284,6 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("run", help="run directory")
     r.add_argument("--split", default="test", choices=["test", "train", "val"])
     r.add_argument("--out", help="output folder (default RUN/renders/SPLIT)")
+    r.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's)")
     r.add_argument("--device", default=None, help=dev_help)
     r.set_defaults(func=cmd_render)
 

@@ -115,3 +115,19 @@ def test_cli_errors(tmp_path, capsys):
         cli_main(["train", "--demo", "--brdf", "lambert"])
     assert cli_main(["train", "--demo", "--lights", "laser", "--out", str(tmp_path / "x")]) == 2
     assert "lights must be" in capsys.readouterr().err
+
+
+def test_renderer_option_trains_with_ray_traced_shadows(tmp_path, capsys):
+    """`--renderer hybrid` trains (raster primary visibility, ray-traced shadows and bounce) and is kept in
+    config.json; `triplet render --renderer` overrides it; an unknown renderer is refused."""
+    with pytest.raises(ValueError, match="renderer"):
+        TrainConfig(renderer="pathtracer").validate()
+    out = tmp_path / "hyb"
+    rc = cli_main(["train", "--demo", "--iterations", "12", "--init-points", "600", "--out", str(out),
+                   "--renderer", "hybrid", "--checkpoint-every", "0"])
+    assert rc == 0
+    assert json.loads((out / "config.json").read_text())["train"]["renderer"] == "hybrid"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["iterations"] == 12 and np.isfinite(m["psnr"])
+    assert cli_main(["render", str(out), "--renderer", "raytrace", "--out", str(tmp_path / "rt")]) == 0
+    assert len(list((tmp_path / "rt").glob("*.png"))) == 8

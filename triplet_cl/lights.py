@@ -216,7 +216,7 @@ def unpack_gradients(lights, v_params: np.ndarray) -> list[dict[str, np.ndarray]
     return out
 
 
-_LIGHT_CLASSES = {c.__name__: c for c in (AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight,
+LIGHT_CLASSES = {c.__name__: c for c in (AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight,
                                           VertexSHLight)}
 
 
@@ -236,11 +236,11 @@ def lights_from_json(items) -> list:
     for i, d in enumerate(items):
         d = dict(d)
         kind = d.pop("type", None)
-        cls = _LIGHT_CLASSES.get(kind)
+        cls = LIGHT_CLASSES.get(kind)
         if cls is None:
-            raise ValueError(f"light {i}: unknown type {kind!r} (expected one of {sorted(_LIGHT_CLASSES)})")
+            raise ValueError(f"lights[{i}].type must be one of {sorted(LIGHT_CLASSES)}, got {kind!r}")
         try:
             out.append(cls(**d))
         except TypeError as exc:
-            raise ValueError(f"light {i} ({kind}): {exc}") from None
+            raise ValueError(f"lights[{i}] ({kind}): {exc}") from None
     return out

@@ -35,7 +35,7 @@ from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLig
 from .losses import photometric_loss_and_grad, ssim
 from .ops.raster import valid_faces
 from .optim import Adam, Constant, ExponentialDecay, StepUp
-from .render import RenderSettings, render
+from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
 
@@ -61,6 +61,8 @@ class TrainConfig:
     warmup_until: int = 200  # warm-up length (¼ resolution and warm-up K)
     half_res_until: int = 600  # ½ resolution until this iteration, then full
     sigma: float | None = 2.0  # soft-coverage sharpness (1/px); None = hard edges (measured: much worse)
+    renderer: str = "raster"  # "raster", "raytrace" (BVH primary rays) or "hybrid" (raster + ray-traced
+    #                           shadows and reflection bounce); see render.RenderSettings
     background: str = "white"  # "white", "black" or "random" (per iteration)
     ssim_lambda: float = 0.2  # loss = (1 − λ)·L1 + λ·(1 − SSIM)
     # × scene extent, decays exponentially to lr_position_final. The method's 1.1e-4 is tuned for 18k
@@ -117,6 +119,8 @@ class TrainConfig:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
         if self.brdf not in ("cook_torrance", "blinn_phong"):
             raise ValueError(f"brdf must be cook_torrance or blinn_phong, got {self.brdf!r}")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if not 0 <= self.sh_degree <= 8:
@@ -344,7 +348,8 @@ class Trainer:
         i = self.next_view()
         cam, target = self.targets.get(i, scale, np.asarray(bg, np.float32))
         settings = RenderSettings(K=K, sigma=cfg.sigma, background=tuple(float(x) for x in bg),
-                                  sh_degree=deg if self.scene.vertex_sh is not None else None)
+                                  sh_degree=deg if self.scene.vertex_sh is not None else None,
+                                  renderer=cfg.renderer)
         t0 = time.perf_counter()
         r = render(self.scene, cam, settings, self.device)
         t1 = time.perf_counter()
@@ -459,6 +464,7 @@ class Trainer:
         bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
                         np.float32)
         settings = RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, background=tuple(bg),
+                                  renderer=self.cfg.renderer,
                                   sh_degree=min(self.cfg.sh_degree, self.it // max(self.cfg.sh_band_every, 1))
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split

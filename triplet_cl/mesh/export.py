@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write_bytes, write_json, write_soup_ply
-from ..lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from ..lights import LIGHT_CLASSES, light_to_json, lights_from_json  # noqa: F401  (lights_from_json: re-export)
 from .asset import ATTRIBUTES, MeshAsset
 from .bake import UVAtlas, bake, rasterize_uv, uv_atlas, vertex_normals
 from .envmap import environment_lights, export_envmap
@@ -397,40 +397,18 @@ def export_ply(asset: MeshAsset, path) -> Path:
 
 
 # ---- lights ------------------------------------------------------------------------------------
-_LIGHT_TYPES = {c.__name__: c for c in (AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight,
-                                        VertexSHLight)}
-
-
 def lights_to_json(lights) -> dict:
     """``{"lights": [{"type": class name, parameter: value, ...}, ...]}`` (the format of a run's
     ``lights.json``; SH ``coeffs`` as ``[3][(D+1)^2]`` lists)."""
     out = []
     for i, lt in enumerate(lights):
-        if type(lt).__name__ not in _LIGHT_TYPES:
+        if type(lt).__name__ not in LIGHT_CLASSES:
             raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
-        d = {"type": type(lt).__name__}
         for k, v in vars(lt).items():
             if isinstance(v, np.ndarray) and not np.isfinite(v).all():
                 raise ValueError(f"lights[{i}] ({type(lt).__name__}).{k} must be finite, found NaN/Inf")
-            d[k] = v.tolist() if isinstance(v, np.ndarray) else v
-        out.append(d)
+        out.append(light_to_json(lt))
     return {"lights": out}
-
-
-def lights_from_json(obj) -> list:
-    """Inverse of :func:`lights_to_json` (accepts the dict, or its ``"lights"`` list)."""
-    items = obj["lights"] if isinstance(obj, dict) else obj
-    lights = []
-    for i, d in enumerate(items):
-        d = dict(d)
-        kind = d.pop("type", None)
-        if kind not in _LIGHT_TYPES:
-            raise ValueError(f"lights[{i}].type must be one of {sorted(_LIGHT_TYPES)}, got {kind!r}")
-        try:
-            lights.append(_LIGHT_TYPES[kind](**d))
-        except TypeError as e:
-            raise ValueError(f"lights[{i}] ({kind}): {e}") from None
-    return lights
 
 
 # ---- everything --------------------------------------------------------------------------------

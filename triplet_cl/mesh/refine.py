@@ -3,8 +3,9 @@ optimising it as a mesh, then export the PBR assets.
 
 One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extract.extract_scene`
 (connected, opaque, raw parameters transferred by nearest neighbour) → ``iterations`` steps of the
-soup stage's loop with **area-weighted vertex normals**, hard edges (a soft per-triangle window
-would open seams along the shared interior edges of a connected mesh), a few fragments per pixel,
+soup stage's loop with **area-weighted vertex normals**, the soft coverage window on the
+**silhouette edges only** (on every edge it would open seams along the shared interior edges of a
+connected mesh; on none the outline gets no gradient), 2×2 supersampling, a few fragments per pixel,
 and the mesh regularisers (face-normal consistency, uniform Laplacian of the positions, graph TV of
 the materials); every ``remesh_every`` steps the faces with the largest accumulated position
 gradients are subdivided and the smallest simplified (:mod:`~triplet_cl.mesh.remesh`), with every
@@ -45,10 +46,14 @@ class MeshConfig:
     """Settings of the mesh stage (saved in ``config.json`` under ``"mesh"``)."""
 
     method: str = "tsdf"  # "tsdf" (TSDF fusion + marching cubes) or "weld" (merge coincident vertices)
-    resolution: int = 160  # TSDF grid cells along the longest side of the soup's bounds
+    resolution: int | None = None  # TSDF voxels along the longest side of the soup's bounds (None: a voxel ≈ a pixel)
+    extract_faces: int | None = 50_000  # QEM-simplify the extracted mesh to at most this many faces (None: keep all)
     rounds: int = 1  # extraction → refine rounds
     iterations: int = 600  # refinement steps per round (0: extract and export only)
     faces_per_pixel: int = 4  # K of the mesh renders (an opaque mesh needs few)
+    supersample: int = 2  # render at this × resolution and box-filter down: antialiased silhouettes, as the photos
+    sigma: float | None = 1.0  # soft window on the silhouette edges only (1/px of the supersampled render): gradients
+    #                             that move the outline; None: hard edges (no silhouette gradients)
     lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
     lr_material: float = 0.02
     lr_vertex_sh: float = 0.002
@@ -70,6 +75,8 @@ class MeshConfig:
             raise ValueError(f"mesh rounds must be >= 1, got {self.rounds}")
         if self.iterations < 0:
             raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
+        if not 1 <= self.supersample <= 4:
+            raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
         if not 1 <= self.faces_per_pixel <= 1024:
             raise ValueError(f"mesh faces_per_pixel must be in [1, 1024], got {self.faces_per_pixel}")
         bad = [f for f in self.formats if f not in ("glb", "obj", "ply")]
@@ -137,9 +144,10 @@ class MeshStage:
 
         cams = [v.camera for v in self.ds.train]
         t = time.perf_counter()
-        scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution, device=self.device)
-        self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, {scene.V.shape[0]} vertices, "
-                              f"{time.perf_counter() - t:.1f} s")
+        scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution,
+                              max_faces=self.cfg.extract_faces, device=self.device)
+        self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, "
+                              f"{scene.V.shape[0]} vertices, {time.perf_counter() - t:.1f} s")
         return scene
 
     def build_optimizer(self, scene: Scene) -> Adam:
@@ -159,13 +167,35 @@ class MeshStage:
     def settings(self, background) -> RenderSettings:
         tc = self.trainer.cfg
         sh = self.trainer.scene.vertex_sh is not None
-        return RenderSettings(K=self.cfg.faces_per_pixel, sigma=None, background=tuple(float(x) for x in background),
-                              normals="vertex", sh_degree=tc.sh_degree if sh else None)
+        return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
+                              background=tuple(float(x) for x in background), normals="vertex",
+                              sh_degree=tc.sh_degree if sh else None)
+
+    def render(self, scene: Scene, cam, background):
+        """Render at ``supersample`` × the camera's resolution; returns ``(result, image [H, W, 3], alpha [H, W])``
+        box-filtered to the camera's size (``backward_image`` spreads an image adjoint back)."""
+        f = self.cfg.supersample
+        big = cam.scaled(f) if f > 1 else cam
+        if (big.width, big.height) != (cam.width * f, cam.height * f):
+            raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
+        r = render(scene, big, self.settings(background), self.device)
+        if f == 1:
+            return r, r.image, r.alpha
+        H, W = cam.height, cam.width
+        img = r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3))
+        alpha = r.alpha.reshape(H, f, W, f).mean(axis=(1, 3))
+        return r, img, alpha
+
+    def backward_image(self, r, v_img) -> None:
+        f = self.cfg.supersample
+        if f > 1:
+            v_img = np.repeat(np.repeat(v_img, f, axis=0), f, axis=1) / (f * f)
+        r.backward(v_img)
 
     def refine(self, scene: Scene, round_index: int) -> Scene:
         from tqdm import tqdm
 
-        from .remesh import remesh_scene
+        from .remesh import refine_scene
 
         c, tc = self.cfg, self.trainer.cfg
         opt = self.build_optimizer(scene)
@@ -183,9 +213,9 @@ class MeshStage:
                 bg = self.rng.uniform(0, 1, 3) if tc.background == "random" else resolve_background(tc.background)
                 cam, target = targets.get(i, 1.0, np.asarray(bg, np.float32))
                 t0 = time.perf_counter()
-                r = render(scene, cam, self.settings(bg), self.device)
-                loss, v_img = photometric_loss_and_grad(r.image, target, lam=tc.ssim_lambda)
-                r.backward(v_img)
+                r, img, _ = self.render(scene, cam, bg)
+                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda)
+                self.backward_image(r, v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
@@ -194,15 +224,16 @@ class MeshStage:
                 from ..train import psnr
 
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
-                       "psnr": psnr(r.image, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
+                       "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{rec['psnr']:.2f}", faces=str(len(scene.F)))
                 last = it + 1 == c.iterations
                 if c.remesh_every and (it + 1) % c.remesh_every == 0 and not last:
-                    report = remesh_scene(scene, opt, grad_acc, subdivide_fraction=c.subdivide_fraction,
-                                          simplify_fraction=c.simplify_fraction, max_faces=c.max_faces)
-                    self.trainer.log.info(f"mesh remesh at {it + 1}: {json.dumps(report)}")
+                    hi = c.subdivide_fraction if len(scene.F) < c.max_faces else 0.0
+                    rep = refine_scene(scene, opt, grad_acc, fraction_hi=hi, fraction_lo=c.simplify_fraction)
+                    self.trainer.log.info(f"mesh remesh at {it + 1}: faces {rep.faces_before} -> {rep.faces_after} "
+                                          f"({rep.subdivided} subdivided, {rep.simplified} simplified)")
                     reg = Regularizers(scene, c)
                     grad_acc = np.zeros(len(scene.F))
                 if (it + 1) % 100 == 0:
@@ -225,6 +256,7 @@ class MeshStage:
         self.save_state()
         metrics = self.evaluate()
         metrics["wall_time_s"] = time.perf_counter() - t
+        self._write_metrics(metrics)  # before the export: a failing export loses no result
         metrics["files"] = [str(p.name) for p in self.export()]
         self._write_metrics(metrics)
         return metrics
@@ -258,13 +290,13 @@ class MeshStage:
                         np.float32)
         per = []
         for v in views:
-            r = render(scene, v.camera, self.settings(bg), self.device)
+            _, img, alpha = self.render(scene, v.camera, bg)
             target = v.target(bg)
-            img = np.clip(r.image, 0, 1)
+            img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
                         "ssim": float(ssim(img.astype(np.float64), target.astype(np.float64), padding="valid"))})
             if write_renders:
-                a = np.clip(r.alpha, 0, 1)
+                a = np.clip(alpha, 0, 1)
                 rgb = np.where(a[..., None] > 1e-4, (img - bg * (1 - a[..., None])) / np.maximum(a[..., None], 1e-4),
                                0.0)
                 write_png(self.run_dir / "renders" / "mesh" / f"{Path(v.name).name}.png", rgb, a)
@@ -327,4 +359,8 @@ def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), te
 
     if asset.num_faces == 0:
         raise ValueError("the mesh has no faces: nothing to export")
-    return export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size)
+    written = export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size)
+    paths = []
+    for v in written.values():
+        paths += [Path(p) for p in v] if isinstance(v, list | tuple) else [Path(v)]
+    return paths

@@ -35,5 +35,14 @@ class DeviceMesh:
         self.csr_off = cla.to_device(q, off)
         self.csr_corner = cla.to_device(q, corners if corners.size else np.zeros(1, np.int32))
 
+    @property
+    def edge_neighbors(self) -> np.ndarray:
+        """``[M, 3]`` the face across each edge (``topology.face_edge_neighbors``), computed once."""
+        if getattr(self, "_edge_neighbors", None) is None:
+            from ..topology import face_edge_neighbors
+
+            self._edge_neighbors = face_edge_neighbors(self.faces)
+        return self._edge_neighbors
+
     def __repr__(self) -> str:
         return f"DeviceMesh(N={self.num_vertices}, M={self.num_faces})"
