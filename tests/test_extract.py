@@ -170,6 +170,21 @@ def test_weld_reconnects_a_jittered_soup(rng):
         weld_vertices(V, F, -1.0)
 
 
+def test_weld_does_not_chain_a_dense_soup():
+    """Points 0.6·tol apart along a line: the transitive closure would merge all 40 into one."""
+    tol = 0.01
+    n = 40
+    line = np.stack([0.6 * tol * np.arange(n), np.zeros(n), np.zeros(n)], axis=1)
+    apex = line + [0.0, 1.0, 0.0] + np.arange(n)[:, None] * [0.0, 0.0, 0.5]  # far apart
+    V = np.concatenate([line, apex])
+    F = np.stack([np.arange(n - 1), np.arange(1, n), n + np.arange(n - 1)], axis=1)
+    Vw, Fw, vertex_of = weld_vertices(V, F, tol)
+    used = vertex_of >= 0
+    assert np.linalg.norm(Vw[vertex_of[used]] - V[used], axis=1).max() <= tol
+    assert len(np.unique(vertex_of[:n][vertex_of[:n] >= 0])) >= n // 3
+    assert len(Fw) > 0
+
+
 def test_remove_small_components():
     big = trimesh.creation.icosphere(2)
     small = trimesh.creation.box(extents=(0.1, 0.1, 0.1))

@@ -311,10 +311,11 @@ def _orient_outward(V, F):
 
 
 def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge vertices closer than ``tolerance`` (``cKDTree`` pairs; each vertex joins its
-    lowest-numbered neighbour — one hop, so no cluster chains across the soup — and a cluster is
-    replaced by its mean), then drop degenerate faces (a repeated vertex) and duplicate faces (the
-    same three vertices in any order, also the reversed twin of a two-sided soup).
+    """Merge vertices closer than ``tolerance`` (connected components of the ``cKDTree`` pair
+    graph; a component wider than 2·tolerance — a dense soup chains into one — is clustered by one
+    hop instead: each vertex joins its lowest-numbered neighbour), each cluster replaced by its
+    mean; then drop degenerate faces (a repeated vertex) and duplicate faces (the same three
+    vertices in any order, also the reversed twin of a two-sided soup).
 
     Args:
         V: ``[N, 3]``; F: ``[M, 3]``; tolerance: merge distance in world units (≥ 0).
@@ -323,6 +324,8 @@ def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.nd
         ``(V' [N', 3] float32, F' [M', 3] int32, vertex_of [N] int64)`` with ``vertex_of[i]`` the new
         index of old vertex ``i`` (unreferenced vertices are dropped: −1).
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     V = check_real("V", V, (None, 3), np.float64)
@@ -333,12 +336,20 @@ def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.nd
     if n == 0 or len(F) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.full(n, -1, np.int64)
     pairs = cKDTree(V).query_pairs(tolerance, output_type="ndarray") if tolerance > 0 else np.zeros((0, 2), int)
-    # one hop, not the transitive closure: each vertex joins its lowest-numbered neighbour, so a
-    # cluster lies within ``tolerance`` of one vertex (a closure would chain a dense soup into a point)
-    label = np.arange(n)
+    # clusters: connected components of the pair graph, except that a component wider than
+    # 2·tolerance (a dense soup chains into one) falls back to one hop: each of its vertices joins
+    # its lowest-numbered neighbour, so such a cluster lies within ``tolerance`` of one vertex
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(g, directed=False)
+    lo_c = np.full((comp.max() + 1, 3), np.inf)
+    hi_c = np.full((comp.max() + 1, 3), -np.inf)
+    np.minimum.at(lo_c, comp, V)
+    np.maximum.at(hi_c, comp, V)
+    wide = (np.linalg.norm(hi_c - lo_c, axis=1) > 2 * tolerance)[comp]
+    hop = np.arange(n)
     if len(pairs):
-        lo, hi = pairs.min(axis=1), pairs.max(axis=1)
-        np.minimum.at(label, hi, lo)
+        np.minimum.at(hop, pairs.max(axis=1), pairs.min(axis=1))
+    label = np.where(wide, n + hop, comp)  # two disjoint label ranges
     _, label = np.unique(label, return_inverse=True)
     cnt = np.bincount(label)
     Vc = np.stack([np.bincount(label, V[:, i]) for i in range(3)], axis=1) / cnt[:, None]
