@@ -184,7 +184,11 @@ def simplify(V, F, target_fraction: float | None = None, target_count: int | Non
         attrs: ``name -> [N, ...]`` per-vertex values, carried from each new vertex's representative.
         protect_mask: ``[M] bool`` faces to keep untouched (None: simplify the whole mesh); the
             border between both parts is preserved.
-        agg: ``fast_simplification`` aggressiveness (0 … 10).
+        agg: ``fast_simplification`` aggressiveness (0 … 10). Its result is not guaranteed
+            manifold: measured on a 68k-face TSDF mesh of spot reduced to 20k, agg 7 gives 4
+            pieces (not watertight), agg 3 a watertight mesh; but agg 3 stops far short of the
+            target on small uniform meshes (an icosphere of 320 faces stays at 320 for a target
+            of 100), so the default stays 7. Twin faces it leaves are dropped.
 
     Returns:
         ``(V' [N', 3], F' [M', 3] int32, attrs', vertex_map [N'] int64)``; ``vertex_map[j]`` is the old
@@ -237,6 +241,9 @@ def simplify(V, F, target_fraction: float | None = None, target_count: int | Non
         faces_rep = np.concatenate([F[prot], region_faces])
     else:
         faces_rep = F
+    # fast_simplification can leave back-to-back twin faces (a fold: non-manifold edges); drop both
+    _, inv, cnt = np.unique(np.sort(faces_rep, axis=1), axis=0, return_inverse=True, return_counts=True)
+    faces_rep = faces_rep[cnt[inv.reshape(-1)] == 1]
     # compact: every vertex still used by a face (identified by its representative's old index)
     used = np.unique(faces_rep)
     compact = np.full(n, -1, np.int64)
