@@ -3,8 +3,8 @@ albedo is freer of baked-in shadows.
 
 For each renderer (raster | hybrid | raytrace) the same :class:`~triplet_cl.train.TrainConfig` is run
 on a NeRF-format scene rendered by a path tracer (default ``../shared/data/scenes/spot_small``), with
-``RenderSettings.renderer`` set for every training and evaluation render. Then the recovered soup's
-albedo is compared with the ground-truth texture:
+``TrainConfig.renderer`` (``RenderSettings.renderer``) set for every training and evaluation render.
+Then the recovered soup's albedo is compared with the ground-truth texture:
 
 * each opaque soup vertex (alpha > 0.5) within 2 % of the object size of the ground-truth surface
   takes the texture colour at its nearest point of the ground-truth mesh (dense surface samples,
@@ -22,6 +22,7 @@ Both images and texture are compared in their stored sRGB encoding (the trainer 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import sys
@@ -84,9 +85,13 @@ def gt_albedo_and_shadow(scene_dir: Path, points: np.ndarray, dev):
 
 def run(renderer: str, data: Path, iterations: int, out: Path, dev, gt_light: bool = False,
         ray_eps: float = 1e-4) -> dict:
-    train_mod.RenderSettings = functools.partial(RenderSettings, renderer=renderer, ray_eps=ray_eps)
+    wired = "renderer" in {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
+    # the trainer builds its RenderSettings itself: set the renderer through its config where it has the
+    # field, and ray_eps (not a training option) by wrapping the settings class it uses
+    extra = {"ray_eps": ray_eps} if wired else {"renderer": renderer, "ray_eps": ray_eps}
+    train_mod.RenderSettings = functools.partial(RenderSettings, **extra)
     try:
-        cfg = train_mod.TrainConfig(iterations=iterations, seed=0)
+        cfg = train_mod.TrainConfig(iterations=iterations, seed=0, **({"renderer": renderer} if wired else {}))
         cfg.density.densify_until = min(cfg.density.densify_until, int(iterations * 0.8))
         tr = train_mod.Trainer(str(data), out / renderer, cfg, device=dev, quiet=True)
         if gt_light:  # start the (learned) point light at the ground-truth position
