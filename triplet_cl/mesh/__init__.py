@@ -7,6 +7,10 @@ Modules:
     transfer  nearest-neighbour attribute transfer soup → mesh vertices
     remesh    gradient-driven Loop subdivision / QEM simplification with attributes carried
     export    GLB (UV atlas + baked PBR textures), OBJ + MTL, PLY, environment map EXR
+    bake      UV atlas (xatlas) and texture baking of per-vertex attributes
+    envmap    lat-long EXR of the SH environment light (and back)
+    refine    the mesh stage: extract → refine as a mesh → export (``triplet extract``)
+    metrics   Chamfer distance to a reference mesh
 """
 
 from .asset import MeshAsset
