@@ -69,7 +69,9 @@ class RenderSettings:
     renderer: str = "raster"  # "raster" | "raytrace" (BVH primary rays) | "hybrid" (raster primary)
     shadows: bool = True  # raytrace/hybrid: ray-traced shadows of point and directional lights
     reflections: bool = True  # raytrace/hybrid: one mirror reflection bounce (glossy weight of env_scales)
-    ray_eps: float = 1e-4  # ray-start offset against self-intersection, × the scene's bounding-box diagonal
+    # ray start offset, × the scene's bounding-box diagonal: past the soup's own layer of overlapping triplets
+    # (measured on spot_small, hybrid, 800 it.: 1e-4 → 30.45 dB and more baked shadow than raster, 1e-2 → 31.06 dB)
+    ray_eps: float = 1e-2
 
     def __post_init__(self):
         if self.renderer not in RENDERERS:
