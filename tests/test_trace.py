@@ -70,6 +70,8 @@ def test_bvh_rejects_bad_input(device):
         refit(device, b, np.eye(3)[None])
     with pytest.raises(ValueError, match="renderer"):
         RenderSettings(renderer="pathtrace")
+    with pytest.raises(ValueError, match="soft_edges='all' only"):
+        RenderSettings(renderer="raytrace", soft_edges="silhouette")
 
 
 # ------------------------------------------------------------------------------------------------ primary

@@ -82,6 +82,9 @@ class RenderSettings:
             raise ValueError(f"normals must be 'face' or 'vertex', got {self.normals!r}")
         if self.soft_edges not in ("all", "silhouette"):
             raise ValueError(f"soft_edges must be 'all' or 'silhouette', got {self.soft_edges!r}")
+        if self.renderer == "raytrace" and self.soft_edges != "all" and self.sigma is not None:
+            raise ValueError("renderer='raytrace' supports soft_edges='all' only (its primary hits take the window "
+                             "of every edge); use renderer='hybrid' for soft_edges='silhouette'")
         if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
