@@ -16,6 +16,7 @@ removes the albedo/light-intensity ambiguity) and ``texture`` vs ``vertex`` (the
 The run directory is copied to a temporary folder first (nothing is written into it).
 
     python bench/export_quality.py /work/runs/spot --texture 1024
+    python bench/export_quality.py runs/spot --refined        # the mesh of `triplet extract runs/spot`
 """
 
 from __future__ import annotations
@@ -71,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--dense", type=int, default=2_000_000, help="samples of the export for the closest points")
     ap.add_argument("--resolution", type=int, default=128, help="TSDF grid")
     ap.add_argument("--out", type=Path, default=None, help="keep the exported files here")
+    ap.add_argument("--refined", action="store_true", help="use the run's refined mesh (mesh_stage.npz of "
+                    "`triplet extract`) instead of extracting the soup")
     args = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -83,7 +86,13 @@ def main(argv=None):
         tr = Trainer(None, run, resume=True, quiet=True)
         data = Path(tr.data)
         t0 = time.perf_counter()
-        asset = extract_mesh(tr.scene, [v.camera for v in tr.ds.train], "tsdf", resolution=args.resolution)
+        if args.refined:
+            from triplet_cl.mesh.asset import MeshAsset
+            from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
+
+            asset = MeshAsset.from_scene(load_mesh_state(args.run / MESH_STATE))
+        else:
+            asset = extract_mesh(tr.scene, [v.camera for v in tr.ds.train], "tsdf", resolution=args.resolution)
         t_extract = time.perf_counter() - t0
         out = args.out or Path(tmp) / "export"
         t0 = time.perf_counter()
