@@ -15,7 +15,9 @@
  * trace_shadow_fwd (one work-item per shaded fragment p; for each point / directional light j)
  *   point light at q: d = q - x, t in (eps / |d|, 1);  directional light towards w: d = w, t > eps / |w|
  *   (x the fragment's world position, eps a world-space offset against self-intersection; the
- *   fragment's own face is skipped too). Over every triangle the segment crosses:
+ *   fragment's own face is skipped too). No ray (T = 1, no hits) when the light is behind the shading
+ *   normal (N.L <= 0 with shade.cl's N): the light then adds nothing and T gets no gradient, exactly.
+ *   Over every triangle the segment crosses:
  *     a_k = sum_i l_ki A[F[f_k, i]]  (vertex alpha interpolated at the hit),  ac_k = clamp(a_k, 0, AMAX)
  *     T = prod_k (1 - ac_k)           vis[p, j] = T,  nhit[p, j] = number of hits
  *   (alpha only: the screen-space coverage window of the camera has no meaning along a shadow ray).
@@ -186,6 +188,17 @@ inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const
     return 0;
 }
 
+/* shade.cl's shading normal: normalised, flipped towards the camera when two_sided (N only matters
+ * through the sign of N.L: a light behind the surface contributes 0 whatever its transmittance). */
+inline REAL3 shading_normal(__global const REAL* nrm, const int has_nrm, const int p, const REAL3 x, const REAL3 cam,
+                            const int two_sided)
+{
+    if (!has_nrm) return (REAL3)(0);
+    REAL3 N = safe_normalize(LOAD3(nrm, p));
+    if (two_sided && dot(N, safe_normalize(cam - x)) < (REAL)0) N = -N;
+    return N;
+}
+
 inline REAL hit_alpha(__global const REAL* attr, const int C, const int ca, __global const int* F, const int f,
                       const REAL u, const REAL v, REAL3* A)
 {
@@ -202,6 +215,8 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3] fragment positions
                                __global const int* face,     // [Pf] fragment face ids
+                               __global const REAL* nrm,     // [Pf, 3] fragment normals (has_nrm)
+                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -213,18 +228,20 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
     const int own = face[p];
+    const REAL3 N = shading_normal(nrm, has_nrm, p, x, (REAL3)(cx, cy, cz), two_sided);
     int j = 0;
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
         if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
+        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
         const REAL3 inv = ray_inv_dir(d);
         REAL T = (REAL)1;
         int n = 0;
         int stack[BVH_STACK];
         REAL tstack[BVH_STACK];
         int sp = 0;
-        if (own >= 0) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
+        if (own >= 0 && lit) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
         for (;;) {
             const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, tstack, &sp);
             if (lf < 0) break;
@@ -258,6 +275,8 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3]
                                __global const int* face,     // [Pf]
+                               __global const REAL* nrm,     // [Pf, 3] (has_nrm)
+                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -274,12 +293,14 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
     const int own = face[p];
+    const REAL3 N = shading_normal(nrm, has_nrm, p, x, (REAL3)(cx, cy, cz), two_sided);
     REAL3 gx = (REAL3)(0);
     int j = 0;
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
         if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
+        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
         const int is_point = lt_i[4 * li] == LIGHT_POINT;
         const REAL3 inv = ray_inv_dir(d);
         const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
@@ -288,7 +309,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
         int stack[BVH_STACK];
         REAL tstack[BVH_STACK];
         int sp = 0;
-        if (own >= 0) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
+        if (own >= 0 && lit) bvh_begin(nodes, x, inv, tmin, tmax, stack, tstack, &sp);
         for (;;) {
             const int lf = bvh_next_leaf(nodes, P, x, inv, tmin, tmax, stack, tstack, &sp);
             if (lf < 0) break;

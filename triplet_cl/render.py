@@ -333,7 +333,8 @@ class TracedShadeFragments(ShadeFragments):
         ctx.shadow = ctx.hits = None
         if s.shadows and trace_op.num_shadowed_lights(inp.table) and comp.P:
             ctx.shadow = trace_op.shadow_forward(d, v.bvh, Vd, attr_d, L["alpha"][0], blk["pos"], face_r, inp.lt_i,
-                                                 inp.lt_f, inp.table, v.ray_eps)
+                                                 inp.lt_f, inp.table, v.ray_eps, nrm=blk["nrm"],
+                                                 cam_center=v.camera.center, two_sided=s.two_sided)
             inp.vis = ctx.shadow.vis
         if s.reflections and comp.P:
             hf, hb = trace_op.bounce(d, v.bvh, Vd, blk["pos"], blk["nrm"], face_r, v.camera.center, s.two_sided,

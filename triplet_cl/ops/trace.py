@@ -96,7 +96,8 @@ class ShadowState:
 
 
 def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alpha_col: int, pos: cla.Array,
-                   face: cla.Array, lt_i: cla.Array, lt_f: cla.Array, table: LightTable, eps: float) -> ShadowState:
+                   face: cla.Array, lt_i: cla.Array, lt_f: cla.Array, table: LightTable, eps: float,
+                   nrm: cla.Array | None = None, cam_center=None, two_sided: bool = True) -> ShadowState:
     """Transmittance from ``P`` points towards each point / directional light.
 
     Args:
@@ -105,6 +106,9 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
         pos: ``[P, 3]`` shading points; face: ``[P] int32`` their own faces (skipped; −1: no ray).
         lt_i, lt_f: the packed light table on the device (``lights.pack_lights``); table: the same on the host.
         eps: world-space offset of the ray start against self-intersection.
+        nrm, cam_center, two_sided: with ``nrm [P, 3]`` the shading normals (flipped towards
+            ``cam_center`` when ``two_sided``, as shade.cl), rays towards lights behind a point
+            (N·L ≤ 0, which contribute nothing) are skipped: T = 1, no hits.
 
     Returns:
         :class:`ShadowState` with ``vis [P, NV]`` (NV = :func:`num_shadowed_lights`, in light order).
@@ -118,8 +122,11 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
         raise ValueError(f"alpha_col must be in [0, {C - 1}], got {alpha_col}")
     vis = cla.empty(q, (max(P, 1), max(NV, 1)), real, allocator=device.allocator)[:P, :NV]
     nhit = cla.zeros(q, (max(P, 1) * max(NV, 1),), np.int32, allocator=device.allocator)
+    c = np.zeros(3) if cam_center is None else np.asarray(cam_center, np.float64)
     args = (bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves), np.int32(bvh.mesh.num_faces), V.data,
-            bvh.mesh.F.data, attr.data, np.int32(C), np.int32(alpha_col), pos.data, face.data, np.int32(P),
+            bvh.mesh.F.data, attr.data, np.int32(C), np.int32(alpha_col), pos.data, face.data,
+            (nrm if nrm is not None else pos).data, np.int32(nrm is not None), real.type(c[0]), real.type(c[1]),
+            real.type(c[2]), np.int32(bool(two_sided)), np.int32(P),
             lt_i.data, lt_f.data, np.int32(len(table.ints)), np.int32(NV), real.type(eps))
     if P and NV:
         device.kernel("trace", "trace_shadow_fwd", real=real)(q, (round_up(P, LOCAL),), (LOCAL,), *args, vis.base_data,
