@@ -84,14 +84,17 @@ def gt_albedo_and_shadow(scene_dir: Path, points: np.ndarray, dev):
 
 
 def run(renderer: str, data: Path, iterations: int, out: Path, dev, gt_light: bool = False,
-        ray_eps: float = 1e-4) -> dict:
+        ray_eps: float | None = None, downscale: int = 1) -> dict:
     wired = "renderer" in {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
     # the trainer builds its RenderSettings itself: set the renderer through its config where it has the
     # field, and ray_eps (not a training option) by wrapping the settings class it uses
-    extra = {"ray_eps": ray_eps} if wired else {"renderer": renderer, "ray_eps": ray_eps}
+    extra = {} if ray_eps is None else {"ray_eps": ray_eps}
+    if not wired:
+        extra["renderer"] = renderer
     train_mod.RenderSettings = functools.partial(RenderSettings, **extra)
     try:
-        cfg = train_mod.TrainConfig(iterations=iterations, seed=0, **({"renderer": renderer} if wired else {}))
+        cfg = train_mod.TrainConfig(iterations=iterations, seed=0, downscale=downscale,
+                                    **({"renderer": renderer} if wired else {}))
         cfg.density.densify_until = min(cfg.density.densify_until, int(iterations * 0.8))
         tr = train_mod.Trainer(str(data), out / renderer, cfg, device=dev, quiet=True)
         if gt_light:  # start the (learned) point light at the ground-truth position
@@ -118,19 +121,22 @@ def main(argv=None):
     ap.add_argument("--data", default=str(DATA / "scenes" / "spot_small"))
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--renderers", nargs="*", default=["raster", "hybrid", "raytrace"])
-    ap.add_argument("--ray-eps", type=float, default=1e-4, help="RenderSettings.ray_eps (× scene diagonal)")
+    ap.add_argument("--ray-eps", type=float, default=None,
+                    help="RenderSettings.ray_eps (× scene diagonal; default: RenderSettings' own)")
+    ap.add_argument("--downscale", type=int, default=1, help="reduce the dataset's images by this factor")
     ap.add_argument("--gt-light", action="store_true", help="start the point light at the ground-truth position")
     args = ap.parse_args(argv)
     dev = get_device()
     data = Path(args.data)
     print(f"device: {dev.name}; data: {data}; {args.iterations} iterations"
           + ("; point light starts at the ground-truth position" if args.gt_light else "")
-          + f"; ray_eps {args.ray_eps:g}")
+          + f"; ray_eps {args.ray_eps if args.ray_eps is not None else RenderSettings().ray_eps:g}"
+          + (f"; images / {args.downscale}" if args.downscale > 1 else ""))
     print(f"{'renderer':9} {'test PSNR':>9} {'s/it':>6} {'faces':>6} {'albedo MAE':>10} {'shadow bias':>11} "
           f"{'(shadowed/lit pts)':>18}")
     with tempfile.TemporaryDirectory() as tmp:
         for r in args.renderers:
-            res = run(r, data, args.iterations, Path(tmp), dev, args.gt_light, args.ray_eps)
+            res = run(r, data, args.iterations, Path(tmp), dev, args.gt_light, args.ray_eps, args.downscale)
             keep = res["alpha"] > 0.5
             colour, dist, facing, shadowed = gt_albedo_and_shadow(data, res["V"][keep], dev)
             near = dist < 0.02 * 2.0
