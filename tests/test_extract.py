@@ -108,6 +108,25 @@ def test_tsdf_sphere_is_closed_and_near_the_sphere(device, sphere_soup):
     assert tsdf.shape[0] == tsdf.shape[1] == tsdf.shape[2] and (tsdf[0] == 1).all()
 
 
+def test_tsdf_photo_masks_carve_what_the_soup_fills_in(device, sphere_soup):
+    """Opaque junk a soup puts where the photos show background (a blob beside the sphere) is fused
+    into the mesh from the soup alone; the photos' masks carve it away."""
+    blob = trimesh.creation.icosphere(2, radius=0.25)
+    blob.vertices += [1.25, 0.0, 0.0]
+    junk = _soup_of(trimesh.util.concatenate([trimesh.creation.icosphere(3, radius=RADIUS), blob]))
+    cams = _cameras(10, px=48)
+    masks = [render_depth(sphere_soup, c, sigma=None, device=device)[1] for c in cams]  # the true silhouettes
+    V0, _ = tsdf_fusion(junk, cams, sigma=None, device=device)
+    V1, F1 = tsdf_fusion(junk, cams, sigma=None, device=device, masks=masks)
+    assert np.linalg.norm(V0, axis=1).max() > 1.3  # the blob is in the soup-only mesh
+    assert np.linalg.norm(V1, axis=1).max() < RADIUS + 0.1  # carved by the masks
+    assert mesh_stats(V1, F1)["watertight"]
+    with pytest.raises(ValueError, match="one entry per camera"):
+        tsdf_fusion(junk, cams, sigma=None, device=device, masks=masks[:3])
+    with pytest.raises(ValueError, match=r"masks\[0\]"):
+        tsdf_fusion(junk, cams, sigma=None, device=device, masks=[np.ones((5, 5))] * len(cams))
+
+
 def test_tsdf_soup_with_holes_keeps_a_solid_inside(device, rng):
     """Views that look through the holes of a soup carve its inside; the hidden-majority rule keeps
     it solid (one closed surface near the sphere), without it an inner wall appears. With 15 % of

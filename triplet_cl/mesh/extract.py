@@ -150,7 +150,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
                 alpha_threshold: float = 0.5,
                 bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "median",
                 min_view_fraction: float = 0.5, hidden_fraction: float = 0.9, carve_margin: int = 1,
-                median_filter_px: int = 3, device: Device | None = None, return_volume: bool = False):
+                median_filter_px: int = 3, device: Device | None = None, return_volume: bool = False,
+                masks=None):
     """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
 
     Args:
@@ -173,6 +174,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         median_filter_px: size of the median filter applied to each depth and alpha map (0 or 1:
             none).
         return_volume: also return ``(tsdf [X, Y, Z] float32, origin [3], voxel size)``.
+        masks: optional per-camera ``[H, W]`` coverage of the photos (their alpha; None entries
+            allowed): pixels the photo shows as background (< ``alpha_threshold``) carve free space
+            even where the soup is opaque — concavities a soup fills in, e.g. between legs.
 
     Returns:
         ``(V [P, 3] float32, F [Q, 3] int32)`` the closed, outward-oriented surface (and the volume).
@@ -215,11 +219,18 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     wsum = np.zeros(len(X), np.float32)
     seen = np.zeros(len(X), np.int32)
     hidden = np.zeros(len(X), np.int32)
-    for cam in cameras:
+    if masks is not None:
+        masks = list(masks)
+        if len(masks) != len(cameras):
+            raise ValueError(f"masks must have one entry per camera ({len(cameras)}), got {len(masks)}")
+    for ci, cam in enumerate(cameras):
         depth, acc = render_depth(scene, cam, K=K, sigma=sigma, mode=depth_mode, device=device)
         if median_filter_px > 1:  # isolated pixels seen through cracks of the soup
             depth = median_filter(depth, size=median_filter_px, mode="nearest")
             acc = median_filter(acc, size=median_filter_px, mode="nearest")
+        if masks is not None and masks[ci] is not None:
+            m = check_real(f"masks[{ci}]", masks[ci], (cam.height, cam.width), np.float32)
+            acc = np.where(m < alpha_threshold, np.minimum(acc, m), acc)  # the photo's background is free
         free_px = acc < alpha_threshold
         if carve_margin > 0:
             free_px = binary_erosion(free_px, iterations=int(carve_margin), border_value=1)
@@ -423,13 +434,13 @@ def _check_inputs(scene, cameras, method):
 
 
 def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
-              min_component_fraction, max_faces, K, sigma, depth_mode, device):
+              min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=None):
     V = np.asarray(scene.V.data, np.float64)
     F = np.asarray(scene.F)
     if method == "tsdf":
         Vm, Fm = tsdf_fusion(scene, cameras, resolution=resolution, truncation=truncation,
                              alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, depth_mode=depth_mode,
-                             device=device)
+                             device=device, masks=masks)
     else:
         a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
         opaque = F[a[F].mean(axis=1) >= alpha_threshold]
@@ -503,7 +514,7 @@ def extract_scene(scene, cameras=None, method: str = "tsdf", *, opaque_alpha: fl
 
     opts = {"resolution": None, "truncation": 3.0, "alpha_threshold": 0.5, "bounds": None, "weld_tolerance": None,
             "min_component_fraction": 0.02, "max_faces": None, "K": 30, "sigma": 1.0, "depth_mode": "median",
-            "device": None}
+            "device": None, "masks": None}
     bad = set(kwargs) - set(opts)
     if bad:
         raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(opts)})")

@@ -48,6 +48,7 @@ class MeshConfig:
     method: str = "tsdf"  # "tsdf" (TSDF fusion + marching cubes) or "weld" (merge coincident vertices)
     resolution: int | None = None  # TSDF voxels along the longest side of the soup's bounds (None: a voxel ≈ a pixel)
     extract_faces: int | None = 50_000  # QEM-simplify the extracted mesh to at most this many faces (None: keep all)
+    photo_masks: bool = True  # the photos' alpha also carves free space in the TSDF (when the dataset has alpha)
     rounds: int = 1  # extraction → refine rounds
     iterations: int = 600  # refinement steps per round (0: extract and export only)
     faces_per_pixel: int = 4  # K of the mesh renders (an opaque mesh needs few)
@@ -145,10 +146,16 @@ class MeshStage:
     def extract(self, source: Scene) -> Scene:
         from .extract import extract_scene
 
-        cams = [v.camera for v in self.ds.train]
+        views = self.ds.train
+        cams = [v.camera for v in views]
+        masks = None
+        if self.cfg.photo_masks and self.cfg.method == "tsdf":
+            masks = [v.alpha if v.alpha is not None and v.alpha.shape == (v.camera.height, v.camera.width) else None
+                     for v in views]
+            masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
         scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution,
-                              max_faces=self.cfg.extract_faces, device=self.device)
+                              max_faces=self.cfg.extract_faces, device=self.device, masks=masks)
         self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, "
                               f"{scene.V.shape[0]} vertices, {time.perf_counter() - t:.1f} s")
         return scene
