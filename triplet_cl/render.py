@@ -257,25 +257,38 @@ class ShadeFragments(Function):
     def __init__(self, view: View, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
 
-    def forward(self, ctx, fa, *rest):
-        v, s = self.view, self.view.settings
-        d, fr = v.device, v.frags
-        H, W, K = fr.shape
-        comp = columns.Compaction(d, fr)
+    def _blocks(self, comp, fa) -> dict:
+        """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``."""
         L = self.layout
-        blk = {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
-        face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
-        _, inp = shade_op.prepare(blk["pos"], blk["nrm"], blk["mat"], face_id, v.camera.center, self.lights,
-                                  brdf=self.brdf, vlight=blk.get("vlight"), two_sided=s.two_sided, device=d,
+        return {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+
+    def _prepare(self, blk: dict, face, light_params=None):
+        """``shade_op`` inputs of shaded points ``blk`` (faces ``face``), with the current light parameters."""
+        v, s = self.view, self.view.settings
+        _, inp = shade_op.prepare(blk["pos"], blk["nrm"], blk["mat"], face, v.camera.center, self.lights,
+                                  brdf=self.brdf, vlight=blk.get("vlight"), two_sided=s.two_sided, device=v.device,
                                   real=s.real)
-        if rest and len(inp.table.params):
-            inp.lt_f = cla.to_device(d.queue, np.ascontiguousarray(rest[0], s.real))
+        if light_params is not None and len(inp.table.params):
+            inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
+        return inp
+
+    def _outputs(self, ctx, comp, inp, fa, n_rest):
+        """Shade, scatter the colours back to ``[H, W, K, 3]``, take alpha's column; keep the backward's state."""
+        d, fr = self.view.device, self.view.frags
+        H, W, K = fr.shape
         rgb = cla.empty(d.queue, (H, W, K, 3), fr.real, allocator=d.allocator)
         comp.unpack(shade_op.forward(d, inp), rgb, 0)
         alpha = cla.empty(d.queue, (H, W, K, 1), fr.real, allocator=d.allocator)
-        columns.copy_columns(d, fr, fa, L["alpha"][0], alpha, 0, 1)
-        ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], len(rest)
+        columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
+        ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], n_rest
         return rgb, alpha.reshape(H, W, K)
+
+    def forward(self, ctx, fa, *rest):
+        d = self.view.device
+        comp = columns.Compaction(d, self.view.frags)
+        face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
+        inp = self._prepare(self._blocks(comp, fa), face_id, rest[0] if rest else None)
+        return self._outputs(ctx, comp, inp, fa, len(rest))
 
     def backward(self, ctx, v_rgb, v_alpha):
         d, fr = self.view.device, self.view.frags
@@ -315,17 +328,13 @@ class TracedShadeFragments(ShadeFragments):
         H, W, K = fr.shape
         comp = columns.Compaction(d, fr)
         L = self.layout
-        blk = {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+        blk = self._blocks(comp, fa)
         face_c = trace_op.pack_faces(d, fr, comp.offsets, comp.P)
         # rays only for fragments that composite with weight (t_min cut-off, as Composite)
         win_c = comp.pack(v.win.reshape(H, W, K, 1), 0, 1) if v.win is not None else None
         face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), win_c, s.t_min) \
             if s.t_min > 0 else face_c
-        _, inp = shade_op.prepare(blk["pos"], blk["nrm"], blk["mat"], face_c, v.camera.center, self.lights,
-                                  brdf=self.brdf, vlight=blk.get("vlight"), two_sided=s.two_sided, device=d,
-                                  real=s.real)
-        if rest and len(inp.table.params):
-            inp.lt_f = cla.to_device(d.queue, np.ascontiguousarray(rest[0], s.real))
+        inp = self._prepare(blk, face_c, rest[0] if rest else None)
         attr_h = np.ascontiguousarray(attr, s.real)
         attr_d = cla.to_device(d.queue, attr_h)
         p0 = L["pos"][0]
@@ -341,9 +350,7 @@ class TracedShadeFragments(ShadeFragments):
                                      v.ray_eps)
             hblk = {k: trace_op.gather_hits(d, attr_d, *L[k], v.mesh.F, hf, hb)
                     for k in ("pos", "nrm", "mat", "vlight", "alpha") if k in L}
-            _, hinp = shade_op.prepare(hblk["pos"], hblk["nrm"], hblk["mat"], hf, v.camera.center, self.lights,
-                                       brdf=self.brdf, vlight=hblk.get("vlight"), two_sided=s.two_sided, device=d,
-                                       real=s.real)
+            hinp = self._prepare(hblk, hf)
             hinp.lt_f, hinp.eye = inp.lt_f, blk["pos"]
             hrgb = shade_op.forward(d, hinp).get()
             ha = hblk["alpha"].get()
@@ -352,12 +359,8 @@ class TracedShadeFragments(ShadeFragments):
             ctx.bounce_dev = (Vd, attr_d, blk["pos"], blk["nrm"], hf, hb)
         v.traced = {"shadow_hits": None if ctx.shadow is None else ctx.shadow.nhit.get(),
                     "bounce_face": None if ctx.hits is None else ctx.hits[0]}  # discrete choices (tests, tools)
-        rgb = cla.empty(d.queue, (H, W, K, 3), fr.real, allocator=d.allocator)
-        comp.unpack(shade_op.forward(d, inp), rgb, 0)
-        alpha = cla.empty(d.queue, (H, W, K, 1), fr.real, allocator=d.allocator)
-        columns.copy_columns(d, fr, fa, L["alpha"][0], alpha, 0, 1)
-        ctx.comp, ctx.inp, ctx.C, ctx.n_rest, ctx.N = comp, inp, fa.shape[-1], len(rest), attr_h.shape[0]
-        return rgb, alpha.reshape(H, W, K)
+        ctx.N = attr_h.shape[0]
+        return self._outputs(ctx, comp, inp, fa, len(rest))
 
     def backward(self, ctx, v_rgb, v_alpha):
         v, s = self.view, self.view.settings

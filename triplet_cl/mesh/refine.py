@@ -205,6 +205,7 @@ class MeshStage:
     def refine(self, scene: Scene, round_index: int) -> Scene:
         from tqdm import tqdm
 
+        from ..train import psnr
         from .remesh import refine_scene
 
         c, tc = self.cfg, self.trainer.cfg
@@ -231,8 +232,6 @@ class MeshStage:
                 reg_loss = reg(scene)
                 opt.step()
                 opt.zero_grad()
-                from ..train import psnr
-
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
