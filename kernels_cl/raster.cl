@@ -14,7 +14,9 @@
  * raster_fwd  one work-item per pixel, one 8x8 work-group per tile: the K nearest fragments by
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
- *             (GPU-shaped; raster_fwd_rows is the CPU-shaped twin with the same results.)
+ *             (GPU-shaped; raster_fwd_rows and raster_fwd_rows16 are CPU-shaped twins with the
+ *             same results: 8-pixel rows with vector edge tests and a scalar insertion, or two
+ *             rows as 16 vector lanes with a lane-wise compare-and-swap insertion.)
  *             With sigma > 0 it also writes the coverage window of each fragment (coverage.cl's
  *             formula, evaluated from the set-up coefficients: no second pass, no vertex loads).
  * (adjoint)   fragment_bwd.cl: one pass over the fragments for interpolation, barycentrics,
@@ -281,6 +283,114 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
         for (int k = 0; k < cnt[l]; ++k)
             store_fragment(entry_setup, ek[l][k], fk[l][k], dk[l][k], pxl, py, sigma, pix * K + k,
                            frag_face, frag_entry, frag_bary, frag_depth, frag_win);
+    }
+}
+#endif
+
+#if TILE == 8
+/* Lane masks of REAL16 comparisons: int16 for float, long16 for double (REAL_FP64 is defined by the
+ * host for double programs). */
+#ifdef REAL_FP64
+#define MASK16 long16
+#define CONVERT_MASK16(x) convert_long16(x)
+#define CONVERT_INT16(m) convert_int16(m)
+#else
+#define MASK16 int16
+#define CONVERT_MASK16(x) (x)
+#define CONVERT_INT16(m) (m)
+#endif
+#define CONVERT_REAL16(x) TRIPLET_CAT(convert_, REAL16)(x)
+/* CPU-shaped variant with a vector insertion: one work-item per two rows of an 8x8 tile, the 16
+ * pixels held as the 16 lanes of REAL16 vectors (lane l: x = x0 + (l & 7), y = y0 + (l >> 3)).
+ * The K-nearest lists are kept lane-wise too (slot k of the 16 pixels is one vector), and a hit is
+ * inserted into all 16 lists at once by one compare-and-swap pass down the slots:
+ *   less = (z < D_k) | (z == D_k & f < F_k);  (D_k, z) <- (select(D_k, z, less), select(z, D_k, less))
+ * (likewise for the face and entry ids). Lanes without a hit carry (+inf, INT_MAX), which never
+ * moves anything; the pass stops after the deepest occupied slot + 1. Empty slots hold
+ * (+inf, INT_MAX). Same tests, same (depth, face id) order, same results as raster_fwd; no
+ * per-lane branches, which PoCL turns into plain AVX code. Used for K <= ROWS16_K_LIMIT
+ * (the lists live in private memory: 12 bytes x 16 lanes per slot). */
+__kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
+                                __global const int* entry_face,    // [E]
+                                __global const REAL* entry_setup,  // [E, SETUP]
+                                const int width, const int height, const int tiles_x,
+                                const int K, const REAL far, const REAL sigma,
+                                __global int* frag_face,           // [H, W, K]
+                                __global int* frag_entry,          // [H, W, K]
+                                __global REAL* frag_bary,          // [H, W, K, 2]
+                                __global REAL* frag_depth,         // [H, W, K]
+                                __global int* frag_count,          // [H, W]
+                                __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
+{
+    const int tx = get_global_id(0), pair = get_global_id(1);
+    const int ty = pair >> 2;
+    const int y0 = ty * TILE + 2 * (pair & 3);
+    if (y0 >= height) return;
+    const int x0 = tx * TILE;
+    const int t = ty * tiles_x + tx;
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3, 4, 5, 6, 7);
+    const int16 row = (int16)(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1);
+    const REAL16 px = (REAL)x0 + (REAL)0.5 + CONVERT_REAL16(lane);
+    const REAL16 py = (REAL)y0 + (REAL)0.5 + CONVERT_REAL16(row);
+    /* lanes outside the image never hit (their "inside" mask is cleared) */
+    const MASK16 inimg = CONVERT_MASK16((x0 + lane < width) & (y0 + row < height));
+    const REAL16 inf16 = (REAL16)(INFINITY);
+    const int16 imax16 = (int16)(INT_MAX);
+
+    REAL dk[K_MAX * 16];
+    int fk[K_MAX * 16], ek[K_MAX * 16];
+    for (int k = 0; k < K; ++k) {
+        vstore16(inf16, k, dk);
+        vstore16(imax16, k, fk);
+        vstore16(imax16, k, ek);
+    }
+    int depth_used = 0;  /* slots in use in the fullest lane */
+    const int e_end = tile_off[t + 1];
+    for (int e = tile_off[t]; e < e_end; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL16 dx = px - s[0];
+        const REAL16 dy = py - s[1];
+        const REAL16 b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL16 b1 = s[4] * dx + s[5] * dy;
+        const REAL16 b2 = (REAL)1 - b0 - b1;
+        MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg;
+        if (!any(hit)) continue;
+        const REAL16 zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
+        hit &= (zp <= far);
+        if (!any(hit)) continue;
+        REAL16 z = select(inf16, zp, hit);
+        const int16 hit_i = CONVERT_INT16(hit);
+        int16 f = select(imax16, (int16)(entry_face[e]), hit_i);
+        int16 en = select(imax16, (int16)(e), hit_i);
+        const int n = min(K, depth_used + 1);
+        for (int k = 0; k < n; ++k) {
+            const REAL16 d = vload16(k, dk);
+            const int16 fo = vload16(k, fk);
+            const MASK16 less = (z < d) | ((z == d) & CONVERT_MASK16(f < fo));
+            if (!any(less)) continue;
+            const int16 less_i = CONVERT_INT16(less);
+            const int16 eo = vload16(k, ek);
+            vstore16(select(d, z, less), k, dk);
+            vstore16(select(fo, f, less_i), k, fk);
+            vstore16(select(eo, en, less_i), k, ek);
+            z = select(z, d, less);
+            f = select(f, fo, less_i);
+            en = select(en, eo, less_i);
+            if (!any(CONVERT_INT16(isless(z, inf16)))) break;  /* every displaced value was an empty slot */
+        }
+        depth_used = n;
+    }
+    for (int l = 0; l < 16; ++l) {
+        const int x = x0 + (l & 7), y = y0 + (l >> 3);
+        if (x >= width || y >= height) continue;
+        const int pix = y * width + x;
+        int cnt = 0;
+        while (cnt < depth_used && fk[cnt * 16 + l] != INT_MAX) ++cnt;
+        frag_count[pix] = cnt;
+        const REAL pxl = (REAL)x + (REAL)0.5, pyl = (REAL)y + (REAL)0.5;
+        for (int k = 0; k < cnt; ++k)
+            store_fragment(entry_setup, ek[k * 16 + l], fk[k * 16 + l], dk[k * 16 + l], pxl, pyl, sigma,
+                           pix * K + k, frag_face, frag_entry, frag_bary, frag_depth, frag_win);
     }
 }
 #endif

@@ -246,7 +246,7 @@ class Device:
             rdef = "float"
         else:
             raise ValueError(f"real must be float32 or float64, got {real}")
-        opts = ["-I", str(kernel_dir() / "common"), f"-DREAL={rdef}"]
+        opts = ["-I", str(kernel_dir() / "common"), f"-DREAL={rdef}"] + (["-DREAL_FP64"] if rdef == "double" else [])
         for k in sorted(defines or {}):
             d = _format_define(k, defines[k])
             if d:
