@@ -300,16 +300,35 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
 #define CONVERT_INT16(m) (m)
 #endif
 #define CONVERT_REAL16(x) TRIPLET_CAT(convert_, REAL16)(x)
+/* any() of an int16 mask by an OR tree (PoCL lowers any() of a 16-lane mask to a test per lane) */
+inline int any_i16(int16 m)
+{
+    const int8 a = m.lo | m.hi;
+    const int4 b = a.lo | a.hi;
+    const int2 c = b.lo | b.hi;
+    return (c.x | c.y) < 0;
+}
+#define ANY16(m) any_i16(CONVERT_INT16(m))
+inline int max_i16(int16 v)
+{
+    const int8 a = max(v.lo, v.hi);
+    const int4 b = max(a.lo, a.hi);
+    const int2 c = max(b.lo, b.hi);
+    return max(c.x, c.y);
+}
 /* CPU-shaped variant with a vector insertion: one work-item per two rows of an 8x8 tile, the 16
  * pixels held as the 16 lanes of REAL16 vectors (lane l: x = x0 + (l & 7), y = y0 + (l >> 3)).
  * The K-nearest lists are kept lane-wise too (slot k of the 16 pixels is one vector), and a hit is
- * inserted into all 16 lists at once by one compare-and-swap pass down the slots:
- *   less = (z < D_k) | (z == D_k & f < F_k);  (D_k, z) <- (select(D_k, z, less), select(z, D_k, less))
- * (likewise for the face and entry ids). Lanes without a hit carry (+inf, INT_MAX), which never
- * moves anything; the pass stops after the deepest occupied slot + 1. Empty slots hold
- * (+inf, INT_MAX). Same tests, same (depth, face id) order, same results as raster_fwd; no
- * per-lane branches, which PoCL turns into plain AVX code. Used for K <= ROWS16_K_LIMIT
- * (the lists live in private memory: 12 bytes x 16 lanes per slot). */
+ * inserted into all 16 lists at once, back to front like an insertion sort: starting from slot
+ * k = (longest list among the hit lanes) - 1,
+ *   mv = active & ((z < D_k) | (z == D_k & f < F_k));   slot k+1 <- D_k where mv, z where active & !mv
+ *   active = mv;  stop when no lane is active (then slot 0 <- z where still active)
+ * (likewise for the face and entry ids). Lanes without a hit are never active; a lane with a
+ * shorter list moves through its empty (+inf, INT_MAX) slots; slot K (the K+1-th) is dropped.
+ * Same tests, same (depth, face id) order, same results as raster_fwd, and no per-lane branches.
+ * any() is an OR tree (PoCL lowers any() of a 16-lane mask to one test per lane). Used for
+ * K <= 256 (ROWS16_K_LIMIT in ops/raster.py; the lists live in private memory: 12 bytes x 16
+ * lanes per slot). */
 __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                 __global const int* entry_face,    // [E]
                                 __global const REAL* entry_setup,  // [E, SETUP]
@@ -337,14 +356,14 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
     const REAL16 inf16 = (REAL16)(INFINITY);
     const int16 imax16 = (int16)(INT_MAX);
 
-    REAL dk[K_MAX * 16];
-    int fk[K_MAX * 16], ek[K_MAX * 16];
+    REAL16 dk[K_MAX];
+    int16 fk[K_MAX], ek[K_MAX];
     for (int k = 0; k < K; ++k) {
-        vstore16(inf16, k, dk);
-        vstore16(imax16, k, fk);
-        vstore16(imax16, k, ek);
+        dk[k] = inf16;
+        fk[k] = imax16;
+        ek[k] = imax16;
     }
-    int depth_used = 0;  /* slots in use in the fullest lane */
+    int16 cnt16 = (int16)0;  /* slots in use per lane */
     const int e_end = tile_off[t + 1];
     for (int e = tile_off[t]; e < e_end; ++e) {
         __global const REAL* s = entry_setup + e * SETUP;
@@ -354,42 +373,59 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
         const REAL16 b1 = s[4] * dx + s[5] * dy;
         const REAL16 b2 = (REAL)1 - b0 - b1;
         MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg;
-        if (!any(hit)) continue;
+        if (!ANY16(hit)) continue;
         const REAL16 zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
         hit &= (zp <= far);
-        if (!any(hit)) continue;
+        if (!ANY16(hit)) continue;
         REAL16 z = select(inf16, zp, hit);
         const int16 hit_i = CONVERT_INT16(hit);
         int16 f = select(imax16, (int16)(entry_face[e]), hit_i);
         int16 en = select(imax16, (int16)(e), hit_i);
-        const int n = min(K, depth_used + 1);
-        for (int k = 0; k < n; ++k) {
-            const REAL16 d = vload16(k, dk);
-            const int16 fo = vload16(k, fk);
-            const MASK16 less = (z < d) | ((z == d) & CONVERT_MASK16(f < fo));
-            if (!any(less)) continue;
-            const int16 less_i = CONVERT_INT16(less);
-            const int16 eo = vload16(k, ek);
-            vstore16(select(d, z, less), k, dk);
-            vstore16(select(fo, f, less_i), k, fk);
-            vstore16(select(eo, en, less_i), k, ek);
-            z = select(z, d, less);
-            f = select(f, fo, less_i);
-            en = select(en, eo, less_i);
-            if (!any(CONVERT_INT16(isless(z, inf16)))) break;  /* every displaced value was an empty slot */
+        /* back-to-front insertion, from the deepest list among the hit lanes: the new fragment
+         * moves up while it sorts before the slot above it (lanes whose list is shorter pass
+         * through their empty (+inf) slots) */
+        MASK16 act = hit;
+        int16 actc = hit_i;
+        const int kstart = min(max_i16(cnt16 & hit_i), K) - 1;  /* deepest list among the hit lanes */
+        cnt16 = min(cnt16 - hit_i, K);
+        REAL16 pd = kstart + 1 < K ? dk[kstart + 1] : inf16;
+        int16 pf = kstart + 1 < K ? fk[kstart + 1] : imax16;
+        int16 pe = kstart + 1 < K ? ek[kstart + 1] : imax16;
+        int k = kstart;
+        for (; k >= 0; --k) {
+            const REAL16 d = dk[k];
+            const int16 fo = fk[k];
+            const int16 eo = ek[k];
+            const MASK16 mv = act & ((z < d) | ((z == d) & CONVERT_MASK16(f < fo)));
+            const int16 mvi = CONVERT_INT16(mv);
+            const int16 place = actc & ~mvi;
+            if (k + 1 < K) {
+                dk[k + 1] = select(select(pd, z, CONVERT_MASK16(place)), d, mv);
+                fk[k + 1] = select(select(pf, f, place), fo, mvi);
+                ek[k + 1] = select(select(pe, en, place), eo, mvi);
+            }
+            act = mv; actc = mvi;
+            if (!any_i16(mvi)) break;
+            pd = d; pf = fo; pe = eo;
         }
-        depth_used = n;
+        if (k < 0) {
+            dk[0] = select(pd, z, act);
+            fk[0] = select(pf, f, actc);
+            ek[0] = select(pe, en, actc);
+        }
     }
     for (int l = 0; l < 16; ++l) {
         const int x = x0 + (l & 7), y = y0 + (l >> 3);
         if (x >= width || y >= height) continue;
         const int pix = y * width + x;
-        int cnt = 0;
-        while (cnt < depth_used && fk[cnt * 16 + l] != INT_MAX) ++cnt;
+        const REAL* dl = (const REAL*)dk;  /* slot k of lane l: [k * 16 + l] */
+        const int* fl = (const int*)fk;
+        const int* el = (const int*)ek;
+        const int cnt = ((const int*)&cnt16)[l];
         frag_count[pix] = cnt;
         const REAL pxl = (REAL)x + (REAL)0.5, pyl = (REAL)y + (REAL)0.5;
         for (int k = 0; k < cnt; ++k)
-            store_fragment(entry_setup, ek[k * 16 + l], fk[k * 16 + l], dk[k * 16 + l], pxl, pyl, sigma,
+            store_fragment(entry_setup, el[k * 16 + l], fl[k * 16 + l], dl[k * 16 + l], pxl, pyl, sigma,
                            pix * K + k, frag_face, frag_entry, frag_bary, frag_depth, frag_win);
     }
 }

@@ -189,11 +189,10 @@ def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
 RASTER_VARIANTS = ("auto", "pixel", "rows", "rows16")
 ROWS16_LOCAL = 4  # work-items (2-row pairs) per work-group of raster_fwd_rows16: one 8x8 tile
 # raster_fwd_rows16 keeps its lists lane-wise (16 lanes x K slots x 12 bytes of private memory) and
-# inserts by a compare-and-swap pass over the occupied slots: faster than the scalar insertion of
-# raster_fwd_rows up to K = 32 (PoCL, surface-like soup: 2.1x at K = 1, 1.3x at K = 8, equal at
-# K = 30; dense soup at K = 60: 1.5x slower), so "auto" uses it up to there.
-ROWS16_K_LIMIT = 64
-ROWS16_K_AUTO = 32
+# inserts back to front from the deepest hit lane (PoCL, 400², 100k faces: surface-like soup 2x
+# faster than raster_fwd_rows at K = 1, 1.5x at K = 30; dense soup 1.4-1.6x at K = 60 and 150);
+# above ROWS16_K_LIMIT the scalar rows kernel takes over (its lists are per pixel).
+ROWS16_K_LIMIT = 256
 
 
 @dataclass
@@ -288,7 +287,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         variant: ``"pixel"`` (one work-item per pixel: GPU-shaped), ``"rows"`` (one work-item per
             8-pixel row with vector edge tests: CPU-shaped), ``"rows16"`` (one work-item per two
             tile rows, the 16 pixels' lists in vector lanes with a vector insertion: CPU-shaped,
-            K ≤ 64), or ``"auto"`` (on CPU devices rows16 up to K = 32, rows above; pixel on
+            K ≤ 256), or ``"auto"`` (on CPU devices rows16 up to K = 256, rows above; pixel on
             others). All give identical fragments.
         sigma: also compute the soft-coverage window (``frags.win``) for this sharpness, in the
             same pass (see :func:`~triplet_cl.ops.composite.coverage`).
@@ -301,7 +300,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     if variant not in RASTER_VARIANTS:
         raise ValueError(f"variant must be one of {RASTER_VARIANTS}, got {variant!r}")
     if variant == "auto":
-        variant = ("rows16" if K <= ROWS16_K_AUTO else "rows") if device.is_cpu else "pixel"
+        variant = ("rows16" if K <= ROWS16_K_LIMIT else "rows") if device.is_cpu else "pixel"
     if variant == "rows16" and K > ROWS16_K_LIMIT:
         raise ValueError(f"variant 'rows16' supports K <= {ROWS16_K_LIMIT}, got K={K}")
     K = int(K)
