@@ -103,9 +103,9 @@ class Chain:
         # alpha taken from the same buffer through a view would need strides: composite 4 channels
         # with the alpha channel's own blend being harmless)
         self.fa = interpolate(d, self.attrd, self.fr)
-        self.a = cla.empty(d.queue, self.fr.shape + (1,), np.float32, allocator=d.allocator)
+        self.a = cla.empty(d.queue, (max(self.fr.P, 1), 1), np.float32, allocator=d.allocator)[: self.fr.P]
         copy_columns(d, self.fr, self.fa, 3, self.a, 0, 1)  # alpha = channel 3 (valid slots only)
-        self.a = self.a.reshape(self.fr.shape)
+        self.a = self.a.reshape(self.fr.P)
         self.win = coverage(d, self.fr, self.sigma)
         self.img, self.trans, self.ncon = composite(d, self.fr, self.fa, self.a, self.bg, win=self.win)
         d.queue.finish()
@@ -114,7 +114,7 @@ class Chain:
         d, fr = self.dev, self.fr
         vf, va, vw, _ = composite_backward(d, fr, self.fa, self.a, self.bg, self.ncon, self.trans, self.v_img4,
                                            win=self.win)
-        copy_columns(d, fr, va.reshape(*fr.shape, 1), 0, vf, 3, 1, accumulate=True)  # + alpha's adjoint
+        copy_columns(d, fr, va.reshape(fr.P, 1), 0, vf, 3, 1, accumulate=True)  # + alpha's adjoint
         _, v_vs, _ = fragments_backward(d, fr, self.attrd, vf, v_win=vw, sigma=self.sigma)
         project_backward(d, self.Vd, self.cam, v_vs)
         d.queue.finish()

@@ -20,12 +20,12 @@
 #define C_MAX 16
 #endif
 
-__kernel void composite_fwd(__global const REAL* feat,      // [H, W, K, C]
-                            __global const REAL* alpha,     // [H, W, K]
-                            __global const REAL* win,       // [H, W, K]  (if has_win)
+__kernel void composite_fwd(__global const REAL* feat,      // [P, C]      
+                            __global const REAL* alpha,     // [P]      
+                            __global const REAL* win,       // [P]        (if has_win)
                             __global const int* frag_count, // [H, W]
                             __global const REAL* bg,        // [C]
-                            const int npix, const int K, const int C, const int has_win,
+                            const int npix, __global const int* frag_off, const int C, const int has_win,
                             const REAL t_min,
                             __global REAL* out,             // [H, W, C]
                             __global REAL* trans,           // [H, W]  T_n
@@ -39,7 +39,7 @@ __kernel void composite_fwd(__global const REAL* feat,      // [H, W, K, C]
     const int cnt = frag_count[pix];
     int n = 0;
     for (int i = 0; i < cnt; ++i) {
-        const int o = pix * K + i;
+        const int o = frag_off[pix] + i;
         const REAL a = has_win ? alpha[o] * win[o] : alpha[o];
         const REAL w = a * T;
         for (int c = 0; c < C; ++c) acc[c] += feat[(long)o * C + c] * w;
@@ -52,18 +52,18 @@ __kernel void composite_fwd(__global const REAL* feat,      // [H, W, K, C]
     n_contrib[pix] = n;
 }
 
-__kernel void composite_bwd(__global const REAL* feat,      // [H, W, K, C]
-                            __global const REAL* alpha,     // [H, W, K]
-                            __global const REAL* win,       // [H, W, K]
+__kernel void composite_bwd(__global const REAL* feat,      // [P, C]      
+                            __global const REAL* alpha,     // [P]      
+                            __global const REAL* win,       // [P]      
                             __global const int* n_contrib,  // [H, W]
                             __global const int* frag_count, // [H, W]
                             __global const REAL* bg,        // [C]
                             __global const REAL* v_out,     // [H, W, C]
                             __global const REAL* v_acc,     // [H, W]  (if has_vacc)
-                            const int npix, const int K, const int C, const int has_win, const int has_vacc,
-                            __global REAL* v_feat,          // [H, W, K, C]
-                            __global REAL* v_alpha,         // [H, W, K]
-                            __global REAL* v_winout)        // [H, W, K]  (if has_win)
+                            const int npix, __global const int* frag_off, const int C, const int has_win, const int has_vacc,
+                            __global REAL* v_feat,          // [P, C]      
+                            __global REAL* v_alpha,         // [P]      
+                            __global REAL* v_winout)        // [P]        (if has_win)
 {
     const int pix = get_global_id(0);
     if (pix >= npix) return;
@@ -74,13 +74,13 @@ __kernel void composite_bwd(__global const REAL* feat,      // [H, W, K, C]
     /* first pass: T_i of every composited fragment, parked in v_alpha (no division by 1 - a_i) */
     REAL T = (REAL)1;
     for (int i = 0; i < n; ++i) {
-        const int o = pix * K + i;
+        const int o = frag_off[pix] + i;
         v_alpha[o] = T;
         T *= (REAL)1 - (has_win ? alpha[o] * win[o] : alpha[o]);
     }
     REAL G = (REAL)1;
     for (int i = n - 1; i >= 0; --i) {
-        const int o = pix * K + i;
+        const int o = frag_off[pix] + i;
         T = v_alpha[o];
         const REAL ab = alpha[o];
         const REAL wv = has_win ? win[o] : (REAL)1;
@@ -100,7 +100,7 @@ __kernel void composite_bwd(__global const REAL* feat,      // [H, W, K, C]
     /* fragments behind the early-termination point get zero adjoints (slots >= count untouched) */
     const int cnt = frag_count[pix];
     for (int i = n; i < cnt; ++i) {
-        const int o = pix * K + i;
+        const int o = frag_off[pix] + i;
         for (int c = 0; c < C; ++c) v_feat[(long)o * C + c] = (REAL)0;
         v_alpha[o] = (REAL)0;
         if (has_win) v_winout[o] = (REAL)0;

@@ -3,7 +3,7 @@
  * Forward (per fragment, face f, pixel centre p; see common/raster_math.h):
  *   win = 1 - exp(-sigma * max(0, min_k d_k)),  d_k the signed pixel distance to edge k
  *   (>= 0 inside). sigma -> inf gives the hard edge of the original method (win = 1 inside).
- *   Slots k >= frag_count are not written.
+ *   Per pixel over its packed fragments (rows frag_off[pix] .. + frag_count[pix]).
  * Adjoint: fused into raster_bwd (raster.cl) through edge_window_vjp, so that all screen-space
  *   adjoints of a fragment are scattered to its face in one pass: v_win -> v_(u, v) of the three
  *   vertices and v_sigma.
@@ -13,18 +13,19 @@
 
 __kernel void coverage_fwd(__global const REAL* vs,         // [N, 3]
                            __global const int* F,           // [M, 3]
-                           __global const int* frag_face,   // [H, W, K]
+                           __global const int* frag_face,   // [P]
                            __global const int* frag_count,  // [H, W]
-                           const int width, const int height, const int K,
+                           const int width, const int height,
+                           __global const int* frag_off,    // [H * W + 1] first row of each pixel
                            const REAL sigma,
-                           __global REAL* win)              // [H, W, K]  (slots k >= count unwritten)
+                           __global REAL* win)              // [P]
 {
     const int pix = get_global_id(0);
     if (pix >= width * height) return;
     const REAL2 p = (REAL2)((REAL)(pix % width) + (REAL)0.5, (REAL)(pix / width) + (REAL)0.5);
     const int cnt = frag_count[pix];
     for (int k = 0; k < cnt; ++k) {
-        const int o = pix * K + k;
+        const int o = frag_off[pix] + k;
         const int f = frag_face[o];
         const REAL2 a0 = LOAD3(vs, F[3 * f]).xy, a1 = LOAD3(vs, F[3 * f + 1]).xy, a2 = LOAD3(vs, F[3 * f + 2]).xy;
         int kmin;

@@ -50,24 +50,24 @@
 __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const int* F,             // [M, 3]
                            __global const int* tile_off,      // [T + 1]
-                           __global const int* frag_face,     // [H, W, K]
-                           __global const int* frag_entry,    // [H, W, K]
-                           __global const REAL* frag_bary,    // [H, W, K, 2]
-                           __global const REAL* frag_depth,   // [H, W, K]
+                           __global const int* frag_face,     // [P]
+                           __global const int* frag_entry,    // [P]
+                           __global const REAL* frag_bary,    // [P, 2]
+                           __global const REAL* frag_depth,   // [P]
                            __global const int* frag_count,    // [H, W]
                            __global const REAL* attr,         // [N, C]          (C > 0)
-                           __global const REAL* v_out,        // [H, W, K, C]    (C > 0)
-                           __global const REAL* v_bary_in,    // [H, W, K, 2]    (has_bary)
-                           __global const REAL* v_depth,      // [H, W, K]       (has_depth)
-                           __global const REAL* v_win,        // [H, W, K]       (has_win)
+                           __global const REAL* v_out,        // [P, C]          (C > 0)
+                           __global const REAL* v_bary_in,    // [P, 2]          (has_bary)
+                           __global const REAL* v_depth,      // [P]             (has_depth)
+                           __global const REAL* v_win,        // [P]             (has_win)
                            const int C, const int has_bary, const int has_depth, const int has_win,
                            const int do_geom, const REAL sigma,
                            const int width, const int height, const int tiles_x, const int num_tiles,
-                           const int K,
+                           __global const int* frag_off,      // [H * W + 1] first row of each pixel
                            __global REAL* partial_attr,       // [E, 3, C]       (C > 0)
                            __global REAL* partial_mom,        // [E, MOMENTS]    (do_geom)
                            __global REAL* v_sigma_tile,       // [T]             (do_geom)
-                           __global REAL* v_bary_out)         // [H, W, K, 2]    (!do_geom)
+                           __global REAL* v_bary_out)         // [P, 2]          (!do_geom)
 {
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
@@ -84,7 +84,7 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
             const int pix = y * width + x;
             const int cnt = frag_count[pix];
             for (int k = 0; k < cnt; ++k) {
-                const int o = pix * K + k;
+                const int o = frag_off[pix] + k;
                 const int e = frag_entry[o];
                 const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1];
                 REAL vl0 = has_bary ? v_bary_in[2 * o] : (REAL)0;

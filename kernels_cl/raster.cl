@@ -16,9 +16,11 @@
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
  *             (GPU-shaped; raster_fwd_rows and raster_fwd_rows16 are CPU-shaped twins with the
  *             same results: 8-pixel rows with vector edge tests and a scalar insertion, or two
- *             rows as 16 vector lanes with a lane-wise compare-and-swap insertion.)
- *             With sigma > 0 it also writes the coverage window of each fragment (coverage.cl's
- *             formula, evaluated from the set-up coefficients: no second pass, no vertex loads).
+ *             rows as 16 vector lanes with a lane-wise insertion.) Each pixel's list (entry and
+ *             depth of its slots) goes to K-strided scratch.
+ * pack_raster_fragments  per pixel: the list -> the packed fragments (rows off[pix] + k, off the
+ *             prefix sum of the counts), with face, barycentrics and, for sigma > 0, the coverage
+ *             window (coverage.cl's formula from the set-up coefficients: no vertex loads).
  * (adjoint)   fragment_bwd.cl: one pass over the fragments for interpolation, barycentrics,
  *             depth and window, into per-entry partial sums (no atomics, deterministic).
  * gather_vertex  per vertex: sum partial[entry, corner, :] over every face corner of the vertex
@@ -161,39 +163,18 @@ inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp
     if (n < K) *cnt = n + 1;
 }
 
-/* Write slot o of a pixel (centre px, py): the fragment of entry e. Slots beyond the pixel's count are
- * never written (every consumer stops at frag_count; writing K slots cost more than the raster test at
- * K = 150). */
-inline void store_fragment(__global const REAL* entry_setup, int e, int face, REAL depth, REAL px, REAL py,
-                           REAL sigma, int o, __global int* frag_face, __global int* frag_entry,
-                           __global REAL* frag_bary, __global REAL* frag_depth, __global REAL* frag_win)
-{
-    __global const REAL* s = entry_setup + e * SETUP;
-    const REAL dx = px - s[0], dy = py - s[1];
-    const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
-    const REAL b1 = s[4] * dx + s[5] * dy;
-    const REAL b2 = (REAL)1 - b0 - b1;
-    const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
-    const REAL is = (REAL)1 / (w0 + w1 + w2);
-    frag_face[o] = face;
-    frag_entry[o] = e;
-    frag_bary[2 * o] = w0 * is;
-    frag_bary[2 * o + 1] = w1 * is;
-    frag_depth[o] = depth;
-    if (sigma > (REAL)0) frag_win[o] = setup_window(s, b0, b1, b2, sigma);
-}
+/* The raster kernels write each pixel's list into K-strided scratch (entry and depth of slot k,
+ * slots beyond the count never written); pack_raster_fragments turns it into the packed fragments. */
+#define STORE_SLOT(o, e, z) do { frag_entry[o] = (e); frag_depth[o] = (z); } while (0)
 
 __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
                          __global const int* entry_face,    // [E]
                          __global const REAL* entry_setup,  // [E, SETUP]
                          const int width, const int height, const int tiles_x,
-                         const int K, const REAL far, const REAL sigma,
-                         __global int* frag_face,           // [H, W, K]  -1 = empty
-                         __global int* frag_entry,          // [H, W, K]
-                         __global REAL* frag_bary,          // [H, W, K, 2]  lam0, lam1
-                         __global REAL* frag_depth,         // [H, W, K]
-                         __global int* frag_count,          // [H, W]
-                         __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
+                         const int K, const REAL far,
+                         __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
+                         __global REAL* frag_depth,         // [H, W, K]  scratch: depth of slot k
+                         __global int* frag_count)          // [H, W]
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
@@ -218,9 +199,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
     }
     const int pix = y * width + x;
     frag_count[pix] = cnt;
-    for (int k = 0; k < cnt; ++k)
-        store_fragment(entry_setup, ek[k], fk[k], dk[k], px, py, sigma, pix * K + k, frag_face, frag_entry,
-                       frag_bary, frag_depth, frag_win);
+    for (int k = 0; k < cnt; ++k) STORE_SLOT(pix * K + k, ek[k], dk[k]);
 }
 
 #if TILE == 8
@@ -232,13 +211,10 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
                               __global const int* entry_face,    // [E]
                               __global const REAL* entry_setup,  // [E, SETUP]
                               const int width, const int height, const int tiles_x,
-                              const int K, const REAL far, const REAL sigma,
-                              __global int* frag_face,           // [H, W, K]
-                              __global int* frag_entry,          // [H, W, K]
-                              __global REAL* frag_bary,          // [H, W, K, 2]
-                              __global REAL* frag_depth,         // [H, W, K]
-                              __global int* frag_count,          // [H, W]
-                              __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
+                              const int K, const REAL far,
+                              __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
+                              __global REAL* frag_depth,         // [H, W, K]  scratch: depth of slot k
+                              __global int* frag_count)          // [H, W]
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int y = ty * TILE + get_local_id(1);
@@ -278,11 +254,8 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
     for (int l = 0; l < nl; ++l) {
         const int x = x0 + l;
         const int pix = y * width + x;
-        const REAL pxl = (REAL)x + (REAL)0.5;
         frag_count[pix] = cnt[l];
-        for (int k = 0; k < cnt[l]; ++k)
-            store_fragment(entry_setup, ek[l][k], fk[l][k], dk[l][k], pxl, py, sigma, pix * K + k,
-                           frag_face, frag_entry, frag_bary, frag_depth, frag_win);
+        for (int k = 0; k < cnt[l]; ++k) STORE_SLOT(pix * K + k, ek[l][k], dk[l][k]);
     }
 }
 #endif
@@ -333,13 +306,10 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                 __global const int* entry_face,    // [E]
                                 __global const REAL* entry_setup,  // [E, SETUP]
                                 const int width, const int height, const int tiles_x,
-                                const int K, const REAL far, const REAL sigma,
-                                __global int* frag_face,           // [H, W, K]
-                                __global int* frag_entry,          // [H, W, K]
-                                __global REAL* frag_bary,          // [H, W, K, 2]
-                                __global REAL* frag_depth,         // [H, W, K]
-                                __global int* frag_count,          // [H, W]
-                                __global REAL* frag_win)           // [H, W, K]  (sigma > 0)
+                                const int K, const REAL far,
+                                __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
+                                __global REAL* frag_depth,         // [H, W, K]  scratch: depth of slot k
+                                __global int* frag_count)          // [H, W]
 {
     const int tx = get_global_id(0), pair = get_global_id(1);
     const int ty = pair >> 2;
@@ -419,17 +389,90 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
         if (x >= width || y >= height) continue;
         const int pix = y * width + x;
         const REAL* dl = (const REAL*)dk;  /* slot k of lane l: [k * 16 + l] */
-        const int* fl = (const int*)fk;
         const int* el = (const int*)ek;
         const int cnt = ((const int*)&cnt16)[l];
         frag_count[pix] = cnt;
-        const REAL pxl = (REAL)x + (REAL)0.5, pyl = (REAL)y + (REAL)0.5;
-        for (int k = 0; k < cnt; ++k)
-            store_fragment(entry_setup, el[k * 16 + l], fl[k * 16 + l], dl[k * 16 + l], pxl, pyl, sigma,
-                           pix * K + k, frag_face, frag_entry, frag_bary, frag_depth, frag_win);
+        for (int k = 0; k < cnt; ++k) STORE_SLOT(pix * K + k, el[k * 16 + l], dl[k * 16 + l]);
     }
 }
 #endif
+
+/* pack_raster_fragments: the raster kernels' scratch lists (entry, depth) -> packed fragments at
+ * rows off[pix] + k, with the face, the perspective-correct barycentrics and (sigma > 0) the
+ * coverage window computed from the entry's set-up:
+ *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1,  (dx, dy) = p - a0
+ *   w_k = b_k / z_k,  lam_k = w_k / (w0 + w1 + w2)   (raster_math.h)
+ *   win = setup_window(b0, b1, b2)                  (coverage.cl's formula)  */
+__kernel void pack_raster_fragments(const int width, const int height, const int K, const REAL sigma,
+                                    __global const int* count,        // [H, W]
+                                    __global const int* off,          // [H * W + 1]
+                                    __global const int* s_entry,      // [H, W, K] scratch
+                                    __global const REAL* s_depth,     // [H, W, K] scratch
+                                    __global const int* entry_face,   // [E]
+                                    __global const REAL* entry_setup, // [E, SETUP]
+                                    __global int* face,               // [P]
+                                    __global int* entry,              // [P]
+                                    __global REAL* bary,              // [P, 2]
+                                    __global REAL* depth,             // [P]
+                                    __global REAL* win)               // [P]  (sigma > 0)
+{
+    const int pix = get_global_id(0);
+    if (pix >= width * height) return;
+    const REAL px = (REAL)(pix % width) + (REAL)0.5, py = (REAL)(pix / width) + (REAL)0.5;
+    const int c = count[pix], o0 = off[pix];
+    for (int k = 0; k < c; ++k) {
+        const int i = pix * K + k, o = o0 + k;
+        const int e = s_entry[i];
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL dx = px - s[0], dy = py - s[1];
+        const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL b1 = s[4] * dx + s[5] * dy;
+        const REAL b2 = (REAL)1 - b0 - b1;
+        const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+        const REAL is = (REAL)1 / (w0 + w1 + w2);
+        face[o] = entry_face[e];
+        entry[o] = e;
+        bary[2 * o] = w0 * is;
+        bary[2 * o + 1] = w1 * is;
+        depth[o] = s_depth[i];
+        if (sigma > (REAL)0) win[o] = setup_window(s, b0, b1, b2, sigma);
+    }
+}
+
+/* Packed fragment layout (pack_fragments: the generic copy, used by ray-traced fragments): the
+ * K-strided per-pixel lists ([H, W, K]); pack_fragments moves the first count[pix] slots of every pixel to
+ * [off[pix], off[pix] + count[pix]) of dense [P] arrays (off = exclusive prefix sum of count, so
+ * the fragments are pixel-major, nearest first). Every per-fragment array downstream is [P, C]:
+ * consecutive pixels' fragments are adjacent in memory (streaming access), and memory follows the
+ * fragments, not H x W x K. */
+__kernel void pack_fragments(const int npix, const int K,
+                             __global const int* count,        // [H, W]
+                             __global const int* off,          // [H * W + 1]
+                             __global const int* s_face,       // [H, W, K]
+                             __global const int* s_entry,      // [H, W, K]
+                             __global const REAL* s_bary,      // [H, W, K, 2]
+                             __global const REAL* s_depth,     // [H, W, K]
+                             __global const REAL* s_win,       // [H, W, K]  (has_win)
+                             const int has_win,
+                             __global int* face,               // [P]
+                             __global int* entry,              // [P]
+                             __global REAL* bary,              // [P, 2]
+                             __global REAL* depth,             // [P]
+                             __global REAL* win)               // [P]  (has_win)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    const int c = count[pix], o0 = off[pix];
+    for (int k = 0; k < c; ++k) {
+        const int i = pix * K + k, o = o0 + k;
+        face[o] = s_face[i];
+        entry[o] = s_entry[i];
+        bary[2 * o] = s_bary[2 * i];
+        bary[2 * o + 1] = s_bary[2 * i + 1];
+        depth[o] = s_depth[i];
+        if (has_win) win[o] = s_win[i];
+    }
+}
 
 __kernel void gather_vertex(__global const REAL* partial,      // [E, 3, C]
                             __global const int* face_off,      // [M + 1]

@@ -51,7 +51,7 @@
  *   v_x = v_s + v_eye - safe_normalize_vjp(cam - x, v_V).
  *   (the discrete choice of the hit face has no gradient)
  *
- * ray_mask / pack_faces (helpers, discrete): the compacted face ids of a view's fragments, -1 for
+ * ray_mask (helper, discrete): the packed face ids of a view's fragments, -1 for
  *   fragments behind a transmittance prod_{j<k} (1 - alpha_j win_j) below t_min (no rays for them).
  */
 #include "real.h"
@@ -515,15 +515,3 @@ __kernel void ray_mask(__global const int* face,       // [Pv] compacted face id
     }
 }
 
-/* face ids of the valid fragment slots, compacted: out[off[pix] + k] = face[pix, k], k < count */
-__kernel void pack_faces(__global const int* frag_face,   // [H, W, K]
-                         __global const int* frag_count,  // [H, W]
-                         __global const int* offsets,     // [H W + 1]
-                         const int npix, const int K,
-                         __global int* out)               // [Pv]
-{
-    const int pix = get_global_id(0);
-    if (pix >= npix) return;
-    const int o = offsets[pix], c = frag_count[pix];
-    for (int k = 0; k < c; ++k) out[o + k] = frag_face[pix * K + k];
-}

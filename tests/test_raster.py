@@ -117,7 +117,7 @@ def test_raster_variants_identical(device, rng, K):
         h = read_fragments(fr)
         # entry ids depend on the binning's atomic order: compare the face each entry stands for
         h["entry"] = np.where(h["entry"] >= 0, fr.entry_face.get()[np.maximum(h["entry"], 0)], -1)
-        h["win"] = np.where(h["face"] >= 0, fr.win.get(), 0)
+        h["win"] = fr.to_hwk(fr.win)
         outs.append(h)
     assert outs[0]["count"].sum() > 500
     for o in outs[1:]:
@@ -205,16 +205,16 @@ def test_interpolate_forward_and_vjp(device64, rng):
     h = read_fragments(fr)
     attr = rng.standard_normal((len(V), 5))
     ok = h["face"] >= 0  # slots beyond the pixel's count are undefined by contract
-    out = interpolate(device64, attr, fr).get()
+    out = fr.to_hwk(interpolate(device64, attr, fr))
     np.testing.assert_allclose(out[ok], ref.interpolate_ref(attr, F, h["face"], h["bary"])[ok], atol=1e-12)
     v = rng.standard_normal(out.shape)
     v_attr, v_bary = interpolate_backward(device64, attr, fr, v)
     ra, rb = ref.interpolate_vjp_ref(attr, F, h["face"], h["bary"], v)
     np.testing.assert_allclose(v_attr.get(), ra, atol=1e-10)
-    np.testing.assert_allclose(v_bary.get()[ok], rb[ok], atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_bary)[ok], rb[ok], atol=1e-10)
     # accumulation into an existing barycentric adjoint
     _, v_bary2 = interpolate_backward(device64, attr, fr, v, v_bary_acc=v_bary)
-    np.testing.assert_allclose(v_bary2.get()[ok], 2 * rb[ok], atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_bary2)[ok], 2 * rb[ok], atol=1e-10)
 
 
 def test_interpolate_shared_vertices(device64, rng):
@@ -243,19 +243,19 @@ def test_coverage_forward(device, device64, rng):
     _, _, vs, fr = run_raster(device64, V, F, 6)
     h = read_fragments(fr)
     ok = h["face"] >= 0
-    win = coverage(device64, fr, 0.7).get()
+    win = fr.to_hwk(coverage(device64, fr, 0.7))
     r = ref.fragment_geometry_ref(vs.get(), F, h["face"], sigma=0.7)
     np.testing.assert_allclose(win[ok], r["win"][ok], atol=1e-12)
     assert (win[ok] > 0).mean() > 0.9 and (win[ok] <= 1).all()
     # the rasterizer computes the same window in its own pass (from the set-up coefficients)
     _, _, _, fr2 = run_raster(device64, V, F, 6, sigma=0.7)
     assert fr2.win is not None and coverage(device64, fr2, 0.7) is fr2.win
-    np.testing.assert_allclose(fr2.win.get()[ok], r["win"][ok], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fr2.to_hwk(fr2.win)[ok], r["win"][ok], rtol=1e-10, atol=1e-12)
     for variant in ("pixel", "rows", "rows16"):
         _, _, _, fr3 = run_raster(device, V.astype(np.float32), F, 6, real=np.float32, sigma=0.7, variant=variant)
-        np.testing.assert_allclose(fr3.win.get()[ok], r["win"][ok], atol=2e-4)
+        np.testing.assert_allclose(fr3.to_hwk(fr3.win)[ok], r["win"][ok], atol=2e-4)
     # sigma -> infinity is the hard edge: every covered fragment gets weight 1
-    hard = coverage(device64, fr, 1e9).get()
+    hard = fr.to_hwk(coverage(device64, fr, 1e9))
     assert np.allclose(hard[(h["face"] >= 0) & (r["win"] > 0)], 1.0)
 
 
@@ -292,12 +292,12 @@ def test_soft_edges_window_forward_and_adjoint(device, device64, rng):
     h = read_fragments(fr)
     ok = h["face"] >= 0
     r = ref.fragment_geometry_ref(vs.get(), F, h["face"], sigma=sigma, soft_edges=soft)
-    np.testing.assert_allclose(fr.win.get()[ok], r["win"][ok], rtol=1e-10, atol=1e-12)
-    assert np.allclose(fr.win.get()[ok & (soft[np.maximum(h["face"], 0)] == 0)], 1.0)  # no soft edge: window 1
+    np.testing.assert_allclose(fr.to_hwk(fr.win)[ok], r["win"][ok], rtol=1e-10, atol=1e-12)
+    assert np.allclose(fr.to_hwk(fr.win)[ok & (soft[np.maximum(h["face"], 0)] == 0)], 1.0)  # no soft edge: window 1
     for variant in ("pixel", "rows", "rows16"):
         _, _, _, f32 = run_raster(device, V.astype(np.float32), F, 4, real=np.float32, sigma=sigma, variant=variant,
                                   soft_edges=soft)
-        np.testing.assert_allclose(f32.win.get()[ok], r["win"][ok], atol=2e-4)
+        np.testing.assert_allclose(f32.to_hwk(f32.win)[ok], r["win"][ok], atol=2e-4)
     with pytest.raises(ValueError, match="sigma"):
         coverage(device64, fr, 0.5)  # the masked window exists only for the rasterizer's sigma
     v_b = rng.standard_normal((H, W, 4, 2))
@@ -330,7 +330,7 @@ def test_silhouette_edges_open_no_seams_in_a_closed_mesh(device64):
 
     def acc(soft):
         _, _, _, fr = run_raster(device64, V, F, 4, camera=c, sigma=2.0, soft_edges=soft)
-        a = np.ones(fr.shape)
+        a = np.ones(fr.P)
         fa = interpolate(device64, col, fr)
         _, trans, _ = composite(device64, fr, fa, a, np.zeros(1), win=fr.win)
         return 1 - trans.get()
@@ -373,8 +373,8 @@ def test_composite_forward_and_vjp(device64, rng):
                                                       bg_grad=True)
     rf, ra = ref.composite_vjp_ref(feat, alpha, h["count"], bg, v_img, v_acc)
     ok = h["face"] >= 0
-    np.testing.assert_allclose(v_feat.get()[ok], rf[ok], atol=1e-12)
-    np.testing.assert_allclose(v_alpha.get()[ok], ra[ok], atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_feat)[ok], rf[ok], atol=1e-12)
+    np.testing.assert_allclose(fr.to_hwk(v_alpha)[ok], ra[ok], atol=1e-10)
     np.testing.assert_allclose(v_bg, (v_img * r_trans[..., None]).reshape(-1, 4).sum(0), rtol=1e-12)
     assert v_win is None
 
@@ -384,7 +384,7 @@ def test_composite_with_window_and_early_stop(device64, rng):
     win = coverage(device64, fr, 1.3)
     bg = np.zeros(4)
     img, trans, ncon = composite(device64, fr, feat, alpha, bg, win=win, t_min=0.3)
-    a_eff = np.where(h["face"] >= 0, alpha * win.get(), 0.0)
+    a_eff = np.where(h["face"] >= 0, alpha * fr.to_hwk(win), 0.0)
     r_img, r_trans, r_n = ref.composite_ref(feat, a_eff, h["count"], bg, t_min=0.3)
     np.testing.assert_allclose(img.get(), r_img, atol=1e-12)
     np.testing.assert_array_equal(ncon.get(), r_n)
@@ -393,9 +393,9 @@ def test_composite_with_window_and_early_stop(device64, rng):
     v_feat, v_alpha, v_win, _ = composite_backward(device64, fr, feat, alpha, bg, ncon, trans, v_img, win=win)
     rf, ra = ref.composite_vjp_ref(feat, a_eff, h["count"], bg, v_img, t_min=0.3)
     ok = h["face"] >= 0
-    np.testing.assert_allclose(v_feat.get()[ok], rf[ok], atol=1e-12)
-    np.testing.assert_allclose(v_alpha.get()[ok], (ra * win.get())[ok], atol=1e-10)
-    np.testing.assert_allclose(v_win.get()[ok], (ra * alpha)[ok], atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_feat)[ok], rf[ok], atol=1e-12)
+    np.testing.assert_allclose(fr.to_hwk(v_alpha)[ok], (ra * fr.to_hwk(win))[ok], atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_win)[ok], (ra * alpha)[ok], atol=1e-10)
 
 
 # ------------------------------------------------------------------------------------------------ whole chain

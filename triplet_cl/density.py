@@ -176,7 +176,7 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
 
 def visible_faces(face_ids, num_faces: int) -> np.ndarray:
     """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
-    ``[H, W, K]``, −1 = empty; numpy or device array)."""
+    ``[P]``, or any array of face ids with −1 = empty; numpy or device array)."""
     f = _host(face_ids).reshape(-1)
     f = f[f >= 0]
     return np.bincount(f, minlength=num_faces)[:num_faces] > 0

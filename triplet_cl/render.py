@@ -7,8 +7,8 @@ Graph (every box a :class:`~triplet_cl.autodiff.Function` with a hand-derived ad
     material ─ MaterialActivation┤
     alpha ─ Sigmoid ─────────────┤
        └─────────────────────────┴─ Concat → attr [N, C]
-    RasterInterpolate(V, attr)  → fragment attributes [H, W, K, C], coverage window [H, W, K]
-    ShadeFragments(…, light_params) → rgb [H, W, K, 3] (on the compacted valid fragments), alpha [H, W, K]
+    RasterInterpolate(V, attr)  → fragment attributes [P, C], coverage window [P] (packed fragments)
+    ShadeFragments(…, light_params) → rgb [P, 3], alpha [P]
     Composite(rgb, alpha, win)  → image [H, W, 3], accumulated alpha [H, W]
 
 Renderers (``RenderSettings.renderer``): ``"raster"`` (the graph above); ``"raytrace"``: the
@@ -98,7 +98,7 @@ class View:
         self.bvh: BVH | None = None  # ray-traced renderers: the hierarchy, refitted to this view's V
         self.ray_eps = 0.0  # world-space ray offset
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
-        self.win = None  # [H, W, K] coverage window of the forward pass (sigma set)
+        self.win = None  # [P] coverage window of the forward pass (sigma set)
         self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
 
 
@@ -212,7 +212,7 @@ class Concat(Function):
 
 
 class RasterInterpolate(Function):
-    """``(V [N, 3], attr [N, C]) → (frag_attr [H, W, K, C][, win [H, W, K]])`` (device arrays)."""
+    """``(V [N, 3], attr [N, C]) → (frag_attr [P, C][, win [P]])`` (device arrays, packed fragments)."""
 
     def __init__(self, view: View):
         self.view = view
@@ -247,11 +247,10 @@ class RasterInterpolate(Function):
 
 
 class ShadeFragments(Function):
-    """``(frag_attr [H, W, K, C][, light_params]) → (rgb [H, W, K, 3], alpha [H, W, K])``.
+    """``(frag_attr [P, C][, light_params]) → (rgb [P, 3], alpha [P])``.
 
-    The valid slots are compacted into a dense list first (``ops.columns.Compaction``), so shading
-    and its adjoint cost per fragment, not per H·W·K slot (measured at 200², K=30: 68 ms → see
-    bench), and the columns of the packed attribute array are read in place (no split copies).
+    The fragments are packed (``[P, C]``), so shading and its adjoint cost per fragment; the shading
+    inputs are column blocks of the packed attribute array (``ops.columns.Compaction``).
     """
 
     def __init__(self, view: View, lights, brdf: str, layout: dict):
@@ -273,15 +272,14 @@ class ShadeFragments(Function):
         return inp
 
     def _outputs(self, ctx, comp, inp, fa, n_rest):
-        """Shade, scatter the colours back to ``[H, W, K, 3]``, take alpha's column; keep the backward's state."""
+        """Shade (``[P, 3]``), take alpha's column; keep the backward's state."""
         d, fr = self.view.device, self.view.frags
-        H, W, K = fr.shape
-        rgb = cla.empty(d.queue, (H, W, K, 3), fr.real, allocator=d.allocator)
-        comp.unpack(shade_op.forward(d, inp), rgb, 0)
-        alpha = cla.empty(d.queue, (H, W, K, 1), fr.real, allocator=d.allocator)
+        P = fr.P
+        rgb = shade_op.forward(d, inp).reshape(P, 3)  # the fragments are packed: [P, 3] as they come
+        alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
         columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
         ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], n_rest
-        return rgb, alpha.reshape(H, W, K)
+        return rgb, alpha.reshape(P)
 
     def forward(self, ctx, fa, *rest):
         d = self.view.device
@@ -292,21 +290,21 @@ class ShadeFragments(Function):
 
     def backward(self, ctx, v_rgb, v_alpha):
         d, fr = self.view.device, self.view.frags
-        H, W, K = fr.shape
+        P = fr.P
         comp, L = ctx.comp, self.layout
-        v_rgb = _as_device(d, v_rgb, (H, W, K, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(d, ctx.inp, comp.pack(v_rgb, 0, 3))
-        v_fa = cla.empty(d.queue, (H, W, K, ctx.C), fr.real, allocator=d.allocator)
+        v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
+        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(d, ctx.inp, v_rgb)
+        v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
                 comp.unpack(g, v_fa, L[key][0])
-        v_alpha = _as_device(d, v_alpha, (H, W, K), fr.real)
-        columns.copy_columns(d, fr, v_alpha.reshape(H, W, K, 1), 0, v_fa, L["alpha"][0], 1)
+        v_alpha = _as_device(d, v_alpha, (P,), fr.real)
+        columns.copy_columns(d, fr, v_alpha.reshape(P, 1), 0, v_fa, L["alpha"][0], 1)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
 
 class TracedShadeFragments(ShadeFragments):
-    """``(frag_attr [H, W, K, C], attr [N, C][, light_params]) → (rgb [H, W, K, 3], alpha [H, W, K])``:
+    """``(frag_attr [P, C], attr [N, C][, light_params]) → (rgb [P, 3], alpha [P])``:
     :class:`ShadeFragments` plus ray-traced shadows and one reflection bounce (``ops/trace.py``).
 
     * shadows: per shaded fragment and point/directional light, ``T = Π(1 − α)`` over the triplets
@@ -325,13 +323,13 @@ class TracedShadeFragments(ShadeFragments):
     def forward(self, ctx, fa, attr, *rest):
         v, s = self.view, self.view.settings
         d, fr = v.device, v.frags
-        H, W, K = fr.shape
+        P = fr.P
         comp = columns.Compaction(d, fr)
         L = self.layout
         blk = self._blocks(comp, fa)
         face_c = trace_op.pack_faces(d, fr, comp.offsets, comp.P)
         # rays only for fragments that composite with weight (t_min cut-off, as Composite)
-        win_c = comp.pack(v.win.reshape(H, W, K, 1), 0, 1) if v.win is not None else None
+        win_c = comp.pack(v.win.reshape(P, 1), 0, 1) if v.win is not None else None
         face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), win_c, s.t_min) \
             if s.t_min > 0 else face_c
         inp = self._prepare(blk, face_c, rest[0] if rest else None)
@@ -365,11 +363,11 @@ class TracedShadeFragments(ShadeFragments):
     def backward(self, ctx, v_rgb, v_alpha):
         v, s = self.view, self.view.settings
         d, fr = v.device, v.frags
-        H, W, K = fr.shape
+        P = fr.P
         comp, L, inp = ctx.comp, self.layout, ctx.inp
-        v_rgb = _as_device(d, v_rgb, (H, W, K, 3), fr.real)
+        v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
         v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, _ = shade_op.backward_full(d, inp,
-                                                                                       comp.pack(v_rgb, 0, 3))
+                                                                                       v_rgb)
         v_attr = np.zeros((ctx.N, ctx.C))
         if ctx.shadow is not None:
             v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
@@ -397,12 +395,12 @@ class TracedShadeFragments(ShadeFragments):
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV
-        v_fa = cla.empty(d.queue, (H, W, K, ctx.C), fr.real, allocator=d.allocator)
+        v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
                 comp.unpack(gk, v_fa, L[key][0])
-        v_alpha = _as_device(d, v_alpha, (H, W, K), fr.real)
-        columns.copy_columns(d, fr, v_alpha.reshape(H, W, K, 1), 0, v_fa, L["alpha"][0], 1)
+        v_alpha = _as_device(d, v_alpha, (P,), fr.real)
+        columns.copy_columns(d, fr, v_alpha.reshape(P, 1), 0, v_fa, L["alpha"][0], 1)
         out = (v_fa, v_attr.astype(s.real))
         return out + ((v_params.astype(s.real),) if ctx.n_rest else ())
 
@@ -422,7 +420,7 @@ def _as_device(d: Device, x, shape, real) -> cla.Array:
 
 
 class Composite(Function):
-    """``(rgb [H, W, K, 3], alpha [H, W, K][, win [H, W, K]]) → (image [H, W, 3], acc [H, W])``."""
+    """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])``."""
 
     def __init__(self, view: View):
         self.view = view
@@ -430,7 +428,7 @@ class Composite(Function):
     def forward(self, ctx, rgb, alpha, win=None):
         v = self.view
         fr = v.frags
-        a = alpha.reshape(fr.shape)
+        a = alpha.reshape(fr.P)
         img, trans, ncon = composite(v.device, fr, rgb, a, np.asarray(v.settings.background, np.float64), win=win,
                                      t_min=v.settings.t_min)
         ctx.save(rgb, a, win, trans, ncon)

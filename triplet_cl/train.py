@@ -33,7 +33,6 @@ from .device import Device, get_device
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 from .losses import photometric_loss_and_grad, ssim
-from .ops.raster import valid_faces
 from .optim import Adam, Constant, ExponentialDecay, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
@@ -362,7 +361,7 @@ class Trainer:
             fr = r.view.frags
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
-            self.stats.add(r.view.v_vs.get(), visible_faces(valid_faces(fr), len(self.scene.F)), self.scene.F,
+            self.stats.add(r.view.v_vs.get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
                            vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
                            grad_scale=0.5 * cam.width)
         self.opt.step()

@@ -103,19 +103,17 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
     mesh = DeviceMesh(d, F, n)
     vs = project(d, V, camera)
     fr = rasterize(d, vs, mesh, W, H, K, camera.near, camera.far, False, sigma=sigma)
-    a = interpolate(d, alpha, fr).reshape(H, W, K)
+    a = interpolate(d, alpha, fr).reshape(fr.P)
     win = None if sigma is None else coverage(d, fr, sigma)
-    feat = fr.depth.reshape(H, W, K, 1)
+    feat = fr.depth.reshape(fr.P, 1)
     img, trans, _ = composite(d, fr, feat, a, np.zeros(1), win=win, t_min=1e-4)
     acc = 1.0 - trans.get().astype(np.float64)
     depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
     if mode == "median":
-        valid = np.arange(K)[None, None, :] < fr.count.get()[..., None]  # slots beyond the count are undefined
-        with np.errstate(invalid="ignore", over="ignore"):
-            af = np.where(valid, a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)
+        af = fr.to_hwk(a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)  # 0 in empty slots
         reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= 0.5
         first = np.argmax(reached, axis=2)
-        med = np.take_along_axis(fr.depth.get(), first[..., None], axis=2)[..., 0]
+        med = np.take_along_axis(fr.to_hwk(fr.depth), first[..., None], axis=2)[..., 0]
         depth = np.where(reached.any(axis=2), med, depth)
     return depth.astype(np.float32), acc.astype(np.float32)
 

@@ -12,47 +12,40 @@ from .raster import Fragments
 
 def copy_columns(device: Device, frags: Fragments, src: cla.Array | None, cs0: int, dst: cla.Array, cd0: int,
                  n: int, accumulate: bool = False) -> None:
-    """``dst[..., cd0:cd0+n] (+)= src[..., cs0:cs0+n]`` over the valid fragment slots (zeros when
-    ``src`` is None). Both arrays are ``[H, W, K, C]`` device arrays of the fragments' dtype."""
-    H, W, K = frags.shape
+    """``dst[:, cd0:cd0+n] (+)= src[:, cs0:cs0+n]`` over the fragments (zeros when ``src`` is None).
+    Both arrays are ``[P, C]`` device arrays of the fragments' dtype (``P = frags.P``)."""
+    P = frags.P
     Cd = dst.shape[-1]
     Cs = src.shape[-1] if src is not None else 1
-    if dst.shape[:3] != (H, W, K) or (src is not None and src.shape[:3] != (H, W, K)):
-        raise ValueError("copy_columns: arrays must be [H, W, K, C] of the fragments")
+    if dst.shape[0] != P or dst.ndim != 2 or (src is not None and (src.shape[0] != P or src.ndim != 2)):
+        raise ValueError(f"copy_columns: arrays must be [P, C] with P = {P} fragments, got "
+                         f"{list(dst.shape)} and {None if src is None else list(src.shape)}")
     if cd0 + n > Cd or (src is not None and cs0 + n > Cs):
         raise ValueError("copy_columns: channel range out of bounds")
+    if P == 0 or n == 0:
+        return
     device.kernel("columns", "copy_columns", real=frags.real)(
-        device.queue, (H * W,), None, buf(src, device.queue), np.int32(Cs), np.int32(cs0), dst.data, np.int32(Cd),
-        np.int32(cd0), np.int32(n), frags.count.data, np.int32(H * W), np.int32(K), np.int32(src is not None),
-        np.int32(bool(accumulate)))
+        device.queue, (P,), None, buf(src, device.queue), np.int32(Cs), np.int32(cs0), buf(dst, device.queue),
+        np.int32(Cd), np.int32(cd0), np.int32(n), np.int32(P), np.int32(src is not None), np.int32(bool(accumulate)))
 
 
 class Compaction:
-    """The valid fragment slots of a view as a dense list: ``pack`` / ``unpack`` between
-    ``[H, W, K, C]`` (slots beyond a pixel's count ignored) and ``[Pv, n]``, ``Pv`` = Σ counts."""
+    """Channel blocks of a view's per-fragment arrays as their own dense arrays: ``pack`` /
+    ``unpack`` between ``[P, C]`` and ``[P, n]`` (``P = frags.P``; the fragments are packed
+    already, so this moves columns only). ``offsets`` is the fragments' ``off``."""
 
     def __init__(self, device: Device, frags: Fragments):
-        from .raster import _offsets
-
         self.device, self.frags = device, frags
-        self.offsets, self.P = _offsets(device, frags.count.reshape(-1))
+        self.offsets, self.P = frags.off, frags.P
 
     def pack(self, x: cla.Array, c0: int, n: int) -> cla.Array:
-        """``x[..., c0:c0+n]`` of the valid slots → ``[Pv, n]``."""
+        """``x[:, c0:c0+n]`` → a new ``[P, n]`` array."""
         d, fr = self.device, self.frags
-        H, W, K = fr.shape
-        out = cla.empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)
-        d.kernel("columns", "pack_rows", real=fr.real)(
-            d.queue, (H * W,), None, x.data, np.int32(x.shape[-1]), np.int32(c0), np.int32(n), self.offsets.data,
-            fr.count.data, np.int32(H * W), np.int32(K), out.data)
-        return out[: self.P] if self.P else out[:0]
+        out = cla.empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)[: self.P]
+        copy_columns(d, fr, x.reshape(self.P, -1), c0, out, 0, n)
+        return out
 
     def unpack(self, src: cla.Array, dst: cla.Array, c0: int) -> None:
-        """Write ``src [Pv, n]`` into ``dst[..., c0:c0+n]`` at the valid slots."""
-        d, fr = self.device, self.frags
-        H, W, K = fr.shape
-        if self.P == 0:
-            return
-        d.kernel("columns", "unpack_rows", real=fr.real)(
-            d.queue, (H * W,), None, src.data, np.int32(src.shape[-1]), self.offsets.data, fr.count.data,
-            np.int32(H * W), np.int32(K), dst.data, np.int32(dst.shape[-1]), np.int32(c0))
+        """Write ``src [P, n]`` into ``dst[:, c0:c0+n]``."""
+        copy_columns(self.device, self.frags, src.reshape(self.P, -1), 0, dst.reshape(self.P, -1), c0,
+                     src.shape[-1] if src.ndim > 1 else 1)

@@ -9,7 +9,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .common import buf, check_real, fragment_array
-from .raster import Fragments
+from .raster import Fragments, frag_input
 
 
 def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
@@ -19,7 +19,7 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
         frags: the fragments of the view; ``sigma`` > 0 the sharpness in 1/pixels (σ → ∞: hard edge).
 
     Returns:
-        ``win [H, W, K]`` device array (slots beyond ``frags.count`` undefined). Its adjoint is part of
+        ``win [P]`` device array (per fragment, packed order). Its adjoint is part of
         :func:`~triplet_cl.ops.raster.raster_backward` (``v_win``, ``sigma``).
     """
     if not (isinstance(sigma, int | float) and math.isfinite(sigma) and sigma > 0):
@@ -30,10 +30,11 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
         raise ValueError("fragments rasterized with soft_edges carry their window only for the sigma given to "
                          f"rasterize ({frags.sigma}); got sigma={sigma}")
     H, W, K = frags.shape
-    win = cla.empty(device.queue, (H, W, K), frags.real, allocator=device.allocator)
+    q = device.queue
+    win = cla.empty(q, max(frags.P, 1), frags.real, allocator=device.allocator)[: frags.P]
     device.kernel("coverage", "coverage_fwd", real=frags.real)(
-        device.queue, (H * W,), None, frags.vs.data, frags.mesh.F.data, frags.face.data, frags.count.data,
-        np.int32(W), np.int32(H), np.int32(K), frags.real.type(sigma), win.data)
+        q, (H * W,), None, frags.vs.data, frags.mesh.F.data, buf(frags.face, q), frags.count.data,
+        np.int32(W), np.int32(H), frags.off.data, frags.real.type(sigma), buf(win, q))
     return win
 
 
@@ -45,11 +46,11 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     """Front-to-back alpha blending of the K fragments of each pixel over a background.
 
     Args:
-        feat: ``[H, W, K, C]`` per-fragment features (colour, and e.g. depth / normal channels).
-            Only the first ``frags.count`` slots of each pixel are read (the others may hold anything).
-        alpha: ``[H, W, K]`` per-fragment opacity in [0, 1].
+        feat: ``[P, C]`` per-fragment features (colour, and e.g. depth / normal channels), in the
+            fragments' packed order (numpy also as the padded ``[H, W, K, C]`` view).
+        alpha: ``[P]`` per-fragment opacity in [0, 1].
         bg: ``[C]`` background (use 0 for channels such as depth).
-        win: optional ``[H, W, K]`` coverage window multiplying ``alpha``.
+        win: optional ``[P]`` coverage window multiplying ``alpha``.
         t_min: compositing stops once the transmittance drops below it (0 disables).
 
     Returns:
@@ -58,14 +59,14 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     """
     H, W, K = frags.shape
     real = frags.real
-    if not hasattr(feat, "shape") or len(feat.shape) != 4:
-        raise ValueError(f"feat must have shape [{H}, {W}, {K}, C], got {list(getattr(feat, 'shape', []))}")
-    C = int(feat.shape[3])
+    if not hasattr(feat, "shape") or len(feat.shape) not in (2, 4):
+        raise ValueError(f"feat must have shape [P, C] (P = {frags.P}), got {list(getattr(feat, 'shape', []))}")
+    C = int(feat.shape[-1])
     if not 1 <= C <= 64:
         raise ValueError(f"feat must have between 1 and 64 channels, got {C}")
-    f = fragment_array(device.queue, "feat", feat, (H, W, K, C), real)
-    a = fragment_array(device.queue, "alpha", alpha, (H, W, K), real)
-    w = None if win is None else fragment_array(device.queue, "win", win, (H, W, K), real)
+    f = frag_input(device, frags, "feat", feat, C)
+    a = frag_input(device, frags, "alpha", alpha)
+    w = frag_input(device, frags, "win", win)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,)) if np.ndim(bg) <= 1 else None
     if b is None:
         raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
@@ -78,7 +79,7 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     trans = cla.empty(q, (H, W), real, allocator=alloc)
     ncon = cla.empty(q, (H, W), np.int32, allocator=alloc)
     device.kernel("composite", "composite_fwd", {"C_MAX": _c_max(C)}, real)(
-        q, (npix,), None, f.data, a.data, buf(w, q), frags.count.data, bgd.data, np.int32(npix), np.int32(K),
+        q, (npix,), None, buf(f, q), buf(a, q), buf(w, q), frags.count.data, bgd.data, np.int32(npix), frags.off.data,
         np.int32(C), np.int32(w is not None), real.type(t_min), out.data, trans.data, ncon.data)
     return out, trans, ncon
 
@@ -94,26 +95,27 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
         bg_grad: also return the background's adjoint (a host reduction over the image).
 
     Returns:
-        ``(v_feat [H, W, K, C], v_alpha [H, W, K], v_win [H, W, K] or None, v_bg [C] numpy or None)``.
+        ``(v_feat [P, C], v_alpha [P], v_win [P] or None, v_bg [C] numpy or None)``.
     """
     H, W, K = frags.shape
     real = frags.real
-    C = int(feat.shape[3])
-    f = fragment_array(device.queue, "feat", feat, (H, W, K, C), real)
-    a = fragment_array(device.queue, "alpha", alpha, (H, W, K), real)
-    w = None if win is None else fragment_array(device.queue, "win", win, (H, W, K), real)
+    C = int(feat.shape[-1])
+    f = frag_input(device, frags, "feat", feat, C)
+    a = frag_input(device, frags, "alpha", alpha)
+    w = frag_input(device, frags, "win", win)
     g = fragment_array(device.queue, "v_image", v_image, (H, W, C), real)
     va = None if v_acc is None else fragment_array(device.queue, "v_acc", v_acc, (H, W), real)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,))
     bgd = cla.to_device(device.queue, b.astype(real))
     q, alloc = device.queue, device.allocator
-    v_feat = cla.empty(q, (H, W, K, C), real, allocator=alloc)
-    v_alpha = cla.empty(q, (H, W, K), real, allocator=alloc)
-    v_win = cla.empty(q, (H, W, K), real, allocator=alloc) if w is not None else None
+    P = frags.P
+    v_feat = cla.empty(q, (max(P, 1), C), real, allocator=alloc)[:P]
+    v_alpha = cla.empty(q, max(P, 1), real, allocator=alloc)[:P]
+    v_win = cla.empty(q, max(P, 1), real, allocator=alloc)[:P] if w is not None else None
     device.kernel("composite", "composite_bwd", {"C_MAX": _c_max(C)}, real)(
-        q, (H * W,), None, f.data, a.data, buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data, buf(va, q),
-        np.int32(H * W), np.int32(K), np.int32(C), np.int32(w is not None), np.int32(va is not None),
-        v_feat.data, v_alpha.data, buf(v_win, q))
+        q, (H * W,), None, buf(f, q), buf(a, q), buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data,
+        buf(va, q), np.int32(H * W), frags.off.data, np.int32(C), np.int32(w is not None), np.int32(va is not None),
+        buf(v_feat, q), buf(v_alpha, q), buf(v_win, q))
     # v_bg_c = sum over pixels of v_image_c * T_n  (small host reduction, only when asked)
     v_bg = None
     if bg_grad:

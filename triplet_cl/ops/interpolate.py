@@ -6,7 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import check_real, to_device
+from .common import buf, check_real, to_device
 from .raster import TILE, Fragments, fragments_backward
 
 
@@ -29,18 +29,16 @@ def interpolate(device: Device, attr, frags: Fragments) -> cla.Array:
         frags: the :class:`~triplet_cl.ops.raster.Fragments` of the view.
 
     Returns:
-        ``[H, W, K, C]`` device array. Like every per-fragment array, only the first
-        ``frags.count[y, x]`` slots of a pixel are defined (the others are never read).
+        ``[P, C]`` device array, in the fragments' packed order (:class:`~triplet_cl.ops.raster.Fragments`).
     """
     a = _attr(device, attr, frags)
-    H, W, K = frags.shape
-    C = a.shape[1]
-    out = cla.empty(device.queue, (H, W, K, max(C, 1)), frags.real, allocator=device.allocator)
-    if C:
+    C, P = a.shape[1], frags.P
+    out = cla.empty(device.queue, (max(P, 1), max(C, 1)), frags.real, allocator=device.allocator)[:P]
+    if C and P:
         device.kernel("interpolate", "interpolate_fwd", {"TILE": TILE}, frags.real)(
-            device.queue, (H * W,), None, a.data, frags.mesh.F.data, frags.face.data, frags.bary.data,
-            frags.count.data, np.int32(H * W), np.int32(K), np.int32(C), out.data)
-    return out[..., :C] if C != out.shape[3] else out
+            device.queue, (P,), None, a.data, frags.mesh.F.data, buf(frags.face, device.queue),
+            buf(frags.bary, device.queue), np.int32(P), np.int32(C), buf(out, device.queue))
+    return out[:, :C] if C != out.shape[1] else out
 
 
 def interpolate_backward(device: Device, attr, frags: Fragments, v_out, v_bary_acc=None):
@@ -48,12 +46,12 @@ def interpolate_backward(device: Device, attr, frags: Fragments, v_out, v_bary_a
 
     Args:
         attr: ``[N, C]`` the attributes of the forward pass.
-        v_out: ``[H, W, K, C]`` adjoint of the interpolated attributes.
-        v_bary_acc: optional ``[H, W, K, 2]`` barycentric adjoint of other interpolations of the
+        v_out: ``[P, C]`` adjoint of the interpolated attributes.
+        v_bary_acc: optional ``[P, 2]`` barycentric adjoint of other interpolations of the
             view, added to this one's.
 
     Returns:
-        ``(v_attr [N, C], v_bary [H, W, K, 2])`` device arrays; pass ``v_bary`` to
+        ``(v_attr [N, C], v_bary [P, 2])`` device arrays; pass ``v_bary`` to
         :func:`~triplet_cl.ops.raster.raster_backward`. (A renderer that packs its attributes
         into one array calls :func:`~triplet_cl.ops.raster.fragments_backward` once instead.)
     """

@@ -118,18 +118,20 @@ def project_backward(device: Device, V, camera: Camera, v_vs, pose_grad: bool = 
 
 @dataclass
 class Fragments:
-    """The K nearest fragments of every pixel, plus the binning the adjoint needs.
+    """The K nearest fragments of every pixel, packed, plus the binning the adjoint needs.
 
-    Device arrays (``H, W`` image size, ``K`` slots, nearest first; ``E`` (tile, face) entries):
-        face ``[H, W, K] int32``, bary ``[H, W, K, 2]`` perspective-correct
-        (λ0, λ1; λ2 = 1 − λ0 − λ1), depth ``[H, W, K]`` camera-space depth, count ``[H, W] int32``;
-        entry ``[H, W, K] int32`` (the (tile, face) entry of the fragment), tile_off ``[T+1]``,
-        face_off ``[M+1]``, face_entries ``[E]``, entry_setup ``[E, SETUP]`` (from :class:`Binning`).
+    Packed layout: pixel ``p = y * W + x`` has ``count[y, x]`` (≤ K) fragments, nearest first, at
+    rows ``off[p] : off[p] + count[y, x]`` of every per-fragment array (``off`` the exclusive prefix
+    sum of ``count``; ``P = off[H * W]`` fragments in all). Device arrays:
+        face ``[P] int32``, bary ``[P, 2]`` perspective-correct (λ0, λ1; λ2 = 1 − λ0 − λ1),
+        depth ``[P]`` camera-space depth, entry ``[P] int32`` (the (tile, face) entry of the
+        fragment), count ``[H, W] int32``, off ``[H*W + 1] int32``; the binning: tile_off ``[T+1]``,
+        face_off ``[M+1]``, face_entries ``[E]``, entry_setup ``[E, SETUP]``, entry_face ``[E]``.
 
-    These, and every per-fragment array derived from them (interpolated attributes, windows, shaded
-    colours, adjoints), are defined only in the first ``count[y, x]`` slots of a pixel
-    (:func:`read_fragments` / :func:`valid_faces` give host copies with −1 in the empty slots): kernels never read or
-    write the others, so their cost follows the fragments, not K.
+    Every per-fragment array derived from them (interpolated attributes, windows, shaded colours,
+    adjoints) is ``[P]`` or ``[P, C]`` in the same order. :meth:`to_hwk` / :meth:`from_hwk` convert
+    host arrays to and from the padded ``[H, W, K, ...]`` view (tests, tools); :func:`read_fragments`
+    gives host copies of the fragments in that view.
     """
 
     width: int
@@ -149,11 +151,13 @@ class Fragments:
     face_entries: cla.Array
     vs: cla.Array
     mesh: DeviceMesh
-    win: cla.Array | None = None  # [H, W, K] coverage window when rasterized with a sigma
+    win: cla.Array | None = None  # [P] coverage window when rasterized with a sigma
     sigma: float | None = None
     entry_setup: cla.Array | None = None  # [E, SETUP] edge-function set-up of each entry (Binning)
     entry_face: cla.Array | None = None  # [E] face of each entry (Binning)
     soft_edges: bool = False  # the window covers only some edges (rasterize(soft_edges=...))
+    off: cla.Array | None = None  # [H*W + 1] first row of each pixel's fragments
+    P: int = 0  # number of fragments
 
     @property
     def num_tiles(self) -> int:
@@ -161,7 +165,54 @@ class Fragments:
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """``(H, W, K)``: the image and the most fragments a pixel may have."""
         return (self.height, self.width, self.K)
+
+    def fshape(self, C: int | None = None) -> tuple[int, ...]:
+        """Shape of a per-fragment array: ``(P,)`` or ``(P, C)``."""
+        return (self.P,) if C is None else (self.P, C)
+
+    def _slots(self) -> tuple[np.ndarray, np.ndarray]:
+        """Host index arrays: the padded slot ``(pixel * K + k)`` of every packed row, and validity."""
+        count = self.count.get().reshape(-1).astype(np.int64)
+        starts = np.repeat(np.cumsum(count) - count, count)
+        pix = np.repeat(np.arange(count.size), count)
+        slot = pix * self.K + (np.arange(self.P) - starts)
+        return slot, count
+
+    def to_hwk(self, x, fill=0) -> np.ndarray:
+        """Host ``[P, ...]`` per-fragment values → ``[H, W, K, ...]`` (``fill`` in the empty slots)."""
+        x = x.get() if isinstance(x, cla.Array) else np.asarray(x)
+        if x.shape[0] != self.P:
+            raise ValueError(f"expected a per-fragment array with {self.P} rows, got {list(x.shape)}")
+        slot, _ = self._slots()
+        out = np.full((self.height * self.width * self.K,) + x.shape[1:], fill, dtype=x.dtype)
+        out[slot] = x
+        return out.reshape((self.height, self.width, self.K) + x.shape[1:])
+
+    def from_hwk(self, x) -> np.ndarray:
+        """Host ``[H, W, K, ...]`` padded values → ``[P, ...]`` (the valid slots, packed)."""
+        x = np.asarray(x)
+        if x.shape[:3] != self.shape:
+            raise ValueError(f"expected an array of shape [{self.height}, {self.width}, {self.K}, ...], "
+                             f"got {list(x.shape)}")
+        slot, _ = self._slots()
+        return np.ascontiguousarray(x.reshape((-1,) + x.shape[3:])[slot])
+
+
+def frag_input(device: Device, frags: Fragments, name: str, a, C: int | None = None, real=None) -> cla.Array | None:
+    """A per-fragment input on the device: ``[P]`` / ``[P, C]`` (device or numpy), or a numpy array in the
+    padded ``[H, W, K(, C)]`` view (packed here). ``None`` passes through. Shape and dtype are checked,
+    values are not (a padded array may hold anything in its empty slots)."""
+    if a is None:
+        return None
+    real = frags.real if real is None else np.dtype(real)
+    shape = frags.fshape(C)
+    if not isinstance(a, cla.Array):
+        arr = np.asarray(a)
+        if arr.ndim == len(shape) + 2 and arr.shape[:3] == frags.shape:
+            a = frags.from_hwk(arr)
+    return fragment_array(device.queue, name, a, shape, real)
 
 
 def _scan_kernel(device: Device) -> InclusiveScanKernel:
@@ -321,12 +372,10 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
     tiles_x, tiles_y = b.tiles_x, b.tiles_y
 
-    face = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
-    entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
-    bary = cla.empty(q, (height, width, K, 2), real, allocator=alloc)
-    depth = cla.empty(q, (height, width, K), real, allocator=alloc)
+    # the kernels write each pixel's list (entry, depth) into K-strided scratch; then it is packed
+    s_entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
+    s_depth = cla.empty(q, (height, width, K), real, allocator=alloc)
     count = cla.empty(q, (height, width), np.int32, allocator=alloc)
-    win = cla.empty(q, (height, width, K), real, allocator=alloc) if sigma else None
     if variant == "rows16":
         kern, gsize, lsize = "raster_fwd_rows16", (tiles_x, tiles_y * TILE // 2), (1, ROWS16_LOCAL)
     elif variant == "rows":
@@ -336,10 +385,42 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     device.kernel("raster", kern, {"TILE": TILE, "K_MAX": K}, real)(
         q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
-        real.type(sigma or 0.0), face.data, entry.data, bary.data, depth.data, count.data, buf(win, q))
+        s_entry.data, s_depth.data, count.data)
+    off, P = _offsets(device, count.reshape(-1))
+    n = max(P, 1)
+    face, entry = cla.empty(q, n, np.int32, allocator=alloc), cla.empty(q, n, np.int32, allocator=alloc)
+    bary, depth = cla.empty(q, (n, 2), real, allocator=alloc), cla.empty(q, n, real, allocator=alloc)
+    win = cla.empty(q, n, real, allocator=alloc) if sigma else None
+    if P:
+        device.kernel("raster", "pack_raster_fragments", {"TILE": TILE}, real)(
+            q, (npx,), None, np.int32(width), np.int32(height), np.int32(K), real.type(sigma or 0.0), count.data,
+            off.data, s_entry.data, s_depth.data, b.entry_face.data, b.entry_setup.data, face.data, entry.data,
+            bary.data, depth.data, buf(win, q))
+    face, entry, bary, depth = face[:P], entry[:P], bary[:P], depth[:P]
+    win = win[:P] if win is not None else None
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
                      b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
-                     soft_edges is not None)
+                     soft_edges is not None, off, P)
+
+
+def pack_fragment_lists(device: Device, count: cla.Array, K: int, face, entry, bary, depth, win=None):
+    """Pack K-strided per-pixel lists (``[H, W, K(, 2)]``, the first ``count`` slots valid) into the
+    :class:`Fragments` layout. Returns ``(off [H*W+1], P, face [P], entry [P], bary [P, 2], depth [P],
+    win [P] or None)``."""
+    q, alloc, real = device.queue, device.allocator, np.dtype(bary.dtype)
+    npix = int(np.prod(count.shape))
+    off, P = _offsets(device, count.reshape(-1))
+    n = max(P, 1)
+    out = (cla.empty(q, n, np.int32, allocator=alloc), cla.empty(q, n, np.int32, allocator=alloc),
+           cla.empty(q, (n, 2), real, allocator=alloc), cla.empty(q, n, real, allocator=alloc),
+           cla.empty(q, n, real, allocator=alloc) if win is not None else None)
+    if P:
+        device.kernel("raster", "pack_fragments", {"TILE": TILE}, real)(
+            q, (npix,), None, np.int32(npix), np.int32(K), count.data, off.data, face.data, entry.data, bary.data,
+            depth.data, buf(win, q), np.int32(win is not None), out[0].data, out[1].data, out[2].data, out[3].data,
+            buf(out[4], q))
+    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
+    return off, P, face, entry, bary, depth, win
 
 
 def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
@@ -364,16 +445,17 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     Args:
         frags: the :class:`Fragments` of the forward pass.
         attr: ``[N, C]`` per-vertex attributes that were interpolated, with ``v_attr_frag``
-            ``[H, W, K, C]`` the adjoint of the interpolated values (or both None).
-        v_bary: ``[H, W, K, 2]`` extra adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
-        v_depth: ``[H, W, K]`` adjoint of the fragment depth, or None.
-        v_win: ``[H, W, K]`` adjoint of the coverage window (``sigma`` its sharpness), or None.
+            ``[P, C]`` the adjoint of the interpolated values (or both None).
+        v_bary: ``[P, 2]`` extra adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
+        v_depth: ``[P]`` adjoint of the fragment depth, or None.
+        v_win: ``[P]`` adjoint of the coverage window (``sigma`` its sharpness), or None.
+        (Numpy inputs may also come in the padded ``[H, W, K, ...]`` view: :meth:`Fragments.from_hwk`.)
         geometry: carry the barycentric/depth/window adjoints on to the projected vertices;
             when False they are returned per fragment instead.
 
     Returns:
         ``geometry=True``: ``(v_attr [N, C] or None, v_vs [N, 3], v_sigma float)``;
-        ``geometry=False``: ``(v_attr [N, C] or None, v_bary [H, W, K, 2])``. Device arrays.
+        ``geometry=False``: ``(v_attr [N, C] or None, v_bary [P, 2])``. Device arrays.
     """
     H, W, K = frags.shape
     real = frags.real
@@ -393,24 +475,24 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         C = a.shape[1]
         if v_attr_frag is None:
             raise ValueError("v_attr_frag is required with attr")
-        g = fragment_array(device.queue, "v_attr_frag", v_attr_frag, (H, W, K, C), real)
-    vb = fragment_array(device.queue, "v_bary", v_bary, (H, W, K, 2), real)
-    vd = fragment_array(device.queue, "v_depth", v_depth, (H, W, K), real)
-    vw = fragment_array(device.queue, "v_win", v_win, (H, W, K), real)
+        g = frag_input(device, frags, "v_attr_frag", v_attr_frag, C)
+    vb = frag_input(device, frags, "v_bary", v_bary, 2)
+    vd = frag_input(device, frags, "v_depth", v_depth)
+    vw = frag_input(device, frags, "v_win", v_win)
     T, E = frags.num_tiles, frags.num_entries
     if geometry and (frags.entry_setup is None or frags.entry_face is None):
         raise ValueError("the fragments carry no entry_setup/entry_face (Binning); the geometric adjoint needs them")
     p_attr = cla.empty(q, (max(E, 1), 3, max(C, 1)), real, allocator=alloc) if C else None
     p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc) if geometry else None
     v_sig_tile = cla.empty(q, T, real, allocator=alloc) if geometry else None
-    v_bary_out = None if geometry else cla.empty(q, (H, W, K, 2), real, allocator=alloc)
+    v_bary_out = None if geometry else cla.empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
     device.kernel("fragment_bwd", "fragment_bwd", {"TILE": TILE}, real)(
-        q, (T,), (1,), buf(frags.entry_setup, q), frags.mesh.F.data, frags.tile_off.data, frags.face.data,
-        frags.entry.data, frags.bary.data, frags.depth.data, frags.count.data, buf(a, q), buf(g, q), buf(vb, q),
+        q, (T,), (1,), buf(frags.entry_setup, q), frags.mesh.F.data, frags.tile_off.data, buf(frags.face, q),
+        buf(frags.entry, q), buf(frags.bary, q), buf(frags.depth, q), frags.count.data, buf(a, q), buf(g, q), buf(vb, q),
         buf(vd, q), buf(vw, q),
         np.int32(C), np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None),
         np.int32(bool(geometry)), real.type(sigma), np.int32(W), np.int32(H), np.int32(frags.tiles_x),
-        np.int32(T), np.int32(K), buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
+        np.int32(T), frags.off.data, buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
     p_geom = None
     if geometry:
         p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
@@ -432,9 +514,9 @@ def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None,
 
     Args:
         frags: the :class:`Fragments` of the forward pass.
-        v_bary: ``[H, W, K, 2]`` adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
-        v_depth: ``[H, W, K]`` adjoint of the fragment depth, or None.
-        v_win: ``[H, W, K]`` adjoint of the coverage window, or None; ``sigma`` its sharpness.
+        v_bary: ``[P, 2]`` adjoint of (λ0, λ1) (λ2 = 1 − λ0 − λ1), or None.
+        v_depth: ``[P]`` adjoint of the fragment depth, or None.
+        v_win: ``[P]`` adjoint of the coverage window, or None; ``sigma`` its sharpness.
 
     Returns:
         ``(v_vs [N, 3] device array, v_sigma float)``. :func:`fragments_backward` does this and the
@@ -446,27 +528,18 @@ def raster_backward(device: Device, frags: Fragments, v_bary=None, v_depth=None,
 
 
 def read_fragments(frags: Fragments) -> dict[str, np.ndarray]:
-    """Host copies of the fragment buffers (tests, debugging, tools), with the slots beyond each
-    pixel's count (never written on the device) set to face/entry −1 and zero barycentrics/depth."""
-    count = frags.count.get()
-    empty = np.arange(frags.K)[None, None, :] >= count[..., None]
-    out = {"face": frags.face.get(), "bary": frags.bary.get(), "depth": frags.depth.get(), "count": count,
-           "entry": frags.entry.get()}
-    out["face"][empty] = -1
-    out["entry"][empty] = -1
-    out["bary"][empty] = 0
-    out["depth"][empty] = 0
+    """Host copies of the fragments in the padded ``[H, W, K, ...]`` view (tests, debugging, tools):
+    face/entry −1 and zero barycentrics/depth in the empty slots; ``count [H, W]``."""
+    out = {"face": frags.to_hwk(frags.face, -1), "bary": frags.to_hwk(frags.bary, 0),
+           "depth": frags.to_hwk(frags.depth, 0), "entry": frags.to_hwk(frags.entry, -1), "count": frags.count.get()}
     return out
 
 
 def valid_faces(frags: Fragments) -> np.ndarray:
     """``[H, W, K] int32`` face ids on the host, −1 beyond each pixel's count."""
-    count = frags.count.get()
-    face = frags.face.get()
-    face[np.arange(frags.K)[None, None, :] >= count[..., None]] = -1
-    return face
+    return frags.to_hwk(frags.face, -1)
 
 
-__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "check_soft_edges", "fragments_backward",
+__all__ = ["Binning", "Fragments", "frag_input", "pack_fragment_lists", "TILE", "bin_faces", "camera_params", "check_soft_edges", "fragments_backward",
            "gather_to_vertices", "project", "project_backward", "rasterize", "raster_backward", "read_fragments",
            "valid_faces"]

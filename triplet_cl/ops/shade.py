@@ -1,6 +1,6 @@
 """Physically based shading of fragments under a packed light table (``kernels_cl/shade.cl``).
 
-The op works on a flat list of ``P`` fragments (the rasterizer's ``[H, W, K]`` flattened), with
+The op works on a flat list of ``P`` fragments (the rasterizer's packed fragments), with
 per-fragment attributes already interpolated by the rasterizer and materials already activated
 by the parameter model:
 

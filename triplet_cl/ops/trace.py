@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from ..camera import Camera
@@ -28,7 +29,7 @@ from ..device import Device
 from ..lights import LightTable
 from .bvh import BVH
 from .common import check_real, round_up, to_device
-from .raster import TILE, Fragments, _offsets, bin_faces, camera_params
+from .raster import TILE, Fragments, _offsets, bin_faces, camera_params, pack_fragment_lists
 
 LOCAL = 64
 SHADOWED_TYPES = (1, 2)  # LIGHT_DIRECTIONAL, LIGHT_POINT (shade_brdf.h)
@@ -75,9 +76,10 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
         real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(W), np.int32(H), np.int32(binning.tiles_x),
         np.int32(K), real.type(camera.far), binning.tile_off.data, binning.face_off.data,
         binning.face_entries.data, face.data, entry.data, bary.data, depth.data, count.data)
+    off, P, face, entry, bary, depth, _ = pack_fragment_lists(device, count, K, face, entry, bary, depth)
     return Fragments(W, H, K, binning.tiles_x, binning.tiles_y, binning.num_entries, np.dtype(real), face, entry,
                      bary, depth, count, binning.tile_off, binning.face_off, binning.face_entries, vs, mesh,
-                     entry_setup=binning.entry_setup, entry_face=binning.entry_face)
+                     entry_setup=binning.entry_setup, entry_face=binning.entry_face, off=off, P=P)
 
 
 def num_shadowed_lights(table: LightTable) -> int:
@@ -277,13 +279,13 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
 
 
 def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> cla.Array:
-    """Face ids of the valid fragment slots, compacted in the order of ``columns.Compaction``: ``[P] int32``."""
-    H, W, K = frags.shape
-    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
-    device.kernel("trace", "pack_faces", real=frags.real)(
-        device.queue, (H * W,), None, frags.face.data, frags.count.data, offsets.data, np.int32(H * W), np.int32(K),
-        out.data)
-    return out[:P]
+    """Face ids of the fragments, in their packed order (that of ``columns.Compaction``): ``[P] int32``."""
+    if P != frags.P:
+        raise ValueError(f"pack_faces: P={P} does not match the fragments ({frags.P})")
+    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)[:P]
+    if P:
+        cl.enqueue_copy(device.queue, out.data, frags.face.data, byte_count=4 * P)
+    return out
 
 
 __all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "ray_mask",
