@@ -78,6 +78,24 @@ def test_render_depth_expected_and_median(device):
         render_depth(sc, cam, mode="mean", device=device)
 
 
+def test_render_depth_quantile(device):
+    """``"quantile"``: the depth where the accumulated alpha reaches ``quantile`` — the front of two
+    translucent layers (α = 0.3 each) at 0.1, the back one at ½ (``"median"``)."""
+    V = np.concatenate([_quad(2.0), _quad(3.0)])
+    F = np.arange(12).reshape(4, 3)
+    sc = Scene.from_arrays(V, F, alpha=np.full((12, 1), logit(0.3)))
+    cam = Camera(20.0, 20.0, 8.25, 8.0, 16, 16, np.eye(4))
+    front, _ = render_depth(sc, cam, K=8, sigma=None, mode="quantile", quantile=0.1, device=device)
+    np.testing.assert_allclose(front, 2.0, rtol=1e-5)
+    back, _ = render_depth(sc, cam, K=8, sigma=None, mode="quantile", quantile=0.45, device=device)
+    np.testing.assert_allclose(back, 3.0, rtol=1e-5)  # 0.3 + 0.7·0.3 = 0.51
+    med, _ = render_depth(sc, cam, K=8, sigma=None, mode="median", quantile=0.1, device=device)  # median ignores it
+    np.testing.assert_allclose(med, 3.0, rtol=1e-5)
+    for q in (0.0, 1.0):
+        with pytest.raises(ValueError, match="quantile"):
+            render_depth(sc, cam, mode="quantile", quantile=q, device=device)
+
+
 def test_render_depth_empty_view(device, sphere_soup):
     cam = Camera.look_at([0, 0, 3], [0, 0, 6], [0, 1, 0], 40, 8, 8)  # looking away
     depth, acc = render_depth(sphere_soup, cam, sigma=None, device=device)
@@ -125,6 +143,40 @@ def test_tsdf_photo_masks_carve_what_the_soup_fills_in(device, sphere_soup):
         tsdf_fusion(junk, cams, sigma=None, device=device, masks=masks[:3])
     with pytest.raises(ValueError, match=r"masks\[0\]"):
         tsdf_fusion(junk, cams, sigma=None, device=device, masks=[np.ones((5, 5))] * len(cams))
+
+
+def test_tsdf_visual_hull_overrides_the_inside_rule(device):
+    """A soup larger than the object (r 0.8 vs 0.5): with an eager inside rule (hidden_fraction 0.5)
+    the voxels the soup hides are kept solid although the photos show background there; with the
+    visual-hull rule (default) whatever projects onto a photo's background is outside."""
+    big = _soup_of(trimesh.creation.icosphere(3, radius=RADIUS))
+    true = _soup_of(trimesh.creation.icosphere(3, radius=0.5))
+    cams = _cameras(10, px=48)
+    masks = [render_depth(true, c, sigma=None, device=device)[1] for c in cams]
+    V0, _ = tsdf_fusion(big, cams, sigma=None, device=device, masks=masks, hidden_fraction=0.5, hull_views=None)
+    V1, F1 = tsdf_fusion(big, cams, sigma=None, device=device, masks=masks, hidden_fraction=0.5)
+    r0, r1 = np.linalg.norm(V0, axis=1), np.linalg.norm(V1, axis=1)
+    assert r0.mean() > 0.58  # measured 0.61
+    assert r1.mean() < 0.55 and r1.max() < 0.6  # measured 0.535, 0.589 (10 views: the hull is a polytope)
+    assert mesh_stats(V1, F1)["watertight"]
+    with pytest.raises(ValueError, match="hull_views"):
+        tsdf_fusion(big, cams, sigma=None, device=device, masks=masks, hull_views=0)
+
+
+def test_tsdf_quantile_depth_finds_the_outer_shell(device):
+    """Three concentric translucent shells (α 0.4; r 0.8, 0.74, 0.68) — a soup's layered surface:
+    the median depth puts the surface inside (measured mean r 0.736), the depth at accumulated alpha
+    0.1 (the default) on the outer shell (0.803), the expected depth deeper still (0.637)."""
+    shells = [trimesh.creation.icosphere(3, radius=RADIUS - k * 0.06) for k in range(3)]
+    soup = _soup_of(trimesh.util.concatenate(shells), alpha=0.4)
+    cams = _cameras(10, px=64)
+    r = {}
+    for mode in ("median", "quantile"):
+        V, F = tsdf_fusion(soup, cams, sigma=None, device=device, depth_mode=mode)
+        V, F, _ = remove_small_components(V, F)
+        r[mode] = np.linalg.norm(V, axis=1).mean()
+    assert abs(r["quantile"] - RADIUS) < 0.02
+    assert r["median"] < RADIUS - 0.04
 
 
 def test_tsdf_soup_with_holes_keeps_a_solid_inside(device, rng):

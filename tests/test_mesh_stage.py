@@ -78,6 +78,8 @@ def test_mesh_options_are_validated(capsys):
         MeshConfig(method="poisson").validate()
     with pytest.raises(ValueError, match="supersample"):
         MeshConfig(supersample=0).validate()
+    with pytest.raises(ValueError, match="depth_quantile"):
+        MeshConfig(depth_quantile=1.0).validate()
 
 
 def test_regularizers_pull_towards_a_smooth_mesh(rng):

@@ -12,7 +12,8 @@ times the soft coverage window when ``sigma`` is set), are composited like the c
 **TSDF fusion** (:func:`tsdf_fusion`, numpy, vectorised over the voxels of one view at a time):
 a regular grid over ``bounds`` (default: the opaque soup's bounding box, padded), voxel size
 ``h`` (default: :func:`auto_resolution`, 1.25 pixel footprints), truncation ``τ = truncation·h``.
-Each view's depth (the *median* depth by default, see :func:`render_depth`) and alpha maps are
+Each view's depth (by default where the accumulated alpha reaches 0.1 — the outer surface of the
+soup's translucent shell, see :func:`render_depth`) and alpha maps are
 median-filtered (3×3) first: a soup has cracks, and a pixel centre that falls into one sees the
 far side of the object or the background, which would carve the inside. Then for every voxel
 centre ``x`` in front of the camera that projects inside the image at pixel ``p`` (nearest):
@@ -34,6 +35,10 @@ them would otherwise carve the inside, and marching cubes returns a second, inne
 on spot: a trained soup 0.024 → 0.015, a proxy of independent overlapping triangles 0.014 →
 0.009; 0.8 fills concavities, 0.95 lets the carving through). A voxel never observed is solid by
 the same rule, else empty (+1: a corner of the grid outside most frusta).
+With the photos' alpha (``masks``), a voxel that projects onto the photo's background (eroded by
+``carve_margin``) in at least ``hull_views`` views is **outside** (+1) whatever the other votes
+and the rule above say: the photos' visual hull bounds the object, and a soup that filled a
+concavity (between legs), or whose median depth lies inside the surface, is cut back to it.
 The outer layer of the grid is forced to +1 so that ``skimage.measure.marching_cubes`` at level 0
 returns a **closed** (watertight) surface; faces are oriented outward (positive signed volume) and
 closed components of negative volume (bubbles inside the object, invisible from outside) are
@@ -44,7 +49,10 @@ floor 0.0035), on the gt mesh split into a jittered soup, before the ``hidden_fr
 plain fusion 0.0164 (surface 0.017 inside); + carve margin 0.0132; + median filter 0.0078;
 + cavity removal 0.0046; voxels finer than a pixel break it (0.025 at 0.94 px per voxel). The
 ``hidden_fraction`` rule costs that easy case 0.0046 → 0.0089 and is what makes realistic soups
-work (above).
+work (above). On the trained spot soup (3000 iterations) with the photos' masks, before
+simplification: median depth 0.0117 (the fused surface lies ~1 px inside: the mesh's silhouettes
+are too thin); depth at accumulated alpha 0.1, 0.0069; the same without the visual-hull rule,
+0.0095; without the masks at all, 0.0101.
 """
 
 from __future__ import annotations
@@ -66,14 +74,14 @@ __all__ = ["DEPTH_MODES", "METHODS", "auto_resolution", "extract_mesh", "extract
            "remove_small_components", "render_depth", "tsdf_fusion", "weld_vertices"]
 
 METHODS = ("tsdf", "weld")
-DEPTH_MODES = ("expected", "median")
+DEPTH_MODES = ("expected", "median", "quantile")
 
 
 # ---------------------------------------------------------------------------------------------- depth
 
 
 def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, mode: str = "expected",
-                 device: Device | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 device: Device | None = None, quantile: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Depth of the soup seen by ``camera`` (forward only; module docstring).
 
     Args:
@@ -84,7 +92,12 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
             of the fragment at which the accumulated alpha reaches ½ (expected depth where it never
             does). The expected depth of a two-sided soup is pulled behind the front surface by
             whatever light reaches the back (e.g. ``0.05·0.95`` of the thickness at α = 0.95); the
-            median is not.
+            median is not. ``"quantile"`` — the same with the accumulated alpha reaching
+            ``quantile`` instead of ½: a trained soup is a shell of overlapping translucent layers,
+            and its median lies inside the surface (measured on spot, 3000-iteration soup, against
+            the depth of ``gt_mesh``: median 1.1 px behind, mean 1.6 px; quantile 0.1: 0.04 px,
+            mean −0.1 px).
+        quantile: the accumulated alpha of ``"quantile"``, in (0, 1).
 
     Returns:
         ``(depth [H, W] float32, alpha [H, W] float32)``: camera-space depth (0 where nothing was
@@ -92,6 +105,9 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
     """
     if mode not in DEPTH_MODES:
         raise ValueError(f"mode must be one of {DEPTH_MODES}, got {mode!r}")
+    if not 0 < quantile < 1:
+        raise ValueError(f"quantile must lie in (0, 1), got {quantile}")
+    q = 0.5 if mode == "median" else quantile
     d = device or get_device()
     V = check_real("scene.V", np.asarray(scene.V.data), (None, 3), np.float32)
     n = len(V)
@@ -109,9 +125,9 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
     img, trans, _ = composite(d, fr, feat, a, np.zeros(1), win=win, t_min=1e-4)
     acc = 1.0 - trans.get().astype(np.float64)
     depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
-    if mode == "median":
+    if mode in ("median", "quantile"):
         af = fr.to_hwk(a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)  # 0 in empty slots
-        reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= 0.5
+        reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= q
         first = np.argmax(reached, axis=2)
         med = np.take_along_axis(fr.to_hwk(fr.depth), first[..., None], axis=2)[..., 0]
         depth = np.where(reached.any(axis=2), med, depth)
@@ -146,10 +162,11 @@ def auto_resolution(bounds, cameras, voxel_pixels: float = 1.25) -> int:
 
 def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float = 3.0,
                 alpha_threshold: float = 0.5,
-                bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "median",
+                bounds=None, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "quantile",
+                depth_quantile: float = 0.1,
                 min_view_fraction: float = 0.5, hidden_fraction: float = 0.9, carve_margin: int = 1,
                 median_filter_px: int = 3, device: Device | None = None, return_volume: bool = False,
-                masks=None):
+                masks=None, hull_views: int | None = 1):
     """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
 
     Args:
@@ -161,7 +178,10 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         alpha_threshold: accumulated alpha below which a pixel is free space (0 < t < 1); also the
             face alpha that decides the default bounds.
         bounds: ``[2, 3]`` (min corner, max corner) in world units, or None (opaque soup + 5 %).
-        K, sigma, depth_mode: as ``K``, ``sigma``, ``mode`` of :func:`render_depth`.
+        K, sigma, depth_mode, depth_quantile: as ``K``, ``sigma``, ``mode``, ``quantile`` of
+            :func:`render_depth` (default: where the accumulated alpha reaches 0.1, the soup's
+            outer surface; measured on spot, Chamfer of the fused surface to ``gt_mesh``: median
+            0.0117, quantile 0.3 0.0088, 0.2 0.0077, 0.1 0.0069, 0.05 0.0067).
         min_view_fraction: a voxel is only made solid when at least this fraction of the views
             contain it (module docstring), in [0, 1].
         hidden_fraction: a voxel more than τ behind the observed surface in at least this
@@ -175,6 +195,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         masks: optional per-camera ``[H, W]`` coverage of the photos (their alpha; None entries
             allowed): pixels the photo shows as background (< ``alpha_threshold``) carve free space
             even where the soup is opaque — concavities a soup fills in, e.g. between legs.
+        hull_views: with ``masks``, a voxel that projects onto the photos' background (eroded by
+            ``carve_margin``) in at least this many views is outside whatever the other votes say
+            (the visual hull of the photos; None: the masks only vote like free soup pixels).
 
     Returns:
         ``(V [P, 3] float32, F [Q, 3] int32)`` the closed, outward-oriented surface (and the volume).
@@ -217,23 +240,34 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     wsum = np.zeros(len(X), np.float32)
     seen = np.zeros(len(X), np.int32)
     hidden = np.zeros(len(X), np.int32)
+    hull_out = np.zeros(len(X), np.int32)
+    if hull_views is not None and hull_views < 1:
+        raise ValueError(f"hull_views must be None or >= 1, got {hull_views}")
     if masks is not None:
         masks = list(masks)
         if len(masks) != len(cameras):
             raise ValueError(f"masks must have one entry per camera ({len(cameras)}), got {len(masks)}")
     for ci, cam in enumerate(cameras):
-        depth, acc = render_depth(scene, cam, K=K, sigma=sigma, mode=depth_mode, device=device)
+        depth, acc = render_depth(scene, cam, K=K, sigma=sigma, mode=depth_mode, device=device,
+                                  quantile=depth_quantile)
         if median_filter_px > 1:  # isolated pixels seen through cracks of the soup
             depth = median_filter(depth, size=median_filter_px, mode="nearest")
             acc = median_filter(acc, size=median_filter_px, mode="nearest")
+        photo_bg = None
         if masks is not None and masks[ci] is not None:
             m = check_real(f"masks[{ci}]", masks[ci], (cam.height, cam.width), np.float32)
             acc = np.where(m < alpha_threshold, np.minimum(acc, m), acc)  # the photo's background is free
+            if hull_views is not None:
+                photo_bg = m < alpha_threshold
+                if carve_margin > 0:
+                    photo_bg = binary_erosion(photo_bg, iterations=int(carve_margin), border_value=1)
         free_px = acc < alpha_threshold
         if carve_margin > 0:
             free_px = binary_erosion(free_px, iterations=int(carve_margin), border_value=1)
         idx, pix, z = _project_voxels(X, cam)
         seen[idx] += 1
+        if photo_bg is not None:
+            hull_out[idx[photo_bg.reshape(-1)[pix]]] += 1
         a = acc.reshape(-1)[pix]
         surf = a >= alpha_threshold
         s = (depth.reshape(-1)[pix] - z) * np.float32(1.0 / tau)
@@ -246,7 +280,10 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         wsum[ii] += w
     inside = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
-    tsdf = np.where(inside, -1.0, tsdf).reshape(*dims).astype(np.float32)
+    tsdf = np.where(inside, -1.0, tsdf)
+    if hull_views is not None:
+        tsdf = np.where(hull_out >= hull_views, 1.0, tsdf)  # outside the photos' visual hull
+    tsdf = tsdf.reshape(*dims).astype(np.float32)
     for ax in range(3):  # the outer layer is outside: the level set closes inside the grid
         sl = [slice(None)] * 3
         sl[ax] = 0
@@ -432,13 +469,14 @@ def _check_inputs(scene, cameras, method):
 
 
 def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
-              min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=None):
+              min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=None, hull_views=1,
+              depth_quantile=0.1):
     V = np.asarray(scene.V.data, np.float64)
     F = np.asarray(scene.F)
     if method == "tsdf":
         Vm, Fm = tsdf_fusion(scene, cameras, resolution=resolution, truncation=truncation,
                              alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, depth_mode=depth_mode,
-                             device=device, masks=masks)
+                             depth_quantile=depth_quantile, device=device, masks=masks, hull_views=hull_views)
     else:
         a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
         opaque = F[a[F].mean(axis=1) >= alpha_threshold]
@@ -467,16 +505,18 @@ def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int |
                  truncation: float = 3.0,
                  alpha_threshold: float = 0.5, bounds=None, weld_tolerance: float | None = None,
                  min_component_fraction: float = 0.02, max_faces: int | None = None, k: int = 4,
-                 opaque: bool = True, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "median",
-                 device: Device | None = None) -> MeshAsset:
+                 opaque: bool = True, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "quantile",
+                 depth_quantile: float = 0.1, device: Device | None = None, masks=None,
+                 hull_views: int | None = 1) -> MeshAsset:
     """The soup of ``scene`` → a connected :class:`MeshAsset` with activated attributes and the lights.
 
     Args:
         scene: the trained soup (:class:`~triplet_cl.scene.Scene`).
         cameras: the views to fuse (``"tsdf"``; ignored by ``"weld"``).
         method: ``"tsdf"`` (default: closed surface, see ``bench/extract.py``) or ``"weld"``.
-        resolution, truncation, bounds, K, sigma, depth_mode: see :func:`tsdf_fusion` (the median
-            depth is the default here: the expected depth of a soup lies behind its surface).
+        resolution, truncation, bounds, K, sigma, depth_mode, depth_quantile, masks, hull_views: see
+            :func:`tsdf_fusion` (the depth where the accumulated alpha reaches 0.1 is the default
+            here: the expected depth and the median of a soup lie behind its surface).
         alpha_threshold: free-space threshold (tsdf) / faces below it are dropped before welding.
         weld_tolerance: merge distance (weld; default ¼ of the median edge of the opaque faces).
         min_component_fraction: pieces with fewer faces than this fraction are removed.
@@ -489,7 +529,8 @@ def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int |
     """
     cameras = _check_inputs(scene, cameras, method)
     Vm, Fm = _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
-                       min_component_fraction, max_faces, K, sigma, depth_mode, device)
+                       min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=masks,
+                       hull_views=hull_views, depth_quantile=depth_quantile)
     src = MeshAsset.from_scene(scene)
     alpha = src.attributes["alpha"]
     vals = transfer_attributes(src.V, src.F, src.attributes, Vm, k=k, src_alpha=alpha)
@@ -511,8 +552,8 @@ def extract_scene(scene, cameras=None, method: str = "tsdf", *, opaque_alpha: fl
     from ..scene import Scene, logit
 
     opts = {"resolution": None, "truncation": 3.0, "alpha_threshold": 0.5, "bounds": None, "weld_tolerance": None,
-            "min_component_fraction": 0.02, "max_faces": None, "K": 30, "sigma": 1.0, "depth_mode": "median",
-            "device": None, "masks": None}
+            "min_component_fraction": 0.02, "max_faces": None, "K": 30, "sigma": 1.0, "depth_mode": "quantile",
+            "depth_quantile": 0.1, "device": None, "masks": None, "hull_views": 1}
     bad = set(kwargs) - set(opts)
     if bad:
         raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(opts)})")

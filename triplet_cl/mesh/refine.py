@@ -49,6 +49,10 @@ class MeshConfig:
     resolution: int | None = None  # TSDF voxels along the longest side of the soup's bounds (None: a voxel ≈ a pixel)
     extract_faces: int | None = 50_000  # QEM-simplify the extracted mesh to at most this many faces (None: keep all)
     photo_masks: bool = True  # the photos' alpha also carves free space in the TSDF (when the dataset has alpha)
+    photo_hull: bool = True  # ... and whatever lies outside the photos' visual hull is outside (overrides the soup)
+    # the soup's depth fused by the TSDF: where its accumulated alpha reaches this (its median lies ~1 px inside the
+    # surface). Spot, 3000-it. soup, mesh PSNR (soup 31.59) / Chamfer: median 30.58 / 0.0094, 0.1: 32.31 / 0.0063
+    depth_quantile: float = 0.1
     rounds: int = 1  # extraction → refine rounds
     iterations: int = 600  # refinement steps per round (0: extract and export only)
     faces_per_pixel: int = 4  # K of the mesh renders (an opaque mesh needs few)
@@ -81,6 +85,8 @@ class MeshConfig:
             raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
         if not 1 <= self.supersample <= 4:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
+        if not 0 < self.depth_quantile < 1:
+            raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
             raise ValueError(f"mesh faces_per_pixel must be in [1, 1024], got {self.faces_per_pixel}")
         bad = [f for f in self.formats if f not in ("glb", "obj", "ply")]
@@ -155,7 +161,8 @@ class MeshStage:
             masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
         scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution,
-                              max_faces=self.cfg.extract_faces, device=self.device, masks=masks)
+                              max_faces=self.cfg.extract_faces, device=self.device, masks=masks,
+                              hull_views=1 if self.cfg.photo_hull else None, depth_quantile=self.cfg.depth_quantile)
         self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, "
                               f"{scene.V.shape[0]} vertices, {time.perf_counter() - t:.1f} s")
         return scene
