@@ -101,6 +101,36 @@ def test_raster_forward_matches_reference_float64(device64, rng, K):
         assert (h["face"][..., count.max():] == -1).all()
 
 
+def test_packed_layout(device, rng):
+    """Fragments are packed pixel-major: pixel p's fragments are rows off[p] .. off[p] + count[p] of
+    every per-fragment array (P = sum of the counts rows, no padding); to_hwk / from_hwk convert
+    to and from the padded [H, W, K] view; per-fragment ops return [P, C]."""
+    V, F = soup(rng, M=200, spread=0.6, size=0.3)
+    c = cam(23, 17)
+    mesh = DeviceMesh(device, F, len(V))
+    fr = rasterize(device, project(device, V.astype(np.float32), c), mesh, 23, 17, 9, sigma=0.7)
+    count = fr.count.get().reshape(-1)
+    off = fr.off.get()
+    assert fr.P == count.sum() > 100 and off[0] == 0 and off[-1] == fr.P
+    np.testing.assert_array_equal(np.diff(off), count)
+    for a in (fr.face, fr.entry, fr.depth, fr.win):
+        assert a.shape == (fr.P,)
+    assert fr.bary.shape == (fr.P, 2)
+    h = read_fragments(fr)
+    face, depth = fr.face.get(), fr.depth.get()
+    for p in rng.choice(np.nonzero(count)[0], 20, replace=False):
+        y, x = divmod(int(p), 23)
+        rows = slice(off[p], off[p] + count[p])
+        np.testing.assert_array_equal(face[rows], h["face"][y, x, :count[p]])
+        assert (np.diff(depth[rows]) >= 0).all()  # nearest first
+    assert (h["face"][np.arange(9)[None, None, :] >= fr.count.get()[..., None]] == -1).all()
+    x = rng.standard_normal((fr.P, 3))
+    np.testing.assert_array_equal(fr.from_hwk(fr.to_hwk(x)), x)
+    assert interpolate(device, rng.standard_normal((len(V), 5)).astype(np.float32), fr).shape == (fr.P, 5)
+    with pytest.raises(ValueError, match="rows"):
+        fr.to_hwk(x[:-1])
+
+
 @pytest.mark.parametrize("K", [1, 7, 40, 150, 300])
 def test_raster_variants_identical(device, rng, K):
     """The GPU-shaped (per pixel) and CPU-shaped (8-pixel rows; 2-row vector lanes) kernels give the
