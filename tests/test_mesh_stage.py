@@ -55,6 +55,14 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
     np.testing.assert_array_equal(back.F, stage.scene.F)
     np.testing.assert_array_equal(back.material.data, stage.scene.material.data)
     assert [type(x).__name__ for x in back.lights] == [type(x).__name__ for x in stage.scene.lights]
+    # the test renders are supersampled at eval_supersample (4), the refinement at supersample (3); both box-filter
+    # down to the camera's size, and agree closely
+    cam = tr.ds.train[0].camera
+    r4, img4, a4 = stage.render(stage.scene, cam, np.ones(3), stage.cfg.eval_supersample)
+    r3, img3, a3 = stage.render(stage.scene, cam, np.ones(3))
+    assert img4.shape == img3.shape == (cam.height, cam.width, 3) and a4.shape == (cam.height, cam.width)
+    assert r4.image.shape[0] == 4 * cam.height and r3.image.shape[0] == 3 * cam.height
+    assert np.abs(a4 - a3).mean() < 0.02
     # `triplet export` writes other formats from the saved state
     out = trained_run / "export_obj"
     assert cli_main(["export", str(trained_run), "--format", "obj", "--out", str(out), "--texture-size", "64"]) == 0
@@ -80,6 +88,8 @@ def test_mesh_options_are_validated(capsys):
         MeshConfig(supersample=0).validate()
     with pytest.raises(ValueError, match="depth_quantile"):
         MeshConfig(depth_quantile=1.0).validate()
+    with pytest.raises(ValueError, match="eval_supersample"):
+        MeshConfig(eval_supersample=0).validate()
 
 
 def test_regularizers_pull_towards_a_smooth_mesh(rng):

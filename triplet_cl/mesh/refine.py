@@ -56,7 +56,13 @@ class MeshConfig:
     rounds: int = 1  # extraction → refine rounds
     iterations: int = 600  # refinement steps per round (0: extract and export only)
     faces_per_pixel: int = 4  # K of the mesh renders (an opaque mesh needs few)
-    supersample: int = 2  # render at this × resolution and box-filter down: antialiased silhouettes, as the photos
+    # render at this × resolution and box-filter down: antialiased silhouettes, as the photos. Measured (test PSNR,
+    # Chamfer, per-step time; evaluated at 4): spot 2 → 32.92 dB, 0.0063, 0.12 s; 3 → 33.70 dB, 0.0059, 0.19 s;
+    # spot 6000-it. soup 33.16 → 33.68 dB; bob_env 32.99 → 33.69 dB
+    supersample: int = 3
+    # the test renders (metrics, renders/mesh): 4×4 samples approach the pixel-area coverage of the photos' renderer
+    # (spot, the same refined mesh trained at 2: evaluated at 2 → 32.31 dB, at 4 → 32.92 dB); None: as ``supersample``
+    eval_supersample: int | None = 4
     sigma: float | None = 1.0  # soft window on the silhouette edges only (1/px of the supersampled render): gradients
     #                             that move the outline; None: hard edges (no silhouette gradients)
     lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
@@ -85,6 +91,8 @@ class MeshConfig:
             raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
         if not 1 <= self.supersample <= 4:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
+        if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
+            raise ValueError(f"mesh eval_supersample must be None or in [1, 8], got {self.eval_supersample}")
         if not 0 < self.depth_quantile < 1:
             raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
@@ -188,10 +196,11 @@ class MeshStage:
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None)
 
-    def render(self, scene: Scene, cam, background):
-        """Render at ``supersample`` × the camera's resolution; returns ``(result, image [H, W, 3], alpha [H, W])``
-        box-filtered to the camera's size (``backward_image`` spreads an image adjoint back)."""
-        f = self.cfg.supersample
+    def render(self, scene: Scene, cam, background, supersample: int | None = None):
+        """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
+        image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
+        adjoint back, at the config's ``supersample``)."""
+        f = supersample or self.cfg.supersample
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
@@ -306,7 +315,7 @@ class MeshStage:
                         np.float32)
         per = []
         for v in views:
-            _, img, alpha = self.render(scene, v.camera, bg)
+            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
