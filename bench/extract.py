@@ -15,7 +15,8 @@ normalised into the unit sphere, so distances below are in units of the object r
   random rotation, radius 1.2 × the sample spacing (they overlap), same alpha noise and junk.
 
 Where ``RUNS/<scene>`` holds a training run, the soup of its latest checkpoint is measured too
-(depth rendered with the run's soft-coverage ``sigma``, as it was trained).
+(depth rendered with the run's soft-coverage ``sigma``, as it was trained), and again with the
+photos' alpha masks (``trained+m``: free-space carving and the visual hull, as the mesh stage).
 
 Each method's mesh is compared with ``gt_mesh.ply``: symmetric mean Chamfer distance (100k area
 samples each way, ``triplet_cl.mesh.metrics``), face count, watertightness, connected components,
@@ -92,10 +93,10 @@ def load_run_soup(run: Path, data: Path):
     return tr.scene, tr.cfg.sigma
 
 
-def measure(name, soup, cams, ref, method, args, dev, sigma=None) -> dict:
+def measure(name, soup, cams, ref, method, args, dev, sigma=None, masks=None) -> dict:
     t0 = time.perf_counter()
     try:
-        A = extract_mesh(soup, cams, method=method, resolution=args.resolution, sigma=sigma, device=dev)
+        A = extract_mesh(soup, cams, method=method, resolution=args.resolution, sigma=sigma, device=dev, masks=masks)
     except ValueError as exc:
         print(f"  {name:8s} {method:5s} failed: {exc}")
         return {}
@@ -138,6 +139,9 @@ def main() -> None:
         for name, soup in soups.items():
             for method in ("tsdf", "weld"):
                 measure(name, soup, cams, ref, method, args, dev, sigmas.get(name))
+        if run is not None and ds.has_alpha:  # as the mesh stage: the photos' alpha carves, visual hull
+            masks = [v.alpha for v in ds.train]
+            measure("trained+m", soups["trained"], cams, ref, "tsdf", args, dev, sigmas["trained"], masks=masks)
 
 
 if __name__ == "__main__":

@@ -5,8 +5,8 @@ One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extra
 (connected, opaque, raw parameters transferred by nearest neighbour) → ``iterations`` steps of the
 soup stage's loop with **area-weighted vertex normals**, the soft coverage window on the
 **silhouette edges only** (on every edge it would open seams along the shared interior edges of a
-connected mesh; on none the outline gets no gradient), 2×2 supersampling, a few fragments per pixel,
-and the mesh regularisers (face-normal consistency, uniform Laplacian of the positions, graph TV of
+connected mesh; on none the outline gets no gradient), 3×3 supersampling (test renders at 4×4), a few
+fragments per pixel, and the mesh regularisers (face-normal consistency, uniform Laplacian of the positions, graph TV of
 the materials); every ``remesh_every`` steps the faces with the largest accumulated position
 gradients are subdivided and the smallest simplified (:mod:`~triplet_cl.mesh.remesh`), with every
 vertex parameter and its Adam moments carried across. ``rounds > 1`` repeats extraction → refine
@@ -51,7 +51,8 @@ class MeshConfig:
     photo_masks: bool = True  # the photos' alpha also carves free space in the TSDF (when the dataset has alpha)
     photo_hull: bool = True  # ... and whatever lies outside the photos' visual hull is outside (overrides the soup)
     # the soup's depth fused by the TSDF: where its accumulated alpha reaches this (its median lies ~1 px inside the
-    # surface). Spot, 3000-it. soup, mesh PSNR (soup 31.59) / Chamfer: median 30.58 / 0.0094, 0.1: 32.31 / 0.0063
+    # surface). Spot, 3000-it. soup, mesh PSNR (soup 31.59) / Chamfer, both with the visual hull, 2×2 supersampling:
+    # median 30.58 / 0.0094, 0.1: 32.31 / 0.0063
     depth_quantile: float = 0.1
     rounds: int = 1  # extraction → refine rounds
     iterations: int = 600  # refinement steps per round (0: extract and export only)
