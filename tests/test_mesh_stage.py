@@ -90,6 +90,15 @@ def test_mesh_options_are_validated(capsys):
         MeshConfig(depth_quantile=1.0).validate()
     with pytest.raises(ValueError, match="eval_supersample"):
         MeshConfig(eval_supersample=0).validate()
+    # the command line reaches the config (and its validation)
+    import argparse
+
+    from triplet_cl.cli.main import _mesh_config_from_args
+
+    cfg = _mesh_config_from_args(argparse.Namespace(mesh_supersample=2, mesh_eval_supersample=3, mesh_faces=1234))
+    assert (cfg.supersample, cfg.eval_supersample, cfg.extract_faces) == (2, 3, 1234)
+    assert cli_main(["extract", "somewhere", "--mesh-supersample", "9"]) == 2
+    assert "supersample" in capsys.readouterr().err
 
 
 def test_regularizers_pull_towards_a_smooth_mesh(rng):
