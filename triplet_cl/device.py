@@ -18,6 +18,7 @@ on the ``-I`` path).
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import threading
@@ -39,8 +40,10 @@ except ImportError as exc:  # pragma: no cover - only without the dependency ins
 ENV_VAR = "TRIPLET_DEVICE"
 
 
+@functools.cache
 def kernel_dir() -> Path:
-    """The folder holding the ``.cl`` sources and ``common/`` headers.
+    """The folder holding the ``.cl`` sources and ``common/`` headers (looked up once: every kernel
+    fetch builds its options from it, thousands of times per training run).
 
     Installed from a wheel the kernels live inside the package (``triplet_cl/kernels_cl``); in a
     source checkout (editable install) they live at the repository root (``kernels_cl/``).
