@@ -488,8 +488,8 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     v_bary_out = None if geometry else cla.empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
     device.kernel("fragment_bwd", "fragment_bwd", {"TILE": TILE}, real)(
         q, (T,), (1,), buf(frags.entry_setup, q), frags.mesh.F.data, frags.tile_off.data, buf(frags.face, q),
-        buf(frags.entry, q), buf(frags.bary, q), buf(frags.depth, q), frags.count.data, buf(a, q), buf(g, q), buf(vb, q),
-        buf(vd, q), buf(vw, q),
+        buf(frags.entry, q), buf(frags.bary, q), buf(frags.depth, q), frags.count.data, buf(a, q), buf(g, q),
+        buf(vb, q), buf(vd, q), buf(vw, q),
         np.int32(C), np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None),
         np.int32(bool(geometry)), real.type(sigma), np.int32(W), np.int32(H), np.int32(frags.tiles_x),
         np.int32(T), frags.off.data, buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
@@ -540,6 +540,6 @@ def valid_faces(frags: Fragments) -> np.ndarray:
     return frags.to_hwk(frags.face, -1)
 
 
-__all__ = ["Binning", "Fragments", "frag_input", "pack_fragment_lists", "TILE", "bin_faces", "camera_params", "check_soft_edges", "fragments_backward",
-           "gather_to_vertices", "project", "project_backward", "rasterize", "raster_backward", "read_fragments",
-           "valid_faces"]
+__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "check_soft_edges", "frag_input",
+           "fragments_backward", "gather_to_vertices", "pack_fragment_lists", "project", "project_backward",
+           "rasterize", "raster_backward", "read_fragments", "valid_faces"]
