@@ -6,8 +6,13 @@ Design (chosen for CPUs through PoCL, correct on every OpenCL 1.2 device):
 
 * faces are binned into 8×8-pixel tiles with int atomics (counts → prefix sums with
   ``pyopencl.scan`` → per-tile face lists), so each pixel tests only the faces of its tile;
-* the forward pass runs one work-item per pixel in 8×8 work-groups and keeps the K nearest
-  fragments sorted by (depth, face id) in private memory;
+* the forward pass keeps the K nearest fragments of each pixel sorted by (depth, face id) in
+  private memory: one work-item per pixel in 8×8 work-groups on GPUs; on CPUs one work-item per two
+  tile rows, the 16 pixels as vector lanes with a lane-wise insertion (``raster_fwd_rows16``:
+  PoCL does not vectorise across work-items), identical results;
+* the lists are then packed (:class:`Fragments`): every per-fragment array is ``[P, C]``, pixel
+  after pixel, nearest first, so memory follows the fragments (not H·W·K) and per-fragment passes
+  stream through memory;
 * adjoints that land on vertices are never accumulated with float atomics (PoCL and many GPUs have
   none): a backward kernel runs one work-item per tile, owns the partial sums of that tile's
   (tile, face) entries, and a gather kernel sums the entries of every face corner of each vertex.
