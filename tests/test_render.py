@@ -157,3 +157,20 @@ def test_render_float32_runs_and_validates(device, rng):
         r.backward(np.ones((H, W)))
     with pytest.raises(ValueError, match="normals must be"):
         RenderSettings(normals="smooth")
+
+
+@pytest.mark.parametrize("renderer", ["raster", "hybrid", "raytrace"])
+def test_render_a_view_that_sees_nothing(device, rng, renderer):
+    """No fragment at all (P = 0, the camera looks away): every renderer returns the background and
+    zero gradients, forward and backward, with no zero-size kernel launch failing."""
+    scene = small_scene(rng, "cook_torrance")
+    scene = Scene.from_arrays(np.asarray(scene.V.data, np.float32), scene.F, lights=[PointLight([0, 2, 3], [5, 5, 5])])
+    away = Camera.look_at([0.0, 0.0, 3.0], [0, 0, 6], [0, 1, 0], 40, W, H)
+    r = render(scene, away, RenderSettings(K=4, sigma=1.0, renderer=renderer, background=(0.2, 0.4, 0.6)))
+    assert r.view.frags.P == 0
+    np.testing.assert_allclose(r.image, np.broadcast_to([0.2, 0.4, 0.6], (H, W, 3)), atol=1e-6)
+    assert (r.alpha == 0).all()
+    g = r.backward(np.ones((H, W, 3)))
+    for k, v in g.items():
+        if v is not None and k != "light_params":
+            assert np.all(np.asarray(v) == 0), k

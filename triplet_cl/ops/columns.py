@@ -38,14 +38,18 @@ class Compaction:
         self.device, self.frags = device, frags
         self.offsets, self.P = frags.off, frags.P
 
+    def _rows(self, x: cla.Array) -> cla.Array:
+        """``x`` as ``[P, C]`` (``[P]`` → ``[P, 1]``; explicit sizes: P may be 0)."""
+        return x if x.ndim == 2 else x.reshape(self.P, 1)
+
     def pack(self, x: cla.Array, c0: int, n: int) -> cla.Array:
         """``x[:, c0:c0+n]`` → a new ``[P, n]`` array."""
         d, fr = self.device, self.frags
         out = cla.empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)[: self.P]
-        copy_columns(d, fr, x.reshape(self.P, -1), c0, out, 0, n)
+        copy_columns(d, fr, self._rows(x), c0, out, 0, n)
         return out
 
     def unpack(self, src: cla.Array, dst: cla.Array, c0: int) -> None:
         """Write ``src [P, n]`` into ``dst[:, c0:c0+n]``."""
-        copy_columns(self.device, self.frags, src.reshape(self.P, -1), 0, dst.reshape(self.P, -1), c0,
-                     src.shape[-1] if src.ndim > 1 else 1)
+        src = self._rows(src)
+        copy_columns(self.device, self.frags, src, 0, self._rows(dst), c0, src.shape[1])
