@@ -13,6 +13,8 @@
  *   v_a_i  = T_i ( sum_c v_out_c (f_ic - R_ic) + v_acc G_i )
  * T_i is recomputed front to back and parked in v_alpha before the back-to-front pass.
  *   v_ab_i = v_a_i win_i,  v_win_i = v_a_i ab_i,  v_bg_c = sum_pixels v_out_c T_n (host sum)
+ * One work-item per pixel; its fragments are rows frag_off[pix] + i of the packed per-fragment
+ * arrays (ops/raster.py Fragments).
  */
 #include "real.h"
 
