@@ -32,7 +32,9 @@
  *
  * No float atomics: one work-item owns one tile and walks its pixels and fragments serially,
  * adding into the partial sums of that tile's (tile, face) entries (partial_attr [E, 3, C],
- * partial_mom [E, 16]); gather_vertex sums them per vertex in a fixed order (deterministic).
+ * partial_mom [E, 16], zeroed at the entry's first fragment; entry_hit [E] marks the entries that
+ * have any); gather_vertex sums them per vertex in a fixed order (deterministic), skipping the
+ * entries without fragments.
  * With do_geom = 0 the barycentric adjoint is written out instead (v_bary_out = v_bary_in + own),
  * for callers that chain several interpolations.
  */
@@ -64,6 +66,7 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            const int do_geom, const REAL sigma,
                            const int width, const int height, const int tiles_x, const int num_tiles,
                            __global const int* frag_off,      // [H * W + 1] first row of each pixel
+                           __global int* entry_hit,           // [E]  1: the entry has fragments
                            __global REAL* partial_attr,       // [E, 3, C]       (C > 0)
                            __global REAL* partial_mom,        // [E, MOMENTS]    (do_geom)
                            __global REAL* v_sigma_tile,       // [T]             (do_geom)
@@ -72,10 +75,11 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    if (C > 0)
-        for (long q = (long)e0 * 3 * C; q < (long)e1 * 3 * C; ++q) partial_attr[q] = (REAL)0;
-    if (do_geom)
-        for (long q = (long)e0 * MOMENTS; q < (long)e1 * MOMENTS; ++q) partial_mom[q] = (REAL)0;
+    /* an entry's partial sums are zeroed at its first fragment; entries without fragments (a face
+     * whose bounding box meets the tile but that covers none of its pixel centres, or lies behind
+     * the K nearest everywhere: two thirds of them at K = 1) keep entry_hit = 0 and are never
+     * written nor read */
+    for (int e = e0; e < e1; ++e) entry_hit[e] = 0;
     REAL vsig = (REAL)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
@@ -86,6 +90,12 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
             for (int k = 0; k < cnt; ++k) {
                 const int o = frag_off[pix] + k;
                 const int e = frag_entry[o];
+                if (!entry_hit[e]) {
+                    entry_hit[e] = 1;
+                    for (int q = 0; q < 3 * C; ++q) partial_attr[(long)e * 3 * C + q] = (REAL)0;
+                    if (do_geom)
+                        for (int q = 0; q < MOMENTS; ++q) partial_mom[(long)e * MOMENTS + q] = (REAL)0;
+                }
                 const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1];
                 REAL vl0 = has_bary ? v_bary_in[2 * o] : (REAL)0;
                 REAL vl1 = has_bary ? v_bary_in[2 * o + 1] : (REAL)0;
@@ -168,11 +178,12 @@ __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
                          __global const int* F,             // [M, 3]
                          __global const int* entry_face,    // [E]
                          __global const REAL* partial_mom,  // [E, MOMENTS]
+                         __global const int* entry_hit,     // [E]
                          const int num_entries,
-                         __global REAL* partial_geom)       // [E, 3, 3]
+                         __global REAL* partial_geom)       // [E, 3, 3]  (entries with fragments only)
 {
     const int e = get_global_id(0);
-    if (e >= num_entries) return;
+    if (e >= num_entries || !entry_hit[e]) return;
     __global const REAL* m = partial_mom + (long)e * MOMENTS;
     __global REAL* d = partial_geom + (long)e * 9;
     const int f = entry_face[e];

@@ -24,7 +24,8 @@
  * (adjoint)   fragment_bwd.cl: one pass over the fragments for interpolation, barycentrics,
  *             depth and window, into per-entry partial sums (no atomics, deterministic).
  * gather_vertex  per vertex: sum partial[entry, corner, :] over every face corner of the vertex
- *             (CSR) and every entry of that face. Adjoint of "vertex -> fragment".
+ *             (CSR) and every entry of that face that has fragments (entry_hit), for two partial
+ *             arrays at once (attributes, geometry). Adjoint of "vertex -> fragment".
  */
 #include "real.h"
 #include "raster_math.h"
@@ -474,25 +475,35 @@ __kernel void pack_fragments(const int npix, const int K,
     }
 }
 
-__kernel void gather_vertex(__global const REAL* partial,      // [E, 3, C]
+__kernel void gather_vertex(__global const REAL* partial_a,    // [E, 3, Ca]  (Ca > 0)
+                            __global const REAL* partial_b,    // [E, 3, Cb]  (Cb > 0)
+                            __global const int* entry_hit,     // [E]  0: no fragments, partials unset
                             __global const int* face_off,      // [M + 1]
                             __global const int* face_entries,  // [E]
                             __global const int* csr_off,       // [N + 1]
                             __global const int* csr_corner,    // [3M]  3 * face + corner
-                            const int n, const int C,
-                            __global REAL* out)                // [N, C]
+                            const int n, const int Ca, const int Cb,
+                            __global REAL* out_a,              // [N, Ca]
+                            __global REAL* out_b)              // [N, Cb]
 {
-    /* one work-item per vertex, all channels: the corner/entry indices are read once */
+    /* one work-item per vertex, both partial arrays (attributes and geometry) in one walk of the
+     * corner / entry indices */
     const int v = get_global_id(0);
     if (v >= n) return;
-    __global REAL* o = out + (long)v * C;
-    for (int c = 0; c < C; ++c) o[c] = (REAL)0;
+    __global REAL* oa = out_a + (long)v * Ca;
+    __global REAL* ob = out_b + (long)v * Cb;
+    for (int c = 0; c < Ca; ++c) oa[c] = (REAL)0;
+    for (int c = 0; c < Cb; ++c) ob[c] = (REAL)0;
     for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
         const int corner = csr_corner[q];
         const int f = corner / 3, i = corner - 3 * f;
         for (int j = face_off[f]; j < face_off[f + 1]; ++j) {
-            __global const REAL* p = partial + ((long)face_entries[j] * 3 + i) * C;
-            for (int c = 0; c < C; ++c) o[c] += p[c];
+            const int e = face_entries[j];
+            if (!entry_hit[e]) continue;
+            __global const REAL* pa = partial_a + ((long)e * 3 + i) * Ca;
+            for (int c = 0; c < Ca; ++c) oa[c] += pa[c];
+            __global const REAL* pb = partial_b + ((long)e * 3 + i) * Cb;
+            for (int c = 0; c < Cb; ++c) ob[c] += pb[c];
         }
     }
 }

@@ -97,6 +97,28 @@ def buf(a: cla.Array | None, queue: cl.CommandQueue | None = None):
     return a.data
 
 
+CONST_CACHE_SIZE = 512
+
+
+def const_array(device, a: np.ndarray) -> cla.Array:
+    """A small constant host array (camera parameters, a background colour) on the device, cached
+    per device by value (LRU of ``CONST_CACHE_SIZE``): uploading it on every call is a blocking
+    write, which makes the host wait for every kernel queued before it."""
+    from collections import OrderedDict
+
+    a = np.ascontiguousarray(a)
+    cache = device.cached(("const-arrays",), OrderedDict)
+    key = (a.dtype.str, a.shape, a.tobytes())
+    d = cache.get(key)
+    if d is None:
+        d = cache[key] = cla.to_device(device.queue, a)
+        if len(cache) > CONST_CACHE_SIZE:
+            cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
+    return d
+
+
 def round_up(n: int, m: int) -> int:
     """``n`` rounded up to a multiple of ``m``."""
     return ((int(n) + m - 1) // m) * m

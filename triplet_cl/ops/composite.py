@@ -8,7 +8,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, fragment_array
+from .common import buf, check_real, const_array, fragment_array
 from .raster import Fragments, frag_input
 
 
@@ -70,7 +70,7 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,)) if np.ndim(bg) <= 1 else None
     if b is None:
         raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
-    bgd = cla.to_device(device.queue, check_real("bg", b, (C,), real))
+    bgd = const_array(device, check_real("bg", b, (C,), real))
     if not (0 <= t_min < 1):
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     q, alloc = device.queue, device.allocator
@@ -106,7 +106,7 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     g = fragment_array(device.queue, "v_image", v_image, (H, W, C), real)
     va = None if v_acc is None else fragment_array(device.queue, "v_acc", v_acc, (H, W), real)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,))
-    bgd = cla.to_device(device.queue, b.astype(real))
+    bgd = const_array(device, b.astype(real))
     q, alloc = device.queue, device.allocator
     P = frags.P
     v_feat = cla.empty(q, (max(P, 1), C), real, allocator=alloc)[:P]

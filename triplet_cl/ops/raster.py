@@ -31,7 +31,7 @@ from pyopencl.scan import InclusiveScanKernel
 
 from ..camera import Camera
 from ..device import Device
-from .common import buf, check_real, check_shape, fragment_array, to_device
+from .common import buf, check_real, check_shape, const_array, fragment_array, to_device
 from .mesh import DeviceMesh
 
 TILE = 8
@@ -54,7 +54,7 @@ def camera_params(camera: Camera, real=np.float32) -> np.ndarray:
 
 
 def _cam_buffer(device: Device, camera: Camera, real) -> cla.Array:
-    return cla.to_device(device.queue, camera_params(camera, real))
+    return const_array(device, camera_params(camera, real))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -224,8 +224,9 @@ def _scan_kernel(device: Device) -> InclusiveScanKernel:
     return device.cached(("scan", "int32-sum"), lambda: InclusiveScanKernel(device.ctx, np.int32, "a+b", neutral="0"))
 
 
-def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
-    """Exclusive prefix sum as an ``[n+1]`` offsets array, and the total (one small read back)."""
+def _offsets(device: Device, counts: cla.Array, total: bool = True) -> tuple[cla.Array, int | None]:
+    """Exclusive prefix sum as an ``[n+1]`` offsets array, and the total (one small blocking read
+    back; ``total=False`` skips it and returns None)."""
     n = counts.shape[0]
     q = device.queue
     off = cla.zeros(q, n + 1, np.int32, allocator=device.allocator)
@@ -234,12 +235,12 @@ def _offsets(device: Device, counts: cla.Array) -> tuple[cla.Array, int]:
         _scan_kernel(device)(counts, incl, queue=q)
         # off[1:] = incl  (a sliced array's .data would not carry the offset into the scan kernel)
         cl.enqueue_copy(q, off.data, incl.data, dst_offset=4, byte_count=4 * n)
+        if not total:
+            return off, None
         tail = np.empty(1, np.int32)
         cl.enqueue_copy(q, tail, incl.data, src_offset=4 * (n - 1))
-        total = int(tail[0])
-    else:
-        total = 0
-    return off, total
+        return off, int(tail[0])
+    return off, 0 if total else None
 
 
 RASTER_VARIANTS = ("auto", "pixel", "rows", "rows16")
@@ -310,8 +311,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
             np.int32(tiles_x), real.type(near), real.type(far), np.int32(bool(cull_backface)),
             face_ntiles.data, face_bbox.data, tile_count.data)
     tile_off, E = _offsets(device, tile_count)
-    face_off, E2 = _offsets(device, face_ntiles)
-    assert E == E2, (E, E2)
+    face_off, _ = _offsets(device, face_ntiles, total=False)  # the same total E: no second read back
     device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
     entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
@@ -428,16 +428,23 @@ def pack_fragment_lists(device: Device, count: cla.Array, K: int, face, entry, b
     return off, P, face, entry, bary, depth, win
 
 
-def gather_to_vertices(device: Device, frags: Fragments, partial: cla.Array, C: int) -> cla.Array:
-    """Sum per-entry partial adjoints ``[E, 3, C]`` to vertices ``[N, C]`` (deterministic, no atomics)."""
+def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, partial_a: cla.Array | None,
+                       Ca: int, partial_b: cla.Array | None = None, Cb: int = 0):
+    """Sum per-entry partial adjoints ``[E, 3, Ca]`` (and ``[E, 3, Cb]``) to vertices ``[N, Ca]``
+    (``[N, Cb]``) in one pass (deterministic, no atomics); entries with ``entry_hit [E] == 0`` (no
+    fragments: their partials were never written) are skipped. Returns ``(out_a, out_b)`` (None for
+    an absent array)."""
     mesh = frags.mesh
     n = mesh.num_vertices
-    out = cla.empty(device.queue, (max(n, 1), max(C, 1)), frags.real, allocator=device.allocator)[:n, :C]
-    if n and C:
-        device.kernel("raster", "gather_vertex", {"TILE": TILE, "K_MAX": frags.K}, frags.real)(
-            device.queue, (n,), None, partial.data, frags.face_off.data, frags.face_entries.data,
-            mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(C), out.data)
-    return out
+    q = device.queue
+    out_a = cla.empty(q, (max(n, 1), max(Ca, 1)), frags.real, allocator=device.allocator)[:n, :Ca] if Ca else None
+    out_b = cla.empty(q, (max(n, 1), max(Cb, 1)), frags.real, allocator=device.allocator)[:n, :Cb] if Cb else None
+    if n and (Ca or Cb):
+        device.kernel("raster", "gather_vertex", {"TILE": TILE}, frags.real)(
+            q, (n,), None, buf(partial_a, q), buf(partial_b, q), entry_hit.data, frags.face_off.data,
+            frags.face_entries.data, mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(Ca),
+            np.int32(Cb), buf(out_a, q), buf(out_b, q))
+    return out_a, out_b
 
 
 def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
@@ -487,6 +494,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     T, E = frags.num_tiles, frags.num_entries
     if geometry and (frags.entry_setup is None or frags.entry_face is None):
         raise ValueError("the fragments carry no entry_setup/entry_face (Binning); the geometric adjoint needs them")
+    hit = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     p_attr = cla.empty(q, (max(E, 1), 3, max(C, 1)), real, allocator=alloc) if C else None
     p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc) if geometry else None
     v_sig_tile = cla.empty(q, T, real, allocator=alloc) if geometry else None
@@ -497,18 +505,17 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         buf(vb, q), buf(vd, q), buf(vw, q),
         np.int32(C), np.int32(vb is not None), np.int32(vd is not None), np.int32(vw is not None),
         np.int32(bool(geometry)), real.type(sigma), np.int32(W), np.int32(H), np.int32(frags.tiles_x),
-        np.int32(T), frags.off.data, buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
+        np.int32(T), frags.off.data, hit.data, buf(p_attr, q), buf(p_mom, q), buf(v_sig_tile, q), buf(v_bary_out, q))
     p_geom = None
     if geometry:
         p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
         if E:
             device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
-                q, (E,), None, frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, np.int32(E),
-                p_geom.data)
-    v_attr = gather_to_vertices(device, frags, p_attr, C) if C else None
+                q, (E,), None, frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, hit.data,
+                np.int32(E), p_geom.data)
+    v_attr, v_vs = gather_to_vertices(device, frags, hit, p_attr, C, p_geom, 3 if geometry else 0)
     if not geometry:
         return v_attr, v_bary_out
-    v_vs = gather_to_vertices(device, frags, p_geom, 3)
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if vw is not None else 0.0
     return v_attr, v_vs, v_sigma
 
