@@ -24,7 +24,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from ..topology import morton_order
-from .common import check_real, to_device
+from .common import check_real, grid_1d, to_device
 from .mesh import DeviceMesh
 
 LEAF_SIZE = 4
@@ -113,11 +113,11 @@ def refit(device: Device, bvh: BVH, V) -> None:
         Vd = to_device(device.queue, check_real("V", V, (m.num_vertices, 3), bvh.real))
     q, P = device.queue, bvh.num_leaves
     device.kernel("bvh", "bvh_leaf_bounds", real=bvh.real)(
-        q, (P,), None, Vd.data, m.F.data, bvh.prim.data, np.int32(m.num_faces), np.int32(P), bvh.nodes.data)
+        q, *grid_1d(P), Vd.data, m.F.data, bvh.prim.data, np.int32(m.num_faces), np.int32(P), bvh.nodes.data)
     k = device.kernel("bvh", "bvh_level_bounds", real=bvh.real)
     for level in range(bvh.depth - 1, -1, -1):
         first, count = (1 << level) - 1, 1 << level
-        k(q, (count,), None, np.int32(first), np.int32(count), bvh.nodes.data)
+        k(q, *grid_1d(count), np.int32(first), np.int32(count), bvh.nodes.data)
     q.finish()
     bvh.refit_ms = (time.perf_counter() - t0) * 1e3
 

@@ -6,7 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf
+from .common import buf, grid_1d
 from .raster import Fragments
 
 
@@ -25,7 +25,7 @@ def copy_columns(device: Device, frags: Fragments, src: cla.Array | None, cs0: i
     if P == 0 or n == 0:
         return
     device.kernel("columns", "copy_columns", real=frags.real)(
-        device.queue, (P,), None, buf(src, device.queue), np.int32(Cs), np.int32(cs0), buf(dst, device.queue),
+        device.queue, *grid_1d(P), buf(src, device.queue), np.int32(Cs), np.int32(cs0), buf(dst, device.queue),
         np.int32(Cd), np.int32(cd0), np.int32(n), np.int32(P), np.int32(src is not None), np.int32(bool(accumulate)))
 
 

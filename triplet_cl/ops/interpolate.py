@@ -6,7 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, to_device
+from .common import buf, check_real, grid_1d, to_device
 from .raster import TILE, Fragments, fragments_backward
 
 
@@ -36,7 +36,7 @@ def interpolate(device: Device, attr, frags: Fragments) -> cla.Array:
     out = cla.empty(device.queue, (max(P, 1), max(C, 1)), frags.real, allocator=device.allocator)[:P]
     if C and P:
         device.kernel("interpolate", "interpolate_fwd", {"TILE": TILE}, frags.real)(
-            device.queue, (P,), None, a.data, frags.mesh.F.data, buf(frags.face, device.queue),
+            device.queue, *grid_1d(P), a.data, frags.mesh.F.data, buf(frags.face, device.queue),
             buf(frags.bary, device.queue), np.int32(P), np.int32(C), buf(out, device.queue))
     return out[:, :C] if C != out.shape[1] else out
 

@@ -31,7 +31,7 @@ from pyopencl.scan import InclusiveScanKernel
 
 from ..camera import Camera
 from ..device import Device
-from .common import buf, check_real, check_shape, const_array, fragment_array, to_device
+from .common import buf, check_real, check_shape, const_array, fragment_array, grid_1d, to_device
 from .mesh import DeviceMesh
 
 TILE = 8
@@ -79,7 +79,7 @@ def project(device: Device, V, camera: Camera) -> cla.Array:
     vs = cla.empty(device.queue, (max(n, 1), 3), real, allocator=device.allocator)[:n]
     if n:
         k = device.kernel("project", "project_fwd", real=real)
-        k(device.queue, (n,), None, Vd.data, _cam_buffer(device, camera, real).data, np.int32(n), vs.data)
+        k(device.queue, *grid_1d(n), Vd.data, _cam_buffer(device, camera, real).data, np.int32(n), vs.data)
     return vs
 
 
@@ -105,7 +105,7 @@ def project_backward(device: Device, V, camera: Camera, v_vs, pose_grad: bool = 
     v_pc = cla.empty(q, (max(n, 1), 3), real, allocator=device.allocator)[:n]
     if n:
         k = device.kernel("project", "project_bwd", real=real)
-        k(q, (n,), None, Vd.data, _cam_buffer(device, camera, real).data, gd.data, np.int32(n), v_V.data, v_pc.data)
+        k(q, *grid_1d(n), Vd.data, _cam_buffer(device, camera, real).data, gd.data, np.int32(n), v_V.data, v_pc.data)
     if not pose_grad:
         return v_V
     vp = v_pc.get().astype(np.float64)
@@ -307,7 +307,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     face_bbox = cla.empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
     if M:
         device.kernel("raster", "bin_count", defines, real)(
-            q, (M,), None, vs.data, mesh.F.data, np.int32(M), np.int32(width), np.int32(height),
+            q, *grid_1d(M), vs.data, mesh.F.data, np.int32(M), np.int32(width), np.int32(height),
             np.int32(tiles_x), real.type(near), real.type(far), np.int32(bool(cull_backface)),
             face_ntiles.data, face_bbox.data, tile_count.data)
     tile_off, E = _offsets(device, tile_count)
@@ -321,7 +321,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
         soft_d = to_device(q, soft) if soft is not None else None
         device.kernel("raster", "bin_fill", defines, real)(
-            q, (M,), None, vs.data, mesh.F.data, buf(soft_d, q), np.int32(soft is not None), np.int32(M),
+            q, *grid_1d(M), vs.data, mesh.F.data, buf(soft_d, q), np.int32(soft is not None), np.int32(M),
             np.int32(tiles_x), face_ntiles.data,
             face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
             entry_setup.data, face_entries.data)
@@ -441,7 +441,7 @@ def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, p
     out_b = cla.empty(q, (max(n, 1), max(Cb, 1)), frags.real, allocator=device.allocator)[:n, :Cb] if Cb else None
     if n and (Ca or Cb):
         device.kernel("raster", "gather_vertex", {"TILE": TILE}, frags.real)(
-            q, (n,), None, buf(partial_a, q), buf(partial_b, q), entry_hit.data, frags.face_off.data,
+            q, *grid_1d(n), buf(partial_a, q), buf(partial_b, q), entry_hit.data, frags.face_off.data,
             frags.face_entries.data, mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(Ca),
             np.int32(Cb), buf(out_a, q), buf(out_b, q))
     return out_a, out_b
@@ -511,7 +511,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
         if E:
             device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
-                q, (E,), None, frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, hit.data,
+                q, *grid_1d(E), frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, hit.data,
                 np.int32(E), p_geom.data)
     v_attr, v_vs = gather_to_vertices(device, frags, hit, p_attr, C, p_geom, 3 if geometry else 0)
     if not geometry:
