@@ -327,7 +327,7 @@ class TracedShadeFragments(ShadeFragments):
         comp = columns.Compaction(d, fr)
         L = self.layout
         blk = self._blocks(comp, fa)
-        face_c = trace_op.pack_faces(d, fr, comp.offsets, comp.P)
+        face_c = fr.face  # [P] face ids, in the fragments' packed order (read only)
         # rays only for fragments that composite with weight (t_min cut-off, as Composite)
         win_c = comp.pack(v.win.reshape(P, 1), 0, 1) if v.win is not None else None
         face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), win_c, s.t_min) \

@@ -177,20 +177,19 @@ class Fragments:
         """Shape of a per-fragment array: ``(P,)`` or ``(P, C)``."""
         return (self.P,) if C is None else (self.P, C)
 
-    def _slots(self) -> tuple[np.ndarray, np.ndarray]:
-        """Host index arrays: the padded slot ``(pixel * K + k)`` of every packed row, and validity."""
+    def _slots(self) -> np.ndarray:
+        """Host ``[P]``: the padded slot ``pixel * K + k`` of every packed row."""
         count = self.count.get().reshape(-1).astype(np.int64)
-        starts = np.repeat(np.cumsum(count) - count, count)
+        off = self.off.get()[:-1].astype(np.int64)
         pix = np.repeat(np.arange(count.size), count)
-        slot = pix * self.K + (np.arange(self.P) - starts)
-        return slot, count
+        return pix * self.K + (np.arange(self.P) - off[pix])
 
     def to_hwk(self, x, fill=0) -> np.ndarray:
         """Host ``[P, ...]`` per-fragment values → ``[H, W, K, ...]`` (``fill`` in the empty slots)."""
         x = x.get() if isinstance(x, cla.Array) else np.asarray(x)
         if x.shape[0] != self.P:
             raise ValueError(f"expected a per-fragment array with {self.P} rows, got {list(x.shape)}")
-        slot, _ = self._slots()
+        slot = self._slots()
         out = np.full((self.height * self.width * self.K,) + x.shape[1:], fill, dtype=x.dtype)
         out[slot] = x
         return out.reshape((self.height, self.width, self.K) + x.shape[1:])
@@ -201,7 +200,7 @@ class Fragments:
         if x.shape[:3] != self.shape:
             raise ValueError(f"expected an array of shape [{self.height}, {self.width}, {self.K}, ...], "
                              f"got {list(x.shape)}")
-        slot, _ = self._slots()
+        slot = self._slots()
         return np.ascontiguousarray(x.reshape((-1,) + x.shape[3:])[slot])
 
 
@@ -391,18 +390,13 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         s_entry.data, s_depth.data, count.data)
-    off, P = _offsets(device, count.reshape(-1))
-    n = max(P, 1)
-    face, entry = cla.empty(q, n, np.int32, allocator=alloc), cla.empty(q, n, np.int32, allocator=alloc)
-    bary, depth = cla.empty(q, (n, 2), real, allocator=alloc), cla.empty(q, n, real, allocator=alloc)
-    win = cla.empty(q, n, real, allocator=alloc) if sigma else None
+    off, P, out = _packed_arrays(device, count, real, bool(sigma))
     if P:
         device.kernel("raster", "pack_raster_fragments", {"TILE": TILE}, real)(
             q, (npx,), None, np.int32(width), np.int32(height), np.int32(K), real.type(sigma or 0.0), count.data,
-            off.data, s_entry.data, s_depth.data, b.entry_face.data, b.entry_setup.data, face.data, entry.data,
-            bary.data, depth.data, buf(win, q))
-    face, entry, bary, depth = face[:P], entry[:P], bary[:P], depth[:P]
-    win = win[:P] if win is not None else None
+            off.data, s_entry.data, s_depth.data, b.entry_face.data, b.entry_setup.data,
+            *(buf(a, q) for a in out))
+    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
                      b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
                      soft_edges is not None, off, P)
@@ -412,20 +406,27 @@ def pack_fragment_lists(device: Device, count: cla.Array, K: int, face, entry, b
     """Pack K-strided per-pixel lists (``[H, W, K(, 2)]``, the first ``count`` slots valid) into the
     :class:`Fragments` layout. Returns ``(off [H*W+1], P, face [P], entry [P], bary [P, 2], depth [P],
     win [P] or None)``."""
-    q, alloc, real = device.queue, device.allocator, np.dtype(bary.dtype)
+    q, real = device.queue, np.dtype(bary.dtype)
     npix = int(np.prod(count.shape))
+    off, P, out = _packed_arrays(device, count, real, win is not None)
+    if P:
+        device.kernel("raster", "pack_fragments", {"TILE": TILE}, real)(
+            q, (npix,), None, np.int32(npix), np.int32(K), count.data, off.data, face.data, entry.data, bary.data,
+            depth.data, buf(win, q), np.int32(win is not None), *(buf(a, q) for a in out))
+    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
+    return off, P, face, entry, bary, depth, win
+
+
+def _packed_arrays(device: Device, count: cla.Array, real, with_win: bool):
+    """Offsets of the packed layout (prefix sum of ``count``), ``P``, and the arrays a pack kernel fills:
+    ``(face [P'], entry [P'], bary [P', 2], depth [P'], win [P'] or None)``, ``P' = max(P, 1)``."""
+    q, alloc = device.queue, device.allocator
     off, P = _offsets(device, count.reshape(-1))
     n = max(P, 1)
     out = (cla.empty(q, n, np.int32, allocator=alloc), cla.empty(q, n, np.int32, allocator=alloc),
            cla.empty(q, (n, 2), real, allocator=alloc), cla.empty(q, n, real, allocator=alloc),
-           cla.empty(q, n, real, allocator=alloc) if win is not None else None)
-    if P:
-        device.kernel("raster", "pack_fragments", {"TILE": TILE}, real)(
-            q, (npix,), None, np.int32(npix), np.int32(K), count.data, off.data, face.data, entry.data, bary.data,
-            depth.data, buf(win, q), np.int32(win is not None), out[0].data, out[1].data, out[2].data, out[3].data,
-            buf(out[4], q))
-    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
-    return off, P, face, entry, bary, depth, win
+           cla.empty(q, n, real, allocator=alloc) if with_win else None)
+    return off, P, out
 
 
 def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, partial_a: cla.Array | None,

@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
 from ..camera import Camera
@@ -278,15 +277,5 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
     return out[:P]
 
 
-def pack_faces(device: Device, frags: Fragments, offsets: cla.Array, P: int) -> cla.Array:
-    """Face ids of the fragments, in their packed order (that of ``columns.Compaction``): ``[P] int32``."""
-    if P != frags.P:
-        raise ValueError(f"pack_faces: P={P} does not match the fragments ({frags.P})")
-    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)[:P]
-    if P:
-        cl.enqueue_copy(device.queue, out.data, frags.face.data, byte_count=4 * P)
-    return out
-
-
-__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "pack_faces", "ray_mask",
+__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "ray_mask",
            "scatter_hits", "shadow_backward", "shadow_forward", "trace_primary"]
