@@ -323,14 +323,12 @@ class TracedShadeFragments(ShadeFragments):
     def forward(self, ctx, fa, attr, *rest):
         v, s = self.view, self.view.settings
         d, fr = v.device, v.frags
-        P = fr.P
         comp = columns.Compaction(d, fr)
         L = self.layout
         blk = self._blocks(comp, fa)
         face_c = fr.face  # [P] face ids, in the fragments' packed order (read only)
         # rays only for fragments that composite with weight (t_min cut-off, as Composite)
-        win_c = comp.pack(v.win.reshape(P, 1), 0, 1) if v.win is not None else None
-        face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), win_c, s.t_min) \
+        face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), v.win, s.t_min) \
             if s.t_min > 0 else face_c
         inp = self._prepare(blk, face_c, rest[0] if rest else None)
         attr_h = np.ascontiguousarray(attr, s.real)
