@@ -40,14 +40,11 @@
  */
 #include "real.h"
 #include "raster_math.h"
+#include "raster_adjoint.h" /* fragment_moments, MOMENTS, SETUP, setup_window_ex */
 
 #ifndef TILE
 #define TILE 8
 #endif
-
-#define MOMENTS 16
-#define SETUP 12
-#define HARD_EDGE_DISTANCE ((REAL)1e30) /* as raster.cl: edges with g_k < 0 have no window */
 
 __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const int* F,             // [M, 3]
@@ -130,36 +127,11 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                 const REAL b1 = s[4] * dx + s[5] * dy;
                 const REAL b2 = (REAL)1 - b0 - b1;
                 const REAL zp = frag_depth[o];
-                /* v_lam2 = 0: (lam0, lam1) are the parameters, lam2 = 1 - lam0 - lam1 */
-                const REAL base = vl0 * l0 + vl1 * l1 + vzp * zp;
-                const REAL vw0 = (vl0 - base) * zp, vw1 = (vl1 - base) * zp, vw2 = -base * zp;
-                const REAL vb0 = vw0 * s[6], vb1 = vw1 * s[7], vb2 = vw2 * s[8];
-                REAL u0 = vb0, u1 = vb1, u2 = vb2;
-                __global REAL* m = partial_mom + (long)e * MOMENTS;
-                if (vw != (REAL)0) {
-                    /* hard edges (g_k < 0, raster.cl) are not in the minimum */
-                    const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
-                    const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
-                    const REAL d2 = s[11] < (REAL)0 ? HARD_EDGE_DISTANCE : b2 * s[11];
-                    int kk = 0;
-                    REAL dm = d0;
-                    if (d1 < dm) { dm = d1; kk = 1; }
-                    if (d2 < dm) { dm = d2; kk = 2; }
-                    if (dm > (REAL)0 && dm < HARD_EDGE_DISTANCE) {
-                        const REAL ex = exp(-sigma * dm);
-                        const REAL vd = vw * sigma * ex;
-                        vsig += vw * dm * ex;
-                        if (kk == 0) u0 += vd * s[9];
-                        else if (kk == 1) u1 += vd * s[10];
-                        else u2 += vd * s[11];
-                        m[10 + kk] += vd * dm;
-                    }
-                }
-                m[0] += u0; m[1] += u0 * dx; m[2] += u0 * dy;
-                m[3] += u1; m[4] += u1 * dx; m[5] += u1 * dy;
-                m[6] += u2; m[7] += u2 * dx; m[8] += u2 * dy;
-                m[9] += vb0 * b0 + vb1 * b1 + vb2 * b2;
-                m[13] += vw0 * b0; m[14] += vw1 * b1; m[15] += vw2 * b2;
+                int kk = 0;
+                REAL dm = (REAL)0, ex = (REAL)0;
+                if (vw != (REAL)0) setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+                vsig += fragment_moments(s, dx, dy, b0, b1, b2, l0, l1, zp, vl0, vl1, vzp, vw, sigma, kk, dm, ex,
+                                         partial_mom + (long)e * MOMENTS);
             }
         }
     if (do_geom) v_sigma_tile[t] = vsig;

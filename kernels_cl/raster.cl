@@ -27,12 +27,12 @@
  *             (CSR) and every entry of that face that has fragments (entry_hit), for two partial
  *             arrays at once (attributes, geometry). Adjoint of "vertex -> fragment".
  */
-#include "real.h"
-#include "raster_math.h"
-
 /* No a*b+c contraction into FMA here: the per-pixel and the 8-wide row variants must produce
  * bit-identical depths (the compiler contracts scalar and vector code differently). */
 #pragma OPENCL FP_CONTRACT OFF
+
+#include "real.h"
+#include "raster_math.h"
 
 #ifndef TILE
 #define TILE 8
@@ -42,6 +42,7 @@
 #endif
 #define SETUP 12 /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2  g0 g1 g2 :  b0 = 1 + A0 dx + B0 dy,
                      b1 = A1 dx + B1 dy, g_k = 1 / |grad b_k| (pixel distance to edge k = b_k g_k) */
+#include "raster_lists.h" /* pixel_list, rows16_lists, setup_window */
 
 __kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
                         __global const int* F,          // [M, 3]
@@ -135,35 +136,6 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
         }
 }
 
-/* The coverage window of coverage.cl from a face's edge-function set-up: the pixel distance to
- * edge k is b_k / |grad b_k| (grad b0 = (s2, s3), grad b1 = (s4, s5), grad b2 = -(grad b0 + grad b1)),
- * the same quantity as sgn(A) E_k / L_k of raster_math.h, with no vertex loads. Edges marked hard
- * (g_k < 0: not a silhouette edge of a connected mesh) are left out of the minimum; with no soft edge
- * the window is 1. */
-#define HARD_EDGE_DISTANCE ((REAL)1e30)
-inline REAL setup_window(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma)
-{
-    const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
-    const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
-    const REAL d2 = s[11] < (REAL)0 ? HARD_EDGE_DISTANCE : b2 * s[11];
-    const REAL d = fmax(fmin(d0, fmin(d1, d2)), (REAL)0);
-    return (REAL)1 - exp(-sigma * d);
-}
-
-/* Insert fragment (zp, f, e) into a pixel's list of the K nearest, kept sorted by (depth, face id). */
-inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp, int f, int e)
-{
-    const int n = *cnt;
-    if (n == K && !(zp < dk[K - 1] || (zp == dk[K - 1] && f < fk[K - 1]))) return;
-    int j = n < K ? n : K - 1;
-    while (j > 0 && (dk[j - 1] > zp || (dk[j - 1] == zp && fk[j - 1] > f))) {
-        dk[j] = dk[j - 1]; fk[j] = fk[j - 1]; ek[j] = ek[j - 1];
-        --j;
-    }
-    dk[j] = zp; fk[j] = f; ek[j] = e;
-    if (n < K) *cnt = n + 1;
-}
-
 /* The raster kernels write each pixel's list into K-strided scratch (entry and depth of slot k,
  * slots beyond the count never written); pack_raster_fragments turns it into the packed fragments. */
 #define STORE_SLOT(o, e, z) do { frag_entry[o] = (e); frag_depth[o] = (z); } while (0)
@@ -185,19 +157,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
 
     REAL dk[K_MAX];
     int fk[K_MAX], ek[K_MAX];
-    int cnt = 0;
-    const int e_end = tile_off[t + 1];
-    for (int e = tile_off[t]; e < e_end; ++e) {
-        __global const REAL* s = entry_setup + e * SETUP;
-        const REAL dx = px - s[0], dy = py - s[1];
-        const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
-        const REAL b1 = s[4] * dx + s[5] * dy;
-        const REAL b2 = (REAL)1 - b0 - b1;
-        if (b0 < (REAL)0 || b1 < (REAL)0 || b2 < (REAL)0) continue;
-        const REAL zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
-        if (!(zp <= far)) continue;
-        insert_fragment(dk, fk, ek, &cnt, K, zp, entry_face[e], e);
-    }
+    const int cnt = pixel_list(tile_off, entry_face, entry_setup, t, px, py, K, far, dk, fk, ek);
     const int pix = y * width + x;
     frag_count[pix] = cnt;
     for (int k = 0; k < cnt; ++k) STORE_SLOT(pix * K + k, ek[k], dk[k]);
@@ -262,45 +222,10 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
 #endif
 
 #if TILE == 8
-/* Lane masks of REAL16 comparisons: int16 for float, long16 for double (REAL_FP64 is defined by the
- * host for double programs). */
-#ifdef REAL_FP64
-#define MASK16 long16
-#define CONVERT_MASK16(x) convert_long16(x)
-#define CONVERT_INT16(m) convert_int16(m)
-#else
-#define MASK16 int16
-#define CONVERT_MASK16(x) (x)
-#define CONVERT_INT16(m) (m)
-#endif
-#define CONVERT_REAL16(x) TRIPLET_CAT(convert_, REAL16)(x)
-/* any() of an int16 mask by an OR tree (PoCL lowers any() of a 16-lane mask to a test per lane) */
-inline int any_i16(int16 m)
-{
-    const int8 a = m.lo | m.hi;
-    const int4 b = a.lo | a.hi;
-    const int2 c = b.lo | b.hi;
-    return (c.x | c.y) < 0;
-}
-#define ANY16(m) any_i16(CONVERT_INT16(m))
-inline int max_i16(int16 v)
-{
-    const int8 a = max(v.lo, v.hi);
-    const int4 b = max(a.lo, a.hi);
-    const int2 c = max(b.lo, b.hi);
-    return max(c.x, c.y);
-}
 /* CPU-shaped variant with a vector insertion: one work-item per two rows of an 8x8 tile, the 16
- * pixels held as the 16 lanes of REAL16 vectors (lane l: x = x0 + (l & 7), y = y0 + (l >> 3)).
- * The K-nearest lists are kept lane-wise too (slot k of the 16 pixels is one vector), and a hit is
- * inserted into all 16 lists at once, back to front like an insertion sort: starting from slot
- * k = (longest list among the hit lanes) - 1,
- *   mv = active & ((z < D_k) | (z == D_k & f < F_k));   slot k+1 <- D_k where mv, z where active & !mv
- *   active = mv;  stop when no lane is active (then slot 0 <- z where still active)
- * (likewise for the face and entry ids). Lanes without a hit are never active; a lane with a
- * shorter list moves through its empty (+inf, INT_MAX) slots; slot K (the K+1-th) is dropped.
- * Same tests, same (depth, face id) order, same results as raster_fwd, and no per-lane branches.
- * any() is an OR tree (PoCL lowers any() of a 16-lane mask to one test per lane). Used for
+ * pixels held as the 16 lanes of REAL16 vectors (lane l: x = x0 + (l & 7), y = y0 + (l >> 3)),
+ * their K-nearest lists kept lane-wise and filled by rows16_lists (common/raster_lists.h: a
+ * lane-wise back-to-front insertion, no per-lane branches). Same results as raster_fwd. Used for
  * K <= 256 (ROWS16_K_LIMIT in ops/raster.py; the lists live in private memory: 12 bytes x 16
  * lanes per slot). */
 __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
@@ -318,73 +243,10 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
     if (y0 >= height) return;
     const int x0 = tx * TILE;
     const int t = ty * tiles_x + tx;
-    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3, 4, 5, 6, 7);
-    const int16 row = (int16)(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1);
-    const REAL16 px = (REAL)x0 + (REAL)0.5 + CONVERT_REAL16(lane);
-    const REAL16 py = (REAL)y0 + (REAL)0.5 + CONVERT_REAL16(row);
-    /* lanes outside the image never hit (their "inside" mask is cleared) */
-    const MASK16 inimg = CONVERT_MASK16((x0 + lane < width) & (y0 + row < height));
-    const REAL16 inf16 = (REAL16)(INFINITY);
-    const int16 imax16 = (int16)(INT_MAX);
-
+    ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
-    for (int k = 0; k < K; ++k) {
-        dk[k] = inf16;
-        fk[k] = imax16;
-        ek[k] = imax16;
-    }
-    int16 cnt16 = (int16)0;  /* slots in use per lane */
-    const int e_end = tile_off[t + 1];
-    for (int e = tile_off[t]; e < e_end; ++e) {
-        __global const REAL* s = entry_setup + e * SETUP;
-        const REAL16 dx = px - s[0];
-        const REAL16 dy = py - s[1];
-        const REAL16 b0 = (REAL)1 + s[2] * dx + s[3] * dy;
-        const REAL16 b1 = s[4] * dx + s[5] * dy;
-        const REAL16 b2 = (REAL)1 - b0 - b1;
-        MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg;
-        if (!ANY16(hit)) continue;
-        const REAL16 zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
-        hit &= (zp <= far);
-        if (!ANY16(hit)) continue;
-        REAL16 z = select(inf16, zp, hit);
-        const int16 hit_i = CONVERT_INT16(hit);
-        int16 f = select(imax16, (int16)(entry_face[e]), hit_i);
-        int16 en = select(imax16, (int16)(e), hit_i);
-        /* back-to-front insertion, from the deepest list among the hit lanes: the new fragment
-         * moves up while it sorts before the slot above it (lanes whose list is shorter pass
-         * through their empty (+inf) slots) */
-        MASK16 act = hit;
-        int16 actc = hit_i;
-        const int kstart = min(max_i16(cnt16 & hit_i), K) - 1;  /* deepest list among the hit lanes */
-        cnt16 = min(cnt16 - hit_i, K);
-        REAL16 pd = kstart + 1 < K ? dk[kstart + 1] : inf16;
-        int16 pf = kstart + 1 < K ? fk[kstart + 1] : imax16;
-        int16 pe = kstart + 1 < K ? ek[kstart + 1] : imax16;
-        int k = kstart;
-        for (; k >= 0; --k) {
-            const REAL16 d = dk[k];
-            const int16 fo = fk[k];
-            const int16 eo = ek[k];
-            const MASK16 mv = act & ((z < d) | ((z == d) & CONVERT_MASK16(f < fo)));
-            const int16 mvi = CONVERT_INT16(mv);
-            const int16 place = actc & ~mvi;
-            if (k + 1 < K) {
-                dk[k + 1] = select(select(pd, z, CONVERT_MASK16(place)), d, mv);
-                fk[k + 1] = select(select(pf, f, place), fo, mvi);
-                ek[k + 1] = select(select(pe, en, place), eo, mvi);
-            }
-            act = mv; actc = mvi;
-            if (!any_i16(mvi)) break;
-            pd = d; pf = fo; pe = eo;
-        }
-        if (k < 0) {
-            dk[0] = select(pd, z, act);
-            fk[0] = select(pf, f, actc);
-            ek[0] = select(pe, en, actc);
-        }
-    }
+    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, t, px, py, inimg, K, far, dk, fk, ek);
     for (int l = 0; l < 16; ++l) {
         const int x = x0 + (l & 7), y = y0 + (l >> 3);
         if (x >= width || y >= height) continue;

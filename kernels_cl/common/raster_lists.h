@@ -1,0 +1,199 @@
+/* raster_lists.h — the K-nearest fragment lists of the rasterizers (raster.cl, blend.cl).
+ *
+ * A pixel's list holds its K nearest fragments sorted by (depth, face id): the face id breaks ties
+ * so the result never depends on the arbitrary order of a tile's (tile, face) entries.
+ * Per entry (edge-function set-up s, raster.cl SETUP), pixel centre p, (dx, dy) = p - a0:
+ *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1   (hit: all >= 0)
+ *   zp = 1 / (b0 s6 + b1 s7 + b2 s8)                                  (hit: zp <= far)
+ * Two builders with identical results:
+ *   pixel_list   one pixel, scalar insertion (GPU-shaped kernels: one work-item per pixel);
+ *   rows16_lists two rows of an 8x8 tile as the 16 lanes of REAL16 vectors, slot k of the 16
+ *                lists one vector, lane-wise back-to-front insertion (CPU-shaped kernels).
+ * The including file sets "#pragma OPENCL FP_CONTRACT OFF" first: the scalar and the vector
+ * builders must produce bit-identical depths (compilers contract scalar and vector code differently).
+ * Also here: the soft-coverage window from an entry's set-up (coverage.cl's formula, no vertex loads).
+ */
+#ifndef TRIPLET_RASTER_LISTS_H
+#define TRIPLET_RASTER_LISTS_H
+
+#include "real.h"
+
+#ifndef SETUP
+#define SETUP 12 /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2  g0 g1 g2 :  b0 = 1 + A0 dx + B0 dy,
+                     b1 = A1 dx + B1 dy, g_k = 1 / |grad b_k| (pixel distance to edge k = b_k g_k) */
+#endif
+#define HARD_EDGE_DISTANCE ((REAL)1e30) /* edges marked hard (g_k < 0) are left out of the window */
+
+/* The coverage window from a face's edge-function set-up: the pixel distance to edge k is
+ * d_k = b_k g_k (g_k = 1 / |grad b_k|), the same quantity as sgn(A) E_k / L_k of raster_math.h;
+ *   d = max(0, min_k d_k) over the soft edges,  win = 1 - exp(-sigma d)
+ * (no soft edge: d = HARD_EDGE_DISTANCE, win = 1). Returns win; *kmin = the arg-min edge, *dmin =
+ * min_k d_k (before the clamp at 0) and *ex = exp(-sigma d) for the adjoint. */
+inline REAL setup_window_ex(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma,
+                            int* kmin, REAL* dmin, REAL* ex)
+{
+    const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
+    const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
+    const REAL d2 = s[11] < (REAL)0 ? HARD_EDGE_DISTANCE : b2 * s[11];
+    int k = 0;
+    REAL dm = d0;
+    if (d1 < dm) { dm = d1; k = 1; }
+    if (d2 < dm) { dm = d2; k = 2; }
+    *kmin = k;
+    *dmin = dm;
+    *ex = exp(-sigma * fmax(dm, (REAL)0));
+    return (REAL)1 - *ex;
+}
+
+inline REAL setup_window(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma)
+{
+    int k;
+    REAL dm, ex;
+    return setup_window_ex(s, b0, b1, b2, sigma, &k, &dm, &ex);
+}
+
+/* Insert fragment (zp, f, e) into a pixel's list of the K nearest, kept sorted by (depth, face id). */
+inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp, int f, int e)
+{
+    const int n = *cnt;
+    if (n == K && !(zp < dk[K - 1] || (zp == dk[K - 1] && f < fk[K - 1]))) return;
+    int j = n < K ? n : K - 1;
+    while (j > 0 && (dk[j - 1] > zp || (dk[j - 1] == zp && fk[j - 1] > f))) {
+        dk[j] = dk[j - 1]; fk[j] = fk[j - 1]; ek[j] = ek[j - 1];
+        --j;
+    }
+    dk[j] = zp; fk[j] = f; ek[j] = e;
+    if (n < K) *cnt = n + 1;
+}
+
+/* The list of pixel centre (px, py) over the entries of tile t. Returns the count. */
+inline int pixel_list(__global const int* tile_off, __global const int* entry_face,
+                      __global const REAL* entry_setup, int t, REAL px, REAL py, int K, REAL far,
+                      REAL* dk, int* fk, int* ek)
+{
+    int cnt = 0;
+    const int e_end = tile_off[t + 1];
+    for (int e = tile_off[t]; e < e_end; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL dx = px - s[0], dy = py - s[1];
+        const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL b1 = s[4] * dx + s[5] * dy;
+        const REAL b2 = (REAL)1 - b0 - b1;
+        if (b0 < (REAL)0 || b1 < (REAL)0 || b2 < (REAL)0) continue;
+        const REAL zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
+        if (!(zp <= far)) continue;
+        insert_fragment(dk, fk, ek, &cnt, K, zp, entry_face[e], e);
+    }
+    return cnt;
+}
+
+/* Lane masks of REAL16 comparisons: int16 for float, long16 for double (REAL_FP64 is defined by the
+ * host for double programs). */
+#ifdef REAL_FP64
+#define MASK16 long16
+#define CONVERT_MASK16(x) convert_long16(x)
+#define CONVERT_INT16(m) convert_int16(m)
+#else
+#define MASK16 int16
+#define CONVERT_MASK16(x) (x)
+#define CONVERT_INT16(m) (m)
+#endif
+#define CONVERT_REAL16(x) TRIPLET_CAT(convert_, REAL16)(x)
+/* any() of an int16 mask by an OR tree (PoCL lowers any() of a 16-lane mask to a test per lane) */
+inline int any_i16(int16 m)
+{
+    const int8 a = m.lo | m.hi;
+    const int4 b = a.lo | a.hi;
+    const int2 c = b.lo | b.hi;
+    return (c.x | c.y) < 0;
+}
+#define ANY16(m) any_i16(CONVERT_INT16(m))
+inline int max_i16(int16 v)
+{
+    const int8 a = max(v.lo, v.hi);
+    const int4 b = max(a.lo, a.hi);
+    const int2 c = max(b.lo, b.hi);
+    return max(c.x, c.y);
+}
+
+/* The 16 lists of two rows of a tile (lane l: pixel centre (px.l, py.l); lanes outside the image
+ * have inimg = 0 and never hit), over the entries of tile t, kept lane-wise: slot k of the 16
+ * lists is dk[k] / fk[k] / ek[k]. A hit is inserted into all 16 lists at once, back to front like
+ * an insertion sort: starting from slot k = (longest list among the hit lanes) - 1,
+ *   mv = active & ((z < D_k) | (z == D_k & f < F_k));   slot k+1 <- D_k where mv, z where active & !mv
+ *   active = mv;  stop when no lane is active (then slot 0 <- z where still active)
+ * (likewise for the face and entry ids). Lanes without a hit are never active; a lane with a
+ * shorter list moves through its empty (+inf, INT_MAX) slots; slot K (the K+1-th) is dropped.
+ * Same tests, same (depth, face id) order, same results as pixel_list, no per-lane branches.
+ * Returns the count of each lane. */
+inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_face,
+                          __global const REAL* entry_setup, int t, REAL16 px, REAL16 py, MASK16 inimg,
+                          int K, REAL far, REAL16* dk, int16* fk, int16* ek)
+{
+    const REAL16 inf16 = (REAL16)(INFINITY);
+    const int16 imax16 = (int16)(INT_MAX);
+    for (int k = 0; k < K; ++k) {
+        dk[k] = inf16;
+        fk[k] = imax16;
+        ek[k] = imax16;
+    }
+    int16 cnt16 = (int16)0;  /* slots in use per lane */
+    const int e_end = tile_off[t + 1];
+    for (int e = tile_off[t]; e < e_end; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL16 dx = px - s[0];
+        const REAL16 dy = py - s[1];
+        const REAL16 b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL16 b1 = s[4] * dx + s[5] * dy;
+        const REAL16 b2 = (REAL)1 - b0 - b1;
+        MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg;
+        if (!ANY16(hit)) continue;
+        const REAL16 zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
+        hit &= (zp <= far);
+        if (!ANY16(hit)) continue;
+        REAL16 z = select(inf16, zp, hit);
+        const int16 hit_i = CONVERT_INT16(hit);
+        int16 f = select(imax16, (int16)(entry_face[e]), hit_i);
+        int16 en = select(imax16, (int16)(e), hit_i);
+        MASK16 act = hit;
+        int16 actc = hit_i;
+        const int kstart = min(max_i16(cnt16 & hit_i), K) - 1;  /* deepest list among the hit lanes */
+        cnt16 = min(cnt16 - hit_i, K);
+        REAL16 pd = kstart + 1 < K ? dk[kstart + 1] : inf16;
+        int16 pf = kstart + 1 < K ? fk[kstart + 1] : imax16;
+        int16 pe = kstart + 1 < K ? ek[kstart + 1] : imax16;
+        int k = kstart;
+        for (; k >= 0; --k) {
+            const REAL16 d = dk[k];
+            const int16 fo = fk[k];
+            const int16 eo = ek[k];
+            const MASK16 mv = act & ((z < d) | ((z == d) & CONVERT_MASK16(f < fo)));
+            const int16 mvi = CONVERT_INT16(mv);
+            const int16 place = actc & ~mvi;
+            if (k + 1 < K) {
+                dk[k + 1] = select(select(pd, z, CONVERT_MASK16(place)), d, mv);
+                fk[k + 1] = select(select(pf, f, place), fo, mvi);
+                ek[k + 1] = select(select(pe, en, place), eo, mvi);
+            }
+            act = mv; actc = mvi;
+            if (!any_i16(mvi)) break;
+            pd = d; pf = fo; pe = eo;
+        }
+        if (k < 0) {
+            dk[0] = select(pd, z, act);
+            fk[0] = select(pf, f, actc);
+            ek[0] = select(pe, en, actc);
+        }
+    }
+    return cnt16;
+}
+
+/* Lane l's pixel centre and image mask of the two rows (y0, y0 + 1) from x0 of an 8x8 tile. */
+#define ROWS16_LANES(x0, y0, width, height, px, py, inimg)                                          \
+    const int16 lane_x_ = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3, 4, 5, 6, 7);                  \
+    const int16 lane_y_ = (int16)(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1);                  \
+    const REAL16 px = (REAL)(x0) + (REAL)0.5 + CONVERT_REAL16(lane_x_);                             \
+    const REAL16 py = (REAL)(y0) + (REAL)0.5 + CONVERT_REAL16(lane_y_);                             \
+    const MASK16 inimg = CONVERT_MASK16(((x0) + lane_x_ < (width)) & ((y0) + lane_y_ < (height)))
+
+#endif /* TRIPLET_RASTER_LISTS_H */
