@@ -1,0 +1,259 @@
+/* blend.cl — the fused raster path for per-vertex attributes: K nearest fragments → perspective-
+ * correct interpolation of attributes and opacity → soft-coverage window → front-to-back
+ * compositing, in one forward kernel, and its whole adjoint in one backward kernel.
+ *
+ * It computes exactly what raster.cl → interpolate.cl → coverage.cl → composite.cl compute
+ * (ops/raster.py, ops/interpolate.py, ops/composite.py) for per-vertex features, without writing
+ * a packed fragment array in between: the per-fragment work stays in registers and cache, and the
+ * backward pass recomputes it from the lists. Used where the colour of a fragment is an
+ * interpolated per-vertex value (unlit / emissive vertex colours, per-vertex radiance, depth or
+ * any feature channel, the opaque K = 1 job); deferred shading uses the generic chain.
+ *
+ * Inputs: attr [N, C+1] per vertex (C features, then the opacity in the last column), the entries
+ * of the tile binning (raster.cl: set-up s [E, SETUP], face [E]), background bg [C].
+ * Forward, per pixel p with its K-nearest list (common/raster_lists.h), fragment i of entry e:
+ *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1,   (dx, dy) = p - a0
+ *   w_k = b_k s_{6+k} (= b_k / z_k),  zp = 1 / (w0 + w1 + w2),  lam_k = w_k zp  (lam2 = 1 - lam0 - lam1)
+ *   f_ic = sum_k lam_k attr[F[f,k], c],   ab_i = sum_k lam_k attr[F[f,k], C]
+ *   win_i = 1 - exp(-sigma max(0, min_k b_k g_k))   (sigma > 0; else win_i = 1; setup_window_ex)
+ *   a_i = ab_i win_i,   T_0 = 1,  T_{i+1} = T_i (1 - a_i)
+ *   out_c = sum_{i<n} f_ic a_i T_i + bg_c T_n,   trans = T_n,   n = n_contrib
+ *   (compositing stops after the first fragment that brings T below t_min, as composite.cl)
+ *   The entry e and T_i of each composited fragment go to K-strided scratch for the adjoint.
+ * Adjoint (one work-item per tile, its pixels and their fragments back to front; composite.cl):
+ *   R_c = bg_c, G = 1;  for i = n-1 .. 0:
+ *     v_f_ic = v_out_c a_i T_i,   v_a_i = T_i (sum_c v_out_c (f_ic - R_c) + v_acc G)
+ *     R_c = f_ic a_i + (1 - a_i) R_c,   G = G (1 - a_i)
+ *     v_ab_i = v_a_i win_i,   v_win_i = v_a_i ab_i
+ *   interpolation (interpolate.cl): v_attr[F[f,k], c] += lam_k v_f_ic, v_attr[F[f,k], C] += lam_k v_ab_i,
+ *     v_lam0 = sum_c v_f_ic (a0_c - a2_c) + v_ab_i (a0_C - a2_C), v_lam1 likewise with a1
+ *   geometry: v_lam, v_win -> the entry's moments (common/raster_adjoint.h), then entry_geom and
+ *     gather_vertex as for the generic chain (fragment_bwd.cl, raster.cl).
+ * No float atomics: the tile's work-item owns the partial sums of the tile's (tile, face) entries
+ * (partial_attr [E, 3, C+1], partial_mom [E, MOMENTS], zeroed at an entry's first fragment and
+ * flagged in entry_hit); gather_vertex sums them per vertex in a fixed order.
+ */
+#pragma OPENCL FP_CONTRACT OFF /* the same depths and barycentrics as raster.cl */
+
+#include "real.h"
+#include "raster_adjoint.h" /* fragment_moments, pixel_list, rows16_lists, setup_window_ex */
+
+#ifndef TILE
+#define TILE 8
+#endif
+#ifndef K_MAX
+#define K_MAX 1
+#endif
+#ifndef C_MAX
+#define C_MAX 4
+#endif
+
+/* Interpolates, windows and composites the list el[i * stride] (i < cnt) of pixel pix at (px, py). */
+inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, int pix, int K,
+                        __global const int* entry_face, __global const REAL* entry_setup,
+                        __global const int* F, __global const REAL* attr, int C,
+                        __global const REAL* bg, REAL sigma, REAL t_min,
+                        __global REAL* out, __global REAL* trans, __global int* n_contrib,
+                        __global int* s_entry, __global REAL* s_T)
+{
+    const int CA = C + 1;
+    REAL acc[C_MAX];
+    for (int c = 0; c < C; ++c) acc[c] = (REAL)0;
+    REAL T = (REAL)1;
+    int n = 0;
+    for (int i = 0; i < cnt; ++i) {
+        const int e = el[i * stride];
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL dx = px - s[0], dy = py - s[1];
+        const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+        const REAL b1 = s[4] * dx + s[5] * dy;
+        const REAL b2 = (REAL)1 - b0 - b1;
+        const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+        const REAL zp = (REAL)1 / (w0 + w1 + w2);
+        const REAL l0 = w0 * zp, l1 = w1 * zp, l2 = (REAL)1 - l0 - l1;
+        const int f = entry_face[e];
+        __global const REAL* a0 = attr + F[3 * f] * CA;
+        __global const REAL* a1 = attr + F[3 * f + 1] * CA;
+        __global const REAL* a2 = attr + F[3 * f + 2] * CA;
+        REAL a = l0 * a0[C] + l1 * a1[C] + l2 * a2[C];
+        if (sigma > (REAL)0) {
+            int kk;
+            REAL dm, ex;
+            a *= setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+        }
+        const REAL wgt = a * T;
+        for (int c = 0; c < C; ++c) acc[c] += (l0 * a0[c] + l1 * a1[c] + l2 * a2[c]) * wgt;
+        s_entry[pix * K + i] = e;
+        s_T[pix * K + i] = T;
+        T *= (REAL)1 - a;
+        n = i + 1;
+        if (T < t_min) break;
+    }
+    for (int c = 0; c < C; ++c) out[pix * C + c] = acc[c] + bg[c] * T;
+    trans[pix] = T;
+    n_contrib[pix] = n;
+}
+
+/* GPU-shaped: one work-item per pixel, one 8x8 work-group per tile. */
+__kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
+                        __global const int* entry_face,    // [E]
+                        __global const REAL* entry_setup,  // [E, SETUP]
+                        __global const int* F,             // [M, 3]
+                        __global const REAL* attr,         // [N, C + 1]
+                        __global const REAL* bg,           // [C]
+                        const int width, const int height, const int tiles_x,
+                        const int K, const REAL far, const int C, const REAL sigma, const REAL t_min,
+                        __global REAL* out,                // [H, W, C]
+                        __global REAL* trans,              // [H, W]
+                        __global int* n_contrib,           // [H, W]
+                        __global int* count,               // [H, W]  fragments found (<= K)
+                        __global int* s_entry,             // [H, W, K]  entry of composited slot i
+                        __global REAL* s_T)                // [H, W, K]  T_i of composited slot i
+{
+    const int tx = get_group_id(0), ty = get_group_id(1);
+    const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
+    if (x >= width || y >= height) return;
+    const int t = ty * tiles_x + tx;
+    const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
+    REAL dk[K_MAX];
+    int fk[K_MAX], ek[K_MAX];
+    const int cnt = pixel_list(tile_off, entry_face, entry_setup, t, px, py, K, far, dk, fk, ek);
+    const int pix = y * width + x;
+    count[pix] = cnt;
+    blend_pixel(ek, 1, cnt, px, py, pix, K, entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
+                out, trans, n_contrib, s_entry, s_T);
+}
+
+#if TILE == 8
+/* CPU-shaped: one work-item per two rows of an 8x8 tile, the 16 pixels' lists built in vector
+ * lanes (rows16_lists), then each pixel blended in turn (its loads are gathers: scalar is faster). */
+__kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
+                               __global const int* entry_face,    // [E]
+                               __global const REAL* entry_setup,  // [E, SETUP]
+                               __global const int* F,             // [M, 3]
+                               __global const REAL* attr,         // [N, C + 1]
+                               __global const REAL* bg,           // [C]
+                               const int width, const int height, const int tiles_x,
+                               const int K, const REAL far, const int C, const REAL sigma, const REAL t_min,
+                               __global REAL* out,                // [H, W, C]
+                               __global REAL* trans,              // [H, W]
+                               __global int* n_contrib,           // [H, W]
+                               __global int* count,               // [H, W]
+                               __global int* s_entry,             // [H, W, K]
+                               __global REAL* s_T)                // [H, W, K]
+{
+    const int tx = get_global_id(0), pair = get_global_id(1);
+    const int ty = pair >> 2;
+    const int y0 = ty * TILE + 2 * (pair & 3);
+    if (y0 >= height) return;
+    const int x0 = tx * TILE;
+    const int t = ty * tiles_x + tx;
+    ROWS16_LANES(x0, y0, width, height, px, py, inimg);
+    REAL16 dk[K_MAX];
+    int16 fk[K_MAX], ek[K_MAX];
+    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, t, px, py, inimg, K, far, dk, fk, ek);
+    for (int l = 0; l < 16; ++l) {
+        const int x = x0 + (l & 7), y = y0 + (l >> 3);
+        if (x >= width || y >= height) continue;
+        const int pix = y * width + x;
+        const int cnt = ((const int*)&cnt16)[l];
+        count[pix] = cnt;
+        blend_pixel((const int*)ek + l, 16, cnt, (REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5, pix, K,
+                    entry_face, entry_setup, F, attr, C, bg, sigma, t_min, out, trans, n_contrib, s_entry, s_T);
+    }
+}
+#endif
+
+__kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
+                        __global const int* entry_face,    // [E]
+                        __global const REAL* entry_setup,  // [E, SETUP]
+                        __global const int* F,             // [M, 3]
+                        __global const REAL* attr,         // [N, C + 1]
+                        __global const REAL* bg,           // [C]
+                        __global const int* n_contrib,     // [H, W]
+                        __global const int* s_entry,       // [H, W, K]
+                        __global const REAL* s_T,          // [H, W, K]
+                        __global const REAL* v_out,        // [H, W, C]
+                        __global const REAL* v_acc,        // [H, W]  (has_vacc)
+                        const int has_vacc, const int C, const int K, const REAL sigma,
+                        const int width, const int height, const int tiles_x, const int num_tiles,
+                        __global int* entry_hit,           // [E]
+                        __global REAL* partial_attr,       // [E, 3, C + 1]
+                        __global REAL* partial_mom,        // [E, MOMENTS]
+                        __global REAL* v_sigma_tile)       // [T]
+{
+    const int t = get_global_id(0);
+    if (t >= num_tiles) return;
+    const int CA = C + 1;
+    const int e0 = tile_off[t], e1 = tile_off[t + 1];
+    for (int e = e0; e < e1; ++e) entry_hit[e] = 0;
+    REAL vsig = (REAL)0;
+    const int tx = t % tiles_x, ty = t / tiles_x;
+    const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
+    for (int y = ty * TILE; y < ye; ++y)
+        for (int x = tx * TILE; x < xe; ++x) {
+            const int pix = y * width + x;
+            const int n = n_contrib[pix];
+            if (n == 0) continue;
+            REAL vo[C_MAX], R[C_MAX];
+            for (int c = 0; c < C; ++c) { vo[c] = v_out[pix * C + c]; R[c] = bg[c]; }
+            const REAL va = has_vacc ? v_acc[pix] : (REAL)0;
+            REAL G = (REAL)1;
+            const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
+            for (int i = n - 1; i >= 0; --i) {
+                const int e = s_entry[pix * K + i];
+                const REAL T = s_T[pix * K + i];
+                __global const REAL* s = entry_setup + e * SETUP;
+                const REAL dx = px - s[0], dy = py - s[1];
+                const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
+                const REAL b1 = s[4] * dx + s[5] * dy;
+                const REAL b2 = (REAL)1 - b0 - b1;
+                const REAL w0 = b0 * s[6], w1 = b1 * s[7], w2 = b2 * s[8];
+                const REAL zp = (REAL)1 / (w0 + w1 + w2);
+                const REAL l0 = w0 * zp, l1 = w1 * zp, l2 = (REAL)1 - l0 - l1;
+                int kk = 0;
+                REAL dm = (REAL)0, ex = (REAL)0, win = (REAL)1;
+                if (sigma > (REAL)0) win = setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+                const int f = entry_face[e];
+                __global const REAL* a0 = attr + F[3 * f] * CA;
+                __global const REAL* a1 = attr + F[3 * f + 1] * CA;
+                __global const REAL* a2 = attr + F[3 * f + 2] * CA;
+                const REAL ab = l0 * a0[C] + l1 * a1[C] + l2 * a2[C];
+                const REAL a = ab * win;
+                const REAL wgt = a * T;
+                REAL dot = (REAL)0, g0 = (REAL)0, g1 = (REAL)0;
+                for (int c = 0; c < C; ++c) {
+                    const REAL fc = l0 * a0[c] + l1 * a1[c] + l2 * a2[c];
+                    dot += vo[c] * (fc - R[c]);
+                    R[c] = fc * a + ((REAL)1 - a) * R[c];
+                    g0 += vo[c] * (a0[c] - a2[c]);
+                    g1 += vo[c] * (a1[c] - a2[c]);
+                }
+                const REAL v_a = T * (dot + va * G);
+                G *= (REAL)1 - a;
+                const REAL v_ab = v_a * win;
+                const REAL v_win = sigma > (REAL)0 ? v_a * ab : (REAL)0;
+                __global REAL* d = partial_attr + (long)e * 3 * CA;
+                __global REAL* m = partial_mom + (long)e * MOMENTS;
+                if (!entry_hit[e]) {
+                    entry_hit[e] = 1;
+                    for (int q = 0; q < 3 * CA; ++q) d[q] = (REAL)0;
+                    for (int q = 0; q < MOMENTS; ++q) m[q] = (REAL)0;
+                }
+                for (int c = 0; c < C; ++c) {
+                    const REAL gc = vo[c] * wgt;
+                    d[c] += l0 * gc;
+                    d[CA + c] += l1 * gc;
+                    d[2 * CA + c] += l2 * gc;
+                }
+                d[C] += l0 * v_ab;
+                d[CA + C] += l1 * v_ab;
+                d[2 * CA + C] += l2 * v_ab;
+                const REAL vl0 = wgt * g0 + v_ab * (a0[C] - a2[C]);
+                const REAL vl1 = wgt * g1 + v_ab * (a1[C] - a2[C]);
+                vsig += fragment_moments(s, dx, dy, b0, b1, b2, l0, l1, zp, vl0, vl1, (REAL)0, v_win, sigma,
+                                         kk, dm, ex, m);
+            }
+        }
+    v_sigma_tile[t] = vsig;
+}

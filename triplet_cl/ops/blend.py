@@ -1,0 +1,215 @@
+"""The fused raster path for per-vertex attributes (``kernels_cl/blend.cl``).
+
+``raster_blend`` computes in one kernel what :func:`~triplet_cl.ops.raster.rasterize` →
+:func:`~triplet_cl.ops.interpolate.interpolate` → :func:`~triplet_cl.ops.composite.coverage` →
+:func:`~triplet_cl.ops.composite.composite` compute when a fragment's colour and opacity are
+interpolated per-vertex values, and ``raster_blend_backward`` its whole adjoint in one pass over
+the tiles (then the shared per-entry gathers). No packed fragment array is written in between:
+on a CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
+
+Use it for unlit / emissive vertex colours, per-vertex radiance, depth or any feature image, and
+the opaque K = 1 job; deferred shading (a BRDF evaluated per fragment) uses the generic chain.
+Both give the same images and gradients (tests/test_blend.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..device import Device
+from .common import buf, check_real, check_shape, const_array, fragment_array, grid_1d, to_device
+from .composite import _c_max
+from .mesh import DeviceMesh
+from .raster import (
+    K_LIMIT,
+    MOMENTS,
+    ROWS16_K_LIMIT,
+    ROWS16_LOCAL,
+    TILE,
+    Binning,
+    _real_of,
+    bin_faces,
+    gather_to_vertices,
+)
+
+BLEND_VARIANTS = ("auto", "pixel", "rows16")
+C_LIMIT = 64  # feature channels
+
+
+@dataclass
+class Blend:
+    """The forward state of :func:`raster_blend` (device arrays) that its adjoint reads.
+
+    ``image [H, W, C]``, ``trans [H, W]`` (transmittance behind the composited fragments: the
+    accumulated alpha is ``1 − trans``), ``n_contrib [H, W]`` (fragments composited), ``count
+    [H, W]`` (fragments found, ≤ K); scratch ``s_entry``/``s_T [H, W, K]``: the (tile, face)
+    entry and the transmittance in front of each composited fragment.
+    """
+
+    width: int
+    height: int
+    K: int
+    C: int
+    sigma: float | None
+    real: np.dtype
+    image: cla.Array
+    trans: cla.Array
+    n_contrib: cla.Array
+    count: cla.Array
+    binning: Binning
+    vs: cla.Array
+    mesh: DeviceMesh
+    attr: cla.Array
+    bg: cla.Array
+    s_entry: cla.Array
+    s_T: cla.Array
+
+    # what gather_to_vertices reads of a Fragments
+    @property
+    def face_off(self) -> cla.Array:
+        return self.binning.face_off
+
+    @property
+    def face_entries(self) -> cla.Array:
+        return self.binning.face_entries
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """Host ``[H, W]`` accumulated alpha ``1 − trans``."""
+        return 1.0 - self.trans.get()
+
+
+def _device_attr(device: Device, attr, n: int, real) -> cla.Array:
+    if isinstance(attr, cla.Array):
+        if attr.ndim != 2 or attr.shape[0] != n:
+            raise ValueError(f"attr must have shape [{n}, C + 1] (features, then opacity), got {list(attr.shape)}")
+        if attr.dtype != real:
+            raise ValueError(f"attr must have dtype {real} (as vs), got {attr.dtype}")
+        if not attr.flags.c_contiguous:
+            raise ValueError("attr must be C-contiguous")
+        return attr
+    return to_device(device.queue, check_real("attr", attr, (n, None), real))
+
+
+def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height: int, K: int, bg=0.0,
+                 sigma: float | None = None, soft_edges=None, t_min: float = 1e-4, near: float = 0.01,
+                 far: float = 1000.0, cull_backface: bool = False, variant: str = "auto") -> Blend:
+    """Per-vertex features and opacity, rasterized, interpolated and alpha-blended in one pass.
+
+    Args:
+        vs: ``[N, 3]`` projected vertices (u, v, z) from :func:`~triplet_cl.ops.raster.project`.
+        mesh: the :class:`DeviceMesh`.
+        attr: ``[N, C + 1]`` per vertex: C feature channels (1 ≤ C ≤ 64), then the opacity in
+            [0, 1] (float32 or float64 as ``vs``; device arrays pass through).
+        width, height, K: image size and fragments kept per pixel (1 ≤ K ≤ 1024).
+        bg: ``[C]`` background (or a scalar).
+        sigma, soft_edges: the soft-coverage window (see :func:`~triplet_cl.ops.raster.rasterize`);
+            None: hard edges.
+        t_min: compositing stops once the transmittance drops below it (0 disables).
+        near, far, cull_backface: as :func:`~triplet_cl.ops.raster.rasterize`.
+        variant: ``"rows16"`` (CPU-shaped: lists in 16 vector lanes, K ≤ 256), ``"pixel"``
+            (GPU-shaped: one work-item per pixel) or ``"auto"`` (rows16 on CPUs up to K = 256).
+
+    Returns:
+        :class:`Blend` (``.image [H, W, C]``, ``.trans [H, W]``, ...): the result of
+        composite(interpolate(rasterize(...))) with the window of ``coverage``.
+    """
+    if variant not in BLEND_VARIANTS:
+        raise ValueError(f"variant must be one of {BLEND_VARIANTS}, got {variant!r}")
+    K = int(K)
+    if not 1 <= K <= K_LIMIT:
+        raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
+    if variant == "auto":
+        variant = "rows16" if device.is_cpu and K <= ROWS16_K_LIMIT else "pixel"
+    if variant == "rows16" and K > ROWS16_K_LIMIT:
+        raise ValueError(f"variant 'rows16' supports K <= {ROWS16_K_LIMIT}, got K={K}")
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
+    if not (0 <= t_min < 1):
+        raise ValueError(f"t_min must be in [0, 1), got {t_min}")
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be at least 1x1, got {width}x{height}")
+    if not (0 < near < far):
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    if not isinstance(vs, cla.Array):
+        vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), _real_of(np.asarray(vs))))
+    check_shape("vs", vs, (mesh.num_vertices, 3))
+    real = _real_of(vs)
+    a = _device_attr(device, attr, mesh.num_vertices, real)
+    C = a.shape[1] - 1
+    if not 1 <= C <= C_LIMIT:
+        raise ValueError(f"attr must have C + 1 columns with 1 <= C <= {C_LIMIT} (features, then opacity), "
+                         f"got {a.shape[1]} columns")
+    b = np.asarray(bg, dtype=np.float64)
+    if b.ndim > 1 or b.size not in (1, C):
+        raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
+    bgd = const_array(device, check_real("bg", np.broadcast_to(b, (C,)), (C,), real))
+    q, alloc = device.queue, device.allocator
+    device.check_alloc(width * height * K * (4 + real.itemsize), f"fragment lists ({width}x{height}, K={K})")
+    bn = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
+    image = cla.empty(q, (height, width, C), real, allocator=alloc)
+    trans = cla.empty(q, (height, width), real, allocator=alloc)
+    n_contrib = cla.empty(q, (height, width), np.int32, allocator=alloc)
+    count = cla.empty(q, (height, width), np.int32, allocator=alloc)
+    s_entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
+    s_T = cla.empty(q, (height, width, K), real, allocator=alloc)
+    if variant == "rows16":
+        kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
+    else:
+        kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
+    device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
+        q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, mesh.F.data, a.data, bgd.data,
+        np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
+        real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
+        s_entry.data, s_T.data)
+    return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
+                 s_entry, s_T)
+
+
+def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
+    """Adjoint of :func:`raster_blend` for ``sum(image · v_image) + sum((1 − trans) · v_alpha)``.
+
+    Args:
+        blend: the :class:`Blend` of the forward pass.
+        v_image: ``[H, W, C]`` adjoint of the image; v_alpha: optional ``[H, W]`` adjoint of the
+            accumulated alpha.
+
+    Returns:
+        ``(v_attr [N, C + 1], v_vs [N, 3], v_sigma float)``: device arrays for the per-vertex
+        features and opacity and the projected vertices (chain ``v_vs`` through
+        :func:`~triplet_cl.ops.raster.project_backward`), and the window sharpness's adjoint (0
+        without a window).
+    """
+    H, W, C, real = blend.height, blend.width, blend.C, blend.real
+    q, alloc = device.queue, device.allocator
+    g = fragment_array(q, "v_image", v_image, (H, W, C), real)
+    va = fragment_array(q, "v_alpha", v_alpha, (H, W), real)
+    bn = blend.binning
+    T, E = bn.num_tiles, bn.num_entries
+    CA = C + 1
+    hit = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    p_attr = cla.empty(q, (max(E, 1), 3, CA), real, allocator=alloc)
+    p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc)
+    v_sig_tile = cla.empty(q, T, real, allocator=alloc)
+    device.kernel("blend", "blend_bwd", {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
+        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.mesh.F.data,
+        blend.attr.data, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, g.data,
+        buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
+        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, p_attr.data, p_mom.data,
+        v_sig_tile.data)
+    p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
+    if E:
+        device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
+            q, *grid_1d(E), blend.vs.data, blend.mesh.F.data, bn.entry_face.data, p_mom.data, hit.data,
+            np.int32(E), p_geom.data)
+    v_attr, v_vs = gather_to_vertices(device, blend, hit, p_attr, CA, p_geom, 3)
+    v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
+    return v_attr, v_vs, v_sigma
+
+
+__all__ = ["BLEND_VARIANTS", "Blend", "raster_blend", "raster_blend_backward"]
