@@ -27,6 +27,7 @@ import numpy as np
 
 from triplet_cl import get_device
 from triplet_cl.camera import Camera
+from triplet_cl.ops.blend import raster_blend, raster_blend_backward
 from triplet_cl.ops.columns import copy_columns
 from triplet_cl.ops.composite import composite, composite_backward, coverage
 from triplet_cl.ops.interpolate import interpolate
@@ -118,6 +119,29 @@ class Chain:
         _, v_vs, _ = fragments_backward(d, fr, self.attrd, vf, v_win=vw, sigma=self.sigma)
         project_backward(d, self.Vd, self.cam, v_vs)
         d.queue.finish()
+
+
+class FusedChain(Chain):
+    """The same job through the fused per-vertex path (ops/blend.py): project → bin → one kernel for
+    raster, interpolation, coverage and compositing; one per-tile adjoint pass, the per-entry
+    gathers, and the projection's adjoint."""
+
+    def forward(self):
+        d = self.dev
+        self.vs = project(d, self.Vd, self.cam)
+        self.bl = raster_blend(d, self.vs, self.mesh, self.attrd, self.cam.width, self.cam.height, self.K,
+                               bg=self.bg[:3], sigma=self.sigma)
+        self.img, self.trans, self.fr = self.bl.image, self.bl.trans, self.bl  # frag_stats reads .count
+        d.queue.finish()
+
+    def backward(self):
+        d = self.dev
+        v_attr, v_vs, _ = raster_blend_backward(d, self.bl, self.v_img)
+        project_backward(d, self.Vd, self.cam, v_vs)
+        d.queue.finish()
+
+
+CHAINS = {"generic": Chain, "fused": FusedChain}
 
 
 def timed(fn, runs):
@@ -263,13 +287,17 @@ def main(argv=None):
     ap.add_argument("--faces", type=int, nargs="*", default=[10_000, 100_000, 1_000_000])
     ap.add_argument("--K", type=int, nargs="*", default=[1, 30, 150])
     ap.add_argument("--scenes", nargs="*", default=["surface", "dense"])
+    ap.add_argument("--chain", choices=["generic", "fused", "both"], default="both",
+                    help="generic: rasterize → interpolate → coverage → composite (the deferred-shading path); "
+                         "fused: ops/blend.py (per-vertex attributes)")
     ap.add_argument("--no-peer", action="store_true")
     args = ap.parse_args(argv)
     dev = get_device()
     print(f"device: {dev.name}  ({dev.info.type}, {dev.info.compute_units} CUs)")
     if args.quick:
         args.res, args.faces, args.K = [400], [100_000], [30]
-    print(f"{'scene':8} {'res':>5} {'faces':>8} {'K':>4} {'frag/px':>7} {'cover':>6} "
+    chains = list(CHAINS) if args.chain == "both" else [args.chain]
+    print(f"{'scene':8} {'res':>5} {'faces':>8} {'K':>4} {'chain':>8} {'frag/px':>7} {'cover':>6} "
           f"{'fwd ms':>8} {'bwd ms':>8} {'total':>8} {'peak MiB':>9}")
     for scene in args.scenes:
         for M in args.faces:
@@ -279,66 +307,60 @@ def main(argv=None):
                     if res * res * K * 40 > dev.info.max_alloc_bytes * 4:
                         print(f"{scene:8} {res:5d} {M:8d} {K:4d}  skipped: fragment buffers exceed device memory")
                         continue
-                    ch = None
-                    dev.allocator.free_held()  # the previous configuration's buffers go back first
-                    ch = Chain(dev, V, F, camera(res), K)
-                    try:
-                        fwd = timed(ch.forward, args.runs)
-                        bwd = timed(ch.backward, args.runs)
-                    except MemoryError as exc:
-                        print(f"{scene:8} {res:5d} {M:8d} {K:4d}  skipped: {exc}")
-                        continue
-                    fpp, cov = frag_stats(ch)
-                    # device memory the pooled allocator holds after a forward + backward (≈ the peak)
-                    peak = getattr(dev.allocator, "managed_bytes", float("nan")) / 2**20
-                    print(f"{scene:8} {res:5d} {M:8d} {K:4d} {fpp:7.1f} {cov:6.2f} {fwd:8.1f} {bwd:8.1f} "
-                          f"{fwd + bwd:8.1f} {peak:9.0f}", flush=True)
-                    dev.allocator.free_held()
+                    for name in chains:
+                        ch = None
+                        dev.allocator.free_held()  # the previous configuration's buffers go back first
+                        ch = CHAINS[name](dev, V, F, camera(res), K)
+                        try:
+                            fwd = timed(ch.forward, args.runs)
+                            bwd = timed(ch.backward, args.runs)
+                        except MemoryError as exc:
+                            print(f"{scene:8} {res:5d} {M:8d} {K:4d} {name:>8}  skipped: {exc}")
+                            continue
+                        fpp, cov = frag_stats(ch)
+                        # device memory the pooled allocator holds after a forward + backward (≈ the peak)
+                        peak = getattr(dev.allocator, "managed_bytes", float("nan")) / 2**20
+                        print(f"{scene:8} {res:5d} {M:8d} {K:4d} {name:>8} {fpp:7.1f} {cov:6.2f} {fwd:8.1f} "
+                              f"{bwd:8.1f} {fwd + bwd:8.1f} {peak:9.0f}", flush=True)
+                        dev.allocator.free_held()
     if not args.no_peer:
         # the opaque K=1 job on an 82k-face icosphere, 400²: hard coverage (sigma huge), alpha 1
-        import pyopencl.array as cla
         import trimesh
 
         ico = trimesh.creation.icosphere(subdivisions=6)  # 81,920 faces
         V = np.asarray(ico.vertices, np.float32)
         F = np.asarray(ico.faces, np.int32)
         cam = camera(400)
-        ch = Chain(dev, V, F, cam, 1, sigma=1e6)
-        ch.set_alpha(1.0)
+        ours_ms = {}
+        for name in chains:
+            # hard coverage: the generic chain with a window so sharp it is a step (sigma 1e6), the fused path
+            # with no window at all (sigma None)
+            ch = CHAINS[name](dev, V, F, cam, 1, sigma=1e6 if name == "generic" else None)
+            ch.set_alpha(1.0)
 
-        def ours():
-            ch.forward()
-            ch.backward()
+            def ours(ch=ch):
+                ch.forward()
+                ch.backward()
 
-        t_ours = timed(ours, args.runs)
+            ours_ms[name] = timed(ours, args.runs)
 
-        def reference():
-            """Our image [H,W,3], silhouette [H,W] and colour gradient [N,3] (None where it fails)."""
-            ch.forward()
-            H, W = cam.height, cam.width
-            rgb, alpha = ch.img.get()[..., :3], 1.0 - ch.trans.get().reshape(H, W)
-            try:
-                v4 = np.zeros((H, W, ch.fa.shape[-1]), np.float32)
-                v4[..., :3] = ch.v_img.get()
-                vf, _, _, _ = composite_backward(dev, ch.fr, ch.fa, ch.a, ch.bg, ch.ncon, ch.trans,
-                                                 cla.to_device(dev.queue, v4), win=ch.win)
-                v_attr = fragments_backward(dev, ch.fr, ch.attrd, vf, geometry=False)[0]
-                v_col = v_attr.get()[:, :3]
-            except Exception:  # noqa: BLE001 - the gradient check is optional
-                v_col = None
-            return rgb, alpha, v_col
-
-        ref = reference()
+        # sanity numbers from the fused path (its image and colour gradient equal the generic chain's: tests)
+        fz = FusedChain(dev, V, F, cam, 1, sigma=None)
+        fz.set_alpha(1.0)
+        fz.forward()
+        v_attr, _, _ = raster_blend_backward(dev, fz.bl, fz.v_img)
+        ref = (fz.img.get()[..., :3], fz.bl.alpha, v_attr.get()[:, :3])
         print(f"\nopaque job (K=1, per-vertex colour, {len(F)} faces, 400², d/d colours), fwd+bwd median ms:")
-        print(f"  triplet_cl: {t_ours:8.1f}  (also computes the gradients w.r.t. positions and alphas)")
+        for name, t in ours_ms.items():
+            print(f"  triplet_cl ({name}): {t:8.1f}  (also computes the gradients w.r.t. positions and alphas)")
         for setup in ("direct", "primary"):
-            t_peer, what, chk = mitsuba_opaque(V, F, ch.col, cam, args.runs, v_img=ch.v_img.get(), setup=setup,
+            t_peer, what, chk = mitsuba_opaque(V, F, fz.col, cam, args.runs, v_img=fz.v_img.get(), setup=setup,
                                                ref=ref)
             if t_peer is None:
                 print(f"  mitsuba 3:  n/a — {what}")
                 break
-            print(f"  mitsuba 3:  {t_peer:8.1f}  ({what}, {chk['threads']} threads)   "
-                  f"ratio ours/mitsuba = {t_ours / t_peer:.2f}")
+            ratios = ", ".join(f"{name} {t / t_peer:.2f}" for name, t in ours_ms.items())
+            print(f"  mitsuba 3:  {t_peer:8.1f}  ({what}, {chk['threads']} threads)   ratio ours/mitsuba: {ratios}")
             gc = f"{chk['gcorr']:.3f}" if "gcorr" in chk else "n/a"
             print(f"    sanity: silhouette IoU {chk['iou']:.4f}, mean |Δrgb| where both cover {chk['drgb']:.3f} "
                   f"(Mitsuba jitters its sample in the pixel), colour-gradient correlation {gc}")
