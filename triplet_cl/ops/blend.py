@@ -14,18 +14,16 @@ Both give the same images and gradients (tests/test_blend.py).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, check_shape, const_array, fragment_array, grid_1d, to_device
+from .common import buf, check_real, const_array, fragment_array, grid_1d, to_device
 from .composite import _c_max
 from .mesh import DeviceMesh
 from .raster import (
-    K_LIMIT,
     MOMENTS,
     ROWS16_K_LIMIT,
     ROWS16_LOCAL,
@@ -33,6 +31,7 @@ from .raster import (
     Binning,
     _real_of,
     bin_faces,
+    check_raster_args,
     gather_to_vertices,
 )
 
@@ -120,25 +119,11 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     """
     if variant not in BLEND_VARIANTS:
         raise ValueError(f"variant must be one of {BLEND_VARIANTS}, got {variant!r}")
-    K = int(K)
-    if not 1 <= K <= K_LIMIT:
-        raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
     if variant == "auto":
-        variant = "rows16" if device.is_cpu and K <= ROWS16_K_LIMIT else "pixel"
-    if variant == "rows16" and K > ROWS16_K_LIMIT:
-        raise ValueError(f"variant 'rows16' supports K <= {ROWS16_K_LIMIT}, got K={K}")
-    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
+        variant = "rows16" if device.is_cpu and int(K) <= ROWS16_K_LIMIT else "pixel"
     if not (0 <= t_min < 1):
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
-    width, height = int(width), int(height)
-    if width < 1 or height < 1:
-        raise ValueError(f"image size must be at least 1x1, got {width}x{height}")
-    if not (0 < near < far):
-        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
-    if not isinstance(vs, cla.Array):
-        vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), _real_of(np.asarray(vs))))
-    check_shape("vs", vs, (mesh.num_vertices, 3))
+    vs, width, height, K = check_raster_args(device, vs, mesh, width, height, K, near, far, sigma, variant)
     real = _real_of(vs)
     a = _device_attr(device, attr, mesh.num_vertices, real)
     C = a.shape[1] - 1

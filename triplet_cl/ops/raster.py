@@ -327,6 +327,27 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries)
 
 
+def check_raster_args(device: Device, vs, mesh: DeviceMesh, width, height, K, near, far, sigma, variant):
+    """Validate the arguments shared by the rasterizers (:func:`rasterize`, ``ops.blend.raster_blend``);
+    returns ``(vs as a device array [N, 3], width, height, K)``."""
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
+    if variant == "rows16" and K > ROWS16_K_LIMIT:
+        raise ValueError(f"variant 'rows16' supports K <= {ROWS16_K_LIMIT}, got K={K}")
+    K = int(K)
+    if not 1 <= K <= K_LIMIT:
+        raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be at least 1x1, got {width}x{height}")
+    if not (0 < near < far):
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    if not isinstance(vs, cla.Array):
+        vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), _real_of(np.asarray(vs))))
+    check_shape("vs", vs, (mesh.num_vertices, 3))
+    return vs, width, height, K
+
+
 def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: int,
               near: float = 0.01, far: float = 1000.0, cull_backface: bool = False,
               variant: str = "auto", sigma: float | None = None, soft_edges=None) -> Fragments:
@@ -350,25 +371,11 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
             the window (``topology.silhouette_edges`` marks the silhouette of a connected mesh, so
             that its shared interior edges stay hard and open no seams); None: every edge (a soup).
     """
-    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a finite positive number or None, got {sigma!r}")
     if variant not in RASTER_VARIANTS:
         raise ValueError(f"variant must be one of {RASTER_VARIANTS}, got {variant!r}")
     if variant == "auto":
         variant = ("rows16" if K <= ROWS16_K_LIMIT else "rows") if device.is_cpu else "pixel"
-    if variant == "rows16" and K > ROWS16_K_LIMIT:
-        raise ValueError(f"variant 'rows16' supports K <= {ROWS16_K_LIMIT}, got K={K}")
-    K = int(K)
-    if not 1 <= K <= K_LIMIT:
-        raise ValueError(f"K must be in [1, {K_LIMIT}], got {K}")
-    width, height = int(width), int(height)
-    if width < 1 or height < 1:
-        raise ValueError(f"image size must be at least 1x1, got {width}x{height}")
-    if not (0 < near < far):
-        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
-    if not isinstance(vs, cla.Array):
-        vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), _real_of(np.asarray(vs))))
-    check_shape("vs", vs, (mesh.num_vertices, 3))
+    vs, width, height, K = check_raster_args(device, vs, mesh, width, height, K, near, far, sigma, variant)
     real = _real_of(vs)
     q, alloc = device.queue, device.allocator
     npx = width * height
@@ -553,6 +560,6 @@ def valid_faces(frags: Fragments) -> np.ndarray:
     return frags.to_hwk(frags.face, -1)
 
 
-__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "check_soft_edges", "frag_input",
-           "fragments_backward", "gather_to_vertices", "pack_fragment_lists", "project", "project_backward",
-           "rasterize", "raster_backward", "read_fragments", "valid_faces"]
+__all__ = ["Binning", "Fragments", "TILE", "bin_faces", "camera_params", "check_raster_args", "check_soft_edges",
+           "frag_input", "fragments_backward", "gather_to_vertices", "pack_fragment_lists", "project",
+           "project_backward", "rasterize", "raster_backward", "read_fragments", "valid_faces"]
