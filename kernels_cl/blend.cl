@@ -19,7 +19,10 @@
  *   a_i = ab_i win_i,   T_0 = 1,  T_{i+1} = T_i (1 - a_i)
  *   out_c = sum_{i<n} f_ic a_i T_i + bg_c T_n,   trans = T_n,   n = n_contrib
  *   (compositing stops after the first fragment that brings T below t_min, as composite.cl)
- *   The entry e and T_i of each composited fragment go to K-strided scratch for the adjoint.
+ *   The entry e and T_i of each composited fragment go to scratch for the adjoint, laid out as the
+ *   CPU kernel's lanes: [tile, row pair, slot i, lane] (BLEND_SLOT), so that a pixel's slots are 16
+ *   apart and the 16 pixels of a row pair sit side by side, whatever K (a [H, W, K] layout put
+ *   consecutive pixels K slots apart: at K = 150 the backward pass was 1.6x slower).
  * Adjoint (one work-item per tile, its pixels and their fragments back to front; composite.cl):
  *   R_c = bg_c, G = 1;  for i = n-1 .. 0:
  *     v_f_ic = v_out_c a_i T_i,   v_a_i = T_i (sum_c v_out_c (f_ic - R_c) + v_acc G)
@@ -41,6 +44,12 @@
 #ifndef TILE
 #define TILE 8
 #endif
+#if TILE != 8
+#error "blend.cl: the scratch layout and the rows16 kernel assume 8x8 tiles"
+#endif
+/* scratch index of slot i of pixel (x, y) in tile t: [t, (y & 7) >> 1, i, (x & 7) + 8 (y & 1)] */
+#define BLEND_SLOT(t, x, y, i, K) \
+    ((((long)(t) * 4 + (((y) & 7) >> 1)) * (K) + (i)) * 16 + ((x) & 7) + (((y) & 1) << 3))
 #ifndef K_MAX
 #define K_MAX 1
 #endif
@@ -49,7 +58,7 @@
 #endif
 
 /* Interpolates, windows and composites the list el[i * stride] (i < cnt) of pixel pix at (px, py). */
-inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, int pix, int K,
+inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, int pix, long slot0,
                         __global const int* entry_face, __global const REAL* entry_setup,
                         __global const int* F, __global const REAL* attr, int C,
                         __global const REAL* bg, REAL sigma, REAL t_min,
@@ -83,8 +92,8 @@ inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, in
         }
         const REAL wgt = a * T;
         for (int c = 0; c < C; ++c) acc[c] += (l0 * a0[c] + l1 * a1[c] + l2 * a2[c]) * wgt;
-        s_entry[pix * K + i] = e;
-        s_T[pix * K + i] = T;
+        s_entry[slot0 + 16 * i] = e;
+        s_T[slot0 + 16 * i] = T;
         T *= (REAL)1 - a;
         n = i + 1;
         if (T < t_min) break;
@@ -107,8 +116,8 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
                         __global REAL* trans,              // [H, W]
                         __global int* n_contrib,           // [H, W]
                         __global int* count,               // [H, W]  fragments found (<= K)
-                        __global int* s_entry,             // [H, W, K]  entry of composited slot i
-                        __global REAL* s_T)                // [H, W, K]  T_i of composited slot i
+                        __global int* s_entry,             // [T * 4, K, 16]  entry of composited slot i
+                        __global REAL* s_T)                // [T * 4, K, 16]  T_i of composited slot i
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
@@ -120,7 +129,7 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
     const int cnt = pixel_list(tile_off, entry_face, entry_setup, t, px, py, K, far, dk, fk, ek);
     const int pix = y * width + x;
     count[pix] = cnt;
-    blend_pixel(ek, 1, cnt, px, py, pix, K, entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
+    blend_pixel(ek, 1, cnt, px, py, pix, BLEND_SLOT(t, x, y, 0, K), entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
                 out, trans, n_contrib, s_entry, s_T);
 }
 
@@ -139,8 +148,8 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global REAL* trans,              // [H, W]
                                __global int* n_contrib,           // [H, W]
                                __global int* count,               // [H, W]
-                               __global int* s_entry,             // [H, W, K]
-                               __global REAL* s_T)                // [H, W, K]
+                               __global int* s_entry,             // [T * 4, K, 16]
+                               __global REAL* s_T)                // [T * 4, K, 16]
 {
     const int tx = get_global_id(0), pair = get_global_id(1);
     const int ty = pair >> 2;
@@ -158,7 +167,8 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
         const int pix = y * width + x;
         const int cnt = ((const int*)&cnt16)[l];
         count[pix] = cnt;
-        blend_pixel((const int*)ek + l, 16, cnt, (REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5, pix, K,
+        blend_pixel((const int*)ek + l, 16, cnt, (REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5, pix,
+                    BLEND_SLOT(t, x, y, 0, K),
                     entry_face, entry_setup, F, attr, C, bg, sigma, t_min, out, trans, n_contrib, s_entry, s_T);
     }
 }
@@ -171,8 +181,8 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const REAL* attr,         // [N, C + 1]
                         __global const REAL* bg,           // [C]
                         __global const int* n_contrib,     // [H, W]
-                        __global const int* s_entry,       // [H, W, K]
-                        __global const REAL* s_T,          // [H, W, K]
+                        __global const int* s_entry,       // [T * 4, K, 16]
+                        __global const REAL* s_T,          // [T * 4, K, 16]
                         __global const REAL* v_out,        // [H, W, C]
                         __global const REAL* v_acc,        // [H, W]  (has_vacc)
                         const int has_vacc, const int C, const int K, const REAL sigma,
@@ -200,9 +210,10 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
             const REAL va = has_vacc ? v_acc[pix] : (REAL)0;
             REAL G = (REAL)1;
             const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
+            const long slot0 = BLEND_SLOT(t, x, y, 0, K);
             for (int i = n - 1; i >= 0; --i) {
-                const int e = s_entry[pix * K + i];
-                const REAL T = s_T[pix * K + i];
+                const int e = s_entry[slot0 + 16 * i];
+                const REAL T = s_T[slot0 + 16 * i];
                 __global const REAL* s = entry_setup + e * SETUP;
                 const REAL dx = px - s[0], dy = py - s[1];
                 const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;

@@ -45,8 +45,9 @@ class Blend:
 
     ``image [H, W, C]``, ``trans [H, W]`` (transmittance behind the composited fragments: the
     accumulated alpha is ``1 − trans``), ``n_contrib [H, W]`` (fragments composited), ``count
-    [H, W]`` (fragments found, ≤ K); scratch ``s_entry``/``s_T [H, W, K]``: the (tile, face)
-    entry and the transmittance in front of each composited fragment.
+    [H, W]`` (fragments found, ≤ K); scratch ``s_entry``/``s_T [T·4, K, 16]`` (tile, row pair,
+    slot, lane: ``kernels_cl/blend.cl``): the (tile, face) entry and the transmittance in front of
+    each composited fragment (:meth:`entries` gives the entries as ``[H, W, K]``).
     """
 
     width: int
@@ -75,6 +76,15 @@ class Blend:
     @property
     def face_entries(self) -> cla.Array:
         return self.binning.face_entries
+
+    def entries(self) -> np.ndarray:
+        """Host ``[H, W, K] int32``: the (tile, face) entry of each composited fragment, −1 beyond
+        ``n_contrib`` (tests, tools)."""
+        bn, K = self.binning, self.K
+        s = self.s_entry.get().reshape(bn.tiles_y, bn.tiles_x, 4, K, 2, 8)
+        s = s.transpose(0, 2, 4, 1, 5, 3).reshape(bn.tiles_y * TILE, bn.tiles_x * TILE, K)[:self.height, :self.width]
+        used = np.arange(K) < self.n_contrib.get()[..., None]
+        return np.where(used, s, -1).astype(np.int32)
 
     @property
     def alpha(self) -> np.ndarray:
@@ -135,14 +145,15 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
         raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
     bgd = const_array(device, check_real("bg", np.broadcast_to(b, (C,)), (C,), real))
     q, alloc = device.queue, device.allocator
-    device.check_alloc(width * height * K * (4 + real.itemsize), f"fragment lists ({width}x{height}, K={K})")
+    tiles = -(-width // TILE) * -(-height // TILE)
+    device.check_alloc(tiles * TILE * TILE * K * (4 + real.itemsize), f"fragment lists ({width}x{height}, K={K})")
     bn = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
     image = cla.empty(q, (height, width, C), real, allocator=alloc)
     trans = cla.empty(q, (height, width), real, allocator=alloc)
     n_contrib = cla.empty(q, (height, width), np.int32, allocator=alloc)
     count = cla.empty(q, (height, width), np.int32, allocator=alloc)
-    s_entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
-    s_T = cla.empty(q, (height, width, K), real, allocator=alloc)
+    s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
+    s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
     else:
