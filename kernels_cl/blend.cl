@@ -63,7 +63,7 @@ inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, in
                         __global const int* F, __global const REAL* attr, int C,
                         __global const REAL* bg, REAL sigma, REAL t_min,
                         __global REAL* out, __global REAL* trans, __global int* n_contrib,
-                        __global int* s_entry, __global REAL* s_T)
+                        __global int* s_entry, __global REAL* s_T, __global REAL* s_ex)
 {
     const int CA = C + 1;
     REAL acc[C_MAX];
@@ -89,6 +89,7 @@ inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, in
             int kk;
             REAL dm, ex;
             a *= setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+            s_ex[slot0 + 16 * i] = ex;  /* the adjoint reuses it (no second exp) */
         }
         const REAL wgt = a * T;
         for (int c = 0; c < C; ++c) acc[c] += (l0 * a0[c] + l1 * a1[c] + l2 * a2[c]) * wgt;
@@ -117,7 +118,8 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
                         __global int* n_contrib,           // [H, W]
                         __global int* count,               // [H, W]  fragments found (<= K)
                         __global int* s_entry,             // [T * 4, K, 16]  entry of composited slot i
-                        __global REAL* s_T)                // [T * 4, K, 16]  T_i of composited slot i
+                        __global REAL* s_T,                // [T * 4, K, 16]  T_i of composited slot i
+                        __global REAL* s_ex)               // [T * 4, K, 16]  exp(-sigma d) of slot i (sigma > 0)
 {
     const int tx = get_group_id(0), ty = get_group_id(1);
     const int x = tx * TILE + get_local_id(0), y = ty * TILE + get_local_id(1);
@@ -130,7 +132,7 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
     const int pix = y * width + x;
     count[pix] = cnt;
     blend_pixel(ek, 1, cnt, px, py, pix, BLEND_SLOT(t, x, y, 0, K), entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
-                out, trans, n_contrib, s_entry, s_T);
+                out, trans, n_contrib, s_entry, s_T, s_ex);
 }
 
 #if TILE == 8
@@ -149,7 +151,8 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global int* n_contrib,           // [H, W]
                                __global int* count,               // [H, W]
                                __global int* s_entry,             // [T * 4, K, 16]
-                               __global REAL* s_T)                // [T * 4, K, 16]
+                               __global REAL* s_T,                // [T * 4, K, 16]
+                               __global REAL* s_ex)               // [T * 4, K, 16]  (sigma > 0)
 {
     const int tx = get_global_id(0), pair = get_global_id(1);
     const int ty = pair >> 2;
@@ -169,7 +172,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
         count[pix] = cnt;
         blend_pixel((const int*)ek + l, 16, cnt, (REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5, pix,
                     BLEND_SLOT(t, x, y, 0, K),
-                    entry_face, entry_setup, F, attr, C, bg, sigma, t_min, out, trans, n_contrib, s_entry, s_T);
+                    entry_face, entry_setup, F, attr, C, bg, sigma, t_min, out, trans, n_contrib, s_entry, s_T, s_ex);
     }
 }
 #endif
@@ -183,6 +186,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const int* n_contrib,     // [H, W]
                         __global const int* s_entry,       // [T * 4, K, 16]
                         __global const REAL* s_T,          // [T * 4, K, 16]
+                        __global const REAL* s_ex,         // [T * 4, K, 16]  (sigma > 0)
                         __global const REAL* v_out,        // [H, W, C]
                         __global const REAL* v_acc,        // [H, W]  (has_vacc)
                         const int has_vacc, const int C, const int K, const REAL sigma,
@@ -224,7 +228,11 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                 const REAL l0 = w0 * zp, l1 = w1 * zp, l2 = (REAL)1 - l0 - l1;
                 int kk = 0;
                 REAL dm = (REAL)0, ex = (REAL)0, win = (REAL)1;
-                if (sigma > (REAL)0) win = setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+                if (sigma > (REAL)0) {
+                    dm = setup_window_arg(s, b0, b1, b2, &kk);
+                    ex = s_ex[slot0 + 16 * i];
+                    win = (REAL)1 - ex;
+                }
                 const int f = entry_face[e];
                 __global const REAL* a0 = attr + F[3 * f] * CA;
                 __global const REAL* a1 = attr + F[3 * f + 1] * CA;

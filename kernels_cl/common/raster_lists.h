@@ -29,8 +29,8 @@
  *   d = max(0, min_k d_k) over the soft edges,  win = 1 - exp(-sigma d)
  * (no soft edge: d = HARD_EDGE_DISTANCE, win = 1). Returns win; *kmin = the arg-min edge, *dmin =
  * min_k d_k (before the clamp at 0) and *ex = exp(-sigma d) for the adjoint. */
-inline REAL setup_window_ex(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma,
-                            int* kmin, REAL* dmin, REAL* ex)
+/* The nearest soft edge: *kmin = k*, returns d_k* = min_k d_k (HARD_EDGE_DISTANCE: no soft edge). */
+inline REAL setup_window_arg(__global const REAL* s, REAL b0, REAL b1, REAL b2, int* kmin)
 {
     const REAL d0 = s[9] < (REAL)0 ? HARD_EDGE_DISTANCE : b0 * s[9];
     const REAL d1 = s[10] < (REAL)0 ? HARD_EDGE_DISTANCE : b1 * s[10];
@@ -40,8 +40,14 @@ inline REAL setup_window_ex(__global const REAL* s, REAL b0, REAL b1, REAL b2, R
     if (d1 < dm) { dm = d1; k = 1; }
     if (d2 < dm) { dm = d2; k = 2; }
     *kmin = k;
-    *dmin = dm;
-    *ex = exp(-sigma * fmax(dm, (REAL)0));
+    return dm;
+}
+
+inline REAL setup_window_ex(__global const REAL* s, REAL b0, REAL b1, REAL b2, REAL sigma,
+                            int* kmin, REAL* dmin, REAL* ex)
+{
+    *dmin = setup_window_arg(s, b0, b1, b2, kmin);
+    *ex = exp(-sigma * fmax(*dmin, (REAL)0));
     return (REAL)1 - *ex;
 }
 

@@ -67,6 +67,7 @@ class Blend:
     bg: cla.Array
     s_entry: cla.Array
     s_T: cla.Array
+    s_ex: cla.Array  # [T·4, K, 16] exp(−σ d) of each composited fragment's window (σ set; else 1 element)
 
     # what gather_to_vertices reads of a Fragments
     @property
@@ -154,6 +155,7 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     count = cla.empty(q, (height, width), np.int32, allocator=alloc)
     s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
     s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
+    s_ex = cla.empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
     else:
@@ -162,9 +164,9 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
         q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, mesh.F.data, a.data, bgd.data,
         np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
         real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
-        s_entry.data, s_T.data)
+        s_entry.data, s_T.data, s_ex.data)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
-                 s_entry, s_T)
+                 s_entry, s_T, s_ex)
 
 
 def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
@@ -194,7 +196,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     device.kernel("blend", "blend_bwd", {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
         q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.mesh.F.data,
-        blend.attr.data, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, g.data,
+        blend.attr.data, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data,
+        g.data,
         buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
         np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, p_attr.data, p_mom.data,
         v_sig_tile.data)
