@@ -19,7 +19,8 @@
  *   a_i = ab_i win_i,   T_0 = 1,  T_{i+1} = T_i (1 - a_i)
  *   out_c = sum_{i<n} f_ic a_i T_i + bg_c T_n,   trans = T_n,   n = n_contrib
  *   (compositing stops after the first fragment that brings T below t_min, as composite.cl)
- *   The entry e and T_i of each composited fragment go to scratch for the adjoint, laid out as the
+ *   The entry e, T_i and (sigma > 0) the window's exp(-sigma d) of each composited fragment go to
+ *   scratch for the adjoint (which then needs no second exp), laid out as the
  *   CPU kernel's lanes: [tile, row pair, slot i, lane] (BLEND_SLOT), so that a pixel's slots are 16
  *   apart and the 16 pixels of a row pair sit side by side, whatever K (a [H, W, K] layout put
  *   consecutive pixels K slots apart: at K = 150 the backward pass was 1.6x slower).
