@@ -136,9 +136,61 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
                 out, trans, n_contrib, s_entry, s_T, s_ex);
 }
 
+
 #if TILE == 8
+/* ---- 16-lane (CPU-shaped) blending: the lanes are the 16 pixels of two rows of a tile ---------- */
+
+/* lane l reads p[i.l] */
+inline REAL16 gather16(__global const REAL* p, int16 i)
+{
+    return (REAL16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+}
+inline int16 gather16i(__global const int* p, int16 i)
+{
+    return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                   p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+}
+
+/* The fragments of entries e (one per lane) at the lanes' pixel centres: the set-up s [SETUP]
+ * gathered, (dx, dy), screen barycentrics b [3], depth zp and perspective-correct l [3], with the
+ * operations (and so the roundings) of blend_pixel. */
+inline void fragment16(__global const REAL* entry_setup, int16 e, REAL16 px, REAL16 py, REAL16* s,
+                       REAL16* dx, REAL16* dy, REAL16* b, REAL16* zp, REAL16* l)
+{
+    const int16 o = e * SETUP;
+    for (int j = 0; j < SETUP; ++j) s[j] = gather16(entry_setup + j, o);
+    *dx = px - s[0];
+    *dy = py - s[1];
+    b[0] = (REAL)1 + s[2] * *dx + s[3] * *dy;
+    b[1] = s[4] * *dx + s[5] * *dy;
+    b[2] = (REAL)1 - b[0] - b[1];
+    const REAL16 w0 = b[0] * s[6], w1 = b[1] * s[7], w2 = b[2] * s[8];
+    *zp = (REAL)1 / (w0 + w1 + w2);
+    l[0] = w0 * *zp;
+    l[1] = w1 * *zp;
+    l[2] = (REAL)1 - l[0] - l[1];
+}
+
+/* setup_window_arg in lanes: *kk = the nearest soft edge, returns its distance d_k* */
+inline REAL16 window_arg16(const REAL16* s, const REAL16* b, int16* kk)
+{
+    const REAL16 hard = (REAL16)(HARD_EDGE_DISTANCE);
+    const REAL16 d0 = select(b[0] * s[9], hard, s[9] < (REAL)0);
+    const REAL16 d1 = select(b[1] * s[10], hard, s[10] < (REAL)0);
+    const REAL16 d2 = select(b[2] * s[11], hard, s[11] < (REAL)0);
+    const MASK16 m1 = d1 < d0;
+    REAL16 dm = select(d0, d1, m1);
+    int16 k = select((int16)0, (int16)1, CONVERT_INT16(m1));
+    const MASK16 m2 = d2 < dm;
+    dm = select(dm, d2, m2);
+    *kk = select(k, (int16)2, CONVERT_INT16(m2));
+    return dm;
+}
+
 /* CPU-shaped: one work-item per two rows of an 8x8 tile, the 16 pixels' lists built in vector
- * lanes (rows16_lists), then each pixel blended in turn (its loads are gathers: scalar is faster). */
+ * lanes (rows16_lists), then blended in the same lanes (gathered set-ups and attributes); the
+ * scratch slots of the row pair are 16-lane vectors. */
 __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
@@ -165,15 +217,51 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
     const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, t, px, py, inimg, K, far, dk, fk, ek);
-    for (int l = 0; l < 16; ++l) {
-        const int x = x0 + (l & 7), y = y0 + (l >> 3);
+    const int CA = C + 1;
+    REAL16 acc[C_MAX];
+    for (int c = 0; c < C; ++c) acc[c] = (REAL16)0;
+    REAL16 T = (REAL16)1;
+    int16 n16 = (int16)0, alive = (int16)(-1);
+    const int16 e_safe = (int16)tile_off[t];  /* lanes past their list read a valid entry */
+    const long slot0 = BLEND_SLOT(t, x0, y0, 0, K);
+    const int cmax = max_i16(cnt16);
+    for (int i = 0; i < cmax; ++i) {
+        const int16 acti = ((int16)i < cnt16) & alive;
+        if (!any_i16(acti)) break;
+        const MASK16 act = CONVERT_MASK16(acti);
+        const int16 e = select(e_safe, ek[i], acti);
+        REAL16 s[SETUP], b[3], l[3], dx, dy, zp;
+        fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
+        const int16 f = gather16i(entry_face, e);
+        const int16 i0 = gather16i(F, 3 * f) * CA, i1 = gather16i(F, 3 * f + 1) * CA, i2 = gather16i(F, 3 * f + 2) * CA;
+        REAL16 a = l[0] * gather16(attr + C, i0) + l[1] * gather16(attr + C, i1) + l[2] * gather16(attr + C, i2);
+        if (sigma > (REAL)0) {
+            int16 kk;
+            const REAL16 dm = window_arg16(s, b, &kk);
+            const REAL16 ex = exp(-sigma * fmax(dm, (REAL)0));
+            a *= (REAL)1 - ex;
+            vstore16(ex, 0, s_ex + slot0 + 16 * i);  /* the adjoint reuses it (no second exp) */
+        }
+        const REAL16 wgt = a * T;
+        for (int c = 0; c < C; ++c) {
+            const REAL16 fc = l[0] * gather16(attr + c, i0) + l[1] * gather16(attr + c, i1) + l[2] * gather16(attr + c, i2);
+            acc[c] = select(acc[c], acc[c] + fc * wgt, act);
+        }
+        vstore16(e, 0, s_entry + slot0 + 16 * i);
+        vstore16(T, 0, s_T + slot0 + 16 * i);
+        T = select(T, T * ((REAL)1 - a), act);
+        n16 = select(n16, (int16)(i + 1), acti);
+        alive &= CONVERT_INT16(T >= t_min);
+    }
+    for (int ln = 0; ln < 16; ++ln) {
+        const int x = x0 + (ln & 7), y = y0 + (ln >> 3);
         if (x >= width || y >= height) continue;
         const int pix = y * width + x;
-        const int cnt = ((const int*)&cnt16)[l];
-        count[pix] = cnt;
-        blend_pixel((const int*)ek + l, 16, cnt, (REAL)x + (REAL)0.5, (REAL)y + (REAL)0.5, pix,
-                    BLEND_SLOT(t, x, y, 0, K),
-                    entry_face, entry_setup, F, attr, C, bg, sigma, t_min, out, trans, n_contrib, s_entry, s_T, s_ex);
+        const REAL Tl = ((const REAL*)&T)[ln];
+        for (int c = 0; c < C; ++c) out[pix * C + c] = ((const REAL*)&acc[c])[ln] + bg[c] * Tl;
+        trans[pix] = Tl;
+        n_contrib[pix] = ((const int*)&n16)[ln];
+        count[pix] = ((const int*)&cnt16)[ln];
     }
 }
 #endif
@@ -277,3 +365,158 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
         }
     v_sigma_tile[t] = vsig;
 }
+
+#if TILE == 8
+/* Lane-wise scratch of blend_bwd_rows16: what the scalar scatter of one slot reads per lane. */
+#define LV_L 0    /* l0, l1, l2 */
+#define LV_WGT 3  /* a_i T_i */
+#define LV_VAB 4  /* v_ab */
+#define LV_M 5    /* moments m[0..9], m[13..15] (MOMENTS - 3 rows) */
+#define LV_MW 18  /* the window's moment, added to m[10 + kk] */
+#define LV_ROWS 19
+
+/* CPU-shaped adjoint: one work-item per tile, its four row pairs in turn as 16 lanes, each row
+ * pair's slots back to front as vectors (the arithmetic of blend_bwd in lanes: gathered set-ups
+ * and attributes, composite and interpolation adjoint, moments), then the lanes' contributions
+ * added to their entries' partial sums one lane at a time (lanes may share an entry). */
+__kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
+                               __global const int* entry_face,    // [E]
+                               __global const REAL* entry_setup,  // [E, SETUP]
+                               __global const int* F,             // [M, 3]
+                               __global const REAL* attr,         // [N, C + 1]
+                               __global const REAL* bg,           // [C]
+                               __global const int* n_contrib,     // [H, W]
+                               __global const int* s_entry,       // [T * 4, K, 16]
+                               __global const REAL* s_T,          // [T * 4, K, 16]
+                               __global const REAL* s_ex,         // [T * 4, K, 16]  (sigma > 0)
+                               __global const REAL* v_out,        // [H, W, C]
+                               __global const REAL* v_acc,        // [H, W]  (has_vacc)
+                               const int has_vacc, const int C, const int K, const REAL sigma,
+                               const int width, const int height, const int tiles_x, const int num_tiles,
+                               __global int* entry_hit,           // [E]
+                               __global REAL* partial_attr,       // [E, 3, C + 1]
+                               __global REAL* partial_mom,        // [E, MOMENTS]
+                               __global REAL* v_sigma_tile)       // [T]
+{
+    const int t = get_global_id(0);
+    if (t >= num_tiles) return;
+    const int CA = C + 1;
+    const int e0 = tile_off[t], e1 = tile_off[t + 1];
+    for (int e = e0; e < e1; ++e) entry_hit[e] = 0;
+    REAL16 vsig = (REAL16)0;
+    const int tx = t % tiles_x, ty = t / tiles_x;
+    const int x0 = tx * TILE;
+    const int16 e_safe = (int16)e0;
+    REAL vol[C_MAX][16], lv[LV_ROWS][16];
+    int el[16], kl[16], nl[16];
+    for (int r = 0; r < 4; ++r) {
+        const int y0 = ty * TILE + 2 * r;
+        if (y0 >= height) break;
+        ROWS16_LANES(x0, y0, width, height, px, py, inimg);
+        REAL val[16];
+        for (int ln = 0; ln < 16; ++ln) {
+            const int x = x0 + (ln & 7), y = y0 + (ln >> 3);
+            const int in = x < width && y < height;
+            const int pix = y * width + x;
+            nl[ln] = in ? n_contrib[pix] : 0;
+            for (int c = 0; c < C; ++c) vol[c][ln] = in ? v_out[pix * C + c] : (REAL)0;
+            val[ln] = in && has_vacc ? v_acc[pix] : (REAL)0;
+        }
+        const int16 n16 = vload16(0, nl);
+        const int nmax = max_i16(n16);
+        if (nmax == 0) continue;
+        const REAL16 va = vload16(0, val);
+        REAL16 R[C_MAX];
+        for (int c = 0; c < C; ++c) R[c] = (REAL16)bg[c];
+        REAL16 G = (REAL16)1;
+        const long slot0 = BLEND_SLOT(t, x0, y0, 0, K);
+        for (int i = nmax - 1; i >= 0; --i) {
+            const int16 acti = (int16)i < n16;
+            const MASK16 act = CONVERT_MASK16(acti);
+            const int16 e = select(e_safe, vload16(0, s_entry + slot0 + 16 * i), acti);
+            const REAL16 T = select((REAL16)0, vload16(0, s_T + slot0 + 16 * i), act);
+            REAL16 s[SETUP], b[3], l[3], dx, dy, zp;
+            fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
+            int16 kk = (int16)0;
+            REAL16 dm = (REAL16)0, ex = (REAL16)0, win = (REAL16)1;
+            if (sigma > (REAL)0) {
+                dm = window_arg16(s, b, &kk);
+                ex = select((REAL16)1, vload16(0, s_ex + slot0 + 16 * i), act);
+                win = (REAL)1 - ex;
+            }
+            const int16 f = gather16i(entry_face, e);
+            const int16 i0 = gather16i(F, 3 * f) * CA, i1 = gather16i(F, 3 * f + 1) * CA, i2 = gather16i(F, 3 * f + 2) * CA;
+            const REAL16 a0C = gather16(attr + C, i0), a1C = gather16(attr + C, i1), a2C = gather16(attr + C, i2);
+            const REAL16 ab = l[0] * a0C + l[1] * a1C + l[2] * a2C;
+            const REAL16 a = ab * win;
+            const REAL16 wgt = a * T;
+            REAL16 dot = (REAL16)0, g0 = (REAL16)0, g1 = (REAL16)0;
+            for (int c = 0; c < C; ++c) {
+                const REAL16 a0c = gather16(attr + c, i0), a1c = gather16(attr + c, i1), a2c = gather16(attr + c, i2);
+                const REAL16 fc = l[0] * a0c + l[1] * a1c + l[2] * a2c;
+                const REAL16 vo = vload16(0, vol[c]);
+                dot += vo * (fc - R[c]);
+                R[c] = select(R[c], fc * a + ((REAL)1 - a) * R[c], act);
+                g0 += vo * (a0c - a2c);
+                g1 += vo * (a1c - a2c);
+            }
+            const REAL16 v_a = T * (dot + va * G);
+            G = select(G, G * ((REAL)1 - a), act);
+            const REAL16 v_ab = v_a * win;
+            const REAL16 v_win = sigma > (REAL)0 ? v_a * ab : (REAL16)0;
+            const REAL16 vl0 = wgt * g0 + v_ab * (a0C - a2C);
+            const REAL16 vl1 = wgt * g1 + v_ab * (a1C - a2C);
+            /* fragment_moments in lanes (v_zp = 0) */
+            const REAL16 base = vl0 * l[0] + vl1 * l[1];
+            const REAL16 vw0 = (vl0 - base) * zp, vw1 = (vl1 - base) * zp, vw2 = -base * zp;
+            const REAL16 vb0 = vw0 * s[6], vb1 = vw1 * s[7], vb2 = vw2 * s[8];
+            const MASK16 wnd = act & (v_win != (REAL)0) & (dm > (REAL)0) & (dm < HARD_EDGE_DISTANCE);
+            const REAL16 vd = select((REAL16)0, v_win * sigma * ex, wnd);
+            vsig += select((REAL16)0, v_win * dm * ex, wnd);
+            const REAL16 u0 = vb0 + select((REAL16)0, vd * s[9], CONVERT_MASK16(kk == 0));
+            const REAL16 u1 = vb1 + select((REAL16)0, vd * s[10], CONVERT_MASK16(kk == 1));
+            const REAL16 u2 = vb2 + select((REAL16)0, vd * s[11], CONVERT_MASK16(kk == 2));
+            vstore16(l[0], 0, lv[LV_L]); vstore16(l[1], 0, lv[LV_L + 1]); vstore16(l[2], 0, lv[LV_L + 2]);
+            vstore16(wgt, 0, lv[LV_WGT]); vstore16(v_ab, 0, lv[LV_VAB]);
+            vstore16(u0, 0, lv[LV_M + 0]); vstore16(u0 * dx, 0, lv[LV_M + 1]); vstore16(u0 * dy, 0, lv[LV_M + 2]);
+            vstore16(u1, 0, lv[LV_M + 3]); vstore16(u1 * dx, 0, lv[LV_M + 4]); vstore16(u1 * dy, 0, lv[LV_M + 5]);
+            vstore16(u2, 0, lv[LV_M + 6]); vstore16(u2 * dx, 0, lv[LV_M + 7]); vstore16(u2 * dy, 0, lv[LV_M + 8]);
+            vstore16(vb0 * b[0] + vb1 * b[1] + vb2 * b[2], 0, lv[LV_M + 9]);
+            vstore16(vw0 * b[0], 0, lv[LV_M + 10]); vstore16(vw1 * b[1], 0, lv[LV_M + 11]);
+            vstore16(vw2 * b[2], 0, lv[LV_M + 12]);
+            vstore16(vd * dm, 0, lv[LV_MW]);
+            vstore16(e, 0, el);
+            vstore16(kk, 0, kl);
+            for (int ln = 0; ln < 16; ++ln) {
+                if (i >= nl[ln]) continue;
+                const int en = el[ln];
+                __global REAL* d = partial_attr + (long)en * 3 * CA;
+                __global REAL* m = partial_mom + (long)en * MOMENTS;
+                if (!entry_hit[en]) {
+                    entry_hit[en] = 1;
+                    for (int q = 0; q < 3 * CA; ++q) d[q] = (REAL)0;
+                    for (int q = 0; q < MOMENTS; ++q) m[q] = (REAL)0;
+                }
+                const REAL L0 = lv[LV_L][ln], L1 = lv[LV_L + 1][ln], L2 = lv[LV_L + 2][ln];
+                const REAL w = lv[LV_WGT][ln], vab = lv[LV_VAB][ln];
+                for (int c = 0; c < C; ++c) {
+                    const REAL gc = vol[c][ln] * w;
+                    d[c] += L0 * gc;
+                    d[CA + c] += L1 * gc;
+                    d[2 * CA + c] += L2 * gc;
+                }
+                d[C] += L0 * vab;
+                d[CA + C] += L1 * vab;
+                d[2 * CA + C] += L2 * vab;
+                for (int q = 0; q < 10; ++q) m[q] += lv[LV_M + q][ln];
+                for (int q = 0; q < 3; ++q) m[13 + q] += lv[LV_M + 10 + q][ln];
+                m[10 + kl[ln]] += lv[LV_MW][ln];
+            }
+        }
+    }
+    const REAL8 h8 = vsig.lo + vsig.hi;
+    const REAL4 h4 = h8.lo + h8.hi;
+    const REAL2 h2 = h4.lo + h4.hi;
+    v_sigma_tile[t] = h2.x + h2.y;
+}
+#endif

@@ -68,6 +68,7 @@ class Blend:
     s_entry: cla.Array
     s_T: cla.Array
     s_ex: cla.Array  # [T·4, K, 16] exp(−σ d) of each composited fragment's window (σ set; else 1 element)
+    variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
 
     # what gather_to_vertices reads of a Fragments
     @property
@@ -166,7 +167,7 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
         real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
         s_entry.data, s_T.data, s_ex.data)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
-                 s_entry, s_T, s_ex)
+                 s_entry, s_T, s_ex, variant)
 
 
 def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
@@ -194,7 +195,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     p_attr = cla.empty(q, (max(E, 1), 3, CA), real, allocator=alloc)
     p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
-    device.kernel("blend", "blend_bwd", {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
+    kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
+    device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
         q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.mesh.F.data,
         blend.attr.data, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data,
         g.data,
