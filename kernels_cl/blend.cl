@@ -140,26 +140,72 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
 #if TILE == 8
 /* ---- 16-lane (CPU-shaped) blending: the lanes are the 16 pixels of two rows of a tile ---------- */
 
-/* lane l reads p[i.l] */
-inline REAL16 gather16(__global const REAL* p, int16 i)
+/* In-register 16 x 16 transpose: r[l] (lane l's 16 values) <-> r[j] (value j of the 16 lanes).
+ * Four rounds of off-diagonal b x b block swaps (b = 8, 4, 2, 1), 16 two-vector shuffles each:
+ *   rows i, i + b (i & b = 0):  r_i[j] <- j & b ? r_{i+b}[j - b] : r_i[j],
+ *                               r_{i+b}[j] <- j & b ? r_{i+b}[j] : r_i[j + b].
+ * Constant shuffles: __builtin_shufflevector where the compiler has it (clang: PoCL, Intel,
+ * most GPU drivers; one permute instruction each), else OpenCL's shuffle2. */
+#if defined(__clang__)
+#define SHUF16(x, y, m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf) \
+    __builtin_shufflevector(x, y, m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf)
+#else
+#ifdef REAL_FP64
+#define SHUF16(x, y, m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf) \
+    shuffle2(x, y, (ulong16)(m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf))
+#else
+#define SHUF16(x, y, m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf) \
+    shuffle2(x, y, (uint16)(m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, ma, mb, mc, md, me, mf))
+#endif
+#endif
+#define TRANSPOSE_PAIR8(r, i) { const REAL16 x_ = (r)[i], y_ = (r)[(i) + 8]; \
+    (r)[i] = SHUF16(x_, y_, 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23); \
+    (r)[(i) + 8] = SHUF16(x_, y_, 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31); }
+#define TRANSPOSE_PAIR4(r, i) { const REAL16 x_ = (r)[i], y_ = (r)[(i) + 4]; \
+    (r)[i] = SHUF16(x_, y_, 0, 1, 2, 3, 16, 17, 18, 19, 8, 9, 10, 11, 24, 25, 26, 27); \
+    (r)[(i) + 4] = SHUF16(x_, y_, 4, 5, 6, 7, 20, 21, 22, 23, 12, 13, 14, 15, 28, 29, 30, 31); }
+#define TRANSPOSE_PAIR2(r, i) { const REAL16 x_ = (r)[i], y_ = (r)[(i) + 2]; \
+    (r)[i] = SHUF16(x_, y_, 0, 1, 16, 17, 4, 5, 20, 21, 8, 9, 24, 25, 12, 13, 28, 29); \
+    (r)[(i) + 2] = SHUF16(x_, y_, 2, 3, 18, 19, 6, 7, 22, 23, 10, 11, 26, 27, 14, 15, 30, 31); }
+#define TRANSPOSE_PAIR1(r, i) { const REAL16 x_ = (r)[i], y_ = (r)[(i) + 1]; \
+    (r)[i] = SHUF16(x_, y_, 0, 16, 2, 18, 4, 20, 6, 22, 8, 24, 10, 26, 12, 28, 14, 30); \
+    (r)[(i) + 1] = SHUF16(x_, y_, 1, 17, 3, 19, 5, 21, 7, 23, 9, 25, 11, 27, 13, 29, 15, 31); }
+inline void transpose16(REAL16* r)
 {
-    return (REAL16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
-                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
-}
-inline int16 gather16i(__global const int* p, int16 i)
-{
-    return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
-                   p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+    TRANSPOSE_PAIR8(r, 0) TRANSPOSE_PAIR8(r, 1) TRANSPOSE_PAIR8(r, 2) TRANSPOSE_PAIR8(r, 3)
+    TRANSPOSE_PAIR8(r, 4) TRANSPOSE_PAIR8(r, 5) TRANSPOSE_PAIR8(r, 6) TRANSPOSE_PAIR8(r, 7)
+    TRANSPOSE_PAIR4(r, 0) TRANSPOSE_PAIR4(r, 1) TRANSPOSE_PAIR4(r, 2) TRANSPOSE_PAIR4(r, 3)
+    TRANSPOSE_PAIR4(r, 8) TRANSPOSE_PAIR4(r, 9) TRANSPOSE_PAIR4(r, 10) TRANSPOSE_PAIR4(r, 11)
+    TRANSPOSE_PAIR2(r, 0) TRANSPOSE_PAIR2(r, 1) TRANSPOSE_PAIR2(r, 4) TRANSPOSE_PAIR2(r, 5)
+    TRANSPOSE_PAIR2(r, 8) TRANSPOSE_PAIR2(r, 9) TRANSPOSE_PAIR2(r, 12) TRANSPOSE_PAIR2(r, 13)
+    TRANSPOSE_PAIR1(r, 0) TRANSPOSE_PAIR1(r, 2) TRANSPOSE_PAIR1(r, 4) TRANSPOSE_PAIR1(r, 6)
+    TRANSPOSE_PAIR1(r, 8) TRANSPOSE_PAIR1(r, 10) TRANSPOSE_PAIR1(r, 12) TRANSPOSE_PAIR1(r, 14)
 }
 
-/* The fragments of entries e (one per lane) at the lanes' pixel centres: the set-up s [SETUP]
- * gathered, (dx, dy), screen barycentrics b [3], depth zp and perspective-correct l [3], with the
- * operations (and so the roundings) of blend_pixel. */
+/* Lane l's 16 values from row e.l of p (row stride `stride`, 16 readable values per row), as
+ * r[j] = value j of the 16 lanes: 16 row loads and a transpose (on CPUs much faster than 16-lane
+ * gathers of each value). */
+inline void load_rows16(__global const REAL* p, int stride, int16 e, REAL16* r)
+{
+    r[0] = vload16(0, p + e.s0 * stride); r[1] = vload16(0, p + e.s1 * stride);
+    r[2] = vload16(0, p + e.s2 * stride); r[3] = vload16(0, p + e.s3 * stride);
+    r[4] = vload16(0, p + e.s4 * stride); r[5] = vload16(0, p + e.s5 * stride);
+    r[6] = vload16(0, p + e.s6 * stride); r[7] = vload16(0, p + e.s7 * stride);
+    r[8] = vload16(0, p + e.s8 * stride); r[9] = vload16(0, p + e.s9 * stride);
+    r[10] = vload16(0, p + e.sa * stride); r[11] = vload16(0, p + e.sb * stride);
+    r[12] = vload16(0, p + e.sc * stride); r[13] = vload16(0, p + e.sd * stride);
+    r[14] = vload16(0, p + e.se * stride); r[15] = vload16(0, p + e.sf * stride);
+    transpose16(r);
+}
+
+/* The fragments of entries e (one per lane) at the lanes' pixel centres: the set-up s [16] (SETUP
+ * values, rows of entry_setup, which the binning pads to be readable 16 wide), (dx, dy), screen
+ * barycentrics b [3], depth zp and perspective-correct l [3], with the operations (and so the
+ * roundings) of blend_pixel. */
 inline void fragment16(__global const REAL* entry_setup, int16 e, REAL16 px, REAL16 py, REAL16* s,
                        REAL16* dx, REAL16* dy, REAL16* b, REAL16* zp, REAL16* l)
 {
-    const int16 o = e * SETUP;
-    for (int j = 0; j < SETUP; ++j) s[j] = gather16(entry_setup + j, o);
+    load_rows16(entry_setup, SETUP, e, s);
     *dx = px - s[0];
     *dy = py - s[1];
     b[0] = (REAL)1 + s[2] * *dx + s[3] * *dy;
@@ -188,14 +234,33 @@ inline REAL16 window_arg16(const REAL16* s, const REAL16* b, int16* kk)
     return dm;
 }
 
+/* The rows16 kernels' per-entry attributes: entry_attr [E, 16] = attr of the face's corners
+ * [3, C + 1], then zeros (C <= 4), so that the 16 lanes load them as rows (load_rows16). */
+__kernel void blend_entry_attr(__global const int* entry_face,  // [E]
+                               __global const int* F,           // [M, 3]
+                               __global const REAL* attr,       // [N, C + 1]
+                               const int C, const int num_entries,
+                               __global REAL* entry_attr)       // [E, 16]
+{
+    const int e = get_global_id(0);
+    if (e >= num_entries) return;
+    const int CA = C + 1, f = entry_face[e];
+    REAL r[16];
+    for (int q = 0; q < 16; ++q) r[q] = (REAL)0;
+    for (int k = 0; k < 3; ++k) {
+        __global const REAL* a = attr + F[3 * f + k] * CA;
+        for (int c = 0; c < CA; ++c) r[k * CA + c] = a[c];
+    }
+    vstore16(vload16(0, r), e, entry_attr);
+}
+
 /* CPU-shaped: one work-item per two rows of an 8x8 tile, the 16 pixels' lists built in vector
- * lanes (rows16_lists), then blended in the same lanes (gathered set-ups and attributes); the
- * scratch slots of the row pair are 16-lane vectors. */
+ * lanes (rows16_lists), then blended in the same lanes (set-ups and attributes loaded as rows and
+ * transposed); the scratch slots of the row pair are 16-lane vectors. */
 __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const int* F,             // [M, 3]
-                               __global const REAL* attr,         // [N, C + 1]
+                               __global const REAL* entry_attr,   // [E, 16]  (blend_entry_attr)
                                __global const REAL* bg,           // [C]
                                const int width, const int height, const int tiles_x,
                                const int K, const REAL far, const int C, const REAL sigma, const REAL t_min,
@@ -230,11 +295,10 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
         if (!any_i16(acti)) break;
         const MASK16 act = CONVERT_MASK16(acti);
         const int16 e = select(e_safe, ek[i], acti);
-        REAL16 s[SETUP], b[3], l[3], dx, dy, zp;
+        REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
         fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
-        const int16 f = gather16i(entry_face, e);
-        const int16 i0 = gather16i(F, 3 * f) * CA, i1 = gather16i(F, 3 * f + 1) * CA, i2 = gather16i(F, 3 * f + 2) * CA;
-        REAL16 a = l[0] * gather16(attr + C, i0) + l[1] * gather16(attr + C, i1) + l[2] * gather16(attr + C, i2);
+        load_rows16(entry_attr, 16, e, A);  /* A[k CA + c]: attribute c of the face's corner k */
+        REAL16 a = l[0] * A[C] + l[1] * A[CA + C] + l[2] * A[2 * CA + C];
         if (sigma > (REAL)0) {
             int16 kk;
             const REAL16 dm = window_arg16(s, b, &kk);
@@ -244,7 +308,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
         }
         const REAL16 wgt = a * T;
         for (int c = 0; c < C; ++c) {
-            const REAL16 fc = l[0] * gather16(attr + c, i0) + l[1] * gather16(attr + c, i1) + l[2] * gather16(attr + c, i2);
+            const REAL16 fc = l[0] * A[c] + l[1] * A[CA + c] + l[2] * A[2 * CA + c];
             acc[c] = select(acc[c], acc[c] + fc * wgt, act);
         }
         vstore16(e, 0, s_entry + slot0 + 16 * i);
@@ -281,8 +345,8 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         const int has_vacc, const int C, const int K, const REAL sigma,
                         const int width, const int height, const int tiles_x, const int num_tiles,
                         __global int* entry_hit,           // [E]
-                        __global REAL* partial_attr,       // [E, 3, C + 1]
-                        __global REAL* partial_mom,        // [E, MOMENTS]
+                        const int pstride,
+                        __global REAL* partial,            // [E, pstride]: moments, then [3, C + 1]
                         __global REAL* v_sigma_tile)       // [T]
 {
     const int t = get_global_id(0);
@@ -341,8 +405,8 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                 G *= (REAL)1 - a;
                 const REAL v_ab = v_a * win;
                 const REAL v_win = sigma > (REAL)0 ? v_a * ab : (REAL)0;
-                __global REAL* d = partial_attr + (long)e * 3 * CA;
-                __global REAL* m = partial_mom + (long)e * MOMENTS;
+                __global REAL* m = partial + (long)e * pstride;
+                __global REAL* d = m + MOMENTS;
                 if (!entry_hit[e]) {
                     entry_hit[e] = 1;
                     for (int q = 0; q < 3 * CA; ++q) d[q] = (REAL)0;
@@ -367,14 +431,6 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 }
 
 #if TILE == 8
-/* Lane-wise scratch of blend_bwd_rows16: what the scalar scatter of one slot reads per lane. */
-#define LV_L 0    /* l0, l1, l2 */
-#define LV_WGT 3  /* a_i T_i */
-#define LV_VAB 4  /* v_ab */
-#define LV_M 5    /* moments m[0..9], m[13..15] (MOMENTS - 3 rows) */
-#define LV_MW 18  /* the window's moment, added to m[10 + kk] */
-#define LV_ROWS 19
-
 /* CPU-shaped adjoint: one work-item per tile, its four row pairs in turn as 16 lanes, each row
  * pair's slots back to front as vectors (the arithmetic of blend_bwd in lanes: gathered set-ups
  * and attributes, composite and interpolation adjoint, moments), then the lanes' contributions
@@ -382,8 +438,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const int* F,             // [M, 3]
-                               __global const REAL* attr,         // [N, C + 1]
+                               __global const REAL* entry_attr,   // [E, 16]  (blend_entry_attr)
                                __global const REAL* bg,           // [C]
                                __global const int* n_contrib,     // [H, W]
                                __global const int* s_entry,       // [T * 4, K, 16]
@@ -394,21 +449,25 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                const int has_vacc, const int C, const int K, const REAL sigma,
                                const int width, const int height, const int tiles_x, const int num_tiles,
                                __global int* entry_hit,           // [E]
-                               __global REAL* partial_attr,       // [E, 3, C + 1]
-                               __global REAL* partial_mom,        // [E, MOMENTS]
+                               const int pstride,                 // 32 (C <= 4)
+                               __global REAL* partial,            // [E, 32]: moments, then [3, C + 1]
                                __global REAL* v_sigma_tile)       // [T]
 {
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
     const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    for (int e = e0; e < e1; ++e) entry_hit[e] = 0;
+    for (int e = e0; e < e1; ++e) {
+        entry_hit[e] = 0;
+        vstore16((REAL16)0, 0, partial + (long)e * pstride);
+        vstore16((REAL16)0, 0, partial + (long)e * pstride + 16);
+    }
     REAL16 vsig = (REAL16)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int x0 = tx * TILE;
     const int16 e_safe = (int16)e0;
-    REAL vol[C_MAX][16], lv[LV_ROWS][16];
-    int el[16], kl[16], nl[16];
+    REAL vol[C_MAX][16];
+    int el[16], nl[16];
     for (int r = 0; r < 4; ++r) {
         const int y0 = ty * TILE + 2 * r;
         if (y0 >= height) break;
@@ -435,8 +494,9 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
             const MASK16 act = CONVERT_MASK16(acti);
             const int16 e = select(e_safe, vload16(0, s_entry + slot0 + 16 * i), acti);
             const REAL16 T = select((REAL16)0, vload16(0, s_T + slot0 + 16 * i), act);
-            REAL16 s[SETUP], b[3], l[3], dx, dy, zp;
+            REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
             fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
+            load_rows16(entry_attr, 16, e, A);
             int16 kk = (int16)0;
             REAL16 dm = (REAL16)0, ex = (REAL16)0, win = (REAL16)1;
             if (sigma > (REAL)0) {
@@ -444,15 +504,13 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                 ex = select((REAL16)1, vload16(0, s_ex + slot0 + 16 * i), act);
                 win = (REAL)1 - ex;
             }
-            const int16 f = gather16i(entry_face, e);
-            const int16 i0 = gather16i(F, 3 * f) * CA, i1 = gather16i(F, 3 * f + 1) * CA, i2 = gather16i(F, 3 * f + 2) * CA;
-            const REAL16 a0C = gather16(attr + C, i0), a1C = gather16(attr + C, i1), a2C = gather16(attr + C, i2);
+            const REAL16 a0C = A[C], a1C = A[CA + C], a2C = A[2 * CA + C];
             const REAL16 ab = l[0] * a0C + l[1] * a1C + l[2] * a2C;
             const REAL16 a = ab * win;
             const REAL16 wgt = a * T;
             REAL16 dot = (REAL16)0, g0 = (REAL16)0, g1 = (REAL16)0;
             for (int c = 0; c < C; ++c) {
-                const REAL16 a0c = gather16(attr + c, i0), a1c = gather16(attr + c, i1), a2c = gather16(attr + c, i2);
+                const REAL16 a0c = A[c], a1c = A[CA + c], a2c = A[2 * CA + c];
                 const REAL16 fc = l[0] * a0c + l[1] * a1c + l[2] * a2c;
                 const REAL16 vo = vload16(0, vol[c]);
                 dot += vo * (fc - R[c]);
@@ -476,41 +534,37 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
             const REAL16 u0 = vb0 + select((REAL16)0, vd * s[9], CONVERT_MASK16(kk == 0));
             const REAL16 u1 = vb1 + select((REAL16)0, vd * s[10], CONVERT_MASK16(kk == 1));
             const REAL16 u2 = vb2 + select((REAL16)0, vd * s[11], CONVERT_MASK16(kk == 2));
-            vstore16(l[0], 0, lv[LV_L]); vstore16(l[1], 0, lv[LV_L + 1]); vstore16(l[2], 0, lv[LV_L + 2]);
-            vstore16(wgt, 0, lv[LV_WGT]); vstore16(v_ab, 0, lv[LV_VAB]);
-            vstore16(u0, 0, lv[LV_M + 0]); vstore16(u0 * dx, 0, lv[LV_M + 1]); vstore16(u0 * dy, 0, lv[LV_M + 2]);
-            vstore16(u1, 0, lv[LV_M + 3]); vstore16(u1 * dx, 0, lv[LV_M + 4]); vstore16(u1 * dy, 0, lv[LV_M + 5]);
-            vstore16(u2, 0, lv[LV_M + 6]); vstore16(u2 * dx, 0, lv[LV_M + 7]); vstore16(u2 * dy, 0, lv[LV_M + 8]);
-            vstore16(vb0 * b[0] + vb1 * b[1] + vb2 * b[2], 0, lv[LV_M + 9]);
-            vstore16(vw0 * b[0], 0, lv[LV_M + 10]); vstore16(vw1 * b[1], 0, lv[LV_M + 11]);
-            vstore16(vw2 * b[2], 0, lv[LV_M + 12]);
-            vstore16(vd * dm, 0, lv[LV_MW]);
+            /* the slot's contributions, one row per partial-sum slot of the entry record */
+            REAL16 P[32];
+            P[0] = u0; P[1] = u0 * dx; P[2] = u0 * dy;
+            P[3] = u1; P[4] = u1 * dx; P[5] = u1 * dy;
+            P[6] = u2; P[7] = u2 * dx; P[8] = u2 * dy;
+            P[9] = vb0 * b[0] + vb1 * b[1] + vb2 * b[2];
+            const REAL16 mw = vd * dm;
+            P[10] = select((REAL16)0, mw, CONVERT_MASK16(kk == 0));
+            P[11] = select((REAL16)0, mw, CONVERT_MASK16(kk == 1));
+            P[12] = select((REAL16)0, mw, CONVERT_MASK16(kk == 2));
+            P[13] = vw0 * b[0]; P[14] = vw1 * b[1]; P[15] = vw2 * b[2];
+            for (int q = 16; q < 32; ++q) P[q] = (REAL16)0;
+            for (int c = 0; c < C; ++c) {
+                const REAL16 gc = vload16(0, vol[c]) * wgt;
+                P[16 + c] = l[0] * gc;
+                P[16 + CA + c] = l[1] * gc;
+                P[16 + 2 * CA + c] = l[2] * gc;
+            }
+            P[16 + C] = l[0] * v_ab;
+            P[16 + CA + C] = l[1] * v_ab;
+            P[16 + 2 * CA + C] = l[2] * v_ab;
+            transpose16(P);
+            transpose16(P + 16);  /* now P[ln], P[16 + ln]: lane ln's record */
             vstore16(e, 0, el);
-            vstore16(kk, 0, kl);
             for (int ln = 0; ln < 16; ++ln) {
                 if (i >= nl[ln]) continue;
                 const int en = el[ln];
-                __global REAL* d = partial_attr + (long)en * 3 * CA;
-                __global REAL* m = partial_mom + (long)en * MOMENTS;
-                if (!entry_hit[en]) {
-                    entry_hit[en] = 1;
-                    for (int q = 0; q < 3 * CA; ++q) d[q] = (REAL)0;
-                    for (int q = 0; q < MOMENTS; ++q) m[q] = (REAL)0;
-                }
-                const REAL L0 = lv[LV_L][ln], L1 = lv[LV_L + 1][ln], L2 = lv[LV_L + 2][ln];
-                const REAL w = lv[LV_WGT][ln], vab = lv[LV_VAB][ln];
-                for (int c = 0; c < C; ++c) {
-                    const REAL gc = vol[c][ln] * w;
-                    d[c] += L0 * gc;
-                    d[CA + c] += L1 * gc;
-                    d[2 * CA + c] += L2 * gc;
-                }
-                d[C] += L0 * vab;
-                d[CA + C] += L1 * vab;
-                d[2 * CA + C] += L2 * vab;
-                for (int q = 0; q < 10; ++q) m[q] += lv[LV_M + q][ln];
-                for (int q = 0; q < 3; ++q) m[13 + q] += lv[LV_M + 10 + q][ln];
-                m[10 + kl[ln]] += lv[LV_MW][ln];
+                __global REAL* rec = partial + (long)en * pstride;
+                entry_hit[en] = 1;
+                vstore16(vload16(0, rec) + P[ln], 0, rec);
+                vstore16(vload16(0, rec + 16) + P[16 + ln], 0, rec + 16);
             }
         }
     }

@@ -149,14 +149,14 @@ inline void edge_moment_vjp(REAL2 rx, REAL2 ry, REAL mm, REAL mx, REAL my, REAL2
 __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
                          __global const int* F,             // [M, 3]
                          __global const int* entry_face,    // [E]
-                         __global const REAL* partial_mom,  // [E, MOMENTS]
+                         __global const REAL* partial_mom,  // [E, mom_stride]: MOMENTS first
                          __global const int* entry_hit,     // [E]
-                         const int num_entries,
+                         const int num_entries, const int mom_stride,
                          __global REAL* partial_geom)       // [E, 3, 3]  (entries with fragments only)
 {
     const int e = get_global_id(0);
     if (e >= num_entries || !entry_hit[e]) return;
-    __global const REAL* m = partial_mom + (long)e * MOMENTS;
+    __global const REAL* m = partial_mom + (long)e * mom_stride;
     __global REAL* d = partial_geom + (long)e * 9;
     const int f = entry_face[e];
     const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);

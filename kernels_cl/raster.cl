@@ -337,14 +337,14 @@ __kernel void pack_fragments(const int npix, const int K,
     }
 }
 
-__kernel void gather_vertex(__global const REAL* partial_a,    // [E, 3, Ca]  (Ca > 0)
+__kernel void gather_vertex(__global const REAL* partial_a,    // [E, a_stride]: [3, Ca] from a_off  (Ca > 0)
                             __global const REAL* partial_b,    // [E, 3, Cb]  (Cb > 0)
                             __global const int* entry_hit,     // [E]  0: no fragments, partials unset
                             __global const int* face_off,      // [M + 1]
                             __global const int* face_entries,  // [E]
                             __global const int* csr_off,       // [N + 1]
                             __global const int* csr_corner,    // [3M]  3 * face + corner
-                            const int n, const int Ca, const int Cb,
+                            const int n, const int Ca, const int Cb, const int a_stride, const int a_off,
                             __global REAL* out_a,              // [N, Ca]
                             __global REAL* out_b)              // [N, Cb]
 {
@@ -362,7 +362,7 @@ __kernel void gather_vertex(__global const REAL* partial_a,    // [E, 3, Ca]  (C
         for (int j = face_off[f]; j < face_off[f + 1]; ++j) {
             const int e = face_entries[j];
             if (!entry_hit[e]) continue;
-            __global const REAL* pa = partial_a + ((long)e * 3 + i) * Ca;
+            __global const REAL* pa = partial_a + (long)e * a_stride + a_off + i * Ca;
             for (int c = 0; c < Ca; ++c) oa[c] += pa[c];
             __global const REAL* pb = partial_b + ((long)e * 3 + i) * Cb;
             for (int c = 0; c < Cb; ++c) ob[c] += pb[c];

@@ -37,6 +37,9 @@ from .raster import (
 
 BLEND_VARIANTS = ("auto", "pixel", "rows16")
 C_LIMIT = 64  # feature channels
+# the 16-lane kernels keep an entry's partial sums in two 16-wide vectors: 16 moments, then
+# [3, C + 1] (C <= 4: RGB + opacity, depth, ...); more channels take the per-pixel kernels.
+ROWS16_C_LIMIT = 4
 
 
 @dataclass
@@ -69,6 +72,7 @@ class Blend:
     s_T: cla.Array
     s_ex: cla.Array  # [T·4, K, 16] exp(−σ d) of each composited fragment's window (σ set; else 1 element)
     variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
+    entry_attr: cla.Array | None = None  # rows16: [E, 16] corner attributes per entry
 
     # what gather_to_vertices reads of a Fragments
     @property
@@ -122,8 +126,8 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
             None: hard edges.
         t_min: compositing stops once the transmittance drops below it (0 disables).
         near, far, cull_backface: as :func:`~triplet_cl.ops.raster.rasterize`.
-        variant: ``"rows16"`` (CPU-shaped: lists in 16 vector lanes, K ≤ 256), ``"pixel"``
-            (GPU-shaped: one work-item per pixel) or ``"auto"`` (rows16 on CPUs up to K = 256).
+        variant: ``"rows16"`` (CPU-shaped: 16 pixels in vector lanes, K ≤ 256, C ≤ 4), ``"pixel"``
+            (GPU-shaped: one work-item per pixel) or ``"auto"`` (rows16 on CPUs where it applies).
 
     Returns:
         :class:`Blend` (``.image [H, W, C]``, ``.trans [H, W]``, ...): the result of
@@ -131,8 +135,6 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     """
     if variant not in BLEND_VARIANTS:
         raise ValueError(f"variant must be one of {BLEND_VARIANTS}, got {variant!r}")
-    if variant == "auto":
-        variant = "rows16" if device.is_cpu and int(K) <= ROWS16_K_LIMIT else "pixel"
     if not (0 <= t_min < 1):
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     vs, width, height, K = check_raster_args(device, vs, mesh, width, height, K, near, far, sigma, variant)
@@ -142,6 +144,10 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     if not 1 <= C <= C_LIMIT:
         raise ValueError(f"attr must have C + 1 columns with 1 <= C <= {C_LIMIT} (features, then opacity), "
                          f"got {a.shape[1]} columns")
+    if variant == "rows16" and C > ROWS16_C_LIMIT:
+        raise ValueError(f"variant 'rows16' supports C <= {ROWS16_C_LIMIT} feature channels, got C={C}")
+    if variant == "auto":
+        variant = "rows16" if device.is_cpu and K <= ROWS16_K_LIMIT and C <= ROWS16_C_LIMIT else "pixel"
     b = np.asarray(bg, dtype=np.float64)
     if b.ndim > 1 or b.size not in (1, C):
         raise ValueError(f"bg must have shape [{C}] (or be a scalar), got {list(np.shape(bg))}")
@@ -157,17 +163,25 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
     s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
     s_ex = cla.empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
+    E = bn.num_entries
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
+        # the faces' corner attributes per entry, read as rows by the 16-lane kernels
+        entry_attr = cla.empty(q, (max(E, 1), 16), real, allocator=alloc)
+        if E:
+            device.kernel("blend", "blend_entry_attr", {"TILE": TILE}, real)(
+                q, *grid_1d(E), bn.entry_face.data, mesh.F.data, a.data, np.int32(C), np.int32(E), entry_attr.data)
+        attr_args = (entry_attr.data,)
     else:
         kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
+        entry_attr, attr_args = None, (mesh.F.data, a.data)
     device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
-        q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, mesh.F.data, a.data, bgd.data,
+        q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, bgd.data,
         np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
         real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
         s_entry.data, s_T.data, s_ex.data)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
-                 s_entry, s_T, s_ex, variant)
+                 s_entry, s_T, s_ex, variant, entry_attr)
 
 
 def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
@@ -192,23 +206,28 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     T, E = bn.num_tiles, bn.num_entries
     CA = C + 1
     hit = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    p_attr = cla.empty(q, (max(E, 1), 3, CA), real, allocator=alloc)
-    p_mom = cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc)
+    # per-entry partial sums: the MOMENTS geometric moments, then [3, C + 1] (corner, attribute);
+    # 32 per entry for the 16-lane kernel (its record is two transposed vectors: C <= 4)
+    pstride = MOMENTS + 3 * CA
+    if blend.variant == "rows16":
+        assert pstride <= 32, "rows16 needs C <= 4"
+        pstride = 32
+    partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
+    attr_args = (blend.entry_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
     device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.mesh.F.data,
-        blend.attr.data, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data,
+        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data,
         g.data,
         buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
-        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, p_attr.data, p_mom.data,
+        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, np.int32(pstride), partial.data,
         v_sig_tile.data)
     p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
     if E:
         device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
-            q, *grid_1d(E), blend.vs.data, blend.mesh.F.data, bn.entry_face.data, p_mom.data, hit.data,
-            np.int32(E), p_geom.data)
-    v_attr, v_vs = gather_to_vertices(device, blend, hit, p_attr, CA, p_geom, 3)
+            q, *grid_1d(E), blend.vs.data, blend.mesh.F.data, bn.entry_face.data, partial.data, hit.data,
+            np.int32(E), np.int32(pstride), p_geom.data)
+    v_attr, v_vs = gather_to_vertices(device, blend, hit, partial, CA, p_geom, 3, a_layout=(pstride, MOMENTS))
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
     return v_attr, v_vs, v_sigma
 

@@ -313,7 +313,8 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     face_off, _ = _offsets(device, face_ntiles, total=False)  # the same total E: no second read back
     device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
     entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    entry_setup = cla.empty(q, (max(E, 1), SETUP), real, allocator=alloc)
+    # one spare row: the 16-lane kernels read each set-up 16 values wide (ops/blend.py)
+    entry_setup = cla.empty(q, (max(E, 1) + 1, SETUP), real, allocator=alloc)
     face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     soft = check_soft_edges(soft_edges, M)
     if E:
@@ -437,11 +438,12 @@ def _packed_arrays(device: Device, count: cla.Array, real, with_win: bool):
 
 
 def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, partial_a: cla.Array | None,
-                       Ca: int, partial_b: cla.Array | None = None, Cb: int = 0):
+                       Ca: int, partial_b: cla.Array | None = None, Cb: int = 0, a_layout: tuple[int, int] | None = None):
     """Sum per-entry partial adjoints ``[E, 3, Ca]`` (and ``[E, 3, Cb]``) to vertices ``[N, Ca]``
     (``[N, Cb]``) in one pass (deterministic, no atomics); entries with ``entry_hit [E] == 0`` (no
-    fragments: their partials were never written) are skipped. Returns ``(out_a, out_b)`` (None for
-    an absent array)."""
+    fragments: their partials were never written) are skipped. ``a_layout = (stride, offset)``: entry
+    e's ``[3, Ca]`` block of ``partial_a`` starts at ``e · stride + offset`` (default ``(3 Ca, 0)``).
+    Returns ``(out_a, out_b)`` (None for an absent array)."""
     mesh = frags.mesh
     n = mesh.num_vertices
     q = device.queue
@@ -451,7 +453,8 @@ def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, p
         device.kernel("raster", "gather_vertex", {"TILE": TILE}, frags.real)(
             q, *grid_1d(n), buf(partial_a, q), buf(partial_b, q), entry_hit.data, frags.face_off.data,
             frags.face_entries.data, mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(Ca),
-            np.int32(Cb), buf(out_a, q), buf(out_b, q))
+            np.int32(Cb), np.int32(a_layout[0] if a_layout else 3 * Ca), np.int32(a_layout[1] if a_layout else 0),
+            buf(out_a, q), buf(out_b, q))
     return out_a, out_b
 
 
@@ -520,7 +523,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         if E:
             device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
                 q, *grid_1d(E), frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, hit.data,
-                np.int32(E), p_geom.data)
+                np.int32(E), np.int32(MOMENTS), p_geom.data)
     v_attr, v_vs = gather_to_vertices(device, frags, hit, p_attr, C, p_geom, 3 if geometry else 0)
     if not geometry:
         return v_attr, v_bary_out
