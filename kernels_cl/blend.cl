@@ -333,6 +333,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
 __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const int* entry_face,    // [E]
                         __global const REAL* entry_setup,  // [E, SETUP]
+                        __global const REAL* vs,           // [N, 3]  projected vertices
                         __global const int* F,             // [M, 3]
                         __global const REAL* attr,         // [N, C + 1]
                         __global const REAL* bg,           // [C]
@@ -427,6 +428,16 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                                          kk, dm, ex, m);
             }
         }
+    /* the tile's entries are complete: moments -> adjoint of the face's screen vertices, written
+     * over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex */
+    for (int e = e0; e < e1; ++e) {
+        if (!entry_hit[e]) continue;
+        __global REAL* rec = partial + (long)e * pstride;
+        REAL m[MOMENTS], d[9];
+        for (int q = 0; q < MOMENTS; ++q) m[q] = rec[q];
+        entry_geom_vjp(vs, F, entry_face[e], m, d);
+        for (int q = 0; q < 9; ++q) rec[q] = d[q];
+    }
     v_sigma_tile[t] = vsig;
 }
 
@@ -439,6 +450,8 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
                                __global const REAL* entry_attr,   // [E, 16]  (blend_entry_attr)
+                               __global const REAL* vs,           // [N, 3]  projected vertices
+                               __global const int* F,             // [M, 3]
                                __global const REAL* bg,           // [C]
                                __global const int* n_contrib,     // [H, W]
                                __global const int* s_entry,       // [T * 4, K, 16]
@@ -570,6 +583,16 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
     }
     const REAL8 h8 = vsig.lo + vsig.hi;
     const REAL4 h4 = h8.lo + h8.hi;
+    /* the tile's entries are complete: moments -> adjoint of the face's screen vertices, written
+     * over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex */
+    for (int e = e0; e < e1; ++e) {
+        if (!entry_hit[e]) continue;
+        __global REAL* rec = partial + (long)e * pstride;
+        REAL m[MOMENTS], d[9];
+        for (int q = 0; q < MOMENTS; ++q) m[q] = rec[q];
+        entry_geom_vjp(vs, F, entry_face[e], m, d);
+        for (int q = 0; q < 9; ++q) rec[q] = d[q];
+    }
     const REAL2 h2 = h4.lo + h4.hi;
     v_sigma_tile[t] = h2.x + h2.y;
 }

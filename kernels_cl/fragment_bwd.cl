@@ -137,15 +137,6 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
     if (do_geom) v_sigma_tile[t] = vsig;
 }
 
-/* Sum over an entry's fragments of u dE/d(x, y), E = cross(x - p, y - p), p = a0 + (dx, dy),
- * from the moments (m, mx, my) of u; rx, ry = x - a0, y - a0. Accumulates into gx, gy. */
-inline void edge_moment_vjp(REAL2 rx, REAL2 ry, REAL mm, REAL mx, REAL my, REAL2* gx, REAL2* gy)
-{
-    /* d/dx = ((y - p).y, -(y - p).x) = (ry.y - dy, -(ry.x - dx));  d/dy = (-(rx.y - dy), rx.x - dx) */
-    *gx += (REAL2)(ry.y * mm - my, -(ry.x * mm - mx));
-    *gy += (REAL2)(-(rx.y * mm - my), rx.x * mm - mx);
-}
-
 __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
                          __global const int* F,             // [M, 3]
                          __global const int* entry_face,    // [E]
@@ -156,28 +147,8 @@ __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
 {
     const int e = get_global_id(0);
     if (e >= num_entries || !entry_hit[e]) return;
-    __global const REAL* m = partial_mom + (long)e * mom_stride;
-    __global REAL* d = partial_geom + (long)e * 9;
-    const int f = entry_face[e];
-    const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
-    const REAL2 a0 = p0.xy, r1 = p1.xy - a0, r2 = p2.xy - a0, r0 = (REAL2)(0, 0);
-    const REAL iA = (REAL)1 / cross2(r1, r2);
-    REAL2 g0 = (REAL2)(0, 0), g1 = (REAL2)(0, 0), g2 = (REAL2)(0, 0);
-    /* E0 = cross(a1 - p, a2 - p), E1 = cross(a2 - p, a0 - p), E2 = cross(a0 - p, a1 - p) */
-    edge_moment_vjp(r1, r2, m[0], m[1], m[2], &g1, &g2);
-    edge_moment_vjp(r2, r0, m[3], m[4], m[5], &g2, &g0);
-    edge_moment_vjp(r0, r1, m[6], m[7], m[8], &g0, &g1);
-    g0 *= iA; g1 *= iA; g2 *= iA;
-    /* v_A = -sA / A  into  A = cross(a1 - a0, a2 - a0) */
-    REAL2 vd1 = (REAL2)(0, 0), vd2 = (REAL2)(0, 0);
-    cross2_vjp(r1, r2, -m[9] * iA, &vd1, &vd2);
-    g0 -= vd1 + vd2; g1 += vd1; g2 += vd2;
-    /* edge lengths: v_L_k = -mL_k / L_k, e_k = y_k - x_k, v_e = v_L e / L */
-    const REAL2 e0 = r2 - r1, e1 = r0 - r2, e2 = r1 - r0;
-    if (m[10] != (REAL)0) { const REAL L2 = dot(e0, e0); const REAL2 ve = -m[10] / L2 * e0; g2 += ve; g1 -= ve; }
-    if (m[11] != (REAL)0) { const REAL L2 = dot(e1, e1); const REAL2 ve = -m[11] / L2 * e1; g0 += ve; g2 -= ve; }
-    if (m[12] != (REAL)0) { const REAL L2 = dot(e2, e2); const REAL2 ve = -m[12] / L2 * e2; g1 += ve; g0 -= ve; }
-    d[0] = g0.x; d[1] = g0.y; d[2] = -m[13] / (p0.z * p0.z);
-    d[3] = g1.x; d[4] = g1.y; d[5] = -m[14] / (p1.z * p1.z);
-    d[6] = g2.x; d[7] = g2.y; d[8] = -m[15] / (p2.z * p2.z);
+    REAL m[MOMENTS], d[9];
+    for (int q = 0; q < MOMENTS; ++q) m[q] = partial_mom[(long)e * mom_stride + q];
+    entry_geom_vjp(vs, F, entry_face[e], m, d);
+    for (int q = 0; q < 9; ++q) partial_geom[(long)e * 9 + q] = d[q];
 }

@@ -338,13 +338,14 @@ __kernel void pack_fragments(const int npix, const int K,
 }
 
 __kernel void gather_vertex(__global const REAL* partial_a,    // [E, a_stride]: [3, Ca] from a_off  (Ca > 0)
-                            __global const REAL* partial_b,    // [E, 3, Cb]  (Cb > 0)
+                            __global const REAL* partial_b,    // [E, b_stride]: [3, Cb] from b_off  (Cb > 0)
                             __global const int* entry_hit,     // [E]  0: no fragments, partials unset
                             __global const int* face_off,      // [M + 1]
                             __global const int* face_entries,  // [E]
                             __global const int* csr_off,       // [N + 1]
                             __global const int* csr_corner,    // [3M]  3 * face + corner
                             const int n, const int Ca, const int Cb, const int a_stride, const int a_off,
+                            const int b_stride, const int b_off,
                             __global REAL* out_a,              // [N, Ca]
                             __global REAL* out_b)              // [N, Cb]
 {
@@ -364,7 +365,7 @@ __kernel void gather_vertex(__global const REAL* partial_a,    // [E, a_stride]:
             if (!entry_hit[e]) continue;
             __global const REAL* pa = partial_a + (long)e * a_stride + a_off + i * Ca;
             for (int c = 0; c < Ca; ++c) oa[c] += pa[c];
-            __global const REAL* pb = partial_b + ((long)e * 3 + i) * Cb;
+            __global const REAL* pb = partial_b + (long)e * b_stride + b_off + i * Cb;
             for (int c = 0; c < Cb; ++c) ob[c] += pb[c];
         }
     }

@@ -215,19 +215,18 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
-    attr_args = (blend.entry_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
+    attr_args = (blend.entry_attr.data,) if blend.variant == "rows16" else ()
     device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data,
-        g.data,
+        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, blend.vs.data,
+        blend.mesh.F.data, *(() if attr_args else (blend.attr.data,)), blend.bg.data, blend.n_contrib.data,
+        blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
         buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
         np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, np.int32(pstride), partial.data,
         v_sig_tile.data)
-    p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
-    if E:
-        device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
-            q, *grid_1d(E), blend.vs.data, blend.mesh.F.data, bn.entry_face.data, partial.data, hit.data,
-            np.int32(E), np.int32(pstride), p_geom.data)
-    v_attr, v_vs = gather_to_vertices(device, blend, hit, partial, CA, p_geom, 3, a_layout=(pstride, MOMENTS))
+    # each hit entry's record now holds the adjoint of its face's screen vertices [3, 3] at 0 and
+    # the corner attributes' adjoint [3, C + 1] at MOMENTS
+    v_attr, v_vs = gather_to_vertices(device, blend, hit, partial, CA, partial, 3, a_layout=(pstride, MOMENTS),
+                                      b_layout=(pstride, 0))
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
     return v_attr, v_vs, v_sigma
 

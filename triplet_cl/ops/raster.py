@@ -438,11 +438,13 @@ def _packed_arrays(device: Device, count: cla.Array, real, with_win: bool):
 
 
 def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, partial_a: cla.Array | None,
-                       Ca: int, partial_b: cla.Array | None = None, Cb: int = 0, a_layout: tuple[int, int] | None = None):
+                       Ca: int, partial_b: cla.Array | None = None, Cb: int = 0, a_layout: tuple[int, int] | None = None,
+                       b_layout: tuple[int, int] | None = None):
     """Sum per-entry partial adjoints ``[E, 3, Ca]`` (and ``[E, 3, Cb]``) to vertices ``[N, Ca]``
     (``[N, Cb]``) in one pass (deterministic, no atomics); entries with ``entry_hit [E] == 0`` (no
     fragments: their partials were never written) are skipped. ``a_layout = (stride, offset)``: entry
-    e's ``[3, Ca]`` block of ``partial_a`` starts at ``e · stride + offset`` (default ``(3 Ca, 0)``).
+    e's ``[3, Ca]`` block of ``partial_a`` starts at ``e · stride + offset`` (default ``(3 Ca, 0)``), and
+    likewise ``b_layout``.
     Returns ``(out_a, out_b)`` (None for an absent array)."""
     mesh = frags.mesh
     n = mesh.num_vertices
@@ -453,7 +455,7 @@ def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, p
         device.kernel("raster", "gather_vertex", {"TILE": TILE}, frags.real)(
             q, *grid_1d(n), buf(partial_a, q), buf(partial_b, q), entry_hit.data, frags.face_off.data,
             frags.face_entries.data, mesh.csr_off.data, mesh.csr_corner.data, np.int32(n), np.int32(Ca),
-            np.int32(Cb), np.int32(a_layout[0] if a_layout else 3 * Ca), np.int32(a_layout[1] if a_layout else 0),
+            np.int32(Cb), *(np.int32(v) for v in (a_layout or (3 * Ca, 0))), *(np.int32(v) for v in (b_layout or (3 * Cb, 0))),
             buf(out_a, q), buf(out_b, q))
     return out_a, out_b
 
