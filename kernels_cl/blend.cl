@@ -182,6 +182,13 @@ inline void transpose16(REAL16* r)
     TRANSPOSE_PAIR1(r, 8) TRANSPOSE_PAIR1(r, 10) TRANSPOSE_PAIR1(r, 12) TRANSPOSE_PAIR1(r, 14)
 }
 
+/* lane l reads p[i.l] */
+inline int16 gather16i(__global const int* p, int16 i)
+{
+    return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                   p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+}
+
 /* Lane l's 16 values from row e.l of p (row stride `stride`, 16 readable values per row), as
  * r[j] = value j of the 16 lanes: 16 row loads and a transpose (on CPUs much faster than 16-lane
  * gathers of each value). */
@@ -234,24 +241,23 @@ inline REAL16 window_arg16(const REAL16* s, const REAL16* b, int16* kk)
     return dm;
 }
 
-/* The rows16 kernels' per-entry attributes: entry_attr [E, 16] = attr of the face's corners
+/* The rows16 kernels' per-face attributes: face_attr [M, 16] = attr of the face's corners
  * [3, C + 1], then zeros (C <= 4), so that the 16 lanes load them as rows (load_rows16). */
-__kernel void blend_entry_attr(__global const int* entry_face,  // [E]
-                               __global const int* F,           // [M, 3]
-                               __global const REAL* attr,       // [N, C + 1]
-                               const int C, const int num_entries,
-                               __global REAL* entry_attr)       // [E, 16]
+__kernel void blend_face_attr(__global const int* F,           // [M, 3]
+                              __global const REAL* attr,       // [N, C + 1]
+                              const int C, const int num_faces,
+                              __global REAL* face_attr)        // [M, 16]
 {
-    const int e = get_global_id(0);
-    if (e >= num_entries) return;
-    const int CA = C + 1, f = entry_face[e];
+    const int f = get_global_id(0);
+    if (f >= num_faces) return;
+    const int CA = C + 1;
     REAL r[16];
     for (int q = 0; q < 16; ++q) r[q] = (REAL)0;
     for (int k = 0; k < 3; ++k) {
         __global const REAL* a = attr + F[3 * f + k] * CA;
         for (int c = 0; c < CA; ++c) r[k * CA + c] = a[c];
     }
-    vstore16(vload16(0, r), e, entry_attr);
+    vstore16(vload16(0, r), f, face_attr);
 }
 
 /* CPU-shaped: one work-item per two rows of an 8x8 tile, the 16 pixels' lists built in vector
@@ -260,7 +266,7 @@ __kernel void blend_entry_attr(__global const int* entry_face,  // [E]
 __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const REAL* entry_attr,   // [E, 16]  (blend_entry_attr)
+                               __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* bg,           // [C]
                                const int width, const int height, const int tiles_x,
                                const int K, const REAL far, const int C, const REAL sigma, const REAL t_min,
@@ -297,7 +303,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
         const int16 e = select(e_safe, ek[i], acti);
         REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
         fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
-        load_rows16(entry_attr, 16, e, A);  /* A[k CA + c]: attribute c of the face's corner k */
+        load_rows16(face_attr, 16, gather16i(entry_face, e), A);  /* A[k CA + c]: attribute c of the face's corner k */
         REAL16 a = l[0] * A[C] + l[1] * A[CA + C] + l[2] * A[2 * CA + C];
         if (sigma > (REAL)0) {
             int16 kk;
@@ -449,7 +455,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const REAL* entry_attr,   // [E, 16]  (blend_entry_attr)
+                               __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* vs,           // [N, 3]  projected vertices
                                __global const int* F,             // [M, 3]
                                __global const REAL* bg,           // [C]
@@ -509,7 +515,7 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
             const REAL16 T = select((REAL16)0, vload16(0, s_T + slot0 + 16 * i), act);
             REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
             fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
-            load_rows16(entry_attr, 16, e, A);
+            load_rows16(face_attr, 16, gather16i(entry_face, e), A);
             int16 kk = (int16)0;
             REAL16 dm = (REAL16)0, ex = (REAL16)0, win = (REAL16)1;
             if (sigma > (REAL)0) {

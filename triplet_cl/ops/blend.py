@@ -72,7 +72,7 @@ class Blend:
     s_T: cla.Array
     s_ex: cla.Array  # [T·4, K, 16] exp(−σ d) of each composited fragment's window (σ set; else 1 element)
     variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
-    entry_attr: cla.Array | None = None  # rows16: [E, 16] corner attributes per entry
+    face_attr: cla.Array | None = None  # rows16: [M, 16] corner attributes per face
 
     # what gather_to_vertices reads of a Fragments
     @property
@@ -166,22 +166,23 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     E = bn.num_entries
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
-        # the faces' corner attributes per entry, read as rows by the 16-lane kernels
-        entry_attr = cla.empty(q, (max(E, 1), 16), real, allocator=alloc)
-        if E:
-            device.kernel("blend", "blend_entry_attr", {"TILE": TILE}, real)(
-                q, *grid_1d(E), bn.entry_face.data, mesh.F.data, a.data, np.int32(C), np.int32(E), entry_attr.data)
-        attr_args = (entry_attr.data,)
+        # the faces' corner attributes, read as rows by the 16-lane kernels
+        M = mesh.num_faces
+        face_attr = cla.empty(q, (max(M, 1), 16), real, allocator=alloc)
+        if M:
+            device.kernel("blend", "blend_face_attr", {"TILE": TILE}, real)(
+                q, *grid_1d(M), mesh.F.data, a.data, np.int32(C), np.int32(M), face_attr.data)
+        attr_args = (face_attr.data,)
     else:
         kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
-        entry_attr, attr_args = None, (mesh.F.data, a.data)
+        face_attr, attr_args = None, (mesh.F.data, a.data)
     device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
         q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, bgd.data,
         np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
         real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
         s_entry.data, s_T.data, s_ex.data)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
-                 s_entry, s_T, s_ex, variant, entry_attr)
+                 s_entry, s_T, s_ex, variant, face_attr)
 
 
 def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
@@ -215,7 +216,7 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
-    attr_args = (blend.entry_attr.data,) if blend.variant == "rows16" else ()
+    attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else ()
     device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
         q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, blend.vs.data,
         blend.mesh.F.data, *(() if attr_args else (blend.attr.data,)), blend.bg.data, blend.n_contrib.data,
