@@ -4,8 +4,12 @@
 :func:`~triplet_cl.ops.interpolate.interpolate` → :func:`~triplet_cl.ops.composite.coverage` →
 :func:`~triplet_cl.ops.composite.composite` compute when a fragment's colour and opacity are
 interpolated per-vertex values, and ``raster_blend_backward`` its whole adjoint in one pass over
-the tiles (then the shared per-entry gathers). No packed fragment array is written in between:
-on a CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
+the tiles (then the per-vertex gather). No packed fragment array is written in between: on a
+CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
+
+Two kernel shapes with the same arithmetic: ``rows16`` (CPU: the 16 pixels of two tile rows in
+vector lanes, per-entry data loaded as rows and transposed in registers; C ≤ 4) and ``pixel``
+(GPU-shaped, scalar per pixel, any C ≤ 64). ``variant="auto"`` takes rows16 on CPUs where it applies.
 
 Use it for unlit / emissive vertex colours, per-vertex radiance, depth or any feature image, and
 the opaque K = 1 job; deferred shading (a BRDF evaluated per fragment) uses the generic chain.
