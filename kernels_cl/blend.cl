@@ -348,6 +348,25 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
 }
 #endif
 
+/* The adjoint kernels' records of tile entries [e0, e1) (partial [E, pstride]): zeroed and
+ * unflagged before the tile's pixels ... */
+inline void tile_records_zero(__global int* entry_hit, int e0, int e1, __global REAL* partial, int pstride)
+{
+    for (int e = e0; e < e1; ++e) {
+        entry_hit[e] = 0;
+        for (int q = 0; q < pstride; ++q) partial[(long)e * pstride + q] = (REAL)0;
+    }
+}
+
+/* ... and once they are complete, each hit entry's moments -> the adjoint of its face's screen
+ * vertices, written over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex. */
+inline void tile_records_geom(__global const REAL* vs, __global const int* F, __global const int* entry_face,
+                              __global const int* entry_hit, int e0, int e1, __global REAL* partial, int pstride)
+{
+    for (int e = e0; e < e1; ++e)
+        if (entry_hit[e]) entry_geom_vjp(vs, F, entry_face[e], partial + (long)e * pstride, partial + (long)e * pstride);
+}
+
 __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const int* entry_face,    // [E]
                         __global const REAL* entry_setup,  // [E, SETUP]
@@ -372,7 +391,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
     if (t >= num_tiles) return;
     const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    for (int e = e0; e < e1; ++e) entry_hit[e] = 0;
+    tile_records_zero(entry_hit, e0, e1, partial, pstride);
     REAL vsig = (REAL)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
@@ -426,11 +445,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                 const REAL v_win = sigma > (REAL)0 ? v_a * ab : (REAL)0;
                 __global REAL* m = partial + (long)e * pstride;
                 __global REAL* d = m + MOMENTS;
-                if (!entry_hit[e]) {
-                    entry_hit[e] = 1;
-                    for (int q = 0; q < 3 * CA; ++q) d[q] = (REAL)0;
-                    for (int q = 0; q < MOMENTS; ++q) m[q] = (REAL)0;
-                }
+                entry_hit[e] = 1;
                 for (int c = 0; c < C; ++c) {
                     const REAL gc = vo[c] * wgt;
                     d[c] += l0 * gc;
@@ -446,16 +461,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                                          kk, dm, ex, m);
             }
         }
-    /* the tile's entries are complete: moments -> adjoint of the face's screen vertices, written
-     * over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex */
-    for (int e = e0; e < e1; ++e) {
-        if (!entry_hit[e]) continue;
-        __global REAL* rec = partial + (long)e * pstride;
-        REAL m[MOMENTS], d[9];
-        for (int q = 0; q < MOMENTS; ++q) m[q] = rec[q];
-        entry_geom_vjp(vs, F, entry_face[e], m, d);
-        for (int q = 0; q < 9; ++q) rec[q] = d[q];
-    }
+    tile_records_geom(vs, F, entry_face, entry_hit, e0, e1, partial, pstride);
     v_sigma_tile[t] = vsig;
 }
 
@@ -468,9 +474,9 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* vs,           // [N, 3]  projected vertices
                                __global const int* F,             // [M, 3]
+                               __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* bg,           // [C]
                                __global const int* n_contrib,     // [H, W]
                                __global const int* s_entry,       // [T * 4, K, 16]
@@ -489,11 +495,7 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
     if (t >= num_tiles) return;
     const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    for (int e = e0; e < e1; ++e) {
-        entry_hit[e] = 0;
-        vstore16((REAL16)0, 0, partial + (long)e * pstride);
-        vstore16((REAL16)0, 0, partial + (long)e * pstride + 16);
-    }
+    tile_records_zero(entry_hit, e0, e1, partial, pstride);
     REAL16 vsig = (REAL16)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int x0 = tx * TILE;
@@ -600,18 +602,9 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
             }
         }
     }
+    tile_records_geom(vs, F, entry_face, entry_hit, e0, e1, partial, pstride);
     const REAL8 h8 = vsig.lo + vsig.hi;
     const REAL4 h4 = h8.lo + h8.hi;
-    /* the tile's entries are complete: moments -> adjoint of the face's screen vertices, written
-     * over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex */
-    for (int e = e0; e < e1; ++e) {
-        if (!entry_hit[e]) continue;
-        __global REAL* rec = partial + (long)e * pstride;
-        REAL m[MOMENTS], d[9];
-        for (int q = 0; q < MOMENTS; ++q) m[q] = rec[q];
-        entry_geom_vjp(vs, F, entry_face[e], m, d);
-        for (int q = 0; q < 9; ++q) rec[q] = d[q];
-    }
     const REAL2 h2 = h4.lo + h4.hi;
     v_sigma_tile[t] = h2.x + h2.y;
 }

@@ -140,15 +140,12 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
 __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
                          __global const int* F,             // [M, 3]
                          __global const int* entry_face,    // [E]
-                         __global const REAL* partial_mom,  // [E, mom_stride]: MOMENTS first
+                         __global const REAL* partial_mom,  // [E, MOMENTS]
                          __global const int* entry_hit,     // [E]
-                         const int num_entries, const int mom_stride,
+                         const int num_entries,
                          __global REAL* partial_geom)       // [E, 3, 3]  (entries with fragments only)
 {
     const int e = get_global_id(0);
     if (e >= num_entries || !entry_hit[e]) return;
-    REAL m[MOMENTS], d[9];
-    for (int q = 0; q < MOMENTS; ++q) m[q] = partial_mom[(long)e * mom_stride + q];
-    entry_geom_vjp(vs, F, entry_face[e], m, d);
-    for (int q = 0; q < 9; ++q) partial_geom[(long)e * 9 + q] = d[q];
+    entry_geom_vjp(vs, F, entry_face[e], partial_mom + (long)e * MOMENTS, partial_geom + (long)e * 9);
 }

@@ -57,9 +57,13 @@ inline void edge_moment_vjp(REAL2 rx, REAL2 ry, REAL mm, REAL mx, REAL my, REAL2
 }
 
 /* The adjoint of the face's screen vertices (u, v, z) from the MOMENTS of its entry (d [3, 3]:
- * corner, (u, v, z)): entry_geom (fragment_bwd.cl) and the fused blend adjoint (blend.cl). */
-inline void entry_geom_vjp(__global const REAL* vs, __global const int* F, int f, const REAL* m, REAL* d)
+ * corner, (u, v, z)): entry_geom (fragment_bwd.cl) and the fused blend adjoint (blend.cl, which
+ * writes d over the moments: they are read into registers first). */
+inline void entry_geom_vjp(__global const REAL* vs, __global const int* F, int f, __global const REAL* mom,
+                           __global REAL* d)
 {
+    REAL m[MOMENTS];
+    for (int q = 0; q < MOMENTS; ++q) m[q] = mom[q];
     const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
     const REAL2 a0 = p0.xy, r1 = p1.xy - a0, r2 = p2.xy - a0, r0 = (REAL2)(0, 0);
     const REAL iA = (REAL)1 / cross2(r1, r2);

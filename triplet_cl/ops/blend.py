@@ -220,10 +220,10 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
-    attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else ()
+    attr = blend.face_attr if blend.variant == "rows16" else blend.attr  # [M, 16] rows or [N, C + 1]
     device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args, blend.vs.data,
-        blend.mesh.F.data, *(() if attr_args else (blend.attr.data,)), blend.bg.data, blend.n_contrib.data,
+        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.vs.data,
+        blend.mesh.F.data, attr.data, blend.bg.data, blend.n_contrib.data,
         blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
         buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
         np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, np.int32(pstride), partial.data,

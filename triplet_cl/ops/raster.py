@@ -525,7 +525,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         if E:
             device.kernel("fragment_bwd", "entry_geom", {"TILE": TILE}, real)(
                 q, *grid_1d(E), frags.vs.data, frags.mesh.F.data, frags.entry_face.data, p_mom.data, hit.data,
-                np.int32(E), np.int32(MOMENTS), p_geom.data)
+                np.int32(E), p_geom.data)
     v_attr, v_vs = gather_to_vertices(device, frags, hit, p_attr, C, p_geom, 3 if geometry else 0)
     if not geometry:
         return v_attr, v_bary_out
