@@ -348,29 +348,60 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
 }
 #endif
 
-/* The adjoint kernels' records of tile entries [e0, e1) (partial [E, pstride]): zeroed and
- * unflagged before the tile's pixels ... */
-inline void tile_records_zero(__global int* entry_hit, int e0, int e1, __global REAL* partial, int pstride)
+/* The adjoint kernels' records of tile entries [e0, e1) (partial [E, pstride]), zeroed before the
+ * tile's pixels (entries without fragments keep zeros: blend_face_grad sums every entry). */
+inline void tile_records_zero(int e0, int e1, __global REAL* partial, int pstride)
 {
-    for (int e = e0; e < e1; ++e) {
-        entry_hit[e] = 0;
-        for (int q = 0; q < pstride; ++q) partial[(long)e * pstride + q] = (REAL)0;
-    }
+    for (long q = (long)e0 * pstride; q < (long)e1 * pstride; ++q) partial[q] = (REAL)0;
 }
 
-/* ... and once they are complete, each hit entry's moments -> the adjoint of its face's screen
- * vertices, written over the moments (record [0, 9): corner, (u, v, z)) for gather_vertex. */
-inline void tile_records_geom(__global const REAL* vs, __global const int* F, __global const int* entry_face,
-                              __global const int* entry_hit, int e0, int e1, __global REAL* partial, int pstride)
+/* Per face, after the tile pass: the records of its entries summed (moments, then the corner
+ * attributes' adjoint [3, C + 1]), the moments turned into the adjoint of the face's screen
+ * vertices once (moments_geom_vjp: the moments of all entries are relative to the same a0), both
+ * written per face corner: v_attr_corner [M, 3, C + 1], v_vs_corner [M, 3, 3]. For a soup whose
+ * face f has the vertices 3f, 3f + 1, 3f + 2 these are the per-vertex adjoints; otherwise
+ * gather_corner (raster.cl) sums them per vertex. */
+__kernel void blend_face_grad(__global const int* face_off,      // [M + 1]
+                              __global const int* face_entries,  // [E]
+                              __global const REAL* partial,      // [E, pstride]
+                              const int pstride,
+                              __global const REAL* vs,           // [N, 3]
+                              __global const int* F,             // [M, 3]
+                              const int C, const int num_faces,
+                              __global REAL* v_attr_corner,      // [M, 3, C + 1]
+                              __global REAL* v_vs_corner)        // [M, 3, 3]
 {
-    for (int e = e0; e < e1; ++e)
-        if (entry_hit[e]) entry_geom_vjp(vs, F, entry_face[e], partial + (long)e * pstride, partial + (long)e * pstride);
+    const int f = get_global_id(0);
+    if (f >= num_faces) return;
+    const int CA = C + 1, R = MOMENTS + 3 * CA;
+    const int j0 = face_off[f], j1 = face_off[f + 1];
+    REAL r[MOMENTS + 3 * (C_MAX + 1)];
+    if (pstride == 32) {  /* rows16 records: two 16-wide rows */
+        REAL16 lo = (REAL16)0, hi = (REAL16)0;
+        for (int j = j0; j < j1; ++j) {
+            __global const REAL* p = partial + (long)face_entries[j] * 32;
+            lo += vload16(0, p);
+            hi += vload16(1, p);
+        }
+        vstore16(lo, 0, r);
+        for (int q = 16; q < R; ++q) r[q] = ((const REAL*)&hi)[q - 16];
+    } else {
+        for (int q = 0; q < R; ++q) r[q] = (REAL)0;
+        for (int j = j0; j < j1; ++j) {
+            __global const REAL* p = partial + (long)face_entries[j] * pstride;
+            for (int q = 0; q < R; ++q) r[q] += p[q];
+        }
+    }
+    REAL g[9];
+    if (j0 < j1) moments_geom_vjp(vs, F, f, r, g);  /* faces with entries are not degenerate */
+    else for (int q = 0; q < 9; ++q) g[q] = (REAL)0;
+    for (int q = 0; q < 9; ++q) v_vs_corner[9L * f + q] = g[q];
+    for (int q = 0; q < 3 * CA; ++q) v_attr_corner[(long)f * 3 * CA + q] = j0 < j1 ? r[MOMENTS + q] : (REAL)0;
 }
 
 __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const int* entry_face,    // [E]
                         __global const REAL* entry_setup,  // [E, SETUP]
-                        __global const REAL* vs,           // [N, 3]  projected vertices
                         __global const int* F,             // [M, 3]
                         __global const REAL* attr,         // [N, C + 1]
                         __global const REAL* bg,           // [C]
@@ -382,7 +413,6 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const REAL* v_acc,        // [H, W]  (has_vacc)
                         const int has_vacc, const int C, const int K, const REAL sigma,
                         const int width, const int height, const int tiles_x, const int num_tiles,
-                        __global int* entry_hit,           // [E]
                         const int pstride,
                         __global REAL* partial,            // [E, pstride]: moments, then [3, C + 1]
                         __global REAL* v_sigma_tile)       // [T]
@@ -391,7 +421,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
     if (t >= num_tiles) return;
     const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    tile_records_zero(entry_hit, e0, e1, partial, pstride);
+    tile_records_zero(e0, e1, partial, pstride);
     REAL vsig = (REAL)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int xe = min(width, tx * TILE + TILE), ye = min(height, ty * TILE + TILE);
@@ -445,7 +475,6 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                 const REAL v_win = sigma > (REAL)0 ? v_a * ab : (REAL)0;
                 __global REAL* m = partial + (long)e * pstride;
                 __global REAL* d = m + MOMENTS;
-                entry_hit[e] = 1;
                 for (int c = 0; c < C; ++c) {
                     const REAL gc = vo[c] * wgt;
                     d[c] += l0 * gc;
@@ -461,7 +490,6 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                                          kk, dm, ex, m);
             }
         }
-    tile_records_geom(vs, F, entry_face, entry_hit, e0, e1, partial, pstride);
     v_sigma_tile[t] = vsig;
 }
 
@@ -474,8 +502,6 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
-                               __global const REAL* vs,           // [N, 3]  projected vertices
-                               __global const int* F,             // [M, 3]
                                __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* bg,           // [C]
                                __global const int* n_contrib,     // [H, W]
@@ -486,7 +512,6 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const REAL* v_acc,        // [H, W]  (has_vacc)
                                const int has_vacc, const int C, const int K, const REAL sigma,
                                const int width, const int height, const int tiles_x, const int num_tiles,
-                               __global int* entry_hit,           // [E]
                                const int pstride,                 // 32 (C <= 4)
                                __global REAL* partial,            // [E, 32]: moments, then [3, C + 1]
                                __global REAL* v_sigma_tile)       // [T]
@@ -495,7 +520,7 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
     if (t >= num_tiles) return;
     const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
-    tile_records_zero(entry_hit, e0, e1, partial, pstride);
+    tile_records_zero(e0, e1, partial, pstride);
     REAL16 vsig = (REAL16)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
     const int x0 = tx * TILE;
@@ -596,13 +621,11 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                 if (i >= nl[ln]) continue;
                 const int en = el[ln];
                 __global REAL* rec = partial + (long)en * pstride;
-                entry_hit[en] = 1;
                 vstore16(vload16(0, rec) + P[ln], 0, rec);
                 vstore16(vload16(0, rec + 16) + P[16 + ln], 0, rec + 16);
             }
         }
     }
-    tile_records_geom(vs, F, entry_face, entry_hit, e0, e1, partial, pstride);
     const REAL8 h8 = vsig.lo + vsig.hi;
     const REAL4 h4 = h8.lo + h8.hi;
     const REAL2 h2 = h4.lo + h4.hi;

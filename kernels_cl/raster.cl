@@ -26,6 +26,8 @@
  * gather_vertex  per vertex: sum partial[entry, corner, :] over every face corner of the vertex
  *             (CSR) and every entry of that face that has fragments (entry_hit), for two partial
  *             arrays at once (attributes, geometry). Adjoint of "vertex -> fragment".
+ * gather_corner  per vertex: sum per-face-corner adjoints [M, 3, C] over the vertex's corners
+ *             (CSR), for two arrays at once (blend.cl's blend_face_grad writes them per corner).
  */
 /* No a*b+c contraction into FMA here: the per-pixel and the 8-wide row variants must produce
  * bit-identical depths (the compiler contracts scalar and vector code differently). */
@@ -368,5 +370,26 @@ __kernel void gather_vertex(__global const REAL* partial_a,    // [E, a_stride]:
             __global const REAL* pb = partial_b + (long)e * b_stride + b_off + i * Cb;
             for (int c = 0; c < Cb; ++c) ob[c] += pb[c];
         }
+    }
+}
+
+__kernel void gather_corner(__global const REAL* corner_a,     // [M, 3, Ca]
+                            __global const REAL* corner_b,     // [M, 3, Cb]
+                            __global const int* csr_off,       // [N + 1]
+                            __global const int* csr_corner,    // [3M]  3 * face + corner
+                            const int n, const int Ca, const int Cb,
+                            __global REAL* out_a,              // [N, Ca]
+                            __global REAL* out_b)              // [N, Cb]
+{
+    const int v = get_global_id(0);
+    if (v >= n) return;
+    __global REAL* oa = out_a + (long)v * Ca;
+    __global REAL* ob = out_b + (long)v * Cb;
+    for (int c = 0; c < Ca; ++c) oa[c] = (REAL)0;
+    for (int c = 0; c < Cb; ++c) ob[c] = (REAL)0;
+    for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
+        const long corner = csr_corner[q];
+        for (int c = 0; c < Ca; ++c) oa[c] += corner_a[corner * Ca + c];
+        for (int c = 0; c < Cb; ++c) ob[c] += corner_b[corner * Cb + c];
     }
 }

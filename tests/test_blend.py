@@ -181,6 +181,42 @@ def test_backward_equals_generic_chain(device64, rng, sigma, t_min, variant):
     assert np.abs(g["v_V"]).sum() > 0
 
 
+def wavy_grid(rng, n=7):
+    """A connected mesh (shared vertices: the per-vertex gather of face-corner adjoints), two layers
+    so that pixels blend several fragments, and one unused vertex."""
+    u = np.linspace(-0.9, 0.9, n)
+    X, Y = np.meshgrid(u, u)
+    V, F = [], []
+    for layer, z in enumerate((0.3, -0.2)):
+        P = np.stack([X + 0.05 * layer, Y, z + 0.15 * np.sin(3 * X + layer) * np.cos(2 * Y)], -1).reshape(-1, 3)
+        o = layer * n * n
+        idx = np.arange(n * n).reshape(n, n) + o
+        a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        F += [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)]
+        V.append(P)
+    V = np.concatenate(V + [np.array([[5.0, 5.0, 5.0]])])
+    F = np.concatenate(F)
+    attr = np.concatenate([rng.uniform(0, 1, (len(V), 3)), rng.uniform(0.3, 0.7, (len(V), 1))], 1)
+    return V, F, attr
+
+
+@pytest.mark.parametrize("variant", ["pixel", "rows16"])
+def test_backward_shared_vertices_equals_generic_chain(device64, rng, variant):
+    V, F, attr = wavy_grid(rng)
+    bg = np.array([0.2, 0.7, 1.0])
+    K, sigma, c = 5, 0.8, cam()
+    v_img, v_acc = rng.standard_normal((H, W, 3)), rng.standard_normal((H, W))
+    _, b = blend(device64, V, F, attr, K, camera=c, bg=bg, sigma=sigma, t_min=1e-4, variant=variant)
+    assert not b.mesh.corners_are_vertices
+    assert (b.count.get() >= 2).sum() > 50
+    v_attr, v_vs, v_sig = raster_blend_backward(device64, b, v_img, v_acc)
+    g = generic_chain(device64, V, F, attr, K, c, bg, sigma, 1e-4, v_img, v_acc)
+    np.testing.assert_allclose(v_attr.get(), g["v_attr"], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(project_backward(device64, V, c, v_vs).get(), g["v_V"], rtol=1e-9, atol=1e-11)
+    assert v_sig == pytest.approx(g["v_sigma"], rel=1e-10, abs=1e-14)
+    assert np.abs(v_attr.get()[-1]).max() == 0 and np.abs(g["v_V"]).sum() > 0
+
+
 def test_central_differences(device64, rng):
     """d(sum(image · v) + sum(acc · v_acc)) / d{positions, features, opacity, sigma}, float64."""
     V, F, attr = scene(rng, M=12, size=0.35)

@@ -9,7 +9,8 @@
  *     u_k* += v_d g_k*,  mL_k* += v_d d,  v_sigma += v_win d e^(-sigma d)
  *   u_k = v_b_k (+ window):  m[3k] += u_k,  m[3k+1] += u_k dx,  m[3k+2] += u_k dy
  *   m[9] += sum_k v_b_k b_k,  m[13 + k] += v_w_k b_k
- * entry_geom (fragment_bwd.cl) turns the moments into the adjoint of the face's screen vertices.
+ * moments_geom_vjp turns the moments into the adjoint of the face's screen vertices (per entry in
+ * fragment_bwd.cl's entry_geom, per face in blend.cl's blend_face_grad).
  */
 #ifndef TRIPLET_RASTER_ADJOINT_H
 #define TRIPLET_RASTER_ADJOINT_H
@@ -56,14 +57,11 @@ inline void edge_moment_vjp(REAL2 rx, REAL2 ry, REAL mm, REAL mx, REAL my, REAL2
     *gy += (REAL2)(-(rx.y * mm - my), rx.x * mm - mx);
 }
 
-/* The adjoint of the face's screen vertices (u, v, z) from the MOMENTS of its entry (d [3, 3]:
- * corner, (u, v, z)): entry_geom (fragment_bwd.cl) and the fused blend adjoint (blend.cl, which
- * writes d over the moments: they are read into registers first). */
-inline void entry_geom_vjp(__global const REAL* vs, __global const int* F, int f, __global const REAL* mom,
-                           __global REAL* d)
+/* The adjoint of the face's screen vertices (u, v, z) from the MOMENTS m of its fragments (summed
+ * over one entry, or over all the entries of the face: the moments are relative to a0 and the map
+ * is linear in them), d [3, 3]: corner, (u, v, z). Private arrays. */
+inline void moments_geom_vjp(__global const REAL* vs, __global const int* F, int f, const REAL* m, REAL* d)
 {
-    REAL m[MOMENTS];
-    for (int q = 0; q < MOMENTS; ++q) m[q] = mom[q];
     const REAL3 p0 = LOAD3(vs, F[3 * f]), p1 = LOAD3(vs, F[3 * f + 1]), p2 = LOAD3(vs, F[3 * f + 2]);
     const REAL2 a0 = p0.xy, r1 = p1.xy - a0, r2 = p2.xy - a0, r0 = (REAL2)(0, 0);
     const REAL iA = (REAL)1 / cross2(r1, r2);
@@ -85,6 +83,16 @@ inline void entry_geom_vjp(__global const REAL* vs, __global const int* F, int f
     d[0] = g0.x; d[1] = g0.y; d[2] = -m[13] / (p0.z * p0.z);
     d[3] = g1.x; d[4] = g1.y; d[5] = -m[14] / (p1.z * p1.z);
     d[6] = g2.x; d[7] = g2.y; d[8] = -m[15] / (p2.z * p2.z);
+}
+
+/* moments_geom_vjp of one entry's record in global memory (entry_geom, fragment_bwd.cl). */
+inline void entry_geom_vjp(__global const REAL* vs, __global const int* F, int f, __global const REAL* mom,
+                           __global REAL* d)
+{
+    REAL m[MOMENTS], g[9];
+    for (int q = 0; q < MOMENTS; ++q) m[q] = mom[q];
+    moments_geom_vjp(vs, F, f, m, g);
+    for (int q = 0; q < 9; ++q) d[q] = g[q];
 }
 
 #endif /* TRIPLET_RASTER_ADJOINT_H */

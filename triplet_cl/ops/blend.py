@@ -36,7 +36,7 @@ from .raster import (
     _real_of,
     bin_faces,
     check_raster_args,
-    gather_to_vertices,
+    corners_to_vertices,
 )
 
 BLEND_VARIANTS = ("auto", "pixel", "rows16")
@@ -210,8 +210,7 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     bn = blend.binning
     T, E = bn.num_tiles, bn.num_entries
     CA = C + 1
-    hit = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    # per-entry partial sums: the MOMENTS geometric moments, then [3, C + 1] (corner, attribute);
+    # per-entry records: the MOMENTS geometric moments, then [3, C + 1] (corner, attribute);
     # 32 per entry for the 16-lane kernel (its record is two transposed vectors: C <= 4)
     pstride = MOMENTS + 3 * CA
     if blend.variant == "rows16":
@@ -220,18 +219,26 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
-    attr = blend.face_attr if blend.variant == "rows16" else blend.attr  # [M, 16] rows or [N, C + 1]
-    device.kernel("blend", kern, {"TILE": TILE, "C_MAX": _c_max(C)}, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, blend.vs.data,
-        blend.mesh.F.data, attr.data, blend.bg.data, blend.n_contrib.data,
-        blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
+    # [M, 16] corner-attribute rows, or F and attr [N, C + 1]
+    attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
+    defines = {"TILE": TILE, "C_MAX": _c_max(C)}
+    device.kernel("blend", kern, defines, real)(
+        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args,
+        blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
         buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
-        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), hit.data, np.int32(pstride), partial.data,
+        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), np.int32(pstride), partial.data,
         v_sig_tile.data)
-    # each hit entry's record now holds the adjoint of its face's screen vertices [3, 3] at 0 and
-    # the corner attributes' adjoint [3, C + 1] at MOMENTS
-    v_attr, v_vs = gather_to_vertices(device, blend, hit, partial, CA, partial, 3, a_layout=(pstride, MOMENTS),
-                                      b_layout=(pstride, 0))
+    # per face: its entries' records summed, the moments turned into the screen-vertex adjoint
+    # once, both per face corner; then per vertex
+    mesh = blend.mesh
+    M = mesh.num_faces
+    v_attr_c = cla.empty(q, (max(M, 1), 3, CA), real, allocator=alloc)[:M]
+    v_vs_c = cla.empty(q, (max(M, 1), 3, 3), real, allocator=alloc)[:M]
+    if M:
+        device.kernel("blend", "blend_face_grad", defines, real)(
+            q, *grid_1d(M), bn.face_off.data, bn.face_entries.data, partial.data, np.int32(pstride),
+            blend.vs.data, mesh.F.data, np.int32(C), np.int32(M), v_attr_c.data, v_vs_c.data)
+    v_attr, v_vs = corners_to_vertices(device, mesh, v_attr_c, v_vs_c)
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
     return v_attr, v_vs, v_sigma
 

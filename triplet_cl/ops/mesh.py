@@ -34,6 +34,10 @@ class DeviceMesh:
         off, corners = vertex_corner_csr(self.faces, self.num_vertices)
         self.csr_off = cla.to_device(q, off)
         self.csr_corner = cla.to_device(q, corners if corners.size else np.zeros(1, np.int32))
+        # a soup whose face f has the vertices 3f, 3f + 1, 3f + 2 (the training loop's layout):
+        # per-face-corner adjoints are then the per-vertex adjoints, no gather needed
+        self.corners_are_vertices = bool(self.num_vertices == 3 * self.num_faces and np.array_equal(
+            self.faces.reshape(-1), np.arange(3 * self.num_faces)))
 
     @property
     def edge_neighbors(self) -> np.ndarray:

@@ -460,6 +460,28 @@ def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, p
     return out_a, out_b
 
 
+def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, corner_b: cla.Array):
+    """Per-face-corner adjoints ``[M, 3, Ca]`` and ``[M, 3, Cb]`` summed per vertex: ``([N, Ca], [N, Cb])``
+    (deterministic, no atomics). A mesh whose corners are its vertices (a soup with face f on
+    vertices 3f, 3f + 1, 3f + 2: ``mesh.corners_are_vertices``) returns the same data reshaped."""
+    n, M = mesh.num_vertices, mesh.num_faces
+    Ca, Cb = corner_a.shape[-1], corner_b.shape[-1]
+    if mesh.corners_are_vertices:
+        return corner_a.reshape(n, Ca), corner_b.reshape(n, Cb)
+    q, real = device.queue, corner_a.dtype
+    out_a = cla.empty(q, (max(n, 1), Ca), real, allocator=device.allocator)[:n]
+    out_b = cla.empty(q, (max(n, 1), Cb), real, allocator=device.allocator)[:n]
+    if n:
+        if M == 0:
+            out_a.fill(0)
+            out_b.fill(0)
+        else:
+            device.kernel("raster", "gather_corner", {"TILE": TILE}, real)(
+                q, *grid_1d(n), corner_a.data, corner_b.data, mesh.csr_off.data, mesh.csr_corner.data,
+                np.int32(n), np.int32(Ca), np.int32(Cb), out_a.data, out_b.data)
+    return out_a, out_b
+
+
 def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
                        v_depth=None, v_win=None, sigma: float = 0.0, geometry: bool = True):
     """The one backward pass over a view's fragments (``kernels_cl/fragment_bwd.cl``).
