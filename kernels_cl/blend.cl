@@ -69,6 +69,9 @@
 #ifndef C_MAX
 #define C_MAX 4
 #endif
+#ifndef BWD_SCHEDULE
+#define BWD_SCHEDULE 0 /* blend_bwd_rows16: 0 per tile, 1 row pairs, 2 queue */
+#endif
 
 /* Interpolates, windows and composites the list el[i * stride] (i < cnt) of pixel pix at (px, py). */
 inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, int pix, long slot0,
@@ -199,6 +202,13 @@ inline int16 gather16i(__global const int* p, int16 i)
 {
     return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+}
+
+/* lane l reads p[i.l] */
+inline REAL16 gather16r(__global const REAL* p, int16 i)
+{
+    return (REAL16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
 }
 
 /* Lane l's 16 values from row e.l of p (row stride `stride`, 16 readable values per row), as
@@ -494,11 +504,103 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
 }
 
 #if TILE == 8
-/* CPU-shaped adjoint: one work-item per tile, its four row pairs in turn as 16 lanes, each row
- * pair's slots back to front as vectors (the arithmetic of blend_bwd in lanes: set-ups and corner
- * attributes loaded as rows and transposed, composite and interpolation adjoint, moments), then
- * the slot's contributions transposed into per-lane records and added to the lanes' entries one
- * lane at a time (lanes may share an entry). The tile's records are zeroed up front. */
+/* One slot of 16 pixels in the CPU-shaped adjoint: lane l composites entry e.l at pixel centre
+ * (px.l, py.l) with transmittance T.l (and exp(-sigma d) ex.l) in front of it, act.l set; R, G
+ * (the colour and transmittance behind, per lane) and vsig are updated. The arithmetic of blend_bwd
+ * in lanes (set-ups and corner attributes loaded as rows and transposed, composite and
+ * interpolation adjoint, moments), then the slot's contributions transposed into per-lane records
+ * and added to the lanes' entries one lane at a time (lanes may share an entry). */
+inline void bwd_slot16(__global const int* entry_face, __global const REAL* entry_setup,
+                       __global const REAL* face_attr, int C, REAL sigma, int16 acti, int16 e, REAL16 T,
+                       REAL16 ex, REAL16 px, REAL16 py, const REAL16* vo, REAL16 va, REAL16* R, REAL16* G,
+                       REAL16* vsig, __global REAL* partial, int pstride)
+{
+    const int CA = C + 1;
+    const MASK16 act = CONVERT_MASK16(acti);
+    REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
+    fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
+    load_rows16(face_attr, 16, gather16i(entry_face, e), A);
+    int16 kk = (int16)0;
+    REAL16 dm = (REAL16)0, win = (REAL16)1;
+    if (sigma > (REAL)0) {
+        dm = window_arg16(s, b, &kk);
+        win = (REAL)1 - ex;
+    }
+    const REAL16 a0C = A[C], a1C = A[CA + C], a2C = A[2 * CA + C];
+    const REAL16 ab = l[0] * a0C + l[1] * a1C + l[2] * a2C;
+    const REAL16 a = ab * win;
+    const REAL16 wgt = a * T;
+    REAL16 dot = (REAL16)0, g0 = (REAL16)0, g1 = (REAL16)0;
+    for (int c = 0; c < C; ++c) {
+        const REAL16 a0c = A[c], a1c = A[CA + c], a2c = A[2 * CA + c];
+        const REAL16 fc = l[0] * a0c + l[1] * a1c + l[2] * a2c;
+        dot += vo[c] * (fc - R[c]);
+        R[c] = select(R[c], fc * a + ((REAL)1 - a) * R[c], act);
+        g0 += vo[c] * (a0c - a2c);
+        g1 += vo[c] * (a1c - a2c);
+    }
+    const REAL16 v_a = T * (dot + va * *G);
+    *G = select(*G, *G * ((REAL)1 - a), act);
+    const REAL16 v_ab = v_a * win;
+    const REAL16 v_win = sigma > (REAL)0 ? v_a * ab : (REAL16)0;
+    const REAL16 vl0 = wgt * g0 + v_ab * (a0C - a2C);
+    const REAL16 vl1 = wgt * g1 + v_ab * (a1C - a2C);
+    /* fragment_moments in lanes (v_zp = 0) */
+    const REAL16 base = vl0 * l[0] + vl1 * l[1];
+    const REAL16 vw0 = (vl0 - base) * zp, vw1 = (vl1 - base) * zp, vw2 = -base * zp;
+    const REAL16 vb0 = vw0 * s[6], vb1 = vw1 * s[7], vb2 = vw2 * s[8];
+    const MASK16 wnd = act & (v_win != (REAL)0) & (dm > (REAL)0) & (dm < HARD_EDGE_DISTANCE);
+    const REAL16 vd = select((REAL16)0, v_win * sigma * ex, wnd);
+    *vsig += select((REAL16)0, v_win * dm * ex, wnd);
+    const REAL16 u0 = vb0 + select((REAL16)0, vd * s[9], CONVERT_MASK16(kk == 0));
+    const REAL16 u1 = vb1 + select((REAL16)0, vd * s[10], CONVERT_MASK16(kk == 1));
+    const REAL16 u2 = vb2 + select((REAL16)0, vd * s[11], CONVERT_MASK16(kk == 2));
+    /* the slot's contributions, one row per partial-sum slot of the entry record */
+    REAL16 P[32];
+    P[0] = u0; P[1] = u0 * dx; P[2] = u0 * dy;
+    P[3] = u1; P[4] = u1 * dx; P[5] = u1 * dy;
+    P[6] = u2; P[7] = u2 * dx; P[8] = u2 * dy;
+    P[9] = vb0 * b[0] + vb1 * b[1] + vb2 * b[2];
+    const REAL16 mw = vd * dm;
+    P[10] = select((REAL16)0, mw, CONVERT_MASK16(kk == 0));
+    P[11] = select((REAL16)0, mw, CONVERT_MASK16(kk == 1));
+    P[12] = select((REAL16)0, mw, CONVERT_MASK16(kk == 2));
+    P[13] = vw0 * b[0]; P[14] = vw1 * b[1]; P[15] = vw2 * b[2];
+    for (int q = 16; q < 32; ++q) P[q] = (REAL16)0;
+    for (int c = 0; c < C; ++c) {
+        const REAL16 gc = vo[c] * wgt;
+        P[16 + c] = l[0] * gc;
+        P[16 + CA + c] = l[1] * gc;
+        P[16 + 2 * CA + c] = l[2] * gc;
+    }
+    P[16 + C] = l[0] * v_ab;
+    P[16 + CA + C] = l[1] * v_ab;
+    P[16 + 2 * CA + C] = l[2] * v_ab;
+    transpose16(P);
+    transpose16(P + 16);  /* now P[ln], P[16 + ln]: lane ln's record */
+    int el[16], al[16];
+    vstore16(e, 0, el);
+    vstore16(acti, 0, al);
+    for (int ln = 0; ln < 16; ++ln) {
+        if (!al[ln]) continue;
+        __global REAL* rec = partial + (long)el[ln] * pstride;
+        vstore16(vload16(0, rec) + P[ln], 0, rec);
+        vstore16(vload16(0, rec + 16) + P[16 + ln], 0, rec + 16);
+    }
+}
+
+/* CPU-shaped adjoint: one work-item per tile, its pixels' slots back to front in 16 vector lanes
+ * (bwd_slot16), in one of two schedules chosen per tile by the slots they walk:
+ *   row pairs  the lanes are the 16 pixels of two tile rows, all at the same slot i (from the
+ *              longest list of the row pair down; lanes with shorter lists idle meanwhile):
+ *              contiguous scratch loads;
+ *   queue      the lanes take the tile's pixels from a queue, longest lists first (a counting
+ *              sort of n_contrib), each at its own slot; a lane whose pixel is done takes the next
+ *              one (its composite state R, G, pixel centre and v_out reloaded): busy lanes, at the
+ *              price of gathering the scratch and of the refills.
+ * On a surface-like soup (61 % of the row pairs' lane slots busy) the queue walks 36 % fewer
+ * slots; on a dense soup (88 % busy) 5 % fewer, less than its overhead: the queue is taken when
+ * it saves more than a fifth of the slots. The tile's records are zeroed up front. */
 __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
@@ -518,112 +620,118 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
 {
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
-    const int CA = C + 1;
     const int e0 = tile_off[t], e1 = tile_off[t + 1];
     tile_records_zero(e0, e1, partial, pstride);
-    REAL16 vsig = (REAL16)0;
     const int tx = t % tiles_x, ty = t / tiles_x;
-    const int x0 = tx * TILE;
-    const int16 e_safe = (int16)e0;
-    REAL vol[C_MAX][16];
-    int el[16], nl[16];
+    const int x0 = tx * TILE, y0 = ty * TILE;
+    /* pixel q of the tile: (x0 + (q & 7), y0 + (q >> 3)); its slot i in the scratch at tile base +
+     * (q >> 4) K 16 + (q & 15) + 16 i (BLEND_SLOT) */
+    int nq[64];
+    int total = 0, rowpair_slots = 0;
     for (int r = 0; r < 4; ++r) {
-        const int y0 = ty * TILE + 2 * r;
-        if (y0 >= height) break;
-        ROWS16_LANES(x0, y0, width, height, px, py, inimg);
-        REAL val[16];
-        for (int ln = 0; ln < 16; ++ln) {
-            const int x = x0 + (ln & 7), y = y0 + (ln >> 3);
-            const int in = x < width && y < height;
-            const int pix = y * width + x;
-            nl[ln] = in ? n_contrib[pix] : 0;
-            for (int c = 0; c < C; ++c) vol[c][ln] = in ? v_out[pix * C + c] : (REAL)0;
-            val[ln] = in && has_vacc ? v_acc[pix] : (REAL)0;
+        int m = 0;
+        for (int q = 16 * r; q < 16 * r + 16; ++q) {
+            const int x = x0 + (q & 7), y = y0 + (q >> 3);
+            nq[q] = x < width && y < height ? n_contrib[y * width + x] : 0;
+            total += nq[q];
+            m = max(m, nq[q]);
         }
-        const int16 n16 = vload16(0, nl);
-        const int nmax = max_i16(n16);
-        if (nmax == 0) continue;
-        const REAL16 va = vload16(0, val);
-        REAL16 R[C_MAX];
-        for (int c = 0; c < C; ++c) R[c] = (REAL16)bg[c];
-        REAL16 G = (REAL16)1;
-        const long slot0 = BLEND_SLOT(t, x0, y0, 0, K);
-        for (int i = nmax - 1; i >= 0; --i) {
-            const int16 acti = (int16)i < n16;
+        rowpair_slots += m;
+    }
+    if (total == 0) { v_sigma_tile[t] = (REAL)0; return; }
+    const long tbase = BLEND_SLOT(t, 0, 0, 0, K);
+    __global const int* se = s_entry + tbase;
+    __global const REAL* sT = s_T + tbase;
+    __global const REAL* sx = s_ex + (sigma > (REAL)0 ? tbase : 0);
+    const int16 e_safe = (int16)e0;  /* idle lanes read a valid entry */
+    const int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    REAL16 vo[C_MAX], R[C_MAX], G, vsig = (REAL16)0;
+    /* the queue walks about ceil(total / 16) + 2 slots (the tail: lanes finishing unevenly) */
+    const int queue_slots = (total + 15) / 16 + 2;
+    const int use_queue = BWD_SCHEDULE == 2 || (BWD_SCHEDULE == 0 && 5 * queue_slots < 4 * rowpair_slots);
+    if (!use_queue) {
+        for (int r = 0; r < 4; ++r) {
+            const int16 n16 = vload16(0, nq + 16 * r);
+            const int nmax = max_i16(n16);
+            if (nmax == 0) continue;
+            const int16 q16 = 16 * r + lane;
+            const int16 xl = x0 + (q16 & 7), yl = y0 + (q16 >> 3);
+            const int16 in = (xl < width) & (yl < height);
+            const int16 pix = select((int16)0, yl * width + xl, in);
+            const REAL16 px = CONVERT_REAL16(xl) + (REAL)0.5, py = CONVERT_REAL16(yl) + (REAL)0.5;
+            for (int c = 0; c < C; ++c) { vo[c] = select((REAL16)0, gather16r(v_out + c, pix * C), CONVERT_MASK16(in)); R[c] = (REAL16)bg[c]; }
+            const REAL16 va = has_vacc ? select((REAL16)0, gather16r(v_acc, pix), CONVERT_MASK16(in)) : (REAL16)0;
+            G = (REAL16)1;
+            for (int i = nmax - 1; i >= 0; --i) {
+                const int16 acti = (int16)i < n16;
+                const MASK16 act = CONVERT_MASK16(acti);
+                const int o = r * K * 16 + 16 * i;
+                const int16 e = select(e_safe, vload16(0, se + o), acti);
+                const REAL16 T = select((REAL16)0, vload16(0, sT + o), act);
+                const REAL16 ex = sigma > (REAL)0 ? select((REAL16)1, vload16(0, sx + o), act) : (REAL16)0;
+                bwd_slot16(entry_face, entry_setup, face_attr, C, sigma, acti, e, T, ex, px, py, vo, va, R, &G,
+                           &vsig, partial, pstride);
+            }
+        }
+    } else {
+        /* queue: pixels with fragments by n descending (counting sort on min(n, 63)) */
+        int queue[64], bucket[64];
+        for (int b = 0; b < 64; ++b) bucket[b] = 0;
+        for (int q = 0; q < 64; ++q)
+            if (nq[q] > 0) ++bucket[min(nq[q], 63)];
+        int qlen = 0;
+        for (int b = 63; b > 0; --b) { const int c = bucket[b]; bucket[b] = qlen; qlen += c; }
+        for (int q = 0; q < 64; ++q)
+            if (nq[q] > 0) queue[bucket[min(nq[q], 63)]++] = q;
+        /* lane state: slot (-1: idle), scratch offset of slot 0, pixel centre, v_out, v_acc */
+        int l_i[16], l_off[16], l_new[16];
+        REAL l_px[16], l_py[16], l_va[16], l_vo[C_MAX][16];
+        for (int ln = 0; ln < 16; ++ln) { l_i[ln] = -1; l_off[ln] = 0; l_px[ln] = l_py[ln] = l_va[ln] = (REAL)0; }
+        for (int c = 0; c < C; ++c)
+            for (int ln = 0; ln < 16; ++ln) l_vo[c][ln] = (REAL)0;
+        int16 il = (int16)(-1), off = (int16)0;
+        REAL16 px = (REAL16)0, py = (REAL16)0, va = (REAL16)0;
+        for (int c = 0; c < C; ++c) { vo[c] = (REAL16)0; R[c] = (REAL16)bg[c]; }
+        G = (REAL16)1;
+        int qpos = 0;
+        for (;;) {
+            if (qpos < qlen && any_i16(il)) {  /* idle lanes (il = -1) take the next pixels */
+                vstore16(il, 0, l_i);
+                for (int ln = 0; ln < 16; ++ln) {
+                    l_new[ln] = 0;
+                    if (l_i[ln] >= 0 || qpos >= qlen) continue;
+                    const int q = queue[qpos++];
+                    const int x = x0 + (q & 7), y = y0 + (q >> 3), pix = y * width + x;
+                    l_i[ln] = nq[q] - 1;
+                    l_off[ln] = (q >> 4) * K * 16 + (q & 15);
+                    l_new[ln] = -1;
+                    l_px[ln] = (REAL)x + (REAL)0.5;
+                    l_py[ln] = (REAL)y + (REAL)0.5;
+                    l_va[ln] = has_vacc ? v_acc[pix] : (REAL)0;
+                    for (int c = 0; c < C; ++c) l_vo[c][ln] = v_out[pix * C + c];
+                }
+                il = vload16(0, l_i);
+                off = vload16(0, l_off);
+                px = vload16(0, l_px);
+                py = vload16(0, l_py);
+                va = vload16(0, l_va);
+                const MASK16 fresh = CONVERT_MASK16(vload16(0, l_new));
+                for (int c = 0; c < C; ++c) {
+                    vo[c] = vload16(0, l_vo[c]);
+                    R[c] = select(R[c], (REAL16)bg[c], fresh);
+                }
+                G = select(G, (REAL16)1, fresh);
+            }
+            const int16 acti = il >= 0;
+            if (!any_i16(acti)) break;
             const MASK16 act = CONVERT_MASK16(acti);
-            const int16 e = select(e_safe, vload16(0, s_entry + slot0 + 16 * i), acti);
-            const REAL16 T = select((REAL16)0, vload16(0, s_T + slot0 + 16 * i), act);
-            REAL16 s[16], A[16], b[3], l[3], dx, dy, zp;
-            fragment16(entry_setup, e, px, py, s, &dx, &dy, b, &zp, l);
-            load_rows16(face_attr, 16, gather16i(entry_face, e), A);
-            int16 kk = (int16)0;
-            REAL16 dm = (REAL16)0, ex = (REAL16)0, win = (REAL16)1;
-            if (sigma > (REAL)0) {
-                dm = window_arg16(s, b, &kk);
-                ex = select((REAL16)1, vload16(0, s_ex + slot0 + 16 * i), act);
-                win = (REAL)1 - ex;
-            }
-            const REAL16 a0C = A[C], a1C = A[CA + C], a2C = A[2 * CA + C];
-            const REAL16 ab = l[0] * a0C + l[1] * a1C + l[2] * a2C;
-            const REAL16 a = ab * win;
-            const REAL16 wgt = a * T;
-            REAL16 dot = (REAL16)0, g0 = (REAL16)0, g1 = (REAL16)0;
-            for (int c = 0; c < C; ++c) {
-                const REAL16 a0c = A[c], a1c = A[CA + c], a2c = A[2 * CA + c];
-                const REAL16 fc = l[0] * a0c + l[1] * a1c + l[2] * a2c;
-                const REAL16 vo = vload16(0, vol[c]);
-                dot += vo * (fc - R[c]);
-                R[c] = select(R[c], fc * a + ((REAL)1 - a) * R[c], act);
-                g0 += vo * (a0c - a2c);
-                g1 += vo * (a1c - a2c);
-            }
-            const REAL16 v_a = T * (dot + va * G);
-            G = select(G, G * ((REAL)1 - a), act);
-            const REAL16 v_ab = v_a * win;
-            const REAL16 v_win = sigma > (REAL)0 ? v_a * ab : (REAL16)0;
-            const REAL16 vl0 = wgt * g0 + v_ab * (a0C - a2C);
-            const REAL16 vl1 = wgt * g1 + v_ab * (a1C - a2C);
-            /* fragment_moments in lanes (v_zp = 0) */
-            const REAL16 base = vl0 * l[0] + vl1 * l[1];
-            const REAL16 vw0 = (vl0 - base) * zp, vw1 = (vl1 - base) * zp, vw2 = -base * zp;
-            const REAL16 vb0 = vw0 * s[6], vb1 = vw1 * s[7], vb2 = vw2 * s[8];
-            const MASK16 wnd = act & (v_win != (REAL)0) & (dm > (REAL)0) & (dm < HARD_EDGE_DISTANCE);
-            const REAL16 vd = select((REAL16)0, v_win * sigma * ex, wnd);
-            vsig += select((REAL16)0, v_win * dm * ex, wnd);
-            const REAL16 u0 = vb0 + select((REAL16)0, vd * s[9], CONVERT_MASK16(kk == 0));
-            const REAL16 u1 = vb1 + select((REAL16)0, vd * s[10], CONVERT_MASK16(kk == 1));
-            const REAL16 u2 = vb2 + select((REAL16)0, vd * s[11], CONVERT_MASK16(kk == 2));
-            /* the slot's contributions, one row per partial-sum slot of the entry record */
-            REAL16 P[32];
-            P[0] = u0; P[1] = u0 * dx; P[2] = u0 * dy;
-            P[3] = u1; P[4] = u1 * dx; P[5] = u1 * dy;
-            P[6] = u2; P[7] = u2 * dx; P[8] = u2 * dy;
-            P[9] = vb0 * b[0] + vb1 * b[1] + vb2 * b[2];
-            const REAL16 mw = vd * dm;
-            P[10] = select((REAL16)0, mw, CONVERT_MASK16(kk == 0));
-            P[11] = select((REAL16)0, mw, CONVERT_MASK16(kk == 1));
-            P[12] = select((REAL16)0, mw, CONVERT_MASK16(kk == 2));
-            P[13] = vw0 * b[0]; P[14] = vw1 * b[1]; P[15] = vw2 * b[2];
-            for (int q = 16; q < 32; ++q) P[q] = (REAL16)0;
-            for (int c = 0; c < C; ++c) {
-                const REAL16 gc = vload16(0, vol[c]) * wgt;
-                P[16 + c] = l[0] * gc;
-                P[16 + CA + c] = l[1] * gc;
-                P[16 + 2 * CA + c] = l[2] * gc;
-            }
-            P[16 + C] = l[0] * v_ab;
-            P[16 + CA + C] = l[1] * v_ab;
-            P[16 + 2 * CA + C] = l[2] * v_ab;
-            transpose16(P);
-            transpose16(P + 16);  /* now P[ln], P[16 + ln]: lane ln's record */
-            vstore16(e, 0, el);
-            for (int ln = 0; ln < 16; ++ln) {
-                if (i >= nl[ln]) continue;
-                const int en = el[ln];
-                __global REAL* rec = partial + (long)en * pstride;
-                vstore16(vload16(0, rec) + P[ln], 0, rec);
-                vstore16(vload16(0, rec + 16) + P[16 + ln], 0, rec + 16);
-            }
+            const int16 so = select((int16)0, off + 16 * il, acti);  /* each lane's slot */
+            const int16 e = select(e_safe, gather16i(se, so), acti);
+            const REAL16 T = select((REAL16)0, gather16r(sT, so), act);
+            const REAL16 ex = sigma > (REAL)0 ? select((REAL16)1, gather16r(sx, so), act) : (REAL16)0;
+            bwd_slot16(entry_face, entry_setup, face_attr, C, sigma, acti, e, T, ex, px, py, vo, va, R, &G,
+                       &vsig, partial, pstride);
+            il = select(il, il - 1, acti);
         }
     }
     const REAL8 h8 = vsig.lo + vsig.hi;

@@ -146,8 +146,11 @@ def test_variants_identical(device, rng):
 # ------------------------------------------------------------------------------------------------ adjoint
 
 
-@pytest.mark.parametrize("variant", ["pixel", "rows16"])
-def test_vjp_matches_reference(device64, rng, variant):
+SCHEDULES = [("pixel", "auto"), ("rows16", "rows"), ("rows16", "queue"), ("rows16", "auto")]
+
+
+@pytest.mark.parametrize("variant,schedule", SCHEDULES)
+def test_vjp_matches_reference(device64, rng, variant, schedule):
     """v_attr of the fused adjoint (scalar per pixel, or 16 pixels in vector lanes) against the numpy
     chain rule (composite_vjp_ref → interpolate_vjp_ref)."""
     V, F, attr = scene(rng, C=2)
@@ -156,7 +159,7 @@ def test_vjp_matches_reference(device64, rng, variant):
     c, b = blend(device64, V, F, attr, K, bg=bg, sigma=sigma, t_min=0.0, variant=variant)
     v_img = rng.standard_normal((H, W, 2))
     v_acc = rng.standard_normal((H, W))
-    v_attr, _, _ = raster_blend_backward(device64, b, v_img, v_acc)
+    v_attr, _, _ = raster_blend_backward(device64, b, v_img, v_acc, schedule=schedule)
     r = reference_forward(V, F, attr, K, c, bg, sigma)
     v_feat, v_a = ref.composite_vjp_ref(r["feat"], r["alpha"], r["count"], bg, v_img, v_acc)
     v_fa = np.concatenate([v_feat, (v_a * r["win"])[..., None]], -1)  # a = ab · win
@@ -164,16 +167,16 @@ def test_vjp_matches_reference(device64, rng, variant):
     np.testing.assert_allclose(v_attr.get(), expect, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("variant", ["pixel", "rows16"])
+@pytest.mark.parametrize("variant,schedule", SCHEDULES)
 @pytest.mark.parametrize("sigma,t_min", [(0.8, 1e-4), (None, 0.2)])
-def test_backward_equals_generic_chain(device64, rng, sigma, t_min, variant):
+def test_backward_equals_generic_chain(device64, rng, sigma, t_min, variant, schedule):
     V, F, attr = scene(rng, M=60)
     bg = np.array([0.2, 0.7, 1.0])
     K = 9
     c = cam()
     v_img, v_acc = rng.standard_normal((H, W, 3)), rng.standard_normal((H, W))
     _, b = blend(device64, V, F, attr, K, camera=c, bg=bg, sigma=sigma, t_min=t_min, variant=variant)
-    v_attr, v_vs, v_sig = raster_blend_backward(device64, b, v_img, v_acc)
+    v_attr, v_vs, v_sig = raster_blend_backward(device64, b, v_img, v_acc, schedule=schedule)
     g = generic_chain(device64, V, F, attr, K, c, bg, sigma, t_min, v_img, v_acc)
     np.testing.assert_allclose(v_attr.get(), g["v_attr"], rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(project_backward(device64, V, c, v_vs).get(), g["v_V"], rtol=1e-9, atol=1e-11)
@@ -200,8 +203,8 @@ def wavy_grid(rng, n=7):
     return V, F, attr
 
 
-@pytest.mark.parametrize("variant", ["pixel", "rows16"])
-def test_backward_shared_vertices_equals_generic_chain(device64, rng, variant):
+@pytest.mark.parametrize("variant,schedule", [("pixel", "auto"), ("rows16", "queue")])
+def test_backward_shared_vertices_equals_generic_chain(device64, rng, variant, schedule):
     V, F, attr = wavy_grid(rng)
     bg = np.array([0.2, 0.7, 1.0])
     K, sigma, c = 5, 0.8, cam()
@@ -209,7 +212,7 @@ def test_backward_shared_vertices_equals_generic_chain(device64, rng, variant):
     _, b = blend(device64, V, F, attr, K, camera=c, bg=bg, sigma=sigma, t_min=1e-4, variant=variant)
     assert not b.mesh.corners_are_vertices
     assert (b.count.get() >= 2).sum() > 50
-    v_attr, v_vs, v_sig = raster_blend_backward(device64, b, v_img, v_acc)
+    v_attr, v_vs, v_sig = raster_blend_backward(device64, b, v_img, v_acc, schedule=schedule)
     g = generic_chain(device64, V, F, attr, K, c, bg, sigma, 1e-4, v_img, v_acc)
     np.testing.assert_allclose(v_attr.get(), g["v_attr"], rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(project_backward(device64, V, c, v_vs).get(), g["v_V"], rtol=1e-9, atol=1e-11)
@@ -358,3 +361,5 @@ def test_validation_errors(device, rng):
         raster_blend_backward(device, b, np.zeros((H, W, 2), np.float32))
     with pytest.raises(ValueError, match="v_alpha must have shape"):
         raster_blend_backward(device, b, np.zeros((H, W, 3), np.float32), np.zeros((H, W + 1)))
+    with pytest.raises(ValueError, match="schedule must be one of"):
+        raster_blend_backward(device, b, np.zeros((H, W, 3), np.float32), schedule="lanes")

@@ -189,13 +189,20 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
                  s_entry, s_T, s_ex, variant, face_attr)
 
 
-def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
+BWD_SCHEDULES = {"auto": 0, "rows": 1, "queue": 2}
+
+
+def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, schedule: str = "auto"):
     """Adjoint of :func:`raster_blend` for ``sum(image · v_image) + sum((1 − trans) · v_alpha)``.
 
     Args:
         blend: the :class:`Blend` of the forward pass.
         v_image: ``[H, W, C]`` adjoint of the image; v_alpha: optional ``[H, W]`` adjoint of the
             accumulated alpha.
+        schedule: how the rows16 kernel walks a tile's pixels in its 16 lanes: ``"rows"`` (two
+            tile rows at a time, all lanes at the same slot), ``"queue"`` (each lane takes the next
+            pixel, longest lists first, when its own is done) or ``"auto"`` (per tile, the queue where
+            it walks a fifth fewer slots). Same results up to rounding; ignored by ``pixel``.
 
     Returns:
         ``(v_attr [N, C + 1], v_vs [N, 3], v_sigma float)``: device arrays for the per-vertex
@@ -203,6 +210,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
         :func:`~triplet_cl.ops.raster.project_backward`), and the window sharpness's adjoint (0
         without a window).
     """
+    if schedule not in BWD_SCHEDULES:
+        raise ValueError(f"schedule must be one of {tuple(BWD_SCHEDULES)}, got {schedule!r}")
     H, W, C, real = blend.height, blend.width, blend.C, blend.real
     q, alloc = device.queue, device.allocator
     g = fragment_array(q, "v_image", v_image, (H, W, C), real)
@@ -222,6 +231,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     # [M, 16] corner-attribute rows, or F and attr [N, C + 1]
     attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
     defines = {"TILE": TILE, "C_MAX": _c_max(C)}
+    if blend.variant == "rows16" and schedule != "auto":
+        defines["BWD_SCHEDULE"] = BWD_SCHEDULES[schedule]
     device.kernel("blend", kern, defines, real)(
         q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args,
         blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
@@ -243,4 +254,4 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None):
     return v_attr, v_vs, v_sigma
 
 
-__all__ = ["BLEND_VARIANTS", "Blend", "raster_blend", "raster_blend_backward"]
+__all__ = ["BLEND_VARIANTS", "BWD_SCHEDULES", "Blend", "raster_blend", "raster_blend_backward"]
