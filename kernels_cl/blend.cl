@@ -124,6 +124,7 @@ inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, in
 __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
                         __global const int* entry_face,    // [E]
                         __global const REAL* entry_setup,  // [E, SETUP]
+                        __global const int* entry_rows,    // [E]
                         __global const int* F,             // [M, 3]
                         __global const REAL* attr,         // [N, C + 1]
                         __global const REAL* bg,           // [C]
@@ -144,7 +145,7 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
     const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
     REAL dk[K_MAX];
     int fk[K_MAX], ek[K_MAX];
-    const int cnt = pixel_list(tile_off, entry_face, entry_setup, t, px, py, K, far, dk, fk, ek);
+    const int cnt = pixel_list(tile_off, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
     const int pix = y * width + x;
     count[pix] = cnt;
     blend_pixel(ek, 1, cnt, px, py, pix, BLEND_SLOT(t, x, y, 0, K), entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
@@ -288,6 +289,7 @@ __kernel void blend_face_attr(__global const int* F,           // [M, 3]
 __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
+                               __global const int* entry_rows,    // [E]
                                __global const REAL* face_attr,    // [M, 16]  (blend_face_attr)
                                __global const REAL* bg,           // [C]
                                const int width, const int height, const int tiles_x,
@@ -309,7 +311,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, t, px, py, inimg, K, far, dk, fk, ek);
+    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
     const int CA = C + 1;
     REAL16 acc[C_MAX];
     for (int c = 0; c < C; ++c) acc[c] = (REAL16)0;

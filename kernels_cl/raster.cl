@@ -95,7 +95,7 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
                        __global const int* F,           // [M, 3]
                        __global const int* soft_edges,  // [M] bit k: edge k has the soft window (has_soft)
                        const int has_soft,
-                       const int m, const int tiles_x,
+                       const int m, const int tiles_x, const int height,
                        __global const int* face_ntiles, // [M]
                        __global const int* face_bbox,   // [M, 4]
                        __global const int* face_off,    // [M + 1]
@@ -103,6 +103,7 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
                        __global int* tile_cursor,       // [T]  zeroed before the call
                        __global int* entry_face,        // [E]
                        __global REAL* entry_setup,      // [E, SETUP]
+                       __global int* entry_rows,        // [E]  bit r: row r of the tile in the bounding box
                        __global int* face_entries)      // [E]
 {
     const int f = get_global_id(0);
@@ -127,15 +128,23 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     }
     const int tx0 = face_bbox[4 * f], ty0 = face_bbox[4 * f + 1];
     const int tx1 = face_bbox[4 * f + 2], ty1 = face_bbox[4 * f + 3];
+    /* the pixel rows whose centres lie in the bounding box (as bin_count) */
+    const REAL minv = fmin(p0.y, fmin(p1.y, p2.y)), maxv = fmax(p0.y, fmax(p1.y, p2.y));
+    const int y0 = (int)ceil(fmax(minv - (REAL)0.5, (REAL)0));
+    const int y1 = (int)floor(fmin(maxv - (REAL)0.5, (REAL)(height - 1)));
     int j = face_off[f];
-    for (int ty = ty0; ty <= ty1; ++ty)
+    for (int ty = ty0; ty <= ty1; ++ty) {
+        const int r0 = max(y0 - ty * TILE, 0), r1 = min(y1 - ty * TILE, TILE - 1);
+        const int rows = (2 << r1) - (1 << r0);  /* bits r0 .. r1 */
         for (int tx = tx0; tx <= tx1; ++tx) {
             const int t = ty * tiles_x + tx;
             const int e = tile_off[t] + atomic_inc(&tile_cursor[t]);
             entry_face[e] = f;
+            entry_rows[e] = rows;
             for (int q = 0; q < SETUP; ++q) entry_setup[e * SETUP + q] = s[q];
             face_entries[j++] = e;
         }
+    }
 }
 
 /* The raster kernels write each pixel's list into K-strided scratch (entry and depth of slot k,
@@ -145,6 +154,7 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
 __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
                          __global const int* entry_face,    // [E]
                          __global const REAL* entry_setup,  // [E, SETUP]
+                         __global const int* entry_rows,    // [E]
                          const int width, const int height, const int tiles_x,
                          const int K, const REAL far,
                          __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
@@ -159,7 +169,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
 
     REAL dk[K_MAX];
     int fk[K_MAX], ek[K_MAX];
-    const int cnt = pixel_list(tile_off, entry_face, entry_setup, t, px, py, K, far, dk, fk, ek);
+    const int cnt = pixel_list(tile_off, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
     const int pix = y * width + x;
     frag_count[pix] = cnt;
     for (int k = 0; k < cnt; ++k) STORE_SLOT(pix * K + k, ek[k], dk[k]);
@@ -173,6 +183,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
 __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
                               __global const int* entry_face,    // [E]
                               __global const REAL* entry_setup,  // [E, SETUP]
+                              __global const int* entry_rows,    // [E]
                               const int width, const int height, const int tiles_x,
                               const int K, const REAL far,
                               __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
@@ -193,7 +204,9 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
     int fk[8][K_MAX], ek[8][K_MAX];
     int cnt[8] = {0, 0, 0, 0, 0, 0, 0, 0};
     const int e_end = tile_off[t + 1];
+    const int rowbit = 1 << (y % TILE);
     for (int e = tile_off[t]; e < e_end; ++e) {
+        if (!(entry_rows[e] & rowbit)) continue;  /* row outside the face's bounding box */
         __global const REAL* s = entry_setup + e * SETUP;
         const REAL8 dx = px - s[0];
         const REAL dy = py - s[1];
@@ -233,6 +246,7 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
 __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
                                 __global const int* entry_face,    // [E]
                                 __global const REAL* entry_setup,  // [E, SETUP]
+                                __global const int* entry_rows,    // [E]
                                 const int width, const int height, const int tiles_x,
                                 const int K, const REAL far,
                                 __global int* frag_entry,          // [H, W, K]  scratch: entry of slot k
@@ -248,7 +262,7 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, t, px, py, inimg, K, far, dk, fk, ek);
+    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
     for (int l = 0; l < 16; ++l) {
         const int x = x0 + (l & 7), y = y0 + (l >> 3);
         if (x >= width || y >= height) continue;

@@ -184,6 +184,36 @@ def test_raster_many_tiles_and_large_K(device, rng):
     np.testing.assert_array_equal((h["face"] >= 0)[ok], (face >= 0)[ok])
 
 
+def test_binning_tiles_and_rows_of_each_face(device64, rng):
+    """Each face is listed in the tiles of its pixel bounding box, with the tile rows of that box
+    (entry_rows: the list builders' cheap per-row rejection)."""
+    from triplet_cl.ops.raster import TILE, bin_faces
+
+    V, F = soup(rng, M=300, spread=0.7, size=0.2)
+    c = cam(53, 37)
+    vs = project(device64, np.asarray(V, np.float64), c)
+    bn = bin_faces(device64, vs, DeviceMesh(device64, F, len(V)), 53, 37)
+    to, ef, er = bn.tile_off.get(), bn.entry_face.get(), bn.entry_rows.get()
+    uv = vs.get()[:, :2][F]  # [M, 3, 2]
+    x0 = np.ceil(np.maximum(uv[..., 0].min(1) - 0.5, 0)).astype(int)
+    x1 = np.floor(np.minimum(uv[..., 0].max(1) - 0.5, 52)).astype(int)
+    y0 = np.ceil(np.maximum(uv[..., 1].min(1) - 0.5, 0)).astype(int)
+    y1 = np.floor(np.minimum(uv[..., 1].max(1) - 0.5, 36)).astype(int)
+    expect = {}
+    for f in range(len(F)):
+        if x0[f] > x1[f] or y0[f] > y1[f]:
+            continue
+        for ty in range(y0[f] // TILE, y1[f] // TILE + 1):
+            rows = sum(1 << r for r in range(TILE) if y0[f] <= ty * TILE + r <= y1[f])
+            for tx in range(x0[f] // TILE, x1[f] // TILE + 1):
+                expect[(ty * bn.tiles_x + tx, f)] = rows
+    got = {}
+    for t in range(bn.num_tiles):
+        for e in range(to[t], to[t + 1]):
+            got[(t, int(ef[e]))] = int(er[e])
+    assert len(expect) > 300 and got == expect
+
+
 def test_raster_empty_and_degenerate(device):
     c = cam()
     # no faces at all

@@ -5,6 +5,9 @@
  * Per entry (edge-function set-up s, raster.cl SETUP), pixel centre p, (dx, dy) = p - a0:
  *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1   (hit: all >= 0)
  *   zp = 1 / (b0 s6 + b1 s7 + b2 s8)                                  (hit: zp <= far)
+ * and the pixel's row is one of the entry's rows (entry_rows: the rows of the tile inside the
+ * face's bounding box, bit r for row r: the same set as the binning's, and the cheap rejection of
+ * most entries by the 16-lane builder, which tests two rows at a time).
  * Two builders with identical results:
  *   pixel_list   one pixel, scalar insertion (GPU-shaped kernels: one work-item per pixel);
  *   rows16_lists two rows of an 8x8 tile as the 16 lanes of REAL16 vectors, slot k of the 16
@@ -18,6 +21,9 @@
 
 #include "real.h"
 
+#ifndef TILE
+#define TILE 8
+#endif
 #ifndef SETUP
 #define SETUP 12 /* a0x a0y  A0 B0  A1 B1  iz0 iz1 iz2  g0 g1 g2 :  b0 = 1 + A0 dx + B0 dy,
                      b1 = A1 dx + B1 dy, g_k = 1 / |grad b_k| (pixel distance to edge k = b_k g_k) */
@@ -72,14 +78,17 @@ inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp
     if (n < K) *cnt = n + 1;
 }
 
-/* The list of pixel centre (px, py) over the entries of tile t. Returns the count. */
+/* The list of pixel centre (px, py), row y of the image, over the entries of tile t. Returns the
+ * count. */
 inline int pixel_list(__global const int* tile_off, __global const int* entry_face,
-                      __global const REAL* entry_setup, int t, REAL px, REAL py, int K, REAL far,
-                      REAL* dk, int* fk, int* ek)
+                      __global const REAL* entry_setup, __global const int* entry_rows, int t, REAL px,
+                      REAL py, int y, int K, REAL far, REAL* dk, int* fk, int* ek)
 {
     int cnt = 0;
     const int e_end = tile_off[t + 1];
+    const int rowbit = 1 << (y % TILE);
     for (int e = tile_off[t]; e < e_end; ++e) {
+        if (!(entry_rows[e] & rowbit)) continue;  /* pixel centre outside the face's bounding box */
         __global const REAL* s = entry_setup + e * SETUP;
         const REAL dx = px - s[0], dy = py - s[1];
         const REAL b0 = (REAL)1 + s[2] * dx + s[3] * dy;
@@ -133,8 +142,9 @@ inline int max_i16(int16 v)
  * Same tests, same (depth, face id) order, same results as pixel_list, no per-lane branches.
  * Returns the count of each lane. */
 inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_face,
-                          __global const REAL* entry_setup, int t, REAL16 px, REAL16 py, MASK16 inimg,
-                          int K, REAL far, REAL16* dk, int16* fk, int16* ek)
+                          __global const REAL* entry_setup, __global const int* entry_rows, int t,
+                          int pair, REAL16 px, REAL16 py, MASK16 inimg, int K, REAL far, REAL16* dk,
+                          int16* fk, int16* ek)
 {
     const REAL16 inf16 = (REAL16)(INFINITY);
     const int16 imax16 = (int16)(INT_MAX);
@@ -144,15 +154,20 @@ inline int16 rows16_lists(__global const int* tile_off, __global const int* entr
         ek[k] = imax16;
     }
     int16 cnt16 = (int16)0;  /* slots in use per lane */
+    const int16 lane_row = (int16)(1, 1, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2, 2);
     const int e_end = tile_off[t + 1];
     for (int e = tile_off[t]; e < e_end; ++e) {
+        /* the rows of the pair inside the face's bounding box: most entries miss the pair */
+        const int rows = (entry_rows[e] >> (2 * pair)) & 3;
+        if (!rows) continue;
         __global const REAL* s = entry_setup + e * SETUP;
         const REAL16 dx = px - s[0];
         const REAL16 dy = py - s[1];
         const REAL16 b0 = (REAL)1 + s[2] * dx + s[3] * dy;
         const REAL16 b1 = s[4] * dx + s[5] * dy;
         const REAL16 b2 = (REAL)1 - b0 - b1;
-        MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg;
+        MASK16 hit = (b0 >= (REAL)0) & (b1 >= (REAL)0) & (b2 >= (REAL)0) & inimg &
+                     CONVERT_MASK16(((int16)rows & lane_row) != 0);
         if (!ANY16(hit)) continue;
         const REAL16 zp = (REAL)1 / (b0 * s[6] + b1 * s[7] + b2 * s[8]);
         hit &= (zp <= far);

@@ -257,6 +257,7 @@ class Binning:
 
     Device arrays: ``tile_off [T+1]`` (entries of tile t: ``tile_off[t]:tile_off[t+1]``),
     ``entry_face [E]``, ``entry_setup [E, SETUP]`` (edge-function set-up, ``kernels_cl/raster.cl``),
+    ``entry_rows [E]`` (bit r: row r of the tile has pixel centres inside the face's bounding box),
     ``face_off [M+1]`` / ``face_entries [E]`` (the entries of each face, for the adjoint gather).
     """
 
@@ -270,6 +271,7 @@ class Binning:
     entry_face: cla.Array
     entry_setup: cla.Array
     face_entries: cla.Array
+    entry_rows: cla.Array
 
     @property
     def num_tiles(self) -> int:
@@ -316,16 +318,18 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     # one spare row: the 16-lane kernels read each set-up 16 values wide (ops/blend.py)
     entry_setup = cla.empty(q, (max(E, 1) + 1, SETUP), real, allocator=alloc)
     face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_rows = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     soft = check_soft_edges(soft_edges, M)
     if E:
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
         soft_d = to_device(q, soft) if soft is not None else None
         device.kernel("raster", "bin_fill", defines, real)(
             q, *grid_1d(M), vs.data, mesh.F.data, buf(soft_d, q), np.int32(soft is not None), np.int32(M),
-            np.int32(tiles_x), face_ntiles.data,
+            np.int32(tiles_x), np.int32(height), face_ntiles.data,
             face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
-            entry_setup.data, face_entries.data)
-    return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries)
+            entry_setup.data, entry_rows.data, face_entries.data)
+    return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries,
+                   entry_rows)
 
 
 def check_raster_args(device: Device, vs, mesh: DeviceMesh, width, height, K, near, far, sigma, variant):
@@ -395,7 +399,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     else:
         kern, gsize, lsize = "raster_fwd", (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
     device.kernel("raster", kern, {"TILE": TILE, "K_MAX": K}, real)(
-        q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data,
+        q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data, b.entry_rows.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         s_entry.data, s_depth.data, count.data)
     off, P, out = _packed_arrays(device, count, real, bool(sigma))
