@@ -122,6 +122,7 @@ inline void blend_pixel(const int* el, int stride, int cnt, REAL px, REAL py, in
 
 /* GPU-shaped: one work-item per pixel, one 8x8 work-group per tile. */
 __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
+                        __global const int* entry_order,   // [E]  (bin_depth_order)
                         __global const int* entry_face,    // [E]
                         __global const REAL* entry_setup,  // [E, SETUP]
                         __global const int* entry_rows,    // [E]
@@ -145,7 +146,7 @@ __kernel void blend_fwd(__global const int* tile_off,      // [T + 1]
     const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
     REAL dk[K_MAX];
     int fk[K_MAX], ek[K_MAX];
-    const int cnt = pixel_list(tile_off, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
+    const int cnt = pixel_list(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
     const int pix = y * width + x;
     count[pix] = cnt;
     blend_pixel(ek, 1, cnt, px, py, pix, BLEND_SLOT(t, x, y, 0, K), entry_face, entry_setup, F, attr, C, bg, sigma, t_min,
@@ -287,6 +288,7 @@ __kernel void blend_face_attr(__global const int* F,           // [M, 3]
  * lanes (rows16_lists), then blended in the same lanes (set-ups and attributes loaded as rows and
  * transposed); the scratch slots of the row pair are 16-lane vectors. */
 __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
+                               __global const int* entry_order,   // [E]  (bin_depth_order)
                                __global const int* entry_face,    // [E]
                                __global const REAL* entry_setup,  // [E, SETUP]
                                __global const int* entry_rows,    // [E]
@@ -311,7 +313,7 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
+    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
     const int CA = C + 1;
     REAL16 acc[C_MAX];
     for (int c = 0; c < C; ++c) acc[c] = (REAL16)0;

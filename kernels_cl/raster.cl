@@ -103,7 +103,8 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
                        __global int* tile_cursor,       // [T]  zeroed before the call
                        __global int* entry_face,        // [E]
                        __global REAL* entry_setup,      // [E, SETUP]
-                       __global int* entry_rows,        // [E]  bit r: row r of the tile in the bounding box
+                       __global int* entry_rows,        // [E]  bit r: row r of the tile in the bounding box;
+                                                        //      bits 8+: coverage estimate (quarter pixels)
                        __global int* face_entries)      // [E]
 {
     const int f = get_global_id(0);
@@ -132,10 +133,14 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     const REAL minv = fmin(p0.y, fmin(p1.y, p2.y)), maxv = fmax(p0.y, fmax(p1.y, p2.y));
     const int y0 = (int)ceil(fmax(minv - (REAL)0.5, (REAL)0));
     const int y1 = (int)floor(fmin(maxv - (REAL)0.5, (REAL)(height - 1)));
+    /* coverage estimate of each entry: the face's area shared evenly by its tiles, in quarter
+     * pixels, at most the tile's (bin_depth_order) */
+    const int cover = (int)fmin((REAL)0.5 * fabs((REAL)4 / iA) / (REAL)face_ntiles[f] + (REAL)0.5,
+                                (REAL)(4 * TILE * TILE));
     int j = face_off[f];
     for (int ty = ty0; ty <= ty1; ++ty) {
         const int r0 = max(y0 - ty * TILE, 0), r1 = min(y1 - ty * TILE, TILE - 1);
-        const int rows = (2 << r1) - (1 << r0);  /* bits r0 .. r1 */
+        const int rows = ((2 << r1) - (1 << r0)) | (cover << 8);  /* bits r0 .. r1, coverage */
         for (int tx = tx0; tx <= tx1; ++tx) {
             const int t = ty * tiles_x + tx;
             const int e = tile_off[t] + atomic_inc(&tile_cursor[t]);
@@ -147,11 +152,62 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     }
 }
 
+/* Per tile: the order in which the list builders visit its entries. The lists do not depend on it
+ * (they keep the K nearest by (depth, face id)); the cost of their insertion does: visited nearest
+ * first, a fragment behind a full list is dropped at its first test. So where the tile's lists
+ * fill up — its estimated fragments per pixel (the entries' coverage estimates of bin_fill summed
+ * over the tile's pixels) above K / 2, K > 1 — the entries go nearest
+ * first (a counting sort of their nearest vertex, 1 / z = max(s6, s7, s8), into DEPTH_BUCKETS
+ * buckets between the tile's nearest and farthest); elsewhere in the binning's order, which keeps
+ * neighbouring faces together (depth order made the short lists of a surface-like soup slower).
+ * 400^2, 100k faces, K = 30, 16-lane list build: a dense soup (~25 fragments per pixel) 12 ms
+ * faster than in the binning's order (of 55), a surface-like one (~7) unchanged. */
+#ifndef DEPTH_BUCKETS
+#define DEPTH_BUCKETS 64
+#endif
+__kernel void bin_depth_order(__global const int* tile_off,      // [T + 1]
+                              __global const REAL* entry_setup,  // [E, SETUP]
+                              __global const int* entry_rows,    // [E]  bits 8+: estimated coverage
+                              const int num_tiles, const int K,
+                              __global int* entry_order)         // [E]  entries of tile t, in visiting order
+{
+    const int t = get_global_id(0);
+    if (t >= num_tiles) return;
+    const int e0 = tile_off[t], e1 = tile_off[t + 1];
+    REAL kmin = INFINITY, kmax = -INFINITY;
+    int area = 0;  /* the tile's fragments, estimated (quarter pixels) */
+    for (int e = e0; e < e1; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        const REAL k = fmax(s[6], fmax(s[7], s[8]));
+        kmin = fmin(kmin, k);
+        kmax = fmax(kmax, k);
+        area += entry_rows[e] >> 8;
+    }
+    if (K < 2 || area <= 2 * K * TILE * TILE || !(kmax > kmin)) {  /* area / 4 <= K / 2 per pixel */  /* the binning's order */
+        for (int e = e0; e < e1; ++e) entry_order[e] = e;
+        return;
+    }
+    const REAL scale = (REAL)(DEPTH_BUCKETS - 1) / (kmax - kmin);
+    int start[DEPTH_BUCKETS];
+    for (int b = 0; b < DEPTH_BUCKETS; ++b) start[b] = 0;
+    for (int e = e0; e < e1; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        ++start[clamp((int)((kmax - fmax(s[6], fmax(s[7], s[8]))) * scale), 0, DEPTH_BUCKETS - 1)];
+    }
+    int n = e0;
+    for (int b = 0; b < DEPTH_BUCKETS; ++b) { const int c = start[b]; start[b] = n; n += c; }
+    for (int e = e0; e < e1; ++e) {
+        __global const REAL* s = entry_setup + e * SETUP;
+        entry_order[start[clamp((int)((kmax - fmax(s[6], fmax(s[7], s[8]))) * scale), 0, DEPTH_BUCKETS - 1)]++] = e;
+    }
+}
+
 /* The raster kernels write each pixel's list into K-strided scratch (entry and depth of slot k,
  * slots beyond the count never written); pack_raster_fragments turns it into the packed fragments. */
 #define STORE_SLOT(o, e, z) do { frag_entry[o] = (e); frag_depth[o] = (z); } while (0)
 
 __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
+                         __global const int* entry_order,   // [E]  (bin_depth_order)
                          __global const int* entry_face,    // [E]
                          __global const REAL* entry_setup,  // [E, SETUP]
                          __global const int* entry_rows,    // [E]
@@ -169,7 +225,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
 
     REAL dk[K_MAX];
     int fk[K_MAX], ek[K_MAX];
-    const int cnt = pixel_list(tile_off, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
+    const int cnt = pixel_list(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, px, py, y, K, far, dk, fk, ek);
     const int pix = y * width + x;
     frag_count[pix] = cnt;
     for (int k = 0; k < cnt; ++k) STORE_SLOT(pix * K + k, ek[k], dk[k]);
@@ -181,6 +237,7 @@ __kernel void raster_fwd(__global const int* tile_off,      // [T + 1]
  * Same arithmetic as raster_fwd, same results; chosen on CPU devices, where it is several times
  * faster because PoCL does not vectorise the per-pixel kernel across work-items. */
 __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
+                              __global const int* entry_order,   // [E]  (bin_depth_order)
                               __global const int* entry_face,    // [E]
                               __global const REAL* entry_setup,  // [E, SETUP]
                               __global const int* entry_rows,    // [E]
@@ -205,7 +262,8 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
     int cnt[8] = {0, 0, 0, 0, 0, 0, 0, 0};
     const int e_end = tile_off[t + 1];
     const int rowbit = 1 << (y % TILE);
-    for (int e = tile_off[t]; e < e_end; ++e) {
+    for (int i = tile_off[t]; i < e_end; ++i) {
+        const int e = entry_order[i];
         if (!(entry_rows[e] & rowbit)) continue;  /* row outside the face's bounding box */
         __global const REAL* s = entry_setup + e * SETUP;
         const REAL8 dx = px - s[0];
@@ -244,6 +302,7 @@ __kernel void raster_fwd_rows(__global const int* tile_off,      // [T + 1]
  * K <= 256 (ROWS16_K_LIMIT in ops/raster.py; the lists live in private memory: 12 bytes x 16
  * lanes per slot). */
 __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
+                                __global const int* entry_order,   // [E]  (bin_depth_order)
                                 __global const int* entry_face,    // [E]
                                 __global const REAL* entry_setup,  // [E, SETUP]
                                 __global const int* entry_rows,    // [E]
@@ -262,7 +321,7 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 fk[K_MAX], ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
+    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
     for (int l = 0; l < 16; ++l) {
         const int x = x0 + (l & 7), y = y0 + (l >> 3);
         if (x >= width || y >= height) continue;

@@ -210,8 +210,31 @@ def test_binning_tiles_and_rows_of_each_face(device64, rng):
     got = {}
     for t in range(bn.num_tiles):
         for e in range(to[t], to[t + 1]):
-            got[(t, int(ef[e]))] = int(er[e])
+            got[(t, int(ef[e]))] = int(er[e]) & 0xFF
     assert len(expect) > 300 and got == expect
+    # bits 8+: the coverage estimate, the face's area (quarter pixels) shared by its tiles
+    cover = er[:bn.num_entries] >> 8
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area4 = 2 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ntiles = np.diff(bn.face_off.get())
+    np.testing.assert_allclose(cover, np.minimum(area4[ef] / ntiles[ef], 256), atol=1.01)
+    # entry_order: a permutation of each tile's entries; nearest vertex first (up to the depth
+    # buckets) where the estimated fragments per pixel exceed K / 2
+    K = 2
+    bnk = bin_faces(device64, vs, DeviceMesh(device64, F, len(V)), 53, 37, K=K)
+    order, inv_z, cov = bnk.entry_order.get(), bnk.entry_setup.get()[:, 6:9].max(1), bnk.entry_rows.get() >> 8
+    kinds = set()
+    for t in range(bnk.num_tiles):
+        o = order[to[t]:to[t + 1]]
+        np.testing.assert_array_equal(np.sort(o), np.arange(to[t], to[t + 1]))
+        if len(o) > 1 and cov[o].sum() > 2 * K * 64 and np.ptp(inv_z[o]) > 0:
+            bucket = np.floor((inv_z[o].max() - inv_z[o]) * (63 / np.ptp(inv_z[o])))  # the kernel's rounding
+            assert np.all(np.diff(bucket) >= 0)
+            kinds.add("depth")
+        else:
+            np.testing.assert_array_equal(o, np.arange(to[t], to[t + 1]))
+            kinds.add("binning")
+    assert kinds == {"depth", "binning"}
 
 
 def test_raster_empty_and_degenerate(device):

@@ -83,14 +83,15 @@ inline void insert_fragment(REAL* dk, int* fk, int* ek, int* cnt, int K, REAL zp
 
 /* The list of pixel centre (px, py), row y of the image, over the entries of tile t. Returns the
  * count. */
-inline int pixel_list(__global const int* tile_off, __global const int* entry_face,
+inline int pixel_list(__global const int* tile_off, __global const int* entry_order, __global const int* entry_face,
                       __global const REAL* entry_setup, __global const int* entry_rows, int t, REAL px,
                       REAL py, int y, int K, REAL far, REAL* dk, int* fk, int* ek)
 {
     int cnt = 0;
     const int e_end = tile_off[t + 1];
     const int rowbit = 1 << (y % TILE);
-    for (int e = tile_off[t]; e < e_end; ++e) {
+    for (int i = tile_off[t]; i < e_end; ++i) {
+        const int e = entry_order[i];
         if (!(entry_rows[e] & rowbit)) continue;  /* pixel centre outside the face's bounding box */
         __global const REAL* s = entry_setup + e * SETUP;
         const REAL dx = px - s[0], dy = py - s[1];
@@ -163,7 +164,7 @@ inline MASK16 rows16_edge_test(__global const REAL* s, REAL16 px, REAL16 py, MAS
  * with a branch per entry was 1.7 ms slower at 400^2, 100k faces, K = 30, surface-like, and 5.7 ms
  * dense, on PoCL: the branch on the tests is unpredictable and waits for them.)
  * Returns the count of each lane. */
-inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_face,
+inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_order, __global const int* entry_face,
                           __global const REAL* entry_setup, __global const int* entry_rows, int t,
                           int pair, REAL16 px, REAL16 py, MASK16 inimg, int K, REAL far, REAL16* dk,
                           int16* fk, int16* ek)
@@ -182,7 +183,8 @@ inline int16 rows16_lists(__global const int* tile_off, __global const int* entr
         const int c1 = min(c0 + ROWS16_CHUNK, e_end);
         /* pass 1, branch-free: the entries of the chunk that hit any of the 16 pixels */
         int nh = 0;
-        for (int e = c0; e < c1; ++e) {
+        for (int i = c0; i < c1; ++i) {
+            const int e = entry_order[i];
             const int rows = (entry_rows[e] >> (2 * pair)) & 3;
             REAL16 b0, b1, b2;
             const MASK16 hit = rows16_edge_test(entry_setup + e * SETUP, px, py, inimg, rows, &b0, &b1, &b2);

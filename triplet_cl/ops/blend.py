@@ -159,7 +159,7 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     q, alloc = device.queue, device.allocator
     tiles = -(-width // TILE) * -(-height // TILE)
     device.check_alloc(tiles * TILE * TILE * K * (4 + real.itemsize), f"fragment lists ({width}x{height}, K={K})")
-    bn = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
+    bn = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges, K)
     image = cla.empty(q, (height, width, C), real, allocator=alloc)
     trans = cla.empty(q, (height, width), real, allocator=alloc)
     n_contrib = cla.empty(q, (height, width), np.int32, allocator=alloc)
@@ -181,7 +181,8 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
         kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
         face_attr, attr_args = None, (mesh.F.data, a.data)
     device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
-        q, gsize, lsize, bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, bn.entry_rows.data,
+        q, gsize, lsize, bn.tile_off.data, bn.entry_order.data, bn.entry_face.data, bn.entry_setup.data,
+        bn.entry_rows.data,
         *attr_args, bgd.data,
         np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
         real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,

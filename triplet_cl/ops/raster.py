@@ -257,7 +257,10 @@ class Binning:
 
     Device arrays: ``tile_off [T+1]`` (entries of tile t: ``tile_off[t]:tile_off[t+1]``),
     ``entry_face [E]``, ``entry_setup [E, SETUP]`` (edge-function set-up, ``kernels_cl/raster.cl``),
-    ``entry_rows [E]`` (bit r: row r of the tile has pixel centres inside the face's bounding box),
+    ``entry_rows [E]`` (bit r: row r of the tile has pixel centres inside the face's bounding box;
+    bits 8 and up: the entry's estimated coverage in quarter pixels),
+    ``entry_order [E]`` (the order in which the list builders visit each tile's entries: nearest
+    first, bucketed, where the tile's lists fill up, else the binning's),
     ``face_off [M+1]`` / ``face_entries [E]`` (the entries of each face, for the adjoint gather).
     """
 
@@ -272,6 +275,7 @@ class Binning:
     entry_setup: cla.Array
     face_entries: cla.Array
     entry_rows: cla.Array
+    entry_order: cla.Array
 
     @property
     def num_tiles(self) -> int:
@@ -291,11 +295,14 @@ def check_soft_edges(soft_edges, num_faces: int) -> np.ndarray | None:
 
 
 def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, height: int,
-              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False, soft_edges=None) -> Binning:
+              near: float = 0.01, far: float = 1000.0, cull_backface: bool = False, soft_edges=None,
+              K: int = 1) -> Binning:
     """Bin the faces of projected vertices ``vs [N, 3]`` into screen tiles (culling as :func:`rasterize`).
 
     Used by :func:`rasterize`, and by any renderer whose fragments need the atomics-free adjoint
     (:func:`fragments_backward` sums per (tile, face) entry). ``soft_edges``: see :func:`rasterize`.
+    ``K``: the list length the entries will be rasterized with (it sets ``entry_order``: tiles whose
+    lists fill up are visited nearest first).
     """
     real = _real_of(vs)
     q, alloc = device.queue, device.allocator
@@ -319,6 +326,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     entry_setup = cla.empty(q, (max(E, 1) + 1, SETUP), real, allocator=alloc)
     face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     entry_rows = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_order = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
     soft = check_soft_edges(soft_edges, M)
     if E:
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)
@@ -328,8 +336,11 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
             np.int32(tiles_x), np.int32(height), face_ntiles.data,
             face_bbox.data, face_off.data, tile_off.data, tile_cursor.data, entry_face.data,
             entry_setup.data, entry_rows.data, face_entries.data)
+        device.kernel("raster", "bin_depth_order", defines, real)(
+            q, *grid_1d(T), tile_off.data, entry_setup.data, entry_rows.data, np.int32(T), np.int32(K),
+            entry_order.data)
     return Binning(width, height, tiles_x, tiles_y, E, tile_off, face_off, entry_face, entry_setup, face_entries,
-                   entry_rows)
+                   entry_rows, entry_order)
 
 
 def check_raster_args(device: Device, vs, mesh: DeviceMesh, width, height, K, near, far, sigma, variant):
@@ -385,7 +396,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     q, alloc = device.queue, device.allocator
     npx = width * height
     device.check_alloc(npx * K * 8 * (2 if real == np.float64 else 1), f"fragment buffers ({width}x{height}, K={K})")
-    b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges)
+    b = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges, K)
     tiles_x, tiles_y = b.tiles_x, b.tiles_y
 
     # the kernels write each pixel's list (entry, depth) into K-strided scratch; then it is packed
@@ -399,7 +410,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     else:
         kern, gsize, lsize = "raster_fwd", (tiles_x * TILE, tiles_y * TILE), (TILE, TILE)
     device.kernel("raster", kern, {"TILE": TILE, "K_MAX": K}, real)(
-        q, gsize, lsize, b.tile_off.data, b.entry_face.data, b.entry_setup.data, b.entry_rows.data,
+        q, gsize, lsize, b.tile_off.data, b.entry_order.data, b.entry_face.data, b.entry_setup.data, b.entry_rows.data,
         np.int32(width), np.int32(height), np.int32(tiles_x), np.int32(K), real.type(far),
         s_entry.data, s_depth.data, count.data)
     off, P, out = _packed_arrays(device, count, real, bool(sigma))
