@@ -31,12 +31,13 @@
  *     v_ab_i = v_a_i win_i,   v_win_i = v_a_i ab_i
  *   interpolation (interpolate.cl): v_attr[F[f,k], c] += lam_k v_f_ic, v_attr[F[f,k], C] += lam_k v_ab_i,
  *     v_lam0 = sum_c v_f_ic (a0_c - a2_c) + v_ab_i (a0_C - a2_C), v_lam1 likewise with a1
- *   geometry: v_lam, v_win -> the entry's moments (common/raster_adjoint.h); once the tile is done,
- *     entry_geom_vjp turns each entry's moments into the adjoint of its face's screen vertices (as
- *     entry_geom does for the generic chain), and gather_vertex sums the entries per vertex.
+ *   geometry: v_lam, v_win -> the entry's moments (common/raster_adjoint.h).
  * No float atomics: the tile's work-item owns the records of the tile's (tile, face) entries,
- * partial [E, pstride] = (moments [MOMENTS], later the vertex adjoint [3, 3]; then [3, C+1] for the
- * corner attributes), flagged in entry_hit; gather_vertex sums them per vertex in a fixed order.
+ * partial [E, pstride] = (moments [MOMENTS], then [3, C+1] for the corner attributes), zeroed first.
+ * Then per face (blend_face_grad): its entries' records summed, the moments turned into the adjoint
+ * of its screen vertices once (moments_geom_vjp; the moments are linear and relative to the face's
+ * a0, so the entries' sums can be added), written per face corner; for a soup with face f on
+ * vertices 3f .. 3f + 2 those are the vertex adjoints, otherwise gather_corner sums them per vertex.
  * Two kernel shapes, same arithmetic, tested against each other:
  *   pixel / blend_bwd   scalar per pixel (GPU-shaped forward: one work-item per pixel);
  *   rows16              CPU-shaped: the 16 pixels of two tile rows are the lanes of 16-wide vectors,
@@ -48,6 +49,8 @@
  *                       are transposed back and added to each lane's entry record as two 16-wide
  *                       vectors. On PoCL (AVX-512) blend_bwd_rows16 at 400^2, 100k faces, K = 30
  *                       took 27-30 ms with 16-lane gathers and per-lane scalar adds, 17 ms so.
+ *                       The adjoint walks a tile's pixels in one of two lane schedules, chosen per
+ *                       tile (two tile rows at a time, or a queue of pixels: blend_bwd_rows16).
  */
 #pragma OPENCL FP_CONTRACT OFF /* the same depths and barycentrics as raster.cl */
 

@@ -4,7 +4,7 @@
 :func:`~triplet_cl.ops.interpolate.interpolate` → :func:`~triplet_cl.ops.composite.coverage` →
 :func:`~triplet_cl.ops.composite.composite` compute when a fragment's colour and opacity are
 interpolated per-vertex values, and ``raster_blend_backward`` its whole adjoint in one pass over
-the tiles (then the per-vertex gather). No packed fragment array is written in between: on a
+the tiles (then one pass over the faces, and for meshes with shared vertices a per-vertex gather). No packed fragment array is written in between: on a
 CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
 
 Two kernel shapes with the same arithmetic: ``rows16`` (CPU: the 16 pixels of two tile rows in
@@ -77,15 +77,6 @@ class Blend:
     s_ex: cla.Array  # [T·4, K, 16] exp(−σ d) of each composited fragment's window (σ set; else 1 element)
     variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
     face_attr: cla.Array | None = None  # rows16: [M, 16] corner attributes per face
-
-    # what gather_to_vertices reads of a Fragments
-    @property
-    def face_off(self) -> cla.Array:
-        return self.binning.face_off
-
-    @property
-    def face_entries(self) -> cla.Array:
-        return self.binning.face_entries
 
     def entries(self) -> np.ndarray:
         """Host ``[H, W, K] int32``: the (tile, face) entry of each composited fragment, −1 beyond
