@@ -11,6 +11,10 @@
  *             list face_entries (entry ids of each face, in tile order) used by the adjoint gather.
  *             With soft_edges, only the marked edges of a face get the coverage window (the
  *             silhouette edges of a connected mesh: its shared interior edges stay hard, no seams).
+ *             Per entry also entry_rows: the tile rows inside the face's pixel bounding box (the
+ *             list builders skip the entry elsewhere) and a coverage estimate (upper bits).
+ * bin_depth_order  per tile: the order in which the list builders visit its entries (nearest
+ *             first where its lists fill up, else the binning's order; the lists do not depend on it).
  * raster_fwd  one work-item per pixel, one 8x8 work-group per tile: the K nearest fragments by
  *             (depth, face id) — the face id breaks ties so the result never depends on the
  *             arbitrary order of a tile's list. Forward formulas: see common/raster_math.h.
@@ -165,6 +169,12 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
 #ifndef DEPTH_BUCKETS
 #define DEPTH_BUCKETS 64
 #endif
+/* the entry's nearest vertex as 1 / z (set-up s6..s8), and its bucket (0: the tile's nearest) */
+inline REAL nearest_inv_depth(__global const REAL* s) { return fmax(s[6], fmax(s[7], s[8])); }
+inline int depth_bucket(__global const REAL* s, REAL kmax, REAL scale)
+{
+    return clamp((int)((kmax - nearest_inv_depth(s)) * scale), 0, DEPTH_BUCKETS - 1);
+}
 __kernel void bin_depth_order(__global const int* tile_off,      // [T + 1]
                               __global const REAL* entry_setup,  // [E, SETUP]
                               __global const int* entry_rows,    // [E]  bits 8+: estimated coverage
@@ -178,7 +188,7 @@ __kernel void bin_depth_order(__global const int* tile_off,      // [T + 1]
     int area = 0;  /* the tile's fragments, estimated (quarter pixels) */
     for (int e = e0; e < e1; ++e) {
         __global const REAL* s = entry_setup + e * SETUP;
-        const REAL k = fmax(s[6], fmax(s[7], s[8]));
+        const REAL k = nearest_inv_depth(s);
         kmin = fmin(kmin, k);
         kmax = fmax(kmax, k);
         area += entry_rows[e] >> 8;
@@ -192,13 +202,13 @@ __kernel void bin_depth_order(__global const int* tile_off,      // [T + 1]
     for (int b = 0; b < DEPTH_BUCKETS; ++b) start[b] = 0;
     for (int e = e0; e < e1; ++e) {
         __global const REAL* s = entry_setup + e * SETUP;
-        ++start[clamp((int)((kmax - fmax(s[6], fmax(s[7], s[8]))) * scale), 0, DEPTH_BUCKETS - 1)];
+        ++start[depth_bucket(s, kmax, scale)];
     }
     int n = e0;
     for (int b = 0; b < DEPTH_BUCKETS; ++b) { const int c = start[b]; start[b] = n; n += c; }
     for (int e = e0; e < e1; ++e) {
         __global const REAL* s = entry_setup + e * SETUP;
-        entry_order[start[clamp((int)((kmax - fmax(s[6], fmax(s[7], s[8]))) * scale), 0, DEPTH_BUCKETS - 1)]++] = e;
+        entry_order[start[depth_bucket(s, kmax, scale)]++] = e;
     }
 }
 
