@@ -202,20 +202,6 @@ inline void transpose16(REAL16* r)
     TRANSPOSE_PAIR1(r, 8) TRANSPOSE_PAIR1(r, 10) TRANSPOSE_PAIR1(r, 12) TRANSPOSE_PAIR1(r, 14)
 }
 
-/* lane l reads p[i.l] */
-inline int16 gather16i(__global const int* p, int16 i)
-{
-    return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
-                   p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
-}
-
-/* lane l reads p[i.l] */
-inline REAL16 gather16r(__global const REAL* p, int16 i)
-{
-    return (REAL16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
-                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
-}
-
 /* Lane l's 16 values from row e.l of p (row stride `stride`, 16 readable values per row), as
  * r[j] = value j of the 16 lanes: 16 row loads and a transpose (on CPUs much faster than 16-lane
  * gathers of each value). */
@@ -315,8 +301,8 @@ __kernel void blend_fwd_rows16(__global const int* tile_off,      // [T + 1]
     const int t = ty * tiles_x + tx;
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
-    int16 fk[K_MAX], ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, fk, ek);
+    int16 ek[K_MAX];
+    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, ek);
     const int CA = C + 1;
     REAL16 acc[C_MAX];
     for (int c = 0; c < C; ++c) acc[c] = (REAL16)0;

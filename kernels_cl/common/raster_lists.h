@@ -118,7 +118,16 @@ inline int pixel_list(__global const int* tile_off, __global const int* entry_or
 #define CONVERT_INT16(m) (m)
 #endif
 #define CONVERT_REAL16(x) TRIPLET_CAT(convert_, REAL16)(x)
-/* any() of an int16 mask by an OR tree (PoCL lowers any() of a 16-lane mask to a test per lane) */
+/* any() of an int16 mask (lanes 0 or -1) and the largest lane of an int16. PoCL lowers OpenCL's
+ * any() of a 16-lane mask to a test per lane, and a reduction to a tree of shuffles; with AVX-512
+ * the mask's sign bits go to a mask register in one instruction (vpmovd2m), tested at once. */
+#if defined(__clang__) && defined(__AVX512F__)
+typedef int triplet_v16si __attribute__((vector_size(64)));
+inline int any_i16(int16 m)
+{
+    return __builtin_ia32_cvtd2mask512(__builtin_bit_cast(triplet_v16si, m)) != 0;
+}
+#else
 inline int any_i16(int16 m)
 {
     const int8 a = m.lo | m.hi;
@@ -126,6 +135,7 @@ inline int any_i16(int16 m)
     const int2 c = b.lo | b.hi;
     return (c.x | c.y) < 0;
 }
+#endif
 #define ANY16(m) any_i16(CONVERT_INT16(m))
 inline int max_i16(int16 v)
 {
@@ -133,6 +143,21 @@ inline int max_i16(int16 v)
     const int4 b = max(a.lo, a.hi);
     const int2 c = max(b.lo, b.hi);
     return max(c.x, c.y);
+}
+
+
+/* lane l reads p[i.l] */
+inline int16 gather16i(__global const int* p, int16 i)
+{
+    return (int16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                   p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
+}
+
+/* lane l reads p[i.l] */
+inline REAL16 gather16r(__global const REAL* p, int16 i)
+{
+    return (REAL16)(p[i.s0], p[i.s1], p[i.s2], p[i.s3], p[i.s4], p[i.s5], p[i.s6], p[i.s7],
+                    p[i.s8], p[i.s9], p[i.sa], p[i.sb], p[i.sc], p[i.sd], p[i.se], p[i.sf]);
 }
 
 /* The edge tests of one entry (set-up s) at the 16 pixels of two tile rows; rows: which of the two
@@ -167,13 +192,12 @@ inline MASK16 rows16_edge_test(__global const REAL* s, REAL16 px, REAL16 py, MAS
 inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_order, __global const int* entry_face,
                           __global const REAL* entry_setup, __global const int* entry_rows, int t,
                           int pair, REAL16 px, REAL16 py, MASK16 inimg, int K, REAL far, REAL16* dk,
-                          int16* fk, int16* ek)
+                          int16* ek)
 {
     const REAL16 inf16 = (REAL16)(INFINITY);
     const int16 imax16 = (int16)(INT_MAX);
     for (int k = 0; k < K; ++k) {
         dk[k] = inf16;
-        fk[k] = imax16;
         ek[k] = imax16;
     }
     int16 cnt16 = (int16)0;  /* slots in use per lane */
@@ -203,35 +227,37 @@ inline int16 rows16_lists(__global const int* tile_off, __global const int* entr
             if (!ANY16(hit)) continue;
             REAL16 z = select(inf16, zp, hit);
             const int16 hit_i = CONVERT_INT16(hit);
-            int16 f = select(imax16, (int16)(entry_face[e]), hit_i);
+            const int f = entry_face[e];
             int16 en = select(imax16, (int16)(e), hit_i);
             MASK16 act = hit;
             int16 actc = hit_i;
             const int kstart = min(max_i16(cnt16 & hit_i), K) - 1;  /* deepest list among the hit lanes */
             cnt16 = min(cnt16 - hit_i, K);
             REAL16 pd = kstart + 1 < K ? dk[kstart + 1] : inf16;
-            int16 pf = kstart + 1 < K ? fk[kstart + 1] : imax16;
             int16 pe = kstart + 1 < K ? ek[kstart + 1] : imax16;
             int k = kstart;
             for (; k >= 0; --k) {
                 const REAL16 d = dk[k];
-                const int16 fo = fk[k];
                 const int16 eo = ek[k];
-                const MASK16 mv = act & ((z < d) | ((z == d) & CONVERT_MASK16(f < fo)));
+                MASK16 mv = act & (z < d);
+                const MASK16 tie = act & (z == d);  /* equal depths (rare): the face ids decide */
+                if (ANY16(tie)) {
+                    const int16 tie_i = CONVERT_INT16(tie);
+                    const int16 fo = gather16i(entry_face, select((int16)e, eo, tie_i));
+                    mv |= CONVERT_MASK16(tie_i & ((int16)f < fo));
+                }
                 const int16 mvi = CONVERT_INT16(mv);
                 const int16 place = actc & ~mvi;
                 if (k + 1 < K) {
                     dk[k + 1] = select(select(pd, z, CONVERT_MASK16(place)), d, mv);
-                    fk[k + 1] = select(select(pf, f, place), fo, mvi);
                     ek[k + 1] = select(select(pe, en, place), eo, mvi);
                 }
                 act = mv; actc = mvi;
                 if (!any_i16(mvi)) break;
-                pd = d; pf = fo; pe = eo;
+                pd = d; pe = eo;
             }
             if (k < 0) {
                 dk[0] = select(pd, z, act);
-                fk[0] = select(pf, f, actc);
                 ek[0] = select(pe, en, actc);
             }
         }
