@@ -628,3 +628,28 @@ def test_camera_conventions():
         Camera(1, 1, 0, 0, 2, 2, np.eye(3)[:2])
     with pytest.raises(ValueError, match="near < far"):
         Camera(1, 1, 0, 0, 2, 2, np.eye(4), near=2, far=1)
+
+
+@pytest.mark.parametrize("path", ["serial", "blocks", "pyopencl"])
+def test_offsets_are_the_exclusive_prefix_sum(device, rng, monkeypatch, path):
+    """_offsets (the binning's tile and face offsets): off[0] = 0, off[i + 1] = off[i] + counts[i],
+    and the total; CPU devices scan in one work-item or in blocks (kernels_cl/scan.cl), others with
+    pyopencl's scan."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops import raster as R
+
+    if path == "blocks":
+        monkeypatch.setattr(R, "SCAN_SERIAL", 10)
+        monkeypatch.setattr(R, "SCAN_BLOCK", 7)
+    if path == "pyopencl":
+        monkeypatch.setattr(type(device), "is_cpu", property(lambda self: False))
+    for n in (0, 1, 6, 7, 8, 50, 1001):
+        c = rng.integers(0, 9, n).astype(np.int32)
+        off, total = R._offsets(device, cla.to_device(device.queue, c))
+        expect = np.concatenate([[0], np.cumsum(c)])
+        np.testing.assert_array_equal(off.get(), expect)
+        assert total == expect[-1]
+        off, total = R._offsets(device, cla.to_device(device.queue, c), total=False)
+        np.testing.assert_array_equal(off.get(), expect)
+        assert total is None

@@ -223,11 +223,32 @@ def _scan_kernel(device: Device) -> InclusiveScanKernel:
     return device.cached(("scan", "int32-sum"), lambda: InclusiveScanKernel(device.ctx, np.int32, "a+b", neutral="0"))
 
 
+SCAN_BLOCK = 4096  # counts per work-item of the CPU scan (kernels_cl/scan.cl) ...
+SCAN_SERIAL = 1 << 18  # ... up to this many counts, one work-item
+
+
 def _offsets(device: Device, counts: cla.Array, total: bool = True) -> tuple[cla.Array, int | None]:
     """Exclusive prefix sum as an ``[n+1]`` offsets array, and the total (one small blocking read
     back; ``total=False`` skips it and returns None)."""
     n = counts.shape[0]
     q = device.queue
+    if n and device.is_cpu:
+        off = cla.empty(q, n + 1, np.int32, allocator=device.allocator)
+        if n <= SCAN_SERIAL:
+            device.kernel("scan", "scan_serial")(q, (1,), (1,), counts.data, np.int32(n), off.data)
+        else:
+            nb = -(-n // SCAN_BLOCK)
+            sums = cla.empty(q, nb, np.int32, allocator=device.allocator)
+            args = (np.int32(n), np.int32(SCAN_BLOCK), np.int32(nb))
+            device.kernel("scan", "scan_block_sums")(q, (nb,), (1,), counts.data, *args, sums.data)
+            device.kernel("scan", "scan_block_offsets")(q, (1,), (1,), sums.data, np.int32(nb), np.int32(n),
+                                                        off.data)
+            device.kernel("scan", "scan_block_write")(q, (nb,), (1,), counts.data, *args, sums.data, off.data)
+        if not total:
+            return off, None
+        tail = np.empty(1, np.int32)
+        cl.enqueue_copy(q, tail, off.data, src_offset=4 * n)
+        return off, int(tail[0])
     off = cla.zeros(q, n + 1, np.int32, allocator=device.allocator)
     if n:
         incl = cla.empty(q, n, np.int32, allocator=device.allocator)
