@@ -331,7 +331,7 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
     ROWS16_LANES(x0, y0, width, height, px, py, inimg);
     REAL16 dk[K_MAX];
     int16 ek[K_MAX];
-    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, ek);
+    const int16 cnt16 = rows16_lists(tile_off, entry_order, entry_face, entry_setup, entry_rows, t, pair & 3, px, py, inimg, K, far, dk, ek, 0);
     for (int l = 0; l < 16; ++l) {
         const int x = x0 + (l & 7), y = y0 + (l >> 3);
         if (x >= width || y >= height) continue;

@@ -146,6 +146,14 @@ inline int max_i16(int16 v)
 }
 
 
+/* A hint to bring the cache line of p in (a no-op where the compiler has no prefetch builtin;
+ * PoCL's OpenCL prefetch() is one). */
+#if defined(__clang__)
+#define PREFETCH_LINE(p) __builtin_prefetch(p)
+#else
+#define PREFETCH_LINE(p) prefetch(p, 1)
+#endif
+
 /* lane l reads p[i.l] */
 inline int16 gather16i(__global const int* p, int16 i)
 {
@@ -188,11 +196,13 @@ inline MASK16 rows16_edge_test(__global const REAL* s, REAL16 px, REAL16 py, MAS
  * keeping the entries that hit any lane, then only those (tested again) into the lists. (One pass
  * with a branch per entry was 1.7 ms slower at 400^2, 100k faces, K = 30, surface-like, and 5.7 ms
  * dense, on PoCL: the branch on the tests is unpredictable and waits for them.)
+ * face_rows (or 0): a [M, 16] per-face array the caller reads next for the lanes' faces; the rows
+ * of the faces that enter the lists are prefetched.
  * Returns the count of each lane. */
 inline int16 rows16_lists(__global const int* tile_off, __global const int* entry_order, __global const int* entry_face,
                           __global const REAL* entry_setup, __global const int* entry_rows, int t,
                           int pair, REAL16 px, REAL16 py, MASK16 inimg, int K, REAL far, REAL16* dk,
-                          int16* ek)
+                          int16* ek, __global const REAL* face_rows)
 {
     const REAL16 inf16 = (REAL16)(INFINITY);
     const int16 imax16 = (int16)(INT_MAX);
@@ -228,6 +238,7 @@ inline int16 rows16_lists(__global const int* tile_off, __global const int* entr
             REAL16 z = select(inf16, zp, hit);
             const int16 hit_i = CONVERT_INT16(hit);
             const int f = entry_face[e];
+            if (face_rows) PREFETCH_LINE(face_rows + (long)f * 16);  /* read when the lists are blended */
             int16 en = select(imax16, (int16)(e), hit_i);
             MASK16 act = hit;
             int16 actc = hit_i;
