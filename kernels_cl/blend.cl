@@ -378,6 +378,17 @@ __kernel void blend_face_grad(__global const int* face_off,      // [M + 1]
     if (f >= num_faces) return;
     const int CA = C + 1, R = MOMENTS + 3 * CA;
     const int j0 = face_off[f], j1 = face_off[f + 1];
+#ifndef FACE_GRAD_AHEAD
+#define FACE_GRAD_AHEAD 8
+#endif
+    if (f + FACE_GRAD_AHEAD < num_faces) {  /* the records of a face a few work-items ahead (scattered) */
+        const int fa = f + FACE_GRAD_AHEAD;
+        for (int j = face_off[fa]; j < face_off[fa + 1]; ++j) {
+            __global const REAL* p = partial + (long)face_entries[j] * pstride;
+            PREFETCH_LINE(p);
+            PREFETCH_LINE(p + pstride - 1);
+        }
+    }
     REAL r[MOMENTS + 3 * (C_MAX + 1)];
     if (pstride == 32) {  /* rows16 records: two 16-wide rows */
         REAL16 lo = (REAL16)0, hi = (REAL16)0;
