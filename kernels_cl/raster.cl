@@ -50,6 +50,19 @@
                      b1 = A1 dx + B1 dy, g_k = 1 / |grad b_k| (pixel distance to edge k = b_k g_k) */
 #include "raster_lists.h" /* pixel_list, rows16_lists, setup_window */
 
+/* The pixel indices whose centres (i + 0.5) lie in [lo, hi] (lo > hi: none), clamped to [0, n - 1]:
+ * *i0 = ceil(lo - 0.5), *i1 = floor(hi - 0.5). Clamped to [-1, n] before the conversion (exact
+ * there) and rounded by comparison: PoCL's ceil() and floor() are branchy library calls that cost
+ * a third of bin_count. */
+inline void centre_range(REAL lo, REAL hi, int n, int* i0, int* i1)
+{
+    const REAL a = fmin(fmax(lo - (REAL)0.5, (REAL)0), (REAL)n);
+    const REAL b = fmin(fmax(hi - (REAL)0.5, (REAL)-1), (REAL)(n - 1));
+    const int ia = (int)a, ib = (int)b;   /* truncation: a >= 0; b >= -1 */
+    *i0 = ia + ((REAL)ia < a);            /* ceil */
+    *i1 = ib - ((REAL)ib > b);            /* floor */
+}
+
 __kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
                         __global const int* F,          // [M, 3]
                         const int m, const int width, const int height,
@@ -74,10 +87,8 @@ __kernel void bin_count(__global const REAL* vs,        // [N, 3] (u, v, z)
         /* pixels whose centre (i + 0.5) lies inside the bounding box */
         const REAL minu = fmin(a0.x, fmin(a1.x, a2.x)), maxu = fmax(a0.x, fmax(a1.x, a2.x));
         const REAL minv = fmin(a0.y, fmin(a1.y, a2.y)), maxv = fmax(a0.y, fmax(a1.y, a2.y));
-        x0 = (int)ceil(fmax(minu - (REAL)0.5, (REAL)0));
-        y0 = (int)ceil(fmax(minv - (REAL)0.5, (REAL)0));
-        x1 = (int)floor(fmin(maxu - (REAL)0.5, (REAL)(width - 1)));
-        y1 = (int)floor(fmin(maxv - (REAL)0.5, (REAL)(height - 1)));
+        centre_range(minu, maxu, width, &x0, &x1);
+        centre_range(minv, maxv, height, &y0, &y1);
         if (maxu - (REAL)0.5 < (REAL)0 || maxv - (REAL)0.5 < (REAL)0 ||
             minu - (REAL)0.5 > (REAL)(width - 1) || minv - (REAL)0.5 > (REAL)(height - 1))
             x1 = -1;
@@ -135,8 +146,8 @@ __kernel void bin_fill(__global const REAL* vs,         // [N, 3]
     const int tx1 = face_bbox[4 * f + 2], ty1 = face_bbox[4 * f + 3];
     /* the pixel rows whose centres lie in the bounding box (as bin_count) */
     const REAL minv = fmin(p0.y, fmin(p1.y, p2.y)), maxv = fmax(p0.y, fmax(p1.y, p2.y));
-    const int y0 = (int)ceil(fmax(minv - (REAL)0.5, (REAL)0));
-    const int y1 = (int)floor(fmin(maxv - (REAL)0.5, (REAL)(height - 1)));
+    int y0, y1;
+    centre_range(minv, maxv, height, &y0, &y1);
     /* coverage estimate of each entry: the face's area shared evenly by its tiles, in quarter
      * pixels, at most the tile's (bin_depth_order) */
     const int cover = (int)fmin((REAL)0.5 * fabs((REAL)4 / iA) / (REAL)face_ntiles[f] + (REAL)0.5,
