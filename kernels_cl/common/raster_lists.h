@@ -185,12 +185,13 @@ inline MASK16 rows16_edge_test(__global const REAL* s, REAL16 px, REAL16 py, MAS
 
 /* The 16 lists of two rows of a tile (lane l: pixel centre (px.l, py.l); lanes outside the image
  * have inimg = 0 and never hit), over the entries of tile t, kept lane-wise: slot k of the 16
- * lists is dk[k] / fk[k] / ek[k]. A hit is inserted into all 16 lists at once, back to front like
- * an insertion sort: starting from slot k = (longest list among the hit lanes) - 1,
- *   mv = active & ((z < D_k) | (z == D_k & f < F_k));   slot k+1 <- D_k where mv, z where active & !mv
- *   active = mv;  stop when no lane is active (then slot 0 <- z where still active)
- * (likewise for the face and entry ids). Lanes without a hit are never active; a lane with a
- * shorter list moves through its empty (+inf, INT_MAX) slots; slot K (the K+1-th) is dropped.
+ * lists is dk[k] (depth) / ek[k] (entry). A hit is inserted into all 16 lists at once, back to
+ * front like an insertion sort: starting from slot k = (longest list among the hit lanes) - 1,
+ *   mv = active & ((z < D_k) | (z == D_k & f < face(E_k)));   slot k+1 <- D_k where mv,
+ *   z where active & !mv;  active = mv;  stop when no lane is active (then slot 0 <- z where still active)
+ * (likewise for the entry ids). The face ids of the slots are gathered only for the (rare) equal
+ * depths, not carried along. Lanes without a hit are never active; a lane with a shorter list
+ * moves through its empty (+inf, INT_MAX) slots; slot K (the K+1-th) is dropped.
  * Same tests, same (depth, face id) order, same results as pixel_list, no per-lane branches.
  * The entries go in chunks of ROWS16_CHUNK: first the edge tests of the whole chunk, branch-free,
  * keeping the entries that hit any lane, then only those (tested again) into the lists. (One pass
