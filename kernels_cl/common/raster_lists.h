@@ -121,7 +121,12 @@ inline int pixel_list(__global const int* tile_off, __global const int* entry_or
 /* any() of an int16 mask (lanes 0 or -1) and the largest lane of an int16. PoCL lowers OpenCL's
  * any() of a 16-lane mask to a test per lane, and a reduction to a tree of shuffles; with AVX-512
  * the mask's sign bits go to a mask register in one instruction (vpmovd2m), tested at once. */
-#if defined(__clang__) && defined(__AVX512F__)
+#if defined(__clang__) && defined(__AVX512F__) && defined(__has_builtin)
+#if __has_builtin(__builtin_ia32_cvtd2mask512) && __has_builtin(__builtin_bit_cast)
+#define TRIPLET_AVX512_MASK 1
+#endif
+#endif
+#ifdef TRIPLET_AVX512_MASK
 typedef int triplet_v16si __attribute__((vector_size(64)));
 inline int any_i16(int16 m)
 {
