@@ -150,7 +150,6 @@ inline int max_i16(int16 v)
     return max(c.x, c.y);
 }
 
-
 /* A hint to bring the cache line of p in (a no-op where the compiler has no prefetch builtin;
  * PoCL's OpenCL prefetch() is one). */
 #if defined(__clang__)

@@ -229,38 +229,33 @@ SCAN_SERIAL = 1 << 18  # ... up to this many counts, one work-item
 
 def _offsets(device: Device, counts: cla.Array, total: bool = True) -> tuple[cla.Array, int | None]:
     """Exclusive prefix sum as an ``[n+1]`` offsets array, and the total (one small blocking read
-    back; ``total=False`` skips it and returns None)."""
+    back; ``total=False`` skips it and returns None). CPU devices: ``kernels_cl/scan.cl``; others:
+    pyopencl's scan."""
     n = counts.shape[0]
-    q = device.queue
-    if n and device.is_cpu:
-        off = cla.empty(q, n + 1, np.int32, allocator=device.allocator)
-        if n <= SCAN_SERIAL:
-            device.kernel("scan", "scan_serial")(q, (1,), (1,), counts.data, np.int32(n), off.data)
-        else:
-            nb = -(-n // SCAN_BLOCK)
-            sums = cla.empty(q, nb, np.int32, allocator=device.allocator)
-            args = (np.int32(n), np.int32(SCAN_BLOCK), np.int32(nb))
+    q, alloc = device.queue, device.allocator
+    if n == 0:
+        return cla.zeros(q, 1, np.int32, allocator=alloc), 0 if total else None
+    if device.is_cpu:
+        off = cla.empty(q, n + 1, np.int32, allocator=alloc)
+        block = n if n <= SCAN_SERIAL else SCAN_BLOCK
+        nb = -(-n // block)
+        sums = cla.empty(q, nb, np.int32, allocator=alloc) if nb > 1 else off  # one block reads no sum
+        args = (np.int32(n), np.int32(block), np.int32(nb))
+        if nb > 1:
             device.kernel("scan", "scan_block_sums")(q, (nb,), (1,), counts.data, *args, sums.data)
-            device.kernel("scan", "scan_block_offsets")(q, (1,), (1,), sums.data, np.int32(nb), np.int32(n),
-                                                        off.data)
-            device.kernel("scan", "scan_block_write")(q, (nb,), (1,), counts.data, *args, sums.data, off.data)
-        if not total:
-            return off, None
-        tail = np.empty(1, np.int32)
-        cl.enqueue_copy(q, tail, off.data, src_offset=4 * n)
-        return off, int(tail[0])
-    off = cla.zeros(q, n + 1, np.int32, allocator=device.allocator)
-    if n:
-        incl = cla.empty(q, n, np.int32, allocator=device.allocator)
+            device.kernel("scan", "scan_block_offsets")(q, (1,), (1,), sums.data, np.int32(nb))
+        device.kernel("scan", "scan_block_write")(q, (nb,), (1,), counts.data, *args, sums.data, off.data)
+    else:
+        off = cla.zeros(q, n + 1, np.int32, allocator=alloc)
+        incl = cla.empty(q, n, np.int32, allocator=alloc)
         _scan_kernel(device)(counts, incl, queue=q)
         # off[1:] = incl  (a sliced array's .data would not carry the offset into the scan kernel)
         cl.enqueue_copy(q, off.data, incl.data, dst_offset=4, byte_count=4 * n)
-        if not total:
-            return off, None
-        tail = np.empty(1, np.int32)
-        cl.enqueue_copy(q, tail, incl.data, src_offset=4 * (n - 1))
-        return off, int(tail[0])
-    return off, 0 if total else None
+    if not total:
+        return off, None
+    tail = np.empty(1, np.int32)
+    cl.enqueue_copy(q, tail, off.data, src_offset=4 * n)
+    return off, int(tail[0])
 
 
 RASTER_VARIANTS = ("auto", "pixel", "rows", "rows16")
