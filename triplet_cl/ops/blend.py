@@ -4,8 +4,9 @@
 :func:`~triplet_cl.ops.interpolate.interpolate` → :func:`~triplet_cl.ops.composite.coverage` →
 :func:`~triplet_cl.ops.composite.composite` compute when a fragment's colour and opacity are
 interpolated per-vertex values, and ``raster_blend_backward`` its whole adjoint in one pass over
-the tiles (then one pass over the faces, and for meshes with shared vertices a per-vertex gather). No packed fragment array is written in between: on a
-CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
+the tiles (then one pass over the faces, and for meshes with shared vertices a per-vertex gather).
+No packed fragment array is written in between: on a CPU the generic chain spends most of its time
+writing and re-reading per-fragment arrays.
 
 Two kernel shapes with the same arithmetic: ``rows16`` (CPU: the 16 pixels of two tile rows in
 vector lanes, per-entry data loaded as rows and transposed in registers; C ≤ 4) and ``pixel``
@@ -24,20 +25,11 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, const_array, fragment_array, grid_1d, to_device
-from .composite import _c_max
+from .binning import TILE, Binning, bin_faces
+from .common import c_max, check_real, const_array, fragment_array, grid_1d, launch, real_of, to_device
+from .fragment_bwd import MOMENTS, corners_to_vertices
 from .mesh import DeviceMesh
-from .raster import (
-    MOMENTS,
-    ROWS16_K_LIMIT,
-    ROWS16_LOCAL,
-    TILE,
-    Binning,
-    _real_of,
-    bin_faces,
-    check_raster_args,
-    corners_to_vertices,
-)
+from .raster import ROWS16_K_LIMIT, ROWS16_LOCAL, check_raster_args
 
 BLEND_VARIANTS = ("auto", "pixel", "rows16")
 C_LIMIT = 64  # feature channels
@@ -133,7 +125,7 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     if not (0 <= t_min < 1):
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     vs, width, height, K = check_raster_args(device, vs, mesh, width, height, K, near, far, sigma, variant)
-    real = _real_of(vs)
+    real = real_of(vs, "vs")
     a = _device_attr(device, attr, mesh.num_vertices, real)
     C = a.shape[1] - 1
     if not 1 <= C <= C_LIMIT:
@@ -158,26 +150,23 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
     s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
     s_ex = cla.empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
-    E = bn.num_entries
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
         # the faces' corner attributes, read as rows by the 16-lane kernels
         M = mesh.num_faces
         face_attr = cla.empty(q, (max(M, 1), 16), real, allocator=alloc)
         if M:
-            device.kernel("blend", "blend_face_attr", {"TILE": TILE}, real)(
-                q, *grid_1d(M), mesh.F.data, a.data, np.int32(C), np.int32(M), face_attr.data)
-        attr_args = (face_attr.data,)
+            launch(device, "blend", "blend_face_attr", *grid_1d(M), defines={"TILE": TILE}, real=real,
+                   F=mesh.F, attr=a, C=C, num_faces=M, face_attr=face_attr)
+        attr_args = {"face_attr": face_attr}
     else:
         kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
-        face_attr, attr_args = None, (mesh.F.data, a.data)
-    device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
-        q, gsize, lsize, bn.tile_off.data, bn.entry_order.data, bn.entry_face.data, bn.entry_setup.data,
-        bn.entry_rows.data,
-        *attr_args, bgd.data,
-        np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
-        real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
-        s_entry.data, s_T.data, s_ex.data)
+        face_attr, attr_args = None, {"F": mesh.F, "attr": a}
+    launch(device, "blend", kern, gsize, lsize, defines={"TILE": TILE, "K_MAX": K, "C_MAX": c_max(C)}, real=real,
+           tile_off=bn.tile_off, entry_order=bn.entry_order, entry_face=bn.entry_face, entry_setup=bn.entry_setup,
+           entry_rows=bn.entry_rows, bg=bgd, width=width, height=height, tiles_x=bn.tiles_x, K=K, far=far, C=C,
+           sigma=sigma or 0.0, t_min=t_min, out=image, trans=trans, n_contrib=n_contrib, count=count,
+           s_entry=s_entry, s_T=s_T, s_ex=s_ex, **attr_args)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
                  s_entry, s_T, s_ex, variant, face_attr)
 
@@ -222,16 +211,16 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
     # [M, 16] corner-attribute rows, or F and attr [N, C + 1]
-    attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
-    defines = {"TILE": TILE, "C_MAX": _c_max(C)}
+    attr_args = {"face_attr": blend.face_attr} if blend.variant == "rows16" else {"F": blend.mesh.F, "attr": blend.attr}
+    defines = {"TILE": TILE, "C_MAX": c_max(C)}
     if blend.variant == "rows16" and schedule != "auto":
         defines["BWD_SCHEDULE"] = BWD_SCHEDULES[schedule]
-    device.kernel("blend", kern, defines, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args,
-        blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
-        buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
-        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), np.int32(pstride), partial.data,
-        v_sig_tile.data)
+    launch(device, "blend", kern, (T,), (1,), defines={**defines, "V_ACC": va is not None}, real=real,
+           tile_off=bn.tile_off, entry_face=bn.entry_face, entry_setup=bn.entry_setup, bg=blend.bg,
+           n_contrib=blend.n_contrib, s_entry=blend.s_entry, s_T=blend.s_T, s_ex=blend.s_ex, v_out=g, C=C,
+           K=blend.K, sigma=blend.sigma or 0.0, width=W, height=H, tiles_x=bn.tiles_x, num_tiles=T,
+           pstride=pstride, partial=partial, v_sigma_tile=v_sig_tile, **attr_args,
+           **({} if va is None else {"v_acc": va}))
     # per face: its entries' records summed, the moments turned into the screen-vertex adjoint
     # once, both per face corner; then per vertex
     mesh = blend.mesh
@@ -239,9 +228,9 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     v_attr_c = cla.empty(q, (max(M, 1), 3, CA), real, allocator=alloc)[:M]
     v_vs_c = cla.empty(q, (max(M, 1), 3, 3), real, allocator=alloc)[:M]
     if M:
-        device.kernel("blend", "blend_face_grad", defines, real)(
-            q, *grid_1d(M), bn.face_off.data, bn.face_entries.data, partial.data, np.int32(pstride),
-            blend.vs.data, mesh.F.data, np.int32(C), np.int32(M), v_attr_c.data, v_vs_c.data)
+        launch(device, "blend", "blend_face_grad", *grid_1d(M), defines=defines, real=real,
+               face_off=bn.face_off, face_entries=bn.face_entries, partial=partial, pstride=pstride, vs=blend.vs,
+               F=mesh.F, C=C, num_faces=M, v_attr_corner=v_attr_c, v_vs_corner=v_vs_c)
     v_attr, v_vs = corners_to_vertices(device, mesh, v_attr_c, v_vs_c)
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
     return v_attr, v_vs, v_sigma
