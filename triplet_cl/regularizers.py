@@ -34,7 +34,7 @@ from triplet_cl.autodiff import Function
 from triplet_cl.ops.common import check_faces
 from triplet_cl.topology import edge_adjacent_faces
 
-from .losses import _reduction_scale as _scale
+from .losses import reduction_scale as _scale
 
 FACE_NORMAL_EPS = 1e-30  # smooths normalize() only for (near-)degenerate faces
 

@@ -273,11 +273,12 @@ class RefineReport:
 def _apply_mesh(scene, optimizer, V_new, F_new, index_map, new_data: dict) -> None:
     """Replace every per-vertex parameter of ``scene`` (``new_data``: ``id(param) -> [N', ...]``) and
     the faces; Adam groups holding them are remapped (``index_map``: old row or −1 per new row)."""
-    from ..density import _owning_groups, _vertex_params
+    from ..density import vertex_params
+    from ..optim import owning_groups
 
-    vparams = _vertex_params(scene)
+    vparams = vertex_params(scene)
     done = set()
-    for name, params in _owning_groups(optimizer, vparams).items():
+    for name, params in owning_groups(optimizer, vparams).items():
         optimizer.remap(name, index_map, [new_data[id(p)] for p in params])
         done |= {id(p) for p in params}
     for p in vparams:
@@ -289,9 +290,9 @@ def _apply_mesh(scene, optimizer, V_new, F_new, index_map, new_data: dict) -> No
 
 def _scene_attrs(scene) -> tuple[dict, dict]:
     """``({name: data}, {name: param})`` of the per-vertex parameters other than ``V``."""
-    from ..density import _vertex_params
+    from ..density import vertex_params
 
-    params = {p.name: p for p in _vertex_params(scene) if p is not scene.V}
+    params = {p.name: p for p in vertex_params(scene) if p is not scene.V}
     return {k: np.asarray(p.data) for k, p in params.items()}, params
 
 
