@@ -70,14 +70,59 @@ class Blend:
     variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
     face_attr: cla.Array | None = None  # rows16: [M, 16] corner attributes per face
 
+    def _from_lanes(self, s: np.ndarray) -> np.ndarray:
+        """Host ``[T·4, K, 16]`` (or ``[T·4, 16]``) scratch layout → ``[H, W, K]`` (``[H, W]``)."""
+        bn = self.binning
+        k = s.shape[1:-1]
+        s = s.reshape((bn.tiles_y, bn.tiles_x, 4) + k + (2, 8))
+        s = s.transpose((0, 2, 3 + len(k), 1, 4 + len(k)) + tuple(range(3, 3 + len(k))))
+        return s.reshape((bn.tiles_y * TILE, bn.tiles_x * TILE) + k)[:self.height, :self.width]
+
+    def _to_lanes(self, a: np.ndarray) -> np.ndarray:
+        """Host ``[H, W]`` per pixel → the scratch's ``[T·4, 16]`` lanes (padding pixels: 0)."""
+        bn = self.binning
+        p = np.zeros((bn.tiles_y * TILE, bn.tiles_x * TILE), a.dtype)
+        p[:self.height, :self.width] = a
+        return p.reshape(bn.tiles_y, 4, 2, bn.tiles_x, 8).transpose(0, 3, 1, 2, 4).reshape(-1, 16)
+
     def entries(self) -> np.ndarray:
         """Host ``[H, W, K] int32``: the (tile, face) entry of each composited fragment, −1 beyond
         ``n_contrib`` (tests, tools)."""
-        bn, K = self.binning, self.K
-        s = self.s_entry.get().reshape(bn.tiles_y, bn.tiles_x, 4, K, 2, 8)
-        s = s.transpose(0, 2, 4, 1, 5, 3).reshape(bn.tiles_y * TILE, bn.tiles_x * TILE, K)[:self.height, :self.width]
-        used = np.arange(K) < self.n_contrib.get()[..., None]
+        s = self._from_lanes(self.s_entry.get().reshape(-1, self.K, 16))
+        used = np.arange(self.K) < self.n_contrib.get()[..., None]
         return np.where(used, s, -1).astype(np.int32)
+
+    def entry_reaching(self, q: float) -> np.ndarray:
+        """Host ``[H, W] int32``: the (tile, face) entry of the first composited fragment behind which
+        the accumulated alpha ``1 − T`` reaches ``q`` (in (0, 1)), −1 where it never does. ``T`` only
+        decreases front to back, so that fragment is the one after those with ``1 − T_j < q``."""
+        K = self.K
+        n = self._to_lanes(self.n_contrib.get())  # [T·4, 16]
+        trans = self._to_lanes(self.trans.get()).astype(np.float64)
+        j = np.arange(1, K)[None, :, None]
+        with np.errstate(all="ignore"):  # slots beyond n_contrib were never written (any bits)
+            T = self.s_T.get().reshape(-1, K, 16)[:, 1:].astype(np.float64)  # T_j in front of fragment j ≥ 1
+            before = ((1.0 - T < q) & (j < n[:, None, :])).sum(axis=1)
+        e = np.take_along_axis(self.s_entry.get().reshape(-1, K, 16), before[:, None, :], axis=1)[:, 0]
+        hit = (n > 0) & (1.0 - trans >= q)
+        return self._from_lanes(np.where(hit, e, -1).astype(np.int32))
+
+    def depth_of(self, entry) -> np.ndarray:
+        """Host ``[H, W]``: the camera-space depth of the fragment of (tile, face) entry ``entry
+        [H, W]`` (from :meth:`entries`) at each pixel centre, as the list builders compute it
+        (``1 / Σ_k b_k / z_k`` from the entry's set-up, in REAL); 0 where ``entry < 0``."""
+        e = np.asarray(entry)
+        r = self.real.type
+        s = self.binning.entry_setup.get()[np.maximum(e, 0)]  # [H, W, SETUP]
+        y, x = np.mgrid[:self.height, :self.width]
+        dx = (x.astype(self.real) + r(0.5)) - s[..., 0]
+        dy = (y.astype(self.real) + r(0.5)) - s[..., 1]
+        b0 = r(1) + s[..., 2] * dx + s[..., 3] * dy
+        b1 = s[..., 4] * dx + s[..., 5] * dy
+        b2 = r(1) - b0 - b1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = r(1) / (b0 * s[..., 6] + b1 * s[..., 7] + b2 * s[..., 8])
+        return np.where(e >= 0, z, r(0))
 
     @property
     def alpha(self) -> np.ndarray:
