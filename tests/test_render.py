@@ -159,6 +159,24 @@ def test_render_float32_runs_and_validates(device, rng):
         RenderSettings(normals="smooth")
 
 
+@pytest.mark.parametrize("renderer", ["raster", "raytrace"])
+def test_render_info_reports_the_density_statistics(device64, rng, renderer):
+    """``RenderResult.info`` (gsplat's ``info``): the fragments and projected vertices of the forward
+    pass, and after ``backward`` the screen-space vertex adjoint (density control's statistic)."""
+    from triplet_cl.ops.fragments import Fragments
+
+    scene = small_scene(rng, "cook_torrance")
+    r = render(scene, cam(), RenderSettings(K=6, sigma=0.8, real=np.float64, renderer=renderer), device64)
+    info = r.info
+    assert set(info) == {"frags", "vs", "v_vs"}
+    assert isinstance(info["frags"], Fragments) and info["frags"].P > 0
+    assert info["vs"] is info["frags"].vs and info["vs"].shape == (scene.V.shape[0], 3)
+    assert info["v_vs"] is None
+    r.backward(rng.standard_normal((H, W, 3)))
+    v_vs = info["v_vs"].get()
+    assert v_vs.shape == (scene.V.shape[0], 3) and np.abs(v_vs).sum() > 0
+
+
 @pytest.mark.parametrize("renderer", ["raster", "hybrid", "raytrace"])
 def test_render_a_view_that_sees_nothing(device, rng, renderer):
     """No fragment at all (P = 0, the camera looks away): every renderer returns the background and

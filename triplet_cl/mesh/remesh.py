@@ -38,22 +38,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ops.common import check_faces, check_real
+from ..topology import mesh_edges
 
 __all__ = ["RefineReport", "mesh_edges", "refine_scene", "select_by_gradient", "simplify", "simplify_scene",
            "subdivide_scene", "subdivide_selected"]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def mesh_edges(F) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected edges: ``(E [K, 2] int64 (sorted endpoints), face_edge [M, 3] int64)`` where
-    ``face_edge[f, i]`` is the edge from corner ``i`` to corner ``i + 1`` of face ``f``."""
-    F = np.asarray(F, np.int64)
-    e = np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2)
-    e.sort(axis=1)
-    E, inv = np.unique(e, axis=0, return_inverse=True)
-    return E.reshape(-1, 2), inv.reshape(-1, 3)
 
 
 def _check_attrs(attrs, n: int) -> dict:

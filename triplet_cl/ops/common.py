@@ -147,6 +147,13 @@ def c_max(C: int) -> int:
     return max(4, -(-C // 4) * 4)
 
 
+def run_1d(device, kernel, n: int, *args) -> None:
+    """Run a 1-D ``kernel`` over ``n`` items (:func:`grid_1d` sizes; nothing for ``n = 0``) with
+    positional ``args`` (short argument lists; :func:`launch` binds long ones by name)."""
+    if n > 0:
+        kernel(device.queue, *grid_1d(n), *args)
+
+
 def round_up(n: int, m: int) -> int:
     """``n`` rounded up to a multiple of ``m``."""
     return ((int(n) + m - 1) // m) * m
