@@ -289,6 +289,21 @@ def kernel_params(file: str, kernel: str, defined: frozenset = frozenset()) -> t
     return tuple(params)
 
 
+def _converters(params: Sequence[KernelParam], real) -> tuple[tuple[str, type | None], ...]:
+    """``(name, numpy scalar type or None for a buffer)`` per parameter, for :func:`bind_args`."""
+    real = np.dtype(real)
+    return tuple((p.name, None if p.kind != "scalar" else
+                  (real.type if _SCALAR_TYPES[p.ctype] is None else np.dtype(_SCALAR_TYPES[p.ctype]).type))
+                 for p in params)
+
+
+@functools.cache
+def _binding(file: str, kernel: str, defined: frozenset, real: str):
+    """The parameters and their converters, once per (file, kernel, defined names, REAL)."""
+    params = kernel_params(file, kernel, defined)
+    return params, _converters(params, real)
+
+
 def bind_args(params: Sequence[KernelParam], args: dict, real, queue: cl.CommandQueue, where: str = "kernel") -> list:
     """The positional argument list of a kernel call from ``args`` keyed by parameter name.
 
@@ -297,25 +312,30 @@ def bind_args(params: Sequence[KernelParam], args: dict, real, queue: cl.Command
     converted to the parameter's C type (``REAL``: ``real``). Every parameter must be given, and
     nothing else (a ``ValueError`` lists the missing and unknown names and the signature).
     """
-    missing = [p.name for p in params if p.name not in args]
-    extra = sorted(set(args) - {p.name for p in params})
-    if missing or extra:
+    return _bind(params, _converters(params, real), args, queue, where)
+
+
+def _bind(params, conv, args: dict, queue, where: str) -> list:
+    if len(args) != len(conv) or any(name not in args for name, _ in conv):
+        missing = [p.name for p in params if p.name not in args]
+        extra = sorted(set(args) - {p.name for p in params})
         sig = ", ".join(f"{p.ctype}{'*' if p.kind != 'scalar' else ''} {p.name}" for p in params)
         raise ValueError(f"{where}: missing arguments {missing}, unknown arguments {extra}; signature ({sig})")
     out = []
-    for p in params:
-        v = args[p.name]
-        if p.kind == "scalar":
+    for name, t in conv:
+        v = args[name]
+        if t is not None:
             if v is None:
-                raise ValueError(f"{where}: scalar argument {p.name!r} is None")
-            t = _SCALAR_TYPES[p.ctype]
-            out.append((np.dtype(real) if t is None else np.dtype(t)).type(v))
-        elif isinstance(v, cl.MemoryObjectHolder | cl.LocalMemory):
-            out.append(v)
+                raise ValueError(f"{where}: scalar argument {name!r} is None")
+            out.append(t(v))
+        elif isinstance(v, cla.Array) and v.size:
+            out.append(v.data)
         elif v is None or isinstance(v, cla.Array):
             out.append(buf(v, queue))
+        elif isinstance(v, cl.MemoryObjectHolder | cl.LocalMemory):
+            out.append(v)
         else:
-            raise ValueError(f"{where}: argument {p.name!r} must be a device array, a cl buffer or None, "
+            raise ValueError(f"{where}: argument {name!r} must be a device array, a cl buffer or None, "
                              f"got {type(v).__name__}")
     return out
 
@@ -333,6 +353,6 @@ def launch(device, file: str, kernel: str, global_size, local_size, /, defines: 
     Any op may use it (kernel parameter names ``defines`` and ``real`` are reserved). Returns the
     ``cl.Event``.
     """
-    params = kernel_params(file, kernel, _defined(defines))
+    params, conv = _binding(file, kernel, _defined(defines), np.dtype(real).str)
     k = device.kernel(file, kernel, defines, real)
-    return k(device.queue, global_size, local_size, *bind_args(params, args, real, device.queue, f"{file}.cl:{kernel}"))
+    return k(device.queue, global_size, local_size, *_bind(params, conv, args, device.queue, f"{file}.cl:{kernel}"))
