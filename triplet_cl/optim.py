@@ -18,6 +18,12 @@ and its own hyper-parameters. One ``step()``:
 
 Parameters whose ``.grad`` is None are skipped (their moments do not decay).
 
+``Adam(device=...)`` runs step 3 as one OpenCL kernel per parameter (``kernels_cl/adam.cl``:
+upload x, m, v and the gradient, one fused pass, download x, m, v into the same numpy arrays), bit
+for bit the numpy update on PoCL (``tests/test_optim.py``); parameters, moments, ``state_dict`` and
+``remap`` stay numpy, so checkpoints and density control are unchanged. Without a device (the
+default) the update is numpy.
+
 Schedules: :class:`Constant`, :class:`ExponentialDecay` (3DGS ``get_expon_lr_func``: log-linear
 from ``lr_init`` at step 0 to ``lr_final`` at ``max_steps``, optional sine-eased delay) and
 :class:`StepUp` (multiplies a base schedule by ``factor`` from each milestone on). They serialise to
@@ -160,9 +166,10 @@ class Adam:
         ... tape.backward(loss); opt.step(); opt.zero_grad()
     """
 
-    def __init__(self):
+    def __init__(self, device=None):
         self.groups: dict[str, ParamGroup] = {}
         self.t = 0  # completed steps
+        self.device = device  # a triplet_cl Device: the update runs as the adam.cl kernel there
 
     # ---- groups -------------------------------------------------------------------------------
     def add_group(self, name: str, params: list, lr=1e-3, betas=(0.9, 0.999), eps: float = 1e-8,
@@ -227,6 +234,9 @@ class Adam:
             for k, (p, gr) in enumerate(zip(g.params, grads, strict=True)):
                 if gr is None:
                     continue
+                if self._on_device(p.data, g.exp_avg[k], g.exp_avg_sq[k]):
+                    self._step_device(p.data, g.exp_avg[k], g.exp_avg_sq[k], gr, coef, b1, b2, lr / bc1, bc2, g.eps)
+                    continue
                 gr = gr.astype(p.data.dtype, copy=False) * coef
                 m, v = g.exp_avg[k], g.exp_avg_sq[k]
                 m *= b1
@@ -234,6 +244,38 @@ class Adam:
                 v *= b2
                 v += (1.0 - b2) * gr * gr
                 p.data -= (lr / bc1) * m / (np.sqrt(v / bc2) + g.eps)
+
+    def _on_device(self, *arrays) -> bool:
+        """Whether this update runs as the kernel: a device is set, the arrays are non-empty,
+        C-contiguous float32 (or float64 on a device with fp64); otherwise numpy."""
+        if self.device is None or not arrays[0].size:
+            return False
+        dt = arrays[0].dtype
+        if dt != np.float32 and not (dt == np.float64 and self.device.fp64):
+            return False
+        return all(a.dtype == dt and a.flags.c_contiguous for a in arrays)
+
+    def _step_device(self, x, m, v, gr, coef, b1, b2, step_size, bc2, eps) -> None:
+        """The update of one parameter as the ``adam_step`` kernel; ``x``, ``m``, ``v`` (numpy) are
+        updated in place. Scalars are rounded to the parameter's dtype on the host first, as numpy
+        does with a python float against an array of that dtype."""
+        import pyopencl as cl
+
+        from .ops.common import run_1d
+
+        d, real = self.device, x.dtype.type
+        q, mf = d.queue, cl.mem_flags
+        gr = np.ascontiguousarray(to_host(gr), dtype=x.dtype)
+        # the numpy arrays themselves as buffers (USE_HOST_PTR: no copy on a CPU device); mapping
+        # them after the kernel hands the results back on any device
+        bufs = [cl.Buffer(d.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=a) for a in (x, m, v)]
+        gbuf = cl.Buffer(d.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=gr)
+        run_1d(d, d.kernel("adam", "adam_step", real=x.dtype), x.size, *bufs, gbuf, np.int32(x.size),
+               real(coef), real(b1), real(1.0 - b1), real(b2), real(1.0 - b2), real(step_size), real(bc2), real(eps))
+        for host, buf in zip((x, m, v), bufs, strict=True):
+            mapped, _ = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, host.shape, host.dtype)
+            mapped.base.release(q)
+        q.finish()
 
     # ---- density control ----------------------------------------------------------------------
     def remap(self, group_name: str, index_map, new_rows=None) -> None:
