@@ -457,3 +457,42 @@ def test_reorder_faces_keeps_rows_and_moments_aligned():
     np.testing.assert_array_equal(opt.groups["V"].exp_avg[0], mV[idx])
     with pytest.raises(ValueError, match="permutation"):
         reorder_faces(scene, opt, np.zeros(M, int))
+
+
+# ---------------------------------------------------------------------------------------------- device statistics
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_stats_add_on_device_matches_numpy(device, rng, dtype):
+    """DensityStats.add as the density.cl kernel: the same statistics as numpy, bit for bit on PoCL,
+    over several views with different visible sets, with and without v_V / vs, [N, 2] and [N, 3]."""
+    if not device.fp64:
+        pytest.skip("the device statistics need fp64")
+    exact = "portable" in device.info.platform_name.lower() or "pocl" in device.info.platform_name.lower()
+    m = 57
+    F = np.arange(3 * m).reshape(m, 3)
+    host, dev = DensityStats(m), DensityStats(m)
+    for view in range(6):
+        vis = rng.random(m) < 0.6
+        if view == 0:
+            vis[:] = False  # a view that sees nothing
+        cols = 3 if view % 2 else 2
+        v_vs = rng.standard_normal((3 * m, cols)).astype(dtype)
+        kw = {"grad_scale": 0.5 * (100 + view)}
+        if view != 3:
+            kw["v_V"] = rng.standard_normal((3 * m, 3)).astype(np.float32)
+        if view != 4:
+            kw.update(vs=(rng.random((3 * m, 3)) * 90).astype(dtype), image_size=(100 + view, 80))
+        host.add(v_vs, vis, F, **kw)
+        dev.add(v_vs, vis, F, device=device, **kw)
+        for k in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+            a, b = getattr(host, k), getattr(dev, k)
+            assert a.dtype == b.dtype and a.shape == b.shape, k
+            if exact:
+                np.testing.assert_array_equal(b, a, err_msg=k)
+            else:
+                np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-300, err_msg=k)
+    assert host.denom.max() > 1 and host.max_screen_frac.max() > 0
+    # validation runs before any work, on either path
+    with pytest.raises(ValueError, match="visible"):
+        dev.add(np.zeros((3 * m, 3), np.float32), np.ones(m - 1, bool), F, device=device)

@@ -213,7 +213,8 @@ class DensityStats:
         self.max_screen_area = np.zeros(m, np.float64)
         self.max_screen_frac = np.zeros(m, np.float64)
 
-    def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0) -> None:
+    def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0,
+            device=None) -> None:
         """Accumulate one rendered view.
 
         Args:
@@ -225,6 +226,9 @@ class DensityStats:
                 ``image_size = (width, height)`` of that render.
             v_V: optional ``[N, 3]`` world-space position gradient of the view (e.g. ``scene.V.grad``).
             grad_scale: multiplies the screen gradient (e.g. ``0.5 * width`` for 3DGS's NDC units).
+            device: a :class:`~triplet_cl.device.Device` with fp64: the update runs as the
+                ``face_stats_add`` kernel (``kernels_cl/density.cl``, one pass over the faces, on the
+                statistics arrays themselves), bit for bit the numpy update; None: numpy.
         """
         F = np.asarray(F)
         m = self.num_faces
@@ -233,30 +237,80 @@ class DensityStats:
         vis = np.asarray(to_host(visible))
         if vis.shape != (m,) or vis.dtype != np.bool_:
             raise ValueError(f"visible must be a bool array of shape [{m}], got {vis.dtype} {list(vis.shape)}")
-        g = np.asarray(to_host(v_vs), np.float64)
+        g = to_host(v_vs)
         if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
             raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
-        idx = np.flatnonzero(vis)
-        Fv = F[idx]
-        g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
-        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
-        self.denom[idx] += 1
+        gw = uv = None
         if v_V is not None:
-            gw = np.asarray(to_host(v_V), np.float64)
+            gw = to_host(v_V)
             if gw.ndim != 2 or gw.shape[1] != 3 or gw.shape[0] != g.shape[0]:
                 raise ValueError(f"v_V must have shape [{g.shape[0]}, 3], got {list(gw.shape)}")
-            self.world_grad_accum[idx] += gw[Fv].sum(axis=1)
         if vs is not None:
             if image_size is None:
                 raise ValueError("image_size=(width, height) is required with vs")
             w, h = (int(x) for x in image_size)
             if w <= 0 or h <= 0:
                 raise ValueError(f"image_size must be positive, got {image_size}")
-            uv = np.asarray(to_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+            uv = to_host(vs)
+        if device is not None and device.fp64 and m:
+            self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale))
+            return
+        g = np.asarray(g, np.float64)
+        idx = np.flatnonzero(vis)
+        Fv = F[idx]
+        g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
+        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
+        self.denom[idx] += 1
+        if gw is not None:
+            self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
+        if uv is not None:
+            uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
             ext = uv.max(axis=1) - uv.min(axis=1)
             area = ext[:, 0] * ext[:, 1]
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
             self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+
+    def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale) -> None:
+        """:meth:`add` as the ``face_stats_add`` kernel; the statistics (numpy) are the kernel's
+        buffers (USE_HOST_PTR: no copy on a CPU device) and are mapped back afterwards."""
+        import pyopencl as cl
+
+        from .ops.common import run_1d
+
+        inputs = [a for a in (g, gw, uv) if a is not None]
+        real = np.float32 if all(np.asarray(a).dtype == np.float32 for a in inputs) else np.float64
+        mf = cl.mem_flags
+        written = []
+
+        def src(a, dtype=real):
+            a = np.ascontiguousarray(a, dtype=dtype)
+            return a, cl.Buffer(device.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
+
+        def dst(a):
+            written.append(cl.Buffer(device.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=a))
+            return written[-1]
+
+        for name in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+            if not getattr(self, name).flags.c_contiguous:
+                setattr(self, name, np.ascontiguousarray(getattr(self, name)))
+        keep = [src(F, np.int32), src(vis, np.uint8), src(g)]  # the host arrays stay alive until finish()
+        args = [keep[0][1], keep[1][1], np.int32(len(F)), keep[2][1], np.float64(grad_scale)]
+        defines = {"VS_STRIDE": int(g.shape[1])}
+        if gw is not None:
+            keep.append(src(gw))
+            args += [keep[-1][1], dst(self.world_grad_accum)]
+            defines["V_GRAD"] = 1
+        if uv is not None:
+            keep.append(src(uv))
+            args += [keep[-1][1], np.float64(image_area), dst(self.max_screen_area), dst(self.max_screen_frac)]
+            defines["VS"] = 1
+        args += [dst(self.grad_accum), dst(self.denom)]
+        run_1d(device, device.kernel("density", "face_stats_add", defines, real=real), len(F), *args)
+        q = device.queue
+        for buf in written:
+            mapped, _ = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (buf.size,), np.uint8)
+            mapped.base.release(q)
+        q.finish()
 
     def mean_grad(self) -> np.ndarray:
         """``[M]`` ``grad_accum / denom`` (0 for faces never visible)."""

@@ -365,7 +365,7 @@ class Trainer:
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
             self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
                            vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width)
+                           grad_scale=0.5 * cam.width, device=self.device)
         self.opt.step()
         self.opt.zero_grad()
         t4 = time.perf_counter()
