@@ -45,7 +45,7 @@ def main() -> None:
             img = np.zeros((v.camera.height, v.camera.width, 3), np.float32)
             params = [p.data for g in tr.opt.groups.values() for p in g.params]
 
-            def guard():
+            def guard(params=params, img=img):
                 for x in params:
                     np.isfinite(x).all()
                 np.isfinite(img).all()

@@ -374,11 +374,10 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
 
 def load_mesh_state(path) -> Scene:
     """The :class:`Scene` saved by :func:`save_mesh_state`."""
-    from ..lights import lights_from_json
-
     import zipfile
 
     from ..errors import RunError
+    from ..lights import lights_from_json
 
     path = Path(path)
     if not path.is_file():
