@@ -456,3 +456,58 @@ def test_runerror_is_a_triplet_error():
     from triplet_cl.errors import TripletError
 
     assert issubclass(RunError, TripletError) and issubclass(NonFiniteError, TripletError)
+
+
+# ---- mesh export details ------------------------------------------------------------------------------
+def _png_chunks(data: bytes) -> list[bytes]:
+    import struct
+
+    out, i = [], 8
+    while i < len(data):
+        n = struct.unpack(">I", data[i:i + 4])[0]
+        out.append(data[i + 4:i + 8])
+        i += 12 + n
+    return out
+
+
+def _small_asset(lights):
+    import trimesh
+
+    from triplet_cl.mesh.asset import MeshAsset
+
+    m = trimesh.creation.icosphere(subdivisions=1)
+    n = len(m.vertices)
+    attrs = {"albedo": np.full((n, 3), 0.5), "roughness": np.full(n, 0.4), "metallic": np.full(n, 0.2),
+             "ao": np.ones(n), "alpha": np.ones(n)}
+    return MeshAsset(m.vertices, m.faces, attrs, "cook_torrance", lights)
+
+
+def test_mesh_files_headers_colour_tags_and_lights(tmp_path):
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from tests.tools.gltf_check import check_glb
+    from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight
+    from triplet_cl.mesh.export import export_asset
+
+    d = np.array([0.3, 0.8, -0.5])
+    lights = [PointLight([0.0, 3.0, 1.0], [4.0, 2.0, 1.0]), DirectionalLight(d, [0.5, 0.5, 0.25]),
+              AmbientLight([0.1, 0.1, 0.1])]
+    paths = export_asset(_small_asset(lights), tmp_path, texture_size=64)
+    header = paths["ply"].read_bytes().split(b"end_header")[0]
+    assert b"connected triangle mesh" in header and b"soup" not in header
+    # data maps carry no colour-space tag; the base colour stays sRGB
+    for name in ("mesh_roughness.png", "mesh_metallic.png"):
+        chunks = _png_chunks((tmp_path / name).read_bytes())
+        assert not {b"sRGB", b"gAMA", b"cHRM", b"iCCP"} & set(chunks), (name, chunks)
+        assert np.asarray(Image.open(tmp_path / name)).ndim == 2  # still a valid PNG
+    assert b"sRGB" in _png_chunks((tmp_path / "mesh_basecolor.png").read_bytes())
+    doc, _ = check_glb(paths["glb"])
+    defs = doc["extensions"]["KHR_lights_punctual"]["lights"]
+    assert [x["type"] for x in defs] == ["point", "directional"] and "KHR_lights_punctual" in doc["extensionsUsed"]
+    assert defs[0]["intensity"] == 4.0 and np.allclose(defs[0]["color"], [1, 0.5, 0.25])
+    nodes = {n["extensions"]["KHR_lights_punctual"]["light"]: n for n in doc["nodes"] if "extensions" in n}
+    assert np.allclose(nodes[0]["translation"], [0, 3, 1])
+    shines = Rotation.from_quat(nodes[1]["rotation"]).apply([0, 0, -1])  # a glTF directional light shines along -Z
+    assert np.allclose(shines, -d / np.linalg.norm(d))
+    assert set(doc["scenes"][0]["nodes"]) == {0, 1, 2}
