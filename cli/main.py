@@ -114,10 +114,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     dev = get_device(args.device)
     if args.resume:
         from triplet_cl.runs import config_from_saved, read_run_config
-        from triplet_cl.validate import check_resume_iterations, resume_config
+        from triplet_cl.validate import check_resume_iterations, resume_config, resume_data
 
-        cfg, notes = resume_config(args, config_from_saved(out, read_run_config(out)), _config_from_args(args))
-        tr = Trainer(data if args.data or args.demo else None, out, cfg, device=dev, resume=True)
+        saved = read_run_config(out)
+        cfg, notes = resume_config(args, config_from_saved(out, saved), _config_from_args(args))
+        data, moved = resume_data(data if args.data or args.demo else None, saved["data"], out)
+        notes += moved
+        tr = Trainer(data, out, cfg, device=dev, resume=True)
         check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:

@@ -511,3 +511,19 @@ def test_mesh_files_headers_colour_tags_and_lights(tmp_path):
     shines = Rotation.from_quat(nodes[1]["rotation"]).apply([0, 0, -1])  # a glTF directional light shines along -Z
     assert np.allclose(shines, -d / np.linalg.norm(d))
     assert set(doc["scenes"][0]["nodes"]) == {0, 1, 2}
+
+
+def test_resume_with_another_dataset_is_refused(run, tmp_path, capsys):
+    other = tmp_path / "other"
+    fac.make_nerf(other)
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", other, "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 2 and "DATA" in err and "not the run's dataset" in err
+    assert _tree(run) == before
+
+
+def test_resume_finds_the_newest_checkpoint_when_latest_is_lost(run, capsys):
+    (run / "checkpoints" / "latest").unlink()
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 5

@@ -550,10 +550,16 @@ class Trainer:
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def latest_checkpoint(self) -> Path:
+        from .runs import list_checkpoints
+
         latest = self.run_dir / "checkpoints" / "latest"
-        if not latest.is_file():
+        named = self.run_dir / "checkpoints" / latest.read_text().strip() if latest.is_file() else None
+        if named is not None and named.is_file():
+            return named
+        found = list_checkpoints(self.run_dir)  # `latest` lost or pointing at a removed file: the newest one
+        if not found:
             raise FileNotFoundError(f"no checkpoint to resume from in {self.run_dir / 'checkpoints'}")
-        return self.run_dir / "checkpoints" / latest.read_text().strip()
+        return found[-1]
 
     def save_checkpoint(self) -> Path:
         s = self.scene

@@ -329,6 +329,19 @@ def resume_config(args, saved_cfg, given_cfg):
     return replace(saved_cfg, **over), notes
 
 
+def resume_data(given, saved_data: str, run) -> tuple[str, list[str]]:
+    """The dataset of a resumed run: the saved one; DATA given again must be the same folder, or
+    replace a saved path that no longer exists (a moved dataset)."""
+    if given is None:
+        return saved_data, []
+    if Path(saved_data).exists():
+        if Path(given).resolve() != Path(saved_data).resolve():
+            raise UsageError("DATA", f"{given} is not the run's dataset ({saved_data}, config.json of {run}); "
+                                     "leave DATA out to resume, or start a new run for another dataset")
+        return saved_data, []
+    return str(given), [f"dataset {given} (config.json had {saved_data}, which no longer exists)"]
+
+
 def check_resume_iterations(option: str, iterations: int, at: int) -> None:
     if iterations < at:
         raise UsageError(option, f"the run is already at iteration {at}; give --iterations >= {at}")
