@@ -269,8 +269,14 @@ def validate_args(args) -> None:
             check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
                               None if getattr(args, "demo", False) else data)
     elif cmd in ("render", "eval", "extract", "export"):
-        check_run_dir(args.run, "RUN", writable=cmd in ("eval", "extract") or
-                      (cmd in ("render", "export") and not getattr(args, "out", None)))
+        writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
+        if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
+            if not (Path(args.run) / "config.json").is_file():
+                raise RunError(args.run, "is not a run directory (no config.json)")
+            if writable:
+                check_writable_dir(args.run, "RUN")
+        else:
+            check_run_dir(args.run, "RUN", writable=writable)
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
