@@ -404,12 +404,20 @@ def test_nan_gradient_updates_nothing(tmp_path):
 
 
 def test_killed_writes_leave_no_temp_files(run, capsys):
-    junk = [run / "checkpoints" / ".ckpt_0000006.npz.k2j4h5x1.tmp", run / ".metrics.json.abcd1234.tmp"]
+    import os
+    import time
+
+    junk = [run / "checkpoints" / ".ckpt_0000006.npz.k2j4h5x1.tmp", run / ".metrics.json.abcd1234.tmp",
+            run / "renders" / "test" / ".r_3.x8f_2kqa.png"]
+    old = time.time() - 3600
     for j in junk:
         j.write_bytes(b"partial")
+        os.utime(j, (old, old))
+    in_flight = run / "checkpoints" / ".ckpt_0000009.npz.zzzzzzzz.tmp"  # seconds old: another process's write
+    in_flight.write_bytes(b"writing")
     rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
     assert rc == 0, err
-    assert not any(j.exists() for j in junk)
+    assert not any(j.exists() for j in junk) and in_flight.exists()
 
 
 # ---- datasets ----------------------------------------------------------------------------------------
@@ -527,3 +535,11 @@ def test_resume_finds_the_newest_checkpoint_when_latest_is_lost(run, capsys):
     rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
     assert rc == 0, err
     assert json.loads((run / "metrics.json").read_text())["iterations"] == 5
+
+
+def test_diverging_learning_rate_is_stopped(tmp_path):
+    tr = Trainer(DEMO, tmp_path / "r", _small_cfg(lr_position=1e30, lr_position_final=1e30), quiet=True)
+    with pytest.raises(NonFiniteError) as ei:
+        tr.train()
+    assert ei.value.group == "V" and "learning rate" in str(ei.value) and ei.value.iteration <= 3
+    assert not (tmp_path / "r" / "triplets.ply").exists()

@@ -180,14 +180,20 @@ def prune_checkpoints(run_dir, keep: int, protect: Path | None = None) -> list[P
     return removed
 
 
-def remove_stale_temp_files(folder) -> list[Path]:
-    """Remove temp files left in ``folder`` by writes that were killed (``kill -9`` mid-write)."""
+def remove_stale_temp_files(folder, min_age_s: float = 120.0) -> list[Path]:
+    """Remove temp files left in ``folder`` by writes that were killed (``kill -9`` mid-write).
+
+    Only files older than ``min_age_s``: a write in flight in another process (an ``extract`` or
+    ``render`` of the same run) is seconds old and is left alone."""
+    import time
+
     folder = Path(folder)
     removed = []
     if not folder.is_dir():
         return removed
+    now = time.time()
     for p in folder.iterdir():
-        if p.is_file() and _TEMP_RE.match(p.name):
+        if p.is_file() and _TEMP_RE.match(p.name) and now - p.stat().st_mtime > min_age_s:
             try:
                 p.unlink()
                 removed.append(p)
@@ -234,15 +240,3 @@ def replacing_run(out, overwrite: bool):
         os.replace(aside, out)
         raise
     shutil.rmtree(aside, ignore_errors=True)
-
-
-def disk_free(path) -> int | None:
-    """Free bytes on the filesystem of ``path`` (or its nearest existing parent)."""
-    p = Path(path).absolute()
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    try:
-        st = os.statvfs(p)
-    except OSError:
-        return None
-    return st.f_bavail * st.f_frsize

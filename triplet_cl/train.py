@@ -419,7 +419,8 @@ class Trainer:
         last = self.checkpoint_hint()
         if exc.what == "gradient":
             why = ("the render/loss back-propagation produced NaN/Inf gradients (degenerate or huge triangles, "
-                   "overflowing lights?); nothing was updated")
+                   f"overflowing lights?; the learning rate of this group is {self.opt.lr(exc.group):.3g}: a large "
+                   "one makes the previous update diverge); nothing was updated")
         else:
             why = (f"the Adam update made it NaN/Inf: learning rate {self.opt.lr(exc.group, self.opt.t - 1):.3g} "
                    "of this group too large (diverging), or the parameters were already non-finite")
@@ -453,7 +454,9 @@ class Trainer:
 
         from .runs import remove_stale_temp_files
 
-        for folder in (self.run_dir, self.run_dir / "checkpoints"):
+        renders = self.run_dir / "renders"
+        for folder in (self.run_dir, self.run_dir / "checkpoints",
+                       *(sorted(renders.iterdir()) if renders.is_dir() else [])):
             remove_stale_temp_files(folder)
         self.check_finite("before training")
         old = signal.signal(signal.SIGINT, on_sigint)
