@@ -255,6 +255,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     run = Path(args.run)
     formats = parse_formats("--formats", args.formats)
+    if args.device:  # unused (export bakes on the CPU) but a wrong spec is still an error
+        from triplet_cl.device import resolve_spec
+
+        resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
@@ -364,6 +368,14 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print(f"triplet {args.command}: error: out of memory (reduce --init-points / --max-faces or the image "
               "size with --downscale)", file=sys.stderr)
+        return 2
+    except Exception as exc:  # an OpenCL allocation failure is one line too; anything else is a bug: traceback
+        from triplet_cl.validate import device_memory_message
+
+        msg = device_memory_message(exc)
+        if msg is None:
+            raise
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

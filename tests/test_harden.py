@@ -543,3 +543,31 @@ def test_diverging_learning_rate_is_stopped(tmp_path):
         tr.train()
     assert ei.value.group == "V" and "learning rate" in str(ei.value) and ei.value.iteration <= 3
     assert not (tmp_path / "r" / "triplets.ply").exists()
+
+
+def test_device_allocation_failure_is_one_line(run, capsys, monkeypatch):
+    import pyopencl as cl
+
+    from triplet_cl.device import get_device
+    from triplet_cl.validate import device_memory_message
+
+    dev = get_device()
+    ctx = getattr(dev, "context", None) or dev.ctx
+    with pytest.raises(cl.Error) as ei:
+        cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=2**50)
+    assert "--faces-per-pixel" in device_memory_message(ei.value)
+    assert device_memory_message(ValueError("x")) is None
+    import triplet_cl.train as train_mod
+
+    def boom(*a, **k):
+        raise ei.value
+
+    monkeypatch.setattr(train_mod, "render", boom)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    last = err.strip().splitlines()[-1]
+    assert rc == 2 and "cannot allocate" in last
+
+
+def test_export_device_spec_is_checked(run, capsys):
+    rc, err, _ = _run_cli(["export", run, "--device", "no-such-device-xyz"], capsys)
+    assert rc == 2 and "no-such-device-xyz" in err

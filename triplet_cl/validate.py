@@ -375,3 +375,21 @@ def os_error_message(exc: OSError) -> str:
 
 def run_error_for(path, exc: Exception) -> RunError:
     return RunError(path, f"{type(exc).__name__}: {exc}")
+
+
+def device_memory_message(exc: BaseException) -> str | None:
+    """One line for an OpenCL allocation failure (buffer too large, device or host out of memory);
+    None for any other exception (a bug keeps its traceback)."""
+    try:
+        import pyopencl as cl
+    except ImportError:  # pragma: no cover - pyopencl is a dependency
+        return None
+    if not isinstance(exc, cl.Error):
+        return None
+    codes = {cl.status_code.INVALID_BUFFER_SIZE, cl.status_code.MEM_OBJECT_ALLOCATION_FAILURE,
+             cl.status_code.OUT_OF_RESOURCES, cl.status_code.OUT_OF_HOST_MEMORY}
+    code = getattr(exc, "code", None)
+    if code not in codes:
+        return None
+    return (f"the OpenCL device cannot allocate the buffers ({exc}): lower --faces-per-pixel or --max-faces, "
+            "reduce the images with --downscale, or choose a device with more memory (--device)")
