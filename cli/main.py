@@ -348,13 +348,13 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
                    "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
-    for sp in sub.choices.values():  # `--format` must never silently mean `--formats`
-        sp.allow_abbrev = False
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
+        sp.allow_abbrev = False
     args = parser.parse_args(argv)
     try:
         validate_args(args)  # every option and path, before any work
