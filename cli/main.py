@@ -360,7 +360,8 @@ def main(argv: list[str] | None = None) -> int:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)
     except (TripletError, FileNotFoundError, ValueError) as exc:
-        print(f"triplet {args.command}: error: {exc}", file=sys.stderr)
+        msg = os_error_message(exc) if isinstance(exc, OSError) and exc.errno else exc  # raised by the OS
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except OSError as exc:  # not a folder, read-only, permission, no space left: one line
         print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)

@@ -43,7 +43,8 @@ def read_run_config(run_dir) -> dict:
     """``config.json`` of a run as ``{"data": str, "format": str, "train": dict, ...}``, checked."""
     path = Path(run_dir) / CONFIG
     if not Path(run_dir).is_dir():
-        raise RunError(run_dir, "is not a run directory (the folder does not exist)")
+        raise RunError(run_dir, "is not a run directory (" + ("it is a file, not a folder)" if Path(run_dir).exists()
+                                                              else "the folder does not exist)"))
     if not path.is_file():
         raise RunError(run_dir, f"is not a run directory (no {CONFIG})")
     try:
