@@ -110,6 +110,7 @@ BAD_MESH = {
     "mesh-faces 0": (["--mesh-faces", "0"], "--mesh-faces"),
     "texture-size -4": (["--texture-size", "-4"], "--texture-size"),
     "resolution 3": (["--mesh-resolution", "3"], "--mesh-resolution"),
+    "resolution 2048": (["--mesh-resolution", "2048"], "--mesh-resolution"),
     "supersample 9": (["--mesh-supersample", "9"], "--mesh-supersample"),
     "formats": (["--formats", "obj,fbx"], "--formats"),
 }
@@ -571,3 +572,11 @@ def test_device_allocation_failure_is_one_line(run, capsys, monkeypatch):
 def test_export_device_spec_is_checked(run, capsys):
     rc, err, _ = _run_cli(["export", run, "--device", "no-such-device-xyz"], capsys)
     assert rc == 2 and "no-such-device-xyz" in err
+
+
+def test_mesh_resolution_memory_is_checked(run, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 2**30)
+    rc, err, _ = _run_cli(["extract", run, "--mesh-resolution", "512"], capsys)
+    assert rc == 2 and "--mesh-resolution" in err and "GiB" in err

@@ -18,6 +18,7 @@ from pathlib import Path
 from .errors import RunError, UsageError
 
 K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the OpenCL layers)
+TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
 HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initialising; ×4 for training copies
 
 # option -> (args attribute, kind, low, high, what it is); None bound = unbounded
@@ -31,7 +32,7 @@ _INT_OPTIONS = {
     "--downscale": ("downscale", 1, 64),  # and the images must stay >= 4 px (Trainer checks the dataset)
     "--checkpoint-every": ("checkpoint_every", 0, None),
     "--keep-checkpoints": ("keep_checkpoints", 0, None),
-    "--mesh-resolution": ("mesh_resolution", 16, 2048),
+    "--mesh-resolution": ("mesh_resolution", 16, 1024),  # mesh.extract.tsdf_fusion's range; memory checked too
     "--mesh-faces": ("mesh_faces", 100, 50_000_000),
     "--mesh-rounds": ("mesh_rounds", 1, 100),
     "--mesh-iterations": ("mesh_iterations", 0, 10_000_000),
@@ -98,6 +99,12 @@ def _check_options(args) -> None:
                                               "--max-faces): density control would prune them at once; give at "
                                               "most the budget, or raise --max-faces")
         check_memory_for_points(init)
+    res = getattr(args, "mesh_resolution", None)
+    if res is not None:
+        need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
+        if avail is not None and need > 0.8 * avail:
+            raise UsageError("--mesh-resolution", f"a {res}³ TSDF needs about {need / 2**30:.1f} GiB of memory, this "
+                                                  f"machine has {avail / 2**30:.1f} GiB available")
 
 
 def check_memory_for_points(n: int) -> None:

@@ -103,8 +103,8 @@ class MeshConfig:
             raise ValueError(f"export formats must be a non-empty subset of glb, obj, ply; got {list(self.formats)}")
         if self.extract_faces is not None and self.extract_faces < 100:
             raise ValueError(f"mesh extract_faces (--mesh-faces) must be None or >= 100, got {self.extract_faces}")
-        if self.resolution is not None and not 16 <= self.resolution <= 2048:
-            raise ValueError(f"mesh resolution (--mesh-resolution) must be in [16, 2048], got {self.resolution}")
+        if self.resolution is not None and not 16 <= self.resolution <= 1024:
+            raise ValueError(f"mesh resolution (--mesh-resolution) must be in [16, 1024], got {self.resolution}")
         if not 16 <= self.texture_size <= 16384:
             raise ValueError(f"texture_size (--texture-size) must be in [16, 16384], got {self.texture_size}")
         if self.remesh_every < 0:
