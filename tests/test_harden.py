@@ -73,6 +73,7 @@ BAD_TRAIN = {
     "init 5M": (["--init-points", "5000000"], "--init-points"),
     "init 50M memory": (["--init-points", "50000000", "--max-faces", "60000000"], "--init-points"),
     "max-faces 0": (["--max-faces", "0"], "--max-faces"),
+    "max-faces memory": (["--max-faces", "2000000000"], "--max-faces"),
     "seed -1": (["--seed", "-1"], "--seed"),
     "iterations 0": (["--iterations", "0"], "--iterations"),
     "sh-degree 9": (["--sh-degree", "9"], "--sh-degree"),

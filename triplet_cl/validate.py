@@ -92,6 +92,8 @@ def _check_options(args) -> None:
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
     init, max_faces = getattr(args, "init_points", None), getattr(args, "max_faces", None)
+    if max_faces is not None:
+        check_memory_for_points(max_faces, "--max-faces")
     if init is not None:
         budget = max_faces if max_faces is not None else 200_000
         if init > budget:
@@ -107,13 +109,13 @@ def _check_options(args) -> None:
                                                   f"machine has {avail / 2**30:.1f} GiB available")
 
 
-def check_memory_for_points(n: int) -> None:
-    """Refuse ``--init-points`` whose estimated host memory exceeds what is available."""
+def check_memory_for_points(n: int, option: str = "--init-points") -> None:
+    """Refuse ``--init-points`` / ``--max-faces`` whose estimated host memory exceeds what is available."""
     need = n * HOST_BYTES_PER_INIT_POINT
     avail = available_memory()
     if avail is not None and need > 0.8 * avail:
-        raise UsageError("--init-points", f"{n} initial triangles need about {need / 2**30:.1f} GiB of memory, "
-                                          f"this machine has {avail / 2**30:.1f} GiB available")
+        raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, this machine has "
+                                 f"{avail / 2**30:.1f} GiB available")
 
 
 def available_memory() -> int | None:
