@@ -581,3 +581,11 @@ def test_mesh_resolution_memory_is_checked(run, capsys, monkeypatch):
     monkeypatch.setattr(val, "available_memory", lambda: 2**30)
     rc, err, _ = _run_cli(["extract", run, "--mesh-resolution", "512"], capsys)
     assert rc == 2 and "--mesh-resolution" in err and "GiB" in err
+
+
+def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--init-points", "150000"], capsys)
+    assert rc == 2 and "--init-points" in err and "GiB" in err and not (tmp_path / "o").exists()

@@ -92,8 +92,6 @@ def _check_options(args) -> None:
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
     init, max_faces = getattr(args, "init_points", None), getattr(args, "max_faces", None)
-    if max_faces is not None:
-        check_memory_for_points(max_faces, "--max-faces")
     if init is not None:
         budget = max_faces if max_faces is not None else 200_000
         if init > budget:
@@ -101,6 +99,8 @@ def _check_options(args) -> None:
                                               "--max-faces): density control would prune them at once; give at "
                                               "most the budget, or raise --max-faces")
         check_memory_for_points(init)
+    if max_faces is not None:
+        check_memory_for_points(max_faces, "--max-faces")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
