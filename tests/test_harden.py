@@ -589,3 +589,22 @@ def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)
     rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--init-points", "150000"], capsys)
     assert rc == 2 and "--init-points" in err and "GiB" in err and not (tmp_path / "o").exists()
+
+
+def test_atlas_padding_grows_with_the_texture(monkeypatch):
+    import triplet_cl.mesh.export as ex
+    from triplet_cl.lights import PointLight
+
+    seen = []
+    orig = ex.uv_atlas
+
+    def spy(V, F, size, padding):
+        seen.append((size, padding))
+        return orig(V, F, size, padding)
+
+    monkeypatch.setattr(ex, "uv_atlas", spy)
+    asset = _small_asset([PointLight([0, 3, 0], [1, 1, 1])])
+    for size in (64, 1024):
+        ex.bake_asset(asset, size)
+    ex.bake_asset(asset, 64, padding=3)
+    assert seen == [(64, 2), (1024, 4), (64, 3)]
