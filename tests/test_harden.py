@@ -608,3 +608,17 @@ def test_atlas_padding_grows_with_the_texture(monkeypatch):
         ex.bake_asset(asset, size)
     ex.bake_asset(asset, 64, padding=3)
     assert seen == [(64, 2), (1024, 4), (64, 3)]
+
+
+def test_checkpoint_from_before_a_new_config_field_still_resumes(run, capsys):
+    """A field added to TrainConfig later (absent from an old checkpoint's record) matches at its default."""
+    ck = run / "checkpoints" / "ckpt_0000004.npz"
+    with np.load(ck) as z:
+        a = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(a["meta"]).decode())
+    del meta["config"]["ssim_lambda"]
+    meta["config"]["a_field_since_removed"] = 1
+    a["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(ck, **a)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err

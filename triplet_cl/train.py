@@ -628,8 +628,13 @@ class Trainer:
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}
-            diff = [k for k in sorted(set(mine) | set(saved)) if json.dumps(mine.get(k), sort_keys=True)
-                    != json.dumps(saved.get(k), sort_keys=True)]
+            default = TrainConfig().to_dict()  # a field added since the checkpoint was written: its default matches
+
+            def same(k):
+                theirs = saved[k] if k in saved else default.get(k)
+                return json.dumps(mine.get(k), sort_keys=True) == json.dumps(theirs, sort_keys=True)
+
+            diff = [k for k in sorted(mine) if not same(k)]
             if diff:
                 shown = ", ".join(f"{k}: checkpoint {saved.get(k)!r}, config.json {mine.get(k)!r}" for k in diff[:4])
                 raise RunError(path, f"belongs to another configuration ({shown}); start a new run with "

@@ -382,10 +382,6 @@ def os_error_message(exc: OSError) -> str:
     return f"{name}: {what}" if name else what
 
 
-def run_error_for(path, exc: Exception) -> RunError:
-    return RunError(path, f"{type(exc).__name__}: {exc}")
-
-
 def device_memory_message(exc: BaseException) -> str | None:
     """One line for an OpenCL allocation failure (buffer too large, device or host out of memory);
     None for any other exception (a bug keeps its traceback)."""
