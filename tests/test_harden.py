@@ -295,6 +295,9 @@ def test_render_refuses_dataset_and_foreign_files(run, demo_copy, tmp_path, caps
         rc, err, _ = _run_cli(["render", run, "--out", fresh], capsys)
         assert rc == 0, err
     assert len(list(fresh.glob("*.png"))) == 8
+    # a folder inside a run holds triplet's renders (here the test renders, replaced by train views of the same names)
+    rc, err, _ = _run_cli(["render", run, "--split", "train", "--out", run / "renders" / "test"], capsys)
+    assert rc == 0, err
 
 
 def test_render_val_without_val_split_is_refused(run, tmp_path, capsys):

@@ -217,7 +217,9 @@ def foreign_files(folder, names) -> list[str]:
     """Of ``names`` (files triplet would write into ``folder``), those that exist and that triplet
     did not make (the folder is neither a run directory nor marked as a triplet output folder)."""
     folder = Path(folder)
-    if not folder.is_dir() or (folder / OUTPUT_MARKER).exists() or is_run_dir(folder):
+    if not folder.is_dir() or (folder / OUTPUT_MARKER).exists():
+        return []
+    if any(is_run_dir(p) for p in [folder, *list(folder.resolve().parents)[:3]]):  # a run's own folders
         return []
     return [n for n in names if (folder / n).exists()]
 
