@@ -295,6 +295,11 @@ def test_render_refuses_dataset_and_foreign_files(run, demo_copy, tmp_path, caps
         rc, err, _ = _run_cli(["render", run, "--out", fresh], capsys)
         assert rc == 0, err
     assert len(list(fresh.glob("*.png"))) == 8
+    # the manifest covers only what triplet wrote: a file of the user's added later is still refused
+    (fresh / "r_0.png").unlink()
+    (fresh / "r_10.png").write_bytes(b"mine")  # a train view's name, not rendered there yet
+    rc, err, _ = _run_cli(["render", run, "--split", "train", "--out", fresh], capsys)
+    assert rc == 2 and "r_10.png" in err and (fresh / "r_10.png").read_bytes() == b"mine"
     # a folder inside a run holds triplet's renders (here the test renders, replaced by train views of the same names)
     rc, err, _ = _run_cli(["render", run, "--split", "train", "--out", run / "renders" / "test"], capsys)
     assert rc == 0, err

@@ -21,7 +21,7 @@ from .errors import RunError
 
 CONFIG = "config.json"
 CHECKPOINTS = "checkpoints"
-OUTPUT_MARKER = ".triplet-output"  # a folder triplet writes renders/exports into (its files are triplet's)
+OUTPUT_MARKER = ".triplet-output"  # manifest of the files triplet wrote into a render/export folder
 _CKPT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
 # temp files of io.atomic_write_bytes / write_png (".<name>.<random>.tmp" / ".<stem>.<random>.png")
 _TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.(tmp|png)$")
@@ -204,24 +204,36 @@ def remove_stale_temp_files(folder, min_age_s: float = 120.0) -> list[Path]:
 
 
 # ---- outputs the user made -----------------------------------------------------------------------------
-def mark_output_dir(folder) -> None:
-    """Record that triplet writes into ``folder`` (its render/export files may be replaced later)."""
+def _manifest(folder: Path) -> set[str]:
+    try:
+        names = json.loads((folder / OUTPUT_MARKER).read_text(encoding="utf-8")).get("files", [])
+        return {str(n) for n in names}
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return set()
+
+
+def mark_output_dir(folder, names) -> None:
+    """Record in ``folder/.triplet-output`` the file ``names`` triplet is about to write there (they may
+    be replaced by triplet later; every other file of the folder stays the user's)."""
+    from .io import write_json
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    marker = folder / OUTPUT_MARKER
-    if not marker.exists():
-        marker.write_text("files in this folder were written by triplet_cl and may be replaced by it\n")
+    known = _manifest(folder) | {str(n) for n in names}
+    write_json(folder / OUTPUT_MARKER, {"written_by": "triplet_cl", "files": sorted(known)})
 
 
 def foreign_files(folder, names) -> list[str]:
     """Of ``names`` (files triplet would write into ``folder``), those that exist and that triplet
-    did not make (the folder is neither a run directory nor marked as a triplet output folder)."""
+    did not make: not listed in the folder's ``.triplet-output`` manifest, and the folder is not a run
+    directory (or inside one)."""
     folder = Path(folder)
-    if not folder.is_dir() or (folder / OUTPUT_MARKER).exists():
+    if not folder.is_dir():
         return []
     if any(is_run_dir(p) for p in [folder, *list(folder.resolve().parents)[:3]]):  # a run's own folders
         return []
-    return [n for n in names if (folder / n).exists()]
+    mine = _manifest(folder)
+    return [n for n in names if (folder / n).exists() and n not in mine]
 
 
 @contextlib.contextmanager

@@ -241,10 +241,11 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
                                             f"{', '.join(have)}")
     check_not_in_dataset(out, option, trainer.ds.root)
     if Path(out).resolve() != (trainer.run_dir / "renders" / split).resolve():
-        check_output_files(out, [f"{Path(v.name).name}.png" for v in views], option)
+        names = [f"{Path(v.name).name}.png" for v in views]
+        check_output_files(out, names, option)
         from .runs import mark_output_dir
 
-        mark_output_dir(out)  # the checks passed: the renders written there are triplet's
+        mark_output_dir(out, names)  # the checks passed: these files are triplet's from now on
 
 
 def check_export_out(out, formats, option: str) -> None:
@@ -257,7 +258,7 @@ def check_export_out(out, formats, option: str) -> None:
     from .runs import is_run_dir, mark_output_dir
 
     if not is_run_dir(out):
-        mark_output_dir(out)
+        mark_output_dir(out, names)
 
 
 # ---- the CLI entry -------------------------------------------------------------------------------------
