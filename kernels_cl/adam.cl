@@ -6,6 +6,7 @@
  *   m  = m · β1 + (1 − β1) · g
  *   v  = v · β2 + ((1 − β2) · g) · g
  *   x  = x − ((lr / (1 − β1^t)) · m) / (sqrt(v / (1 − β2^t)) + eps)
+ * `nonfinite` is set when a new x is NaN/Inf (Adam.step's finiteness guard).
  * FP_CONTRACT is off so no multiply-add is fused: the result matches numpy bit for bit where the
  * device's division and square root are correctly rounded (PoCL on the CPU), else to a few ulp.
  */
@@ -22,7 +23,8 @@ __kernel void adam_step(__global REAL* x,          // [n] parameter (updated)
                         const REAL beta2, const REAL one_minus_beta2,
                         const REAL step_size,      // lr / (1 − β1^t)
                         const REAL bias2,          // 1 − β2^t
-                        const REAL eps)
+                        const REAL eps,
+                        __global int* nonfinite)   // [1] set to 1 when an updated x is NaN/Inf
 {
     const int i = get_global_id(0);
     if (i >= n) return;
@@ -36,5 +38,7 @@ __kernel void adam_step(__global REAL* x,          // [n] parameter (updated)
     v[i] = vi;
     const REAL num = step_size * mi;
     const REAL den = sqrt(vi / bias2) + eps;
-    x[i] = x[i] - num / den;
+    const REAL xi = x[i] - num / den;
+    x[i] = xi;
+    if (!isfinite(xi)) *nonfinite = 1;  // every writer stores 1: no atomic needed
 }

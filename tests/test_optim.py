@@ -262,3 +262,27 @@ def test_device_adam_matches_numpy(device, rng, dtype):
     opt_c.load_state_dict(state)
     b = (ps_c, opt_c)
     run(3)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # the deliberate overflow
+def test_device_adam_finiteness_guard(device):
+    """The kernel flags a parameter the update made NaN/Inf: NonFiniteStep("parameter") after the
+    step, as the numpy path raises it; a NaN gradient stops both before any update."""
+    from triplet_cl.optim import NonFiniteStep
+
+    for dev in (None, device):
+        a, b = Param(np.ones((4, 3), np.float32), "a"), Param(np.ones((5, 2), np.float32), "b")
+        opt = Adam(device=dev)
+        opt.add_group("a", [a], lr=0.1)
+        opt.add_group("b", [b], lr=1e39)  # inf once rounded to float32: the update overflows
+        a.grad, b.grad = np.ones((4, 3), np.float32), np.ones((5, 2), np.float32)
+        with pytest.raises(NonFiniteStep) as ei:
+            opt.step()
+        assert (ei.value.group, ei.value.what) == ("b", "parameter")
+        assert np.isfinite(a.data).all() and not np.isfinite(b.data).all()
+        a.grad, b.grad = np.full((4, 3), np.nan, np.float32), np.ones((5, 2), np.float32)
+        before = a.data.copy()
+        with pytest.raises(NonFiniteStep) as ei:
+            opt.step()
+        assert (ei.value.group, ei.value.what) == ("a", "gradient")
+        np.testing.assert_array_equal(a.data, before)

@@ -154,6 +154,14 @@ class ParamGroup:
         return int(self.params[0].data.shape[0]) if self.params and self.params[0].data.ndim else 0
 
 
+class NonFiniteStep(ArithmeticError):
+    """A NaN/Inf gradient (before the update: nothing changed) or parameter (after it) in ``group``."""
+
+    def __init__(self, group: str, what: str):
+        self.group, self.what = group, what
+        super().__init__(f"non-finite {what} in parameter group {group!r}")
+
+
 class Adam:
     """Adam with named parameter groups (see the module docstring for the exact update).
 
@@ -215,16 +223,26 @@ class Adam:
                 p.grad = None
 
     def step(self) -> None:
-        """One Adam update of every parameter that has a gradient."""
-        self.t += 1
+        """One Adam update of every parameter that has a gradient.
+
+        Finiteness guard: a NaN/Inf gradient (seen in the group's gradient norm, which is computed
+        anyway) raises :class:`NonFiniteStep` before **any** parameter is updated; a parameter that
+        becomes NaN/Inf by the update raises it after the step (``what == "parameter"``)."""
+        per_group = []
         for g in self.groups.values():
-            lr = g.schedule(self.t - 1)
             grads = [None if p.grad is None else to_host(p.grad) for p in g.params]
             for p, gr in zip(g.params, grads, strict=True):
                 if gr is not None and gr.shape != p.data.shape:
                     raise ValueError(f"gradient of {getattr(p, 'name', 'a parameter')} in group {g.name!r} has shape "
                                      f"{list(gr.shape)}, expected {list(p.data.shape)}")
             norm = math.sqrt(sum(float(np.sum(np.square(gr, dtype=np.float64))) for gr in grads if gr is not None))
+            if not math.isfinite(norm):
+                raise NonFiniteStep(g.name, "gradient")
+            per_group.append((g, grads, norm))
+        self.t += 1
+        bad = None
+        for g, grads, norm in per_group:
+            lr = g.schedule(self.t - 1)
             g.last_grad_norm = norm
             coef = 1.0
             if g.max_grad_norm is not None and norm > g.max_grad_norm:
@@ -235,7 +253,10 @@ class Adam:
                 if gr is None:
                     continue
                 if self._on_device(p.data, g.exp_avg[k], g.exp_avg_sq[k]):
-                    self._step_device(p.data, g.exp_avg[k], g.exp_avg_sq[k], gr, coef, b1, b2, lr / bc1, bc2, g.eps)
+                    finite = self._step_device(p.data, g.exp_avg[k], g.exp_avg_sq[k], gr, coef, b1, b2, lr / bc1,
+                                               bc2, g.eps)
+                    if bad is None and not finite:
+                        bad = g.name
                     continue
                 gr = gr.astype(p.data.dtype, copy=False) * coef
                 m, v = g.exp_avg[k], g.exp_avg_sq[k]
@@ -244,6 +265,10 @@ class Adam:
                 v *= b2
                 v += (1.0 - b2) * gr * gr
                 p.data -= (lr / bc1) * m / (np.sqrt(v / bc2) + g.eps)
+                if bad is None and not np.isfinite(p.data).all():
+                    bad = g.name
+        if bad is not None:
+            raise NonFiniteStep(bad, "parameter")
 
     def _on_device(self, *arrays) -> bool:
         """Whether this update runs as the kernel: a device is set, the arrays are non-empty,
@@ -255,10 +280,11 @@ class Adam:
             return False
         return all(a.dtype == dt and a.flags.c_contiguous for a in arrays)
 
-    def _step_device(self, x, m, v, gr, coef, b1, b2, step_size, bc2, eps) -> None:
+    def _step_device(self, x, m, v, gr, coef, b1, b2, step_size, bc2, eps) -> bool:
         """The update of one parameter as the ``adam_step`` kernel; ``x``, ``m``, ``v`` (numpy) are
         updated in place. Scalars are rounded to the parameter's dtype on the host first, as numpy
-        does with a python float against an array of that dtype."""
+        does with a python float against an array of that dtype. Returns whether every updated
+        parameter is finite (the kernel flags NaN/Inf results: the finiteness guard without a host pass)."""
         import pyopencl as cl
 
         from .ops.common import run_1d
@@ -270,12 +296,16 @@ class Adam:
         # them after the kernel hands the results back on any device
         bufs = [cl.Buffer(d.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=a) for a in (x, m, v)]
         gbuf = cl.Buffer(d.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=gr)
-        run_1d(d, d.kernel("adam", "adam_step", real=x.dtype), x.size, *bufs, gbuf, np.int32(x.size),
-               real(coef), real(b1), real(1.0 - b1), real(b2), real(1.0 - b2), real(step_size), real(bc2), real(eps))
-        for host, buf in zip((x, m, v), bufs, strict=True):
+        flag = np.zeros(1, np.int32)
+        bufs.append(cl.Buffer(d.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=flag))
+        run_1d(d, d.kernel("adam", "adam_step", real=x.dtype), x.size, *bufs[:3], gbuf, np.int32(x.size),
+               real(coef), real(b1), real(1.0 - b1), real(b2), real(1.0 - b2), real(step_size), real(bc2), real(eps),
+               bufs[3])
+        for host, buf in zip((x, m, v, flag), bufs, strict=True):
             mapped, _ = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, host.shape, host.dtype)
             mapped.base.release(q)
         q.finish()
+        return not flag[0]
 
     # ---- density control ----------------------------------------------------------------------
     def remap(self, group_name: str, index_map, new_rows=None) -> None:
