@@ -217,10 +217,12 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     return Scene.from_arrays(V, F, lights=lights, vertex_sh=vsh, brdf=cfg.brdf)
 
 
-def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float, device: Device | None = None) -> Adam:
-    """Adam with one group per parameter family and the configured learning-rate schedules (the update
-    as the adam.cl kernel on ``device`` when given, bit for bit the numpy one)."""
-    opt = Adam(device=device)
+def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
+    """Adam with one group per parameter family and the configured learning-rate schedules."""
+    # numpy, not Adam(device=...): with the parameters on the host the kernel measured slower on PoCL
+    # (a launch per parameter, buffer set-up, hand-offs to the pool threads vs ~2.5 ms of numpy at 60k
+    # vertices); tests/test_optim.py keeps it bit for bit for when the parameters live on the device
+    opt = Adam()
     kw = {"betas": tuple(cfg.betas), "eps": cfg.adam_eps}
     opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
                                                       cfg.lr_position_steps), **kw)
@@ -329,7 +331,7 @@ class Trainer:
         self.extent = self.ds.scene_extent()
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
-        self.opt = build_optimizer(self.cfg, self.scene, self.extent, self.device)
+        self.opt = build_optimizer(self.cfg, self.scene, self.extent)
         self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
         self.targets = Targets(self.ds)
@@ -374,7 +376,8 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # the losses.cl kernels (upload, two filter passes each way, download): 3-4x the host SSIM at 200²
+        # the losses.cl kernels (upload, two filter passes each way, download): 2-3x the host SSIM at 200²
+        # inside the loop (bench/train_step.py)
         loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="opencl")
         t2 = time.perf_counter()
         r.backward(v_img)
