@@ -145,3 +145,20 @@ def test_opencl_backend_gradcheck_and_float32(device64, rng):
     assert value == pytest.approx(ref_value, rel=1e-5)
     assert v_pred.dtype == np.float32
     np.testing.assert_allclose(v_pred.get(), ref_v, rtol=1e-3, atol=1e-6 * np.abs(ref_v).max())
+
+
+def test_loss_backend_by_size(device, rng):
+    """The training loop's choice: numpy for small images, the kernels from DEVICE_LOSS_MIN_PIXELS on;
+    both give the same loss and adjoint on a host image at the threshold size."""
+    from triplet_cl.losses import DEVICE_LOSS_MIN_PIXELS, loss_backend, photometric_loss_and_grad
+
+    assert loss_backend((96, 96, 3)) == "numpy" and loss_backend((24, 24, 3)) == "numpy"
+    assert loss_backend((97, 96, 3)) == "opencl" and loss_backend((200, 200, 3)) == "opencl"
+    assert 96 * 96 < DEVICE_LOSS_MIN_PIXELS <= 97 * 96
+    a = rng.random((97, 96, 3)).astype(np.float32)
+    b = rng.random((97, 96, 3)).astype(np.float32)
+    la, ga = photometric_loss_and_grad(a, b, backend="numpy")
+    lb, gb = photometric_loss_and_grad(a, b, backend=loss_backend(a.shape))
+    assert isinstance(gb, np.ndarray) and gb.shape == a.shape
+    assert abs(la - lb) <= 1e-5
+    np.testing.assert_allclose(gb, ga, rtol=1e-3, atol=1e-8)

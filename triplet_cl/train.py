@@ -33,7 +33,7 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
-from .losses import photometric_loss_and_grad, ssim
+from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
@@ -376,9 +376,9 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # the losses.cl kernels (upload, two filter passes each way, download): 2-3x the host SSIM at 200²
-        # inside the loop (bench/train_step.py)
-        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="opencl")
+        # above 96² the losses.cl kernels (upload, kernels, download): 2-3x the host SSIM at 200² in the loop
+        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda,
+                                                backend=loss_backend(target.shape))
         t2 = time.perf_counter()
         r.backward(v_img)
         t3 = time.perf_counter()
