@@ -154,14 +154,65 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
     from triplet_cl.io import write_json
 
+    run = Path(args.run)
+    spec = None
+    if args.relight:
+        spec = Path(args.relight)
+        spec = spec / "relight.json" if spec.is_dir() else spec
+        if not spec.is_file():
+            raise FileNotFoundError(f"--relight {args.relight}: expected a folder holding relight.json (or the file "
+                                    f"itself); {spec} does not exist")
+        from triplet_cl.relight import load_light_sets
+
+        load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
     tr = _load_run(args)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
-    write_json(Path(args.run) / "metrics.json", m)
-    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views -> "
-          f"{Path(args.run) / 'metrics.json'}")
+    path = run / "metrics.json"
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    old = old if isinstance(old, dict) else {}
+    merged = {**old, **m}  # the other sections ("mesh", timings, "relight") stay
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views")
+    if spec is not None:
+        from triplet_cl.relight import Relighter, evaluate_relight
+
+        stages = ["soup"] + (["mesh"] if (run / "mesh_stage.npz").is_file() else [])
+        rel = dict(merged.get("relight") or {})
+        for stage in stages:
+            rl = Relighter(tr, stage, args.renderer)
+            out_dir = Path(args.out) / stage if args.out else None
+            r = evaluate_relight(rl, spec.parent, args.env_degree, out_dir)
+            rel[stage] = r
+            sets = ", ".join(f"{k} {v['psnr']:.2f} dB" for k, v in r["sets"].items())
+            alb = r.get("albedo")
+            alb = f"; albedo {alb['psnr_raw']:.2f} / {alb['psnr_scaled']:.2f} dB (raw / scaled)" if alb else ""
+            print(f"relight ({stage}, {rl.renderer}): {sets}{alb}")
+        merged["relight"] = rel
+    write_json(path, merged)
+    print(f"-> {path}")
+    return 0
+
+
+def cmd_relight(args: argparse.Namespace) -> int:
+    from triplet_cl.relight import Relighter, load_light_sets, relight_run
+
+    sets = load_light_sets(args.lights, args.env_degree)  # a bad light file fails before the run is loaded
+    run = Path(args.run)
+    if args.out is not None and Path(args.out).is_file():
+        raise ValueError(f"--out {args.out} is a file; expected a folder")
+    tr = _load_run(args)
+    rl = Relighter(tr, args.stage, args.renderer)
+    for ls in sets:
+        base = Path(args.out) if args.out else run / "relight"
+        out = base / ls.name if (len(sets) > 1 or not args.out) else base
+        paths = relight_run(rl, ls, out, args.split)
+        kinds = ", ".join(type(lt).__name__ for lt in ls.lights)
+        print(f"relit {len(paths)} {args.split} views of the {rl.stage_name} under {ls.name!r} ({kinds}; "
+              f"{rl.renderer}) -> {out}")
     return 0
 
 
@@ -237,14 +288,15 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
-    from triplet_cl.mesh.refine import MESH_STATE, export_run_mesh, load_mesh_state
+    from triplet_cl.mesh.refine import MESH_STATE, albedo_space, export_run_mesh, load_mesh_state, run_color
 
     run = Path(args.run)
     if not (run / "config.json").is_file():
         raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), _formats(args.format), args.texture_size)
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), _formats(args.format), args.texture_size,
+                            albedo_space=albedo_space(run_color(run)))
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 
@@ -304,10 +356,33 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help=dev_help)
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean)")
+    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean; other "
+                       "sections are kept)")
     e.add_argument("run", help="run directory")
+    e.add_argument("--relight", help="folder with relight.json (light sets + reference images + albedo/): relit "
+                   "PSNR/SSIM per set and albedo PSNR (raw / per-channel scaled) of soup and mesh, under \"relight\"")
+    e.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer of the relit views "
+                   "(default: as `triplet relight`)")
+    e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                   "(default 4)")
+    e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
     e.add_argument("--device", default=None, help=dev_help)
     e.set_defaults(func=cmd_eval)
+
+    lt = sub.add_parser("relight", help="render a run (its refined mesh, else the soup) under other lights")
+    lt.add_argument("run", help="run directory")
+    lt.add_argument("--lights", required=True, help="light file: a relight.json (FILE#set picks one of its sets; "
+                    "without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
+    lt.add_argument("--split", default="test", choices=["test", "train", "val"], help="views to render (default test)")
+    lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
+    lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
+                    "soup, raster for the mesh; hybrid gives cast shadows)")
+    lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
+                    "the refined mesh when the run has one, else the soup)")
+    lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                    "(default 4: see README, Relighting)")
+    lt.add_argument("--device", default=None, help=dev_help)
+    lt.set_defaults(func=cmd_relight)
 
     x = sub.add_parser("extract", help="soup → connected mesh: extract, refine as a mesh, export PBR assets")
     x.add_argument("run", help="run directory of a trained soup")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from triplet_cl.autodiff import Param, Tape
 
 from tests.gradients import cs_grad, fd_grad
 from tests.reference import color as ref
-from triplet_cl.autodiff import Param, Tape
 from triplet_cl.ops import color
 
 BG = np.array([1.0, 0.3, 0.0])

@@ -37,12 +37,12 @@ from .autodiff import Function, Tape, Variable, active_tape
 from .camera import Camera
 from .device import Device, get_device
 from .ops import columns
-from .ops.color import SRGBComposite
 from .ops import normals as normals_op
 from .ops import shade as shade_op
 from .ops import trace as trace_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
+from .ops.color import SRGBComposite
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh

@@ -39,6 +39,7 @@ from .scene import Scene
 from .topology import morton_order
 
 LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
+COLOR_PIPELINES = ("linear", "encoded")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -91,6 +92,11 @@ class TrainConfig:
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     downscale: int = 1  # dataset images reduced by this integer factor at load time
     max_test_views: int | None = None  # evaluate only the first N test views (None: all)
+    # "linear": shading, lights and compositing in linear radiance, the photos' sRGB transfer after compositing
+    # (8/16-bit datasets; linear EXR/HDR datasets skip it), albedo = linear reflectance. "encoded": the renderer
+    # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
+    # this key is such a run)
+    color: str = "linear"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -110,6 +116,7 @@ class TrainConfig:
         for k in ("lights", "betas"):
             if k in d:
                 d[k] = tuple(d[k])
+        d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
         return cls(**d)
 
     def validate(self) -> None:
@@ -122,6 +129,8 @@ class TrainConfig:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.color not in COLOR_PIPELINES:
+            raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
         resolve_background(self.background)
@@ -326,6 +335,11 @@ class Trainer:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
 
+    @property
+    def transfer(self) -> str | None:
+        """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos."""
+        return color_transfer(self.cfg.color, self.ds.color_space)
+
     def spatial_sort(self) -> None:
         """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
         V = self.scene.V.data.reshape(-1, 3, 3)
@@ -348,7 +362,7 @@ class Trainer:
         cam, target = self.targets.get(i, scale, np.asarray(bg, np.float32))
         settings = RenderSettings(K=K, sigma=cfg.sigma, background=tuple(float(x) for x in bg),
                                   sh_degree=deg if self.scene.vertex_sh is not None else None,
-                                  renderer=cfg.renderer)
+                                  renderer=cfg.renderer, transfer=self.transfer)
         t0 = time.perf_counter()
         r = render(self.scene, cam, settings, self.device)
         t1 = time.perf_counter()
@@ -463,7 +477,7 @@ class Trainer:
         bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
                         np.float32)
         settings = RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, background=tuple(bg),
-                                  renderer=self.cfg.renderer,
+                                  renderer=self.cfg.renderer, transfer=self.transfer,
                                   sh_degree=min(self.cfg.sh_degree, self.it // max(self.cfg.sh_band_every, 1))
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
@@ -544,6 +558,12 @@ class Trainer:
         self.last_alpha_reset = meta.get("last_alpha_reset")
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
+
+
+def color_transfer(color: str, color_space: str) -> str | None:
+    """The post-compositing transfer of a run's colour pipeline (``TrainConfig.color``) on a dataset whose
+    images are ``color_space`` (``"srgb"`` or ``"linear"``)."""
+    return "srgb" if color == "linear" and color_space == "srgb" else None
 
 
 def _json_default(o):
