@@ -44,7 +44,8 @@ def test_every_light_type_and_named_sets(tmp_path):
     sets = load_light_sets(p, env_degree=2)
     assert [s.name for s in sets] == ["a", "b"]
     pt, dl = sets[0].lights
-    assert isinstance(pt, PointLight) and pt.falloff and np.allclose(pt.intensity, 20) and np.allclose(pt.position, [1, 2, 3])
+    assert isinstance(pt, PointLight) and pt.falloff and np.allclose(pt.intensity, 20)
+    assert np.allclose(pt.position, [1, 2, 3])
     assert isinstance(dl, DirectionalLight) and np.allclose(dl.direction, [0, 1, 0])  # towards the light
     assert np.allclose(dl.intensity, [1, 2, 3]) and sets[0].images == sub / "a"
     (sh,) = sets[1].lights  # the constant and the map share one SH environment
@@ -70,7 +71,8 @@ def test_bare_list_and_a_runs_own_lights_json(tmp_path):
 
 
 @pytest.mark.parametrize(("doc", "field", "what"), [
-    ({"sets": {"a": {"lights": [{"type": "spot", "position": [0, 0, 0]}]}}}, "sets.a.lights[0].type", "expected one of"),
+    ({"sets": {"a": {"lights": [{"type": "spot", "position": [0, 0, 0]}]}}}, "sets.a.lights[0].type",
+     "expected one of"),
     ({"lights": [{"type": "point", "position": [0, 0], "intensity": 1}]}, "lights[0].position", "3 numbers"),
     ({"lights": [{"type": "point", "intensity": 1}]}, "lights[0].position", "missing"),
     ({"lights": [{"type": "directional", "direction": [0, 0, 0], "irradiance": 1}]}, "lights[0].direction", "zero"),
