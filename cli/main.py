@@ -364,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer of the relit views "
                    "(default: as `triplet relight`)")
     e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
-                   "(default 4)")
+                   "(default 8)")
     e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
     e.add_argument("--device", default=None, help=dev_help)
     e.set_defaults(func=cmd_eval)
@@ -380,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
     lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
                     "the refined mesh when the run has one, else the soup)")
     lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
-                    "(default 4: see README, Relighting)")
+                    "(default 8: see README, Relighting)")
     lt.add_argument("--device", default=None, help=dev_help)
     lt.set_defaults(func=cmd_relight)
 
