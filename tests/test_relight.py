@@ -137,3 +137,111 @@ def test_albedo_metric_on_a_known_scale(rng):
     assert albedo_psnr(p, gt, mask)["psnr_raw"] == float("inf")
     with pytest.raises(ValueError, match="covers no pixel"):
         albedo_psnr(p, gt, np.zeros_like(mask))
+
+
+# ---------------------------------------------------------------------------------------------- on a trained run
+
+
+@pytest.fixture(scope="module")
+def relit_run(tmp_path_factory):
+    """A short soup run on the demo data; its own-light relight before the mesh stage, then a tiny mesh stage."""
+    from tests.test_mesh_stage import tiny_mesh_cfg
+    from tests.test_train import small_cfg
+    from triplet_cl.cli.main import demo_data_path
+    from triplet_cl.cli.main import main as cli_main
+    from triplet_cl.mesh.refine import MeshStage
+    from triplet_cl.train import Trainer
+
+    run = tmp_path_factory.mktemp("relight") / "run"
+    tr = Trainer(demo_data_path(), run, small_cfg(iterations=60, init_points=2000), quiet=True)
+    tr.train()
+    soup_out = run.parent / "soup_own"
+    assert cli_main(["relight", str(run), "--lights", str(run / "lights.json"), "--out", str(soup_out)]) == 0
+    MeshStage(tr, tiny_mesh_cfg(iterations=12, remesh_every=0)).run()
+    return run, soup_out
+
+
+def _read(p):
+    from triplet_cl.datasets.images import read_image
+
+    im = read_image(p)
+    return im.rgb, im.alpha
+
+
+def test_relight_under_its_own_lights_reproduces_the_test_renders(relit_run):
+    from triplet_cl.cli.main import main as cli_main
+
+    run, soup_out = relit_run
+    assert json.loads((run / "config.json").read_text())["train"]["color"] == "linear"
+    names = sorted(p.name for p in (run / "renders" / "test").glob("*.png"))
+    assert names and names == sorted(p.name for p in soup_out.glob("*.png"))
+    for n in names:  # soup: the same image, up to the 8-bit rounding of both files
+        (a, aa), (b, ba) = _read(run / "renders" / "test" / n), _read(soup_out / n)
+        assert np.abs(aa - ba).max() <= 1 / 255 + 1e-6
+        cover = aa > 0.05
+        assert np.abs(a - b)[cover].max() <= 2 / 255 + 1e-6, n
+    mesh_out = run.parent / "mesh_own"  # the mesh (auto: the run has one) under the mesh stage's lights.json
+    assert cli_main(["relight", str(run), "--lights", str(run / "lights.json"), "--out", str(mesh_out)]) == 0
+    for n in names:
+        (a, aa), (b, ba) = _read(run / "renders" / "mesh" / n), _read(mesh_out / n)
+        assert np.abs(aa - ba).max() <= 1 / 255 + 1e-6
+        assert np.abs(a - b)[aa > 0.05].max() <= 2 / 255 + 1e-6, n
+
+
+def test_eval_relight_writes_its_section_and_keeps_the_others(relit_run, tmp_path, capsys):
+    """A relight folder whose one set is the run's own (mesh) lights and images: near-perfect relit PSNR; the
+    albedo folder is the base colour rendered by the run itself, scaled: raw PSNR drops, scaled PSNR does not."""
+    import shutil
+
+    from triplet_cl.cli.main import main as cli_main
+    from triplet_cl.io import write_png
+    from triplet_cl.ops.color import srgb_decode, srgb_encode
+
+    run, _ = relit_run
+    rdir = tmp_path / "relight"
+    shutil.copytree(run / "renders" / "mesh", rdir / "own")
+    own_lights = json.loads((run / "lights.json").read_text())["lights"]
+    (rdir / "relight.json").write_text(json.dumps({"sets": {"own": {"lights": own_lights, "images": "own"}},
+                                                   "albedo": "albedo"}))
+    # the albedo reference: the run's own base colour × a per-channel scale (in linear values)
+    from triplet_cl.relight import Relighter
+    from triplet_cl.train import Trainer
+
+    tr = Trainer(None, run, resume=True, quiet=True)
+    rl = Relighter(tr)
+    scale = np.array([0.6, 0.9, 0.75])
+    for v in tr.ds["test"][: tr.cfg.max_test_views]:
+        rgb, a = rl.render_albedo(v.camera)
+        write_png(rdir / "albedo" / f"{v.name.split('/')[-1]}.png", srgb_encode(srgb_decode(np.clip(rgb, 0, 1)) * scale),
+                  np.clip(a, 0, 1))
+    before = json.loads((run / "metrics.json").read_text())
+    assert cli_main(["eval", str(run), "--relight", str(rdir)]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["mesh"] == before["mesh"] and m["wall_time_s"] == before["wall_time_s"]  # other sections kept
+    for stage in ("soup", "mesh"):
+        assert set(m["relight"][stage]["sets"]) == {"own"}
+    assert m["relight"]["mesh"]["sets"]["own"]["psnr"] > 45  # the mesh under its own lights: its own renders
+    alb = m["relight"]["mesh"]["albedo"]
+    assert alb["psnr_scaled"] > alb["psnr_raw"] + 5 and alb["psnr_scaled"] > 35
+    np.testing.assert_allclose(alb["scale"], scale, rtol=0.05)
+    # a bad light file: one clear error, exit status 2, metrics untouched
+    (rdir / "relight.json").write_text(json.dumps({"sets": {"own": {"lights": [{"type": "point"}]}}}))
+    capsys.readouterr()
+    assert cli_main(["eval", str(run), "--relight", str(rdir)]) == 2
+    err = capsys.readouterr().err
+    assert "relight.json" in err and "sets.own.lights[0].position" in err
+    assert json.loads((run / "metrics.json").read_text()) == m
+
+
+def test_runs_before_the_linear_pipeline_stay_encoded():
+    from triplet_cl.train import TrainConfig, color_transfer
+
+    old = TrainConfig().to_dict()
+    del old["color"]
+    assert TrainConfig.from_dict(old).color == "encoded" and TrainConfig().color == "linear"
+    assert color_transfer("encoded", "srgb") is None and color_transfer("linear", "srgb") == "srgb"
+    assert color_transfer("linear", "linear") is None
+    with pytest.raises(ValueError, match="color must be one of"):
+        from dataclasses import replace
+
+        replace(TrainConfig(), color="gamma").validate()
