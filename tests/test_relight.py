@@ -145,10 +145,11 @@ def test_albedo_metric_on_a_known_scale(rng):
 @pytest.fixture(scope="module")
 def relit_run(tmp_path_factory):
     """A short soup run on the demo data; its own-light relight before the mesh stage, then a tiny mesh stage."""
-    from tests.test_mesh_stage import tiny_mesh_cfg
-    from tests.test_train import small_cfg
     from triplet_cl.cli.main import demo_data_path
     from triplet_cl.cli.main import main as cli_main
+
+    from tests.test_mesh_stage import tiny_mesh_cfg
+    from tests.test_train import small_cfg
     from triplet_cl.mesh.refine import MeshStage
     from triplet_cl.train import Trainer
 
@@ -194,6 +195,7 @@ def test_eval_relight_writes_its_section_and_keeps_the_others(relit_run, tmp_pat
     import shutil
 
     from triplet_cl.cli.main import main as cli_main
+
     from triplet_cl.io import write_png
     from triplet_cl.ops.color import srgb_decode, srgb_encode
 
@@ -212,8 +214,8 @@ def test_eval_relight_writes_its_section_and_keeps_the_others(relit_run, tmp_pat
     scale = np.array([0.6, 0.9, 0.75])
     for v in tr.ds["test"][: tr.cfg.max_test_views]:
         rgb, a = rl.render_albedo(v.camera)
-        write_png(rdir / "albedo" / f"{v.name.split('/')[-1]}.png", srgb_encode(srgb_decode(np.clip(rgb, 0, 1)) * scale),
-                  np.clip(a, 0, 1))
+        ref = srgb_encode(srgb_decode(np.clip(rgb, 0, 1)) * scale)
+        write_png(rdir / "albedo" / f"{v.name.split('/')[-1]}.png", ref, np.clip(a, 0, 1))
     before = json.loads((run / "metrics.json").read_text())
     assert cli_main(["eval", str(run), "--relight", str(rdir)]) == 0
     m = json.loads((run / "metrics.json").read_text())
