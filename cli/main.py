@@ -83,6 +83,8 @@ def _config_from_args(args: argparse.Namespace):
         over["checkpoint_every"] = args.checkpoint_every
     if args.renderer:
         over["renderer"] = args.renderer
+    if getattr(args, "color", None):
+        over["color"] = args.color
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -342,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
+    t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
+                   "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
     _add_mesh_options(t)
