@@ -247,3 +247,21 @@ def test_runs_before_the_linear_pipeline_stay_encoded():
         from dataclasses import replace
 
         replace(TrainConfig(), color="gamma").validate()
+
+
+def test_a_linear_runs_exports_encode_the_albedo(relit_run):
+    """The base-colour texture of a linear-pipeline run holds s(albedo) (glTF's sRGB convention), not the albedo."""
+    import trimesh
+
+    from triplet_cl.mesh.asset import MeshAsset
+    from triplet_cl.mesh.refine import MESH_STATE, albedo_space, load_mesh_state, run_color
+    from triplet_cl.ops.color import srgb_encode
+
+    run, _ = relit_run
+    assert run_color(run) == "linear" and albedo_space("linear") == "linear" and albedo_space("encoded") == "srgb"
+    alb = MeshAsset.from_scene(load_mesh_state(run / MESH_STATE)).attributes["albedo"]
+    g = list(trimesh.load(run / "mesh.glb", process=False).geometry.values())[0]
+    tex = np.asarray(g.visual.material.baseColorTexture.convert("RGB"), np.float64) / 255
+    enc, raw = np.median(srgb_encode(alb)), np.median(alb)
+    assert abs(enc - raw) > 0.1  # the check can tell them apart
+    assert abs(np.median(tex) - enc) < 0.25 * abs(enc - raw), (np.median(tex), enc, raw)
