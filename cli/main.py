@@ -9,6 +9,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.errors import TripletError
+from triplet_cl.lights import LIGHT_KINDS
 
 
 def _gib(n: int) -> str:
@@ -278,8 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
     t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
-    t.add_argument("--lights", help="comma-separated mix of point,directional,ambient,sh-env,vertex-sh "
-                                    "(default point,ambient)")
+    t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")

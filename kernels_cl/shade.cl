@@ -40,18 +40,11 @@
 #include "shade_math.h"
 #include "sh.h"
 #include "shade_brdf.h"
+#include "lights.h"
 
 #ifndef RED_W
 #define RED_W 16
 #endif
-#define POINT_D2_EPS ((REAL)1e-6)
-
-inline int light_nparams(const int type, const int a)
-{
-    if (type == LIGHT_AMBIENT) return 3;
-    if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) return 6;
-    return 0;
-}
 
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
@@ -101,24 +94,14 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
     for (int li = 0; li < L; ++li) {
         const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
         __global const REAL* q = lt_f + off;
-        if (type == LIGHT_AMBIENT) {
-            out += ambient_term(LOAD_RGB(q, 0), m);
-        } else if (type == LIGHT_DIRECTIONAL) {
-            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-            ++jv;
-            out += brdf_direct(N, V, safe_normalize(LOAD_RGB(q, 0)), LOAD_RGB(q, 3) * tv, m);
-        } else if (type == LIGHT_POINT) {
-            const REAL3 w = LOAD_RGB(q, 0) - x;
-            const REAL sc = a ? (REAL)1 / fmax(dot(w, w), POINT_D2_EPS) : (REAL)1;
-            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-            ++jv;
-            out += brdf_direct(N, V, safe_normalize(w), LOAD_RGB(q, 3) * (sc * tv), m);
-        } else if (type == LIGHT_SH_ENV) {
-            out += env_term(N, V, m, a, q, b);
-        } else if (type == LIGHT_VERTEX_SH) {
-            const REAL3 rad = LOAD_RGB(vlight, 6 * p), wi = LOAD_RGB(vlight, 6 * p + 3);
-            out += brdf_direct(N, V, safe_normalize(wi), rad, m);
-        }
+        const int shadowed = light_casts_shadows(type);
+        const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
+        jv += shadowed;
+        REAL3 L, Li;
+        const int term = light_incident(type, a, q, x, vlight, p, tv, &L, &Li);
+        if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, L, Li, m);
+        else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(Li, m);
+        else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
     }
     if (has_refl) {
         REAL3 s_d, s_g;
@@ -193,7 +176,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
     for (int li = 0; li < L; ++li) {
         const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
         __global const REAL* q = lt_f + off;
-        if (type == LIGHT_SH_ENV) {
+        const int shadowed = light_casts_shadows(type);
+        if (light_term(type) == LIGHT_TERM_SH_ENV) {
             const int nk = (a + 1) * (a + 1);
             REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
             REAL3 gE = (REAL3)(0), gG = (REAL3)(0);
@@ -241,56 +225,18 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
         REAL g[RED_W];
         for (int j = 0; j < RED_W; ++j) g[j] = (REAL)0;
         if (valid) {
-            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0);
-            if (type == LIGHT_AMBIENT) {
-                ambient_term_vjp(LOAD_RGB(q, 0), m, v_o, &v_Li, v_m);
-                g[0] = v_Li.x;
-                g[1] = v_Li.y;
-                g[2] = v_Li.z;
-            } else if (type == LIGHT_DIRECTIONAL) {
-                const REAL3 d = LOAD_RGB(q, 0);
-                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-                brdf_direct_vjp(N, V, safe_normalize(d), LOAD_RGB(q, 3) * tv, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
-                if (has_vis) {
-                    v_vis[p * NV + jv] = dot(v_Li, LOAD_RGB(q, 3));
-                    v_Li *= tv;
-                }
-                const REAL3 v_d = safe_normalize_vjp(d, v_L);
-                g[0] = v_d.x;
-                g[1] = v_d.y;
-                g[2] = v_d.z;
-                g[3] = v_Li.x;
-                g[4] = v_Li.y;
-                g[5] = v_Li.z;
-            } else if (type == LIGHT_POINT) {
-                const REAL3 I = LOAD_RGB(q, 3);
-                const REAL3 w = LOAD_RGB(q, 0) - x;
-                const REAL d2 = dot(w, w);
-                const REAL sc = a ? (REAL)1 / fmax(d2, POINT_D2_EPS) : (REAL)1;
-                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-                brdf_direct_vjp(N, V, safe_normalize(w), I * (sc * tv), m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
-                if (has_vis) {
-                    v_vis[p * NV + jv] = dot(v_Li, I * sc);
-                    v_Li *= tv;
-                }
-                REAL3 v_w = safe_normalize_vjp(w, v_L);
-                if (a && d2 > POINT_D2_EPS) v_w -= (REAL)2 * w * (dot(I, v_Li) * sc * sc);
-                v_x -= v_w;
-                g[0] = v_w.x;
-                g[1] = v_w.y;
-                g[2] = v_w.z;
-                g[3] = v_Li.x * sc;
-                g[4] = v_Li.y * sc;
-                g[5] = v_Li.z * sc;
-            } else if (type == LIGHT_VERTEX_SH) {
-                const REAL3 wi = LOAD_RGB(vlight, 6 * p + 3);
-                brdf_direct_vjp(N, V, safe_normalize(wi), LOAD_RGB(vlight, 6 * p), m, v_o, &v_N, &v_V, &v_L, &v_Li,
-                                v_m);
-                v_rad += v_Li;
-                v_wi += safe_normalize_vjp(wi, v_L);
-            }
+            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0), L, Li;
+            const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
+            const int term = light_incident(type, a, q, x, vlight, p, tv, &L, &Li);
+            if (term == LIGHT_TERM_DIRECT)
+                brdf_direct_vjp(N, V, L, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+            else if (term == LIGHT_TERM_AMBIENT)
+                ambient_term_vjp(Li, m, v_o, &v_Li, v_m);
+            REAL v_tv = (REAL)0;
+            light_incident_vjp(type, a, q, x, vlight, p, tv, has_vis, v_L, v_Li, g, &v_x, &v_rad, &v_wi, &v_tv);
+            if (has_vis && shadowed) v_vis[p * NV + jv] = v_tv;
         }
-        if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) ++jv;
+        jv += shadowed;
         const int n = light_nparams(type, a);
         if (n > 0) group_sum_store(g, n, scratch, part + off);
     }

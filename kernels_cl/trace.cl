@@ -56,11 +56,10 @@
  */
 #include "real.h"
 #include "shade_math.h"
-#include "sh.h"
-#include "shade_brdf.h"
 #include "ray_math.h"
 
 #pragma OPENCL FP_CONTRACT OFF
+#include "lights.h"
 
 #ifndef TILE
 #define TILE 8
@@ -165,27 +164,14 @@ __kernel void trace_primary(__global const REAL* nodes,       // [2P - 1, 6]
     }
 }
 
-/* The shadow ray of light li for a fragment at x: direction d (unnormalised), [tmin, tmax]. */
+/* The shadow ray of light li for a fragment at x: direction d (unnormalised), [tmin, tmax]
+ * (lights.h); 0 for a light that casts no shadow. */
 inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const int li, const REAL3 x,
                       const REAL eps, REAL3* d, REAL* tmin, REAL* tmax)
 {
-    const int type = lt_i[4 * li], off = lt_i[4 * li + 1];
-    __global const REAL* q = lt_f + off;
-    const REAL3 a = (REAL3)(q[0], q[1], q[2]);
-    if (type == LIGHT_POINT) {
-        *d = a - x;
-        const REAL len = length(*d);
-        *tmin = eps / fmax(len, (REAL)1e-30);
-        *tmax = (REAL)1 - *tmin;
-        return 1;
-    }
-    if (type == LIGHT_DIRECTIONAL) {
-        *d = a;
-        *tmin = eps / fmax(length(a), (REAL)1e-30);
-        *tmax = (REAL)1e30;
-        return 1;
-    }
-    return 0;
+    const int type = lt_i[4 * li];
+    if (!light_casts_shadows(type)) return 0;
+    return light_shadow_ray(type, lt_f + lt_i[4 * li + 1], x, eps, d, tmin, tmax);
 }
 
 /* shade.cl's shading normal: normalised, flipped towards the camera when two_sided (N only matters
@@ -301,7 +287,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
         REAL tmin, tmax;
         if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
         const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
-        const int is_point = lt_i[4 * li] == LIGHT_POINT;
+        const int type = lt_i[4 * li];
         const REAL3 inv = ray_inv_dir(d);
         const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
         REAL3 gd = (REAL3)(0);
@@ -345,7 +331,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                 gd += vd;
             }
         }
-        if (is_point) gx -= gd;
+        if (light_shadow_ray_from_x(type)) gx -= gd;
         STORE3(gd, v_light, p * NV + j);
         ++j;
     }

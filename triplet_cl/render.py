@@ -372,7 +372,7 @@ class TracedShadeFragments(ShadeFragments):
             v_attr[:, L["alpha"][0]] += v_al
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += v_Vo
             v_pos = v_pos + v_x
-            shadowed = np.nonzero(np.isin(inp.table.ints[:, 0], trace_op.SHADOWED_TYPES))[0]
+            shadowed = inp.table.shadowed
             for j, li in enumerate(shadowed):  # position (point) / direction (directional): params 0..2
                 off = int(inp.table.ints[li, 1])
                 v_params[off:off + 3] += v_light[:, j].sum(axis=0)

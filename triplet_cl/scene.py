@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .autodiff import Param
-from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, pack_lights
+from .lights import pack_lights, unpack_lights
 from .ops.common import check_faces, check_real
 from .ops.shade import MATERIAL_LAYOUT, num_material_channels
 
@@ -109,22 +109,5 @@ class Scene:
 
     def current_lights(self) -> list:
         """The lights with their current (optimised) parameters written back."""
-        out, off = [], 0
-        lp = None if self.light_params is None else np.asarray(self.light_params.data, np.float64)
-        for lt in self.lights:
-            if isinstance(lt, SHEnvironmentLight):
-                n = lt.coeffs.size
-                out.append(SHEnvironmentLight(lp[off:off + n].reshape(lt.coeffs.shape), lt.degree))
-                off += n
-            elif isinstance(lt, AmbientLight):
-                out.append(AmbientLight(lp[off:off + 3]))
-                off += 3
-            elif isinstance(lt, DirectionalLight):
-                out.append(DirectionalLight(lp[off:off + 3], lp[off + 3:off + 6]))
-                off += 6
-            elif isinstance(lt, PointLight):
-                out.append(PointLight(lp[off:off + 3], lp[off + 3:off + 6], lt.falloff))
-                off += 6
-            elif isinstance(lt, VertexSHLight):
-                out.append(VertexSHLight())
-        return out
+        lp = np.zeros(0) if self.light_params is None else np.asarray(self.light_params.data, np.float64)
+        return unpack_lights(self.lights, lp)

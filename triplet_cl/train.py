@@ -31,14 +31,16 @@ from .datasets.base import Dataset, resolve_background
 from .density import DensityConfig, DensityStats, densify_and_prune, reorder_faces, reset_alpha, visible_faces
 from .device import Device, get_device
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
-from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
+from .lights import LightInit, lights_to_json
+from .lights import initial_lights as _initial_lights
 from .losses import photometric_loss_and_grad, ssim
 from .optim import Adam, Constant, ExponentialDecay, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
 
-LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
+LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -171,27 +173,14 @@ def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Genera
 
 
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
-    """The configured lights, placed from the cameras: a point light above the scene, a directional
-    light from the cameras' mean up direction, dim ambient, a constant SH environment."""
+    """The configured lights, placed from the cameras (each light class's ``initial``: a point light
+    above the scene, a directional light from the cameras' mean up direction, dim ambient, a
+    constant SH environment)."""
     c = look_at_center(ds)
     ext = ds.scene_extent()
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
     up = up / (np.linalg.norm(up) + 1e-12)
-    lights = []
-    for kind in cfg.lights:
-        if kind == "point":
-            lights.append(PointLight(c + 0.6 * ext * up + 0.3 * ext * rng.normal(size=3), np.full(3, ext * ext)))
-        elif kind == "directional":
-            lights.append(DirectionalLight(up, np.full(3, 1.0)))
-        elif kind == "ambient":
-            lights.append(AmbientLight(np.full(3, 0.1)))
-        elif kind == "sh-env":
-            coeffs = np.zeros((3, (cfg.sh_degree + 1) ** 2))
-            coeffs[:, 0] = 0.5 / Y00
-            lights.append(SHEnvironmentLight(coeffs, 0))
-        elif kind == "vertex-sh":
-            lights.append(VertexSHLight())
-    return lights
+    return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng))
 
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
@@ -453,7 +442,7 @@ class Trainer:
         else:
             attrs.update(albedo=mat[:, :3], ks=mat[:, 3:6], ka=mat[:, 7:10])
         write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs)
-        write_json(self.run_dir / "lights.json", {"lights": [_light_json(lt) for lt in s.current_lights()]})
+        write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
 
     def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:
         """PSNR / SSIM of every view of ``split`` (rendered at full resolution, K after warm-up)."""
@@ -554,12 +543,6 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(type(o).__name__)
-
-
-def _light_json(lt) -> dict:
-    from .lights import light_to_json
-
-    return light_to_json(lt)
 
 
 def _file_logger(path: Path) -> logging.Logger:

@@ -50,13 +50,6 @@
 #define NMAT 10
 #endif
 
-/* light types of the light table (triplet_cl/lights.py) */
-#define LIGHT_AMBIENT 0
-#define LIGHT_DIRECTIONAL 1
-#define LIGHT_POINT 2
-#define LIGHT_SH_ENV 3
-#define LIGHT_VERTEX_SH 4
-
 #define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))
 
 inline REAL pow5(const REAL x)

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write_bytes, write_json, write_soup_ply
-from ..lights import LIGHT_CLASSES, light_to_json, lights_from_json  # noqa: F401  (lights_from_json: re-export)
+from ..lights import light_to_json, lights_from_json, lights_to_json  # noqa: F401  (re-exports)
 from .asset import ATTRIBUTES, MeshAsset
 from .bake import UVAtlas, bake, rasterize_uv, uv_atlas, vertex_normals
 from .envmap import environment_lights, export_envmap
@@ -394,21 +394,6 @@ def export_ply(asset: MeshAsset, path) -> Path:
     attrs = {"nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], **asset.attributes}
     write_soup_ply(path, asset.V, asset.F, attrs)
     return Path(path)
-
-
-# ---- lights ------------------------------------------------------------------------------------
-def lights_to_json(lights) -> dict:
-    """``{"lights": [{"type": class name, parameter: value, ...}, ...]}`` (the format of a run's
-    ``lights.json``; SH ``coeffs`` as ``[3][(D+1)^2]`` lists)."""
-    out = []
-    for i, lt in enumerate(lights):
-        if type(lt).__name__ not in LIGHT_CLASSES:
-            raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
-        for k, v in vars(lt).items():
-            if isinstance(v, np.ndarray) and not np.isfinite(v).all():
-                raise ValueError(f"lights[{i}] ({type(lt).__name__}).{k} must be finite, found NaN/Inf")
-        out.append(light_to_json(lt))
-    return {"lights": out}
 
 
 # ---- everything --------------------------------------------------------------------------------

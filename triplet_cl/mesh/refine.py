@@ -352,12 +352,13 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
     """The refined mesh (V, F, raw parameters, lights) as one ``.npz`` (atomic)."""
     import io as _io
 
-    from ..lights import light_to_json as _light_json
+    from ..lights import lights_to_json
 
     arrays = {"V": scene.V.data, "F": scene.F, "material": scene.material.data, "alpha": scene.alpha.data}
     if scene.vertex_sh is not None:
         arrays["vertex_sh"] = scene.vertex_sh.data
-    meta = {"brdf": scene.brdf, "lights": [_light_json(lt) for lt in scene.current_lights()], "mesh": cfg.to_dict()}
+    meta = {"brdf": scene.brdf, "lights": lights_to_json(scene.current_lights(), check_finite=False)["lights"],
+            "mesh": cfg.to_dict()}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     buf = _io.BytesIO()
     np.savez(buf, **arrays)

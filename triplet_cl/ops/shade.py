@@ -28,7 +28,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..device import Device, get_device
-from ..lights import LightTable, pack_lights, unpack_gradients
+from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
 from .common import check_real, check_shape, empty, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
@@ -106,7 +106,8 @@ def _traced_args(dev: Device, inp: ShadeInputs):
 
 
 def _kernel(dev: Device, inp: ShadeInputs, name: str):
-    defines = {"BRDF": BRDFS[inp.brdf], "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W}
+    defines = {"BRDF": BRDFS[inp.brdf], "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W,
+               **kernel_defines()}
     return dev.kernel("shade", name, defines, inp.real)
 
 
@@ -207,7 +208,7 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     inp = ShadeInputs(up(pos), up(nrm), up(mat), up(fid), None if vlight is None else up(vlight), cam, table,
                       to_device(q, lt_i), to_device(q, lt_f), brdf, bool(two_sided), real)
     if vis is not None:
-        nv = int(np.isin(table.ints[:, 0], (1, 2)).sum()) if len(table.ints) else 0
+        nv = table.num_shadowed
         inp.vis = up(check_real("vis", vis, (P, nv), real))
     if refl is not None:
         inp.refl = up(check_real("refl", refl, (P, 3), real))

@@ -25,13 +25,17 @@ import pyopencl.array as cla
 
 from ..camera import Camera
 from ..device import Device
-from ..lights import LightTable
+from ..lights import LightTable, kernel_defines
 from .bvh import BVH
 from .common import check_real, round_up, to_device
 from .raster import TILE, Fragments, _offsets, bin_faces, camera_params, pack_fragment_lists
 
 LOCAL = 64
-SHADOWED_TYPES = (1, 2)  # LIGHT_DIRECTIONAL, LIGHT_POINT (shade_brdf.h)
+
+
+def _kernel(device: Device, name: str, real, defines: dict | None = None):
+    """A kernel of ``trace.cl``, built with the light defines (``lights.kernel_defines``) and ``defines``."""
+    return device.kernel("trace", name, {**kernel_defines(), **(defines or {})}, real)
 
 
 def _check_bvh(bvh: BVH, V) -> None:
@@ -69,7 +73,7 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
     count = cla.empty(q, (H, W), np.int32, allocator=alloc)
     c = camera.center
     cam = cla.to_device(q, camera_params(camera, real))
-    device.kernel("trace", "trace_primary", {"TILE": TILE, "K_MAX": K}, real)(
+    _kernel(device, "trace_primary", real, {"TILE": TILE, "K_MAX": K})(
         q, (round_up(W, TILE), round_up(H, TILE)), (TILE, TILE), bvh.nodes.data, bvh.prim.data,
         np.int32(bvh.num_leaves), np.int32(mesh.num_faces), Vd.data, mesh.F.data, cam.data,
         real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(W), np.int32(H), np.int32(binning.tiles_x),
@@ -82,8 +86,8 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
 
 
 def num_shadowed_lights(table: LightTable) -> int:
-    """How many lights of a packed table cast ray-traced shadows (point and directional)."""
-    return int(np.isin(table.ints[:, 0], SHADOWED_TYPES).sum()) if len(table.ints) else 0
+    """How many lights of a packed table cast ray-traced shadows (``CASTS_SHADOWS`` in lights.py)."""
+    return table.num_shadowed
 
 
 @dataclass
@@ -130,7 +134,7 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
             real.type(c[2]), np.int32(bool(two_sided)), np.int32(P),
             lt_i.data, lt_f.data, np.int32(len(table.ints)), np.int32(NV), real.type(eps))
     if P and NV:
-        device.kernel("trace", "trace_shadow_fwd", real=real)(q, (round_up(P, LOCAL),), (LOCAL,), *args, vis.base_data,
+        _kernel(device, "trace_shadow_fwd", real)(q, (round_up(P, LOCAL),), (LOCAL,), *args, vis.base_data,
                                                               nhit.data)
     return ShadowState(vis, nhit[: P * NV], NV, args)
 
@@ -154,7 +158,7 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis):
     rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
     rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)
     v_light = cla.empty(q, (P, NV, 3), real, allocator=device.allocator)
-    device.kernel("trace", "trace_shadow_bwd", real=real)(
+    _kernel(device, "trace_shadow_bwd", real)(
         q, (round_up(P, LOCAL),), (LOCAL,), *st.args, st.vis.base_data, v_vis.data, off.data, rec_face.data,
         rec_w.data, v_pos.data, v_light.data)
     F = bvh.mesh.faces
@@ -187,7 +191,7 @@ def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Arra
     hb = cla.empty(q, (max(P, 1), 2), real, allocator=device.allocator)
     c = np.asarray(cam_center, np.float64)
     if P:
-        device.kernel("trace", "trace_bounce", real=real)(
+        _kernel(device, "trace_bounce", real)(
             q, (round_up(P, LOCAL),), (LOCAL,), bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves),
             np.int32(bvh.mesh.num_faces), V.data, bvh.mesh.F.data, pos.data, nrm.data, face.data, np.int32(P),
             real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(bool(two_sided)), real.type(eps), hf.data,
@@ -222,7 +226,7 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
     n = V.shape[0]
     if P == 0:
         return vp[:0], vn[:0], np.zeros((n, 3))
-    device.kernel("trace", "bounce_bwd", real=real)(
+    _kernel(device, "bounce_bwd", real)(
         q, (round_up(P, LOCAL),), (LOCAL,), V.data, mesh.F.data, attr.data, np.int32(C), pos.data,
         nrm.data, hit_face.data, hit_bary.data, v_h.data, v_eye.data, np.int32(P), real.type(c[0]), real.type(c[1]),
         real.type(c[2]), np.int32(bool(two_sided)), vp.data, vn.data, rec.data)
@@ -242,7 +246,7 @@ def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, 
     real = attr.dtype
     out = cla.empty(q, (max(P, 1), n), real, allocator=device.allocator)
     if P:
-        device.kernel("trace", "gather_hits", real=real)(
+        _kernel(device, "gather_hits", real)(
             q, (round_up(P, LOCAL),), (LOCAL,), attr.data, np.int32(attr.shape[1]), np.int32(c0), np.int32(n),
             F.data, hit_face.data, hit_bary.data, np.int32(P), out.data)
     return out[:P]
@@ -270,7 +274,7 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
     P = face.shape[0]
     out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
     if P:
-        device.kernel("trace", "ray_mask", real=frags.real)(
+        _kernel(device, "ray_mask", frags.real)(
             device.queue, (H * W,), None, face.data, alpha.data, (win if win is not None else alpha).data,
             np.int32(win is not None), frags.count.data, offsets.data, np.int32(H * W), frags.real.type(t_min),
             out.data)
