@@ -10,6 +10,7 @@ from pathlib import Path
 from triplet_cl import __version__
 from triplet_cl.errors import TripletError
 from triplet_cl.lights import LIGHT_KINDS
+from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 
 
 def _gib(n: int) -> str:
@@ -65,7 +66,7 @@ def _config_from_args(args: argparse.Namespace):
     if args.seed is not None:
         over["seed"] = args.seed
     if args.brdf:
-        over["brdf"] = args.brdf.replace("-", "_")
+        over["brdf"] = brdf_from_cli(args.brdf)
     if args.lights:
         over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
     if args.sh_degree is not None:
@@ -278,7 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
-    t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
+    t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
+                   help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
     t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")

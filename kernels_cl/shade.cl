@@ -1,8 +1,10 @@
 /* shade.cl — physically based shading of a flat list of P fragments under a packed light table.
  *
- * Defines: BRDF (BRDF_COOK_TORRANCE | BRDF_BLINN_PHONG), ENV_MAX_DEG (largest active SH degree of
+ * Defines: BRDF, BRDF_<NAME>, NMAT (generated from triplet_cl/materials.py), LIGHT_<NAME>,
+ * LIGHT_SHADOW_MASK (generated from triplet_cl/lights.py), ENV_MAX_DEG (largest active SH degree of
  * the environment lights, sizes private arrays), RED_W (width of the light-gradient reduction).
- * The BRDF and light maths, their formulas and adjoints are in common/shade_brdf.h.
+ * The BRDF maths, formulas and adjoints are in common/shade_brdf.h; each light's incident radiance
+ * and its adjoint in common/lights.h.
  *
  * Forward, per fragment p with face_id[p] >= 0 (else rgb = 0):
  *   V = safe_normalize(cam - x),  N = s safe_normalize(n)   (s = -1 when two_sided and N.V < 0)

@@ -36,6 +36,7 @@ from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
 from .autodiff import Function, Tape, Variable, active_tape
 from .camera import Camera
 from .device import Device, get_device
+from .materials import get_brdf
 from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
@@ -142,10 +143,11 @@ class Normals(Function):
 
 
 class MaterialActivation(Function):
-    """Raw ``[N, Cm]`` → activated materials: sigmoid, except Blinn-Phong shininess (softplus)."""
+    """Raw ``[N, Cm]`` → activated materials: sigmoid, except the BRDF's softplus channels
+    (``materials.BRDF.channels``; e.g. Blinn-Phong shininess)."""
 
     def __init__(self, brdf: str):
-        self.softplus_cols = [6] if brdf == "blinn_phong" else []
+        self.softplus_cols = get_brdf(brdf).softplus_columns
 
     def forward(self, ctx, raw):
         y = sigmoid(raw)

@@ -35,6 +35,7 @@ from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
 from .lights import LightInit, lights_to_json
 from .lights import initial_lights as _initial_lights
 from .losses import photometric_loss_and_grad, ssim
+from .materials import DEFAULT_BRDF, get_brdf
 from .optim import Adam, Constant, ExponentialDecay, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
@@ -50,7 +51,7 @@ class TrainConfig:
 
     iterations: int = 3000  # optimisation steps
     seed: int = 0  # seeds the initial points, view order and random backgrounds
-    brdf: str = "cook_torrance"  # "cook_torrance" or "blinn_phong"
+    brdf: str = DEFAULT_BRDF  # a name of materials.BRDFS
     lights: tuple = ("point", "ambient")  # any mix of LIGHT_KINDS
     sh_degree: int = 2  # max degree of the vertex-SH / SH-environment light
     sh_band_every: int = 1000  # one more SH band every this many iterations (until sh_degree)
@@ -118,8 +119,7 @@ class TrainConfig:
         bad = [x for x in self.lights if x not in LIGHT_KINDS]
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
-        if self.brdf not in ("cook_torrance", "blinn_phong"):
-            raise ValueError(f"brdf must be cook_torrance or blinn_phong, got {self.brdf!r}")
+        get_brdf(self.brdf)  # ValueError naming the BRDFs
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
@@ -435,12 +435,10 @@ class Trainer:
         from .activations import sigmoid
 
         s = self.scene
+        brdf = get_brdf(s.brdf)
         mat = sigmoid(s.material.data.astype(np.float64))
         attrs = {"alpha": sigmoid(s.alpha.data.astype(np.float64))}
-        if s.brdf == "cook_torrance":
-            attrs.update(albedo=mat[:, :3], roughness=mat[:, 3], metallic=mat[:, 4], ao=mat[:, 5])
-        else:
-            attrs.update(albedo=mat[:, :3], ks=mat[:, 3:6], ka=mat[:, 7:10])
+        attrs.update(brdf.split(mat, brdf.bounded_attributes))  # the [0, 1] attributes
         write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs)
         write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
 

@@ -1,6 +1,6 @@
 /* shade_brdf.h — the BRDFs and light terms of the shading op, as pairs f() / f_vjp().
  *
- * Compile-time choice: -DBRDF=BRDF_COOK_TORRANCE (default) or -DBRDF=BRDF_BLINN_PHONG.
+ * Compile-time choice: -DBRDF=<id of BRDF_COOK_TORRANCE or BRDF_BLINN_PHONG>, -DNMAT (generated).
  * Material channels per fragment (already activated by the parameter model):
  *   Cook-Torrance (NMAT 6):  albedo r,g,b | roughness r | metallic m | ambient occlusion ao
  *   Blinn-Phong  (NMAT 10):  kd r,g,b | ks r,g,b | shininess s (softplus'd) | ka r,g,b
@@ -38,16 +38,10 @@
 #include "shade_math.h"
 #include "sh.h"
 
-#define BRDF_COOK_TORRANCE 0
-#define BRDF_BLINN_PHONG 1
-#ifndef BRDF
-#define BRDF BRDF_COOK_TORRANCE
-#endif
-
-#if BRDF == BRDF_COOK_TORRANCE
-#define NMAT 6
-#else
-#define NMAT 10
+/* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
+ * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
+#if !defined(BRDF) || !defined(NMAT) || !defined(BRDF_COOK_TORRANCE) || !defined(BRDF_BLINN_PHONG)
+#error "shade_brdf.h needs the BRDF defines of triplet_cl.materials (BRDF.kernel_defines())"
 #endif
 
 #define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..io import atomic_write_bytes, write_json, write_soup_ply
 from ..lights import light_to_json, lights_from_json, lights_to_json  # noqa: F401  (re-exports)
+from ..materials import blinn_phong_roughness, get_brdf  # noqa: F401  (blinn_phong_roughness: re-export)
 from .asset import ATTRIBUTES, MeshAsset
 from .bake import UVAtlas, bake, rasterize_uv, uv_atlas, vertex_normals
 from .envmap import environment_lights, export_envmap
@@ -60,13 +61,6 @@ def srgb_encode(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def blinn_phong_roughness(shininess: np.ndarray) -> np.ndarray:
-    """glTF (perceptual) roughness of a Blinn-Phong ``shininess`` ``s`` (exponent ``e = s + 1``):
-    ``(2 / (e + 2))^(1/4)``, in (0, 0.9036]."""
-    e = np.maximum(np.asarray(shininess, np.float64), 0) + 1
-    return (2.0 / (e + 2.0)) ** 0.25
-
-
 def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.ndarray]:
     """Per-vertex glTF material channels of ``asset``, all in [0, 1]:
     ``base [N, 3]`` (sRGB-encoded), ``roughness``, ``metallic``, ``ao`` ``[N]``, ``alpha [N]`` (1 if absent)."""
@@ -77,10 +71,7 @@ def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.n
     if albedo_space == "linear":
         base = srgb_encode(base)
     n = asset.num_vertices
-    if asset.brdf == "cook_torrance":
-        rough, metal, ao = a["roughness"], a["metallic"], a["ao"]
-    else:
-        rough, metal, ao = blinn_phong_roughness(a["shininess"]), np.zeros(n), np.ones(n)
+    rough, metal, ao = get_brdf(asset.brdf).pbr(a, n)  # the BRDF's glTF metallic-roughness mapping
     alpha = a.get("alpha", np.ones(n))
     return {"base": base, "roughness": np.clip(rough, 0, 1), "metallic": np.clip(metal, 0, 1),
             "ao": np.clip(ao, 0, 1), "alpha": np.clip(alpha, 0, 1)}
@@ -152,13 +143,14 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
     if with_alpha:
         cols.append(ch["alpha"][:, None])
     spec = None
-    if asset.brdf == "blinn_phong":
-        ks = np.clip(asset.attributes["ks"], 0, 1)
+    spec_attr = get_brdf(asset.brdf).specular
+    if spec_attr is not None:
+        ks = np.clip(asset.attributes[spec_attr], 0, 1)
         cols.append(srgb_encode(ks) if albedo_space == "linear" else ks)
     values = np.concatenate(cols, 1)[atlas.vmap]  # per atlas vertex
     tex = bake(face_img, bary, atlas.faces, values, dilate=dilate)
     base = tex[..., :3] if not with_alpha else np.concatenate([tex[..., :3], tex[..., 6:7]], -1)
-    if asset.brdf == "blinn_phong":
+    if spec_attr is not None:
         spec = _u8(tex[..., -3:])
     return BakedAsset(atlas, vertex_normals(asset.V, asset.F), _u8(base), _u8(tex[..., 3:6]), spec, ch)
 
@@ -263,10 +255,10 @@ def glb_bytes(asset: MeshAsset, baked: BakedAsset, alpha_mode: str = "OPAQUE", d
         "extras": {"triplet_cl": {"brdf": asset.brdf,
                                   "orm": "R = occlusion, G = roughness, B = metallic"}},
     }
-    if asset.brdf == "cook_torrance":
+    brdf = get_brdf(asset.brdf)
+    if brdf.gltf_occlusion:
         material["occlusionTexture"] = {"index": 1}
-    else:
-        material["extras"]["triplet_cl"]["roughness"] = "(2 / (shininess + 3))^(1/4)"
+    material["extras"]["triplet_cl"].update(brdf.gltf_extras)
     doc = {
         "asset": {"version": "2.0", "generator": GENERATOR},
         "scene": 0,
@@ -346,9 +338,10 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
            f"{stem}_metallic.png": png_bytes(baked.orm[..., 2])}
     mtl = ["# triplet_cl PBR material (Kd texture sRGB; Pr/Pm textures linear, greyscale)", "newmtl material",
            "Ka 1.000000 1.000000 1.000000", "Kd 1.000000 1.000000 1.000000"]
-    if asset.brdf == "blinn_phong":
+    brdf = get_brdf(asset.brdf)
+    if brdf.specular is not None:
         tex[f"{stem}_specular.png"] = png_bytes(baked.specular)
-        e = float(np.mean(np.maximum(asset.attributes["shininess"], 0) + 1))
+        e = brdf.specular_exponent(asset.attributes)
         mtl += ["Ks 1.000000 1.000000 1.000000", f"Ns {e:.6f}", f"map_Ks {stem}_specular.png"]
     else:
         mtl += ["Ks 0.000000 0.000000 0.000000"]

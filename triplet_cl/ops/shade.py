@@ -5,9 +5,8 @@ per-fragment attributes already interpolated by the rasterizer and materials alr
 by the parameter model:
 
 * ``pos [P, 3]`` world position, ``nrm [P, 3]`` shading normal (any length; normalised inside),
-* ``mat [P, C]`` material channels, layout per BRDF (``MATERIAL_LAYOUT``):
-  ``"cook_torrance"`` (C = 6): albedo r, g, b | roughness | metallic | ambient occlusion;
-  ``"blinn_phong"`` (C = 10): kd r, g, b | ks r, g, b | shininess (softplus'd, >= 0) | ka r, g, b,
+* ``mat [P, C]`` activated material channels, layout per BRDF (``triplet_cl.materials``; e.g.
+  Cook-Torrance C = 6: albedo r, g, b | roughness | metallic | ambient occlusion),
 * ``face_id [P] int32``: ``-1`` marks an empty slot (colour 0, zero gradients),
 * ``vlight [P, 6]`` (only with a :class:`~triplet_cl.lights.VertexSHLight`): per-fragment
   vertex-SH radiance (rgb) and direction ``wi`` (normalised inside),
@@ -29,27 +28,17 @@ import pyopencl.array as cla
 
 from ..device import Device, get_device
 from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
+from ..materials import DEFAULT_BRDF, get_brdf
 from .common import check_real, check_shape, empty, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
 LOCAL_SIZE = 64
 RED_W = 16
-BRDFS = {"cook_torrance": 0, "blinn_phong": 1}
-MATERIAL_LAYOUT = {
-    "cook_torrance": ("albedo_r", "albedo_g", "albedo_b", "roughness", "metallic", "ao"),
-    "blinn_phong": ("kd_r", "kd_g", "kd_b", "ks_r", "ks_g", "ks_b", "shininess", "ka_r", "ka_g", "ka_b"),
-}
 
 
 def num_material_channels(brdf: str) -> int:
-    """6 for ``"cook_torrance"``, 10 for ``"blinn_phong"``."""
-    return len(MATERIAL_LAYOUT[_check_brdf(brdf)])
-
-
-def _check_brdf(brdf: str) -> str:
-    if brdf not in BRDFS:
-        raise ValueError(f"brdf must be one of {sorted(BRDFS)}, got {brdf!r}")
-    return brdf
+    """The material channel count ``C`` of ``brdf`` (``materials.BRDF.num_channels``)."""
+    return get_brdf(brdf).num_channels
 
 
 def _env_bucket(deg: int) -> int:
@@ -106,8 +95,8 @@ def _traced_args(dev: Device, inp: ShadeInputs):
 
 
 def _kernel(dev: Device, inp: ShadeInputs, name: str):
-    defines = {"BRDF": BRDFS[inp.brdf], "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W,
-               **kernel_defines()}
+    defines = {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W,
+               **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
     return dev.kernel("shade", name, defines, inp.real)
 
 
@@ -166,7 +155,7 @@ def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
 # ---- validation ------------------------------------------------------------------------------
 
 
-def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None,
+def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vlight=None,
             two_sided: bool = True, device: Device | None = None, real=np.float32, vis=None, refl=None,
             eye=None) -> tuple[Device, ShadeInputs]:
     """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``.
@@ -176,8 +165,7 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     ``eye [P, 3]`` per-fragment viewpoint replacing ``cam``.
     """
     dev = device or get_device()
-    brdf = _check_brdf(brdf)
-    C = num_material_channels(brdf)
+    C = get_brdf(brdf).num_channels
     pos = check_real("pos", pos, (None, 3), real)
     P = pos.shape[0]
     nrm = check_real("nrm", nrm, (P, 3), real)
@@ -217,16 +205,16 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     return dev, inp
 
 
-def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None, two_sided: bool = True,
+def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vlight=None, two_sided: bool = True,
           device: Device | None = None, real=np.float32) -> np.ndarray:
     """Shade ``P`` fragments.
 
     Args:
         pos: ``[P, 3]`` world positions.  nrm: ``[P, 3]`` normals (normalised inside).
-        mat: ``[P, C]`` activated materials, ``C`` = 6 (Cook-Torrance) or 10 (Blinn-Phong), see
-            ``MATERIAL_LAYOUT``.  face_id: ``[P]`` int, ``-1`` = empty slot.
+        mat: ``[P, C]`` activated materials, ``C`` channels of ``brdf`` (``triplet_cl.materials``).
+            face_id: ``[P]`` int, ``-1`` = empty slot.
         cam: ``[3]`` camera centre.  lights: sequence of :mod:`triplet_cl.lights` objects.
-        brdf: ``"cook_torrance"`` or ``"blinn_phong"``.  vlight: ``[P, 6]`` for a VertexSHLight.
+        brdf: a name of ``materials.BRDFS``.  vlight: ``[P, 6]`` for a VertexSHLight.
         two_sided: flip normals facing away from the camera.
     Returns:
         ``rgb [P, 3]`` (linear radiance, not clamped).
@@ -236,7 +224,7 @@ def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", v
     return to_host(forward(dev, inp))
 
 
-def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = "cook_torrance", vlight=None,
+def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = DEFAULT_BRDF, vlight=None,
                    two_sided: bool = True, device: Device | None = None, real=np.float32) -> ShadeGrads:
     """Adjoint of :func:`shade` for the cotangent ``v_rgb [P, 3]``; returns :class:`ShadeGrads`."""
     dev, inp = prepare(pos, nrm, mat, face_id, cam, lights, brdf=brdf, vlight=vlight, two_sided=two_sided,
