@@ -23,15 +23,17 @@
  *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
  *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
  *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
- * Ray-traced terms (ops/trace.py; all off in the default raster path, has_* = 0):
- *   has_vis:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
+ * Optional inputs are compiled in or out (defines, 0 or 1; an absent one is not a parameter):
+ *   HAS_VLIGHT: vlight [P, 6] and its adjoint v_vlight (a vertex-SH light).
+ * Ray-traced terms (ops/trace.py; all off in the default raster path):
+ *   HAS_VIS:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
  *             multiplies that light's intensity: brdf_direct(N, V, L, T I sc, m);
  *             v_T = v_Li_eff . (I sc), and the light's own adjoints see v_Li = T v_Li_eff.
- *   has_refl: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
+ *   HAS_REFL: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
  *             reflection bounce) adds s_g * refl, s_g the glossy weight of env_scales (the same
  *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
  *             v_s_g = v_rgb refl -> env_scales_vjp -> v_N, v_V, v_m.
- *   has_eye:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
+ *   HAS_EYE:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
  *             the reflecting point); v_eye = safe_normalize_vjp(eye - x, v_V).
  * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
  * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
@@ -47,6 +49,21 @@
 #ifndef RED_W
 #define RED_W 16
 #endif
+#ifndef HAS_VLIGHT
+#define HAS_VLIGHT 0
+#endif
+#ifndef HAS_VIS
+#define HAS_VIS 0
+#endif
+#ifndef HAS_REFL
+#define HAS_REFL 0
+#endif
+#ifndef HAS_EYE
+#define HAS_EYE 0
+#endif
+/* The optional inputs a kernel was built without: null pointers (never read: every use is guarded
+ * by its HAS_* flag, a compile-time constant). */
+#define ABSENT ((__global REAL*)0)
 
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
@@ -64,7 +81,9 @@ inline int load_fragment(const int p, __global const REAL* pos, __global const R
 __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const REAL* nrm,     // [P, 3]
                         __global const REAL* mat,     // [P, NMAT]
-                        __global const REAL* vlight,  // [P, 6] (unused without a vertex-SH light)
+#if HAS_VLIGHT
+                        __global const REAL* vlight,  // [P, 6]
+#endif
                         __global const int* face_id,  // [P]
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
@@ -72,15 +91,32 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const int* lt_i,     // [L, 4] (type, offset, a, b)
                         __global const REAL* lt_f,    // [T]
                         const int L,
+#if HAS_VIS
                         const int NV,                 // shadowed lights (columns of vis)
-                        const int has_vis,
-                        __global const REAL* vis,     // [P, NV]  (has_vis)
-                        const int has_refl,
-                        __global const REAL* refl,    // [P, 3]   (has_refl)
-                        const int has_eye,
-                        __global const REAL* eye,     // [P, 3]   (has_eye)
+                        __global const REAL* vis,     // [P, NV]
+#endif
+#if HAS_REFL
+                        __global const REAL* refl,    // [P, 3]
+#endif
+#if HAS_EYE
+                        __global const REAL* eye,     // [P, 3]
+#endif
                         __global REAL* rgb)           // [P, 3]
 {
+#if !HAS_VLIGHT
+    __global const REAL* vlight = ABSENT;
+#endif
+#if !HAS_VIS
+    const int NV = 0;
+    __global const REAL* vis = ABSENT;
+#endif
+#if !HAS_REFL
+    __global const REAL* refl = ABSENT;
+#endif
+#if !HAS_EYE
+    __global const REAL* eye = ABSENT;
+#endif
+    const int has_vis = HAS_VIS, has_refl = HAS_REFL, has_eye = HAS_EYE;
     const int p = get_global_id(0);
     if (p >= P) return;
     if (face_id[p] < 0) {
@@ -99,9 +135,9 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
         const int shadowed = light_casts_shadows(type);
         const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
         jv += shadowed;
-        REAL3 L, Li;
-        const int term = light_incident(type, a, q, x, vlight, p, tv, &L, &Li);
-        if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, L, Li, m);
+        REAL3 Lw, Li;
+        const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
+        if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, Lw, Li, m);
         else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(Li, m);
         else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
     }
@@ -131,7 +167,9 @@ inline void group_sum_store(const REAL* g, const int n, __local REAL* scratch, _
 __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global const REAL* nrm,       // [P, 3]
                         __global const REAL* mat,       // [P, NMAT]
+#if HAS_VLIGHT
                         __global const REAL* vlight,    // [P, 6]
+#endif
                         __global const int* face_id,    // [P]
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
@@ -144,21 +182,43 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global REAL* v_pos,           // [P, 3]
                         __global REAL* v_nrm,           // [P, 3]
                         __global REAL* v_mat,           // [P, NMAT]
-                        const int has_vlight,           // 0: v_vlight is a placeholder, not written
+#if HAS_VLIGHT
                         __global REAL* v_vlight,        // [P, 6]
-                        __global REAL* v_light_part,    // [num_groups, T]
-                        __local REAL* scratch,          // [local_size * RED_W]
+#endif
+#if HAS_VIS
                         const int NV,
-                        const int has_vis,
-                        __global const REAL* vis,       // [P, NV]  (has_vis)
-                        const int has_refl,
-                        __global const REAL* refl,      // [P, 3]   (has_refl)
-                        const int has_eye,
-                        __global const REAL* eye,       // [P, 3]   (has_eye)
-                        __global REAL* v_vis,           // [P, NV]  (has_vis)
-                        __global REAL* v_refl,          // [P, 3]   (has_refl)
-                        __global REAL* v_eye)           // [P, 3]   (has_eye)
+                        __global const REAL* vis,       // [P, NV]
+                        __global REAL* v_vis,           // [P, NV]
+#endif
+#if HAS_REFL
+                        __global const REAL* refl,      // [P, 3]
+                        __global REAL* v_refl,          // [P, 3]
+#endif
+#if HAS_EYE
+                        __global const REAL* eye,       // [P, 3]
+                        __global REAL* v_eye,           // [P, 3]
+#endif
+                        __global REAL* v_light_part,    // [num_groups, T]
+                        __local REAL* scratch)          // [local_size * RED_W]
 {
+#if !HAS_VLIGHT
+    __global const REAL* vlight = ABSENT;
+    __global REAL* v_vlight = ABSENT;
+#endif
+#if !HAS_VIS
+    const int NV = 0;
+    __global const REAL* vis = ABSENT;
+    __global REAL* v_vis = ABSENT;
+#endif
+#if !HAS_REFL
+    __global const REAL* refl = ABSENT;
+    __global REAL* v_refl = ABSENT;
+#endif
+#if !HAS_EYE
+    __global const REAL* eye = ABSENT;
+    __global REAL* v_eye = ABSENT;
+#endif
+    const int has_vlight = HAS_VLIGHT, has_vis = HAS_VIS, has_refl = HAS_REFL, has_eye = HAS_EYE;
     const int p = get_global_id(0);
     const int valid = p < P && face_id[p] >= 0;
     const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
@@ -227,11 +287,11 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
         REAL g[RED_W];
         for (int j = 0; j < RED_W; ++j) g[j] = (REAL)0;
         if (valid) {
-            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0), L, Li;
+            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0), Lw, Li;
             const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
-            const int term = light_incident(type, a, q, x, vlight, p, tv, &L, &Li);
+            const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
             if (term == LIGHT_TERM_DIRECT)
-                brdf_direct_vjp(N, V, L, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+                brdf_direct_vjp(N, V, Lw, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
             else if (term == LIGHT_TERM_AMBIENT)
                 ambient_term_vjp(Li, m, v_o, &v_Li, v_m);
             REAL v_tv = (REAL)0;

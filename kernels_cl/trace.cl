@@ -174,6 +174,21 @@ inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const
     return light_shadow_ray(type, lt_f + lt_i[4 * li + 1], x, eps, d, tmin, tmax);
 }
 
+/* Shadow rays skip lights behind the shading normal when the kernel is built with HAS_NRM (the
+ * fragments' normals, the camera centre and two_sided are then parameters); without, every ray is
+ * traced (the normal inputs are absent). */
+#ifndef HAS_NRM
+#define HAS_NRM 0
+#endif
+#if HAS_NRM
+#define NO_NRM_INPUTS
+#else
+#define NO_NRM_INPUTS                                                                                 \
+    __global const REAL* nrm = (__global const REAL*)0;                                              \
+    const REAL cx = (REAL)0, cy = (REAL)0, cz = (REAL)0;                                             \
+    const int two_sided = 0;
+#endif
+
 /* shade.cl's shading normal: normalised, flipped towards the camera when two_sided (N only matters
  * through the sign of N.L: a light behind the surface contributes 0 whatever its transmittance). */
 inline REAL3 shading_normal(__global const REAL* nrm, const int has_nrm, const int p, const REAL3 x, const REAL3 cam,
@@ -201,8 +216,10 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3] fragment positions
                                __global const int* face,     // [Pf] fragment face ids
-                               __global const REAL* nrm,     // [Pf, 3] fragment normals (has_nrm)
-                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#if HAS_NRM
+                               __global const REAL* nrm,     // [Pf, 3] fragment normals
+                               const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#endif
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -210,6 +227,8 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global REAL* vis,           // [Pf, NV]
                                __global int* nhit)           // [Pf, NV]
 {
+    NO_NRM_INPUTS
+    const int has_nrm = HAS_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -261,8 +280,10 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3]
                                __global const int* face,     // [Pf]
-                               __global const REAL* nrm,     // [Pf, 3] (has_nrm)
-                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#if HAS_NRM
+                               __global const REAL* nrm,     // [Pf, 3]
+                               const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#endif
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -275,6 +296,8 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global REAL* v_x,           // [Pf, 3]  fragment position adjoint
                                __global REAL* v_light)       // [Pf, NV, 3] light position / direction
 {
+    NO_NRM_INPUTS
+    const int has_nrm = HAS_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -482,15 +505,23 @@ __kernel void gather_hits(__global const REAL* attr,      // [N, C]
 /* Which compacted fragments need rays: -1 where the pixel's transmittance in front of the fragment,
  * prod_{j<k} (1 - alpha_j win_j), is already below t_min (compositing stops there: the fragment's
  * colour has no weight and no gradient), else its face id. */
+#ifndef HAS_WIN
+#define HAS_WIN 0
+#endif
 __kernel void ray_mask(__global const int* face,       // [Pv] compacted face ids
                        __global const REAL* alpha,     // [Pv]
-                       __global const REAL* win,       // [Pv] (has_win)
-                       const int has_win,
+#if HAS_WIN
+                       __global const REAL* win,       // [Pv] coverage window
+#endif
                        __global const int* frag_count, // [H, W]
                        __global const int* offsets,    // [H W + 1]
                        const int npix, const REAL t_min,
                        __global int* out)              // [Pv]
 {
+#if !HAS_WIN
+    __global const REAL* win = (__global const REAL*)0;
+#endif
+    const int has_win = HAS_WIN;
     const int pix = get_global_id(0);
     if (pix >= npix) return;
     const int o = offsets[pix], c = frag_count[pix];

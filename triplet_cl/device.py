@@ -218,6 +218,7 @@ class Device:
         self.fp64 = info.fp64
         self._programs: dict[tuple[str, tuple[str, ...]], cl.Program] = {}
         self._kernels: dict[tuple[str, tuple[str, ...], str], cl.Kernel] = {}
+        self._by_defines: dict[tuple, cl.Kernel] = {}
         self._lock = threading.Lock()
         self.build_count = 0
         self._cache: dict = {}
@@ -250,6 +251,7 @@ class Device:
         else:
             raise ValueError(f"real must be float32 or float64, got {real}")
         opts = ["-I", str(kernel_dir() / "common"), f"-DREAL={rdef}"] + (["-DREAL_FP64"] if rdef == "double" else [])
+        opts.append("-cl-kernel-arg-info")  # parameter names: ops.launch binds arguments by name
         for k in sorted(defines or {}):
             d = _format_define(k, defines[k])
             if d:
@@ -293,12 +295,17 @@ class Device:
 
     def kernel(self, name: str, kernel_name: str, defines: dict | None = None, real=np.float32) -> cl.Kernel:
         """The ``cl.Kernel`` ``kernel_name`` of ``kernels_cl/<name>.cl`` (fetched once, reused)."""
+        fast = (name, kernel_name, real, tuple(sorted(defines.items())) if defines else ())
+        k = self._by_defines.get(fast)  # skips formatting the options on every fetch (many defines)
+        if k is not None:
+            return k
         opts = self.build_options(defines, real)
         key = (name, opts, kernel_name)
         k = self._kernels.get(key)
         if k is None:
             k = cl.Kernel(self.program(name, defines, real), kernel_name)
             self._kernels[key] = k
+        self._by_defines[fast] = k
         return k
 
     def cached(self, key, factory):

@@ -57,6 +57,7 @@ LIGHT_TYPES: dict[int, type] = {}
 LIGHT_CLASSES: dict[str, type] = {}
 #: CLI / config kind (``"point"``, ...) -> class
 LIGHT_KINDS: dict[str, type] = {}
+_DEFINES: dict[str, int] = {}  # kernel_defines(), cleared by register_light
 
 
 def register_light(cls):
@@ -71,6 +72,7 @@ def register_light(cls):
     LIGHT_TYPES[cls.TYPE] = cls
     LIGHT_CLASSES[cls.__name__] = cls
     LIGHT_KINDS[cls.KIND] = cls
+    _DEFINES.clear()
     return cls
 
 
@@ -86,10 +88,12 @@ def shadow_casting_types() -> tuple[int, ...]:
 
 def kernel_defines() -> dict[str, int]:
     """The ``-D`` defines every kernel that reads a light table is built with: ``LIGHT_<DEFINE>`` =
-    type id per light, ``LIGHT_SHADOW_MASK`` = bit ``1 << id`` set for the shadow casters."""
-    out = {f"LIGHT_{c.DEFINE}": t for t, c in sorted(LIGHT_TYPES.items())}
-    out["LIGHT_SHADOW_MASK"] = sum(1 << t for t in shadow_casting_types())
-    return out
+    type id per light, ``LIGHT_SHADOW_MASK`` = bit ``1 << id`` set for the shadow casters.
+    (Computed once per registry state; a copy is returned.)"""
+    if not _DEFINES:
+        _DEFINES.update({f"LIGHT_{c.DEFINE}": t for t, c in sorted(LIGHT_TYPES.items())})
+        _DEFINES["LIGHT_SHADOW_MASK"] = sum(1 << t for t in shadow_casting_types())
+    return dict(_DEFINES)
 
 
 @dataclass(frozen=True)

@@ -295,7 +295,8 @@ class ShadeFragments(Function):
         P = fr.P
         comp, L = ctx.comp, self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(d, ctx.inp, v_rgb)
+        g = shade_op.backward(d, ctx.inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
@@ -366,32 +367,32 @@ class TracedShadeFragments(ShadeFragments):
         P = fr.P
         comp, L, inp = ctx.comp, self.layout, ctx.inp
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, _ = shade_op.backward_full(d, inp,
-                                                                                       v_rgb)
+        g = shade_op.backward(d, inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_attr = np.zeros((ctx.N, ctx.C))
         if ctx.shadow is not None:
-            v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
-            v_attr[:, L["alpha"][0]] += v_al
-            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += v_Vo
-            v_pos = v_pos + v_x
+            sg = trace_op.shadow_backward(d, v.bvh, ctx.shadow, g.v_vis)
+            v_attr[:, L["alpha"][0]] += sg.v_alpha
+            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += sg.v_V
+            v_pos = v_pos + sg.v_pos
             shadowed = inp.table.shadowed
-            for j, li in enumerate(shadowed):  # position (point) / direction (directional): params 0..2
+            for j, li in enumerate(shadowed):  # the shadow ray's light parameters: params 0..2 (lights.h)
                 off = int(inp.table.ints[li, 1])
-                v_params[off:off + 3] += v_light[:, j].sum(axis=0)
+                v_params[off:off + 3] += sg.v_light[:, j].sum(axis=0)
         if ctx.hits is not None:
             hf, hb, hinp, hrgb, ha = ctx.hits
-            g = v_refl.get().astype(np.float64)
-            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(g * ha, s.real))
-            hp, hn, hm, hvl, hpar, _, _, heye = shade_op.backward_full(d, hinp, v_hrgb)
-            v_params = v_params + hpar
+            gr = g.v_refl.get().astype(np.float64)
+            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(gr * ha, s.real))
+            hg = shade_op.backward(d, hinp, v_hrgb)
+            v_params = v_params + hg.v_light_params
             v_hit = np.zeros((len(hf), ctx.C))
-            for key, gk in (("pos", hp), ("nrm", hn), ("mat", hm), ("vlight", hvl)):
+            for key, gk in (("pos", hg.v_pos), ("nrm", hg.v_nrm), ("mat", hg.v_mat), ("vlight", hg.v_vlight)):
                 if key in L:
                     v_hit[:, L[key][0]:L[key][0] + L[key][1]] = gk.get()
-            v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
+            v_hit[:, L["alpha"][0]] = (gr * hrgb).sum(axis=1)
             v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
             Vd, attr_d, bpos, bnrm, hf_d, hb_d = ctx.bounce_dev
-            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh,
+            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, hg.v_eye, v.mesh,
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV

@@ -30,6 +30,7 @@ from ..device import Device, get_device
 from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
 from ..materials import DEFAULT_BRDF, get_brdf
 from .common import check_real, check_shape, empty, round_up, to_device, to_host
+from .launch import launch
 from .vertex_sh import check_cam
 
 LOCAL_SIZE = 64
@@ -84,72 +85,90 @@ class ShadeGrads:
     v_lights: list[dict[str, np.ndarray]]  # per light: {parameter name: gradient}
 
 
-def _traced_args(dev: Device, inp: ShadeInputs):
-    """The optional ray-traced inputs (visibility, reflected radiance, per-fragment eye)."""
-    ph = inp.pos.base_data if inp.pos.size == 0 else inp.pos.data  # placeholder, never read when off
-    NV = inp.vis.shape[1] if inp.vis is not None else 0
-    return (np.int32(NV), np.int32(inp.vis is not None and NV > 0),
-            inp.vis.data if inp.vis is not None and inp.vis.size else ph,
-            np.int32(inp.refl is not None), inp.refl.data if inp.refl is not None and inp.refl.size else ph,
-            np.int32(inp.eye is not None), inp.eye.data if inp.eye is not None and inp.eye.size else ph)
+@dataclass
+class ShadeAdjoints:
+    """Adjoints of one shading call (:func:`backward`): device arrays, ``v_light_params`` numpy.
+    The optional inputs' adjoints are ``None`` where the input is absent."""
+
+    v_pos: cla.Array  # [P, 3]
+    v_nrm: cla.Array  # [P, 3]
+    v_mat: cla.Array  # [P, C]
+    v_vlight: cla.Array | None  # [P, 6]
+    v_light_params: np.ndarray  # [T] gradient of the packed light parameters (inactive ones 0)
+    v_vis: cla.Array | None = None  # [P, NV]
+    v_refl: cla.Array | None = None  # [P, 3]
+    v_eye: cla.Array | None = None  # [P, 3]
+
+
+def _optional(inp: ShadeInputs) -> dict[str, bool]:
+    """Which optional inputs the call has: the ``HAS_*`` defines of ``shade.cl``."""
+    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.vis.shape[1] > 0,
+            "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None}
 
 
 def _kernel(dev: Device, inp: ShadeInputs, name: str):
     defines = {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W,
-               **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
+               **{k: int(v) for k, v in _optional(inp).items()}, **get_brdf(inp.brdf).kernel_defines(),
+               **kernel_defines()}
     return dev.kernel("shade", name, defines, inp.real)
 
 
-def _common_args(dev: Device, inp: ShadeInputs):
-    t = np.dtype(inp.real).type
-    vl = inp.vlight.data if inp.vlight is not None else inp.pos.data  # placeholder, never read then
-    return (inp.pos.data, inp.nrm.data, inp.mat.data, vl, inp.face_id.data, np.int32(inp.P),
-            t(inp.cam[0]), t(inp.cam[1]), t(inp.cam[2]), np.int32(inp.two_sided), inp.lt_i.data, inp.lt_f.data,
-            np.int32(len(inp.table.ints)))
+def _inputs(inp: ShadeInputs) -> dict:
+    """The kernels' input arguments by name (the optional ones only when present)."""
+    has = _optional(inp)
+    args = dict(pos=inp.pos, nrm=inp.nrm, mat=inp.mat, face_id=inp.face_id, P=inp.P, cx=inp.cam[0],
+                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_i=inp.lt_i, lt_f=inp.lt_f,
+                L=len(inp.table.ints))
+    if has["HAS_VLIGHT"]:
+        args["vlight"] = inp.vlight
+    if has["HAS_VIS"]:
+        args.update(NV=inp.vis.shape[1], vis=inp.vis)
+    if has["HAS_REFL"]:
+        args["refl"] = inp.refl
+    if has["HAS_EYE"]:
+        args["eye"] = inp.eye
+    return args
 
 
 def forward(dev: Device, inp: ShadeInputs) -> cla.Array:
     """``rgb [P, 3]`` (device array) for validated device inputs."""
     rgb = empty(dev.queue, (inp.P, 3), inp.real)
     if inp.P:
-        _kernel(dev, inp, "shade_fwd")(dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
-                                       *_common_args(dev, inp), *_traced_args(dev, inp), rgb.data)
+        launch(_kernel(dev, inp, "shade_fwd"), dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
+               **_inputs(inp), rgb=rgb)
     return rgb
 
 
-def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
-    """``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params [T] numpy)`` for ``v_rgb [P, 3]``."""
-    return backward_full(dev, inp, v_rgb)[:5]
-
-
-def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
-    """As :func:`backward`, plus the adjoints of the ray-traced inputs:
-    ``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params, v_vis [P, NV] | None, v_refl [P, 3] | None,
-    v_eye [P, 3] | None)``."""
+def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
+    """The adjoints (:class:`ShadeAdjoints`) of every input for the cotangent ``v_rgb [P, 3]``."""
     q, P, real = dev.queue, inp.P, inp.real
     C = inp.mat.shape[1]
     T = len(inp.table.params)
-    v_pos, v_nrm, v_mat = empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real)
-    v_vl = empty(q, (P, 6), real) if inp.vlight is not None else None
-    v_vis = empty(q, inp.vis.shape, real) if inp.vis is not None else None
-    v_refl = empty(q, (P, 3), real) if inp.refl is not None else None
-    v_eye = empty(q, (P, 3), real) if inp.eye is not None else None
+    has = _optional(inp)
+    out = ShadeAdjoints(empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real),
+                        empty(q, (P, 6), real) if inp.vlight is not None else None, np.zeros(T),
+                        empty(q, inp.vis.shape, real) if inp.vis is not None else None,
+                        empty(q, (P, 3), real) if inp.refl is not None else None,
+                        empty(q, (P, 3), real) if inp.eye is not None else None)
     groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
-        scratch = cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize)
-        _kernel(dev, inp, "shade_bwd")(
-            q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), *_common_args(dev, inp), np.int32(T), v_rgb.data,
-            v_pos.data, v_nrm.data, v_mat.data, np.int32(v_vl is not None),
-            (v_vl if v_vl is not None else v_pos).data, part.data, scratch, *_traced_args(dev, inp),
-            (v_vis if v_vis is not None and v_vis.size else v_pos).data,
-            (v_refl if v_refl is not None else v_pos).data, (v_eye if v_eye is not None else v_pos).data)
-        v_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
-    else:
-        v_params = np.zeros(T)
-    v_params[inp.table.inactive] = 0.0
-    return v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, v_eye
+        outs = dict(v_pos=out.v_pos, v_nrm=out.v_nrm, v_mat=out.v_mat)
+        if has["HAS_VLIGHT"]:
+            outs["v_vlight"] = out.v_vlight
+        if has["HAS_VIS"]:
+            outs["v_vis"] = out.v_vis
+        if has["HAS_REFL"]:
+            outs["v_refl"] = out.v_refl
+        if has["HAS_EYE"]:
+            outs["v_eye"] = out.v_eye
+        launch(_kernel(dev, inp, "shade_bwd"), q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), **_inputs(inp), **outs,
+               T=T, v_rgb=v_rgb, v_light_part=part,
+               scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
+        out.v_light_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
+    out.v_light_params[inp.table.inactive] = 0.0
+    return out
 
 
 # ---- validation ------------------------------------------------------------------------------
@@ -231,7 +250,8 @@ def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = DE
                        device=device, real=real)
     v_rgb = check_real("v_rgb", v_rgb, (inp.P, 3), real)
     v_rgb_d = to_device(dev.queue, v_rgb) if v_rgb.size else empty(dev.queue, (0, 3), real)
-    v_pos, v_nrm, v_mat, v_vl, v_params = backward(dev, inp, v_rgb_d)
+    g = backward(dev, inp, v_rgb_d)
     lights = list(lights)
-    return ShadeGrads(to_host(v_pos), to_host(v_nrm), to_host(v_mat), None if v_vl is None else to_host(v_vl),
-                      v_params, unpack_gradients(lights, v_params))
+    return ShadeGrads(to_host(g.v_pos), to_host(g.v_nrm), to_host(g.v_mat),
+                      None if g.v_vlight is None else to_host(g.v_vlight), g.v_light_params,
+                      unpack_gradients(lights, g.v_light_params))
