@@ -164,14 +164,14 @@ __kernel void trace_primary(__global const REAL* nodes,       // [2P - 1, 6]
     }
 }
 
-/* The shadow ray of light li for a fragment at x: direction d (unnormalised), [tmin, tmax]
- * (lights.h); 0 for a light that casts no shadow. */
+/* The shadow ray of light li (a shadow caster: one column j of vis) for a fragment at x: direction d
+ * (unnormalised), [tmin, tmax] (lights.h); 0 when the light has no ray here (T = 1, no hits). */
 inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const int li, const REAL3 x,
                       const REAL eps, REAL3* d, REAL* tmin, REAL* tmax)
 {
-    const int type = lt_i[4 * li];
-    if (!light_casts_shadows(type)) return 0;
-    return light_shadow_ray(type, lt_f + lt_i[4 * li + 1], x, eps, d, tmin, tmax);
+    *d = (REAL3)(0);
+    *tmin = *tmax = (REAL)0;
+    return light_shadow_ray(lt_i[4 * li], lt_f + lt_i[4 * li + 1], x, eps, d, tmin, tmax);
 }
 
 /* Shadow rays skip lights behind the shading normal when the kernel is built with HAS_NRM (the
@@ -238,8 +238,10 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
-        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
-        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
+        const int type = lt_i[4 * li];
+        if (!light_casts_shadows(type)) continue;
+        const int ray = shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax);
+        const int lit = ray && (!has_nrm || dot(N, safe_normalize(d)) > (REAL)0);
         const REAL3 inv = ray_inv_dir(d);
         REAL T = (REAL)1;
         int n = 0;
@@ -308,9 +310,10 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
-        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
-        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
         const int type = lt_i[4 * li];
+        if (!light_casts_shadows(type)) continue;
+        const int ray = shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax);
+        const int lit = ray && (!has_nrm || dot(N, safe_normalize(d)) > (REAL)0);
         const REAL3 inv = ray_inv_dir(d);
         const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
         REAL3 gd = (REAL3)(0);

@@ -65,6 +65,15 @@ def test_register_refuses_duplicates():
             DEFINE: ClassVar[str] = "TWIN"
             KIND: ClassVar[str] = "twin"
     assert "Twin" not in LIGHT_CLASSES and "twin" not in LIGHT_KINDS
+    with pytest.raises(TypeError, match="SHADOW_RAY_PARAM"):
+        @L.register_light
+        @dataclass
+        class Shadowy(L.Light):
+            TYPE: ClassVar[int] = 99
+            DEFINE: ClassVar[str] = "SHADOWY"
+            KIND: ClassVar[str] = "shadowy"
+            CASTS_SHADOWS: ClassVar[bool] = True
+    assert "Shadowy" not in LIGHT_CLASSES
 
 
 def test_pack_unpack_round_trip():
@@ -75,6 +84,8 @@ def test_pack_unpack_round_trip():
     assert t.ints[0, 2] == 0 and tuple(t.ints[2, 2:]) == (1, 9)
     assert t.env_degree == 1 and t.has_vertex_sh
     assert t.shadowed.tolist() == [0, 3] and t.num_shadowed == 2
+    assert t.shadow_ray_offsets.tolist() == [0, 36]  # position (point), direction (directional)
+    assert lights[3].param_offset("intensity") == 3
     assert t.inactive.sum() == 3 * 5 and not t.inactive[:9].any()
     back = unpack_lights(lights, t.params)
     assert [type(a) for a in back] == [type(b) for b in lights]

@@ -65,6 +65,8 @@ def register_light(cls):
     for attr in ("TYPE", "DEFINE", "KIND", "CASTS_SHADOWS", "PARAMS"):
         if attr not in vars(cls) and not hasattr(cls, attr):
             raise TypeError(f"light class {cls.__name__} must define {attr}")
+    if cls.CASTS_SHADOWS and cls.SHADOW_RAY_PARAM not in cls.PARAMS:
+        raise TypeError(f"light class {cls.__name__} casts shadows: SHADOW_RAY_PARAM must name one of {cls.PARAMS}")
     if cls.TYPE in LIGHT_TYPES or cls.KIND in LIGHT_KINDS or cls.__name__ in LIGHT_CLASSES:
         raise ValueError(f"light class {cls.__name__}: TYPE {cls.TYPE} / KIND {cls.KIND!r} already registered")
     if any(c.DEFINE == cls.DEFINE for c in LIGHT_TYPES.values()):
@@ -120,8 +122,9 @@ class Light:
     """Base of the light classes (dataclasses): the generic packing, unpacking and JSON form.
 
     Class attributes a light defines: ``TYPE`` (int id in the light table), ``DEFINE`` (C name:
-    ``LIGHT_<DEFINE>``), ``KIND`` (CLI name), ``CASTS_SHADOWS`` (bool), ``PARAMS`` (names of its
-    learnable array fields, packed in that order), ``NEEDS_VLIGHT`` (reads the per-fragment
+    ``LIGHT_<DEFINE>``), ``KIND`` (CLI name), ``CASTS_SHADOWS`` (bool) with ``SHADOW_RAY_PARAM`` (the
+    3-vector parameter the shadow ray's adjoint belongs to, see ``lights.h``), ``PARAMS`` (names of
+    its learnable array fields, packed in that order), ``NEEDS_VLIGHT`` (reads the per-fragment
     ``vlight``).
     """
 
@@ -129,6 +132,7 @@ class Light:
     DEFINE: ClassVar[str]
     KIND: ClassVar[str]
     CASTS_SHADOWS: ClassVar[bool] = False
+    SHADOW_RAY_PARAM: ClassVar[str | None] = None
     PARAMS: ClassVar[tuple[str, ...]] = ()
     NEEDS_VLIGHT: ClassVar[bool] = False
 
@@ -157,6 +161,15 @@ class Light:
     def table_ints(self) -> tuple[int, int]:
         """The light table's ``(a, b)`` integers of this light (see the module docstring)."""
         return 0, 0
+
+    def param_offset(self, name: str) -> int:
+        """Offset of parameter ``name`` in this light's packed parameters."""
+        off = 0
+        for n, shape in self.param_shapes().items():
+            if n == name:
+                return off
+            off += int(np.prod(shape))
+        raise KeyError(f"{type(self).__name__} has no parameter {name!r} (parameters: {self.PARAMS})")
 
     def inactive_mask(self) -> np.ndarray:
         """``[num_params]`` bool: parameters that get no gradient."""
@@ -221,6 +234,7 @@ class DirectionalLight(Light):
     DEFINE: ClassVar[str] = "DIRECTIONAL"
     KIND: ClassVar[str] = "directional"
     CASTS_SHADOWS: ClassVar[bool] = True
+    SHADOW_RAY_PARAM: ClassVar[str | None] = "direction"
     PARAMS: ClassVar[tuple[str, ...]] = ("direction", "intensity")
 
     def __post_init__(self):
@@ -247,6 +261,7 @@ class PointLight(Light):
     DEFINE: ClassVar[str] = "POINT"
     KIND: ClassVar[str] = "point"
     CASTS_SHADOWS: ClassVar[bool] = True
+    SHADOW_RAY_PARAM: ClassVar[str | None] = "position"
     PARAMS: ClassVar[tuple[str, ...]] = ("position", "intensity")
 
     def __post_init__(self):
@@ -362,6 +377,8 @@ class LightTable:
     env_degree: int  # largest active SH degree of the environment lights (-1: none)
     has_vertex_sh: bool
     inactive: np.ndarray  # [T] bool: parameters that get no gradient (inactive SH bands)
+    #: ``[NV]`` offsets into ``params`` of each shadow caster's ``SHADOW_RAY_PARAM`` (light order)
+    shadow_ray_offsets: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def shadowed(self) -> np.ndarray:
@@ -388,19 +405,21 @@ def pack_lights(lights) -> LightTable:
     """Pack a sequence of lights into a :class:`LightTable`."""
     lights = _check_lights(lights)
     ints = np.zeros((max(len(lights), 1), 4), np.int32)[: len(lights)]
-    chunks, off, env_deg, has_vsh, inactive = [], 0, -1, False, []
+    chunks, off, env_deg, has_vsh, inactive, ray_off = [], 0, -1, False, [], []
     for i, lt in enumerate(lights):
         flat = lt.flat_params()
         a, b = lt.table_ints()
         env_deg = max(env_deg, lt.sh_degree_needed())
         has_vsh = has_vsh or lt.NEEDS_VLIGHT
         ints[i] = (lt.TYPE, off, a, b)
+        if lt.CASTS_SHADOWS:
+            ray_off.append(off + lt.param_offset(lt.SHADOW_RAY_PARAM))
         chunks.append(flat)
         inactive.append(lt.inactive_mask())
         off += len(flat)
     params = np.concatenate(chunks) if chunks else np.zeros(0)
     inactive = np.concatenate(inactive) if inactive else np.zeros(0, bool)
-    return LightTable(ints, params, env_deg, has_vsh, inactive)
+    return LightTable(ints, params, env_deg, has_vsh, inactive, np.asarray(ray_off, np.int64))
 
 
 def unpack_gradients(lights, v_params: np.ndarray) -> list[dict[str, np.ndarray]]:

@@ -375,9 +375,7 @@ class TracedShadeFragments(ShadeFragments):
             v_attr[:, L["alpha"][0]] += sg.v_alpha
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += sg.v_V
             v_pos = v_pos + sg.v_pos
-            shadowed = inp.table.shadowed
-            for j, li in enumerate(shadowed):  # the shadow ray's light parameters: params 0..2 (lights.h)
-                off = int(inp.table.ints[li, 1])
+            for j, off in enumerate(inp.table.shadow_ray_offsets):  # each caster's SHADOW_RAY_PARAM
                 v_params[off:off + 3] += sg.v_light[:, j].sum(axis=0)
         if ctx.hits is not None:
             hf, hb, hinp, hrgb, ha = ctx.hits

@@ -24,9 +24,11 @@
  *   ambient:     g = v_Li
  *   vertex SH:   v_rad += v_Li, v_wi += safe_normalize_vjp(wi, v_L)
  *   (g: the gradients of the light's light_nparams parameters, summed over fragments by shade.cl.)
- * Shadow rays (light_shadow_ray): point: d = q - x, t in (eps / |d|, 1 - eps / |d|);
- *   directional: d = w, t in (eps / |w|, 1e30). Adjoint: the ray adjoint v_d is the light
- *   parameter's (position / direction) and, for a point light, -v_d is the shaded point's.
+ * Shadow rays (light_shadow_ray; every light with CASTS_SHADOWS in lights.py owns one column of
+ *   vis, in light order, whether or not it has a ray at a point): point: d = q - x,
+ *   t in (eps / |d|, 1 - eps / |d|); directional: d = w, t in (eps / |w|, 1e30). Adjoint: the ray
+ *   adjoint v_d is the light's SHADOW_RAY_PARAM's (position / direction, added by render.py) and,
+ *   when light_shadow_ray_from_x, -v_d is the shaded point's.
  * Adding a light: its branch in each function below (and its class in lights.py).
  */
 #ifndef TRIPLET_LIGHTS_H
