@@ -79,8 +79,8 @@ def register_light(cls):
 
 
 def is_light(obj) -> bool:
-    """Whether ``obj`` is an instance of a registered light class."""
-    return type(obj).__name__ in LIGHT_CLASSES and LIGHT_CLASSES[type(obj).__name__] is type(obj)
+    """Whether ``obj`` is an instance of a registered light class (or of a subclass of one)."""
+    return isinstance(obj, tuple(LIGHT_TYPES.values()))
 
 
 def shadow_casting_types() -> tuple[int, ...]:
@@ -454,7 +454,7 @@ def lights_to_json(lights, check_finite: bool = True) -> dict:
     light first: a registered light class, and (``check_finite``) finite values."""
     out = []
     for i, lt in enumerate(lights):
-        if not is_light(lt):
+        if type(lt).__name__ not in LIGHT_CLASSES:  # its "type" must name a class lights_from_json knows
             raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
         for k, v in vars(lt).items() if check_finite else ():
             if isinstance(v, np.ndarray) and not np.isfinite(v).all():

@@ -40,7 +40,7 @@
 
 /* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
  * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
-#if !defined(BRDF) || !defined(NMAT) || !defined(BRDF_COOK_TORRANCE) || !defined(BRDF_BLINN_PHONG)
+#if !defined(BRDF) || !defined(NMAT)
 #error "shade_brdf.h needs the BRDF defines of triplet_cl.materials (BRDF.kernel_defines())"
 #endif
 
@@ -238,7 +238,7 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     v_m[4] += v_met;
 }
 
-#else /* BRDF_BLINN_PHONG ------------------------------------------------------------------- */
+#elif BRDF == BRDF_BLINN_PHONG /* --------------------------------------------------------------- */
 
 inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m)
 {
@@ -325,6 +325,8 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     }
 }
 
+#else
+#error "shade_brdf.h: no block for this BRDF (add its #elif BRDF == BRDF_<NAME> block)"
 #endif /* BRDF */
 
 /* ---- SH environment (shared by both BRDFs through env_scales) ----------------------------- */
