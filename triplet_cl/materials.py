@@ -15,9 +15,9 @@ BRDF                      C      channels (activation; initial value)
                                  shininess (softplus; 64) | ka r, g, b (sigmoid; 0.2)
 ========================  =====  ===============================================================
 
-Adding a BRDF: its descriptor here (:data:`BRDFS`), its ``#if BRDF == BRDF_<NAME>`` block in
+Adding a BRDF: its descriptor here (:data:`BRDFS`), its ``#elif BRDF == BRDF_<NAME>`` block in
 ``shade_brdf.h`` (``brdf_direct``, ``ambient_term``, ``env_sigma2``, ``env_scales`` and their
-adjoints), its reference in ``tests/reference/shade.py``, and its CLI name comes from ``cli``.
+adjoints) and its reference in ``tests/reference/shade.py``; the CLI (``--brdf``) reads ``cli`` here.
 """
 
 from __future__ import annotations
