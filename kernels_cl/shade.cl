@@ -299,7 +299,7 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             if (has_vis && shadowed) v_vis[p * NV + jv] = v_tv;
         }
         jv += shadowed;
-        const int n = light_nparams(type, a);
+        const int n = (li + 1 < L ? lt_i[4 * (li + 1) + 1] : T) - off;  /* this light's parameter count */
         if (n > 0) group_sum_store(g, n, scratch, part + off);
     }
     if (has_refl && p < P) {

@@ -23,7 +23,8 @@
  *                v_x -= v_w, g = (v_w, v_Li sc)
  *   ambient:     g = v_Li
  *   vertex SH:   v_rad += v_Li, v_wi += safe_normalize_vjp(wi, v_L)
- *   (g: the gradients of the light's light_nparams parameters, summed over fragments by shade.cl.)
+ *   (g: the gradients of the light's n parameters (its packed size, at most RED_W = 16), summed
+ *   over fragments by shade.cl; the SH environment's coefficients have their own reduction.)
  * Shadow rays (light_shadow_ray; every light with CASTS_SHADOWS in lights.py owns one column of
  *   vis, in light order, whether or not it has a ray at a point): point: d = q - x,
  *   t in (eps / |d|, 1 - eps / |d|); directional: d = w, t in (eps / |w|, 1e30). Adjoint: the ray
@@ -53,15 +54,6 @@
 inline int light_casts_shadows(const int type)
 {
     return (LIGHT_SHADOW_MASK >> type) & 1;
-}
-
-/* parameters whose gradients shade_bwd sums with the generic reduction (g[0..n)); the SH
- * environment's coefficients have their own reduction (see shade.cl) */
-inline int light_nparams(const int type, const int a)
-{
-    if (type == LIGHT_AMBIENT) return 3;
-    if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) return 6;
-    return 0;
 }
 
 /* How the shading uses a light (LIGHT_TERM_*). */
@@ -95,7 +87,7 @@ inline int light_incident(const int type, const int a, __global const REAL* q, c
     return light_term(type);
 }
 
-/* Adjoint of light_incident for v_L, v_Li: the light's parameter gradients g[0..light_nparams),
+/* Adjoint of light_incident for v_L, v_Li: the light's parameter gradients g[0..n),
  * v_x (shaded point), v_rad / v_wi (vlight), and with has_vis the transmittance's v_tv. */
 inline void light_incident_vjp(const int type, const int a, __global const REAL* q, const REAL3 x,
                                __global const REAL* vlight, const int p, const REAL tv, const int has_vis,
