@@ -23,7 +23,7 @@
  *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
  *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
  *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
- * Optional inputs are compiled in or out (defines, 0 or 1; an absent one is not a parameter):
+ * Optional inputs are compiled in or out (defined or not; an absent one is not a parameter):
  *   HAS_VLIGHT: vlight [P, 6] and its adjoint v_vlight (a vertex-SH light).
  * Ray-traced terms (ops/trace.py; all off in the default raster path):
  *   HAS_VIS:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
@@ -49,21 +49,29 @@
 #ifndef RED_W
 #define RED_W 16
 #endif
-#ifndef HAS_VLIGHT
-#define HAS_VLIGHT 0
-#endif
-#ifndef HAS_VIS
-#define HAS_VIS 0
-#endif
-#ifndef HAS_REFL
-#define HAS_REFL 0
-#endif
-#ifndef HAS_EYE
-#define HAS_EYE 0
-#endif
-/* The optional inputs a kernel was built without: null pointers (never read: every use is guarded
- * by its HAS_* flag, a compile-time constant). */
+/* The optional inputs a kernel was built without (HAS_* not defined): null pointers, never read
+ * (every use is guarded by the matching has_* constant). */
 #define ABSENT ((__global REAL*)0)
+#ifdef HAS_VLIGHT
+#define HAVE_VLIGHT 1
+#else
+#define HAVE_VLIGHT 0
+#endif
+#ifdef HAS_VIS
+#define HAVE_VIS 1
+#else
+#define HAVE_VIS 0
+#endif
+#ifdef HAS_REFL
+#define HAVE_REFL 1
+#else
+#define HAVE_REFL 0
+#endif
+#ifdef HAS_EYE
+#define HAVE_EYE 1
+#else
+#define HAVE_EYE 0
+#endif
 
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
@@ -81,7 +89,7 @@ inline int load_fragment(const int p, __global const REAL* pos, __global const R
 __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const REAL* nrm,     // [P, 3]
                         __global const REAL* mat,     // [P, NMAT]
-#if HAS_VLIGHT
+#ifdef HAS_VLIGHT
                         __global const REAL* vlight,  // [P, 6]
 #endif
                         __global const int* face_id,  // [P]
@@ -91,32 +99,32 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const int* lt_i,     // [L, 4] (type, offset, a, b)
                         __global const REAL* lt_f,    // [T]
                         const int L,
-#if HAS_VIS
+#ifdef HAS_VIS
                         const int NV,                 // shadowed lights (columns of vis)
                         __global const REAL* vis,     // [P, NV]
 #endif
-#if HAS_REFL
+#ifdef HAS_REFL
                         __global const REAL* refl,    // [P, 3]
 #endif
-#if HAS_EYE
+#ifdef HAS_EYE
                         __global const REAL* eye,     // [P, 3]
 #endif
                         __global REAL* rgb)           // [P, 3]
 {
-#if !HAS_VLIGHT
+#ifndef HAS_VLIGHT
     __global const REAL* vlight = ABSENT;
 #endif
-#if !HAS_VIS
+#ifndef HAS_VIS
     const int NV = 0;
     __global const REAL* vis = ABSENT;
 #endif
-#if !HAS_REFL
+#ifndef HAS_REFL
     __global const REAL* refl = ABSENT;
 #endif
-#if !HAS_EYE
+#ifndef HAS_EYE
     __global const REAL* eye = ABSENT;
 #endif
-    const int has_vis = HAS_VIS, has_refl = HAS_REFL, has_eye = HAS_EYE;
+    const int has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
     if (p >= P) return;
     if (face_id[p] < 0) {
@@ -167,7 +175,7 @@ inline void group_sum_store(const REAL* g, const int n, __local REAL* scratch, _
 __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global const REAL* nrm,       // [P, 3]
                         __global const REAL* mat,       // [P, NMAT]
-#if HAS_VLIGHT
+#ifdef HAS_VLIGHT
                         __global const REAL* vlight,    // [P, 6]
 #endif
                         __global const int* face_id,    // [P]
@@ -182,43 +190,43 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global REAL* v_pos,           // [P, 3]
                         __global REAL* v_nrm,           // [P, 3]
                         __global REAL* v_mat,           // [P, NMAT]
-#if HAS_VLIGHT
+#ifdef HAS_VLIGHT
                         __global REAL* v_vlight,        // [P, 6]
 #endif
-#if HAS_VIS
+#ifdef HAS_VIS
                         const int NV,
                         __global const REAL* vis,       // [P, NV]
                         __global REAL* v_vis,           // [P, NV]
 #endif
-#if HAS_REFL
+#ifdef HAS_REFL
                         __global const REAL* refl,      // [P, 3]
                         __global REAL* v_refl,          // [P, 3]
 #endif
-#if HAS_EYE
+#ifdef HAS_EYE
                         __global const REAL* eye,       // [P, 3]
                         __global REAL* v_eye,           // [P, 3]
 #endif
                         __global REAL* v_light_part,    // [num_groups, T]
                         __local REAL* scratch)          // [local_size * RED_W]
 {
-#if !HAS_VLIGHT
+#ifndef HAS_VLIGHT
     __global const REAL* vlight = ABSENT;
     __global REAL* v_vlight = ABSENT;
 #endif
-#if !HAS_VIS
+#ifndef HAS_VIS
     const int NV = 0;
     __global const REAL* vis = ABSENT;
     __global REAL* v_vis = ABSENT;
 #endif
-#if !HAS_REFL
+#ifndef HAS_REFL
     __global const REAL* refl = ABSENT;
     __global REAL* v_refl = ABSENT;
 #endif
-#if !HAS_EYE
+#ifndef HAS_EYE
     __global const REAL* eye = ABSENT;
     __global REAL* v_eye = ABSENT;
 #endif
-    const int has_vlight = HAS_VLIGHT, has_vis = HAS_VIS, has_refl = HAS_REFL, has_eye = HAS_EYE;
+    const int has_vlight = HAVE_VLIGHT, has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
     const int valid = p < P && face_id[p] >= 0;
     const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);

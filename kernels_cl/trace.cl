@@ -177,12 +177,11 @@ inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const
 /* Shadow rays skip lights behind the shading normal when the kernel is built with HAS_NRM (the
  * fragments' normals, the camera centre and two_sided are then parameters); without, every ray is
  * traced (the normal inputs are absent). */
-#ifndef HAS_NRM
-#define HAS_NRM 0
-#endif
-#if HAS_NRM
+#ifdef HAS_NRM
+#define HAVE_NRM 1
 #define NO_NRM_INPUTS
 #else
+#define HAVE_NRM 0
 #define NO_NRM_INPUTS                                                                                 \
     __global const REAL* nrm = (__global const REAL*)0;                                              \
     const REAL cx = (REAL)0, cy = (REAL)0, cz = (REAL)0;                                             \
@@ -216,7 +215,7 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3] fragment positions
                                __global const int* face,     // [Pf] fragment face ids
-#if HAS_NRM
+#ifdef HAS_NRM
                                __global const REAL* nrm,     // [Pf, 3] fragment normals
                                const REAL cx, const REAL cy, const REAL cz, const int two_sided,
 #endif
@@ -228,7 +227,7 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global int* nhit)           // [Pf, NV]
 {
     NO_NRM_INPUTS
-    const int has_nrm = HAS_NRM;
+    const int has_nrm = HAVE_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -282,7 +281,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3]
                                __global const int* face,     // [Pf]
-#if HAS_NRM
+#ifdef HAS_NRM
                                __global const REAL* nrm,     // [Pf, 3]
                                const REAL cx, const REAL cy, const REAL cz, const int two_sided,
 #endif
@@ -299,7 +298,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global REAL* v_light)       // [Pf, NV, 3] light position / direction
 {
     NO_NRM_INPUTS
-    const int has_nrm = HAS_NRM;
+    const int has_nrm = HAVE_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -508,12 +507,9 @@ __kernel void gather_hits(__global const REAL* attr,      // [N, C]
 /* Which compacted fragments need rays: -1 where the pixel's transmittance in front of the fragment,
  * prod_{j<k} (1 - alpha_j win_j), is already below t_min (compositing stops there: the fragment's
  * colour has no weight and no gradient), else its face id. */
-#ifndef HAS_WIN
-#define HAS_WIN 0
-#endif
 __kernel void ray_mask(__global const int* face,       // [Pv] compacted face ids
                        __global const REAL* alpha,     // [Pv]
-#if HAS_WIN
+#ifdef HAS_WIN
                        __global const REAL* win,       // [Pv] coverage window
 #endif
                        __global const int* frag_count, // [H, W]
@@ -521,10 +517,14 @@ __kernel void ray_mask(__global const int* face,       // [Pv] compacted face id
                        const int npix, const REAL t_min,
                        __global int* out)              // [Pv]
 {
-#if !HAS_WIN
+#ifndef HAS_WIN
     __global const REAL* win = (__global const REAL*)0;
 #endif
-    const int has_win = HAS_WIN;
+#ifdef HAS_WIN
+    const int has_win = 1;
+#else
+    const int has_win = 0;
+#endif
     const int pix = get_global_id(0);
     if (pix >= npix) return;
     const int o = offsets[pix], c = frag_count[pix];

@@ -1,72 +1,76 @@
-"""Kernels called by name (triplet_cl.ops.launch) and the kernel memo keyed by defines."""
+"""Kernels called by name (``ops.common.launch``): the signature parsed from the ``.cl`` source,
+conditional parameters under ``#ifdef``, and clear errors for missing or unknown arguments."""
 
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
-import pyopencl.array as cla
 import pytest
 
-from triplet_cl.ops.launch import launch, signature
-
-SRC = """
-__kernel void scale(__global REAL* out, __global const REAL* x, const int n, const REAL s, __local REAL* tmp
-#if HAS_OFFSET
-                    , const REAL offset
-#endif
-                    )
-{
-    const int i = get_global_id(0);
-#if !HAS_OFFSET
-    const REAL offset = (REAL)0;
-#endif
-    tmp[get_local_id(0)] = x[i < n ? i : 0];
-    if (i < n) out[i] = s * tmp[get_local_id(0)] + offset;
-}
-"""
+from tests.test_raster import cam, soup
+from triplet_cl.ops.common import _signature_text, grid_1d, kernel_params, launch
+from triplet_cl.ops.project import camera_params, project
 
 
-def _kernel(device, has_offset: bool):
-    opts = device.build_options({"HAS_OFFSET": int(has_offset)}, np.float32)
-    return cl.Kernel(device.build_source(SRC, opts, "<test scale>"), "scale")
+def test_signature_parsed_with_its_defines():
+    base = [p.name for p in kernel_params("fragment_bwd", "fragment_bwd", frozenset())]
+    assert base[:8] == ["entry_setup", "F", "tile_off", "frag_face", "frag_entry", "frag_bary", "frag_depth",
+                        "frag_count"]
+    assert "v_bary_out" in base and "partial_mom" not in base and "attr" not in base and "v_win" not in base
+    full = {p.name: p for p in kernel_params("fragment_bwd", "fragment_bwd",
+                                             frozenset({"ATTR", "V_BARY_IN", "V_DEPTH", "V_WIN", "GEOMETRY"}))}
+    assert {"attr", "v_out", "C", "v_bary_in", "v_depth", "v_win", "partial_mom", "v_sigma_tile"} <= set(full)
+    assert "v_bary_out" not in full
+    assert (full["C"].kind, full["C"].ctype) == ("scalar", "int")
+    assert (full["sigma"].kind, full["sigma"].ctype) == ("scalar", "REAL")
+    assert full["attr"].kind == "buffer"
 
 
-def test_arguments_bound_by_name_in_any_order(device):
-    k = _kernel(device, False)
-    assert [s[0] for s in signature(k)] == ["out", "x", "n", "s", "tmp"]
-    q = device.queue
-    x = cla.to_device(q, np.arange(10, dtype=np.float32))
-    out = cla.zeros(q, 16, np.float32)
-    launch(k, q, (16,), (16,), s=2.5, n=10, tmp=cl.LocalMemory(64), x=x, out=out)  # python scalars converted
-    assert np.array_equal(out.get()[:10], 2.5 * np.arange(10, dtype=np.float32))
-    k2 = _kernel(device, True)  # an optional input compiled in is one more parameter
-    launch(k2, q, (16,), (16,), out=out, x=x, n=10, s=1.0, tmp=cl.LocalMemory(64), offset=np.float64(0.5))
-    assert np.array_equal(out.get()[:10], np.arange(10, dtype=np.float32) + 0.5)
+def test_signature_preprocessor_lines():
+    body = "int a,\n#ifdef X\nint b,\n#else\nint c,\n#endif\n#if !defined(Y)\nint d,\n#endif\nint e"
+    assert _signature_text(body, frozenset(), "t").split() == ["int", "a,", "int", "c,", "int", "d,", "int", "e"]
+    assert _signature_text(body, frozenset({"X", "Y"}), "t").split() == ["int", "a,", "int", "b,", "int", "e"]
+    with pytest.raises(ValueError, match="unsupported preprocessor"):
+        _signature_text("int a,\n#define Z 1\nint b", frozenset(), "t")
+    with pytest.raises(ValueError, match="unterminated"):
+        _signature_text("int a,\n#ifdef X\nint b", frozenset(), "t")
 
 
-def test_missing_unknown_and_wrong_arguments_are_named(device):
-    k = _kernel(device, False)
-    q = device.queue
-    x = cla.zeros(q, 16, np.float32)
-    with pytest.raises(TypeError, match=r"scale: missing arguments \['tmp'\], unknown arguments \['offset'\]"):
-        launch(k, q, (16,), (16,), out=x, x=x, n=16, s=1.0, offset=0.5)
-    with pytest.raises(TypeError, match="x is a buffer"):
-        launch(k, q, (16,), (16,), out=x, x=np.zeros(16, np.float32), n=16, s=1.0, tmp=cl.LocalMemory(64))
-    with pytest.raises(TypeError, match="tmp is __local memory"):
-        launch(k, q, (16,), (16,), out=x, x=x, n=16, s=1.0, tmp=x)
+def test_launch_binds_by_name(device, rng):
+    V, _ = soup(rng)
+    c = cam()
+    n = len(V)
+    Vd = project(device, V.astype(np.float32), c)  # the op's own (positional) launch
+    import pyopencl.array as cla
+
+    Vw = cla.to_device(device.queue, V.astype(np.float32))
+    cp = cla.to_device(device.queue, camera_params(c, np.float32))
+    out = cla.empty(device.queue, (n, 3), np.float32)
+    # keyword order is irrelevant
+    launch(device, "project", "project_fwd", *grid_1d(n), vs=out, n=n, cam=cp, V=Vw)
+    np.testing.assert_array_equal(out.get(), Vd.get())
+    with pytest.raises(ValueError, match=r"missing arguments \['n'\]"):
+        launch(device, "project", "project_fwd", *grid_1d(n), vs=out, cam=cp, V=Vw)
+    with pytest.raises(ValueError, match=r"unknown arguments \['m'\]"):
+        launch(device, "project", "project_fwd", *grid_1d(n), vs=out, n=n, m=n, cam=cp, V=Vw)
+    with pytest.raises(ValueError, match="not found"):
+        kernel_params("project", "no_such_kernel")
 
 
 def test_kernel_memo_by_defines(device):
-    a = device.kernel("shade", "shade_fwd", _shade_defines(), np.float32)
-    b = device.kernel("shade", "shade_fwd", dict(reversed(list(_shade_defines().items()))), np.float32)
-    assert a is b
-    c = device.kernel("shade", "shade_fwd", {**_shade_defines(), "HAS_EYE": 1}, np.float32)
-    assert c is not a and [s[0] for s in signature(c)][-2:] == ["eye", "rgb"]
-
-
-def _shade_defines():
+    """Device.kernel memoises by the defines (any order); False (omitted) and 0 (defined) stay apart."""
     from triplet_cl.lights import kernel_defines
     from triplet_cl.materials import get_brdf
+    from triplet_cl.ops.common import kernel_params
 
-    return {"ENV_MAX_DEG": 2, "RED_W": 16, "HAS_VLIGHT": 0, "HAS_VIS": 0, "HAS_REFL": 0, "HAS_EYE": 0,
+    base = {"ENV_MAX_DEG": 2, "RED_W": 16, "HAS_VLIGHT": False, "HAS_VIS": False, "HAS_REFL": False,
             **get_brdf("cook_torrance").kernel_defines(), **kernel_defines()}
+    a = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": False})
+    b = device.kernel("shade", "shade_fwd", dict(reversed(list({**base, "HAS_EYE": False}.items()))))
+    assert a is b
+    c = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": True})
+    assert c is not a
+    d = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": 0})  # -DHAS_EYE=0 defines it
+    assert d is not a
+    defined = frozenset(k for k, v in base.items() if v is not False) | {"HAS_EYE"}
+    names = [p.name for p in kernel_params("shade", "shade_fwd", defined)]
+    assert names[-2:] == ["eye", "rgb"] and "vis" not in names

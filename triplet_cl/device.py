@@ -251,7 +251,6 @@ class Device:
         else:
             raise ValueError(f"real must be float32 or float64, got {real}")
         opts = ["-I", str(kernel_dir() / "common"), f"-DREAL={rdef}"] + (["-DREAL_FP64"] if rdef == "double" else [])
-        opts.append("-cl-kernel-arg-info")  # parameter names: ops.launch binds arguments by name
         for k in sorted(defines or {}):
             d = _format_define(k, defines[k])
             if d:
@@ -295,7 +294,9 @@ class Device:
 
     def kernel(self, name: str, kernel_name: str, defines: dict | None = None, real=np.float32) -> cl.Kernel:
         """The ``cl.Kernel`` ``kernel_name`` of ``kernels_cl/<name>.cl`` (fetched once, reused)."""
-        fast = (name, kernel_name, real, tuple(sorted(defines.items())) if defines else ())
+        # bool values are keyed apart from ints: False omits a define, 0 defines it as 0
+        fast = (name, kernel_name, real, tuple(sorted((k, v, type(v) is bool) for k, v in defines.items()))
+                if defines else ())
         k = self._by_defines.get(fast)  # skips formatting the options on every fetch (many defines)
         if k is not None:
             return k

@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .autodiff.arrays import to_host
+
 # ---------------------------------------------------------------------------------------------
 # schedules
 # ---------------------------------------------------------------------------------------------
@@ -146,10 +148,6 @@ class ParamGroup:
         return int(self.params[0].data.shape[0]) if self.params and self.params[0].data.ndim else 0
 
 
-def _grad_host(g):
-    return g.get() if hasattr(g, "get") and not isinstance(g, np.ndarray) else np.asarray(g)
-
-
 class Adam:
     """Adam with named parameter groups (see the module docstring for the exact update).
 
@@ -214,7 +212,7 @@ class Adam:
         self.t += 1
         for g in self.groups.values():
             lr = g.schedule(self.t - 1)
-            grads = [None if p.grad is None else _grad_host(p.grad) for p in g.params]
+            grads = [None if p.grad is None else to_host(p.grad) for p in g.params]
             for p, gr in zip(g.params, grads, strict=True):
                 if gr is not None and gr.shape != p.data.shape:
                     raise ValueError(f"gradient of {getattr(p, 'name', 'a parameter')} in group {g.name!r} has shape "
@@ -348,3 +346,23 @@ class Adam:
             g.exp_avg = [np.array(a, dtype=p.data.dtype) for a, p in zip(s["exp_avg"], g.params, strict=True)]
             g.exp_avg_sq = [np.array(a, dtype=p.data.dtype) for a, p in zip(s["exp_avg_sq"], g.params, strict=True)]
         self.t = int(state["t"])
+
+
+def owning_groups(optimizer, vparams) -> dict[str, list]:
+    """``{group name: params}`` of the groups holding per-vertex parameters (matched by identity)."""
+    if optimizer is None:
+        return {}
+    ids = {id(p) for p in vparams}
+    out, seen = {}, set()
+    for name, g in optimizer.groups.items():
+        hit = [id(p) in ids for p in g.params]
+        if not any(hit):
+            continue
+        if not all(hit):
+            raise ValueError(f"optimizer group {name!r} mixes per-vertex parameters with others; it cannot be remapped")
+        for p in g.params:
+            if id(p) in seen:
+                raise ValueError(f"parameter {p.name!r} is in more than one optimizer group")
+            seen.add(id(p))
+        out[name] = list(g.params)
+    return out

@@ -347,11 +347,11 @@ class Trainer:
         t3 = time.perf_counter()
         dens = cfg.density
         if it < dens.densify_until:
-            fr = r.view.frags
+            fr = r.info["frags"]
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
-            self.stats.add(r.view.v_vs.get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
+                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
                            grad_scale=0.5 * cam.width)
         self.opt.step()
         self.opt.zero_grad()

@@ -29,8 +29,7 @@ import pyopencl.array as cla
 from ..device import Device, get_device
 from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
 from ..materials import DEFAULT_BRDF, get_brdf
-from .common import check_real, check_shape, empty, round_up, to_device, to_host
-from .launch import launch
+from .common import check_real, check_shape, empty, launch, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
 LOCAL_SIZE = 64
@@ -106,11 +105,10 @@ def _optional(inp: ShadeInputs) -> dict[str, bool]:
             "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None}
 
 
-def _kernel(dev: Device, inp: ShadeInputs, name: str):
-    defines = {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W,
-               **{k: int(v) for k, v in _optional(inp).items()}, **get_brdf(inp.brdf).kernel_defines(),
-               **kernel_defines()}
-    return dev.kernel("shade", name, defines, inp.real)
+def _defines(inp: ShadeInputs) -> dict:
+    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`)."""
+    return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp),
+            **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
 
 
 def _inputs(inp: ShadeInputs) -> dict:
@@ -134,8 +132,8 @@ def forward(dev: Device, inp: ShadeInputs) -> cla.Array:
     """``rgb [P, 3]`` (device array) for validated device inputs."""
     rgb = empty(dev.queue, (inp.P, 3), inp.real)
     if inp.P:
-        launch(_kernel(dev, inp, "shade_fwd"), dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
-               **_inputs(inp), rgb=rgb)
+        launch(dev, "shade", "shade_fwd", (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,), defines=_defines(inp),
+               real=inp.real, **_inputs(inp), rgb=rgb)
     return rgb
 
 
@@ -163,8 +161,8 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
             outs["v_refl"] = out.v_refl
         if has["HAS_EYE"]:
             outs["v_eye"] = out.v_eye
-        launch(_kernel(dev, inp, "shade_bwd"), q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), **_inputs(inp), **outs,
-               T=T, v_rgb=v_rgb, v_light_part=part,
+        launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
+               **_inputs(inp), **outs, T=T, v_rgb=v_rgb, v_light_part=part,
                scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
         out.v_light_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
     out.v_light_params[inp.table.inactive] = 0.0

@@ -27,18 +27,18 @@ from ..camera import Camera
 from ..device import Device
 from ..lights import LightTable, kernel_defines
 from .bvh import BVH
-from .common import check_real, round_up, to_device
-from .launch import launch
-from .raster import TILE, Fragments, _offsets, bin_faces, camera_params, pack_fragment_lists
+from .common import check_real, launch, round_up, to_device
+from .raster import TILE, Fragments, bin_faces, camera_params, pack_fragment_lists
+from .scan import prefix_offsets
 
 LOCAL = 64
 
 
-def _run(device: Device, name: str, real, gsize, lsize, defines: dict | None = None, **args):
+def _run(device: Device, name: str, real, gsize, lsize, defines: dict | None = None, /, **args):
     """Launch kernel ``name`` of ``trace.cl`` (built with the light defines of ``lights.kernel_defines``
-    and ``defines``), its arguments bound by name."""
-    kernel = device.kernel("trace", name, {**kernel_defines(), **(defines or {})}, real)
-    return launch(kernel, device.queue, gsize, lsize, **args)
+    and ``defines``), its arguments bound by name (:func:`~triplet_cl.ops.common.launch`)."""
+    return launch(device, "trace", name, gsize, lsize, defines={**kernel_defines(), **(defines or {})}, real=real,
+                  **args)
 
 
 def _check_bvh(bvh: BVH, V) -> None:
@@ -146,7 +146,7 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
                 NV=NV, eps=eps)
     if nrm is not None:
         args.update(nrm=nrm, cx=c[0], cy=c[1], cz=c[2], two_sided=int(bool(two_sided)))
-    defines = {"HAS_NRM": int(nrm is not None)}
+    defines = {"HAS_NRM": nrm is not None}
     if P and NV:
         _run(device, "trace_shadow_fwd", real, (round_up(P, LOCAL),), (LOCAL,), defines, **args, vis=vis.base_data,
              nhit=nhit)
@@ -166,7 +166,7 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis) -> ShadowG
     v_pos = cla.zeros(q, (max(P, 1), 3), real, allocator=device.allocator)[:P]
     if P == 0 or NV == 0:
         return ShadowGrads(np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3)))
-    off, R = _offsets(device, st.nhit)
+    off, R = prefix_offsets(device, st.nhit)
     v_vis = v_vis if isinstance(v_vis, cla.Array) else to_device(q, np.ascontiguousarray(v_vis, real))
     rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
     rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)
@@ -284,7 +284,7 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
     out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
     if P:
         extra = {} if win is None else {"win": win}
-        _run(device, "ray_mask", frags.real, (H * W,), None, {"HAS_WIN": int(win is not None)}, face=face,
+        _run(device, "ray_mask", frags.real, (H * W,), None, {"HAS_WIN": win is not None}, face=face,
              alpha=alpha, **extra, frag_count=frags.count, offsets=offsets, npix=H * W, t_min=t_min, out=out)
     return out[:P]
 
