@@ -187,6 +187,11 @@ class Light:
         """``{parameter name: gradient}`` of this light from its slice ``g [num_params]`` of the packed gradient."""
         return self._split(g)
 
+    def gltf_punctual(self):
+        """``(glTF KHR_lights_punctual type, its 3-vector: position or direction, rgb intensity)``, or
+        None when the light has no punctual glTF equivalent (``mesh.export.punctual_lights``)."""
+        return None
+
     def to_json(self) -> dict:
         """``{"type": class name, field: value (lists)}`` (the format of ``lights.json``)."""
         d = {"type": type(self).__name__}
@@ -241,6 +246,9 @@ class DirectionalLight(Light):
         self.direction = _vec3("DirectionalLight.direction", self.direction)
         self.intensity = _vec3("DirectionalLight.intensity", self.intensity)
 
+    def gltf_punctual(self):
+        return "directional", self.direction, self.intensity
+
     @classmethod
     def initial(cls, init: LightInit) -> DirectionalLight:
         """From the cameras' mean up direction, intensity 1."""
@@ -271,6 +279,10 @@ class PointLight(Light):
 
     def table_ints(self) -> tuple[int, int]:
         return int(self.falloff), 0
+
+    def gltf_punctual(self):
+        """A point light without falloff has no glTF equivalent."""
+        return ("point", self.position, self.intensity) if self.falloff else None
 
     @classmethod
     def initial(cls, init: LightInit) -> PointLight:
