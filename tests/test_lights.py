@@ -130,6 +130,14 @@ def test_initial_lights_per_kind():
         initial_lights(["spot"], _init())
 
 
+def test_gltf_punctual_form():
+    p, d = PointLight([1, 2, 3], [2, 1, 1]), DirectionalLight([0, 0, 2], [1, 1, 1])
+    assert p.gltf_punctual()[0] == "point" and np.array_equal(p.gltf_punctual()[1], [1, 2, 3])
+    assert d.gltf_punctual()[0] == "directional" and np.array_equal(d.gltf_punctual()[2], [1, 1, 1])
+    assert PointLight(falloff=False).gltf_punctual() is None and AmbientLight().gltf_punctual() is None
+    assert SHEnvironmentLight().gltf_punctual() is None and VertexSHLight().gltf_punctual() is None
+
+
 def test_train_uses_the_registry():
     from triplet_cl.train import LIGHT_KINDS as TRAIN_KINDS
 

@@ -32,10 +32,10 @@ with :func:`register_light`, owns its type id (``TYPE``), its C name (``DEFINE``
 in the kernels), its CLI kind (``KIND``), whether it casts ray-traced shadows (``CASTS_SHADOWS``),
 its learnable parameters (``PARAMS``, packed in that order, shapes from the instance), the two
 table integers (:meth:`Light.table_ints`), the parameters that get no gradient
-(:meth:`Light.inactive_mask`), its JSON form and its initial value in training
-(:meth:`Light.initial`). The kernels get the ids and the shadow-casting set as generated ``-D``
-defines (:func:`kernel_defines`); ``kernels_cl/common/lights.h`` holds each light's incident
-radiance, its adjoint and its shadow ray.
+(:meth:`Light.inactive_mask`), its JSON form, its glTF punctual form (:meth:`Light.gltf_punctual`)
+and its initial value in training (:meth:`Light.initial`). The kernels get the ids and the
+shadow-casting set as generated ``-D`` defines (:func:`kernel_defines`);
+``kernels_cl/common/lights.h`` holds each light's incident radiance, its adjoint and its shadow ray.
 
 Adding a light: its class here (``@register_light``), its branches in ``kernels_cl/common/lights.h``,
 its reference in ``tests/reference/shade.py`` (and ``tests/reference/trace.py`` if it casts shadows).
