@@ -23,8 +23,8 @@ def compare(a: Path, b: Path) -> bool:
     cb = b / "checkpoints" / (b / "checkpoints" / "latest").read_text().strip()
     with np.load(ca) as za, np.load(cb) as zb:
         keys = sorted((set(za.files) | set(zb.files)) - {"meta"})
-        diff = [k for k in keys if (k not in za.files or k not in zb.files
-                                                     or za[k].tobytes() != zb[k].tobytes())]
+        diff = [k for k in keys
+                if k not in za.files or k not in zb.files or za[k].tobytes() != zb[k].tobytes()]
     ma, mb = (json.loads((r / "metrics.json").read_text()) for r in (a, b))
     same = {f: (a / f).read_bytes() == (b / f).read_bytes() for f in ("lights.json", "triplets.ply")}
     ok = not diff and ma["psnr"] == mb["psnr"] and ma["ssim"] == mb["ssim"] and all(same.values())
