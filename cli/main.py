@@ -9,6 +9,9 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.errors import TripletError
+from triplet_cl.lights import LIGHT_KINDS
+from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
+from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
 
 
 def _gib(n: int) -> str:
@@ -64,7 +67,7 @@ def _config_from_args(args: argparse.Namespace):
     if args.seed is not None:
         over["seed"] = args.seed
     if args.brdf:
-        over["brdf"] = args.brdf.replace("-", "_")
+        over["brdf"] = brdf_from_cli(args.brdf)
     if args.lights:
         over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
     if args.sh_degree is not None:
@@ -81,6 +84,8 @@ def _config_from_args(args: argparse.Namespace):
         over["sigma"] = None if args.sigma <= 0 else args.sigma
     if args.checkpoint_every is not None:
         over["checkpoint_every"] = args.checkpoint_every
+    if args.keep_checkpoints is not None:
+        over["keep_checkpoints"] = args.keep_checkpoints
     if args.renderer:
         over["renderer"] = args.renderer
     if getattr(args, "color", None):
@@ -98,7 +103,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.demo:
         data = demo_data_path()
         out = Path(args.out or "runs/demo")
-        if args.iterations is None:
+        if args.iterations is None and not args.resume:
             args.iterations = 1500
     else:
         if not args.data and not args.resume:
@@ -112,11 +117,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     mesh_cfg = _mesh_config_from_args(args) if args.mesh_stage else None  # bad options fail before training
     dev = get_device(args.device)
     if args.resume:
-        tr = Trainer(data if args.data or args.demo else None, out, device=dev, resume=True)
-        if args.iterations is not None:
-            tr.cfg.iterations = args.iterations
+        from triplet_cl.runs import config_from_saved, read_run_config
+        from triplet_cl.validate import check_resume_iterations, resume_config, resume_data
+
+        saved = read_run_config(out)
+        cfg, notes = resume_config(args, config_from_saved(out, saved), _config_from_args(args))
+        data, moved = resume_data(data if args.data or args.demo else None, saved["data"], out)
+        notes += moved
+        tr = Trainer(data, out, cfg, device=dev, resume=True)
+        check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
+        print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
-        tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.format)
+        from triplet_cl.runs import replacing_run
+
+        with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
+            tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
     try:
@@ -139,10 +154,7 @@ def _load_run(args):
     from triplet_cl.device import get_device
     from triplet_cl.train import Trainer
 
-    run = Path(args.run)
-    if not (run / "config.json").is_file():
-        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
-    return Trainer(None, run, device=get_device(args.device), resume=True, quiet=True)
+    return Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -150,6 +162,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.renderer:
         tr.cfg.renderer = args.renderer
     out = Path(args.out) if args.out else Path(args.run) / "renders" / args.split
+    from triplet_cl.validate import check_render_out
+
+    check_render_out(tr, args.split, out, "--out" if args.out else "RUN")
     m = tr.evaluate(args.split, write_renders=True, out_dir=out)
     print(f"rendered {len(m['views'])} {args.split} views to {out} (PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f})")
     return 0
@@ -183,6 +198,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.relight import Relighter, evaluate_relight
 
         stages = ["soup"] + (["mesh"] if (run / "mesh_stage.npz").is_file() else [])
+        if args.out:
+            from triplet_cl.relight import load_light_sets as _sets
+
+            names = [f"{Path(v.name).name}.png" for v in tr.ds["test"][: tr.cfg.max_test_views or None]]
+            _check_image_outs([Path(args.out) / st / ls.name for st in stages for ls in _sets(spec, args.env_degree)]
+                              + [Path(args.out) / st / "albedo" for st in stages], names, "--out", tr.ds.root)
         rel = dict(merged.get("relight") or {})
         for stage in stages:
             rl = Relighter(tr, stage, args.renderer)
@@ -199,18 +220,32 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_image_outs(outs, names, option: str, dataset) -> None:
+    """Image folders triplet writes: not in the dataset, no file of the user replaced; then recorded as triplet's."""
+    from triplet_cl.runs import mark_output_dir
+    from triplet_cl.validate import check_not_in_dataset, check_output_files
+
+    for out in outs:
+        check_not_in_dataset(out, option, dataset)
+        check_output_files(out, names, option)
+    for out in outs:
+        mark_output_dir(out, names)
+
+
 def cmd_relight(args: argparse.Namespace) -> int:
     from triplet_cl.relight import Relighter, load_light_sets, relight_run
 
-    sets = load_light_sets(args.lights, args.env_degree)  # a bad light file fails before the run is loaded
+    sets = load_light_sets(args.light_file, args.env_degree)  # a bad light file fails before the run is loaded
     run = Path(args.run)
     if args.out is not None and Path(args.out).is_file():
         raise ValueError(f"--out {args.out} is a file; expected a folder")
     tr = _load_run(args)
     rl = Relighter(tr, args.stage, args.renderer)
-    for ls in sets:
-        base = Path(args.out) if args.out else run / "relight"
-        out = base / ls.name if (len(sets) > 1 or not args.out) else base
+    base = Path(args.out) if args.out else run / "relight"
+    outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
+    names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
+    _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
+    for ls, out in zip(sets, outs, strict=True):
         paths = relight_run(rl, ls, out, args.split)
         kinds = ", ".join(type(lt).__name__ for lt in ls.lights)
         print(f"relit {len(paths)} {args.split} views of the {rl.stage_name} under {ls.name!r} ({kinds}; "
@@ -291,13 +326,18 @@ def cmd_extract(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
     from triplet_cl.mesh.refine import MESH_STATE, albedo_space, export_run_mesh, load_mesh_state, run_color
+    from triplet_cl.validate import check_export_out, parse_formats
 
     run = Path(args.run)
-    if not (run / "config.json").is_file():
-        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
+    formats = parse_formats("--formats", args.formats)
+    if args.device:  # unused (export bakes on the CPU) but a wrong spec is still an error
+        from triplet_cl.device import resolve_spec
+
+        resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), _formats(args.format), args.texture_size,
+    check_export_out(out, formats, "--out")
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size,
                             albedo_space=albedo_space(run_color(run)))
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
@@ -309,6 +349,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="triplet",
+        allow_abbrev=False,
         description="Mesh-based inverse rendering (Triplet) with OpenCL kernels and hand-derived adjoints.",
     )
     p.add_argument("--version", action="version", version=f"triplet_cl {__version__}")
@@ -327,21 +368,26 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("data", nargs="?", help="dataset folder (NeRF-synthetic, instant-ngp or COLMAP)")
     t.add_argument("--out", help="run directory (default for --demo: runs/demo)")
     t.add_argument("--demo", action="store_true", help="train on the small Spot dataset shipped with the package")
-    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    t.add_argument("--format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
+                   "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
+    t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
+    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+                   action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
-    t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
-    t.add_argument("--lights", help="comma-separated mix of point,directional,ambient,sh-env,vertex-sh "
-                                    "(default point,ambient)")
+    t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
+                   help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
+    t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
     t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
-    t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
+    t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
+    t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
@@ -375,8 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     lt = sub.add_parser("relight", help="render a run (its refined mesh, else the soup) under other lights")
     lt.add_argument("run", help="run directory")
-    lt.add_argument("--lights", required=True, help="light file: a relight.json (FILE#set picks one of its sets; "
-                    "without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
+    lt.add_argument("--lights", required=True, dest="light_file", help="light file: a relight.json (FILE#set picks "
+                    "one of its sets; without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
     lt.add_argument("--split", default="test", choices=["test", "train", "val"], help="views to render (default test)")
     lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
     lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
@@ -396,20 +442,42 @@ def build_parser() -> argparse.ArgumentParser:
 
     o = sub.add_parser("export", help="write the refined mesh of a run (from `triplet extract`) in other formats")
     o.add_argument("run", help="run directory")
-    o.add_argument("--format", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--formats", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--format", dest="formats", action=DeprecatedAlias.action("--formats"), help=argparse.SUPPRESS)
     o.add_argument("--out", help="output folder (default RUN)")
     o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")
+    o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
+                   "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
+        sp.allow_abbrev = False
     args = parser.parse_args(argv)
     try:
+        validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)
     except (TripletError, FileNotFoundError, ValueError) as exc:
-        print(f"triplet {args.command}: error: {exc}", file=sys.stderr)
+        msg = os_error_message(exc) if isinstance(exc, OSError) and exc.errno else exc  # raised by the OS
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # not a folder, read-only, permission, no space left: one line
+        print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"triplet {args.command}: error: out of memory (reduce --init-points / --max-faces or the image "
+              "size with --downscale)", file=sys.stderr)
+        return 2
+    except Exception as exc:  # an OpenCL allocation failure is one line too; anything else is a bug: traceback
+        from triplet_cl.validate import device_memory_message
+
+        msg = device_memory_message(exc)
+        if msg is None:
+            raise
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

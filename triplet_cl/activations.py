@@ -60,6 +60,23 @@ def softplus_bwd(x, v_y):
     return v_y * sigmoid(x)
 
 
+# ---- inverses (host, float64): raw values from activated ones ------------------------------------
+def logit(p, eps: float | None = 1e-6):
+    """Inverse of :func:`sigmoid`, ``[...] → [...]`` float64: ``log(p) − log1p(−p)``, with ``p``
+    clipped to ``[eps, 1 − eps]`` first (``eps=None``: the caller has clipped it)."""
+    p = np.asarray(p, np.float64)
+    if eps is not None:
+        p = np.clip(p, eps, 1 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+def inverse_softplus(y, floor: float = 1e-12, linear_above: float = 20.0):
+    """Inverse of :func:`softplus`, ``[...] → [...]`` float64: ``log(expm1(y))`` on ``y`` clipped to
+    ``[floor, linear_above]``, and ``y`` itself above ``linear_above`` (where they agree to rounding)."""
+    y = np.asarray(y, np.float64)
+    return np.where(y > linear_above, y, np.log(np.expm1(np.clip(y, floor, linear_above))))
+
+
 # ---- exp ----------------------------------------------------------------------------------------
 def exp(x):
     """``[...] -> [...]``: the exponential."""

@@ -53,6 +53,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from .activations import inverse_softplus, logit
+from .autodiff.arrays import to_host
+from .materials import DEFAULT_BRDF, get_brdf
+from .optim import owning_groups
+
 __all__ = [
     "CHILDREN",
     "DensifyReport",
@@ -65,6 +70,7 @@ __all__ = [
     "face_longest_edges",
     "reset_alpha",
     "split_faces",
+    "vertex_params",
     "visible_faces",
 ]
 
@@ -146,10 +152,6 @@ class DensifyReport:
 # ---------------------------------------------------------------------------------------------
 
 
-def _host(a) -> np.ndarray:
-    return a.get() if hasattr(a, "get") and not isinstance(a, np.ndarray) else np.asarray(a)
-
-
 def _corners(V, F) -> np.ndarray:
     return np.asarray(V, np.float64)[np.asarray(F)]  # [M, 3, 3]
 
@@ -177,7 +179,7 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
 def visible_faces(face_ids, num_faces: int) -> np.ndarray:
     """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
     ``[P]``, or any array of face ids with −1 = empty; numpy or device array)."""
-    f = _host(face_ids).reshape(-1)
+    f = to_host(face_ids).reshape(-1)
     f = f[f >= 0]
     return np.bincount(f, minlength=num_faces)[:num_faces] > 0
 
@@ -230,10 +232,10 @@ class DensityStats:
         m = self.num_faces
         if F.shape != (m, 3):
             raise ValueError(f"F must have shape [{m}, 3] (stats were reset for {m} faces), got {list(F.shape)}")
-        vis = np.asarray(_host(visible))
+        vis = np.asarray(to_host(visible))
         if vis.shape != (m,) or vis.dtype != np.bool_:
             raise ValueError(f"visible must be a bool array of shape [{m}], got {vis.dtype} {list(vis.shape)}")
-        g = np.asarray(_host(v_vs), np.float64)
+        g = np.asarray(to_host(v_vs), np.float64)
         if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
             raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
         idx = np.flatnonzero(vis)
@@ -242,7 +244,7 @@ class DensityStats:
         self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
         self.denom[idx] += 1
         if v_V is not None:
-            gw = np.asarray(_host(v_V), np.float64)
+            gw = np.asarray(to_host(v_V), np.float64)
             if gw.ndim != 2 or gw.shape[1] != 3 or gw.shape[0] != g.shape[0]:
                 raise ValueError(f"v_V must have shape [{g.shape[0]}, 3], got {list(gw.shape)}")
             self.world_grad_accum[idx] += gw[Fv].sum(axis=1)
@@ -252,7 +254,7 @@ class DensityStats:
             w, h = (int(x) for x in image_size)
             if w <= 0 or h <= 0:
                 raise ValueError(f"image_size must be positive, got {image_size}")
-            uv = np.asarray(_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+            uv = np.asarray(to_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
             ext = uv.max(axis=1) - uv.min(axis=1)
             area = ext[:, 0] * ext[:, 1]
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
@@ -268,7 +270,9 @@ class DensityStats:
 # ---------------------------------------------------------------------------------------------
 
 
-def _vertex_params(scene) -> list:
+def vertex_params(scene) -> list:
+    """The per-vertex parameters of ``scene`` (positions, material, alpha, vertex SH): the arrays
+    density control and remeshing remap row by row."""
     return [p for p in (scene.V, scene.material, scene.alpha, scene.vertex_sh) if p is not None]
 
 
@@ -279,19 +283,18 @@ def check_soup(scene) -> int:
     if F.ndim != 2 or F.shape[1] != 3 or n != 3 * F.shape[0] or not np.array_equal(F, np.arange(n).reshape(-1, 3)):
         raise ValueError("density control needs a triangle soup with F = arange(3M).reshape(M, 3) (vertices of face f "
                          f"are 3f, 3f+1, 3f+2); got F {list(F.shape)} with {n} vertices")
-    for p in _vertex_params(scene):
+    for p in vertex_params(scene):
         if np.asarray(p.data).shape[0] != n:
             raise ValueError(f"per-vertex parameter {p.name!r} has {np.asarray(p.data).shape[0]} rows, expected {n}")
     return F.shape[0]
 
 
 def _logit(p):
-    return np.log(p) - np.log1p(-p)
+    return logit(p, eps=None)
 
 
 def _inv_softplus(y):
-    y = np.maximum(y, 1e-300)
-    return np.where(y > 30.0, y, np.log(np.expm1(np.minimum(y, 30.0))))
+    return inverse_softplus(y, floor=1e-300, linear_above=30.0)
 
 
 def _midpoints(X, space: str, kind: str, brdf: str) -> np.ndarray:
@@ -302,13 +305,13 @@ def _midpoints(X, space: str, kind: str, brdf: str) -> np.ndarray:
         return mid
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     act = _logit(np.clip(0.5 * (expit(a) + expit(b)), 1e-300, 1.0 - 1e-16))
-    if kind == "material" and brdf == "blinn_phong":  # shininess (column 6) is softplus
-        sp = np.logaddexp(0.0, a[..., 6]) + np.logaddexp(0.0, b[..., 6])
-        act[..., 6] = _inv_softplus(0.5 * sp)
+    for j in get_brdf(brdf).softplus_columns if kind == "material" else ():  # e.g. Blinn-Phong shininess
+        sp = np.logaddexp(0.0, a[..., j]) + np.logaddexp(0.0, b[..., j])
+        act[..., j] = _inv_softplus(0.5 * sp)
     return np.clip(act, lo, hi)  # the activated midpoint lies between the corners; clip rounding
 
 
-def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = "cook_torrance") -> np.ndarray:
+def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = DEFAULT_BRDF) -> np.ndarray:
     """Children of midpoint subdivision: ``X [S, 3, ...]`` per-corner values of S parents →
     ``[S, 4, 3, ...]`` per-corner values of their 4 children (:data:`CHILDREN`). Corner vertices are
     copied exactly; midpoints are linear on the raw values (``space="raw"``) or, for ``kind`` in
@@ -318,29 +321,9 @@ def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = "cook_t
     return P6[:, CHILDREN]
 
 
-def _owning_groups(optimizer, vparams) -> dict[str, list]:
-    """``{group name: params}`` of the groups holding per-vertex parameters (matched by identity)."""
-    if optimizer is None:
-        return {}
-    ids = {id(p) for p in vparams}
-    out, seen = {}, set()
-    for name, g in optimizer.groups.items():
-        hit = [id(p) in ids for p in g.params]
-        if not any(hit):
-            continue
-        if not all(hit):
-            raise ValueError(f"optimizer group {name!r} mixes per-vertex parameters with others; it cannot be remapped")
-        for p in g.params:
-            if id(p) in seen:
-                raise ValueError(f"parameter {p.name!r} is in more than one optimizer group")
-            seen.add(id(p))
-        out[name] = list(g.params)
-    return out
-
-
 def _apply(scene, optimizer, index_map: np.ndarray, new_data: dict[int, np.ndarray], num_faces: int) -> None:
-    vparams = _vertex_params(scene)
-    groups = _owning_groups(optimizer, vparams)
+    vparams = vertex_params(scene)
+    groups = owning_groups(optimizer, vparams)
     done = set()
     for name, params in groups.items():
         optimizer.remap(name, index_map, [new_data[id(p)] for p in params])
@@ -360,7 +343,7 @@ def reorder_faces(scene, optimizer, order: np.ndarray) -> None:
     if order.shape != (M,) or not np.array_equal(np.sort(order), np.arange(M)):
         raise ValueError(f"order must be a permutation of the {M} faces")
     index_map = (3 * order[:, None] + np.arange(3)[None, :]).reshape(-1)
-    new_data = {id(p): np.asarray(p.data)[index_map] for p in _vertex_params(scene)}
+    new_data = {id(p): np.asarray(p.data)[index_map] for p in vertex_params(scene)}
     _apply(scene, optimizer, index_map, new_data, M)
 
 
@@ -444,7 +427,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
 
     new_data = {}
     kinds = {id(scene.V): "position", id(scene.material): "material", id(scene.alpha): "alpha"}
-    for p in _vertex_params(scene):
+    for p in vertex_params(scene):
         X = np.asarray(p.data)
         Xf = X.reshape(m, 3, *X.shape[1:])
         children = split_faces(Xf[split_idx], config.split_interp, kinds.get(id(p), "linear"), scene.brdf)

@@ -33,9 +33,10 @@ import numpy as np
 import pyopencl.array as cla
 
 from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
-from .autodiff import Function, Tape, Variable, active_tape
+from .autodiff import Function, Tape, Variable, active_tape, to_host
 from .camera import Camera
 from .device import Device, get_device
+from .materials import get_brdf
 from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
@@ -98,8 +99,16 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
 
-class View:
-    """Per-view state shared by the ops of one render call (fragments, device, camera)."""
+class RenderState:
+    """The state one :func:`render` call shares between its ops (device, camera, fragments ...); the
+    ops hold it as ``self.view``. Not a dataset view (that is :class:`triplet_cl.datasets.View`).
+
+    ``info`` is what the render reports to its caller (:attr:`RenderResult.info`, after gsplat's
+    ``info`` dict): ``"frags"`` the :class:`~triplet_cl.ops.fragments.Fragments` of the forward pass
+    (their ``face`` ids are the visible faces), ``"vs"`` ``[N, 3]`` the projected vertices (u, v, z)
+    and ``"v_vs"`` ``[N, 3]`` their adjoint, set by the backward pass (None until then): the
+    screen-space gradient density control accumulates. Device arrays.
+    """
 
     def __init__(self, device: Device, mesh: DeviceMesh, camera: Camera, settings: RenderSettings):
         self.device, self.mesh, self.camera, self.settings = device, mesh, camera, settings
@@ -108,7 +117,7 @@ class View:
         self.ray_eps = 0.0  # world-space ray offset
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
         self.win = None  # [P] coverage window of the forward pass (sigma set)
-        self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
+        self.info: dict = {"frags": None, "vs": None, "v_vs": None}
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -151,10 +160,11 @@ class Normals(Function):
 
 
 class MaterialActivation(Function):
-    """Raw ``[N, Cm]`` → activated materials: sigmoid, except Blinn-Phong shininess (softplus)."""
+    """Raw ``[N, Cm]`` → activated materials: sigmoid, except the BRDF's softplus channels
+    (``materials.BRDF.channels``; e.g. Blinn-Phong shininess)."""
 
     def __init__(self, brdf: str):
-        self.softplus_cols = [6] if brdf == "blinn_phong" else []
+        self.softplus_cols = get_brdf(brdf).softplus_columns
 
     def forward(self, ctx, raw):
         y = sigmoid(raw)
@@ -223,7 +233,7 @@ class Concat(Function):
 class RasterInterpolate(Function):
     """``(V [N, 3], attr [N, C]) → (frag_attr [P, C][, win [P]])`` (device arrays, packed fragments)."""
 
-    def __init__(self, view: View):
+    def __init__(self, view: RenderState):
         self.view = view
 
     def forward(self, ctx, V, attr):
@@ -241,6 +251,7 @@ class RasterInterpolate(Function):
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
                            sigma=s.sigma, soft_edges=soft)
         v.frags = ctx.frags = fr
+        v.info.update(frags=fr, vs=vs)
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
             return fa
@@ -251,7 +262,7 @@ class RasterInterpolate(Function):
         d, s = self.view.device, self.view.settings
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
                                              sigma=s.sigma or 0.0)
-        self.view.v_vs = v_vs  # screen-space vertex adjoint: density control's view-space gradient
+        self.view.info["v_vs"] = v_vs  # screen-space vertex adjoint: density control's view-space gradient
         return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
 
 
@@ -262,7 +273,7 @@ class ShadeFragments(Function):
     inputs are column blocks of the packed attribute array (``ops.columns.Compaction``).
     """
 
-    def __init__(self, view: View, lights, brdf: str, layout: dict):
+    def __init__(self, view: RenderState, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
 
     def _blocks(self, comp, fa) -> dict:
@@ -302,7 +313,8 @@ class ShadeFragments(Function):
         P = fr.P
         comp, L = ctx.comp, self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(d, ctx.inp, v_rgb)
+        g = shade_op.backward(d, ctx.inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
@@ -373,32 +385,30 @@ class TracedShadeFragments(ShadeFragments):
         P = fr.P
         comp, L, inp = ctx.comp, self.layout, ctx.inp
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, _ = shade_op.backward_full(d, inp,
-                                                                                       v_rgb)
+        g = shade_op.backward(d, inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_attr = np.zeros((ctx.N, ctx.C))
         if ctx.shadow is not None:
-            v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
-            v_attr[:, L["alpha"][0]] += v_al
-            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += v_Vo
-            v_pos = v_pos + v_x
-            shadowed = np.nonzero(np.isin(inp.table.ints[:, 0], trace_op.SHADOWED_TYPES))[0]
-            for j, li in enumerate(shadowed):  # position (point) / direction (directional): params 0..2
-                off = int(inp.table.ints[li, 1])
-                v_params[off:off + 3] += v_light[:, j].sum(axis=0)
+            sg = trace_op.shadow_backward(d, v.bvh, ctx.shadow, g.v_vis)
+            v_attr[:, L["alpha"][0]] += sg.v_alpha
+            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += sg.v_V
+            v_pos = v_pos + sg.v_pos
+            for j, off in enumerate(inp.table.shadow_ray_offsets):  # each caster's SHADOW_RAY_PARAM
+                v_params[off:off + 3] += sg.v_light[:, j].sum(axis=0)
         if ctx.hits is not None:
             hf, hb, hinp, hrgb, ha = ctx.hits
-            g = v_refl.get().astype(np.float64)
-            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(g * ha, s.real))
-            hp, hn, hm, hvl, hpar, _, _, heye = shade_op.backward_full(d, hinp, v_hrgb)
-            v_params = v_params + hpar
+            gr = g.v_refl.get().astype(np.float64)
+            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(gr * ha, s.real))
+            hg = shade_op.backward(d, hinp, v_hrgb)
+            v_params = v_params + hg.v_light_params
             v_hit = np.zeros((len(hf), ctx.C))
-            for key, gk in (("pos", hp), ("nrm", hn), ("mat", hm), ("vlight", hvl)):
+            for key, gk in (("pos", hg.v_pos), ("nrm", hg.v_nrm), ("mat", hg.v_mat), ("vlight", hg.v_vlight)):
                 if key in L:
                     v_hit[:, L[key][0]:L[key][0] + L[key][1]] = gk.get()
-            v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
+            v_hit[:, L["alpha"][0]] = (gr * hrgb).sum(axis=1)
             v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
             Vd, attr_d, bpos, bnrm, hf_d, hb_d = ctx.bounce_dev
-            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh,
+            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, hg.v_eye, v.mesh,
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV
@@ -430,7 +440,7 @@ class Composite(Function):
     """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])`` over ``background`` (default: the
     settings' background)."""
 
-    def __init__(self, view: View, background=None):
+    def __init__(self, view: RenderState, background=None):
         self.view = view
         self.bg = np.asarray(view.settings.background if background is None else background, np.float64)
 
@@ -472,12 +482,21 @@ class Stack(Function):
 
 @dataclass
 class RenderResult:
-    """Outputs of :func:`render`: ``rgba`` ``[H, W, 4]`` (numpy; RGB and accumulated alpha) on the tape."""
+    """Outputs of :func:`render`: ``rgba`` ``[H, W, 4]`` (numpy; RGB and accumulated alpha) on the tape,
+    and :attr:`info`."""
 
     rgba: Variable
     tape: Tape
     scene: Scene
-    view: View
+    state: RenderState
+
+    @property
+    def info(self) -> dict:
+        """What the render reports besides the image (after gsplat's ``info``): ``"frags"`` the
+        fragments of the forward pass (``frags.face``: the visible faces), ``"vs"`` ``[N, 3]`` the
+        projected vertices, ``"v_vs"`` ``[N, 3]`` their adjoint once :meth:`backward` ran (None
+        before): the statistics density control reads. Device arrays."""
+        return self.state.info
 
     @property
     def image(self) -> np.ndarray:
@@ -492,8 +511,8 @@ class RenderResult:
     def backward(self, v_image, v_alpha=None) -> dict[str, np.ndarray]:
         """Propagate ``v_image [H, W, 3]`` (and optionally ``v_alpha [H, W]``) to every scene
         parameter; returns ``{param name: gradient}`` (also accumulated into each ``Param.grad``)."""
-        s = self.view.settings
-        H, W = self.view.camera.height, self.view.camera.width
+        s = self.state.settings
+        H, W = self.state.camera.height, self.state.camera.width
         v = np.zeros((H, W, 4), s.real)
         v_image = np.asarray(v_image)
         if v_image.shape != (H, W, 3):
@@ -505,13 +524,7 @@ class RenderResult:
                 raise ValueError(f"v_alpha must have shape [{H}, {W}], got {list(v_alpha.shape)}")
             v[..., 3] = v_alpha
         self.tape.backward(self.rgba, v)
-        return {p.name: _host(p.grad) for p in self.scene.params}
-
-
-def _host(g):
-    if g is None:
-        return None
-    return g.get() if isinstance(g, cla.Array) else np.asarray(g)
+        return {p.name: None if p.grad is None else to_host(p.grad) for p in self.scene.params}
 
 
 _MESH_CACHE: dict = {}
@@ -554,7 +567,7 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     d = device or get_device()
     N = scene.V.shape[0]
     mesh = device_mesh(d, scene.F, N)
-    view = View(d, mesh, camera, s)
+    view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
         Vh = np.asarray(scene.V.data, np.float64)
         view.bvh = scene_bvh(d, mesh, Vh, s.real)
