@@ -359,24 +359,28 @@ class Relighter:
                                  vertex_sh=s.vertex_sh.data if keep_vsh and s.vertex_sh is not None else None,
                                  brdf=s.brdf, dtype=np.asarray(s.V.data).dtype)
 
-    def render(self, scene, camera, background) -> tuple[np.ndarray, np.ndarray]:
-        """``(image [H, W, 3] over background, in the photos' encoding, alpha [H, W])`` of ``scene``."""
+    def render(self, scene, camera, background, renderer: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(image [H, W, 3] over background, in the photos' encoding, alpha [H, W])`` of ``scene`` (with
+        ``renderer``, default the relighter's)."""
         from .render import RenderSettings, render
 
+        renderer = renderer or self.renderer
         if self.mesh_stage is not None:
+            self.mesh_stage.renderer = renderer
             _, img, alpha = self.mesh_stage.render(scene, camera, background, self.mesh_stage.cfg.eval_supersample)
             return np.asarray(img), np.asarray(alpha)
         tc = self.tr.cfg
         sh = scene.vertex_sh is not None
         st = RenderSettings(K=tc.faces_per_pixel, sigma=tc.sigma, background=tuple(float(x) for x in background),
-                            renderer=self.renderer, transfer=self.tr.transfer,
+                            renderer=renderer, transfer=self.tr.transfer,
                             sh_degree=min(tc.sh_degree, self.tr.it // max(tc.sh_band_every, 1)) if sh else None)
         r = render(scene, camera, st, self.tr.device)
         return r.image, r.alpha
 
     def render_albedo(self, camera) -> tuple[np.ndarray, np.ndarray]:
-        """``(straight base colour [H, W, 3] sRGB-encoded, alpha [H, W])`` through ``camera``."""
-        img, alpha = self.render(self.albedo_scene(), camera, np.zeros(3))
+        """``(straight base colour [H, W, 3] sRGB-encoded, alpha [H, W])`` through ``camera`` (rasterized: no
+        shadow or reflection bounce may add to it)."""
+        img, alpha = self.render(self.albedo_scene(), camera, np.zeros(3), "raster")
         rgb = np.where(alpha[..., None] > 1e-4, img / np.maximum(alpha[..., None], 1e-4), 0.0)
         if self.tr.transfer is None and self.tr.cfg.color == "linear":  # linear dataset: encode for comparison
             from .ops.color import srgb_encode
