@@ -1,4 +1,4 @@
-"""The mesh stage (DESIGN.md §1.5, §6): extract a connected mesh from a trained soup and keep
+"""The mesh stage (docs/ARCHITECTURE.md §1, §9): extract a connected mesh from a trained soup and keep
 optimising it as a mesh, then export the PBR assets.
 
 One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extract.extract_scene`
