@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from triplet_cl import __version__
+from triplet_cl.datasets import FORMATS as DATASET_FORMATS
 from triplet_cl.errors import TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
@@ -371,8 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
                    "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
     t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
-    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
-    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
