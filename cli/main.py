@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 from triplet_cl import __version__
@@ -249,6 +250,42 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------------- colmap (photos)
+
+
+def cmd_colmap(args: argparse.Namespace) -> int:
+    """Cameras from a folder of photos: SfM with pycolmap, undistortion, a COLMAP folder for `train`."""
+    from triplet_cl.datasets.sfm import run_sfm
+
+    t0 = time.perf_counter()
+    s = run_sfm(args.images, args.out, camera_model=args.camera_model, max_features=args.max_features,
+                min_registered=args.min_registered, num_threads=args.threads, verbose=args.verbose,
+                progress=lambda line: print(line, flush=True))
+    cam = s["camera"]
+    print(f"registered {s['registered']} of {s['photos']} photos, {s['points']} points, mean reprojection error "
+          f"{s['mean_reprojection_error_px']:.2f} px; camera {cam['model']} "
+          f"{' '.join(f'{x:.5g}' for x in cam['params'])}")
+    print(f"wrote {args.out}/ (images/, sparse/0/, distorted/, sfm.json) in {time.perf_counter() - t0:.0f} s "
+          f"(CPU {s['cpu_s']:.0f} s); next: triplet train {args.out} --out RUN")
+    return 0
+
+
+def add_colmap_parser(sub) -> None:
+    c = sub.add_parser("colmap", help="solve the cameras of a folder of photos (pycolmap structure from motion) and "
+                       "write an undistorted COLMAP folder that `triplet train` reads")
+    c.add_argument("images", help="folder of photos (JPEG/PNG/TIFF, one camera, one size)")
+    c.add_argument("--out", required=True, help="new dataset folder to write (refused if it exists and is not empty)")
+    c.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   choices=["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"],
+                   help="COLMAP camera model shared by all photos (default SIMPLE_RADIAL)")
+    c.add_argument("--max-features", type=int, default=8192, help="SIFT features per photo (default 8192)")
+    c.add_argument("--min-registered", type=float, default=0.5, help="fail when fewer than this fraction of the "
+                   "photos register (default 0.5; at least 3 always)")
+    c.add_argument("--threads", type=int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")
+    c.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+    c.set_defaults(func=cmd_colmap)
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -321,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--out", help="output folder (default RUN)")
     o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")
     o.set_defaults(func=cmd_export)
+    add_colmap_parser(sub)
     return p
 
 
