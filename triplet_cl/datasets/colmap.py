@@ -314,7 +314,7 @@ def _images_folder(root: Path, model: Path, images: str | Path | None) -> Path:
 
 
 def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images: str | Path | None = None,
-                progress=None) -> Dataset:
+                progress=None, _undistorted: bool = False) -> Dataset:
     """A COLMAP scene: the sparse model (see :func:`find_model`) and its images folder.
 
     Views are sorted by image name; every ``split_holdout``-th one is the test split (LLFF).
@@ -333,6 +333,11 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
     if not imgs:
         raise DatasetError(img_path, "no images in the model")
     img_dir = _images_folder(root, model, images)
+    if not all(is_pinhole(c) for c in cams.values()) and _undistorted:
+        bad = next(c for c in cams.values() if not is_pinhole(c))
+        raise DatasetError(cam_path, f"camera {bad.id}: pycolmap's undistortion left the {bad.model} model with "
+                                     f"parameters {bad.params.tolist()} as it was (not a pinhole camera); this "
+                                     "camera cannot be used")
     if not all(is_pinhole(c) for c in cams.values()):
         from .sfm import undistorted_model
 
@@ -348,7 +353,7 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
                 raise DatasetError(img_path, f"image {im.id} ({im.name}) refers to camera {im.camera_id}, which "
                                              f"{cam_path.name} does not define")
         cached = undistorted_model(root, model, img_dir, cams, present, progress=say)
-        ds = load_colmap(cached, downscale, split_holdout)
+        ds = load_colmap(cached, downscale, split_holdout, _undistorted=True)
         ds.root = root
         return ds
     records, missing = [], []
