@@ -186,6 +186,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "(default 4)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
+    p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "
+                   "units of the dataset); default for photos without alpha: a box found from the cameras' look-at "
+                   "point, the ground plane and the sparse points")
+    p.add_argument("--mesh-crop", choices=["auto", "none"], help="auto (default): crop photos without alpha to the "
+                   "automatic region of interest; none: keep everything")
 
 
 def _mesh_config_from_args(args: argparse.Namespace):
@@ -204,9 +209,23 @@ def _mesh_config_from_args(args: argparse.Namespace):
             over[field] = v
     if getattr(args, "formats", None):
         over["formats"] = _formats(args.formats)
+    if getattr(args, "mesh_crop", None):
+        over["crop"] = args.mesh_crop
+    if getattr(args, "bbox", None):
+        over["bbox"] = _bbox(args.bbox)
     cfg = replace(MeshConfig(), **over)
     cfg.validate()
     return cfg
+
+
+def _bbox(text: str) -> tuple:
+    try:
+        b = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        b = ()
+    if len(b) != 6 or not all(abs(x) < float("inf") for x in b) or not all(b[i + 3] > b[i] for i in range(3)):
+        raise ValueError(f"--bbox must be XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (6 numbers, each max > min), got {text!r}")
+    return b
 
 
 def _formats(text: str) -> tuple:
