@@ -84,6 +84,8 @@ def _config_from_args(args: argparse.Namespace):
         over["checkpoint_every"] = args.checkpoint_every
     if args.renderer:
         over["renderer"] = args.renderer
+    if getattr(args, "background_shell", None) is not None:
+        over["background_shell"] = args.background_shell
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -341,6 +343,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
     t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
+    t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
+                   "far sphere for the sky / walls (default 0; see README 'Your own photos')")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")

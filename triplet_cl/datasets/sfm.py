@@ -211,6 +211,7 @@ def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, ma
     # keep only the largest model, as sparse/0
     for p in models.iterdir():
         shutil.rmtree(p)
+    (models / "0").mkdir()
     best.write(models / "0")
     reg_names = {best.images[i].name for i in best.reg_image_ids()}
     missing = [nm for nm in names if nm not in reg_names]
