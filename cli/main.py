@@ -299,7 +299,8 @@ def add_colmap_parser(sub) -> None:
     c.add_argument("--camera-model", default="SIMPLE_RADIAL",
                    choices=["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"],
                    help="COLMAP camera model shared by all photos (default SIMPLE_RADIAL)")
-    c.add_argument("--max-features", type=int, default=8192, help="SIFT features per photo (default 8192)")
+    c.add_argument("--max-features", type=int, default=1024, help="SIFT features per photo (default 1024; matching "
+                   "time grows with its square: raise it for hard captures)")
     c.add_argument("--min-registered", type=float, default=0.5, help="fail when fewer than this fraction of the "
                    "photos register (default 0.5; at least 3 always)")
     c.add_argument("--threads", type=int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")

@@ -108,7 +108,7 @@ def check_one_size(sizes: dict[Path, tuple[int, int]], folder) -> tuple[int, int
 # ---------------------------------------------------------------------------------------------- SfM
 
 
-def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_features: int = 8192,
+def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_features: int = 1024,
             min_registered: float = 0.5, num_threads: int = -1, verbose: bool = False,
             progress: Callable[[str], None] | None = None) -> dict:
     """Solve the cameras of the photos in ``images_dir`` and write an undistorted COLMAP folder at

@@ -13,8 +13,9 @@ extracted surface is closed where the box cuts it (under the object's feet).
 3. the **ground**: the dominant plane of the sparse points (RANSAC, inlier band 0.5 % of the mean
    camera distance) whose normal lies within 30° of up and which passes below ``c``; none → no
    ground cut;
-4. the **object**: the sparse points above the ground (by more than 1 % of the camera distance)
-   within a horizontal radius of ``0.6 ×`` the cameras' mean horizontal distance from ``c``; the
+4. the **object**: the sparse points above the ground (by more than 3 % of the camera distance: the
+   ground's own points scatter a little above it) within a horizontal radius of ``0.5 ×`` the
+   cameras' mean horizontal distance from ``c``; the
    box spans their 2nd–98th percentiles along up and two horizontal axes, padded by 15 % (at least
    2 % of the camera distance); its bottom is the ground plane plus a small gap (``0.5 %``).
 
@@ -145,13 +146,13 @@ def auto_roi(cameras, points) -> ROI | None:
     horiz = rel - np.outer(rel @ n, n)
     cam_rel = centres - c
     cam_horiz = float(np.linalg.norm(cam_rel - np.outer(cam_rel @ n, n), axis=1).mean())
-    keep = np.linalg.norm(horiz, axis=1) < 0.6 * cam_horiz
+    keep = np.linalg.norm(horiz, axis=1) < 0.5 * cam_horiz
     floor = None
     if plane is not None:
         floor = plane[1] + 0.005 * dist
-        keep &= P @ n > plane[1] + 0.01 * dist
+        keep &= P @ n > plane[1] + 0.03 * dist
     obj = P[keep]
-    if len(obj) < 10:
+    if len(obj) < 5:
         return None
     L = (obj - c) @ axes.T
     lo, hi = np.percentile(L, 2, axis=0), np.percentile(L, 98, axis=0)
