@@ -146,6 +146,26 @@ def main() -> None:
         mm = args.run / "mesh_metrics.json"
         if mm.is_file():
             print(f"mesh metrics: {json.loads(mm.read_text())}")
+    if sim is not None and (args.truth / "gt_mesh.ply").is_file():
+        # the automatic region of interest of the mesh stage (mesh/roi.py) against the true cow, in DATA's frame
+        import trimesh
+
+        from triplet_cl.datasets import load_dataset
+        from triplet_cl.mesh.roi import auto_roi
+
+        s, R, t = sim
+        ds = load_dataset(args.data, downscale=4)
+        roi = auto_roi([v.camera for v in ds.train], ds.points)
+        g = np.asarray(trimesh.load(args.truth / "gt_mesh.ply", process=False, force="mesh").vertices, np.float64)
+        g_data = ((g - t) @ R) / s  # true frame -> DATA's frame
+        if roi is None:
+            print("auto ROI: none found")
+        else:
+            inside = roi.contains(g_data).mean()
+            gl = roi.local(g_data)
+            print(f"auto ROI: half sizes {np.round(roi.half / s, 3).tolist()} (true units), ground plane "
+                  f"{'found' if roi.ground is not None else 'none'}; holds {100 * inside:.1f} % of gt_mesh's vertices; "
+                  f"cow extent along the box axes {np.round((gl.max(0) - gl.min(0)) / s, 3).tolist()}")
     if args.mesh is not None and sim is not None:
         import trimesh
 

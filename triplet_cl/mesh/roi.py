@@ -16,7 +16,7 @@ extracted surface is closed where the box cuts it (under the object's feet).
 4. the **object**: the sparse points above the ground (by more than 3 % of the camera distance: the
    ground's own points scatter a little above it) within a horizontal radius of ``0.5 ×`` the
    cameras' mean horizontal distance from ``c``; the
-   box spans their 2nd–98th percentiles along up and two horizontal axes, padded by 15 % (at least
+   box spans their 2nd–98th percentiles along up and two horizontal axes, padded by 25 % (at least
    2 % of the camera distance); its bottom is the ground plane plus a small gap (``0.5 %``).
 
 ``--bbox XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`` (world units of the dataset) replaces it with that
@@ -156,7 +156,7 @@ def auto_roi(cameras, points) -> ROI | None:
         return None
     L = (obj - c) @ axes.T
     lo, hi = np.percentile(L, 2, axis=0), np.percentile(L, 98, axis=0)
-    pad = np.maximum(0.15 * (hi - lo), 0.02 * dist)
+    pad = np.maximum(0.25 * (hi - lo), 0.02 * dist)
     lo, hi = lo - pad, hi + pad
     if floor is not None:
         lo[2] = floor - float(c @ n)  # the box's bottom: just above the ground
