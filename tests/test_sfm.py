@@ -164,12 +164,13 @@ def test_cli_colmap_no_images(tmp_path, capsys):
 
 
 def test_cli_colmap_mixed_sizes(tmp_path, capsys):
+    """(The photos in CAPTURE/images/ are found from CAPTURE too.)"""
     for k in range(3):
-        fac.write_image(tmp_path / "p" / f"a{k}.png", fac.image_pixels(k, 16, 12, alpha=False))
-    fac.write_image(tmp_path / "p" / "b.png", fac.image_pixels(9, 12, 16, alpha=False))
+        fac.write_image(tmp_path / "p" / "images" / f"a{k}.png", fac.image_pixels(k, 16, 12, alpha=False))
+    fac.write_image(tmp_path / "p" / "images" / "b.png", fac.image_pixels(9, 12, 16, alpha=False))
     assert cli_main(["colmap", str(tmp_path / "p"), "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "different sizes" in err
+    assert err.count("\n") == 1 and "different sizes" in err and str(tmp_path / "p" / "images") in err
     assert "3 are 16x12" in err and "1 are 12x16 (e.g. b.png)" in err
     assert not (tmp_path / "d").exists()
 

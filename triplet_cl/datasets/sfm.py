@@ -73,6 +73,10 @@ def list_photos(folder) -> list[Path]:
     return photos
 
 
+def _has_photos(folder: Path) -> bool:
+    return folder.is_dir() and any(p.is_file() and p.suffix.lower() in SFM_EXTENSIONS for p in folder.iterdir())
+
+
 def photo_sizes(photos) -> dict[Path, tuple[int, int]]:
     """``{path: (width, height)}`` read from the files' headers (OpenImageIO)."""
     import OpenImageIO as oiio
@@ -138,6 +142,8 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise DatasetError(out_dir, "already exists and is not empty; choose a new --out folder (nothing is "
                                     "overwritten)")
+    if images_dir.is_dir() and not _has_photos(images_dir) and _has_photos(images_dir / "images"):
+        images_dir = images_dir / "images"  # a capture folder with its photos in images/
     photos = list_photos(images_dir)
     if len(photos) < 3:
         raise DatasetError(images_dir, f"only {len(photos)} image(s); structure from motion needs at least 3 "

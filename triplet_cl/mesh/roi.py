@@ -17,7 +17,8 @@ extracted surface is closed where the box cuts it (under the object's feet).
    ground's own points scatter a little above it) within a horizontal radius of ``0.5 ×`` the
    cameras' mean horizontal distance from ``c``; the
    box spans their 2nd–98th percentiles along up and two horizontal axes, padded by 25 % (at least
-   2 % of the camera distance); its bottom is the ground plane plus a small gap (``0.5 %``).
+   2 % of the camera distance); its bottom is the ground plane plus a small gap (1 % of the camera
+   distance: the soup's ground has some thickness).
 
 ``--bbox XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`` (world units of the dataset) replaces it with that
 axis-aligned box.
@@ -149,7 +150,7 @@ def auto_roi(cameras, points) -> ROI | None:
     keep = np.linalg.norm(horiz, axis=1) < 0.5 * cam_horiz
     floor = None
     if plane is not None:
-        floor = plane[1] + 0.005 * dist
+        floor = plane[1] + 0.01 * dist  # the soup's ground has some thickness
         keep &= P @ n > plane[1] + 0.03 * dist
     obj = P[keep]
     if len(obj) < 5:
