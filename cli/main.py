@@ -10,6 +10,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.errors import TripletError
+from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
 
 
 def _gib(n: int) -> str:
@@ -82,6 +83,8 @@ def _config_from_args(args: argparse.Namespace):
         over["sigma"] = None if args.sigma <= 0 else args.sigma
     if args.checkpoint_every is not None:
         over["checkpoint_every"] = args.checkpoint_every
+    if args.keep_checkpoints is not None:
+        over["keep_checkpoints"] = args.keep_checkpoints
     if args.renderer:
         over["renderer"] = args.renderer
     if getattr(args, "background_shell", None) is not None:
@@ -99,7 +102,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.demo:
         data = demo_data_path()
         out = Path(args.out or "runs/demo")
-        if args.iterations is None:
+        if args.iterations is None and not args.resume:
             args.iterations = 1500
     else:
         if not args.data and not args.resume:
@@ -113,11 +116,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     mesh_cfg = _mesh_config_from_args(args) if args.mesh_stage else None  # bad options fail before training
     dev = get_device(args.device)
     if args.resume:
-        tr = Trainer(data if args.data or args.demo else None, out, device=dev, resume=True)
-        if args.iterations is not None:
-            tr.cfg.iterations = args.iterations
+        from triplet_cl.runs import config_from_saved, read_run_config
+        from triplet_cl.validate import check_resume_iterations, resume_config, resume_data
+
+        saved = read_run_config(out)
+        cfg, notes = resume_config(args, config_from_saved(out, saved), _config_from_args(args))
+        data, moved = resume_data(data if args.data or args.demo else None, saved["data"], out)
+        notes += moved
+        tr = Trainer(data, out, cfg, device=dev, resume=True)
+        check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
+        print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
-        tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.format)
+        from triplet_cl.runs import replacing_run
+
+        with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
+            tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
     try:
@@ -140,10 +153,7 @@ def _load_run(args):
     from triplet_cl.device import get_device
     from triplet_cl.train import Trainer
 
-    run = Path(args.run)
-    if not (run / "config.json").is_file():
-        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
-    return Trainer(None, run, device=get_device(args.device), resume=True, quiet=True)
+    return Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -151,6 +161,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.renderer:
         tr.cfg.renderer = args.renderer
     out = Path(args.out) if args.out else Path(args.run) / "renders" / args.split
+    from triplet_cl.validate import check_render_out
+
+    check_render_out(tr, args.split, out, "--out" if args.out else "RUN")
     m = tr.evaluate(args.split, write_renders=True, out_dir=out)
     print(f"rendered {len(m['views'])} {args.split} views to {out} (PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f})")
     return 0
@@ -221,13 +234,12 @@ def _mesh_config_from_args(args: argparse.Namespace):
 
 
 def _bbox(text: str) -> tuple:
+    from triplet_cl.mesh.roi import parse_bbox
+
     try:
-        b = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        b = ()
-    if len(b) != 6 or not all(abs(x) < float("inf") for x in b) or not all(b[i + 3] > b[i] for i in range(3)):
-        raise ValueError(f"--bbox must be XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (6 numbers, each max > min), got {text!r}")
-    return b
+        return parse_bbox(text)
+    except ValueError as exc:
+        raise ValueError(f"--bbox: {exc}") from None
 
 
 def _formats(text: str) -> tuple:
@@ -260,13 +272,18 @@ def cmd_extract(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
     from triplet_cl.mesh.refine import MESH_STATE, export_run_mesh, load_mesh_state
+    from triplet_cl.validate import check_export_out, parse_formats
 
     run = Path(args.run)
-    if not (run / "config.json").is_file():
-        raise FileNotFoundError(f"{run} is not a run directory (no config.json)")
+    formats = parse_formats("--formats", args.formats)
+    if args.device:  # unused (export bakes on the CPU) but a wrong spec is still an error
+        from triplet_cl.device import resolve_spec
+
+        resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), _formats(args.format), args.texture_size)
+    check_export_out(out, formats, "--out")
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 
@@ -314,6 +331,7 @@ def add_colmap_parser(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="triplet",
+        allow_abbrev=False,
         description="Mesh-based inverse rendering (Triplet) with OpenCL kernels and hand-derived adjoints.",
     )
     p.add_argument("--version", action="version", version=f"triplet_cl {__version__}")
@@ -332,8 +350,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("data", nargs="?", help="dataset folder (NeRF-synthetic, instant-ngp or COLMAP)")
     t.add_argument("--out", help="run directory (default for --demo: runs/demo)")
     t.add_argument("--demo", action="store_true", help="train on the small Spot dataset shipped with the package")
-    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    t.add_argument("--format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
+                   "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
+    t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
+    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+                   action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
     t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
@@ -347,8 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
                    "far sphere for the sky / walls (default 0; see README 'Your own photos')")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
-    t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 1)")
+    t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
+    t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
@@ -378,9 +401,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     o = sub.add_parser("export", help="write the refined mesh of a run (from `triplet extract`) in other formats")
     o.add_argument("run", help="run directory")
-    o.add_argument("--format", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--formats", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--format", dest="formats", action=DeprecatedAlias.action("--formats"), help=argparse.SUPPRESS)
     o.add_argument("--out", help="output folder (default RUN)")
     o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")
+    o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
+                   "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
     add_colmap_parser(sub)
     return p
@@ -388,11 +414,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
+        sp.allow_abbrev = False
     args = parser.parse_args(argv)
     try:
+        validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)
     except (TripletError, FileNotFoundError, ValueError) as exc:
-        print(f"triplet {args.command}: error: {exc}", file=sys.stderr)
+        msg = os_error_message(exc) if isinstance(exc, OSError) and exc.errno else exc  # raised by the OS
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # not a folder, read-only, permission, no space left: one line
+        print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"triplet {args.command}: error: out of memory (reduce --init-points / --max-faces or the image "
+              "size with --downscale)", file=sys.stderr)
+        return 2
+    except Exception as exc:  # an OpenCL allocation failure is one line too; anything else is a bug: traceback
+        from triplet_cl.validate import device_memory_message
+
+        msg = device_memory_message(exc)
+        if msg is None:
+            raise
+        print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -10,7 +10,7 @@
  * any feature channel, the opaque K = 1 job); deferred shading uses the generic chain.
  *
  * Inputs: attr [N, C+1] per vertex (C features, then the opacity in the last column), the entries
- * of the tile binning (raster.cl: set-up s [E, SETUP], face [E]), background bg [C].
+ * of the tile binning (binning.cl: set-up s [E, SETUP], face [E]), background bg [C].
  * Forward, per pixel p with its K-nearest list (common/raster_lists.h), fragment i of entry e:
  *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1,   (dx, dy) = p - a0
  *   w_k = b_k s_{6+k} (= b_k / z_k),  zp = 1 / (w0 + w1 + w2),  lam_k = w_k zp  (lam2 = 1 - lam0 - lam1)
@@ -71,6 +71,13 @@
 #endif
 #ifndef C_MAX
 #define C_MAX 4
+#endif
+/* V_ACC: the adjoint of the accumulated alpha v_acc [H, W] is given (else it is 0 and the kernels
+ * have no v_acc parameter) */
+#ifdef V_ACC
+#define V_ACC_AT(pix) v_acc[pix]
+#else
+#define V_ACC_AT(pix) ((REAL)0)
 #endif
 #ifndef BWD_SCHEDULE
 #define BWD_SCHEDULE 0 /* blend_bwd_rows16: 0 per tile, 1 row pairs, 2 queue */
@@ -363,7 +370,7 @@ inline void tile_records_zero(int e0, int e1, __global REAL* partial, int pstrid
  * vertices once (moments_geom_vjp: the moments of all entries are relative to the same a0), both
  * written per face corner: v_attr_corner [M, 3, C + 1], v_vs_corner [M, 3, 3]. For a soup whose
  * face f has the vertices 3f, 3f + 1, 3f + 2 these are the per-vertex adjoints; otherwise
- * gather_corner (raster.cl) sums them per vertex. */
+ * gather_corner (fragment_bwd.cl) sums them per vertex. */
 #ifndef FACE_GRAD_AHEAD
 #define FACE_GRAD_AHEAD 8 /* blend_face_grad prefetches the records of face f + 8 (800^2, 1M faces: 25.3 -> 22.4 ms) */
 #endif
@@ -424,8 +431,10 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
                         __global const REAL* s_T,          // [T * 4, K, 16]
                         __global const REAL* s_ex,         // [T * 4, K, 16]  (sigma > 0)
                         __global const REAL* v_out,        // [H, W, C]
-                        __global const REAL* v_acc,        // [H, W]  (has_vacc)
-                        const int has_vacc, const int C, const int K, const REAL sigma,
+#ifdef V_ACC
+                        __global const REAL* v_acc,        // [H, W]
+#endif
+                        const int C, const int K, const REAL sigma,
                         const int width, const int height, const int tiles_x, const int num_tiles,
                         const int pstride,
                         __global REAL* partial,            // [E, pstride]: moments, then [3, C + 1]
@@ -446,7 +455,7 @@ __kernel void blend_bwd(__global const int* tile_off,      // [T + 1]
             if (n == 0) continue;
             REAL vo[C_MAX], R[C_MAX];
             for (int c = 0; c < C; ++c) { vo[c] = v_out[pix * C + c]; R[c] = bg[c]; }
-            const REAL va = has_vacc ? v_acc[pix] : (REAL)0;
+            const REAL va = V_ACC_AT(pix);
             REAL G = (REAL)1;
             const REAL px = (REAL)x + (REAL)0.5, py = (REAL)y + (REAL)0.5;
             const long slot0 = BLEND_SLOT(t, x, y, 0, K);
@@ -615,8 +624,10 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                                __global const REAL* s_T,          // [T * 4, K, 16]
                                __global const REAL* s_ex,         // [T * 4, K, 16]  (sigma > 0)
                                __global const REAL* v_out,        // [H, W, C]
-                               __global const REAL* v_acc,        // [H, W]  (has_vacc)
-                               const int has_vacc, const int C, const int K, const REAL sigma,
+#ifdef V_ACC
+                               __global const REAL* v_acc,        // [H, W]
+#endif
+                               const int C, const int K, const REAL sigma,
                                const int width, const int height, const int tiles_x, const int num_tiles,
                                const int pstride,                 // 32 (C <= 4)
                                __global REAL* partial,            // [E, 32]: moments, then [3, C + 1]
@@ -667,7 +678,11 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
             const int16 pix = select((int16)0, yl * width + xl, in);
             const REAL16 px = CONVERT_REAL16(xl) + (REAL)0.5, py = CONVERT_REAL16(yl) + (REAL)0.5;
             for (int c = 0; c < C; ++c) { vo[c] = select((REAL16)0, gather16r(v_out + c, pix * C), CONVERT_MASK16(in)); R[c] = (REAL16)bg[c]; }
-            const REAL16 va = has_vacc ? select((REAL16)0, gather16r(v_acc, pix), CONVERT_MASK16(in)) : (REAL16)0;
+#ifdef V_ACC
+            const REAL16 va = select((REAL16)0, gather16r(v_acc, pix), CONVERT_MASK16(in));
+#else
+            const REAL16 va = (REAL16)0;
+#endif
             G = (REAL16)1;
             for (int i = nmax - 1; i >= 0; --i) {
                 const int16 acti = (int16)i < n16;
@@ -714,7 +729,7 @@ __kernel void blend_bwd_rows16(__global const int* tile_off,      // [T + 1]
                     l_new[ln] = -1;
                     l_px[ln] = (REAL)x + (REAL)0.5;
                     l_py[ln] = (REAL)y + (REAL)0.5;
-                    l_va[ln] = has_vacc ? v_acc[pix] : (REAL)0;
+                    l_va[ln] = V_ACC_AT(pix);
                     for (int c = 0; c < C; ++c) l_vo[c][ln] = v_out[pix * C + c];
                 }
                 il = vload16(0, l_i);

@@ -4,8 +4,8 @@
  *   win = 1 - exp(-sigma * max(0, min_k d_k)),  d_k the signed pixel distance to edge k
  *   (>= 0 inside). sigma -> inf gives the hard edge of the original method (win = 1 inside).
  *   Per pixel over its packed fragments (rows frag_off[pix] .. + frag_count[pix]).
- * Adjoint: fused into raster_bwd (raster.cl) through edge_window_vjp, so that all screen-space
- *   adjoints of a fragment are scattered to its face in one pass: v_win -> v_(u, v) of the three
+ * Adjoint: fused into fragment_bwd (fragment_bwd.cl) through the window moments, so that all
+ *   screen-space adjoints of a fragment reach its face in one pass: v_win -> v_(u, v) of the three
  *   vertices and v_sigma.
  */
 #include "real.h"

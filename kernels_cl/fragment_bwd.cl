@@ -1,4 +1,5 @@
-/* fragment_bwd.cl — the one backward pass over the fragments of a view.
+/* fragment_bwd.cl — the one backward pass over the fragments of a view, and the per-vertex gathers
+ * of per-entry / per-corner adjoints (gather_vertex, gather_corner). Host side: ops/fragment_bwd.py.
  *
  * Everything a fragment receives from a vertex goes through its face's three corners:
  *   attributes   out[o,c] = sum_i lam_i attr[F[f,i], c]            (interpolate.cl)
@@ -11,7 +12,7 @@
  *              v_lam0 = sum_c v_out[o,c] (a0_c - a2_c) (+ v_bary_in), v_lam1 likewise with a1.
  *
  * Geometry, by per-entry moments (no vertex loads, no divisions per fragment). With the entry's
- * set-up (raster.cl: a0, grad b0, grad b1, 1/z_k, g_k = 1/|grad b_k| = |A| / L_k) and
+ * set-up (binning.cl: a0, grad b0, grad b1, 1/z_k, g_k = 1/|grad b_k| = |A| / L_k) and
  * (dx, dy) = p - a0:  b0 = 1 + grad b0 . (dx, dy),  b1 = grad b1 . (dx, dy),  b2 = 1 - b0 - b1.
  * The adjoint of raster_math.h per fragment is
  *   base  = sum_k v_lam_k lam_k + v_zp zp,   v_w_k = (v_lam_k - base) zp,   v_b_k = v_w_k / z_k,
@@ -28,15 +29,21 @@
  *   sum v_E_k cross'(x_k - p, y_k - p) = (1/A) [ m_k cross'(r_x - 0, r_y - 0) - moment terms ],
  *   d cross(x - p, y - p)/dx = ((y - p).y, -(y - p).x),  d/dy = (-(x - p).y, (x - p).x),
  *   v_A -> cross(a1 - a0, a2 - a0),   v_L_k -> v_e_k = v_L_k e_k / L_k,   v_z_k = -mz_k / z_k^2,
- * into partial_geom [E, 3, 3] (corner, (u, v, z)) for gather_vertex (raster.cl).
+ * into partial_geom [E, 3, 3] (corner, (u, v, z)) for gather_vertex (below).
  *
  * No float atomics: one work-item owns one tile and walks its pixels and fragments serially,
  * adding into the partial sums of that tile's (tile, face) entries (partial_attr [E, 3, C],
  * partial_mom [E, 16], zeroed at the entry's first fragment; entry_hit [E] marks the entries that
  * have any); gather_vertex sums them per vertex in a fixed order (deterministic), skipping the
  * entries without fragments.
- * With do_geom = 0 the barycentric adjoint is written out instead (v_bary_out = v_bary_in + own),
+ * Without GEOMETRY the barycentric adjoint is written out instead (v_bary_out = v_bary_in + own),
  * for callers that chain several interpolations.
+ *
+ * Optional inputs and outputs are compile-time defines (ops/fragment_bwd.py sets them), and their
+ * parameters exist only in the builds that use them:
+ *   ATTR       attr [N, C], v_out [P, C] in, partial_attr [E, 3, C] out (interpolated attributes)
+ *   V_BARY_IN  v_bary_in [P, 2]      V_DEPTH  v_depth [P]      V_WIN  v_win [P]
+ *   GEOMETRY   partial_mom [E, MOMENTS], v_sigma_tile [T] out; else v_bary_out [P, 2] out
  */
 #include "real.h"
 #include "raster_math.h"
@@ -54,20 +61,33 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const REAL* frag_bary,    // [P, 2]
                            __global const REAL* frag_depth,   // [P]
                            __global const int* frag_count,    // [H, W]
-                           __global const REAL* attr,         // [N, C]          (C > 0)
-                           __global const REAL* v_out,        // [P, C]          (C > 0)
-                           __global const REAL* v_bary_in,    // [P, 2]          (has_bary)
-                           __global const REAL* v_depth,      // [P]             (has_depth)
-                           __global const REAL* v_win,        // [P]             (has_win)
-                           const int C, const int has_bary, const int has_depth, const int has_win,
-                           const int do_geom, const REAL sigma,
+#ifdef ATTR
+                           __global const REAL* attr,         // [N, C]
+                           __global const REAL* v_out,        // [P, C]
+                           const int C,
+#endif
+#ifdef V_BARY_IN
+                           __global const REAL* v_bary_in,    // [P, 2]
+#endif
+#ifdef V_DEPTH
+                           __global const REAL* v_depth,      // [P]
+#endif
+#ifdef V_WIN
+                           __global const REAL* v_win,        // [P]
+#endif
+                           const REAL sigma,
                            const int width, const int height, const int tiles_x, const int num_tiles,
                            __global const int* frag_off,      // [H * W + 1] first row of each pixel
-                           __global int* entry_hit,           // [E]  1: the entry has fragments
-                           __global REAL* partial_attr,       // [E, 3, C]       (C > 0)
-                           __global REAL* partial_mom,        // [E, MOMENTS]    (do_geom)
-                           __global REAL* v_sigma_tile,       // [T]             (do_geom)
-                           __global REAL* v_bary_out)         // [P, 2]          (!do_geom)
+#ifdef ATTR
+                           __global REAL* partial_attr,       // [E, 3, C]
+#endif
+#ifdef GEOMETRY
+                           __global REAL* partial_mom,        // [E, MOMENTS]
+                           __global REAL* v_sigma_tile,       // [T]
+#else
+                           __global REAL* v_bary_out,         // [P, 2]
+#endif
+                           __global int* entry_hit)           // [E]  1: the entry has fragments
 {
     const int t = get_global_id(0);
     if (t >= num_tiles) return;
@@ -89,14 +109,21 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                 const int e = frag_entry[o];
                 if (!entry_hit[e]) {
                     entry_hit[e] = 1;
+#ifdef ATTR
                     for (int q = 0; q < 3 * C; ++q) partial_attr[(long)e * 3 * C + q] = (REAL)0;
-                    if (do_geom)
-                        for (int q = 0; q < MOMENTS; ++q) partial_mom[(long)e * MOMENTS + q] = (REAL)0;
+#endif
+#ifdef GEOMETRY
+                    for (int q = 0; q < MOMENTS; ++q) partial_mom[(long)e * MOMENTS + q] = (REAL)0;
+#endif
                 }
                 const REAL l0 = frag_bary[2 * o], l1 = frag_bary[2 * o + 1];
-                REAL vl0 = has_bary ? v_bary_in[2 * o] : (REAL)0;
-                REAL vl1 = has_bary ? v_bary_in[2 * o + 1] : (REAL)0;
-                if (C > 0) {
+#ifdef V_BARY_IN
+                REAL vl0 = v_bary_in[2 * o], vl1 = v_bary_in[2 * o + 1];
+#else
+                REAL vl0 = (REAL)0, vl1 = (REAL)0;
+#endif
+#ifdef ATTR
+                {
                     const int f = frag_face[o];
                     const REAL l2 = (REAL)1 - l0 - l1;
                     __global const REAL* a0 = attr + F[3 * f] * C;
@@ -113,13 +140,21 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                         vl1 += gc * (a1[c] - a2[c]);
                     }
                 }
-                if (!do_geom) {
-                    v_bary_out[2 * o] = vl0;
-                    v_bary_out[2 * o + 1] = vl1;
-                    continue;
-                }
-                const REAL vzp = has_depth ? v_depth[o] : (REAL)0;
-                const REAL vw = has_win ? v_win[o] : (REAL)0;
+#endif
+#ifndef GEOMETRY
+                v_bary_out[2 * o] = vl0;
+                v_bary_out[2 * o + 1] = vl1;
+#else
+#ifdef V_DEPTH
+                const REAL vzp = v_depth[o];
+#else
+                REAL vzp = (REAL)0;  /* not const: a constant operand of && draws a clang warning */
+#endif
+#ifdef V_WIN
+                const REAL vw = v_win[o];
+#else
+                REAL vw = (REAL)0;
+#endif
                 if (vl0 == (REAL)0 && vl1 == (REAL)0 && vzp == (REAL)0 && vw == (REAL)0) continue;
                 __global const REAL* s = entry_setup + (long)e * SETUP;
                 const REAL dx = ((REAL)x + (REAL)0.5) - s[0], dy = ((REAL)y + (REAL)0.5) - s[1];
@@ -132,9 +167,12 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                 if (vw != (REAL)0) setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
                 vsig += fragment_moments(s, dx, dy, b0, b1, b2, l0, l1, zp, vl0, vl1, vzp, vw, sigma, kk, dm, ex,
                                          partial_mom + (long)e * MOMENTS);
+#endif
             }
         }
-    if (do_geom) v_sigma_tile[t] = vsig;
+#ifdef GEOMETRY
+    v_sigma_tile[t] = vsig;
+#endif
 }
 
 __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
@@ -148,4 +186,64 @@ __kernel void entry_geom(__global const REAL* vs,           // [N, 3]
     const int e = get_global_id(0);
     if (e >= num_entries || !entry_hit[e]) return;
     entry_geom_vjp(vs, F, entry_face[e], partial_mom + (long)e * MOMENTS, partial_geom + (long)e * 9);
+}
+
+/* gather_vertex  per vertex: sum partial[entry, corner, :] over every face corner of the vertex
+ *             (CSR) and every entry of that face that has fragments (entry_hit), for two partial
+ *             arrays at once (attributes, geometry). Adjoint of "vertex -> fragment".
+ * gather_corner  per vertex: sum per-face-corner adjoints [M, 3, C] over the vertex's corners
+ *             (CSR), for two arrays at once (blend.cl's blend_face_grad writes them per corner). */
+__kernel void gather_vertex(__global const REAL* partial_a,    // [E, a_stride]: [3, Ca] from a_off  (Ca > 0)
+                            __global const REAL* partial_b,    // [E, b_stride]: [3, Cb] from b_off  (Cb > 0)
+                            __global const int* entry_hit,     // [E]  0: no fragments, partials unset
+                            __global const int* face_off,      // [M + 1]
+                            __global const int* face_entries,  // [E]
+                            __global const int* csr_off,       // [N + 1]
+                            __global const int* csr_corner,    // [3M]  3 * face + corner
+                            const int n, const int Ca, const int Cb, const int a_stride, const int a_off,
+                            const int b_stride, const int b_off,
+                            __global REAL* out_a,              // [N, Ca]
+                            __global REAL* out_b)              // [N, Cb]
+{
+    /* one work-item per vertex, both partial arrays (attributes and geometry) in one walk of the
+     * corner / entry indices */
+    const int v = get_global_id(0);
+    if (v >= n) return;
+    __global REAL* oa = out_a + (long)v * Ca;
+    __global REAL* ob = out_b + (long)v * Cb;
+    for (int c = 0; c < Ca; ++c) oa[c] = (REAL)0;
+    for (int c = 0; c < Cb; ++c) ob[c] = (REAL)0;
+    for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
+        const int corner = csr_corner[q];
+        const int f = corner / 3, i = corner - 3 * f;
+        for (int j = face_off[f]; j < face_off[f + 1]; ++j) {
+            const int e = face_entries[j];
+            if (!entry_hit[e]) continue;
+            __global const REAL* pa = partial_a + (long)e * a_stride + a_off + i * Ca;
+            for (int c = 0; c < Ca; ++c) oa[c] += pa[c];
+            __global const REAL* pb = partial_b + (long)e * b_stride + b_off + i * Cb;
+            for (int c = 0; c < Cb; ++c) ob[c] += pb[c];
+        }
+    }
+}
+
+__kernel void gather_corner(__global const REAL* corner_a,     // [M, 3, Ca]
+                            __global const REAL* corner_b,     // [M, 3, Cb]
+                            __global const int* csr_off,       // [N + 1]
+                            __global const int* csr_corner,    // [3M]  3 * face + corner
+                            const int n, const int Ca, const int Cb,
+                            __global REAL* out_a,              // [N, Ca]
+                            __global REAL* out_b)              // [N, Cb]
+{
+    const int v = get_global_id(0);
+    if (v >= n) return;
+    __global REAL* oa = out_a + (long)v * Ca;
+    __global REAL* ob = out_b + (long)v * Cb;
+    for (int c = 0; c < Ca; ++c) oa[c] = (REAL)0;
+    for (int c = 0; c < Cb; ++c) ob[c] = (REAL)0;
+    for (int q = csr_off[v]; q < csr_off[v + 1]; ++q) {
+        const long corner = csr_corner[q];
+        for (int c = 0; c < Ca; ++c) oa[c] += corner_a[corner * Ca + c];
+        for (int c = 0; c < Cb; ++c) ob[c] += corner_b[corner * Cb + c];
+    }
 }

@@ -96,6 +96,50 @@ def test_render_depth_quantile(device):
             render_depth(sc, cam, mode="quantile", quantile=q, device=device)
 
 
+def _depth_by_the_generic_chain(device, scene, camera, K, sigma, mode, q):
+    """``render_depth`` as it was written before it used the fused ``raster_blend``: rasterize →
+    interpolate → coverage → composite, and the quantile from the padded fragment lists."""
+    from triplet_cl.activations import sigmoid
+    from triplet_cl.ops.composite import composite, coverage
+    from triplet_cl.ops.interpolate import interpolate
+    from triplet_cl.ops.mesh import DeviceMesh
+    from triplet_cl.ops.raster import project, rasterize
+
+    V = np.asarray(scene.V.data, np.float32)
+    n = len(V)
+    alpha = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(n, 1).astype(np.float32)
+    fr = rasterize(device, project(device, V, camera), DeviceMesh(device, scene.F, n), camera.width, camera.height,
+                   K, camera.near, camera.far, False, sigma=sigma)
+    a = interpolate(device, alpha, fr).reshape(fr.P)
+    win = None if sigma is None else coverage(device, fr, sigma)
+    img, trans, _ = composite(device, fr, fr.depth.reshape(fr.P, 1), a, np.zeros(1), win=win, t_min=1e-4)
+    acc = 1.0 - trans.get().astype(np.float64)
+    depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
+    if mode != "expected":
+        af = fr.to_hwk(a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)
+        reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= q
+        med = np.take_along_axis(fr.to_hwk(fr.depth), np.argmax(reached, axis=2)[..., None], axis=2)[..., 0]
+        depth = np.where(reached.any(axis=2), med, depth)
+    return depth, acc
+
+
+@pytest.mark.parametrize("sigma", [None, 1.0])
+def test_render_depth_matches_the_generic_chain(device, rng, sigma):
+    """The fused pass (``ops.blend.raster_blend``) gives the depth and alpha of the generic chain, in
+    every mode, on a translucent soup with several layers per pixel."""
+    M = 150
+    c = rng.uniform(-0.6, 0.6, (M, 1, 3))
+    V = (c + rng.normal(0, 0.25, (M, 3, 3))).reshape(-1, 3)
+    sc = Scene.from_arrays(V, np.arange(3 * M).reshape(M, 3), alpha=rng.normal(0.0, 1.5, (3 * M, 1)))
+    cam = Camera.look_at([0.4, -0.3, 3.0], [0, 0, 0], [0, 1, 0], 40, 37, 29)
+    for mode, q in (("expected", 0.5), ("median", 0.5), ("quantile", 0.1), ("quantile", 0.8)):
+        depth, acc = render_depth(sc, cam, K=12, sigma=sigma, mode=mode, quantile=q, device=device)
+        d0, a0 = _depth_by_the_generic_chain(device, sc, cam, 12, sigma, mode, q)
+        assert acc.any() and (depth > 0).sum() > 100
+        np.testing.assert_allclose(acc, a0, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(depth, d0, rtol=1e-5, atol=1e-6)
+
+
 def test_render_depth_empty_view(device, sphere_soup):
     cam = Camera.look_at([0, 0, 3], [0, 0, 6], [0, 1, 0], 40, 8, 8)  # looking away
     depth, acc = render_depth(sphere_soup, cam, sigma=None, device=device)

@@ -632,24 +632,24 @@ def test_camera_conventions():
 
 @pytest.mark.parametrize("path", ["serial", "blocks", "pyopencl"])
 def test_offsets_are_the_exclusive_prefix_sum(device, rng, monkeypatch, path):
-    """_offsets (the binning's tile and face offsets): off[0] = 0, off[i + 1] = off[i] + counts[i],
+    """scan.prefix_offsets (the binning's tile and face offsets): off[0] = 0, off[i + 1] = off[i] + counts[i],
     and the total; CPU devices scan in one work-item or in blocks (kernels_cl/scan.cl), others with
     pyopencl's scan."""
     import pyopencl.array as cla
 
-    from triplet_cl.ops import raster as R
+    from triplet_cl.ops import scan as S
 
     if path == "blocks":
-        monkeypatch.setattr(R, "SCAN_SERIAL", 10)
-        monkeypatch.setattr(R, "SCAN_BLOCK", 7)
+        monkeypatch.setattr(S, "SCAN_SERIAL", 10)
+        monkeypatch.setattr(S, "SCAN_BLOCK", 7)
     if path == "pyopencl":
         monkeypatch.setattr(type(device), "is_cpu", property(lambda self: False))
     for n in (0, 1, 6, 7, 8, 50, 1001):
         c = rng.integers(0, 9, n).astype(np.int32)
-        off, total = R._offsets(device, cla.to_device(device.queue, c))
+        off, total = S.prefix_offsets(device, cla.to_device(device.queue, c))
         expect = np.concatenate([[0], np.cumsum(c)])
         np.testing.assert_array_equal(off.get(), expect)
         assert total == expect[-1]
-        off, total = R._offsets(device, cla.to_device(device.queue, c), total=False)
+        off, total = S.prefix_offsets(device, cla.to_device(device.queue, c), total=False)
         np.testing.assert_array_equal(off.get(), expect)
         assert total is None

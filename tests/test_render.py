@@ -67,14 +67,14 @@ def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, si
     c = cam()
     w = rng.standard_normal((H, W, 4))
     r = render(scene, c, settings, device64)
-    faces0 = read_fragments(r.view.frags)["face"]
+    faces0 = read_fragments(r.info["frags"])["face"]
     assert (faces0 >= 0).sum() > 40
     scene.zero_grad()
     grads = r.backward(w[..., :3], w[..., 3])
 
     def loss():
         rr = render(scene, c, settings, device64)
-        same = np.array_equal(read_fragments(rr.view.frags)["face"], faces0)
+        same = np.array_equal(read_fragments(rr.info["frags"])["face"], faces0)
         return float((rr.rgba.data * w).sum()), same
 
     eps = 1e-6
@@ -159,6 +159,24 @@ def test_render_float32_runs_and_validates(device, rng):
         RenderSettings(normals="smooth")
 
 
+@pytest.mark.parametrize("renderer", ["raster", "raytrace"])
+def test_render_info_reports_the_density_statistics(device64, rng, renderer):
+    """``RenderResult.info`` (gsplat's ``info``): the fragments and projected vertices of the forward
+    pass, and after ``backward`` the screen-space vertex adjoint (density control's statistic)."""
+    from triplet_cl.ops.fragments import Fragments
+
+    scene = small_scene(rng, "cook_torrance")
+    r = render(scene, cam(), RenderSettings(K=6, sigma=0.8, real=np.float64, renderer=renderer), device64)
+    info = r.info
+    assert set(info) == {"frags", "vs", "v_vs"}
+    assert isinstance(info["frags"], Fragments) and info["frags"].P > 0
+    assert info["vs"] is info["frags"].vs and info["vs"].shape == (scene.V.shape[0], 3)
+    assert info["v_vs"] is None
+    r.backward(rng.standard_normal((H, W, 3)))
+    v_vs = info["v_vs"].get()
+    assert v_vs.shape == (scene.V.shape[0], 3) and np.abs(v_vs).sum() > 0
+
+
 @pytest.mark.parametrize("renderer", ["raster", "hybrid", "raytrace"])
 def test_render_a_view_that_sees_nothing(device, rng, renderer):
     """No fragment at all (P = 0, the camera looks away): every renderer returns the background and
@@ -167,7 +185,7 @@ def test_render_a_view_that_sees_nothing(device, rng, renderer):
     scene = Scene.from_arrays(np.asarray(scene.V.data, np.float32), scene.F, lights=[PointLight([0, 2, 3], [5, 5, 5])])
     away = Camera.look_at([0.0, 0.0, 3.0], [0, 0, 6], [0, 1, 0], 40, W, H)
     r = render(scene, away, RenderSettings(K=4, sigma=1.0, renderer=renderer, background=(0.2, 0.4, 0.6)))
-    assert r.view.frags.P == 0
+    assert r.info["frags"].P == 0
     np.testing.assert_allclose(r.image, np.broadcast_to([0.2, 0.4, 0.6], (H, W, 3)), atol=1e-6)
     assert (r.alpha == 0).all()
     g = r.backward(np.ones((H, W, 3)))

@@ -189,8 +189,8 @@ def test_sfm_unregistered_photos(tmp_path, capsys):
 
 def test_train_on_bare_photo_folder_says_run_colmap(tmp_path, capsys):
     for k in range(3):
-        fac.write_image(tmp_path / "images" / f"a{k}.jpg", fac.image_pixels(k, 16, 12, alpha=False))
-    assert cli_main(["train", str(tmp_path), "--out", str(tmp_path / "run")]) == 2
+        fac.write_image(tmp_path / "cap" / "images" / f"a{k}.jpg", fac.image_pixels(k, 16, 12, alpha=False))
+    assert cli_main(["train", str(tmp_path / "cap"), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "triplet colmap" in err and "without cameras" in err
 

@@ -239,8 +239,8 @@ def _rcam():
 
 
 def _signature(r):
-    fr = read_fragments(r.view.frags)["face"].tobytes()
-    return fr, tuple(None if v is None else v.tobytes() for v in r.view.traced.values())
+    fr = read_fragments(r.info["frags"])["face"].tobytes()
+    return fr, tuple(None if v is None else v.tobytes() for v in r.state.traced.values())
 
 
 @pytest.mark.parametrize("renderer,reflections,params", [
@@ -255,9 +255,9 @@ def test_traced_render_gradients_central_differences(device64, rng, renderer, re
     c = _rcam()
     r = render(scene, c, s, device64)
     sig0 = _signature(r)
-    assert r.view.traced["shadow_hits"].sum() > 10
+    assert r.state.traced["shadow_hits"].sum() > 10
     if reflections:
-        assert (r.view.traced["bounce_face"] >= 0).sum() > 5
+        assert (r.state.traced["bounce_face"] >= 0).sum() > 5
     w = rng.standard_normal(r.rgba.data.shape)
     scene.zero_grad()
     grads = r.backward(w[..., :3], w[..., 3])

@@ -53,6 +53,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from .autodiff.arrays import to_host
+from .optim import owning_groups
+
 __all__ = [
     "CHILDREN",
     "DensifyReport",
@@ -65,6 +68,7 @@ __all__ = [
     "face_longest_edges",
     "reset_alpha",
     "split_faces",
+    "vertex_params",
     "visible_faces",
 ]
 
@@ -146,10 +150,6 @@ class DensifyReport:
 # ---------------------------------------------------------------------------------------------
 
 
-def _host(a) -> np.ndarray:
-    return a.get() if hasattr(a, "get") and not isinstance(a, np.ndarray) else np.asarray(a)
-
-
 def _corners(V, F) -> np.ndarray:
     return np.asarray(V, np.float64)[np.asarray(F)]  # [M, 3, 3]
 
@@ -177,7 +177,7 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
 def visible_faces(face_ids, num_faces: int) -> np.ndarray:
     """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
     ``[P]``, or any array of face ids with −1 = empty; numpy or device array)."""
-    f = _host(face_ids).reshape(-1)
+    f = to_host(face_ids).reshape(-1)
     f = f[f >= 0]
     return np.bincount(f, minlength=num_faces)[:num_faces] > 0
 
@@ -230,10 +230,10 @@ class DensityStats:
         m = self.num_faces
         if F.shape != (m, 3):
             raise ValueError(f"F must have shape [{m}, 3] (stats were reset for {m} faces), got {list(F.shape)}")
-        vis = np.asarray(_host(visible))
+        vis = np.asarray(to_host(visible))
         if vis.shape != (m,) or vis.dtype != np.bool_:
             raise ValueError(f"visible must be a bool array of shape [{m}], got {vis.dtype} {list(vis.shape)}")
-        g = np.asarray(_host(v_vs), np.float64)
+        g = np.asarray(to_host(v_vs), np.float64)
         if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
             raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
         idx = np.flatnonzero(vis)
@@ -242,7 +242,7 @@ class DensityStats:
         self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
         self.denom[idx] += 1
         if v_V is not None:
-            gw = np.asarray(_host(v_V), np.float64)
+            gw = np.asarray(to_host(v_V), np.float64)
             if gw.ndim != 2 or gw.shape[1] != 3 or gw.shape[0] != g.shape[0]:
                 raise ValueError(f"v_V must have shape [{g.shape[0]}, 3], got {list(gw.shape)}")
             self.world_grad_accum[idx] += gw[Fv].sum(axis=1)
@@ -252,7 +252,7 @@ class DensityStats:
             w, h = (int(x) for x in image_size)
             if w <= 0 or h <= 0:
                 raise ValueError(f"image_size must be positive, got {image_size}")
-            uv = np.asarray(_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+            uv = np.asarray(to_host(vs), np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
             ext = uv.max(axis=1) - uv.min(axis=1)
             area = ext[:, 0] * ext[:, 1]
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
@@ -268,7 +268,9 @@ class DensityStats:
 # ---------------------------------------------------------------------------------------------
 
 
-def _vertex_params(scene) -> list:
+def vertex_params(scene) -> list:
+    """The per-vertex parameters of ``scene`` (positions, material, alpha, vertex SH): the arrays
+    density control and remeshing remap row by row."""
     return [p for p in (scene.V, scene.material, scene.alpha, scene.vertex_sh) if p is not None]
 
 
@@ -279,7 +281,7 @@ def check_soup(scene) -> int:
     if F.ndim != 2 or F.shape[1] != 3 or n != 3 * F.shape[0] or not np.array_equal(F, np.arange(n).reshape(-1, 3)):
         raise ValueError("density control needs a triangle soup with F = arange(3M).reshape(M, 3) (vertices of face f "
                          f"are 3f, 3f+1, 3f+2); got F {list(F.shape)} with {n} vertices")
-    for p in _vertex_params(scene):
+    for p in vertex_params(scene):
         if np.asarray(p.data).shape[0] != n:
             raise ValueError(f"per-vertex parameter {p.name!r} has {np.asarray(p.data).shape[0]} rows, expected {n}")
     return F.shape[0]
@@ -318,29 +320,9 @@ def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = "cook_t
     return P6[:, CHILDREN]
 
 
-def _owning_groups(optimizer, vparams) -> dict[str, list]:
-    """``{group name: params}`` of the groups holding per-vertex parameters (matched by identity)."""
-    if optimizer is None:
-        return {}
-    ids = {id(p) for p in vparams}
-    out, seen = {}, set()
-    for name, g in optimizer.groups.items():
-        hit = [id(p) in ids for p in g.params]
-        if not any(hit):
-            continue
-        if not all(hit):
-            raise ValueError(f"optimizer group {name!r} mixes per-vertex parameters with others; it cannot be remapped")
-        for p in g.params:
-            if id(p) in seen:
-                raise ValueError(f"parameter {p.name!r} is in more than one optimizer group")
-            seen.add(id(p))
-        out[name] = list(g.params)
-    return out
-
-
 def _apply(scene, optimizer, index_map: np.ndarray, new_data: dict[int, np.ndarray], num_faces: int) -> None:
-    vparams = _vertex_params(scene)
-    groups = _owning_groups(optimizer, vparams)
+    vparams = vertex_params(scene)
+    groups = owning_groups(optimizer, vparams)
     done = set()
     for name, params in groups.items():
         optimizer.remap(name, index_map, [new_data[id(p)] for p in params])
@@ -360,7 +342,7 @@ def reorder_faces(scene, optimizer, order: np.ndarray) -> None:
     if order.shape != (M,) or not np.array_equal(np.sort(order), np.arange(M)):
         raise ValueError(f"order must be a permutation of the {M} faces")
     index_map = (3 * order[:, None] + np.arange(3)[None, :]).reshape(-1)
-    new_data = {id(p): np.asarray(p.data)[index_map] for p in _vertex_params(scene)}
+    new_data = {id(p): np.asarray(p.data)[index_map] for p in vertex_params(scene)}
     _apply(scene, optimizer, index_map, new_data, M)
 
 
@@ -444,7 +426,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
 
     new_data = {}
     kinds = {id(scene.V): "position", id(scene.material): "material", id(scene.alpha): "alpha"}
-    for p in _vertex_params(scene):
+    for p in vertex_params(scene):
         X = np.asarray(p.data)
         Xf = X.reshape(m, 3, *X.shape[1:])
         children = split_faces(Xf[split_idx], config.split_interp, kinds.get(id(p), "linear"), scene.brdf)

@@ -54,3 +54,42 @@ class DatasetError(TripletError):
 
     def __str__(self) -> str:
         return f"{self.path}: {self.problem}"
+
+
+class UsageError(TripletError):
+    """A command-line option or an input/output path is invalid; raised before any work is done.
+
+    ``option`` is the option (``--init-points``) or the path the message is about."""
+
+    def __init__(self, option: str, problem: str):
+        self.option = str(option)
+        self.problem = problem
+        super().__init__(self.option, problem)
+
+    def __str__(self) -> str:
+        return f"{self.option}: {self.problem}"
+
+
+class RunError(TripletError):
+    """A run directory or one of its files (config.json, a checkpoint, mesh_stage.npz) is missing,
+    damaged or belongs to another configuration; names the file."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(self.path, problem)
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.problem}"
+
+
+class NonFiniteError(TripletError):
+    """Training produced a NaN/Inf: names the iteration, the parameter group and the likely cause."""
+
+    def __init__(self, iteration: int, group: str, what: str, cause: str):
+        self.iteration, self.group, self.what, self.cause = int(iteration), group, what, cause
+        super().__init__(iteration, group, what, cause)
+
+    def __str__(self) -> str:
+        return (f"non-finite {self.what} in parameter group {self.group!r} at iteration {self.iteration}: "
+                f"{self.cause}")

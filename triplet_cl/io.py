@@ -82,7 +82,8 @@ def write_png(path, rgb: np.ndarray, alpha: np.ndarray | None = None) -> None:
         raise
 
 
-def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.ndarray],
+                   comment: str = "triplet_cl triangle soup") -> None:
     """Binary PLY of a triangle soup with per-vertex float attributes (``name -> [N] or [N, k]``;
     ``[N, k]`` becomes ``name_0 .. name_{k-1}``, ``albedo`` [N,3] becomes ``red/green/blue`` bytes too)."""
     V = np.asarray(V, np.float32)
@@ -111,6 +112,6 @@ def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.
     props = "".join(
         f"property {'float' if t == '<f4' else 'uchar'} {name}\n" for name, t in dtype
     )
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment triplet_cl triangle soup\nelement vertex {n}\n{props}"
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {n}\n{props}"
               f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n")
     atomic_write_bytes(path, header.encode() + verts.tobytes() + faces.tobytes())

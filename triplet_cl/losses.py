@@ -49,7 +49,7 @@ import numpy as np
 import pyopencl.array as cla
 import scipy.ndimage
 
-from triplet_cl.autodiff import Function
+from triplet_cl.autodiff import Function, to_host
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -206,7 +206,8 @@ def _tv_bwd(img: np.ndarray, eps: float, scale: float) -> np.ndarray:
     return v
 
 
-def _reduction_scale(reduction: str, count: int) -> float:
+def reduction_scale(reduction: str, count: int) -> float:
+    """The factor of a ``reduction`` (``"mean"``: 1 / count, ``"sum"``: 1) over ``count`` terms."""
     if reduction == "mean":
         return 1.0 / max(count, 1)
     if reduction == "sum":
@@ -218,9 +219,9 @@ def _reduction_scale(reduction: str, count: int) -> float:
 # normal consistency
 # ---------------------------------------------------------------------------------------------
 def _check_normal_inputs(normals, weights, rendered_normal):
-    normals = _to_host(_check_array("normals", normals))
-    weights = _to_host(_check_array("weights", weights))
-    rendered_normal = _to_host(_check_array("rendered_normal", rendered_normal))
+    normals = to_host(_check_array("normals", normals))
+    weights = to_host(_check_array("weights", weights))
+    rendered_normal = to_host(_check_array("rendered_normal", rendered_normal))
     if normals.ndim < 2 or normals.shape[-1] != 3:
         raise ValueError(f"normals must have shape [..., K, 3], got {list(normals.shape)}")
     if tuple(weights.shape) != tuple(normals.shape[:-1]):
@@ -230,10 +231,6 @@ def _check_normal_inputs(normals, weights, rendered_normal):
         raise ValueError(f"rendered_normal must have shape {list(normals.shape[:-2]) + [3]}, "
                          f"got {list(rendered_normal.shape)}")
     return normals, weights, rendered_normal
-
-
-def _to_host(a):
-    return a.get() if isinstance(a, cla.Array) else a
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,7 +262,7 @@ class PhotometricLoss(Function):
         ctx.backend = _resolve_backend(self.backend, pred)
         if ctx.backend == "opencl":
             return _cl_photometric_fwd(ctx, pred, target, self.lam, self.padding)
-        pred, target = _to_host(pred), _to_host(target)
+        pred, target = to_host(pred), to_host(target)
         value = 0.0
         ctx.l1 = ctx.ssim = None
         if self.lam < 1.0:
@@ -320,13 +317,13 @@ class ImageTV(Function):
     def __init__(self, eps: float = TV_EPS, reduction: str = "mean"):
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
-        _reduction_scale(reduction, 1)
+        reduction_scale(reduction, 1)
         self.eps, self.reduction = float(eps), reduction
 
     def forward(self, ctx, img):
-        img = _to_host(_check_image("img", img))
+        img = to_host(_check_image("img", img))
         h, w, c = img.shape
-        ctx.img, ctx.scale = img, _reduction_scale(self.reduction, (h - 1) * (w - 1) * c)
+        ctx.img, ctx.scale = img, reduction_scale(self.reduction, (h - 1) * (w - 1) * c)
         return np.asarray(np.sum(_tv_terms(img, self.eps)[2], dtype=np.float64) * ctx.scale)
 
     def backward(self, ctx, v):

@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .autodiff.arrays import to_host
+
 # ---------------------------------------------------------------------------------------------
 # schedules
 # ---------------------------------------------------------------------------------------------
@@ -146,8 +148,12 @@ class ParamGroup:
         return int(self.params[0].data.shape[0]) if self.params and self.params[0].data.ndim else 0
 
 
-def _grad_host(g):
-    return g.get() if hasattr(g, "get") and not isinstance(g, np.ndarray) else np.asarray(g)
+class NonFiniteStep(ArithmeticError):
+    """A NaN/Inf gradient (before the update: nothing changed) or parameter (after it) in ``group``."""
+
+    def __init__(self, group: str, what: str):
+        self.group, self.what = group, what
+        super().__init__(f"non-finite {what} in parameter group {group!r}")
 
 
 class Adam:
@@ -210,16 +216,26 @@ class Adam:
                 p.grad = None
 
     def step(self) -> None:
-        """One Adam update of every parameter that has a gradient."""
-        self.t += 1
+        """One Adam update of every parameter that has a gradient.
+
+        Finiteness guard: a NaN/Inf gradient (seen in the group's gradient norm, which is computed
+        anyway) raises :class:`NonFiniteStep` before **any** parameter is updated; a parameter that
+        becomes NaN/Inf by the update raises it after the step (``what == "parameter"``)."""
+        per_group = []
         for g in self.groups.values():
-            lr = g.schedule(self.t - 1)
-            grads = [None if p.grad is None else _grad_host(p.grad) for p in g.params]
+            grads = [None if p.grad is None else to_host(p.grad) for p in g.params]
             for p, gr in zip(g.params, grads, strict=True):
                 if gr is not None and gr.shape != p.data.shape:
                     raise ValueError(f"gradient of {getattr(p, 'name', 'a parameter')} in group {g.name!r} has shape "
                                      f"{list(gr.shape)}, expected {list(p.data.shape)}")
             norm = math.sqrt(sum(float(np.sum(np.square(gr, dtype=np.float64))) for gr in grads if gr is not None))
+            if not math.isfinite(norm):
+                raise NonFiniteStep(g.name, "gradient")
+            per_group.append((g, grads, norm))
+        self.t += 1
+        bad = None
+        for g, grads, norm in per_group:
+            lr = g.schedule(self.t - 1)
             g.last_grad_norm = norm
             coef = 1.0
             if g.max_grad_norm is not None and norm > g.max_grad_norm:
@@ -236,6 +252,10 @@ class Adam:
                 v *= b2
                 v += (1.0 - b2) * gr * gr
                 p.data -= (lr / bc1) * m / (np.sqrt(v / bc2) + g.eps)
+                if bad is None and not np.isfinite(p.data).all():
+                    bad = g.name
+        if bad is not None:
+            raise NonFiniteStep(bad, "parameter")
 
     # ---- density control ----------------------------------------------------------------------
     def remap(self, group_name: str, index_map, new_rows=None) -> None:
@@ -348,3 +368,23 @@ class Adam:
             g.exp_avg = [np.array(a, dtype=p.data.dtype) for a, p in zip(s["exp_avg"], g.params, strict=True)]
             g.exp_avg_sq = [np.array(a, dtype=p.data.dtype) for a, p in zip(s["exp_avg_sq"], g.params, strict=True)]
         self.t = int(state["t"])
+
+
+def owning_groups(optimizer, vparams) -> dict[str, list]:
+    """``{group name: params}`` of the groups holding per-vertex parameters (matched by identity)."""
+    if optimizer is None:
+        return {}
+    ids = {id(p) for p in vparams}
+    out, seen = {}, set()
+    for name, g in optimizer.groups.items():
+        hit = [id(p) in ids for p in g.params]
+        if not any(hit):
+            continue
+        if not all(hit):
+            raise ValueError(f"optimizer group {name!r} mixes per-vertex parameters with others; it cannot be remapped")
+        for p in g.params:
+            if id(p) in seen:
+                raise ValueError(f"parameter {p.name!r} is in more than one optimizer group")
+            seen.add(id(p))
+        out[name] = list(g.params)
+    return out

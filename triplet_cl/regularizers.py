@@ -33,8 +33,9 @@ from triplet_cl.activations import normalize, normalize_bwd
 from triplet_cl.autodiff import Function
 from triplet_cl.ops.common import check_faces
 from triplet_cl.topology import edge_adjacent_faces
+from triplet_cl.topology import mesh_edges as _edges_and_faces
 
-from .losses import _reduction_scale as _scale
+from .losses import reduction_scale as _scale
 
 FACE_NORMAL_EPS = 1e-30  # smooths normalize() only for (near-)degenerate faces
 
@@ -53,11 +54,8 @@ def _check_attr(name: str, a, num_rows: int | None = None, cols: int | None = No
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
     """``F [M, 3] -> [E, 2] int64``: the unique undirected edges, each as ``(i, j)`` with ``i < j``,
-    sorted lexicographically."""
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=0)
-    e.sort(axis=1)
-    return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
+    sorted lexicographically (the edges of :func:`triplet_cl.topology.mesh_edges`)."""
+    return _edges_and_faces(faces)[0]
 
 
 def _scatter_rows(num_rows: int, index: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
-from .autodiff import Function, Tape, Variable, active_tape
+from .autodiff import Function, Tape, Variable, active_tape, to_host
 from .camera import Camera
 from .device import Device, get_device
 from .ops import columns
@@ -89,8 +89,16 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
 
-class View:
-    """Per-view state shared by the ops of one render call (fragments, device, camera)."""
+class RenderState:
+    """The state one :func:`render` call shares between its ops (device, camera, fragments ...); the
+    ops hold it as ``self.view``. Not a dataset view (that is :class:`triplet_cl.datasets.View`).
+
+    ``info`` is what the render reports to its caller (:attr:`RenderResult.info`, after gsplat's
+    ``info`` dict): ``"frags"`` the :class:`~triplet_cl.ops.fragments.Fragments` of the forward pass
+    (their ``face`` ids are the visible faces), ``"vs"`` ``[N, 3]`` the projected vertices (u, v, z)
+    and ``"v_vs"`` ``[N, 3]`` their adjoint, set by the backward pass (None until then): the
+    screen-space gradient density control accumulates. Device arrays.
+    """
 
     def __init__(self, device: Device, mesh: DeviceMesh, camera: Camera, settings: RenderSettings):
         self.device, self.mesh, self.camera, self.settings = device, mesh, camera, settings
@@ -99,7 +107,7 @@ class View:
         self.ray_eps = 0.0  # world-space ray offset
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
         self.win = None  # [P] coverage window of the forward pass (sigma set)
-        self.v_vs = None  # [N, 3] adjoint of the projected vertices (u, v, z), set by the backward pass
+        self.info: dict = {"frags": None, "vs": None, "v_vs": None}
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -214,7 +222,7 @@ class Concat(Function):
 class RasterInterpolate(Function):
     """``(V [N, 3], attr [N, C]) → (frag_attr [P, C][, win [P]])`` (device arrays, packed fragments)."""
 
-    def __init__(self, view: View):
+    def __init__(self, view: RenderState):
         self.view = view
 
     def forward(self, ctx, V, attr):
@@ -232,6 +240,7 @@ class RasterInterpolate(Function):
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
                            sigma=s.sigma, soft_edges=soft)
         v.frags = ctx.frags = fr
+        v.info.update(frags=fr, vs=vs)
         fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
             return fa
@@ -242,7 +251,7 @@ class RasterInterpolate(Function):
         d, s = self.view.device, self.view.settings
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
                                              sigma=s.sigma or 0.0)
-        self.view.v_vs = v_vs  # screen-space vertex adjoint: density control's view-space gradient
+        self.view.info["v_vs"] = v_vs  # screen-space vertex adjoint: density control's view-space gradient
         return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
 
 
@@ -253,7 +262,7 @@ class ShadeFragments(Function):
     inputs are column blocks of the packed attribute array (``ops.columns.Compaction``).
     """
 
-    def __init__(self, view: View, lights, brdf: str, layout: dict):
+    def __init__(self, view: RenderState, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
 
     def _blocks(self, comp, fa) -> dict:
@@ -420,7 +429,7 @@ def _as_device(d: Device, x, shape, real) -> cla.Array:
 class Composite(Function):
     """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])``."""
 
-    def __init__(self, view: View):
+    def __init__(self, view: RenderState):
         self.view = view
 
     def forward(self, ctx, rgb, alpha, win=None):
@@ -462,12 +471,21 @@ class Stack(Function):
 
 @dataclass
 class RenderResult:
-    """Outputs of :func:`render`: ``rgba`` ``[H, W, 4]`` (numpy; RGB and accumulated alpha) on the tape."""
+    """Outputs of :func:`render`: ``rgba`` ``[H, W, 4]`` (numpy; RGB and accumulated alpha) on the tape,
+    and :attr:`info`."""
 
     rgba: Variable
     tape: Tape
     scene: Scene
-    view: View
+    state: RenderState
+
+    @property
+    def info(self) -> dict:
+        """What the render reports besides the image (after gsplat's ``info``): ``"frags"`` the
+        fragments of the forward pass (``frags.face``: the visible faces), ``"vs"`` ``[N, 3]`` the
+        projected vertices, ``"v_vs"`` ``[N, 3]`` their adjoint once :meth:`backward` ran (None
+        before): the statistics density control reads. Device arrays."""
+        return self.state.info
 
     @property
     def image(self) -> np.ndarray:
@@ -482,8 +500,8 @@ class RenderResult:
     def backward(self, v_image, v_alpha=None) -> dict[str, np.ndarray]:
         """Propagate ``v_image [H, W, 3]`` (and optionally ``v_alpha [H, W]``) to every scene
         parameter; returns ``{param name: gradient}`` (also accumulated into each ``Param.grad``)."""
-        s = self.view.settings
-        H, W = self.view.camera.height, self.view.camera.width
+        s = self.state.settings
+        H, W = self.state.camera.height, self.state.camera.width
         v = np.zeros((H, W, 4), s.real)
         v_image = np.asarray(v_image)
         if v_image.shape != (H, W, 3):
@@ -495,13 +513,7 @@ class RenderResult:
                 raise ValueError(f"v_alpha must have shape [{H}, {W}], got {list(v_alpha.shape)}")
             v[..., 3] = v_alpha
         self.tape.backward(self.rgba, v)
-        return {p.name: _host(p.grad) for p in self.scene.params}
-
-
-def _host(g):
-    if g is None:
-        return None
-    return g.get() if isinstance(g, cla.Array) else np.asarray(g)
+        return {p.name: None if p.grad is None else to_host(p.grad) for p in self.scene.params}
 
 
 _MESH_CACHE: dict = {}
@@ -544,7 +556,7 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     d = device or get_device()
     N = scene.V.shape[0]
     mesh = device_mesh(d, scene.F, N)
-    view = View(d, mesh, camera, s)
+    view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
         Vh = np.asarray(scene.V.data, np.float64)
         view.bvh = scene_bvh(d, mesh, Vh, s.real)

@@ -30,6 +30,19 @@ def vertex_corner_csr(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray,
     return offsets, order
 
 
+def mesh_edges(faces) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges: ``(E [K, 2] int64, face_edge [M, 3] int64)``; ``E`` holds each edge
+    as ``(i, j)`` with ``i < j``, sorted lexicographically, and ``face_edge[f, i]`` is the edge from
+    corner ``i`` to corner ``i + 1`` of face ``f``."""
+    F = np.asarray(faces, np.int64)
+    if F.size == 0:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64)
+    e = np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2)
+    e.sort(axis=1)
+    E, inv = np.unique(e, axis=0, return_inverse=True)
+    return E.reshape(-1, 2), inv.reshape(-1, 3)
+
+
 def edge_adjacent_faces(faces: np.ndarray) -> np.ndarray:
     """Pairs of faces sharing an (undirected) edge: ``[P, 2] int64`` (each pair once)."""
     f = np.asarray(faces, dtype=np.int64)

@@ -30,15 +30,18 @@ from .datasets import load_dataset
 from .datasets.base import Dataset, resolve_background
 from .density import DensityConfig, DensityStats, densify_and_prune, reorder_faces, reset_alpha, visible_faces
 from .device import Device, get_device
+from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 from .losses import photometric_loss_and_grad, ssim
-from .optim import Adam, Constant, ExponentialDecay, StepUp
+from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
 
 LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
+# TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
+RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -93,6 +96,7 @@ class TrainConfig:
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
+    keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
     downscale: int = 1  # dataset images reduced by this integer factor at load time
     max_test_views: int | None = None  # evaluate only the first N test views (None: all)
 
@@ -131,6 +135,9 @@ class TrainConfig:
                              f"{self.background_radius}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
+        if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
+            raise ValueError(f"checkpoint_every and keep_checkpoints must be >= 0, got {self.checkpoint_every} "
+                             f"and {self.keep_checkpoints}")
         resolve_background(self.background)
 
 
@@ -313,11 +320,16 @@ class Trainer:
         self.device = device or get_device()
         self.quiet = quiet
         if resume:
-            cfg_path = self.run_dir / "config.json"
-            if not cfg_path.is_file():
-                raise FileNotFoundError(f"cannot resume: {cfg_path} does not exist")
-            saved = json.loads(cfg_path.read_text())
-            cfg = TrainConfig.from_dict(saved["train"])
+            from .runs import config_from_saved, read_run_config
+
+            saved = read_run_config(self.run_dir)
+            saved_cfg = config_from_saved(self.run_dir, saved)
+            if cfg is not None:  # options that may change on resume (RESUMABLE_FIELDS); the rest must match
+                from dataclasses import replace
+
+                cfg = replace(saved_cfg, **{k: getattr(cfg, k) for k in RESUMABLE_FIELDS})
+            else:
+                cfg = saved_cfg
             data = saved["data"] if data is None else data
             data_format = saved.get("format", data_format)
         self.cfg = cfg or TrainConfig()
@@ -327,6 +339,12 @@ class Trainer:
                                background=self.cfg.background)
         if not self.ds.train:
             raise ValueError(f"dataset {data} has no training views")
+        small = min(self.ds.train, key=lambda v: min(v.rgb.shape[:2]))
+        if min(small.rgb.shape[:2]) < 4:
+            h, w = small.rgb.shape[:2]
+            raise ValueError(f"--downscale {self.cfg.downscale} leaves {w}x{h}-pixel training images ({small.name}); "
+                             "the warm-up renders at 1/4 of that: they must stay at least 4 pixels, so lower "
+                             "--downscale")
         self.extent = self.ds.scene_extent()
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
@@ -372,19 +390,25 @@ class Trainer:
         t0 = time.perf_counter()
         r = render(self.scene, cam, settings, self.device)
         t1 = time.perf_counter()
+        if not np.isfinite(r.image).all():
+            raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
+                                 f"lights or materials?); {self.checkpoint_hint()}")
         loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda)
         t2 = time.perf_counter()
         r.backward(v_img)
         t3 = time.perf_counter()
         dens = cfg.density
         if it < dens.densify_until:
-            fr = r.view.frags
+            fr = r.info["frags"]
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
-            self.stats.add(r.view.v_vs.get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=fr.vs.get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
+                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
                            grad_scale=0.5 * cam.width)
-        self.opt.step()
+        try:
+            self.opt.step()  # the finiteness guard: see Adam.step
+        except NonFiniteStep as exc:
+            raise NonFiniteError(it + 1, exc.group, exc.what, self._nonfinite_cause(exc)) from None
         self.opt.zero_grad()
         t4 = time.perf_counter()
         report = None
@@ -397,6 +421,7 @@ class Trainer:
                                        prune_screen=it > dens.alpha_reset_interval)
             self.spatial_sort()
             self.stats = DensityStats(len(self.scene.F))
+            self.check_finite(f"after densification at iteration {it + 1}")
         if dens.reset_alpha_at(it):
             reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
             self.last_alpha_reset = it
@@ -410,6 +435,32 @@ class Trainer:
                               "pruned_screen": report.pruned_screen}
         return rec
 
+    def _nonfinite_cause(self, exc: NonFiniteStep) -> str:
+        last = self.checkpoint_hint()
+        if exc.what == "gradient":
+            why = ("the render/loss back-propagation produced NaN/Inf gradients (degenerate or huge triangles, "
+                   f"overflowing lights?; the learning rate of this group is {self.opt.lr(exc.group):.3g}: a large "
+                   "one makes the previous update diverge); nothing was updated")
+        else:
+            why = (f"the Adam update made it NaN/Inf: learning rate {self.opt.lr(exc.group, self.opt.t - 1):.3g} "
+                   "of this group too large (diverging), or the parameters were already non-finite")
+        return f"{why}; {last}"
+
+    def checkpoint_hint(self) -> str:
+        latest = self.run_dir / "checkpoints" / "latest"
+        if latest.is_file():
+            return f"the last good checkpoint is kept ({latest.read_text().strip()})"
+        return "no checkpoint was written"
+
+    def check_finite(self, where: str) -> None:
+        """Every parameter finite, else NonFiniteError naming the group (after a load or densification)."""
+        for name, g in self.opt.groups.items():
+            for p in g.params:
+                if not np.isfinite(p.data).all():
+                    n = int((~np.isfinite(p.data)).sum())
+                    raise NonFiniteError(self.it, name, "parameter", f"{n} NaN/Inf value(s) {where}; "
+                                         f"{self.checkpoint_hint()}")
+
     # ---- loop ----------------------------------------------------------------------------------
     def train(self) -> dict:
         """Train to ``cfg.iterations`` (from the current iteration), then write the results."""
@@ -421,13 +472,24 @@ class Trainer:
         def on_sigint(signum, frame):
             interrupted.append(signum)
 
+        from .runs import remove_stale_temp_files
+
+        renders = self.run_dir / "renders"
+        for folder in (self.run_dir, self.run_dir / "checkpoints",
+                       *(sorted(renders.iterdir()) if renders.is_dir() else [])):
+            remove_stale_temp_files(folder)
+        self.check_finite("before training")
         old = signal.signal(signal.SIGINT, on_sigint)
         bar = tqdm(total=cfg.iterations, initial=self.it, desc="train", unit="it", disable=self.quiet,
                    dynamic_ncols=True)
         t_start = time.perf_counter()
         try:
             while self.it < cfg.iterations:
-                rec = self.step()
+                try:
+                    rec = self.step()
+                except NonFiniteError as exc:
+                    self.log.info(f"stopped: {exc}")
+                    raise
                 self.history.append(rec)
                 bar.update(1)
                 bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", faces=str(rec["faces"]))
@@ -477,7 +539,13 @@ class Trainer:
 
     def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:
         """PSNR / SSIM of every view of ``split`` (rendered at full resolution, K after warm-up)."""
-        views = self.ds[split] or self.ds.train
+        views = self.ds[split]
+        if not views:
+            if split == "test" and self.ds.train:  # a dataset without test views: report on the training views
+                views, split = self.ds.train, "train"
+            else:
+                raise DatasetError(self.ds.root, f"the dataset has no {split!r} views (splits with views: "
+                                   f"{[s for s, v in self.ds.splits.items() if v]})")
         if self.cfg.max_test_views:
             views = views[: self.cfg.max_test_views]
         bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
@@ -505,13 +573,20 @@ class Trainer:
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def latest_checkpoint(self) -> Path:
+        from .runs import list_checkpoints
+
         latest = self.run_dir / "checkpoints" / "latest"
-        if not latest.is_file():
+        named = self.run_dir / "checkpoints" / latest.read_text().strip() if latest.is_file() else None
+        if named is not None and named.is_file():
+            return named
+        found = list_checkpoints(self.run_dir)  # `latest` lost or pointing at a removed file: the newest one
+        if not found:
             raise FileNotFoundError(f"no checkpoint to resume from in {self.run_dir / 'checkpoints'}")
-        return self.run_dir / "checkpoints" / latest.read_text().strip()
+        return found[-1]
 
     def save_checkpoint(self) -> Path:
         s = self.scene
+        self.check_finite(f"at iteration {self.it}: no checkpoint written")
         arrays = {"V": s.V.data, "F": s.F, "material": s.material.data, "alpha": s.alpha.data}
         if s.vertex_sh is not None:
             arrays["vertex_sh"] = s.vertex_sh.data
@@ -527,6 +602,7 @@ class Trainer:
         meta = {"it": self.it, "t": opt_state["t"], "order": [int(x) for x in self.order],
                 "last_alpha_reset": self.last_alpha_reset,
                 "rng": self.rng.bit_generator.state,
+                "config": {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS},
                 "opt_hyper": {g: {k: v for k, v in st.items() if k not in ("exp_avg", "exp_avg_sq")}
                               for g, st in opt_state["groups"].items()}}
         arrays["meta"] = np.frombuffer(json.dumps(meta, default=_json_default).encode(), np.uint8)
@@ -535,14 +611,16 @@ class Trainer:
         name = f"ckpt_{self.it:07d}.npz"
         atomic_write_bytes(self.run_dir / "checkpoints" / name, buf.getvalue())
         atomic_write_bytes(self.run_dir / "checkpoints" / "latest", name.encode())
+        from .runs import prune_checkpoints
+
+        prune_checkpoints(self.run_dir, self.cfg.keep_checkpoints, protect=self.run_dir / "checkpoints" / name)
         return self.run_dir / "checkpoints" / name
 
     def load_checkpoint(self, path: Path) -> None:
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"checkpoint {path} does not exist")
-        with np.load(path) as z:
-            a = {k: z[k] for k in z.files}
-        meta = json.loads(bytes(a.pop("meta")).decode())
+        from .runs import read_checkpoint
+
+        a, meta = read_checkpoint(path)
+        self._check_checkpoint(path, a, meta)
         s = self.scene
         s.V.data, s.F = a["V"], a["F"].astype(np.int32)
         s.material.data, s.alpha.data = a["material"], a["alpha"]
@@ -564,6 +642,48 @@ class Trainer:
         self.last_alpha_reset = meta.get("last_alpha_reset")
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
+
+    def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
+        """The checkpoint belongs to this configuration and holds what it needs, finite."""
+        saved = meta.get("config")
+        if saved is not None:
+            mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}
+            default = TrainConfig().to_dict()  # a field added since the checkpoint was written: its default matches
+
+            def same(k):
+                theirs = saved[k] if k in saved else default.get(k)
+                return json.dumps(mine.get(k), sort_keys=True) == json.dumps(theirs, sort_keys=True)
+
+            diff = [k for k in sorted(mine) if not same(k)]
+            if diff:
+                shown = ", ".join(f"{k}: checkpoint {saved.get(k)!r}, config.json {mine.get(k)!r}" for k in diff[:4])
+                raise RunError(path, f"belongs to another configuration ({shown}); start a new run with "
+                                     "--overwrite or another --out")
+        s = self.scene
+        want = {"material": s.material.data.shape[1:], "alpha": s.alpha.data.shape[1:]}
+        if s.light_params is not None:
+            want["light_params"] = s.light_params.data.shape
+        if s.vertex_sh is not None:
+            want["vertex_sh"] = s.vertex_sh.data.shape[1:]
+        for k, shape in want.items():
+            if k not in a:
+                raise RunError(path, f"belongs to another configuration: no {k!r} (config.json asks for it)")
+            got = a[k].shape if k == "light_params" else a[k].shape[1:]
+            if tuple(got) != tuple(shape):
+                raise RunError(path, f"belongs to another configuration: {k!r} has shape {list(a[k].shape)}, "
+                                     f"config.json needs {list(shape)} per row")
+        if a["V"].ndim != 2 or a["V"].shape[1] != 3 or a["F"].ndim != 2 or a["F"].shape[1] != 3:
+            raise RunError(path, f"damaged: V {list(a['V'].shape)}, F {list(a['F'].shape)} (expected [N, 3], [M, 3])")
+        for k in ("V", "material", "alpha", "light_params", "vertex_sh"):
+            if k in a and a[k].size and not np.isfinite(a[k]).all():
+                raise RunError(path, f"holds {int((~np.isfinite(a[k])).sum())} NaN/Inf value(s) in {k!r}: resume "
+                                     "from an earlier checkpoint (edit checkpoints/latest) or start again")
+        missing = [f"opt.{g}.{j}.{m}" for g in meta["opt_hyper"] if g in self.opt.groups
+                   for j in range(len(self.opt.groups[g].params)) for m in "mv" if f"opt.{g}.{j}.{m}" not in a]
+        if missing or set(meta["opt_hyper"]) != set(self.opt.groups):
+            extra = f"; missing {missing[:3]}" if missing else ""
+            raise RunError(path, f"belongs to another configuration: optimizer groups {sorted(meta['opt_hyper'])}, "
+                                 f"this run has {sorted(self.opt.groups)}{extra}")
 
 
 def _json_default(o):

@@ -2,7 +2,7 @@
  *
  * A pixel's list holds its K nearest fragments sorted by (depth, face id): the face id breaks ties
  * so the result never depends on the arbitrary order of a tile's (tile, face) entries.
- * Per entry (edge-function set-up s, raster.cl SETUP), pixel centre p, (dx, dy) = p - a0:
+ * Per entry (edge-function set-up s, binning.cl SETUP), pixel centre p, (dx, dy) = p - a0:
  *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1   (hit: all >= 0)
  *   zp = 1 / (b0 s6 + b1 s7 + b2 s8)                                  (hit: zp <= far)
  * and the pixel's row is one of the entry's rows (entry_rows: the rows of the tile inside the

@@ -127,8 +127,27 @@ def read_images_text(path: Path) -> dict[int, ColmapImage]:
         iid = _int(path, lineno, el[0], "IMAGE_ID")
         pose = _floats(path, lineno, el[1:8], "QW QX QY QZ TX TY TZ")
         images[iid] = ColmapImage(iid, pose[:4], pose[4:], _int(path, lineno, el[8], "CAMERA_ID"), el[9].strip())
-        i += 1  # the POINTS2D line (possibly empty)
+        # the POINTS2D line (possibly empty) — unless the file was written one line per image (some tools
+        # omit it): then the next line is already the next image
+        if i < len(lines) and not _is_image_line(lines[i][1]):
+            i += 1
     return images
+
+
+def _is_image_line(ln: str) -> bool:
+    """``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` with a unit quaternion — never a POINTS2D line
+    (``X Y POINT3D_ID`` triples: its first token is a float pixel coordinate and the would-be
+    quaternion is not of unit length)."""
+    el = ln.split(maxsplit=9)
+    if len(el) < 10:
+        return False
+    try:
+        int(el[0]), int(el[8])
+        q = np.array([float(x) for x in el[1:5]])
+        [float(x) for x in el[5:8]]
+    except ValueError:
+        return False
+    return bool(abs(np.linalg.norm(q) - 1.0) < 1e-2)
 
 
 def read_points3d_text(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -66,6 +66,15 @@ def _matrix(path: Path, where: str, value) -> np.ndarray:
         raise DatasetError(path, f"{where}transform_matrix must be 4x4 (or 3x4), found shape {list(m.shape)}")
     if not np.isfinite(m).all():
         raise DatasetError(path, f"{where}transform_matrix holds NaN or Inf values")
+    r = m[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > 1e-3 or np.linalg.det(r) <= 0:
+        raise DatasetError(path, f"{where}transform_matrix is not a rigid camera-to-world transform: its rotation "
+                                 f"part is not orthonormal with determinant +1 (max |RᵀR − I| = {err:.3g}, det "
+                                 f"{np.linalg.det(r):.4g}; scaled, sheared or mirrored cameras are not supported)")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise DatasetError(path, f"{where}transform_matrix is not a rigid camera-to-world transform: its bottom row "
+                                 f"is {m[3].tolist()}, expected [0, 0, 0, 1]")
     return m
 
 
@@ -90,6 +99,11 @@ def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
     for k in _INTRINSIC_KEYS:
         if k in intr:
             _number(path, where, k, intr[k], positive=k not in ("cx", "cy"))
+    for k in ("camera_angle_x", "camera_angle_y"):
+        if k in intr and not float(intr[k]) < math.pi:
+            v = float(intr[k])
+            raise DatasetError(path, f"{where}{k} = {v:g} is not a field of view in radians (expected 0 < {k} < π)"
+                                     + (f"; if it is in degrees, write {math.radians(v):.6g}" if v < 180 else ""))
     _check_distortion(path, where, intr)
 
 

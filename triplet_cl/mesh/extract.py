@@ -1,7 +1,8 @@
 """Soup → connected mesh (DESIGN.md §1.5, §6): TSDF fusion of rendered depth + marching cubes, or
 vertex welding; small-component removal; the full :func:`extract_mesh` with attribute transfer.
 
-**Depth of a soup** (:func:`render_depth`, forward only, the ops of the renderer): the K nearest
+**Depth of a soup** (:func:`render_depth`, forward only, one fused pass of ``ops.blend.raster_blend``
+with the depth as the feature — what rasterize → interpolate → coverage → composite give): the K nearest
 fragments of a pixel, front to back, with opacity ``a_i = α_i·w_i`` (interpolated sigmoid alpha
 times the soft coverage window when ``sigma`` is set), are composited like the colour::
 
@@ -62,11 +63,10 @@ import numpy as np
 from ..activations import sigmoid
 from ..camera import Camera
 from ..device import Device, get_device
+from ..ops.blend import raster_blend
 from ..ops.common import check_faces, check_real
-from ..ops.composite import composite, coverage
-from ..ops.interpolate import interpolate
 from ..ops.mesh import DeviceMesh
-from ..ops.raster import project, rasterize
+from ..ops.project import project
 from .asset import MeshAsset
 from .transfer import transfer_attributes
 
@@ -118,19 +118,18 @@ def render_depth(scene, camera: Camera, K: int = 30, sigma: float | None = 1.0, 
     alpha = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(n, 1).astype(np.float32)
     mesh = DeviceMesh(d, F, n)
     vs = project(d, V, camera)
-    fr = rasterize(d, vs, mesh, W, H, K, camera.near, camera.far, False, sigma=sigma)
-    a = interpolate(d, alpha, fr).reshape(fr.P)
-    win = None if sigma is None else coverage(d, fr, sigma)
-    feat = fr.depth.reshape(fr.P, 1)
-    img, trans, _ = composite(d, fr, feat, a, np.zeros(1), win=win, t_min=1e-4)
-    acc = 1.0 - trans.get().astype(np.float64)
-    depth = np.where(acc > 1e-6, img.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
+    # one fused pass (ops/blend.py): per vertex its camera depth z, then its opacity; z interpolated
+    # perspective-correctly is the fragment's depth 1 / Σ_k (b_k / z_k)
+    attr = np.concatenate([vs.get()[:, 2:3], alpha], axis=1)
+    b = raster_blend(d, vs, mesh, attr, W, H, K, bg=0.0, sigma=sigma, t_min=1e-4, near=camera.near,
+                     far=camera.far)
+    acc = 1.0 - b.trans.get().astype(np.float64)
+    depth = np.where(acc > 1e-6, b.image.get()[..., 0] / np.maximum(acc, 1e-6), 0.0)
     if mode in ("median", "quantile"):
-        af = fr.to_hwk(a.get().astype(np.float64) * (1.0 if win is None else win.get()), 0.0)  # 0 in empty slots
-        reached = (1.0 - np.cumprod(1.0 - np.clip(af, 0.0, 1.0), axis=2)) >= q
-        first = np.argmax(reached, axis=2)
-        med = np.take_along_axis(fr.to_hwk(fr.depth), first[..., None], axis=2)[..., 0]
-        depth = np.where(reached.any(axis=2), med, depth)
+        # the depth of the fragment behind which the accumulated alpha reaches q (the compositing
+        # stops once T < 1e-4, past any q < 1)
+        e = b.entry_reaching(q)
+        depth = np.where(e >= 0, b.depth_of(e), depth)
     return depth.astype(np.float32), acc.astype(np.float32)
 
 

@@ -110,8 +110,16 @@ class MeshConfig:
 
             ROI.from_bbox(self.bbox)
         bad = [f for f in self.formats if f not in ("glb", "obj", "ply")]
-        if bad:
-            raise ValueError(f"export formats must be among glb, obj, ply; got {bad}")
+        if bad or not self.formats:
+            raise ValueError(f"export formats must be a non-empty subset of glb, obj, ply; got {list(self.formats)}")
+        if self.extract_faces is not None and self.extract_faces < 100:
+            raise ValueError(f"mesh extract_faces (--mesh-faces) must be None or >= 100, got {self.extract_faces}")
+        if self.resolution is not None and not 16 <= self.resolution <= 1024:
+            raise ValueError(f"mesh resolution (--mesh-resolution) must be in [16, 1024], got {self.resolution}")
+        if not 16 <= self.texture_size <= 16384:
+            raise ValueError(f"texture_size (--texture-size) must be in [16, 16384], got {self.texture_size}")
+        if self.remesh_every < 0:
+            raise ValueError(f"mesh remesh_every (--remesh-every) must be >= 0, got {self.remesh_every}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -412,17 +420,24 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
 
 def load_mesh_state(path) -> Scene:
     """The :class:`Scene` saved by :func:`save_mesh_state`."""
+    import zipfile
+
+    from ..errors import RunError
     from ..lights import lights_from_json
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no mesh-stage result at {path}: run `triplet extract` on the run first")
-    with np.load(path) as z:
-        a = {k: z[k] for k in z.files}
-    meta = json.loads(bytes(a.pop("meta")).decode())
-    lights = lights_from_json(meta["lights"])
-    return Scene.from_arrays(a["V"], a["F"], material=a["material"], alpha=a["alpha"], lights=lights,
-                             vertex_sh=a.get("vertex_sh"), brdf=meta["brdf"])
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        meta = json.loads(bytes(a.pop("meta")).decode())
+        lights = lights_from_json(meta["lights"])
+        return Scene.from_arrays(a["V"], a["F"], material=a["material"], alpha=a["alpha"], lights=lights,
+                                 vertex_sh=a.get("vertex_sh"), brdf=meta["brdf"])
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise RunError(path, f"damaged mesh-stage result ({type(exc).__name__}: {exc}): run `triplet extract` "
+                             "again") from None
 
 
 def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), texture_size: int = 1024) -> list[Path]:

@@ -38,22 +38,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ops.common import check_faces, check_real
+from ..topology import mesh_edges
 
 __all__ = ["RefineReport", "mesh_edges", "refine_scene", "select_by_gradient", "simplify", "simplify_scene",
            "subdivide_scene", "subdivide_selected"]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def mesh_edges(F) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected edges: ``(E [K, 2] int64 (sorted endpoints), face_edge [M, 3] int64)`` where
-    ``face_edge[f, i]`` is the edge from corner ``i`` to corner ``i + 1`` of face ``f``."""
-    F = np.asarray(F, np.int64)
-    e = np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2)
-    e.sort(axis=1)
-    E, inv = np.unique(e, axis=0, return_inverse=True)
-    return E.reshape(-1, 2), inv.reshape(-1, 3)
 
 
 def _check_attrs(attrs, n: int) -> dict:
@@ -273,11 +264,12 @@ class RefineReport:
 def _apply_mesh(scene, optimizer, V_new, F_new, index_map, new_data: dict) -> None:
     """Replace every per-vertex parameter of ``scene`` (``new_data``: ``id(param) -> [N', ...]``) and
     the faces; Adam groups holding them are remapped (``index_map``: old row or −1 per new row)."""
-    from ..density import _owning_groups, _vertex_params
+    from ..density import vertex_params
+    from ..optim import owning_groups
 
-    vparams = _vertex_params(scene)
+    vparams = vertex_params(scene)
     done = set()
-    for name, params in _owning_groups(optimizer, vparams).items():
+    for name, params in owning_groups(optimizer, vparams).items():
         optimizer.remap(name, index_map, [new_data[id(p)] for p in params])
         done |= {id(p) for p in params}
     for p in vparams:
@@ -289,9 +281,9 @@ def _apply_mesh(scene, optimizer, V_new, F_new, index_map, new_data: dict) -> No
 
 def _scene_attrs(scene) -> tuple[dict, dict]:
     """``({name: data}, {name: param})`` of the per-vertex parameters other than ``V``."""
-    from ..density import _vertex_params
+    from ..density import vertex_params
 
-    params = {p.name: p for p in _vertex_params(scene) if p is not scene.V}
+    params = {p.name: p for p in vertex_params(scene) if p is not scene.V}
     return {k: np.asarray(p.data) for k, p in params.items()}, params
 
 

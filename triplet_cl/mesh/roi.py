@@ -70,6 +70,17 @@ class ROI:
         return d
 
 
+def parse_bbox(text: str) -> tuple:
+    """``"XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX"`` → 6 floats; :class:`ValueError` saying what is expected."""
+    try:
+        b = tuple(float(x) for x in str(text).split(","))
+    except ValueError:
+        b = ()
+    if len(b) != 6 or not all(np.isfinite(b)) or not all(b[i + 3] > b[i] for i in range(3)):
+        raise ValueError(f"expected XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (6 numbers, each max > min), found {text!r}")
+    return b
+
+
 def look_at_point(cameras) -> np.ndarray:
     """The point nearest to every camera's optical axis; the mean centre when the axes are parallel."""
     A, b = np.zeros((3, 3)), np.zeros(3)

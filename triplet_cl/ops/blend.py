@@ -4,8 +4,9 @@
 :func:`~triplet_cl.ops.interpolate.interpolate` → :func:`~triplet_cl.ops.composite.coverage` →
 :func:`~triplet_cl.ops.composite.composite` compute when a fragment's colour and opacity are
 interpolated per-vertex values, and ``raster_blend_backward`` its whole adjoint in one pass over
-the tiles (then one pass over the faces, and for meshes with shared vertices a per-vertex gather). No packed fragment array is written in between: on a
-CPU the generic chain spends most of its time writing and re-reading per-fragment arrays.
+the tiles (then one pass over the faces, and for meshes with shared vertices a per-vertex gather).
+No packed fragment array is written in between: on a CPU the generic chain spends most of its time
+writing and re-reading per-fragment arrays.
 
 Two kernel shapes with the same arithmetic: ``rows16`` (CPU: the 16 pixels of two tile rows in
 vector lanes, per-entry data loaded as rows and transposed in registers; C ≤ 4) and ``pixel``
@@ -24,20 +25,11 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, const_array, fragment_array, grid_1d, to_device
-from .composite import _c_max
+from .binning import TILE, Binning, bin_faces
+from .common import c_max, check_real, const_array, fragment_array, grid_1d, launch, real_of, to_device
+from .fragment_bwd import MOMENTS, corners_to_vertices
 from .mesh import DeviceMesh
-from .raster import (
-    MOMENTS,
-    ROWS16_K_LIMIT,
-    ROWS16_LOCAL,
-    TILE,
-    Binning,
-    _real_of,
-    bin_faces,
-    check_raster_args,
-    corners_to_vertices,
-)
+from .raster import ROWS16_K_LIMIT, ROWS16_LOCAL, check_raster_args
 
 BLEND_VARIANTS = ("auto", "pixel", "rows16")
 C_LIMIT = 64  # feature channels
@@ -78,14 +70,59 @@ class Blend:
     variant: str = "rows16"  # the kernel shape of the forward, reused by the backward
     face_attr: cla.Array | None = None  # rows16: [M, 16] corner attributes per face
 
+    def _from_lanes(self, s: np.ndarray) -> np.ndarray:
+        """Host ``[T·4, K, 16]`` (or ``[T·4, 16]``) scratch layout → ``[H, W, K]`` (``[H, W]``)."""
+        bn = self.binning
+        k = s.shape[1:-1]
+        s = s.reshape((bn.tiles_y, bn.tiles_x, 4) + k + (2, 8))
+        s = s.transpose((0, 2, 3 + len(k), 1, 4 + len(k)) + tuple(range(3, 3 + len(k))))
+        return s.reshape((bn.tiles_y * TILE, bn.tiles_x * TILE) + k)[:self.height, :self.width]
+
+    def _to_lanes(self, a: np.ndarray) -> np.ndarray:
+        """Host ``[H, W]`` per pixel → the scratch's ``[T·4, 16]`` lanes (padding pixels: 0)."""
+        bn = self.binning
+        p = np.zeros((bn.tiles_y * TILE, bn.tiles_x * TILE), a.dtype)
+        p[:self.height, :self.width] = a
+        return p.reshape(bn.tiles_y, 4, 2, bn.tiles_x, 8).transpose(0, 3, 1, 2, 4).reshape(-1, 16)
+
     def entries(self) -> np.ndarray:
         """Host ``[H, W, K] int32``: the (tile, face) entry of each composited fragment, −1 beyond
         ``n_contrib`` (tests, tools)."""
-        bn, K = self.binning, self.K
-        s = self.s_entry.get().reshape(bn.tiles_y, bn.tiles_x, 4, K, 2, 8)
-        s = s.transpose(0, 2, 4, 1, 5, 3).reshape(bn.tiles_y * TILE, bn.tiles_x * TILE, K)[:self.height, :self.width]
-        used = np.arange(K) < self.n_contrib.get()[..., None]
+        s = self._from_lanes(self.s_entry.get().reshape(-1, self.K, 16))
+        used = np.arange(self.K) < self.n_contrib.get()[..., None]
         return np.where(used, s, -1).astype(np.int32)
+
+    def entry_reaching(self, q: float) -> np.ndarray:
+        """Host ``[H, W] int32``: the (tile, face) entry of the first composited fragment behind which
+        the accumulated alpha ``1 − T`` reaches ``q`` (in (0, 1)), −1 where it never does. ``T`` only
+        decreases front to back, so that fragment is the one after those with ``1 − T_j < q``."""
+        K = self.K
+        n = self._to_lanes(self.n_contrib.get())  # [T·4, 16]
+        trans = self._to_lanes(self.trans.get()).astype(np.float64)
+        j = np.arange(1, K)[None, :, None]
+        with np.errstate(all="ignore"):  # slots beyond n_contrib were never written (any bits)
+            T = self.s_T.get().reshape(-1, K, 16)[:, 1:].astype(np.float64)  # T_j in front of fragment j ≥ 1
+            before = ((1.0 - T < q) & (j < n[:, None, :])).sum(axis=1)
+        e = np.take_along_axis(self.s_entry.get().reshape(-1, K, 16), before[:, None, :], axis=1)[:, 0]
+        hit = (n > 0) & (1.0 - trans >= q)
+        return self._from_lanes(np.where(hit, e, -1).astype(np.int32))
+
+    def depth_of(self, entry) -> np.ndarray:
+        """Host ``[H, W]``: the camera-space depth of the fragment of (tile, face) entry ``entry
+        [H, W]`` (from :meth:`entries`) at each pixel centre, as the list builders compute it
+        (``1 / Σ_k b_k / z_k`` from the entry's set-up, in REAL); 0 where ``entry < 0``."""
+        e = np.asarray(entry)
+        r = self.real.type
+        s = self.binning.entry_setup.get()[np.maximum(e, 0)]  # [H, W, SETUP]
+        y, x = np.mgrid[:self.height, :self.width]
+        dx = (x.astype(self.real) + r(0.5)) - s[..., 0]
+        dy = (y.astype(self.real) + r(0.5)) - s[..., 1]
+        b0 = r(1) + s[..., 2] * dx + s[..., 3] * dy
+        b1 = s[..., 4] * dx + s[..., 5] * dy
+        b2 = r(1) - b0 - b1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = r(1) / (b0 * s[..., 6] + b1 * s[..., 7] + b2 * s[..., 8])
+        return np.where(e >= 0, z, r(0))
 
     @property
     def alpha(self) -> np.ndarray:
@@ -133,7 +170,7 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     if not (0 <= t_min < 1):
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     vs, width, height, K = check_raster_args(device, vs, mesh, width, height, K, near, far, sigma, variant)
-    real = _real_of(vs)
+    real = real_of(vs, "vs")
     a = _device_attr(device, attr, mesh.num_vertices, real)
     C = a.shape[1] - 1
     if not 1 <= C <= C_LIMIT:
@@ -158,26 +195,23 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
     s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
     s_ex = cla.empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
-    E = bn.num_entries
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
         # the faces' corner attributes, read as rows by the 16-lane kernels
         M = mesh.num_faces
         face_attr = cla.empty(q, (max(M, 1), 16), real, allocator=alloc)
         if M:
-            device.kernel("blend", "blend_face_attr", {"TILE": TILE}, real)(
-                q, *grid_1d(M), mesh.F.data, a.data, np.int32(C), np.int32(M), face_attr.data)
-        attr_args = (face_attr.data,)
+            launch(device, "blend", "blend_face_attr", *grid_1d(M), defines={"TILE": TILE}, real=real,
+                   F=mesh.F, attr=a, C=C, num_faces=M, face_attr=face_attr)
+        attr_args = {"face_attr": face_attr}
     else:
         kern, gsize, lsize = "blend_fwd", (bn.tiles_x * TILE, bn.tiles_y * TILE), (TILE, TILE)
-        face_attr, attr_args = None, (mesh.F.data, a.data)
-    device.kernel("blend", kern, {"TILE": TILE, "K_MAX": K, "C_MAX": _c_max(C)}, real)(
-        q, gsize, lsize, bn.tile_off.data, bn.entry_order.data, bn.entry_face.data, bn.entry_setup.data,
-        bn.entry_rows.data,
-        *attr_args, bgd.data,
-        np.int32(width), np.int32(height), np.int32(bn.tiles_x), np.int32(K), real.type(far), np.int32(C),
-        real.type(sigma or 0.0), real.type(t_min), image.data, trans.data, n_contrib.data, count.data,
-        s_entry.data, s_T.data, s_ex.data)
+        face_attr, attr_args = None, {"F": mesh.F, "attr": a}
+    launch(device, "blend", kern, gsize, lsize, defines={"TILE": TILE, "K_MAX": K, "C_MAX": c_max(C)}, real=real,
+           tile_off=bn.tile_off, entry_order=bn.entry_order, entry_face=bn.entry_face, entry_setup=bn.entry_setup,
+           entry_rows=bn.entry_rows, bg=bgd, width=width, height=height, tiles_x=bn.tiles_x, K=K, far=far, C=C,
+           sigma=sigma or 0.0, t_min=t_min, out=image, trans=trans, n_contrib=n_contrib, count=count,
+           s_entry=s_entry, s_T=s_T, s_ex=s_ex, **attr_args)
     return Blend(width, height, K, C, sigma, real, image, trans, n_contrib, count, bn, vs, mesh, a, bgd,
                  s_entry, s_T, s_ex, variant, face_attr)
 
@@ -222,16 +256,16 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     v_sig_tile = cla.empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
     # [M, 16] corner-attribute rows, or F and attr [N, C + 1]
-    attr_args = (blend.face_attr.data,) if blend.variant == "rows16" else (blend.mesh.F.data, blend.attr.data)
-    defines = {"TILE": TILE, "C_MAX": _c_max(C)}
+    attr_args = {"face_attr": blend.face_attr} if blend.variant == "rows16" else {"F": blend.mesh.F, "attr": blend.attr}
+    defines = {"TILE": TILE, "C_MAX": c_max(C)}
     if blend.variant == "rows16" and schedule != "auto":
         defines["BWD_SCHEDULE"] = BWD_SCHEDULES[schedule]
-    device.kernel("blend", kern, defines, real)(
-        q, (T,), (1,), bn.tile_off.data, bn.entry_face.data, bn.entry_setup.data, *attr_args,
-        blend.bg.data, blend.n_contrib.data, blend.s_entry.data, blend.s_T.data, blend.s_ex.data, g.data,
-        buf(va, q), np.int32(va is not None), np.int32(C), np.int32(blend.K), real.type(blend.sigma or 0.0),
-        np.int32(W), np.int32(H), np.int32(bn.tiles_x), np.int32(T), np.int32(pstride), partial.data,
-        v_sig_tile.data)
+    launch(device, "blend", kern, (T,), (1,), defines={**defines, "V_ACC": va is not None}, real=real,
+           tile_off=bn.tile_off, entry_face=bn.entry_face, entry_setup=bn.entry_setup, bg=blend.bg,
+           n_contrib=blend.n_contrib, s_entry=blend.s_entry, s_T=blend.s_T, s_ex=blend.s_ex, v_out=g, C=C,
+           K=blend.K, sigma=blend.sigma or 0.0, width=W, height=H, tiles_x=bn.tiles_x, num_tiles=T,
+           pstride=pstride, partial=partial, v_sigma_tile=v_sig_tile, **attr_args,
+           **({} if va is None else {"v_acc": va}))
     # per face: its entries' records summed, the moments turned into the screen-vertex adjoint
     # once, both per face corner; then per vertex
     mesh = blend.mesh
@@ -239,9 +273,9 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     v_attr_c = cla.empty(q, (max(M, 1), 3, CA), real, allocator=alloc)[:M]
     v_vs_c = cla.empty(q, (max(M, 1), 3, 3), real, allocator=alloc)[:M]
     if M:
-        device.kernel("blend", "blend_face_grad", defines, real)(
-            q, *grid_1d(M), bn.face_off.data, bn.face_entries.data, partial.data, np.int32(pstride),
-            blend.vs.data, mesh.F.data, np.int32(C), np.int32(M), v_attr_c.data, v_vs_c.data)
+        launch(device, "blend", "blend_face_grad", *grid_1d(M), defines=defines, real=real,
+               face_off=bn.face_off, face_entries=bn.face_entries, partial=partial, pstride=pstride, vs=blend.vs,
+               F=mesh.F, C=C, num_faces=M, v_attr_corner=v_attr_c, v_vs_corner=v_vs_c)
     v_attr, v_vs = corners_to_vertices(device, mesh, v_attr_c, v_vs_c)
     v_sigma = float(v_sig_tile.get().astype(np.float64).sum()) if blend.sigma else 0.0
     return v_attr, v_vs, v_sigma

@@ -24,7 +24,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from ..topology import morton_order
-from .common import check_real, grid_1d, to_device
+from .common import check_real, grid_1d, real_of, to_device
 from .mesh import DeviceMesh
 
 LEAF_SIZE = 4
@@ -80,7 +80,7 @@ def build_bvh(device: Device, V, mesh: DeviceMesh, leaf_size: int = LEAF_SIZE) -
     """
     if not (isinstance(leaf_size, int | np.integer) and leaf_size >= 1):
         raise ValueError(f"leaf_size must be a positive integer, got {leaf_size!r}")
-    real = _real_of(V)
+    real = real_of(V, "V") if hasattr(V, "dtype") else np.dtype(np.float64)
     t0 = time.perf_counter()
     Vh = V.get() if isinstance(V, cla.Array) else check_real("V", V, (mesh.num_vertices, 3), real)
     if Vh.shape != (mesh.num_vertices, 3):
@@ -120,13 +120,6 @@ def refit(device: Device, bvh: BVH, V) -> None:
         k(q, *grid_1d(count), np.int32(first), np.int32(count), bvh.nodes.data)
     q.finish()
     bvh.refit_ms = (time.perf_counter() - t0) * 1e3
-
-
-def _real_of(V) -> np.dtype:
-    dt = np.dtype(V.dtype) if hasattr(V, "dtype") else np.dtype(np.float64)
-    if dt not in (np.float32, np.float64):
-        raise ValueError(f"V must be float32 or float64, got {dt}")
-    return dt
 
 
 __all__ = ["BVH", "LEAF_SIZE", "build_bvh", "refit"]

@@ -7,7 +7,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .common import buf, grid_1d
-from .raster import Fragments
+from .fragments import Fragments
 
 
 def copy_columns(device: Device, frags: Fragments, src: cla.Array | None, cs0: int, dst: cla.Array, cd0: int,

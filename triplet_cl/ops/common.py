@@ -6,11 +6,16 @@ was expected and what was found. Device data are ``pyopencl.array.Array`` object
 
 from __future__ import annotations
 
+import functools
+import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+
+from ..autodiff.arrays import to_host as to_host  # re-exported for the ops (its one home: autodiff/arrays.py)
 
 Array = np.ndarray | cla.Array
 
@@ -65,16 +70,20 @@ def check_faces(name: str, faces, num_vertices: int) -> np.ndarray:
     return np.ascontiguousarray(f, dtype=np.int32)
 
 
+def real_of(a, name: str = "data") -> np.dtype:
+    """The REAL of floating data: ``float32`` or ``float64`` (``a.dtype``); anything else is a
+    ``ValueError`` naming ``name``. Selects the ``-DREAL=`` build of the kernels."""
+    dt = np.dtype(a.dtype)
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"{name} must be float32 or float64 data, got {dt}")
+    return dt
+
+
 def to_device(queue: cl.CommandQueue, a) -> cla.Array:
     """A device copy of a host array (device arrays pass through unchanged)."""
     if isinstance(a, cla.Array):
         return a
     return cla.to_device(queue, np.ascontiguousarray(a))
-
-
-def to_host(a) -> np.ndarray:
-    """A host copy (numpy arrays pass through unchanged)."""
-    return a.get() if isinstance(a, cla.Array) else np.asarray(a)
 
 
 def empty(queue: cl.CommandQueue, shape, dtype) -> cla.Array:
@@ -132,6 +141,19 @@ def grid_1d(n: int) -> tuple[tuple[int], tuple[int]]:
     return (round_up(max(int(n), 1), LOCAL_1D),), (LOCAL_1D,)
 
 
+def c_max(C: int) -> int:
+    """The ``C_MAX`` define of the kernels that keep ``C`` channels per fragment in private arrays
+    (composite.cl, blend.cl): ``C`` rounded up to a multiple of 4, at least 4 (fewer program variants)."""
+    return max(4, -(-C // 4) * 4)
+
+
+def run_1d(device, kernel, n: int, *args) -> None:
+    """Run a 1-D ``kernel`` over ``n`` items (:func:`grid_1d` sizes; nothing for ``n = 0``) with
+    positional ``args`` (short argument lists; :func:`launch` binds long ones by name)."""
+    if n > 0:
+        kernel(device.queue, *grid_1d(n), *args)
+
+
 def round_up(n: int, m: int) -> int:
     """``n`` rounded up to a multiple of ``m``."""
     return ((int(n) + m - 1) // m) * m
@@ -148,3 +170,189 @@ def fragment_array(queue: cl.CommandQueue, name: str, a, shape, real) -> cla.Arr
             raise ValueError(f"{name} must have dtype {np.dtype(real)}, got {a.dtype}")
         return a
     return to_device(queue, check_real(name, a, shape, real, finite=False))
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels called by name
+# ------------------------------------------------------------------------------------------------
+
+_SCALAR_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16, "int": np.int32,
+                 "uint": np.uint32, "long": np.int64, "ulong": np.uint64, "float": np.float32,
+                 "double": np.float64, "REAL": None}  # None: the program's REAL
+_QUALIFIERS = {"const", "__const", "__private", "private", "restrict", "__restrict", "volatile", "unsigned"}
+_ADDRESS_SPACES = {"__global": "buffer", "global": "buffer", "__constant": "buffer", "constant": "buffer",
+                   "__local": "local", "local": "local"}
+LAUNCH_RESERVED = ("defines", "real")  # keyword arguments of launch(), so not usable as kernel parameter names
+
+
+@dataclass(frozen=True)
+class KernelParam:
+    """One parameter of a ``__kernel`` signature: ``kind`` is ``"buffer"`` (a ``__global`` or
+    ``__constant`` pointer), ``"local"`` (a ``__local`` pointer: pass a ``cl.LocalMemory``) or
+    ``"scalar"`` (passed by value; ``ctype`` its C type, ``REAL`` included)."""
+
+    name: str
+    kind: str
+    ctype: str
+
+
+def _strip_comments(src: str) -> str:
+    """C source without comments (newlines kept, so preprocessor lines stay lines)."""
+    src = re.sub(r"/\*.*?\*/", lambda m: "\n" * m.group(0).count("\n"), src, flags=re.S)
+    return re.sub(r"//[^\n]*", "", src)
+
+
+def _defined(defines: dict | None) -> frozenset:
+    """The names a build with ``defines`` defines (``Device.build_options``: ``False`` omits one)."""
+    return frozenset(k for k, v in (defines or {}).items() if v is not False)
+
+
+def _signature_text(body: str, defined: frozenset, where: str) -> str:
+    """The parameter list ``body`` with its ``#ifdef`` / ``#ifndef`` / ``#if defined(X)`` /
+    ``#else`` / ``#endif`` lines resolved against ``defined`` (nothing else is allowed in a signature)."""
+    out, stack = [], []  # stack of (this branch active, parent active)
+    for line in body.split("\n"):
+        s = line.strip()
+        if not s.startswith("#"):
+            if all(a for a, _ in stack):
+                out.append(line)
+            continue
+        m = re.fullmatch(r"#\s*(ifdef|ifndef|if|else|endif)\b\s*(.*)", s)
+        if m is None:
+            raise ValueError(f"{where}: unsupported preprocessor line in a kernel signature: {s!r}")
+        op, arg = m.group(1), m.group(2).strip()
+        parent = all(a for a, _ in stack)
+        if op in ("ifdef", "ifndef", "if"):
+            if op == "if":
+                mm = re.fullmatch(r"(!?)\s*defined\s*\(?\s*(\w+)\s*\)?", arg)
+                if mm is None:
+                    raise ValueError(f"{where}: only '#if defined(X)' / '#if !defined(X)' are supported in a kernel "
+                                     f"signature, got {s!r}")
+                on = (mm.group(2) in defined) != bool(mm.group(1))
+            else:
+                on = (arg in defined) == (op == "ifdef")
+            stack.append((on, parent))
+        elif not stack:
+            raise ValueError(f"{where}: #{op} without #if in a kernel signature")
+        elif op == "else":
+            on, par = stack.pop()
+            stack.append((not on, par))
+        else:
+            stack.pop()
+    if stack:
+        raise ValueError(f"{where}: unterminated #if in a kernel signature")
+    return "\n".join(out)
+
+
+@functools.cache
+def kernel_params(file: str, kernel: str, defined: frozenset = frozenset()) -> tuple[KernelParam, ...]:
+    """The parameters of ``__kernel void <kernel>(...)`` in ``kernels_cl/<file>.cl``, parsed from the
+    source once per set of ``defined`` names (conditional parameters: ``#ifdef NAME`` inside the
+    signature). Raises ``ValueError`` when the kernel or a parameter type is not understood."""
+    from ..device import kernel_dir
+
+    path = kernel_dir() / f"{file}.cl"
+    src = _strip_comments(path.read_text())
+    m = re.search(r"__kernel\s+void\s+" + re.escape(kernel) + r"\s*\(", src)
+    if m is None:
+        raise ValueError(f"kernel {kernel!r} not found in {path}")
+    depth, i = 1, m.end()
+    while depth:
+        if i >= len(src):
+            raise ValueError(f"{path}: unbalanced parentheses in the signature of {kernel!r}")
+        depth += {"(": 1, ")": -1}.get(src[i], 0)
+        i += 1
+    where = f"{path.name}:{kernel}"
+    text = _signature_text(src[m.end():i - 1], defined, where)
+    params = []
+    for raw in (p.strip() for p in text.split(",")):
+        if not raw or raw == "void":
+            continue
+        words = re.findall(r"\w+|\*", raw)
+        name = words[-1]
+        space = next((_ADDRESS_SPACES[w] for w in words if w in _ADDRESS_SPACES), None)
+        if "*" in words:
+            kind, ctype = space or "buffer", " ".join(w for w in words[:-1] if w not in _ADDRESS_SPACES)
+        else:
+            types = [w for w in words[:-1] if w not in _QUALIFIERS]
+            ctype = ("u" if "unsigned" in words else "") + (types[-1] if types else "int")
+            if ctype not in _SCALAR_TYPES:
+                raise ValueError(f"{where}: parameter {name!r} has type {ctype!r}, which launch() cannot pass "
+                                 f"(scalars: {', '.join(_SCALAR_TYPES)}; anything else as a buffer)")
+            kind = "scalar"
+        if name in LAUNCH_RESERVED:
+            raise ValueError(f"{where}: parameter name {name!r} is reserved by launch()")
+        params.append(KernelParam(name, kind, ctype))
+    names = [p.name for p in params]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{where}: duplicate parameter names {names}")
+    return tuple(params)
+
+
+def _converters(params: Sequence[KernelParam], real) -> tuple[tuple[str, type | None], ...]:
+    """``(name, numpy scalar type or None for a buffer)`` per parameter, for :func:`bind_args`."""
+    real = np.dtype(real)
+    return tuple((p.name, None if p.kind != "scalar" else
+                  (real.type if _SCALAR_TYPES[p.ctype] is None else np.dtype(_SCALAR_TYPES[p.ctype]).type))
+                 for p in params)
+
+
+@functools.cache
+def _binding(file: str, kernel: str, defined: frozenset, real: str):
+    """The parameters and their converters, once per (file, kernel, defined names, REAL)."""
+    params = kernel_params(file, kernel, defined)
+    return params, _converters(params, real)
+
+
+def bind_args(params: Sequence[KernelParam], args: dict, real, queue: cl.CommandQueue, where: str = "kernel") -> list:
+    """The positional argument list of a kernel call from ``args`` keyed by parameter name.
+
+    Buffers take a device array (its buffer; ``None`` or an empty array: a 1-element placeholder,
+    as :func:`buf`), a ``cl.MemoryObject`` or a ``cl.LocalMemory``; scalars take a number (or bool),
+    converted to the parameter's C type (``REAL``: ``real``). Every parameter must be given, and
+    nothing else (a ``ValueError`` lists the missing and unknown names and the signature).
+    """
+    return _bind(params, _converters(params, real), args, queue, where)
+
+
+def _bind(params, conv, args: dict, queue, where: str) -> list:
+    if len(args) != len(conv) or any(name not in args for name, _ in conv):
+        missing = [p.name for p in params if p.name not in args]
+        extra = sorted(set(args) - {p.name for p in params})
+        sig = ", ".join(f"{p.ctype}{'*' if p.kind != 'scalar' else ''} {p.name}" for p in params)
+        raise ValueError(f"{where}: missing arguments {missing}, unknown arguments {extra}; signature ({sig})")
+    out = []
+    for name, t in conv:
+        v = args[name]
+        if t is not None:
+            if v is None:
+                raise ValueError(f"{where}: scalar argument {name!r} is None")
+            out.append(t(v))
+        elif isinstance(v, cla.Array) and v.size:
+            out.append(v.data)
+        elif v is None or isinstance(v, cla.Array):
+            out.append(buf(v, queue))
+        elif isinstance(v, cl.MemoryObjectHolder | cl.LocalMemory):
+            out.append(v)
+        else:
+            raise ValueError(f"{where}: argument {name!r} must be a device array, a cl buffer or None, "
+                             f"got {type(v).__name__}")
+    return out
+
+
+def launch(device, file: str, kernel: str, global_size, local_size, /, defines: dict | None = None,
+           real=np.float32, **args):
+    """Run ``kernel`` of ``kernels_cl/<file>.cl`` with its arguments bound by name.
+
+    ``launch(dev, "binning", "bin_count", *grid_1d(M), defines={"TILE": 8}, real=real, vs=vs, F=F, m=M, ...)``
+    builds (or reuses) the program as ``device.kernel(file, kernel, defines, real)`` does, looks up
+    the signature (:func:`kernel_params`, parsed once per file, kernel and set of defined names, so
+    a parameter under ``#ifdef NAME`` exists only in builds that define ``NAME``) and passes
+    ``args`` in its order, converted as :func:`bind_args` says. No argument order to keep in step
+    with the ``.cl`` file by hand, and a missing or misspelt name is an error, not a wrong result.
+    Any op may use it (kernel parameter names ``defines`` and ``real`` are reserved). Returns the
+    ``cl.Event``.
+    """
+    params, conv = _binding(file, kernel, _defined(defines), np.dtype(real).str)
+    k = device.kernel(file, kernel, defines, real)
+    return k(device.queue, global_size, local_size, *_bind(params, conv, args, device.queue, f"{file}.cl:{kernel}"))

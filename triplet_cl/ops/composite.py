@@ -8,8 +8,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, check_real, const_array, fragment_array
-from .raster import Fragments, frag_input
+from .common import buf, c_max, check_real, const_array, fragment_array
+from .fragments import Fragments, frag_input
 
 
 def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
@@ -36,10 +36,6 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
         q, (H * W,), None, frags.vs.data, frags.mesh.F.data, buf(frags.face, q), frags.count.data,
         np.int32(W), np.int32(H), frags.off.data, frags.real.type(sigma), buf(win, q))
     return win
-
-
-def _c_max(C: int) -> int:
-    return max(4, -(-C // 4) * 4)
 
 
 def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min: float = 1e-4):
@@ -78,7 +74,7 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     out = cla.empty(q, (H, W, C), real, allocator=alloc)
     trans = cla.empty(q, (H, W), real, allocator=alloc)
     ncon = cla.empty(q, (H, W), np.int32, allocator=alloc)
-    device.kernel("composite", "composite_fwd", {"C_MAX": _c_max(C)}, real)(
+    device.kernel("composite", "composite_fwd", {"C_MAX": c_max(C)}, real)(
         q, (npix,), None, buf(f, q), buf(a, q), buf(w, q), frags.count.data, bgd.data, np.int32(npix), frags.off.data,
         np.int32(C), np.int32(w is not None), real.type(t_min), out.data, trans.data, ncon.data)
     return out, trans, ncon
@@ -112,7 +108,7 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     v_feat = cla.empty(q, (max(P, 1), C), real, allocator=alloc)[:P]
     v_alpha = cla.empty(q, max(P, 1), real, allocator=alloc)[:P]
     v_win = cla.empty(q, max(P, 1), real, allocator=alloc)[:P] if w is not None else None
-    device.kernel("composite", "composite_bwd", {"C_MAX": _c_max(C)}, real)(
+    device.kernel("composite", "composite_bwd", {"C_MAX": c_max(C)}, real)(
         q, (H * W,), None, buf(f, q), buf(a, q), buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data,
         buf(va, q), np.int32(H * W), frags.off.data, np.int32(C), np.int32(w is not None), np.int32(va is not None),
         buf(v_feat, q), buf(v_alpha, q), buf(v_win, q))

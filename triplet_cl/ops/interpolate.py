@@ -6,8 +6,10 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
+from .binning import TILE
 from .common import buf, check_real, grid_1d, to_device
-from .raster import TILE, Fragments, fragments_backward
+from .fragment_bwd import fragments_backward
+from .fragments import Fragments
 
 
 def _attr(device: Device, attr, frags: Fragments) -> cla.Array:

@@ -20,14 +20,8 @@ import pyopencl.array as cla
 
 from ..device import Device, get_device
 from ..topology import vertex_corner_csr
-from .common import check_faces, check_real, empty, round_up, to_device, to_host
-
-LOCAL_SIZE = 64
-
-
-def _run(dev: Device, kernel, n: int, *args) -> None:
-    if n > 0:
-        kernel(dev.queue, (round_up(n, LOCAL_SIZE),), (LOCAL_SIZE,), *args)
+from .common import check_faces, check_real, empty, to_device, to_host
+from .common import run_1d as _run
 
 
 def _csr_device(dev: Device, F: np.ndarray, N: int, csr) -> tuple[cla.Array, cla.Array]:

@@ -28,7 +28,8 @@ from ..device import Device
 from ..lights import LightTable
 from .bvh import BVH
 from .common import check_real, round_up, to_device
-from .raster import TILE, Fragments, _offsets, bin_faces, camera_params, pack_fragment_lists
+from .raster import TILE, Fragments, bin_faces, camera_params, pack_fragment_lists
+from .scan import prefix_offsets
 
 LOCAL = 64
 SHADOWED_TYPES = (1, 2)  # LIGHT_DIRECTIONAL, LIGHT_POINT (shade_brdf.h)
@@ -149,7 +150,7 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis):
     v_pos = cla.zeros(q, (max(P, 1), 3), real, allocator=device.allocator)[:P]
     if P == 0 or NV == 0:
         return np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3))
-    off, R = _offsets(device, st.nhit)
+    off, R = prefix_offsets(device, st.nhit)
     v_vis = v_vis if isinstance(v_vis, cla.Array) else to_device(q, np.ascontiguousarray(v_vis, real))
     rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
     rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)

@@ -22,9 +22,9 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device, get_device
-from .common import check_real, empty, round_up, to_device, to_host
+from .common import check_real, empty, to_device, to_host
+from .common import run_1d as _run
 
-LOCAL_SIZE = 64
 MAX_DEGREE = 8
 
 
@@ -41,11 +41,6 @@ def check_cam(cam) -> np.ndarray:
     if a.dtype.kind in "iu":
         a = a.astype(np.float64)
     return check_real("cam", a, (3,), np.float64)
-
-
-def _run(dev: Device, kernel, n: int, *args) -> None:
-    if n > 0:
-        kernel(dev.queue, (round_up(n, LOCAL_SIZE),), (LOCAL_SIZE,), *args)
 
 
 def _cam_args(cam, real):

@@ -1,0 +1,632 @@
+"""Hardening (issue 21): every bad input is one clear error (option or file named, exit status 2, no
+traceback) raised before any work or output; nothing the user made is lost; training stops on NaN."""
+
+from __future__ import annotations
+
+import errno
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from triplet_cl.cli.main import build_parser, demo_data_path
+from triplet_cl.cli.main import main as cli_main
+
+from tests import data_factory as fac
+from triplet_cl.datasets import load_dataset
+from triplet_cl.datasets.colmap import read_images_text
+from triplet_cl.errors import DatasetError, NonFiniteError, RunError
+from triplet_cl.train import TrainConfig, Trainer
+
+DEMO = demo_data_path()
+TINY_RUN = ["--iterations", "4", "--init-points", "300", "--checkpoint-every", "2", "--faces-per-pixel", "8"]
+
+
+def _tree(path: Path) -> dict:
+    """Every file under ``path`` with its bytes (to prove nothing changed)."""
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def _run_cli(argv, capsys):
+    rc = cli_main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return rc, cap.err, cap.out
+
+
+@pytest.fixture(scope="module")
+def demo_copy(tmp_path_factory):
+    """The demo dataset copied (renders into it must be refused, never done to the package's copy)."""
+    d = tmp_path_factory.mktemp("data") / "spot_small"
+    shutil.copytree(DEMO, d)
+    return d
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, demo_copy):
+    """A tiny finished run (4 iterations, checkpoints at 2 and 4)."""
+    out = tmp_path_factory.mktemp("runs") / "run"
+    assert cli_main(["train", str(demo_copy), "--out", str(out), *TINY_RUN]) == 0
+    return out
+
+
+@pytest.fixture
+def run(tmp_path, trained):
+    dst = tmp_path / "run"
+    shutil.copytree(trained, dst)
+    return dst
+
+
+# ---- bad options: exit 2, the option named, nothing written -------------------------------------------
+BAD_TRAIN = {
+    "K 0": (["--faces-per-pixel", "0"], "--faces-per-pixel"),
+    "K -3": (["--faces-per-pixel", "-3"], "--faces-per-pixel"),
+    "K 100000": (["--faces-per-pixel", "100000"], "--faces-per-pixel"),
+    "downscale 96": (["--downscale", "96"], "--downscale"),
+    "downscale 0": (["--downscale", "0"], "--downscale"),
+    "sigma nan": (["--sigma", "nan"], "--sigma"),
+    "sigma inf": (["--sigma", "inf"], "--sigma"),
+    "sigma -1": (["--sigma", "-1"], "--sigma"),
+    "init 0": (["--init-points", "0"], "--init-points"),
+    "init -5": (["--init-points", "-5"], "--init-points"),
+    "init 5M": (["--init-points", "5000000"], "--init-points"),
+    "init 50M memory": (["--init-points", "50000000", "--max-faces", "60000000"], "--init-points"),
+    "max-faces 0": (["--max-faces", "0"], "--max-faces"),
+    "max-faces memory": (["--max-faces", "2000000000"], "--max-faces"),
+    "seed -1": (["--seed", "-1"], "--seed"),
+    "iterations 0": (["--iterations", "0"], "--iterations"),
+    "sh-degree 9": (["--sh-degree", "9"], "--sh-degree"),
+    "checkpoint-every -1": (["--checkpoint-every", "-1"], "--checkpoint-every"),
+    "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
+    "lights": (["--lights", "laser"], "--lights"),
+    "texture-size -4": (["--mesh-stage", "--texture-size", "-4"], "--texture-size"),
+    "mesh-faces 0": (["--mesh-stage", "--mesh-faces", "0"], "--mesh-faces"),
+    "formats": (["--mesh-stage", "--formats", "fbx"], "--formats"),
+    "mesh option without --mesh-stage": (["--mesh-faces", "5000"], "--mesh-faces"),
+    "resume and overwrite": (["--resume", "--overwrite"], "--overwrite"),
+    "missing data": ([], "DATA"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TRAIN))
+def test_bad_train_options_are_refused_up_front(tmp_path, capsys, case):
+    extra, named = BAD_TRAIN[case]
+    out = tmp_path / "out"
+    data = tmp_path / "nothing" if case == "missing data" else DEMO
+    rc, err, _ = _run_cli(["train", data, "--out", out, *extra], capsys)
+    assert rc == 2, err
+    assert named in err and err.count("\n") == 1, err
+    assert not out.exists(), "nothing written"
+
+
+def test_downscale_too_large_for_the_images(tmp_path, capsys):
+    fac.make_nerf(tmp_path / "ds", w=8, h=6)  # 8x6 / 4 = 2x1 pixels
+    rc, err, _ = _run_cli(["train", tmp_path / "ds", "--out", tmp_path / "out", "--downscale", "4"], capsys)
+    assert rc == 2 and "--downscale" in err and "2x1" in err
+    assert not (tmp_path / "out").exists()
+
+
+BAD_MESH = {
+    "mesh-faces 0": (["--mesh-faces", "0"], "--mesh-faces"),
+    "texture-size -4": (["--texture-size", "-4"], "--texture-size"),
+    "resolution 3": (["--mesh-resolution", "3"], "--mesh-resolution"),
+    "resolution 2048": (["--mesh-resolution", "2048"], "--mesh-resolution"),
+    "supersample 9": (["--mesh-supersample", "9"], "--mesh-supersample"),
+    "formats": (["--formats", "obj,fbx"], "--formats"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_MESH))
+def test_bad_extract_options_write_nothing(run, capsys, case):
+    extra, named = BAD_MESH[case]
+    before = _tree(run)
+    rc, err, _ = _run_cli(["extract", run, *extra], capsys)
+    assert rc == 2 and named in err, err
+    assert _tree(run) == before
+
+
+def test_abbreviations_are_not_accepted(run, capsys):
+    """`extract RUN --format obj` used to mean `--formats obj` and rerun the whole mesh stage."""
+    before = _tree(run)
+    with pytest.raises(SystemExit) as ei:
+        cli_main(["extract", str(run), "--format", "obj"])
+    assert ei.value.code == 2
+    with pytest.raises(SystemExit):
+        cli_main(["train", str(DEMO), "--out", str(run.parent / "x"), "--iter", "3"])
+    assert _tree(run) == before and not (run.parent / "x").exists()
+
+
+def test_help_and_names():
+    p = build_parser()
+    train = p._subparsers._group_actions[0].choices["train"]
+    helps = {a.dest: a.help for a in train._actions}
+    assert "default 2" in helps["sigma"]
+    export = p._subparsers._group_actions[0].choices["export"]
+    opts = {s for a in export._actions for s in a.option_strings}
+    assert {"--formats", "--device"} <= opts
+    assert "--data-format" in {s for a in train._actions for s in a.option_strings}
+
+
+def test_deprecated_format_aliases_warn(capsys):
+    args = build_parser().parse_args(["train", "x", "--format", "nerf"])
+    assert args.data_format == "nerf" and "--data-format" in capsys.readouterr().err
+    args = build_parser().parse_args(["export", "r", "--format", "obj"])
+    assert args.formats == "obj" and "--formats" in capsys.readouterr().err
+
+
+# ---- existing runs, resume ----------------------------------------------------------------------------
+def test_existing_run_is_refused_without_resume_or_overwrite(run, capsys):
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, *TINY_RUN], capsys)
+    assert rc == 2 and "existing run" in err and "--resume" in err and "--overwrite" in err
+    assert _tree(run) == before
+
+
+def test_overwrite_replaces_the_run(run, tmp_path, capsys):
+    (run / "checkpoints" / "ckpt_0009999.npz").write_bytes(b"old")
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, "--overwrite", "--iterations", "2", "--init-points", "200",
+                           "--checkpoint-every", "0"], capsys)
+    assert rc == 0, err
+    assert not (run / "checkpoints" / "ckpt_0009999.npz").exists()
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 2
+    assert not list(tmp_path.glob(".run.overwritten*"))
+
+
+def test_overwrite_keeps_the_old_run_when_the_new_one_cannot_start(run, tmp_path, capsys):
+    fac.make_nerf(tmp_path / "bad")
+    (tmp_path / "bad" / "transforms_train.json").write_text("{")
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", tmp_path / "bad", "--out", run, "--overwrite"], capsys)
+    assert rc == 2 and "transforms_train.json" in err
+    assert _tree(run) == before
+
+
+def test_a_folder_that_is_not_a_run_is_never_overwritten(tmp_path, capsys):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    for extra in ([], ["--overwrite"]):
+        rc, err, _ = _run_cli(["train", DEMO, "--out", mine, *extra], capsys)
+        assert rc == 2 and "not a triplet run" in err
+    assert (mine / "notes.txt").read_text() == "precious" and len(list(mine.iterdir())) == 1
+
+
+def test_out_is_a_file_or_inside_a_dataset(tmp_path, demo_copy, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    for out in (f, f / "sub"):
+        rc, err, _ = _run_cli(["train", DEMO, "--out", out], capsys)
+        assert rc == 2 and "--out" in err and "file" in err
+    before = _tree(demo_copy)
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", demo_copy / "run"], capsys)
+    assert rc == 2 and "dataset" in err
+    assert _tree(demo_copy) == before
+
+
+def test_resume_refuses_fixed_options_and_applies_the_others(run, capsys):
+    before = _tree(run)
+    for extra, named in ((["--seed", "5"], "--seed"), (["--lights", "point,directional"], "--lights"),
+                         (["--sigma", "0"], "--sigma"), (["--faces-per-pixel", "9"], "--faces-per-pixel"),
+                         (["--iterations", "2"], "--iterations"), (["--data-format", "colmap"], "--data-format")):
+        rc, err, _ = _run_cli(["train", "--resume", "--out", run, *extra], capsys)
+        assert rc == 2 and named in err, (extra, err)
+    assert _tree(run) == before
+    # the same value as the run's is fine; --iterations / --checkpoint-every / --keep-checkpoints apply and are named
+    rc, err, out = _run_cli(["train", "--resume", "--out", run, "--faces-per-pixel", "8", "--iterations", "6",
+                             "--checkpoint-every", "1", "--keep-checkpoints", "2"], capsys)
+    assert rc == 0, err
+    assert "--iterations 6 (was 4)" in out and "--checkpoint-every 1 (was 2)" in out
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 6
+    ckpts = sorted(p.name for p in (run / "checkpoints").glob("ckpt_*.npz"))
+    assert ckpts == ["ckpt_0000005.npz", "ckpt_0000006.npz"], ckpts
+
+
+def test_checkpoint_of_another_configuration_is_refused(run, capsys):
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["train"]["lights"] = ["directional", "ambient"]
+    (run / "config.json").write_text(json.dumps(cfg))
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "6"], capsys)
+    assert rc == 2 and "ckpt_0000004.npz" in err and "another configuration" in err and "lights" in err
+
+
+@pytest.mark.parametrize("kind", ["truncated", "empty", "foreign", "nan"])
+def test_damaged_checkpoint_is_named(run, capsys, kind):
+    ck = run / "checkpoints" / "ckpt_0000004.npz"
+    if kind == "truncated":
+        ck.write_bytes(ck.read_bytes()[:1000])
+    elif kind == "empty":
+        ck.write_bytes(b"")
+    elif kind == "foreign":
+        np.savez(ck, x=np.zeros(3))
+    else:
+        with np.load(ck) as z:
+            a = {k: z[k] for k in z.files}
+        a["V"][5] = np.nan
+        np.savez(ck, **a)
+    for argv in (["train", "--resume", "--out", run, "--iterations", "6"], ["eval", run], ["render", run]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "ckpt_0000004.npz" in err, (argv, err)
+        assert err.count("\n") == 1
+
+
+CONFIG_CASES = {
+    "not an object": "[1, 2]",
+    "truncated": '{"data": "x", "tra',
+    "empty": "",
+    "missing train": '{"data": "x"}',
+    "missing data": '{"train": {}}',
+    "train not an object": '{"data": "x", "train": 3}',
+    "wrong field type": None,  # iterations as a string
+    "unknown field": None,
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONFIG_CASES))
+def test_bad_config_json_is_named(run, capsys, case):
+    text = CONFIG_CASES[case]
+    cfg = json.loads((run / "config.json").read_text())
+    if case == "wrong field type":
+        cfg["train"]["iterations"] = "many"
+        text = json.dumps(cfg)
+    elif case == "unknown field":
+        cfg["train"]["colour"] = 1
+        text = json.dumps(cfg)
+    (run / "config.json").write_text(text)
+    for argv in (["eval", run], ["render", run], ["extract", run], ["train", "--resume", "--out", run]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and ("config.json" in err or "not a run directory" in err), (argv, err)
+
+
+# ---- outputs: never into a dataset, never over files triplet did not make -----------------------------
+def test_render_refuses_dataset_and_foreign_files(run, demo_copy, tmp_path, capsys):
+    before = _tree(demo_copy)
+    rc, err, _ = _run_cli(["render", run, "--out", demo_copy / "test"], capsys)
+    assert rc == 2 and "dataset" in err
+    assert _tree(demo_copy) == before
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "r_0.png").write_bytes(b"my picture")
+    rc, err, _ = _run_cli(["render", run, "--out", mine], capsys)
+    assert rc == 2 and "r_0.png" in err and "not written by triplet" in err
+    assert (mine / "r_0.png").read_bytes() == b"my picture"
+    fresh = tmp_path / "fresh"
+    for _ in range(2):  # a folder triplet rendered into may be rendered into again
+        rc, err, _ = _run_cli(["render", run, "--out", fresh], capsys)
+        assert rc == 0, err
+    assert len(list(fresh.glob("*.png"))) == 8
+    # the manifest covers only what triplet wrote: a file of the user's added later is still refused
+    (fresh / "r_0.png").unlink()
+    (fresh / "r_10.png").write_bytes(b"mine")  # a train view's name, not rendered there yet
+    rc, err, _ = _run_cli(["render", run, "--split", "train", "--out", fresh], capsys)
+    assert rc == 2 and "r_10.png" in err and (fresh / "r_10.png").read_bytes() == b"mine"
+    # a folder inside a run holds triplet's renders (here the test renders, replaced by train views of the same names)
+    rc, err, _ = _run_cli(["render", run, "--split", "train", "--out", run / "renders" / "test"], capsys)
+    assert rc == 0, err
+
+
+def test_render_val_without_val_split_is_refused(run, tmp_path, capsys):
+    rc, err, _ = _run_cli(["render", run, "--split", "val", "--out", tmp_path / "v"], capsys)
+    assert rc == 2 and "'val'" in err and "--split" in err
+    assert not (tmp_path / "v").exists()
+
+
+def test_out_errors_of_render_export_eval(run, tmp_path, capsys, monkeypatch):
+    f = tmp_path / "file"
+    f.write_text("x")
+    for argv in (["render", run, "--out", f], ["export", run, "--out", f], ["export", run, "--formats", "fbx"]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and ("--out" in err or "--formats" in err), (argv, err)
+    # a read-only run (simulated: the suite runs as root, for whom chmod does not bite)
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val.os, "access", lambda p, mode: False)
+    before = _tree(run)
+    rc, err, _ = _run_cli(["eval", run], capsys)
+    assert rc == 2 and "not writable" in err
+    assert _tree(run) == before
+
+
+@pytest.mark.parametrize("kind", ["missing", "truncated", "foreign"])
+def test_damaged_mesh_stage_is_named(run, capsys, kind):
+    p = run / "mesh_stage.npz"
+    if kind == "truncated":
+        buf = run / "x.npz"
+        np.savez(buf, V=np.zeros((9, 3)), F=np.zeros((3, 3), np.int32))
+        p.write_bytes(buf.read_bytes()[:200])
+        buf.unlink()
+    elif kind == "foreign":
+        np.savez(p, y=np.ones(2))
+    rc, err, _ = _run_cli(["export", run, "--formats", "ply", "--out", run.parent / "exp"], capsys)
+    assert rc == 2 and "mesh_stage.npz" in err
+    assert not (run.parent / "exp" / "mesh.ply").exists()
+
+
+def test_os_errors_are_one_line(run, capsys, monkeypatch):
+    import triplet_cl.train as train_mod
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(run / "checkpoints" / "x"))
+
+    monkeypatch.setattr(train_mod, "atomic_write_bytes", full)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    last = err.strip().splitlines()[-1]
+    assert rc == 2 and last.startswith("triplet train: error:") and "no space left" in last
+
+
+# ---- the finiteness guard -----------------------------------------------------------------------------
+def _small_cfg(**kw) -> TrainConfig:
+    from dataclasses import replace
+
+    from triplet_cl.density import DensityConfig
+
+    base = TrainConfig(iterations=12, init_points=400, warmup_until=4, half_res_until=8, checkpoint_every=3,
+                       max_test_views=1, faces_per_pixel=8, warmup_faces_per_pixel=16,
+                       density=DensityConfig(interval=100, densify_from=200, densify_until=300, grad_threshold=2e-4,
+                                             alpha_reset_interval=3000, max_faces=4000, min_faces=10))
+    return replace(base, **kw)
+
+
+@pytest.mark.parametrize("what", ["parameter", "gradient"])
+def test_nan_mid_training_stops_with_iteration_group_and_cause(tmp_path, what):
+    tr = Trainer(DEMO, tmp_path / "r", _small_cfg(), quiet=True)
+    orig = tr.step
+
+    def step():
+        if tr.it == 7:
+            if what == "parameter":
+                tr.scene.V.data[10] = np.nan
+            else:
+                tr.scene.material.data[3] = np.inf  # inf raw material → NaN gradients
+        return orig()
+
+    tr.step = step
+    with pytest.raises(NonFiniteError) as ei:
+        tr.train()
+    e = ei.value
+    assert e.iteration == 8 and "iteration 8" in str(e) and "ckpt_0000006.npz" in str(e)
+    assert (e.group == "V") if what == "parameter" else e.group in ("material", "render")
+    latest = (tmp_path / "r" / "checkpoints" / "latest").read_text()
+    assert latest == "ckpt_0000006.npz"
+    with np.load(tmp_path / "r" / "checkpoints" / latest) as z:
+        assert np.isfinite(z["V"]).all() and np.isfinite(z["material"]).all()
+    assert not (tmp_path / "r" / "triplets.ply").exists()
+    assert "stopped: non-finite" in (tmp_path / "r" / "train.log").read_text()
+    c = Trainer(None, tmp_path / "r", quiet=True, resume=True)  # the last good checkpoint resumes
+    assert c.it == 6
+
+
+def test_nan_gradient_updates_nothing(tmp_path):
+    from triplet_cl.optim import Adam, NonFiniteStep
+
+    class P:
+        def __init__(self, data, grad):
+            self.data, self.grad, self.name = data, grad, "p"
+
+    a, b = P(np.ones(3), np.ones(3)), P(np.ones(2), np.array([1.0, np.nan]))
+    opt = Adam()
+    opt.add_group("a", [a])
+    opt.add_group("b", [b])
+    with pytest.raises(NonFiniteStep) as ei:
+        opt.step()
+    assert ei.value.group == "b" and ei.value.what == "gradient"
+    assert opt.t == 0 and (a.data == 1).all() and (b.data == 1).all()
+
+
+def test_killed_writes_leave_no_temp_files(run, capsys):
+    import os
+    import time
+
+    junk = [run / "checkpoints" / ".ckpt_0000006.npz.k2j4h5x1.tmp", run / ".metrics.json.abcd1234.tmp",
+            run / "renders" / "test" / ".r_3.x8f_2kqa.png"]
+    old = time.time() - 3600
+    for j in junk:
+        j.write_bytes(b"partial")
+        os.utime(j, (old, old))
+    in_flight = run / "checkpoints" / ".ckpt_0000009.npz.zzzzzzzz.tmp"  # seconds old: another process's write
+    in_flight.write_bytes(b"writing")
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err
+    assert not any(j.exists() for j in junk) and in_flight.exists()
+
+
+# ---- datasets ----------------------------------------------------------------------------------------
+def test_colmap_images_txt_one_line_per_image(tmp_path):
+    cams = [(1, "PINHOLE", fac.W, fac.H, [7.0, 7.0, 4.0, 3.0])]
+    images = []
+    for k, eye in enumerate(fac.orbit_eyes(6)):
+        q, t = fac.colmap_pose(eye)
+        images.append((k + 1, q, t, 1, f"im_{k}.png"))
+    fac.write_colmap_text(tmp_path, cams, images, [])
+    lines = [ln for ln in (tmp_path / "images.txt").read_text().splitlines()
+             if ln.startswith("#") or ln.split()[:1] and ln.split()[0].isdigit() and len(ln.split()) >= 10]
+    (tmp_path / "images.txt").write_text("\n".join(lines) + "\n")
+    got = read_images_text(tmp_path / "images.txt")
+    assert sorted(got) == [1, 2, 3, 4, 5, 6]
+    assert [got[i].name for i in sorted(got)] == [f"im_{k}.png" for k in range(6)]
+    fac.write_colmap_text(tmp_path / "two", cams, images, [])  # the two-line form still reads the same
+    assert sorted(read_images_text(tmp_path / "two" / "images.txt")) == [1, 2, 3, 4, 5, 6]
+
+
+@pytest.mark.parametrize("case", ["degrees", "bottom row", "shear"])
+def test_nerf_pose_and_angle_sanity(tmp_path, case):
+    fac.make_nerf(tmp_path)
+    p = tmp_path / "transforms_train.json"
+    d = json.loads(p.read_text())
+    if case == "degrees":
+        d["camera_angle_x"] = 40
+        want = "camera_angle_x.*radians.*0.698"
+    elif case == "bottom row":
+        d["frames"][1]["transform_matrix"][3] = [0.0, 0.0, 0.5, 1.0]
+        want = "frames\\[1\\].*bottom row"
+    else:
+        m = np.array(d["frames"][2]["transform_matrix"])
+        m[:3, :3] = m[:3, :3] @ np.array([[1, 0.3, 0], [0, 1, 0], [0, 0, 1]])
+        d["frames"][2]["transform_matrix"] = m.tolist()
+        want = "frames\\[2\\].*not orthonormal"
+    p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match=want) as ei:
+        load_dataset(tmp_path)
+    assert "transforms_train.json" in str(ei.value)
+
+
+def test_runerror_is_a_triplet_error():
+    from triplet_cl.errors import TripletError
+
+    assert issubclass(RunError, TripletError) and issubclass(NonFiniteError, TripletError)
+
+
+# ---- mesh export details ------------------------------------------------------------------------------
+def _png_chunks(data: bytes) -> list[bytes]:
+    import struct
+
+    out, i = [], 8
+    while i < len(data):
+        n = struct.unpack(">I", data[i:i + 4])[0]
+        out.append(data[i + 4:i + 8])
+        i += 12 + n
+    return out
+
+
+def _small_asset(lights):
+    import trimesh
+
+    from triplet_cl.mesh.asset import MeshAsset
+
+    m = trimesh.creation.icosphere(subdivisions=1)
+    n = len(m.vertices)
+    attrs = {"albedo": np.full((n, 3), 0.5), "roughness": np.full(n, 0.4), "metallic": np.full(n, 0.2),
+             "ao": np.ones(n), "alpha": np.ones(n)}
+    return MeshAsset(m.vertices, m.faces, attrs, "cook_torrance", lights)
+
+
+def test_mesh_files_headers_colour_tags_and_lights(tmp_path):
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from tests.tools.gltf_check import check_glb
+    from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight
+    from triplet_cl.mesh.export import export_asset
+
+    d = np.array([0.3, 0.8, -0.5])
+    lights = [PointLight([0.0, 3.0, 1.0], [4.0, 2.0, 1.0]), DirectionalLight(d, [0.5, 0.5, 0.25]),
+              AmbientLight([0.1, 0.1, 0.1])]
+    paths = export_asset(_small_asset(lights), tmp_path, texture_size=64)
+    header = paths["ply"].read_bytes().split(b"end_header")[0]
+    assert b"connected triangle mesh" in header and b"soup" not in header
+    # data maps carry no colour-space tag; the base colour stays sRGB
+    for name in ("mesh_roughness.png", "mesh_metallic.png"):
+        chunks = _png_chunks((tmp_path / name).read_bytes())
+        assert not {b"sRGB", b"gAMA", b"cHRM", b"iCCP"} & set(chunks), (name, chunks)
+        assert np.asarray(Image.open(tmp_path / name)).ndim == 2  # still a valid PNG
+    assert b"sRGB" in _png_chunks((tmp_path / "mesh_basecolor.png").read_bytes())
+    doc, _ = check_glb(paths["glb"])
+    defs = doc["extensions"]["KHR_lights_punctual"]["lights"]
+    assert [x["type"] for x in defs] == ["point", "directional"] and "KHR_lights_punctual" in doc["extensionsUsed"]
+    assert defs[0]["intensity"] == 4.0 and np.allclose(defs[0]["color"], [1, 0.5, 0.25])
+    nodes = {n["extensions"]["KHR_lights_punctual"]["light"]: n for n in doc["nodes"] if "extensions" in n}
+    assert np.allclose(nodes[0]["translation"], [0, 3, 1])
+    shines = Rotation.from_quat(nodes[1]["rotation"]).apply([0, 0, -1])  # a glTF directional light shines along -Z
+    assert np.allclose(shines, -d / np.linalg.norm(d))
+    assert set(doc["scenes"][0]["nodes"]) == {0, 1, 2}
+
+
+def test_resume_with_another_dataset_is_refused(run, tmp_path, capsys):
+    other = tmp_path / "other"
+    fac.make_nerf(other)
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", other, "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 2 and "DATA" in err and "not the run's dataset" in err
+    assert _tree(run) == before
+
+
+def test_resume_finds_the_newest_checkpoint_when_latest_is_lost(run, capsys):
+    (run / "checkpoints" / "latest").unlink()
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 5
+
+
+def test_diverging_learning_rate_is_stopped(tmp_path):
+    tr = Trainer(DEMO, tmp_path / "r", _small_cfg(lr_position=1e30, lr_position_final=1e30), quiet=True)
+    with pytest.raises(NonFiniteError) as ei:
+        tr.train()
+    assert ei.value.group == "V" and "learning rate" in str(ei.value) and ei.value.iteration <= 3
+    assert not (tmp_path / "r" / "triplets.ply").exists()
+
+
+def test_device_allocation_failure_is_one_line(run, capsys, monkeypatch):
+    import pyopencl as cl
+
+    from triplet_cl.device import get_device
+    from triplet_cl.validate import device_memory_message
+
+    dev = get_device()
+    ctx = getattr(dev, "context", None) or dev.ctx
+    with pytest.raises(cl.Error) as ei:
+        cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=2**50)
+    assert "--faces-per-pixel" in device_memory_message(ei.value)
+    assert device_memory_message(ValueError("x")) is None
+    import triplet_cl.train as train_mod
+
+    def boom(*a, **k):
+        raise ei.value
+
+    monkeypatch.setattr(train_mod, "render", boom)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    last = err.strip().splitlines()[-1]
+    assert rc == 2 and "cannot allocate" in last
+
+
+def test_export_device_spec_is_checked(run, capsys):
+    rc, err, _ = _run_cli(["export", run, "--device", "no-such-device-xyz"], capsys)
+    assert rc == 2 and "no-such-device-xyz" in err
+
+
+def test_mesh_resolution_memory_is_checked(run, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 2**30)
+    rc, err, _ = _run_cli(["extract", run, "--mesh-resolution", "512"], capsys)
+    assert rc == 2 and "--mesh-resolution" in err and "GiB" in err
+
+
+def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--init-points", "150000"], capsys)
+    assert rc == 2 and "--init-points" in err and "GiB" in err and not (tmp_path / "o").exists()
+
+
+def test_atlas_padding_grows_with_the_texture(monkeypatch):
+    import triplet_cl.mesh.export as ex
+    from triplet_cl.lights import PointLight
+
+    seen = []
+    orig = ex.uv_atlas
+
+    def spy(V, F, size, padding):
+        seen.append((size, padding))
+        return orig(V, F, size, padding)
+
+    monkeypatch.setattr(ex, "uv_atlas", spy)
+    asset = _small_asset([PointLight([0, 3, 0], [1, 1, 1])])
+    for size in (64, 1024):
+        ex.bake_asset(asset, size)
+    ex.bake_asset(asset, 64, padding=3)
+    assert seen == [(64, 2), (1024, 4), (64, 3)]
+
+
+def test_checkpoint_from_before_a_new_config_field_still_resumes(run, capsys):
+    """A field added to TrainConfig later (absent from an old checkpoint's record) matches at its default."""
+    ck = run / "checkpoints" / "ckpt_0000004.npz"
+    with np.load(ck) as z:
+        a = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(a["meta"]).decode())
+    del meta["config"]["ssim_lambda"]
+    meta["config"]["a_field_since_removed"] = 1
+    a["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(ck, **a)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err

@@ -1,0 +1,56 @@
+"""Kernels called by name (``ops.common.launch``): the signature parsed from the ``.cl`` source,
+conditional parameters under ``#ifdef``, and clear errors for missing or unknown arguments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.test_raster import cam, soup
+from triplet_cl.ops.common import _signature_text, grid_1d, kernel_params, launch
+from triplet_cl.ops.project import camera_params, project
+
+
+def test_signature_parsed_with_its_defines():
+    base = [p.name for p in kernel_params("fragment_bwd", "fragment_bwd", frozenset())]
+    assert base[:8] == ["entry_setup", "F", "tile_off", "frag_face", "frag_entry", "frag_bary", "frag_depth",
+                        "frag_count"]
+    assert "v_bary_out" in base and "partial_mom" not in base and "attr" not in base and "v_win" not in base
+    full = {p.name: p for p in kernel_params("fragment_bwd", "fragment_bwd",
+                                             frozenset({"ATTR", "V_BARY_IN", "V_DEPTH", "V_WIN", "GEOMETRY"}))}
+    assert {"attr", "v_out", "C", "v_bary_in", "v_depth", "v_win", "partial_mom", "v_sigma_tile"} <= set(full)
+    assert "v_bary_out" not in full
+    assert (full["C"].kind, full["C"].ctype) == ("scalar", "int")
+    assert (full["sigma"].kind, full["sigma"].ctype) == ("scalar", "REAL")
+    assert full["attr"].kind == "buffer"
+
+
+def test_signature_preprocessor_lines():
+    body = "int a,\n#ifdef X\nint b,\n#else\nint c,\n#endif\n#if !defined(Y)\nint d,\n#endif\nint e"
+    assert _signature_text(body, frozenset(), "t").split() == ["int", "a,", "int", "c,", "int", "d,", "int", "e"]
+    assert _signature_text(body, frozenset({"X", "Y"}), "t").split() == ["int", "a,", "int", "b,", "int", "e"]
+    with pytest.raises(ValueError, match="unsupported preprocessor"):
+        _signature_text("int a,\n#define Z 1\nint b", frozenset(), "t")
+    with pytest.raises(ValueError, match="unterminated"):
+        _signature_text("int a,\n#ifdef X\nint b", frozenset(), "t")
+
+
+def test_launch_binds_by_name(device, rng):
+    V, _ = soup(rng)
+    c = cam()
+    n = len(V)
+    Vd = project(device, V.astype(np.float32), c)  # the op's own (positional) launch
+    import pyopencl.array as cla
+
+    Vw = cla.to_device(device.queue, V.astype(np.float32))
+    cp = cla.to_device(device.queue, camera_params(c, np.float32))
+    out = cla.empty(device.queue, (n, 3), np.float32)
+    # keyword order is irrelevant
+    launch(device, "project", "project_fwd", *grid_1d(n), vs=out, n=n, cam=cp, V=Vw)
+    np.testing.assert_array_equal(out.get(), Vd.get())
+    with pytest.raises(ValueError, match=r"missing arguments \['n'\]"):
+        launch(device, "project", "project_fwd", *grid_1d(n), vs=out, cam=cp, V=Vw)
+    with pytest.raises(ValueError, match=r"unknown arguments \['m'\]"):
+        launch(device, "project", "project_fwd", *grid_1d(n), vs=out, n=n, m=n, cam=cp, V=Vw)
+    with pytest.raises(ValueError, match="not found"):
+        kernel_params("project", "no_such_kernel")

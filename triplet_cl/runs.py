@@ -1,0 +1,257 @@
+"""Run directories: reading ``config.json`` and checkpoints defensively, pruning checkpoints,
+removing temp files of killed writes, and knowing which output files triplet made.
+
+Every problem is a :class:`~triplet_cl.errors.RunError` that names the file, what was expected and
+what was found — never a ``KeyError`` / ``BadZipFile`` / ``EOFError`` traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import RunError
+
+CONFIG = "config.json"
+CHECKPOINTS = "checkpoints"
+OUTPUT_MARKER = ".triplet-output"  # manifest of the files triplet wrote into a render/export folder
+_CKPT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
+# temp files of io.atomic_write_bytes / write_png (".<name>.<random>.tmp" / ".<stem>.<random>.png")
+_TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.(tmp|png)$")
+
+
+def is_run_dir(path) -> bool:
+    """A folder with a ``config.json`` that triplet wrote (an object with ``"train"``)."""
+    p = Path(path) / CONFIG
+    if not p.is_file():
+        return False
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return True  # a damaged run is still a run: refuse to overwrite it, read_run_config names the problem
+    return isinstance(d, dict) and "train" in d
+
+
+def read_run_config(run_dir) -> dict:
+    """``config.json`` of a run as ``{"data": str, "format": str, "train": dict, ...}``, checked."""
+    path = Path(run_dir) / CONFIG
+    if not Path(run_dir).is_dir():
+        raise RunError(run_dir, "is not a run directory (" + ("it is a file, not a folder)" if Path(run_dir).exists()
+                                                              else "the folder does not exist)"))
+    if not path.is_file():
+        raise RunError(run_dir, f"is not a run directory (no {CONFIG})")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunError(path, f"cannot read the file: {exc}") from None
+    if not text.strip():
+        raise RunError(path, "the file is empty (expected the run's configuration as a JSON object)")
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise RunError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg} "
+                             "(truncated or edited by hand?)") from None
+    if not isinstance(d, dict):
+        raise RunError(path, f"expected a JSON object at the top level, found {type(d).__name__}")
+    for key, typ in (("data", str), ("train", dict)):
+        if key not in d:
+            raise RunError(path, f"missing key {key!r}")
+        if not isinstance(d[key], typ):
+            raise RunError(path, f"{key!r} must be a {'string' if typ is str else 'JSON object'}, "
+                                 f"found {type(d[key]).__name__}")
+    if "format" in d and not isinstance(d["format"], str):
+        raise RunError(path, f"'format' must be a string, found {type(d['format']).__name__}")
+    return d
+
+
+def config_from_saved(run_dir, saved: dict):
+    """The :class:`~triplet_cl.train.TrainConfig` of ``saved["train"]``, every field type-checked."""
+    from dataclasses import MISSING, fields
+
+    from .density import DensityConfig
+    from .train import TrainConfig
+
+    path = Path(run_dir) / CONFIG
+    t = saved["train"]
+
+    def check(cls, d: dict, prefix: str):
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(d) - set(known))
+        if unknown:
+            raise RunError(path, f"unknown fields {[prefix + u for u in unknown]} in 'train'")
+        for name, f in known.items():
+            if name not in d:
+                continue
+            default = f.default if f.default is not MISSING else (f.default_factory() if f.default_factory
+                                                                  is not MISSING else None)
+            v = d[name]
+            if v is None:
+                ok = "None" in str(f.type)
+            elif default is None:
+                ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+            elif isinstance(default, bool):
+                ok = isinstance(v, bool)
+            elif isinstance(default, int):
+                ok = isinstance(v, int) and not isinstance(v, bool)
+            elif isinstance(default, float):
+                ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+            elif isinstance(default, str):
+                ok = isinstance(v, str)
+            elif isinstance(default, tuple):
+                ok = isinstance(v, list)
+            elif isinstance(default, DensityConfig):
+                ok = isinstance(v, dict)
+                if ok:
+                    check(DensityConfig, v, prefix + name + ".")
+            else:
+                ok = True
+            if not ok:
+                raise RunError(path, f"'train'.{prefix}{name} has the wrong type: expected "
+                                     f"{type(default).__name__}, found {type(v).__name__} ({v!r})")
+
+    check(TrainConfig, t, "")
+    try:
+        cfg = TrainConfig.from_dict(t)
+        cfg.validate()
+    except (TypeError, ValueError) as exc:
+        raise RunError(path, f"invalid configuration: {exc}") from None
+    return cfg
+
+
+# ---- checkpoints ---------------------------------------------------------------------------------------
+def read_checkpoint(path) -> tuple[dict, dict]:
+    """``(arrays, meta)`` of a checkpoint ``.npz``; a truncated, empty or foreign file is a RunError."""
+    path = Path(path)
+    if not path.is_file():
+        raise RunError(path, "checkpoint not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise RunError(path, "not a checkpoint (expected an .npz archive, found a single array)")
+            a = {k: z[k] for k in z.files}
+    except RunError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+        size = path.stat().st_size if path.exists() else 0
+        what = "empty" if size == 0 else "truncated or not a triplet checkpoint"
+        raise RunError(path, f"cannot read the checkpoint ({what}: {type(exc).__name__}: {exc}); resume from an "
+                             "earlier checkpoint by editing checkpoints/latest, or start again with --overwrite"
+                       ) from None
+    if "meta" not in a:
+        raise RunError(path, f"not a triplet checkpoint (no 'meta' entry; entries: {sorted(a)[:8]})")
+    try:
+        meta = json.loads(bytes(a.pop("meta")).decode())
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise RunError(path, f"damaged checkpoint metadata: {exc}") from None
+    if not isinstance(meta, dict):
+        raise RunError(path, "damaged checkpoint metadata (not a JSON object)")
+    missing = [k for k in ("V", "F", "material", "alpha") if k not in a] + \
+              [k for k in ("it", "t", "order", "rng", "opt_hyper") if k not in meta]
+    if missing:
+        raise RunError(path, f"not a complete triplet checkpoint: missing {missing}")
+    return a, meta
+
+
+def list_checkpoints(run_dir) -> list[Path]:
+    """The run's ``ckpt_*.npz``, oldest first."""
+    folder = Path(run_dir) / CHECKPOINTS
+    if not folder.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in folder.iterdir() if (m := _CKPT_RE.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def prune_checkpoints(run_dir, keep: int, protect: Path | None = None) -> list[Path]:
+    """Delete all but the newest ``keep`` checkpoints (0: keep all); never ``protect``."""
+    if not keep or keep <= 0:
+        return []
+    removed = []
+    for p in list_checkpoints(run_dir)[:-keep]:
+        if protect is not None and p.name == Path(protect).name:
+            continue
+        p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
+def remove_stale_temp_files(folder, min_age_s: float = 120.0) -> list[Path]:
+    """Remove temp files left in ``folder`` by writes that were killed (``kill -9`` mid-write).
+
+    Only files older than ``min_age_s``: a write in flight in another process (an ``extract`` or
+    ``render`` of the same run) is seconds old and is left alone."""
+    import time
+
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    now = time.time()
+    for p in folder.iterdir():
+        if p.is_file() and _TEMP_RE.match(p.name) and now - p.stat().st_mtime > min_age_s:
+            try:
+                p.unlink()
+                removed.append(p)
+            except OSError:
+                pass
+    return removed
+
+
+# ---- outputs the user made -----------------------------------------------------------------------------
+def _manifest(folder: Path) -> set[str]:
+    try:
+        names = json.loads((folder / OUTPUT_MARKER).read_text(encoding="utf-8")).get("files", [])
+        return {str(n) for n in names}
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return set()
+
+
+def mark_output_dir(folder, names) -> None:
+    """Record in ``folder/.triplet-output`` the file ``names`` triplet is about to write there (they may
+    be replaced by triplet later; every other file of the folder stays the user's)."""
+    from .io import write_json
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    known = _manifest(folder) | {str(n) for n in names}
+    write_json(folder / OUTPUT_MARKER, {"written_by": "triplet_cl", "files": sorted(known)})
+
+
+def foreign_files(folder, names) -> list[str]:
+    """Of ``names`` (files triplet would write into ``folder``), those that exist and that triplet
+    did not make: not listed in the folder's ``.triplet-output`` manifest, and the folder is not a run
+    directory (or inside one)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    if any(is_run_dir(p) for p in [folder, *list(folder.resolve().parents)[:3]]):  # a run's own folders
+        return []
+    mine = _manifest(folder)
+    return [n for n in names if (folder / n).exists() and n not in mine]
+
+
+@contextlib.contextmanager
+def replacing_run(out, overwrite: bool):
+    """``--overwrite``: move the old run aside, delete it when the block succeeds, put it back if not."""
+    out = Path(out)
+    if not (overwrite and out.is_dir()):
+        yield
+        return
+    aside = out.with_name(f".{out.name}.overwritten")
+    if aside.exists():
+        shutil.rmtree(aside)
+    os.replace(out, aside)
+    try:
+        yield
+    except BaseException:
+        if out.exists():
+            shutil.rmtree(out, ignore_errors=True)
+        os.replace(aside, out)
+        raise
+    shutil.rmtree(aside, ignore_errors=True)

@@ -1,0 +1,415 @@
+"""Up-front validation of the command line: every option and path is checked here, before any
+work or output, and a problem is a :class:`~triplet_cl.errors.UsageError` naming the option (or the
+file), what was expected and what was found. The CLI calls :func:`validate_args` first thing.
+
+Also: :func:`resume_config` (which options may change on ``--resume``), output-folder checks
+(``--out`` a file, read-only, inside a dataset, over files triplet did not make), the memory
+estimate of ``--init-points`` and :func:`os_error_message` (one line for an expected OS error).
+"""
+
+from __future__ import annotations
+
+import errno
+import math
+import os
+from dataclasses import replace
+from pathlib import Path
+
+from .errors import RunError, UsageError
+
+K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the OpenCL layers)
+TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
+HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initialising; ×4 for training copies
+
+# option -> (args attribute, kind, low, high, what it is); None bound = unbounded
+_INT_OPTIONS = {
+    "--iterations": ("iterations", 1, 100_000_000),
+    "--seed": ("seed", 0, 2**32 - 1),
+    "--sh-degree": ("sh_degree", 0, 8),
+    "--faces-per-pixel": ("faces_per_pixel", 1, K_LIMIT),
+    "--init-points": ("init_points", 1, None),
+    "--max-faces": ("max_faces", 100, None),  # DensityConfig.min_faces is 100
+    "--downscale": ("downscale", 1, 64),  # and the images must stay >= 4 px (Trainer checks the dataset)
+    "--checkpoint-every": ("checkpoint_every", 0, None),
+    "--keep-checkpoints": ("keep_checkpoints", 0, None),
+    "--mesh-resolution": ("mesh_resolution", 16, 1024),  # mesh.extract.tsdf_fusion's range; memory checked too
+    "--mesh-faces": ("mesh_faces", 100, 50_000_000),
+    "--mesh-rounds": ("mesh_rounds", 1, 100),
+    "--mesh-iterations": ("mesh_iterations", 0, 10_000_000),
+    "--remesh-every": ("remesh_every", 0, None),
+    "--mesh-supersample": ("mesh_supersample", 1, 4),
+    "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
+    "--texture-size": ("texture_size", 16, 16384),
+    "--background-shell": ("background_shell", 0, 10_000_000),
+    "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
+    "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
+}
+_MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
+                 "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
+                 "--bbox", "--mesh-crop")
+OUTPUT_FORMATS = ("glb", "obj", "ply")
+
+
+def _attr(option: str) -> str:
+    return option.lstrip("-").replace("-", "_")
+
+
+def check_int(option: str, value, low: int | None, high: int | None) -> None:
+    if value is None:
+        return
+    if low is not None and value < low or high is not None and value > high:
+        if high is None:
+            rng = f"an integer >= {low}"
+        elif low is None:
+            rng = f"an integer <= {high}"
+        else:
+            rng = f"an integer in [{low}, {high}]"
+        raise UsageError(option, f"expected {rng}, found {value}")
+
+
+def parse_formats(option: str, text: str | None) -> tuple | None:
+    """``"glb,obj"`` → ``("glb", "obj")``; unknown or empty names refused naming ``option``."""
+    if text is None:
+        return None
+    fmts = tuple(x.strip().lower() for x in text.split(",") if x.strip())
+    bad = [f for f in fmts if f not in OUTPUT_FORMATS]
+    if bad or not fmts:
+        raise UsageError(option, f"expected a comma-separated list of {', '.join(OUTPUT_FORMATS)}, found {text!r}")
+    return tuple(dict.fromkeys(fmts))
+
+
+def _check_options(args) -> None:
+    for option, (attr, low, high) in _INT_OPTIONS.items():
+        check_int(option, getattr(args, attr, None), low, high)
+    sigma = getattr(args, "sigma", None)
+    if sigma is not None and not (math.isfinite(sigma) and 0 <= sigma <= 1000):
+        raise UsageError("--sigma", f"expected a number in [0, 1000] (0 = hard edges), found {sigma}")
+    lights = getattr(args, "lights", None)
+    if lights is not None:
+        from .train import LIGHT_KINDS
+
+        names = [x.strip() for x in lights.split(",") if x.strip()]
+        bad = [x for x in names if x not in LIGHT_KINDS]
+        if bad or not names:
+            raise UsageError("--lights", f"lights must be a comma-separated mix of {', '.join(LIGHT_KINDS)}, found "
+                                         f"{lights!r}")
+    if getattr(args, "formats", None) is not None:
+        parse_formats("--formats", args.formats)
+    if getattr(args, "bbox", None) is not None:
+        from .mesh.roi import parse_bbox
+
+        try:
+            parse_bbox(args.bbox)
+        except ValueError as exc:
+            raise UsageError("--bbox", str(exc)) from None
+    mr = getattr(args, "min_registered", None)
+    if mr is not None and not (math.isfinite(mr) and 0 <= mr <= 1):
+        raise UsageError("--min-registered", f"expected a fraction in [0, 1], found {mr}")
+    init, max_faces = getattr(args, "init_points", None), getattr(args, "max_faces", None)
+    if init is not None:
+        budget = max_faces if max_faces is not None else 200_000
+        if init > budget:
+            raise UsageError("--init-points", f"{init} initial triangles exceed the face budget ({budget}, "
+                                              "--max-faces): density control would prune them at once; give at "
+                                              "most the budget, or raise --max-faces")
+        check_memory_for_points(init)
+    if max_faces is not None:
+        check_memory_for_points(max_faces, "--max-faces")
+    res = getattr(args, "mesh_resolution", None)
+    if res is not None:
+        need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
+        if avail is not None and need > 0.8 * avail:
+            raise UsageError("--mesh-resolution", f"a {res}³ TSDF needs about {need / 2**30:.1f} GiB of memory, this "
+                                                  f"machine has {avail / 2**30:.1f} GiB available")
+
+
+def check_memory_for_points(n: int, option: str = "--init-points") -> None:
+    """Refuse ``--init-points`` / ``--max-faces`` whose estimated host memory exceeds what is available."""
+    need = n * HOST_BYTES_PER_INIT_POINT
+    avail = available_memory()
+    if avail is not None and need > 0.8 * avail:
+        raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, this machine has "
+                                 f"{avail / 2**30:.1f} GiB available")
+
+
+def available_memory() -> int | None:
+    """Available host memory in bytes (``MemAvailable`` of /proc/meminfo; None where unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+# ---- paths ---------------------------------------------------------------------------------------------
+def _nearest_existing(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_writable_dir(path, option: str) -> None:
+    """``path`` is (or can be created as) a writable folder: not a file, not under a file, not read-only."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(option, f"{path} is a file, expected a folder")
+    base = _nearest_existing(path)
+    if not base.is_dir():
+        raise UsageError(option, f"{path}: {base} is a file, so the folder cannot be created")
+    if not os.access(base, os.W_OK | os.X_OK):
+        ro = _read_only_fs(base)
+        raise UsageError(option, f"{path}: {base} is not writable" + (" (read-only filesystem)" if ro else
+                                                                       " (permission denied)"))
+
+
+def _read_only_fs(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+def dataset_root_of(path) -> Path | None:
+    """The dataset folder that contains ``path`` (a folder with transforms*.json or a COLMAP model)."""
+    p = _nearest_existing(Path(path)).resolve()
+    for folder in (p, *p.parents):
+        if any((folder / n).is_file() for n in ("transforms_train.json", "transforms.json",
+                                                 "transforms_test.json")):
+            return folder
+        for sub in ("sparse/0", "sparse", "."):
+            d = folder / sub
+            if (d / "cameras.txt").is_file() or (d / "cameras.bin").is_file():
+                return folder
+    return None
+
+
+def check_not_in_dataset(path, option: str, dataset=None) -> None:
+    """Never write into a dataset folder (its photos are the ground truth)."""
+    p = Path(path).absolute()
+    roots = [dataset_root_of(p)]
+    if dataset is not None:
+        roots.append(Path(dataset).resolve())
+    for root in roots:
+        if root is not None and (p.resolve() == root or root in p.resolve().parents):
+            raise UsageError(option, f"{path} is inside the dataset folder {root}: triplet never writes into a "
+                                     "dataset (it would replace the photos); choose another folder")
+
+
+def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
+    """A run directory with a readable config.json; ``writable``: results can be written into it."""
+    from .runs import read_run_config
+
+    saved = read_run_config(run)
+    if writable:
+        check_writable_dir(run, option)
+    return saved
+
+
+def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=None) -> None:
+    """``train --out``: refuse an existing run without --resume/--overwrite, a folder that is not a
+    run, a file, a read-only place, or a dataset folder."""
+    from .runs import is_run_dir
+
+    out = Path(out)
+    check_writable_dir(out, option)
+    check_not_in_dataset(out, option, dataset)
+    if resume and overwrite:
+        raise UsageError("--overwrite", "cannot be combined with --resume")
+    if resume:
+        return
+    if out.is_dir() and any(out.iterdir()):
+        if not is_run_dir(out):
+            raise UsageError(option, f"{out} exists, is not empty and is not a triplet run: choose a new or empty "
+                                     "folder (nothing there is touched)")
+        if not overwrite:
+            raise UsageError(option, f"{out} is an existing run: continue it with --resume, or replace it with "
+                                     "--overwrite")
+
+
+def check_output_files(folder, names, option: str) -> None:
+    """Refuse to replace files in ``folder`` that triplet did not make."""
+    from .runs import foreign_files
+
+    found = foreign_files(folder, names)
+    if found:
+        shown = ", ".join(found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+        raise UsageError(option, f"{folder} already holds {shown}, not written by triplet: choose another folder "
+                                 "(triplet never overwrites files it did not make)")
+
+
+def check_render_out(trainer, split: str, out, option: str) -> None:
+    """``render``: the split has views; ``out`` is not in the dataset and holds no file of the user."""
+    from .errors import DatasetError
+
+    views = trainer.ds[split]
+    if not views:
+        have = [s for s, v in trainer.ds.splits.items() if v]
+        raise DatasetError(trainer.ds.root, f"the dataset has no {split!r} split (--split {split}); it has "
+                                            f"{', '.join(have)}")
+    check_not_in_dataset(out, option, trainer.ds.root)
+    if Path(out).resolve() != (trainer.run_dir / "renders" / split).resolve():
+        names = [f"{Path(v.name).name}.png" for v in views]
+        check_output_files(out, names, option)
+        from .runs import mark_output_dir
+
+        mark_output_dir(out, names)  # the checks passed: these files are triplet's from now on
+
+
+def check_export_out(out, formats, option: str) -> None:
+    """``export --out``: not a dataset folder, and no file there that triplet did not make."""
+    check_not_in_dataset(out, option)
+    names = ["lights.json", "envmap.exr"] + [f"mesh.{f}" for f in formats]
+    if "obj" in formats:
+        names += ["mesh.mtl", "mesh_basecolor.png", "mesh_roughness.png", "mesh_metallic.png", "mesh_specular.png"]
+    check_output_files(out, names, option)
+    from .runs import is_run_dir, mark_output_dir
+
+    if not is_run_dir(out):
+        mark_output_dir(out, names)
+
+
+# ---- the CLI entry -------------------------------------------------------------------------------------
+def validate_args(args) -> None:
+    """Check every option of ``args`` (an argparse namespace of any command) before any work."""
+    _check_options(args)
+    cmd = getattr(args, "command", None)
+    if cmd == "train":
+        if not getattr(args, "mesh_stage", False):
+            given = [o for o in _MESH_OPTIONS if getattr(args, _attr(o), None) is not None]
+            if given:
+                raise UsageError(given[0], "only applies with --mesh-stage (or use `triplet extract RUN`)")
+        data = getattr(args, "data", None)
+        if data is not None and not Path(data).exists():
+            raise UsageError("DATA", f"{data}: dataset folder not found")
+        out = getattr(args, "out", None) or ("runs/demo" if getattr(args, "demo", False) else None)
+        if out:
+            check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
+                              None if getattr(args, "demo", False) else data)
+    elif cmd in ("render", "eval", "extract", "export"):
+        writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
+        if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
+            if not (Path(args.run) / "config.json").is_file():
+                raise RunError(args.run, "is not a run directory (no config.json)")
+            if writable:
+                check_writable_dir(args.run, "RUN")
+        else:
+            check_run_dir(args.run, "RUN", writable=writable)
+        if getattr(args, "out", None):
+            check_writable_dir(args.out, "--out")
+            check_not_in_dataset(args.out, "--out")
+
+
+class DeprecatedAlias:
+    """An argparse action factory: ``--format`` kept as a deprecated spelling of ``new`` (warns)."""
+
+    @staticmethod
+    def action(new: str):
+        import argparse
+        import sys
+
+        class _Alias(argparse.Action):
+            def __call__(self, parser, namespace, values, option_string=None):
+                print(f"triplet: warning: {option_string} is deprecated, use {new}", file=sys.stderr)
+                setattr(namespace, self.dest, values)
+
+        return _Alias
+
+
+# ---- resume --------------------------------------------------------------------------------------------
+def resume_config(args, saved_cfg, given_cfg):
+    """The configuration of a resumed run and the notes on what changed.
+
+    Options that fix what the checkpoint holds (seed, lights, BRDF, K, σ, ...) must be absent or
+    equal to the saved value; ``--iterations``, ``--checkpoint-every`` and ``--keep-checkpoints``
+    apply. Returns ``(cfg, notes)``."""
+    from .train import RESUMABLE_FIELDS
+
+    fixed = {"--seed": "seed", "--brdf": "brdf", "--lights": "lights", "--sh-degree": "sh_degree",
+             "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
+             "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer"}
+    for option, field in fixed.items():
+        if getattr(args, _attr(option), None) is None:
+            continue
+        if getattr(given_cfg, field) != getattr(saved_cfg, field):
+            raise UsageError(option, f"cannot change on --resume (the run has {getattr(saved_cfg, field)!r}, "
+                                     f"given {getattr(given_cfg, field)!r}); start a new run (another --out, or "
+                                     "--overwrite) to change it")
+    if getattr(args, "max_faces", None) is not None and given_cfg.density.max_faces != saved_cfg.density.max_faces:
+        raise UsageError("--max-faces", f"cannot change on --resume (the run has {saved_cfg.density.max_faces}, "
+                                        f"given {given_cfg.density.max_faces})")
+    fmt = getattr(args, "data_format", None)
+    if fmt not in (None, "auto"):
+        raise UsageError("--data-format", "cannot change on --resume (the run's config.json fixes the dataset)")
+    over, notes = {}, []
+    for field in RESUMABLE_FIELDS:
+        option = "--" + field.replace("_", "-")
+        if getattr(args, field, None) is None:
+            continue
+        new, old = getattr(given_cfg, field), getattr(saved_cfg, field)
+        over[field] = new
+        if new != old:
+            notes.append(f"{option} {new} (was {old})")
+    return replace(saved_cfg, **over), notes
+
+
+def resume_data(given, saved_data: str, run) -> tuple[str, list[str]]:
+    """The dataset of a resumed run: the saved one; DATA given again must be the same folder, or
+    replace a saved path that no longer exists (a moved dataset)."""
+    if given is None:
+        return saved_data, []
+    if Path(saved_data).exists():
+        if Path(given).resolve() != Path(saved_data).resolve():
+            raise UsageError("DATA", f"{given} is not the run's dataset ({saved_data}, config.json of {run}); "
+                                     "leave DATA out to resume, or start a new run for another dataset")
+        return saved_data, []
+    return str(given), [f"dataset {given} (config.json had {saved_data}, which no longer exists)"]
+
+
+def check_resume_iterations(option: str, iterations: int, at: int) -> None:
+    if iterations < at:
+        raise UsageError(option, f"the run is already at iteration {at}; give --iterations >= {at}")
+
+
+# ---- OS errors -----------------------------------------------------------------------------------------
+_OS_HINTS = {
+    errno.ENOSPC: "no space left on the device: free some space (or use --keep-checkpoints) and resume",
+    errno.EROFS: "read-only filesystem: choose a writable --out",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.ENOTDIR: "a component of the path is a file, not a folder",
+    errno.EISDIR: "is a folder, expected a file",
+    errno.EDQUOT: "disk quota exceeded: free some space and resume",
+    errno.ENOENT: "no such file or folder",
+}
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for an expected OS error: the file and what went wrong."""
+    what = _OS_HINTS.get(exc.errno, exc.strerror or str(exc))
+    name = exc.filename if exc.filename is not None else ""
+    return f"{name}: {what}" if name else what
+
+
+def device_memory_message(exc: BaseException) -> str | None:
+    """One line for an OpenCL allocation failure (buffer too large, device or host out of memory);
+    None for any other exception (a bug keeps its traceback)."""
+    try:
+        import pyopencl as cl
+    except ImportError:  # pragma: no cover - pyopencl is a dependency
+        return None
+    if not isinstance(exc, cl.Error):
+        return None
+    codes = {cl.status_code.INVALID_BUFFER_SIZE, cl.status_code.MEM_OBJECT_ALLOCATION_FAILURE,
+             cl.status_code.OUT_OF_RESOURCES, cl.status_code.OUT_OF_HOST_MEMORY}
+    code = getattr(exc, "code", None)
+    if code not in codes:
+        return None
+    return (f"the OpenCL device cannot allocate the buffers ({exc}): lower --faces-per-pixel or --max-faces, "
+            "reduce the images with --downscale, or choose a device with more memory (--device)")
