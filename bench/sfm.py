@@ -163,9 +163,9 @@ def main() -> None:
         else:
             inside = roi.contains(g_data).mean()
             gl = roi.local(g_data)
-            print(f"auto ROI: half sizes {np.round(roi.half / s, 3).tolist()} (true units), ground plane "
+            print(f"auto ROI: half sizes {np.round(roi.half * s, 3).tolist()} (true units), ground plane "
                   f"{'found' if roi.ground is not None else 'none'}; holds {100 * inside:.1f} % of gt_mesh's vertices; "
-                  f"cow extent along the box axes {np.round((gl.max(0) - gl.min(0)) / s, 3).tolist()}")
+                  f"cow extent along the box axes {np.round((gl.max(0) - gl.min(0)) * s, 3).tolist()}")
     if args.mesh is not None and sim is not None:
         import trimesh
 
