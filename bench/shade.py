@@ -16,6 +16,7 @@ import numpy as np
 
 from triplet_cl.device import get_device
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from triplet_cl.materials import BRDFS
 from triplet_cl.ops import shade as shade_op
 from triplet_cl.ops.common import to_device
 
@@ -53,7 +54,7 @@ def main() -> None:
         fid = np.where(rng.random(P) < 0.1, -1, 0).astype(np.int32)
         vlight = np.concatenate([rng.uniform(0, 1, (P, 3)), rng.standard_normal((P, 3))], 1).astype(np.float32)
         v_rgb = to_device(dev.queue, rng.standard_normal((P, 3)).astype(np.float32))
-        for brdf in shade_op.BRDFS:
+        for brdf in BRDFS:
             mat = rng.uniform(0.05, 0.95, (P, shade_op.num_material_channels(brdf))).astype(np.float32)
             for mix, make in MIXES.items():
                 lights = make(rng)

@@ -9,7 +9,10 @@ import time
 from pathlib import Path
 
 from triplet_cl import __version__
+from triplet_cl.datasets import FORMATS as DATASET_FORMATS
 from triplet_cl.errors import TripletError
+from triplet_cl.lights import LIGHT_KINDS
+from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
 
 
@@ -66,7 +69,7 @@ def _config_from_args(args: argparse.Namespace):
     if args.seed is not None:
         over["seed"] = args.seed
     if args.brdf:
-        over["brdf"] = args.brdf.replace("-", "_")
+        over["brdf"] = brdf_from_cli(args.brdf)
     if args.lights:
         over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
     if args.sh_degree is not None:
@@ -89,6 +92,8 @@ def _config_from_args(args: argparse.Namespace):
         over["renderer"] = args.renderer
     if getattr(args, "background_shell", None) is not None:
         over["background_shell"] = args.background_shell
+    if getattr(args, "color", None):
+        over["color"] = args.color
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -170,14 +175,85 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
     from triplet_cl.io import write_json
 
+    run = Path(args.run)
+    spec = None
+    if args.relight:
+        spec = Path(args.relight)
+        spec = spec / "relight.json" if spec.is_dir() else spec
+        if not spec.is_file():
+            raise FileNotFoundError(f"--relight {args.relight}: expected a folder holding relight.json (or the file "
+                                    f"itself); {spec} does not exist")
+        from triplet_cl.relight import load_light_sets
+
+        load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
     tr = _load_run(args)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
-    write_json(Path(args.run) / "metrics.json", m)
-    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views -> "
-          f"{Path(args.run) / 'metrics.json'}")
+    path = run / "metrics.json"
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    old = old if isinstance(old, dict) else {}
+    merged = {**old, **m}  # the other sections ("mesh", timings, "relight") stay
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views")
+    if spec is not None:
+        from triplet_cl.relight import Relighter, evaluate_relight
+
+        stages = ["soup"] + (["mesh"] if (run / "mesh_stage.npz").is_file() else [])
+        if args.out:
+            from triplet_cl.relight import load_light_sets as _sets
+
+            names = [f"{Path(v.name).name}.png" for v in tr.ds["test"][: tr.cfg.max_test_views or None]]
+            _check_image_outs([Path(args.out) / st / ls.name for st in stages for ls in _sets(spec, args.env_degree)]
+                              + [Path(args.out) / st / "albedo" for st in stages], names, "--out", tr.ds.root)
+        rel = dict(merged.get("relight") or {})
+        for stage in stages:
+            rl = Relighter(tr, stage, args.renderer)
+            out_dir = Path(args.out) / stage if args.out else None
+            r = evaluate_relight(rl, spec.parent, args.env_degree, out_dir)
+            rel[stage] = r
+            sets = ", ".join(f"{k} {v['psnr']:.2f} dB" for k, v in r["sets"].items())
+            alb = r.get("albedo")
+            alb = f"; albedo {alb['psnr_raw']:.2f} / {alb['psnr_scaled']:.2f} dB (raw / scaled)" if alb else ""
+            print(f"relight ({stage}, {rl.renderer}): {sets}{alb}")
+        merged["relight"] = rel
+    write_json(path, merged)
+    print(f"-> {path}")
+    return 0
+
+
+def _check_image_outs(outs, names, option: str, dataset) -> None:
+    """Image folders triplet writes: not in the dataset, no file of the user replaced; then recorded as triplet's."""
+    from triplet_cl.runs import mark_output_dir
+    from triplet_cl.validate import check_not_in_dataset, check_output_files
+
+    for out in outs:
+        check_not_in_dataset(out, option, dataset)
+        check_output_files(out, names, option)
+    for out in outs:
+        mark_output_dir(out, names)
+
+
+def cmd_relight(args: argparse.Namespace) -> int:
+    from triplet_cl.relight import Relighter, load_light_sets, relight_run
+
+    sets = load_light_sets(args.light_file, args.env_degree)  # a bad light file fails before the run is loaded
+    run = Path(args.run)
+    if args.out is not None and Path(args.out).is_file():
+        raise ValueError(f"--out {args.out} is a file; expected a folder")
+    tr = _load_run(args)
+    rl = Relighter(tr, args.stage, args.renderer)
+    base = Path(args.out) if args.out else run / "relight"
+    outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
+    names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
+    _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
+    for ls, out in zip(sets, outs, strict=True):
+        paths = relight_run(rl, ls, out, args.split)
+        kinds = ", ".join(type(lt).__name__ for lt in ls.lights)
+        print(f"relit {len(paths)} {args.split} views of the {rl.stage_name} under {ls.name!r} ({kinds}; "
+              f"{rl.renderer}) -> {out}")
     return 0
 
 
@@ -271,7 +347,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
-    from triplet_cl.mesh.refine import MESH_STATE, export_run_mesh, load_mesh_state
+    from triplet_cl.mesh.refine import MESH_STATE, albedo_space, export_run_mesh, load_mesh_state, run_color
     from triplet_cl.validate import check_export_out, parse_formats
 
     run = Path(args.run)
@@ -283,7 +359,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size)
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size,
+                            albedo_space=albedo_space(run_color(run)))
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 
@@ -353,14 +430,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
                    "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
     t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
-    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
-    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
-    t.add_argument("--brdf", choices=["cook-torrance", "blinn-phong"], help="BRDF (default cook-torrance)")
-    t.add_argument("--lights", help="comma-separated mix of point,directional,ambient,sh-env,vertex-sh "
-                                    "(default point,ambient)")
+    t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
+                   help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
+    t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
@@ -374,6 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
+    t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
+                   "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
     _add_mesh_options(t)
@@ -388,10 +467,33 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help=dev_help)
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean)")
+    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean; other "
+                       "sections are kept)")
     e.add_argument("run", help="run directory")
+    e.add_argument("--relight", help="folder with relight.json (light sets + reference images + albedo/): relit "
+                   "PSNR/SSIM per set and albedo PSNR (raw / per-channel scaled) of soup and mesh, under \"relight\"")
+    e.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer of the relit views "
+                   "(default: as `triplet relight`)")
+    e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                   "(default 8)")
+    e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
     e.add_argument("--device", default=None, help=dev_help)
     e.set_defaults(func=cmd_eval)
+
+    lt = sub.add_parser("relight", help="render a run (its refined mesh, else the soup) under other lights")
+    lt.add_argument("run", help="run directory")
+    lt.add_argument("--lights", required=True, dest="light_file", help="light file: a relight.json (FILE#set picks "
+                    "one of its sets; without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
+    lt.add_argument("--split", default="test", choices=["test", "train", "val"], help="views to render (default test)")
+    lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
+    lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
+                    "soup, raster for the mesh; hybrid gives cast shadows)")
+    lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
+                    "the refined mesh when the run has one, else the soup)")
+    lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                    "(default 8: see README, Relighting)")
+    lt.add_argument("--device", default=None, help=dev_help)
+    lt.set_defaults(func=cmd_relight)
 
     x = sub.add_parser("extract", help="soup → connected mesh: extract, refine as a mesh, export PBR assets")
     x.add_argument("run", help="run directory of a trained soup")

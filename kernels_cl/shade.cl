@@ -1,8 +1,10 @@
 /* shade.cl — physically based shading of a flat list of P fragments under a packed light table.
  *
- * Defines: BRDF (BRDF_COOK_TORRANCE | BRDF_BLINN_PHONG), ENV_MAX_DEG (largest active SH degree of
+ * Defines: BRDF, BRDF_<NAME>, NMAT (generated from triplet_cl/materials.py), LIGHT_<NAME>,
+ * LIGHT_SHADOW_MASK (generated from triplet_cl/lights.py), ENV_MAX_DEG (largest active SH degree of
  * the environment lights, sizes private arrays), RED_W (width of the light-gradient reduction).
- * The BRDF and light maths, their formulas and adjoints are in common/shade_brdf.h.
+ * The BRDF maths, formulas and adjoints are in common/shade_brdf.h; each light's incident radiance
+ * and its adjoint in common/lights.h.
  *
  * Forward, per fragment p with face_id[p] >= 0 (else rgb = 0):
  *   V = safe_normalize(cam - x),  N = s safe_normalize(n)   (s = -1 when two_sided and N.V < 0)
@@ -21,15 +23,17 @@
  *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
  *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
  *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
- * Ray-traced terms (ops/trace.py; all off in the default raster path, has_* = 0):
- *   has_vis:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
+ * Optional inputs are compiled in or out (defined or not; an absent one is not a parameter):
+ *   HAS_VLIGHT: vlight [P, 6] and its adjoint v_vlight (a vertex-SH light).
+ * Ray-traced terms (ops/trace.py; all off in the default raster path):
+ *   HAS_VIS:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
  *             multiplies that light's intensity: brdf_direct(N, V, L, T I sc, m);
  *             v_T = v_Li_eff . (I sc), and the light's own adjoints see v_Li = T v_Li_eff.
- *   has_refl: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
+ *   HAS_REFL: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
  *             reflection bounce) adds s_g * refl, s_g the glossy weight of env_scales (the same
  *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
  *             v_s_g = v_rgb refl -> env_scales_vjp -> v_N, v_V, v_m.
- *   has_eye:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
+ *   HAS_EYE:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
  *             the reflecting point); v_eye = safe_normalize_vjp(eye - x, v_V).
  * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
  * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
@@ -40,18 +44,34 @@
 #include "shade_math.h"
 #include "sh.h"
 #include "shade_brdf.h"
+#include "lights.h"
 
 #ifndef RED_W
 #define RED_W 16
 #endif
-#define POINT_D2_EPS ((REAL)1e-6)
-
-inline int light_nparams(const int type, const int a)
-{
-    if (type == LIGHT_AMBIENT) return 3;
-    if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) return 6;
-    return 0;
-}
+/* The optional inputs a kernel was built without (HAS_* not defined): null pointers, never read
+ * (every use is guarded by the matching has_* constant). */
+#define ABSENT ((__global REAL*)0)
+#ifdef HAS_VLIGHT
+#define HAVE_VLIGHT 1
+#else
+#define HAVE_VLIGHT 0
+#endif
+#ifdef HAS_VIS
+#define HAVE_VIS 1
+#else
+#define HAVE_VIS 0
+#endif
+#ifdef HAS_REFL
+#define HAVE_REFL 1
+#else
+#define HAVE_REFL 0
+#endif
+#ifdef HAS_EYE
+#define HAVE_EYE 1
+#else
+#define HAVE_EYE 0
+#endif
 
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
@@ -69,7 +89,9 @@ inline int load_fragment(const int p, __global const REAL* pos, __global const R
 __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const REAL* nrm,     // [P, 3]
                         __global const REAL* mat,     // [P, NMAT]
-                        __global const REAL* vlight,  // [P, 6] (unused without a vertex-SH light)
+#ifdef HAS_VLIGHT
+                        __global const REAL* vlight,  // [P, 6]
+#endif
                         __global const int* face_id,  // [P]
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
@@ -77,15 +99,32 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         __global const int* lt_i,     // [L, 4] (type, offset, a, b)
                         __global const REAL* lt_f,    // [T]
                         const int L,
+#ifdef HAS_VIS
                         const int NV,                 // shadowed lights (columns of vis)
-                        const int has_vis,
-                        __global const REAL* vis,     // [P, NV]  (has_vis)
-                        const int has_refl,
-                        __global const REAL* refl,    // [P, 3]   (has_refl)
-                        const int has_eye,
-                        __global const REAL* eye,     // [P, 3]   (has_eye)
+                        __global const REAL* vis,     // [P, NV]
+#endif
+#ifdef HAS_REFL
+                        __global const REAL* refl,    // [P, 3]
+#endif
+#ifdef HAS_EYE
+                        __global const REAL* eye,     // [P, 3]
+#endif
                         __global REAL* rgb)           // [P, 3]
 {
+#ifndef HAS_VLIGHT
+    __global const REAL* vlight = ABSENT;
+#endif
+#ifndef HAS_VIS
+    const int NV = 0;
+    __global const REAL* vis = ABSENT;
+#endif
+#ifndef HAS_REFL
+    __global const REAL* refl = ABSENT;
+#endif
+#ifndef HAS_EYE
+    __global const REAL* eye = ABSENT;
+#endif
+    const int has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
     if (p >= P) return;
     if (face_id[p] < 0) {
@@ -101,24 +140,14 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
     for (int li = 0; li < L; ++li) {
         const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
         __global const REAL* q = lt_f + off;
-        if (type == LIGHT_AMBIENT) {
-            out += ambient_term(LOAD_RGB(q, 0), m);
-        } else if (type == LIGHT_DIRECTIONAL) {
-            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-            ++jv;
-            out += brdf_direct(N, V, safe_normalize(LOAD_RGB(q, 0)), LOAD_RGB(q, 3) * tv, m);
-        } else if (type == LIGHT_POINT) {
-            const REAL3 w = LOAD_RGB(q, 0) - x;
-            const REAL sc = a ? (REAL)1 / fmax(dot(w, w), POINT_D2_EPS) : (REAL)1;
-            const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-            ++jv;
-            out += brdf_direct(N, V, safe_normalize(w), LOAD_RGB(q, 3) * (sc * tv), m);
-        } else if (type == LIGHT_SH_ENV) {
-            out += env_term(N, V, m, a, q, b);
-        } else if (type == LIGHT_VERTEX_SH) {
-            const REAL3 rad = LOAD_RGB(vlight, 6 * p), wi = LOAD_RGB(vlight, 6 * p + 3);
-            out += brdf_direct(N, V, safe_normalize(wi), rad, m);
-        }
+        const int shadowed = light_casts_shadows(type);
+        const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
+        jv += shadowed;
+        REAL3 Lw, Li;
+        const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
+        if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, Lw, Li, m);
+        else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(Li, m);
+        else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
     }
     if (has_refl) {
         REAL3 s_d, s_g;
@@ -146,7 +175,9 @@ inline void group_sum_store(const REAL* g, const int n, __local REAL* scratch, _
 __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global const REAL* nrm,       // [P, 3]
                         __global const REAL* mat,       // [P, NMAT]
+#ifdef HAS_VLIGHT
                         __global const REAL* vlight,    // [P, 6]
+#endif
                         __global const int* face_id,    // [P]
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
@@ -159,21 +190,43 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         __global REAL* v_pos,           // [P, 3]
                         __global REAL* v_nrm,           // [P, 3]
                         __global REAL* v_mat,           // [P, NMAT]
-                        const int has_vlight,           // 0: v_vlight is a placeholder, not written
+#ifdef HAS_VLIGHT
                         __global REAL* v_vlight,        // [P, 6]
-                        __global REAL* v_light_part,    // [num_groups, T]
-                        __local REAL* scratch,          // [local_size * RED_W]
+#endif
+#ifdef HAS_VIS
                         const int NV,
-                        const int has_vis,
-                        __global const REAL* vis,       // [P, NV]  (has_vis)
-                        const int has_refl,
-                        __global const REAL* refl,      // [P, 3]   (has_refl)
-                        const int has_eye,
-                        __global const REAL* eye,       // [P, 3]   (has_eye)
-                        __global REAL* v_vis,           // [P, NV]  (has_vis)
-                        __global REAL* v_refl,          // [P, 3]   (has_refl)
-                        __global REAL* v_eye)           // [P, 3]   (has_eye)
+                        __global const REAL* vis,       // [P, NV]
+                        __global REAL* v_vis,           // [P, NV]
+#endif
+#ifdef HAS_REFL
+                        __global const REAL* refl,      // [P, 3]
+                        __global REAL* v_refl,          // [P, 3]
+#endif
+#ifdef HAS_EYE
+                        __global const REAL* eye,       // [P, 3]
+                        __global REAL* v_eye,           // [P, 3]
+#endif
+                        __global REAL* v_light_part,    // [num_groups, T]
+                        __local REAL* scratch)          // [local_size * RED_W]
 {
+#ifndef HAS_VLIGHT
+    __global const REAL* vlight = ABSENT;
+    __global REAL* v_vlight = ABSENT;
+#endif
+#ifndef HAS_VIS
+    const int NV = 0;
+    __global const REAL* vis = ABSENT;
+    __global REAL* v_vis = ABSENT;
+#endif
+#ifndef HAS_REFL
+    __global const REAL* refl = ABSENT;
+    __global REAL* v_refl = ABSENT;
+#endif
+#ifndef HAS_EYE
+    __global const REAL* eye = ABSENT;
+    __global REAL* v_eye = ABSENT;
+#endif
+    const int has_vlight = HAVE_VLIGHT, has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
     const int valid = p < P && face_id[p] >= 0;
     const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
@@ -193,7 +246,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
     for (int li = 0; li < L; ++li) {
         const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
         __global const REAL* q = lt_f + off;
-        if (type == LIGHT_SH_ENV) {
+        const int shadowed = light_casts_shadows(type);
+        if (light_term(type) == LIGHT_TERM_SH_ENV) {
             const int nk = (a + 1) * (a + 1);
             REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
             REAL3 gE = (REAL3)(0), gG = (REAL3)(0);
@@ -241,57 +295,19 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
         REAL g[RED_W];
         for (int j = 0; j < RED_W; ++j) g[j] = (REAL)0;
         if (valid) {
-            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0);
-            if (type == LIGHT_AMBIENT) {
-                ambient_term_vjp(LOAD_RGB(q, 0), m, v_o, &v_Li, v_m);
-                g[0] = v_Li.x;
-                g[1] = v_Li.y;
-                g[2] = v_Li.z;
-            } else if (type == LIGHT_DIRECTIONAL) {
-                const REAL3 d = LOAD_RGB(q, 0);
-                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-                brdf_direct_vjp(N, V, safe_normalize(d), LOAD_RGB(q, 3) * tv, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
-                if (has_vis) {
-                    v_vis[p * NV + jv] = dot(v_Li, LOAD_RGB(q, 3));
-                    v_Li *= tv;
-                }
-                const REAL3 v_d = safe_normalize_vjp(d, v_L);
-                g[0] = v_d.x;
-                g[1] = v_d.y;
-                g[2] = v_d.z;
-                g[3] = v_Li.x;
-                g[4] = v_Li.y;
-                g[5] = v_Li.z;
-            } else if (type == LIGHT_POINT) {
-                const REAL3 I = LOAD_RGB(q, 3);
-                const REAL3 w = LOAD_RGB(q, 0) - x;
-                const REAL d2 = dot(w, w);
-                const REAL sc = a ? (REAL)1 / fmax(d2, POINT_D2_EPS) : (REAL)1;
-                const REAL tv = has_vis ? vis[p * NV + jv] : (REAL)1;
-                brdf_direct_vjp(N, V, safe_normalize(w), I * (sc * tv), m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
-                if (has_vis) {
-                    v_vis[p * NV + jv] = dot(v_Li, I * sc);
-                    v_Li *= tv;
-                }
-                REAL3 v_w = safe_normalize_vjp(w, v_L);
-                if (a && d2 > POINT_D2_EPS) v_w -= (REAL)2 * w * (dot(I, v_Li) * sc * sc);
-                v_x -= v_w;
-                g[0] = v_w.x;
-                g[1] = v_w.y;
-                g[2] = v_w.z;
-                g[3] = v_Li.x * sc;
-                g[4] = v_Li.y * sc;
-                g[5] = v_Li.z * sc;
-            } else if (type == LIGHT_VERTEX_SH) {
-                const REAL3 wi = LOAD_RGB(vlight, 6 * p + 3);
-                brdf_direct_vjp(N, V, safe_normalize(wi), LOAD_RGB(vlight, 6 * p), m, v_o, &v_N, &v_V, &v_L, &v_Li,
-                                v_m);
-                v_rad += v_Li;
-                v_wi += safe_normalize_vjp(wi, v_L);
-            }
+            REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0), Lw, Li;
+            const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
+            const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
+            if (term == LIGHT_TERM_DIRECT)
+                brdf_direct_vjp(N, V, Lw, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
+            else if (term == LIGHT_TERM_AMBIENT)
+                ambient_term_vjp(Li, m, v_o, &v_Li, v_m);
+            REAL v_tv = (REAL)0;
+            light_incident_vjp(type, a, q, x, vlight, p, tv, has_vis, v_L, v_Li, g, &v_x, &v_rad, &v_wi, &v_tv);
+            if (has_vis && shadowed) v_vis[p * NV + jv] = v_tv;
         }
-        if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT) ++jv;
-        const int n = light_nparams(type, a);
+        jv += shadowed;
+        const int n = (li + 1 < L ? lt_i[4 * (li + 1) + 1] : T) - off;  /* this light's parameter count */
         if (n > 0) group_sum_store(g, n, scratch, part + off);
     }
     if (has_refl && p < P) {

@@ -56,11 +56,10 @@
  */
 #include "real.h"
 #include "shade_math.h"
-#include "sh.h"
-#include "shade_brdf.h"
 #include "ray_math.h"
 
 #pragma OPENCL FP_CONTRACT OFF
+#include "lights.h"
 
 #ifndef TILE
 #define TILE 8
@@ -165,28 +164,29 @@ __kernel void trace_primary(__global const REAL* nodes,       // [2P - 1, 6]
     }
 }
 
-/* The shadow ray of light li for a fragment at x: direction d (unnormalised), [tmin, tmax]. */
+/* The shadow ray of light li (a shadow caster: one column j of vis) for a fragment at x: direction d
+ * (unnormalised), [tmin, tmax] (lights.h); 0 when the light has no ray here (T = 1, no hits). */
 inline int shadow_ray(__global const int* lt_i, __global const REAL* lt_f, const int li, const REAL3 x,
                       const REAL eps, REAL3* d, REAL* tmin, REAL* tmax)
 {
-    const int type = lt_i[4 * li], off = lt_i[4 * li + 1];
-    __global const REAL* q = lt_f + off;
-    const REAL3 a = (REAL3)(q[0], q[1], q[2]);
-    if (type == LIGHT_POINT) {
-        *d = a - x;
-        const REAL len = length(*d);
-        *tmin = eps / fmax(len, (REAL)1e-30);
-        *tmax = (REAL)1 - *tmin;
-        return 1;
-    }
-    if (type == LIGHT_DIRECTIONAL) {
-        *d = a;
-        *tmin = eps / fmax(length(a), (REAL)1e-30);
-        *tmax = (REAL)1e30;
-        return 1;
-    }
-    return 0;
+    *d = (REAL3)(0);
+    *tmin = *tmax = (REAL)0;
+    return light_shadow_ray(lt_i[4 * li], lt_f + lt_i[4 * li + 1], x, eps, d, tmin, tmax);
 }
+
+/* Shadow rays skip lights behind the shading normal when the kernel is built with HAS_NRM (the
+ * fragments' normals, the camera centre and two_sided are then parameters); without, every ray is
+ * traced (the normal inputs are absent). */
+#ifdef HAS_NRM
+#define HAVE_NRM 1
+#define NO_NRM_INPUTS
+#else
+#define HAVE_NRM 0
+#define NO_NRM_INPUTS                                                                                 \
+    __global const REAL* nrm = (__global const REAL*)0;                                              \
+    const REAL cx = (REAL)0, cy = (REAL)0, cz = (REAL)0;                                             \
+    const int two_sided = 0;
+#endif
 
 /* shade.cl's shading normal: normalised, flipped towards the camera when two_sided (N only matters
  * through the sign of N.L: a light behind the surface contributes 0 whatever its transmittance). */
@@ -215,8 +215,10 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3] fragment positions
                                __global const int* face,     // [Pf] fragment face ids
-                               __global const REAL* nrm,     // [Pf, 3] fragment normals (has_nrm)
-                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#ifdef HAS_NRM
+                               __global const REAL* nrm,     // [Pf, 3] fragment normals
+                               const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#endif
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -224,6 +226,8 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global REAL* vis,           // [Pf, NV]
                                __global int* nhit)           // [Pf, NV]
 {
+    NO_NRM_INPUTS
+    const int has_nrm = HAVE_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -233,8 +237,10 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
-        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
-        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
+        const int type = lt_i[4 * li];
+        if (!light_casts_shadows(type)) continue;
+        const int ray = shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax);
+        const int lit = ray && (!has_nrm || dot(N, safe_normalize(d)) > (REAL)0);
         const REAL3 inv = ray_inv_dir(d);
         REAL T = (REAL)1;
         int n = 0;
@@ -275,8 +281,10 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                const int C, const int ca,
                                __global const REAL* pos,     // [Pf, 3]
                                __global const int* face,     // [Pf]
-                               __global const REAL* nrm,     // [Pf, 3] (has_nrm)
-                               const int has_nrm, const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#ifdef HAS_NRM
+                               __global const REAL* nrm,     // [Pf, 3]
+                               const REAL cx, const REAL cy, const REAL cz, const int two_sided,
+#endif
                                const int Pf,
                                __global const int* lt_i,     // [L, 4]
                                __global const REAL* lt_f,    // [T]
@@ -289,6 +297,8 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                                __global REAL* v_x,           // [Pf, 3]  fragment position adjoint
                                __global REAL* v_light)       // [Pf, NV, 3] light position / direction
 {
+    NO_NRM_INPUTS
+    const int has_nrm = HAVE_NRM;
     const int p = get_global_id(0);
     if (p >= Pf) return;
     const REAL3 x = LOAD3(pos, p);
@@ -299,9 +309,10 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
     for (int li = 0; li < L; ++li) {
         REAL3 d;
         REAL tmin, tmax;
-        if (!shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax)) continue;
-        const int lit = !has_nrm || dot(N, safe_normalize(d)) > (REAL)0;
-        const int is_point = lt_i[4 * li] == LIGHT_POINT;
+        const int type = lt_i[4 * li];
+        if (!light_casts_shadows(type)) continue;
+        const int ray = shadow_ray(lt_i, lt_f, li, x, eps, &d, &tmin, &tmax);
+        const int lit = ray && (!has_nrm || dot(N, safe_normalize(d)) > (REAL)0);
         const REAL3 inv = ray_inv_dir(d);
         const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
         REAL3 gd = (REAL3)(0);
@@ -345,7 +356,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                 gd += vd;
             }
         }
-        if (is_point) gx -= gd;
+        if (light_shadow_ray_from_x(type)) gx -= gd;
         STORE3(gd, v_light, p * NV + j);
         ++j;
     }
@@ -498,13 +509,22 @@ __kernel void gather_hits(__global const REAL* attr,      // [N, C]
  * colour has no weight and no gradient), else its face id. */
 __kernel void ray_mask(__global const int* face,       // [Pv] compacted face ids
                        __global const REAL* alpha,     // [Pv]
-                       __global const REAL* win,       // [Pv] (has_win)
-                       const int has_win,
+#ifdef HAS_WIN
+                       __global const REAL* win,       // [Pv] coverage window
+#endif
                        __global const int* frag_count, // [H, W]
                        __global const int* offsets,    // [H W + 1]
                        const int npix, const REAL t_min,
                        __global int* out)              // [Pv]
 {
+#ifndef HAS_WIN
+    __global const REAL* win = (__global const REAL*)0;
+#endif
+#ifdef HAS_WIN
+    const int has_win = 1;
+#else
+    const int has_win = 0;
+#endif
     const int pix = get_global_id(0);
     if (pix >= npix) return;
     const int o = offsets[pix], c = frag_count[pix];

@@ -54,3 +54,23 @@ def test_launch_binds_by_name(device, rng):
         launch(device, "project", "project_fwd", *grid_1d(n), vs=out, n=n, m=n, cam=cp, V=Vw)
     with pytest.raises(ValueError, match="not found"):
         kernel_params("project", "no_such_kernel")
+
+
+def test_kernel_memo_by_defines(device):
+    """Device.kernel memoises by the defines (any order); False (omitted) and 0 (defined) stay apart."""
+    from triplet_cl.lights import kernel_defines
+    from triplet_cl.materials import get_brdf
+    from triplet_cl.ops.common import kernel_params
+
+    base = {"ENV_MAX_DEG": 2, "RED_W": 16, "HAS_VLIGHT": False, "HAS_VIS": False, "HAS_REFL": False,
+            **get_brdf("cook_torrance").kernel_defines(), **kernel_defines()}
+    a = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": False})
+    b = device.kernel("shade", "shade_fwd", dict(reversed(list({**base, "HAS_EYE": False}.items()))))
+    assert a is b
+    c = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": True})
+    assert c is not a
+    d = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": 0})  # -DHAS_EYE=0 defines it
+    assert d is not a
+    defined = frozenset(k for k, v in base.items() if v is not False) | {"HAS_EYE"}
+    names = [p.name for p in kernel_params("shade", "shade_fwd", defined)]
+    assert names[-2:] == ["eye", "rgb"] and "vis" not in names

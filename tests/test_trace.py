@@ -209,8 +209,8 @@ def test_shade_visibility_and_reflection_adjoints(device64, rng):
     _, dev, inp = f(vis, refl, mat)
     import pyopencl.array as cla
 
-    out = shade_op.backward_full(dev, inp, cla.to_device(dev.queue, v_rgb))
-    v_mat, v_vis, v_refl = out[2].get(), out[5].get(), out[6].get()
+    out = shade_op.backward(dev, inp, cla.to_device(dev.queue, v_rgb))
+    v_mat, v_vis, v_refl = out.v_mat.get(), out.v_vis.get(), out.v_refl.get()
     eps = 1e-6
     for name, x, g in (("vis", vis, v_vis), ("refl", refl, v_refl), ("mat", mat, v_mat)):
         for i in rng.choice(x.size, 12, replace=False):

@@ -1,4 +1,4 @@
-"""Activations of the raw parameters (DESIGN.md section 5) with their adjoints.
+"""Activations of the raw parameters (docs/ARCHITECTURE.md §8) with their adjoints.
 
 Each activation ``y = f(x)`` has a forward ``f(x)``, an adjoint ``f_bwd(..., v_y) -> v_x`` and a tape
 :class:`~triplet_cl.autodiff.Function` (``Sigmoid()``, ``Softplus()``, ``Exp()``, ``Normalize()``).
@@ -58,6 +58,23 @@ def softplus(x):
 def softplus_bwd(x, v_y):
     """Adjoint of :func:`softplus` given its input ``x [...]`` and ``v_y [...]``: ``v_x [...]``."""
     return v_y * sigmoid(x)
+
+
+# ---- inverses (host, float64): raw values from activated ones ------------------------------------
+def logit(p, eps: float | None = 1e-6):
+    """Inverse of :func:`sigmoid`, ``[...] → [...]`` float64: ``log(p) − log1p(−p)``, with ``p``
+    clipped to ``[eps, 1 − eps]`` first (``eps=None``: the caller has clipped it)."""
+    p = np.asarray(p, np.float64)
+    if eps is not None:
+        p = np.clip(p, eps, 1 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+def inverse_softplus(y, floor: float = 1e-12, linear_above: float = 20.0):
+    """Inverse of :func:`softplus`, ``[...] → [...]`` float64: ``log(expm1(y))`` on ``y`` clipped to
+    ``[floor, linear_above]``, and ``y`` itself above ``linear_above`` (where they agree to rounding)."""
+    y = np.asarray(y, np.float64)
+    return np.where(y > linear_above, y, np.log(np.expm1(np.clip(y, floor, linear_above))))
 
 
 # ---- exp ----------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Adaptive density control of the triangle soup (DESIGN.md section 5): split, clone, prune, alpha reset.
+"""Adaptive density control of the triangle soup (docs/ARCHITECTURE.md §8): split, clone, prune, alpha reset.
 
 Everything here runs on the host (numpy, vectorised over faces) between optimisation steps.
 
@@ -53,7 +53,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from .activations import inverse_softplus, logit
 from .autodiff.arrays import to_host
+from .materials import DEFAULT_BRDF, get_brdf
 from .optim import owning_groups
 
 __all__ = [
@@ -85,7 +87,7 @@ _MID_PAIRS = np.array([[0, 1], [1, 2], [2, 0]], dtype=np.int64)
 
 @dataclass
 class DensityConfig:
-    """Settings of density control (defaults: the method's values for objects, DESIGN.md §5)."""
+    """Settings of density control (defaults: the method's values for objects, docs/ARCHITECTURE.md §8)."""
 
     interval: int = 100  # densify every `interval` iterations ...
     densify_from: int = 500  # ... strictly after this iteration ...
@@ -288,12 +290,11 @@ def check_soup(scene) -> int:
 
 
 def _logit(p):
-    return np.log(p) - np.log1p(-p)
+    return logit(p, eps=None)
 
 
 def _inv_softplus(y):
-    y = np.maximum(y, 1e-300)
-    return np.where(y > 30.0, y, np.log(np.expm1(np.minimum(y, 30.0))))
+    return inverse_softplus(y, floor=1e-300, linear_above=30.0)
 
 
 def _midpoints(X, space: str, kind: str, brdf: str) -> np.ndarray:
@@ -304,13 +305,13 @@ def _midpoints(X, space: str, kind: str, brdf: str) -> np.ndarray:
         return mid
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     act = _logit(np.clip(0.5 * (expit(a) + expit(b)), 1e-300, 1.0 - 1e-16))
-    if kind == "material" and brdf == "blinn_phong":  # shininess (column 6) is softplus
-        sp = np.logaddexp(0.0, a[..., 6]) + np.logaddexp(0.0, b[..., 6])
-        act[..., 6] = _inv_softplus(0.5 * sp)
+    for j in get_brdf(brdf).softplus_columns if kind == "material" else ():  # e.g. Blinn-Phong shininess
+        sp = np.logaddexp(0.0, a[..., j]) + np.logaddexp(0.0, b[..., j])
+        act[..., j] = _inv_softplus(0.5 * sp)
     return np.clip(act, lo, hi)  # the activated midpoint lies between the corners; clip rounding
 
 
-def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = "cook_torrance") -> np.ndarray:
+def split_faces(X, space: str = "raw", kind: str = "linear", brdf: str = DEFAULT_BRDF) -> np.ndarray:
     """Children of midpoint subdivision: ``X [S, 3, ...]`` per-corner values of S parents →
     ``[S, 4, 3, ...]`` per-corner values of their 4 children (:data:`CHILDREN`). Corner vertices are
     copied exactly; midpoints are linear on the raw values (``space="raw"``) or, for ``kind`` in

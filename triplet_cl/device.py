@@ -1,6 +1,6 @@
 """The OpenCL device layer: device selection, one object holding context, queue and program cache.
 
-Selection order (DESIGN.md section 3):
+Selection order (docs/ARCHITECTURE.md §4):
 
 1. an explicit specification (``--device`` on the command line, the ``spec`` argument here),
 2. else the ``TRIPLET_DEVICE`` environment variable,
@@ -218,6 +218,7 @@ class Device:
         self.fp64 = info.fp64
         self._programs: dict[tuple[str, tuple[str, ...]], cl.Program] = {}
         self._kernels: dict[tuple[str, tuple[str, ...], str], cl.Kernel] = {}
+        self._by_defines: dict[tuple, cl.Kernel] = {}
         self._lock = threading.Lock()
         self.build_count = 0
         self._cache: dict = {}
@@ -293,12 +294,19 @@ class Device:
 
     def kernel(self, name: str, kernel_name: str, defines: dict | None = None, real=np.float32) -> cl.Kernel:
         """The ``cl.Kernel`` ``kernel_name`` of ``kernels_cl/<name>.cl`` (fetched once, reused)."""
+        # bool values are keyed apart from ints: False omits a define, 0 defines it as 0
+        fast = (name, kernel_name, real, tuple(sorted((k, v, type(v) is bool) for k, v in defines.items()))
+                if defines else ())
+        k = self._by_defines.get(fast)  # skips formatting the options on every fetch (many defines)
+        if k is not None:
+            return k
         opts = self.build_options(defines, real)
         key = (name, opts, kernel_name)
         k = self._kernels.get(key)
         if k is None:
             k = cl.Kernel(self.program(name, defines, real), kernel_name)
             self._kernels[key] = k
+        self._by_defines[fast] = k
         return k
 
     def cached(self, key, factory):

@@ -26,16 +26,87 @@ Light table (one compiled kernel covers any mix):
     ``params [T]``: the lights' parameters, concatenated in the order of the table above
         (SH env: ``coeffs`` flattened channel-major, ``[3, (D+1)^2]``).
 ``unpack_gradients`` turns the ``[T]`` gradient of ``params`` into one dict per light.
+
+One definition per light (the emitter-plugin idea of Mitsuba at this scale): each class, registered
+with :func:`register_light`, owns its type id (``TYPE``), its C name (``DEFINE``: ``LIGHT_<DEFINE>``
+in the kernels), its CLI kind (``KIND``), whether it casts ray-traced shadows (``CASTS_SHADOWS``),
+its learnable parameters (``PARAMS``, packed in that order, shapes from the instance), the two
+table integers (:meth:`Light.table_ints`), the parameters that get no gradient
+(:meth:`Light.inactive_mask`), its JSON form, its glTF punctual form (:meth:`Light.gltf_punctual`)
+and its initial value in training (:meth:`Light.initial`). The kernels get the ids and the
+shadow-casting set as generated ``-D`` defines (:func:`kernel_defines`);
+``kernels_cl/common/lights.h`` holds each light's incident radiance, its adjoint and its shadow ray.
+
+Adding a light: its class here (``@register_light``), its branches in ``kernels_cl/common/lights.h``,
+its reference in ``tests/reference/shade.py`` (and ``tests/reference/trace.py`` if it casts shadows).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = 0, 1, 2, 3, 4
 MAX_SH_DEGREE = 8
+
+#: type id -> class, in id order (filled by :func:`register_light`)
+LIGHT_TYPES: dict[int, type] = {}
+#: class name (the ``"type"`` of ``lights.json``) -> class
+LIGHT_CLASSES: dict[str, type] = {}
+#: CLI / config kind (``"point"``, ...) -> class
+LIGHT_KINDS: dict[str, type] = {}
+_DEFINES: dict[str, int] = {}  # kernel_defines(), cleared by register_light
+
+
+def register_light(cls):
+    """Class decorator: add a light class to the registries (unique ``TYPE``, ``DEFINE``, ``KIND``)."""
+    for attr in ("TYPE", "DEFINE", "KIND", "CASTS_SHADOWS", "PARAMS"):
+        if attr not in vars(cls) and not hasattr(cls, attr):
+            raise TypeError(f"light class {cls.__name__} must define {attr}")
+    if cls.CASTS_SHADOWS and cls.SHADOW_RAY_PARAM not in cls.PARAMS:
+        raise TypeError(f"light class {cls.__name__} casts shadows: SHADOW_RAY_PARAM must name one of {cls.PARAMS}")
+    if cls.TYPE in LIGHT_TYPES or cls.KIND in LIGHT_KINDS or cls.__name__ in LIGHT_CLASSES:
+        raise ValueError(f"light class {cls.__name__}: TYPE {cls.TYPE} / KIND {cls.KIND!r} already registered")
+    if any(c.DEFINE == cls.DEFINE for c in LIGHT_TYPES.values()):
+        raise ValueError(f"light class {cls.__name__}: DEFINE {cls.DEFINE!r} already registered")
+    LIGHT_TYPES[cls.TYPE] = cls
+    LIGHT_CLASSES[cls.__name__] = cls
+    LIGHT_KINDS[cls.KIND] = cls
+    _DEFINES.clear()
+    return cls
+
+
+def is_light(obj) -> bool:
+    """Whether ``obj`` is an instance of a registered light class (or of a subclass of one)."""
+    return isinstance(obj, tuple(LIGHT_TYPES.values()))
+
+
+def shadow_casting_types() -> tuple[int, ...]:
+    """Type ids of the lights that cast ray-traced shadows (columns of ``vis`` in the shading op)."""
+    return tuple(t for t, c in sorted(LIGHT_TYPES.items()) if c.CASTS_SHADOWS)
+
+
+def kernel_defines() -> dict[str, int]:
+    """The ``-D`` defines every kernel that reads a light table is built with: ``LIGHT_<DEFINE>`` =
+    type id per light, ``LIGHT_SHADOW_MASK`` = bit ``1 << id`` set for the shadow casters.
+    (Computed once per registry state; a copy is returned.)"""
+    if not _DEFINES:
+        _DEFINES.update({f"LIGHT_{c.DEFINE}": t for t, c in sorted(LIGHT_TYPES.items())})
+        _DEFINES["LIGHT_SHADOW_MASK"] = sum(1 << t for t in shadow_casting_types())
+    return dict(_DEFINES)
+
+
+@dataclass(frozen=True)
+class LightInit:
+    """What the training set-up knows when it places the initial lights (:meth:`Light.initial`)."""
+
+    center: np.ndarray  # [3] the point the cameras look at
+    extent: float  # scene extent (world units)
+    up: np.ndarray  # [3] unit mean camera up direction
+    sh_degree: int  # max SH degree of SH lights
+    rng: np.random.Generator
 
 
 def _vec3(name: str, v) -> np.ndarray:
@@ -47,36 +118,146 @@ def _vec3(name: str, v) -> np.ndarray:
     return a
 
 
+class Light:
+    """Base of the light classes (dataclasses): the generic packing, unpacking and JSON form.
+
+    Class attributes a light defines: ``TYPE`` (int id in the light table), ``DEFINE`` (C name:
+    ``LIGHT_<DEFINE>``), ``KIND`` (CLI name), ``CASTS_SHADOWS`` (bool) with ``SHADOW_RAY_PARAM`` (the
+    3-vector parameter the shadow ray's adjoint belongs to, see ``lights.h``), ``PARAMS`` (names of
+    its learnable array fields, packed in that order), ``NEEDS_VLIGHT`` (reads the per-fragment
+    ``vlight``).
+    """
+
+    TYPE: ClassVar[int]
+    DEFINE: ClassVar[str]
+    KIND: ClassVar[str]
+    CASTS_SHADOWS: ClassVar[bool] = False
+    SHADOW_RAY_PARAM: ClassVar[str | None] = None
+    PARAMS: ClassVar[tuple[str, ...]] = ()
+    NEEDS_VLIGHT: ClassVar[bool] = False
+
+    def param_shapes(self) -> dict[str, tuple[int, ...]]:
+        """``{name: shape}`` of the learnable parameters, in packing order."""
+        return {n: np.shape(getattr(self, n)) for n in self.PARAMS}
+
+    @property
+    def num_params(self) -> int:
+        return int(sum(int(np.prod(s)) for s in self.param_shapes().values()))
+
+    def flat_params(self) -> np.ndarray:
+        """The parameters, concatenated (each flattened row-major): ``[num_params]`` float64."""
+        if not self.PARAMS:
+            return np.zeros(0)
+        return np.concatenate([np.asarray(getattr(self, n), np.float64).reshape(-1) for n in self.PARAMS])
+
+    def _split(self, flat: np.ndarray) -> dict[str, np.ndarray]:
+        out, off = {}, 0
+        for n, shape in self.param_shapes().items():
+            k = int(np.prod(shape))
+            out[n] = np.asarray(flat[off:off + k]).reshape(shape).copy()
+            off += k
+        return out
+
+    def table_ints(self) -> tuple[int, int]:
+        """The light table's ``(a, b)`` integers of this light (see the module docstring)."""
+        return 0, 0
+
+    def param_offset(self, name: str) -> int:
+        """Offset of parameter ``name`` in this light's packed parameters."""
+        off = 0
+        for n, shape in self.param_shapes().items():
+            if n == name:
+                return off
+            off += int(np.prod(shape))
+        raise KeyError(f"{type(self).__name__} has no parameter {name!r} (parameters: {self.PARAMS})")
+
+    def inactive_mask(self) -> np.ndarray:
+        """``[num_params]`` bool: parameters that get no gradient."""
+        return np.zeros(self.num_params, bool)
+
+    def sh_degree_needed(self) -> int:
+        """Largest SH degree the kernels evaluate for this light (-1: none)."""
+        return -1
+
+    def with_params(self, flat: np.ndarray):
+        """A copy of this light with its parameters read from ``flat [num_params]`` (other fields kept)."""
+        return dataclasses.replace(self, **self._split(np.asarray(flat, np.float64)))
+
+    def split_gradient(self, g: np.ndarray) -> dict[str, np.ndarray]:
+        """``{parameter name: gradient}`` of this light from its slice ``g [num_params]`` of the packed gradient."""
+        return self._split(g)
+
+    def gltf_punctual(self):
+        """``(glTF KHR_lights_punctual type, its 3-vector: position or direction, rgb intensity)``, or
+        None when the light has no punctual glTF equivalent (``mesh.export.punctual_lights``)."""
+        return None
+
+    def to_json(self) -> dict:
+        """``{"type": class name, field: value (lists)}`` (the format of ``lights.json``)."""
+        d = {"type": type(self).__name__}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            d[f.name] = v.tolist() if isinstance(v, np.ndarray) else v
+        return d
+
+    @classmethod
+    def initial(cls, init: LightInit):
+        """The method's initial light of this kind in training (placed from the cameras)."""
+        raise NotImplementedError
+
+
+@register_light
 @dataclass
-class AmbientLight:
+class AmbientLight(Light):
     """Constant ambient radiance ``color`` (rgb); shading adds ``La * albedo * ao`` / ``La * ka``."""
 
     color: np.ndarray = field(default_factory=lambda: np.ones(3))
 
-    TYPE = AMBIENT
-    PARAMS = ("color",)
+    TYPE: ClassVar[int] = 0
+    DEFINE: ClassVar[str] = "AMBIENT"
+    KIND: ClassVar[str] = "ambient"
+    PARAMS: ClassVar[tuple[str, ...]] = ("color",)
 
     def __post_init__(self):
         self.color = _vec3("AmbientLight.color", self.color)
 
+    @classmethod
+    def initial(cls, init: LightInit) -> AmbientLight:
+        """Dim ambient light (0.1)."""
+        return cls(np.full(3, 0.1))
 
+
+@register_light
 @dataclass
-class DirectionalLight:
+class DirectionalLight(Light):
     """Distant light arriving from ``direction`` (surface → light) with rgb ``intensity``."""
 
     direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     intensity: np.ndarray = field(default_factory=lambda: np.ones(3))
 
-    TYPE = DIRECTIONAL
-    PARAMS = ("direction", "intensity")
+    TYPE: ClassVar[int] = 1
+    DEFINE: ClassVar[str] = "DIRECTIONAL"
+    KIND: ClassVar[str] = "directional"
+    CASTS_SHADOWS: ClassVar[bool] = True
+    SHADOW_RAY_PARAM: ClassVar[str | None] = "direction"
+    PARAMS: ClassVar[tuple[str, ...]] = ("direction", "intensity")
 
     def __post_init__(self):
         self.direction = _vec3("DirectionalLight.direction", self.direction)
         self.intensity = _vec3("DirectionalLight.intensity", self.intensity)
 
+    def gltf_punctual(self):
+        return "directional", self.direction, self.intensity
 
+    @classmethod
+    def initial(cls, init: LightInit) -> DirectionalLight:
+        """From the cameras' mean up direction, intensity 1."""
+        return cls(init.up, np.full(3, 1.0))
+
+
+@register_light
 @dataclass
-class PointLight:
+class PointLight(Light):
     """Point light at ``position`` with rgb ``intensity``; ``falloff`` divides by the squared distance
     (clamped below at 1e-6). ``falloff`` is not differentiable."""
 
@@ -84,17 +265,35 @@ class PointLight:
     intensity: np.ndarray = field(default_factory=lambda: np.ones(3))
     falloff: bool = True
 
-    TYPE = POINT
-    PARAMS = ("position", "intensity")
+    TYPE: ClassVar[int] = 2
+    DEFINE: ClassVar[str] = "POINT"
+    KIND: ClassVar[str] = "point"
+    CASTS_SHADOWS: ClassVar[bool] = True
+    SHADOW_RAY_PARAM: ClassVar[str | None] = "position"
+    PARAMS: ClassVar[tuple[str, ...]] = ("position", "intensity")
 
     def __post_init__(self):
         self.position = _vec3("PointLight.position", self.position)
         self.intensity = _vec3("PointLight.intensity", self.intensity)
         self.falloff = bool(self.falloff)
 
+    def table_ints(self) -> tuple[int, int]:
+        return int(self.falloff), 0
 
+    def gltf_punctual(self):
+        """A point light without falloff has no glTF equivalent."""
+        return ("point", self.position, self.intensity) if self.falloff else None
+
+    @classmethod
+    def initial(cls, init: LightInit) -> PointLight:
+        """Above the scene (0.6 extent along up, jittered by 0.3 extent), intensity extent²."""
+        e = init.extent
+        return cls(init.center + 0.6 * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, e * e))
+
+
+@register_light
 @dataclass
-class SHEnvironmentLight:
+class SHEnvironmentLight(Light):
     """Distant environment of radiance ``sum_k coeffs[:, k] Y_k(w)``: ``coeffs [3, (D+1)^2]``, D <= 8.
 
     ``degree`` (default ``D``) is the active degree of the band schedule; coefficients above it are
@@ -106,8 +305,10 @@ class SHEnvironmentLight:
     coeffs: np.ndarray = field(default_factory=lambda: np.array([[np.sqrt(4 * np.pi)]] * 3))
     degree: int | None = None
 
-    TYPE = SH_ENV
-    PARAMS = ("coeffs",)
+    TYPE: ClassVar[int] = 3
+    DEFINE: ClassVar[str] = "SH_ENV"
+    KIND: ClassVar[str] = "sh-env"
+    PARAMS: ClassVar[tuple[str, ...]] = ("coeffs",)
 
     def __post_init__(self):
         c = np.asarray(self.coeffs, dtype=np.float64)
@@ -138,16 +339,45 @@ class SHEnvironmentLight:
         c[:, 0] = np.broadcast_to(np.asarray(radiance, float), 3) * np.sqrt(4 * np.pi)
         return cls(c, degree)
 
+    def table_ints(self) -> tuple[int, int]:
+        return self.degree, self.coeffs.shape[1]
 
+    def inactive_mask(self) -> np.ndarray:
+        """The bands above ``degree``."""
+        mask = np.zeros(self.coeffs.shape, bool)
+        mask[:, (self.degree + 1) ** 2:] = True
+        return mask.reshape(-1)
+
+    def sh_degree_needed(self) -> int:
+        return self.degree
+
+    @classmethod
+    def initial(cls, init: LightInit) -> SHEnvironmentLight:
+        """A constant environment of radiance 0.5 stored with ``sh_degree`` bands, active degree 0."""
+        coeffs = np.zeros((3, (init.sh_degree + 1) ** 2))
+        coeffs[:, 0] = 0.5 / _Y00
+        return cls(coeffs, 0)
+
+
+@register_light
 @dataclass
-class VertexSHLight:
+class VertexSHLight(Light):
     """The per-vertex SH light: the shading op reads ``vlight [P, 6]`` (radiance, direction wi)."""
 
-    TYPE = VERTEX_SH
-    PARAMS = ()
+    TYPE: ClassVar[int] = 4
+    DEFINE: ClassVar[str] = "VERTEX_SH"
+    KIND: ClassVar[str] = "vertex-sh"
+    NEEDS_VLIGHT: ClassVar[bool] = True
+
+    @classmethod
+    def initial(cls, init: LightInit) -> VertexSHLight:
+        return cls()
 
 
-Light = AmbientLight | DirectionalLight | PointLight | SHEnvironmentLight | VertexSHLight
+_Y00 = 0.28209479177387814  # the constant real SH basis function
+#: the type ids (also ``<Class>.TYPE``), kept as module names
+AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
+                                                  SHEnvironmentLight.TYPE, VertexSHLight.TYPE)
 
 
 @dataclass
@@ -159,73 +389,90 @@ class LightTable:
     env_degree: int  # largest active SH degree of the environment lights (-1: none)
     has_vertex_sh: bool
     inactive: np.ndarray  # [T] bool: parameters that get no gradient (inactive SH bands)
+    #: ``[NV]`` offsets into ``params`` of each shadow caster's ``SHADOW_RAY_PARAM`` (light order)
+    shadow_ray_offsets: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def shadowed(self) -> np.ndarray:
+        """Indices (in light order) of the lights that cast ray-traced shadows: ``[NV]``."""
+        if not len(self.ints):
+            return np.zeros(0, np.int64)
+        return np.nonzero(np.isin(self.ints[:, 0], shadow_casting_types()))[0]
+
+    @property
+    def num_shadowed(self) -> int:
+        return len(self.shadowed)
 
 
-def _flat(light) -> np.ndarray:
-    if isinstance(light, SHEnvironmentLight):
-        return light.coeffs.reshape(-1)
-    if not light.PARAMS:
-        return np.zeros(0)
-    return np.concatenate([getattr(light, n) for n in light.PARAMS])
+def _check_lights(lights) -> list:
+    lights = list(lights)
+    for i, lt in enumerate(lights):
+        if not is_light(lt):
+            raise ValueError(f"lights[{i}] must be one of the light classes of triplet_cl.lights "
+                             f"({', '.join(LIGHT_CLASSES)}), got {type(lt)}")
+    return lights
 
 
 def pack_lights(lights) -> LightTable:
     """Pack a sequence of lights into a :class:`LightTable`."""
-    lights = list(lights)
+    lights = _check_lights(lights)
     ints = np.zeros((max(len(lights), 1), 4), np.int32)[: len(lights)]
-    chunks, off, env_deg, has_vsh, inactive = [], 0, -1, False, []
+    chunks, off, env_deg, has_vsh, inactive, ray_off = [], 0, -1, False, [], []
     for i, lt in enumerate(lights):
-        if not isinstance(lt, AmbientLight | DirectionalLight | PointLight | SHEnvironmentLight | VertexSHLight):
-            raise ValueError(f"lights[{i}] must be one of the light classes of triplet_cl.lights, got {type(lt)}")
-        flat = _flat(lt)
-        a = b = 0
-        mask = np.zeros(len(flat), bool)
-        if isinstance(lt, PointLight):
-            a = int(lt.falloff)
-        elif isinstance(lt, SHEnvironmentLight):
-            a, b = lt.degree, lt.coeffs.shape[1]
-            env_deg = max(env_deg, lt.degree)
-            mask = np.zeros(lt.coeffs.shape, bool)
-            mask[:, (lt.degree + 1) ** 2:] = True
-            mask = mask.reshape(-1)
-        elif isinstance(lt, VertexSHLight):
-            has_vsh = True
+        flat = lt.flat_params()
+        a, b = lt.table_ints()
+        env_deg = max(env_deg, lt.sh_degree_needed())
+        has_vsh = has_vsh or lt.NEEDS_VLIGHT
         ints[i] = (lt.TYPE, off, a, b)
+        if lt.CASTS_SHADOWS:
+            ray_off.append(off + lt.param_offset(lt.SHADOW_RAY_PARAM))
         chunks.append(flat)
-        inactive.append(mask)
+        inactive.append(lt.inactive_mask())
         off += len(flat)
     params = np.concatenate(chunks) if chunks else np.zeros(0)
     inactive = np.concatenate(inactive) if inactive else np.zeros(0, bool)
-    return LightTable(ints, params, env_deg, has_vsh, inactive)
+    return LightTable(ints, params, env_deg, has_vsh, inactive, np.asarray(ray_off, np.int64))
 
 
 def unpack_gradients(lights, v_params: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Split the ``[T]`` gradient of the packed parameters into ``{param name: gradient}`` per light."""
     out, off = [], 0
     for lt in lights:
-        d = {}
-        if isinstance(lt, SHEnvironmentLight):
-            n = lt.coeffs.size
-            d["coeffs"] = np.asarray(v_params[off:off + n]).reshape(lt.coeffs.shape).copy()
-            off += n
-        else:
-            for name in lt.PARAMS:
-                d[name] = np.asarray(v_params[off:off + 3]).copy()
-                off += 3
-        out.append(d)
+        n = lt.num_params
+        out.append(lt.split_gradient(np.asarray(v_params[off:off + n])))
+        off += n
     return out
 
 
-LIGHT_CLASSES = {c.__name__: c for c in (AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight,
-                                          VertexSHLight)}
+def unpack_lights(lights, params: np.ndarray) -> list:
+    """The lights with their parameters read from the packed ``params [T]`` (other fields kept): the
+    inverse of :func:`pack_lights` for a table built from ``lights``."""
+    out, off = [], 0
+    params = np.asarray(params, np.float64)
+    for lt in lights:
+        n = lt.num_params
+        out.append(lt.with_params(params[off:off + n]))
+        off += n
+    return out
 
 
 def light_to_json(light) -> dict:
     """``{"type": class name, field: value (lists)}`` of a light (the format of ``lights.json``)."""
-    d = {"type": type(light).__name__}
-    for k, v in vars(light).items():
-        d[k] = v.tolist() if isinstance(v, np.ndarray) else v
-    return d
+    return light.to_json()
+
+
+def lights_to_json(lights, check_finite: bool = True) -> dict:
+    """``{"lights": [light_to_json(light), ...]}``: the document of ``lights.json``. Checks every
+    light first: a registered light class, and (``check_finite``) finite values."""
+    out = []
+    for i, lt in enumerate(lights):
+        if type(lt).__name__ not in LIGHT_CLASSES:  # its "type" must name a class lights_from_json knows
+            raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
+        for k, v in vars(lt).items() if check_finite else ():
+            if isinstance(v, np.ndarray) and not np.isfinite(v).all():
+                raise ValueError(f"lights[{i}] ({type(lt).__name__}).{k} must be finite, found NaN/Inf")
+        out.append(light_to_json(lt))
+    return {"lights": out}
 
 
 def lights_from_json(items) -> list:
@@ -244,3 +491,11 @@ def lights_from_json(items) -> list:
         except TypeError as exc:
             raise ValueError(f"lights[{i}] ({kind}): {exc}") from None
     return out
+
+
+def initial_lights(kinds, init: LightInit) -> list:
+    """The method's initial lights for a sequence of CLI kinds (:data:`LIGHT_KINDS`), in that order."""
+    bad = [k for k in kinds if k not in LIGHT_KINDS]
+    if bad:
+        raise ValueError(f"light kinds must be among {tuple(LIGHT_KINDS)}, got {bad}")
+    return [LIGHT_KINDS[k].initial(init) for k in kinds]

@@ -36,12 +36,14 @@ from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
 from .autodiff import Function, Tape, Variable, active_tape, to_host
 from .camera import Camera
 from .device import Device, get_device
+from .materials import get_brdf
 from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
 from .ops import trace as trace_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
+from .ops.color import SRGBComposite
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
@@ -50,6 +52,7 @@ from .scene import Scene
 from .topology import silhouette_edges
 
 RENDERERS = ("raster", "raytrace", "hybrid")
+TRANSFERS = (None, "srgb")
 
 
 @dataclass
@@ -72,8 +75,15 @@ class RenderSettings:
     # ray start offset, × the scene's bounding-box diagonal: past the soup's own layer of overlapping triplets
     # (measured on spot_small, hybrid, 800 it.: 1e-4 → 30.45 dB and more baked shadow than raster, 1e-2 → 31.06 dB)
     ray_eps: float = 1e-2
+    # the image formation after compositing: None = the composite of the shaded values over ``background`` is the
+    # image (values in whatever space the scene was fitted in); "srgb" = shading and compositing are linear
+    # radiance (over black), then ``A·s(C/A) + (1−A)·background`` with s the sRGB transfer (ops/color.py): the
+    # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space
+    transfer: str | None = None
 
     def __post_init__(self):
+        if self.transfer not in TRANSFERS:
+            raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if not (np.isfinite(self.ray_eps) and self.ray_eps >= 0):
@@ -150,10 +160,11 @@ class Normals(Function):
 
 
 class MaterialActivation(Function):
-    """Raw ``[N, Cm]`` → activated materials: sigmoid, except Blinn-Phong shininess (softplus)."""
+    """Raw ``[N, Cm]`` → activated materials: sigmoid, except the BRDF's softplus channels
+    (``materials.BRDF.channels``; e.g. Blinn-Phong shininess)."""
 
     def __init__(self, brdf: str):
-        self.softplus_cols = [6] if brdf == "blinn_phong" else []
+        self.softplus_cols = get_brdf(brdf).softplus_columns
 
     def forward(self, ctx, raw):
         y = sigmoid(raw)
@@ -302,7 +313,8 @@ class ShadeFragments(Function):
         P = fr.P
         comp, L = ctx.comp, self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params = shade_op.backward(d, ctx.inp, v_rgb)
+        g = shade_op.backward(d, ctx.inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
@@ -373,32 +385,30 @@ class TracedShadeFragments(ShadeFragments):
         P = fr.P
         comp, L, inp = ctx.comp, self.layout, ctx.inp
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, _ = shade_op.backward_full(d, inp,
-                                                                                       v_rgb)
+        g = shade_op.backward(d, inp, v_rgb)
+        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_attr = np.zeros((ctx.N, ctx.C))
         if ctx.shadow is not None:
-            v_al, v_Vo, v_x, v_light = trace_op.shadow_backward(d, v.bvh, ctx.shadow, v_vis)
-            v_attr[:, L["alpha"][0]] += v_al
-            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += v_Vo
-            v_pos = v_pos + v_x
-            shadowed = np.nonzero(np.isin(inp.table.ints[:, 0], trace_op.SHADOWED_TYPES))[0]
-            for j, li in enumerate(shadowed):  # position (point) / direction (directional): params 0..2
-                off = int(inp.table.ints[li, 1])
-                v_params[off:off + 3] += v_light[:, j].sum(axis=0)
+            sg = trace_op.shadow_backward(d, v.bvh, ctx.shadow, g.v_vis)
+            v_attr[:, L["alpha"][0]] += sg.v_alpha
+            v_attr[:, L["pos"][0]:L["pos"][0] + 3] += sg.v_V
+            v_pos = v_pos + sg.v_pos
+            for j, off in enumerate(inp.table.shadow_ray_offsets):  # each caster's SHADOW_RAY_PARAM
+                v_params[off:off + 3] += sg.v_light[:, j].sum(axis=0)
         if ctx.hits is not None:
             hf, hb, hinp, hrgb, ha = ctx.hits
-            g = v_refl.get().astype(np.float64)
-            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(g * ha, s.real))
-            hp, hn, hm, hvl, hpar, _, _, heye = shade_op.backward_full(d, hinp, v_hrgb)
-            v_params = v_params + hpar
+            gr = g.v_refl.get().astype(np.float64)
+            v_hrgb = cla.to_device(d.queue, np.ascontiguousarray(gr * ha, s.real))
+            hg = shade_op.backward(d, hinp, v_hrgb)
+            v_params = v_params + hg.v_light_params
             v_hit = np.zeros((len(hf), ctx.C))
-            for key, gk in (("pos", hp), ("nrm", hn), ("mat", hm), ("vlight", hvl)):
+            for key, gk in (("pos", hg.v_pos), ("nrm", hg.v_nrm), ("mat", hg.v_mat), ("vlight", hg.v_vlight)):
                 if key in L:
                     v_hit[:, L[key][0]:L[key][0] + L[key][1]] = gk.get()
-            v_hit[:, L["alpha"][0]] = (g * hrgb).sum(axis=1)
+            v_hit[:, L["alpha"][0]] = (gr * hrgb).sum(axis=1)
             v_attr += trace_op.scatter_hits(v.mesh.faces, ctx.N, hf, hb, v_hit)
             Vd, attr_d, bpos, bnrm, hf_d, hb_d = ctx.bounce_dev
-            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, heye, v.mesh,
+            bp, bn, bV = trace_op.bounce_backward(d, Vd, attr_d, bpos, bnrm, hf_d, hb_d, v_hit, hg.v_eye, v.mesh,
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV
@@ -427,17 +437,18 @@ def _as_device(d: Device, x, shape, real) -> cla.Array:
 
 
 class Composite(Function):
-    """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])``."""
+    """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])`` over ``background`` (default: the
+    settings' background)."""
 
-    def __init__(self, view: RenderState):
+    def __init__(self, view: RenderState, background=None):
         self.view = view
+        self.bg = np.asarray(view.settings.background if background is None else background, np.float64)
 
     def forward(self, ctx, rgb, alpha, win=None):
         v = self.view
         fr = v.frags
         a = alpha.reshape(fr.P)
-        img, trans, ncon = composite(v.device, fr, rgb, a, np.asarray(v.settings.background, np.float64), win=win,
-                                     t_min=v.settings.t_min)
+        img, trans, ncon = composite(v.device, fr, rgb, a, self.bg, win=win, t_min=v.settings.t_min)
         ctx.save(rgb, a, win, trans, ncon)
         return img, 1.0 - trans
 
@@ -447,8 +458,8 @@ class Composite(Function):
         fr = v.frags
         if _is_zero_scalar(v_acc) or (isinstance(v_acc, np.ndarray) and not v_acc.any()):
             v_acc = None
-        v_feat, v_alpha, v_win, _ = composite_backward(v.device, fr, rgb, a, np.asarray(v.settings.background),
-                                                       ncon, trans, v_img, v_acc, win=win)
+        v_feat, v_alpha, v_win, _ = composite_backward(v.device, fr, rgb, a, self.bg, ncon, trans, v_img, v_acc,
+                                                       win=win)
         out = (v_feat, v_alpha)
         return out + ((v_win,) if win is not None else ())
 
@@ -584,6 +595,10 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(fa, *lp)
         else:
             rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
-        img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
+        if s.transfer == "srgb":  # linear radiance over black, then the photos' encoding and background
+            img, acc = Composite(view, np.zeros(3))(rgb, alpha_f, *([win] if win is not None else []))
+            img = SRGBComposite(d, s.background, s.real)(img, acc)
+        else:
+            img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
         rgba = Stack()(img, acc)
     return RenderResult(rgba, tape, scene, view)

@@ -1,11 +1,11 @@
 """The scene model: a triangle soup (or mesh) with raw per-vertex parameters, and learnable lights.
 
-Parameters are stored raw and activated in the render graph (DESIGN.md §5):
+Parameters are stored raw and activated in the render graph (docs/ARCHITECTURE.md §8):
 
 | parameter | shape | activation | meaning |
 |---|---|---|---|
 | ``V`` | ``[N, 3]`` | — | vertex positions (world) |
-| ``material`` | ``[N, Cm]`` | sigmoid (Blinn-Phong shininess: softplus) | ``ops.shade.MATERIAL_LAYOUT`` |
+| ``material`` | ``[N, Cm]`` | per channel (``materials.BRDF.channels``) | the BRDF's channels |
 | ``alpha`` | ``[N, 1]`` | sigmoid | opacity |
 | ``vertex_sh`` | ``[N, 6, (D+1)²]`` | — | per-vertex SH light (optional) |
 | ``light_params`` | ``[T]`` | — | every light's parameters, packed (``lights.pack_lights``) |
@@ -20,34 +20,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .activations import inverse_softplus, logit  # noqa: F401  (re-exported: their home is activations)
 from .autodiff import Param
-from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, pack_lights
+from .lights import pack_lights, unpack_lights
+from .materials import DEFAULT_BRDF, get_brdf
 from .ops.common import check_faces, check_real
-from .ops.shade import MATERIAL_LAYOUT, num_material_channels
-
-
-def logit(p):
-    """Inverse of the sigmoid, ``[...] → [...]`` (clipped to (1e-6, 1 − 1e-6))."""
-    p = np.clip(np.asarray(p, np.float64), 1e-6, 1 - 1e-6)
-    return np.log(p / (1 - p))
-
-
-def inverse_softplus(y):
-    """Inverse of softplus, ``[...] → [...]``."""
-    y = np.asarray(y, np.float64)
-    return np.where(y > 20, y, np.log(np.expm1(np.maximum(y, 1e-12))))
 
 
 def default_material_raw(n: int, brdf: str) -> np.ndarray:
-    """The method's initial materials, raw: albedo 0.5, roughness 0.9, metallic 0.1, AO 1 (CT);
-    kd 0.5, ks 0.7, ka 0.2, shininess 64 (Blinn-Phong, DESIGN.md §5)."""
-    if brdf == "cook_torrance":
-        act = np.array([0.5, 0.5, 0.5, 0.9, 0.1, 0.99])
-        raw = logit(act)
-    else:
-        raw = logit(np.array([0.5, 0.5, 0.5, 0.7, 0.7, 0.7, 0.5, 0.2, 0.2, 0.2]))
-        raw[6] = inverse_softplus(64.0)
-    return np.tile(raw, (n, 1))
+    """The method's initial materials, raw ``[n, Cm]``: the BRDF descriptor's initial values
+    (``materials.BRDF.initial_raw``; e.g. albedo 0.5, roughness 0.9, metallic 0.1, AO 0.99)."""
+    return get_brdf(brdf).initial_raw(n)
 
 
 @dataclass
@@ -61,11 +44,11 @@ class Scene:
     lights: list = field(default_factory=list)
     light_params: Param | None = None
     vertex_sh: Param | None = None
-    brdf: str = "cook_torrance"
+    brdf: str = DEFAULT_BRDF
 
     @classmethod
     def from_arrays(cls, V, F, *, material=None, alpha=None, lights=None, vertex_sh=None,
-                    brdf: str = "cook_torrance", alpha_init: float = 0.1, dtype=np.float32) -> Scene:
+                    brdf: str = DEFAULT_BRDF, alpha_init: float = 0.1, dtype=np.float32) -> Scene:
         """Build a scene; omitted parameters get the method's initial values.
 
         Args:
@@ -78,9 +61,7 @@ class Scene:
         V = check_real("V", V, (None, 3), dtype)
         n = V.shape[0]
         F = check_faces("F", F, n)
-        if brdf not in MATERIAL_LAYOUT:
-            raise ValueError(f"brdf must be one of {sorted(MATERIAL_LAYOUT)}, got {brdf!r}")
-        cm = num_material_channels(brdf)
+        cm = get_brdf(brdf).num_channels
         mat = default_material_raw(n, brdf) if material is None else material
         mat = check_real("material", mat, (n, cm), dtype)
         al = np.full((n, 1), logit(alpha_init)) if alpha is None else alpha
@@ -109,22 +90,5 @@ class Scene:
 
     def current_lights(self) -> list:
         """The lights with their current (optimised) parameters written back."""
-        out, off = [], 0
-        lp = None if self.light_params is None else np.asarray(self.light_params.data, np.float64)
-        for lt in self.lights:
-            if isinstance(lt, SHEnvironmentLight):
-                n = lt.coeffs.size
-                out.append(SHEnvironmentLight(lp[off:off + n].reshape(lt.coeffs.shape), lt.degree))
-                off += n
-            elif isinstance(lt, AmbientLight):
-                out.append(AmbientLight(lp[off:off + 3]))
-                off += 3
-            elif isinstance(lt, DirectionalLight):
-                out.append(DirectionalLight(lp[off:off + 3], lp[off + 3:off + 6]))
-                off += 6
-            elif isinstance(lt, PointLight):
-                out.append(PointLight(lp[off:off + 3], lp[off + 3:off + 6], lt.falloff))
-                off += 6
-            elif isinstance(lt, VertexSHLight):
-                out.append(VertexSHLight())
-        return out
+        lp = np.zeros(0) if self.light_params is None else np.asarray(self.light_params.data, np.float64)
+        return unpack_lights(self.lights, lp)

@@ -32,16 +32,20 @@ from .density import DensityConfig, DensityStats, densify_and_prune, reorder_fac
 from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
-from .lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
+from .lights import LightInit, lights_to_json
+from .lights import initial_lights as _initial_lights
 from .losses import photometric_loss_and_grad, ssim
+from .materials import DEFAULT_BRDF, get_brdf
 from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
 
-LIGHT_KINDS = ("point", "directional", "ambient", "sh-env", "vertex-sh")
+LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
+COLOR_PIPELINES = ("linear", "encoded")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -51,7 +55,7 @@ class TrainConfig:
 
     iterations: int = 3000  # optimisation steps
     seed: int = 0  # seeds the initial points, view order and random backgrounds
-    brdf: str = "cook_torrance"  # "cook_torrance" or "blinn_phong"
+    brdf: str = DEFAULT_BRDF  # a name of materials.BRDFS
     lights: tuple = ("point", "ambient")  # any mix of LIGHT_KINDS
     sh_degree: int = 2  # max degree of the vertex-SH / SH-environment light
     sh_band_every: int = 1000  # one more SH band every this many iterations (until sh_degree)
@@ -99,6 +103,11 @@ class TrainConfig:
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
     downscale: int = 1  # dataset images reduced by this integer factor at load time
     max_test_views: int | None = None  # evaluate only the first N test views (None: all)
+    # "linear": shading, lights and compositing in linear radiance, the photos' sRGB transfer after compositing
+    # (8/16-bit datasets; linear EXR/HDR datasets skip it), albedo = linear reflectance. "encoded": the renderer
+    # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
+    # this key is such a run)
+    color: str = "linear"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -118,14 +127,14 @@ class TrainConfig:
         for k in ("lights", "betas"):
             if k in d:
                 d[k] = tuple(d[k])
+        d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
         return cls(**d)
 
     def validate(self) -> None:
         bad = [x for x in self.lights if x not in LIGHT_KINDS]
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
-        if self.brdf not in ("cook_torrance", "blinn_phong"):
-            raise ValueError(f"brdf must be cook_torrance or blinn_phong, got {self.brdf!r}")
+        get_brdf(self.brdf)  # ValueError naming the BRDFs
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
@@ -133,6 +142,8 @@ class TrainConfig:
         if self.background_shell < 0 or not self.background_radius > 0:
             raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
                              f"{self.background_radius}")
+        if self.color not in COLOR_PIPELINES:
+            raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
         if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
@@ -194,27 +205,14 @@ def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Genera
 
 
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
-    """The configured lights, placed from the cameras: a point light above the scene, a directional
-    light from the cameras' mean up direction, dim ambient, a constant SH environment."""
+    """The configured lights, placed from the cameras (each light class's ``initial``: a point light
+    above the scene, a directional light from the cameras' mean up direction, dim ambient, a
+    constant SH environment)."""
     c = look_at_center(ds)
     ext = ds.scene_extent()
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
     up = up / (np.linalg.norm(up) + 1e-12)
-    lights = []
-    for kind in cfg.lights:
-        if kind == "point":
-            lights.append(PointLight(c + 0.6 * ext * up + 0.3 * ext * rng.normal(size=3), np.full(3, ext * ext)))
-        elif kind == "directional":
-            lights.append(DirectionalLight(up, np.full(3, 1.0)))
-        elif kind == "ambient":
-            lights.append(AmbientLight(np.full(3, 0.1)))
-        elif kind == "sh-env":
-            coeffs = np.zeros((3, (cfg.sh_degree + 1) ** 2))
-            coeffs[:, 0] = 0.5 / Y00
-            lights.append(SHEnvironmentLight(coeffs, 0))
-        elif kind == "vertex-sh":
-            lights.append(VertexSHLight())
-    return lights
+    return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng))
 
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
@@ -364,6 +362,11 @@ class Trainer:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
 
+    @property
+    def transfer(self) -> str | None:
+        """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos."""
+        return color_transfer(self.cfg.color, self.ds.color_space)
+
     def spatial_sort(self) -> None:
         """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
         V = self.scene.V.data.reshape(-1, 3, 3)
@@ -386,7 +389,7 @@ class Trainer:
         cam, target = self.targets.get(i, scale, np.asarray(bg, np.float32))
         settings = RenderSettings(K=K, sigma=cfg.sigma, background=tuple(float(x) for x in bg),
                                   sh_degree=deg if self.scene.vertex_sh is not None else None,
-                                  renderer=cfg.renderer)
+                                  renderer=cfg.renderer, transfer=self.transfer)
         t0 = time.perf_counter()
         r = render(self.scene, cam, settings, self.device)
         t1 = time.perf_counter()
@@ -528,14 +531,12 @@ class Trainer:
         from .activations import sigmoid
 
         s = self.scene
+        brdf = get_brdf(s.brdf)
         mat = sigmoid(s.material.data.astype(np.float64))
         attrs = {"alpha": sigmoid(s.alpha.data.astype(np.float64))}
-        if s.brdf == "cook_torrance":
-            attrs.update(albedo=mat[:, :3], roughness=mat[:, 3], metallic=mat[:, 4], ao=mat[:, 5])
-        else:
-            attrs.update(albedo=mat[:, :3], ks=mat[:, 3:6], ka=mat[:, 7:10])
+        attrs.update(brdf.split(mat, brdf.bounded_attributes))  # the [0, 1] attributes
         write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs)
-        write_json(self.run_dir / "lights.json", {"lights": [_light_json(lt) for lt in s.current_lights()]})
+        write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
 
     def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:
         """PSNR / SSIM of every view of ``split`` (rendered at full resolution, K after warm-up)."""
@@ -551,7 +552,7 @@ class Trainer:
         bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
                         np.float32)
         settings = RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, background=tuple(bg),
-                                  renderer=self.cfg.renderer,
+                                  renderer=self.cfg.renderer, transfer=self.transfer,
                                   sh_degree=min(self.cfg.sh_degree, self.it // max(self.cfg.sh_band_every, 1))
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
@@ -648,7 +649,9 @@ class Trainer:
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}
-            default = TrainConfig().to_dict()  # a field added since the checkpoint was written: its default matches
+            # a field added since the checkpoint was written: its value when absent from a saved config matches
+            # (its default; "color": "encoded", the pipeline of every run before the field existed)
+            default = TrainConfig.from_dict({}).to_dict()
 
             def same(k):
                 theirs = saved[k] if k in saved else default.get(k)
@@ -686,6 +689,12 @@ class Trainer:
                                  f"this run has {sorted(self.opt.groups)}{extra}")
 
 
+def color_transfer(color: str, color_space: str) -> str | None:
+    """The post-compositing transfer of a run's colour pipeline (``TrainConfig.color``) on a dataset whose
+    images are ``color_space`` (``"srgb"`` or ``"linear"``)."""
+    return "srgb" if color == "linear" and color_space == "srgb" else None
+
+
 def _json_default(o):
     if isinstance(o, np.integer):
         return int(o)
@@ -694,12 +703,6 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(type(o).__name__)
-
-
-def _light_json(lt) -> dict:
-    from .lights import light_to_json
-
-    return light_to_json(lt)
 
 
 def _file_logger(path: Path) -> logging.Logger:

@@ -292,7 +292,7 @@ def validate_args(args) -> None:
         if out:
             check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
                               None if getattr(args, "demo", False) else data)
-    elif cmd in ("render", "eval", "extract", "export"):
+    elif cmd in ("render", "eval", "extract", "export", "relight"):
         writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
         if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
             if not (Path(args.run) / "config.json").is_file():

@@ -1,6 +1,6 @@
 /* shade_brdf.h — the BRDFs and light terms of the shading op, as pairs f() / f_vjp().
  *
- * Compile-time choice: -DBRDF=BRDF_COOK_TORRANCE (default) or -DBRDF=BRDF_BLINN_PHONG.
+ * Compile-time choice: -DBRDF=<id of BRDF_COOK_TORRANCE or BRDF_BLINN_PHONG>, -DNMAT (generated).
  * Material channels per fragment (already activated by the parameter model):
  *   Cook-Torrance (NMAT 6):  albedo r,g,b | roughness r | metallic m | ambient occlusion ao
  *   Blinn-Phong  (NMAT 10):  kd r,g,b | ks r,g,b | shininess s (softplus'd) | ka r,g,b
@@ -14,7 +14,7 @@
  *     F0 = 0.04 (1 - m) + m albedo,  F = F0 + (1 - F0)(1 - hv)^5,
  *     out = [D F G / (4 nv nl + 1e-4) nl + relu(1 - F)(1 - m) albedo / pi nl] Li
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd nl] Li
- *     (the (N.L > 0) gate of DESIGN.md section 5 is the early return)
+ *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return)
  * ambient(La, m):  Cook-Torrance La albedo ao;  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
@@ -38,24 +38,11 @@
 #include "shade_math.h"
 #include "sh.h"
 
-#define BRDF_COOK_TORRANCE 0
-#define BRDF_BLINN_PHONG 1
-#ifndef BRDF
-#define BRDF BRDF_COOK_TORRANCE
+/* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
+ * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
+#if !defined(BRDF) || !defined(NMAT)
+#error "shade_brdf.h needs the BRDF defines of triplet_cl.materials (BRDF.kernel_defines())"
 #endif
-
-#if BRDF == BRDF_COOK_TORRANCE
-#define NMAT 6
-#else
-#define NMAT 10
-#endif
-
-/* light types of the light table (triplet_cl/lights.py) */
-#define LIGHT_AMBIENT 0
-#define LIGHT_DIRECTIONAL 1
-#define LIGHT_POINT 2
-#define LIGHT_SH_ENV 3
-#define LIGHT_VERTEX_SH 4
 
 #define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))
 
@@ -251,7 +238,7 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     v_m[4] += v_met;
 }
 
-#else /* BRDF_BLINN_PHONG ------------------------------------------------------------------- */
+#elif BRDF == BRDF_BLINN_PHONG /* --------------------------------------------------------------- */
 
 inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m)
 {
@@ -338,6 +325,8 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     }
 }
 
+#else
+#error "shade_brdf.h: no block for this BRDF (add its #elif BRDF == BRDF_<NAME> block)"
 #endif /* BRDF */
 
 /* ---- SH environment (shared by both BRDFs through env_scales) ----------------------------- */

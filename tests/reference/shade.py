@@ -10,9 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+
 from . import sh as shref
 
-AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = 0, 1, 2, 3, 4
+# the light-table type ids (a convention of triplet_cl.lights, not maths)
+AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
+                                                  SHEnvironmentLight.TYPE, VertexSHLight.TYPE)
 EPS2 = 1e-20
 POINT_D2_EPS = 1e-6
 
@@ -41,7 +45,7 @@ def safe_pow(x, e):
 
 
 def ct_direct(N, V, L, Li, m):
-    """Cook-Torrance (GGX, Smith/Schlick-GGX, Fresnel-Schlick) per DESIGN.md section 5."""
+    """Cook-Torrance (GGX, Smith/Schlick-GGX, Fresnel-Schlick) per docs/ARCHITECTURE.md §8."""
     alb, r, met = m[:, 0:3], m[:, 3:4], m[:, 4:5]
     nl = dot(N, L)
     on = nl.real > 0

@@ -7,14 +7,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..materials import BRDFS, DEFAULT_BRDF, get_brdf
 from ..ops.common import check_faces, check_real
 
-#: per-vertex attributes each BRDF carries, with their widths (activated values in [0, 1] except
-#: ``shininess`` > 0); ``alpha`` [N] is optional for both.
-ATTRIBUTES = {
-    "cook_torrance": {"albedo": 3, "roughness": 1, "metallic": 1, "ao": 1},
-    "blinn_phong": {"albedo": 3, "ks": 3, "shininess": 1, "ka": 3},
-}
+#: per-vertex attributes each BRDF carries, with their widths (``materials.BRDF.attributes``;
+#: activated values, in [0, 1] for sigmoid channels); ``alpha`` [N] is optional for all.
+ATTRIBUTES = {name: b.attribute_widths for name, b in BRDFS.items()}
 
 
 @dataclass
@@ -26,14 +24,14 @@ class MeshAsset:
             from outside where the orientation is known).
         attributes: ``name -> [N] or [N, k] float32`` activated per-vertex values; the names of
             :data:`ATTRIBUTES` for ``brdf`` are required, ``alpha`` is optional.
-        brdf: ``"cook_torrance"`` or ``"blinn_phong"``.
+        brdf: a name of ``materials.BRDFS``.
         lights: :mod:`triplet_cl.lights` objects with their trained parameters.
     """
 
     V: np.ndarray
     F: np.ndarray
     attributes: dict = field(default_factory=dict)
-    brdf: str = "cook_torrance"
+    brdf: str = DEFAULT_BRDF
     lights: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -66,13 +64,7 @@ class MeshAsset:
         """Activated attributes of a :class:`~triplet_cl.scene.Scene` (soup or mesh), same V and F."""
         from ..activations import sigmoid
 
-        mat = sigmoid(np.asarray(scene.material.data, np.float64))
+        brdf = get_brdf(scene.brdf)
         attrs = {"alpha": sigmoid(np.asarray(scene.alpha.data, np.float64))[:, 0]}
-        if scene.brdf == "cook_torrance":
-            attrs.update(albedo=mat[:, :3], roughness=mat[:, 3], metallic=mat[:, 4], ao=mat[:, 5])
-        else:
-            from ..activations import softplus
-
-            raw = np.asarray(scene.material.data, np.float64)
-            attrs.update(albedo=mat[:, :3], ks=mat[:, 3:6], shininess=softplus(raw[:, 6]), ka=mat[:, 7:10])
+        attrs.update(brdf.split(brdf.activate(scene.material.data)))
         return cls(scene.V.data, scene.F, attrs, scene.brdf, scene.current_lights())

@@ -8,12 +8,13 @@ Textures (GLB and OBJ share one bake; see :mod:`triplet_cl.mesh.bake`): a ``xatl
 face rasterised in texel space with barycentric interpolation of the vertex attributes, and empty
 texels filled with the nearest chart texel so that bilinear filtering and mip-maps do not bleed.
 
-Colour spaces. The renderer compares its output with the 8-bit sRGB training photos *directly*
-(no linearisation), so the trained ``albedo`` is in the photos' display-referred (sRGB-encoded)
-space: ``albedo_space="srgb"`` (default) stores its values unchanged in the sRGB base-colour
-texture, which then looks like the object in the photos and like a ground-truth sRGB texture. For
-an asset trained on linear data (EXR / HDR photos) pass ``albedo_space="linear"``: the values are
-then encoded with the sRGB transfer function. Roughness, metallic and AO are linear data.
+Colour spaces. Runs of the linear pipeline (``TrainConfig.color = "linear"``, the default: shading in
+linear radiance, the photos' sRGB transfer after compositing) learn ``albedo`` as linear
+reflectance: ``albedo_space="linear"`` encodes it with the sRGB transfer function for the base-colour
+textures (glTF's convention; the run's exports do this). ``albedo_space="srgb"`` (this function's
+default, and the exports of runs trained before the linear pipeline, which fitted the photos'
+encoded values directly) stores the values unchanged. Roughness, metallic and AO are linear data;
+the PLY keeps the float attributes as trained.
 
 Material mapping:
     Cook-Torrance: base colour = albedo; glTF metallic-roughness image (also the occlusion image,
@@ -39,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write_bytes, write_json, write_soup_ply
-from ..lights import LIGHT_CLASSES, light_to_json, lights_from_json  # noqa: F401  (lights_from_json: re-export)
+from ..lights import light_to_json, lights_from_json, lights_to_json  # noqa: F401  (re-exports)
+from ..materials import blinn_phong_roughness, get_brdf  # noqa: F401  (blinn_phong_roughness: re-export)
 from .asset import ATTRIBUTES, MeshAsset
 from .bake import UVAtlas, bake, rasterize_uv, uv_atlas, vertex_normals
 from .envmap import environment_lights, export_envmap
@@ -60,13 +62,6 @@ def srgb_encode(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def blinn_phong_roughness(shininess: np.ndarray) -> np.ndarray:
-    """glTF (perceptual) roughness of a Blinn-Phong ``shininess`` ``s`` (exponent ``e = s + 1``):
-    ``(2 / (e + 2))^(1/4)``, in (0, 0.9036]."""
-    e = np.maximum(np.asarray(shininess, np.float64), 0) + 1
-    return (2.0 / (e + 2.0)) ** 0.25
-
-
 def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.ndarray]:
     """Per-vertex glTF material channels of ``asset``, all in [0, 1]:
     ``base [N, 3]`` (sRGB-encoded), ``roughness``, ``metallic``, ``ao`` ``[N]``, ``alpha [N]`` (1 if absent)."""
@@ -77,10 +72,7 @@ def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.n
     if albedo_space == "linear":
         base = srgb_encode(base)
     n = asset.num_vertices
-    if asset.brdf == "cook_torrance":
-        rough, metal, ao = a["roughness"], a["metallic"], a["ao"]
-    else:
-        rough, metal, ao = blinn_phong_roughness(a["shininess"]), np.zeros(n), np.ones(n)
+    rough, metal, ao = get_brdf(asset.brdf).pbr(a, n)  # the BRDF's glTF metallic-roughness mapping
     alpha = a.get("alpha", np.ones(n))
     return {"base": base, "roughness": np.clip(rough, 0, 1), "metallic": np.clip(metal, 0, 1),
             "ao": np.clip(ao, 0, 1), "alpha": np.clip(alpha, 0, 1)}
@@ -157,13 +149,14 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
     if with_alpha:
         cols.append(ch["alpha"][:, None])
     spec = None
-    if asset.brdf == "blinn_phong":
-        ks = np.clip(asset.attributes["ks"], 0, 1)
+    spec_attr = get_brdf(asset.brdf).specular
+    if spec_attr is not None:
+        ks = np.clip(asset.attributes[spec_attr], 0, 1)
         cols.append(srgb_encode(ks) if albedo_space == "linear" else ks)
     values = np.concatenate(cols, 1)[atlas.vmap]  # per atlas vertex
     tex = bake(face_img, bary, atlas.faces, values, dilate=dilate)
     base = tex[..., :3] if not with_alpha else np.concatenate([tex[..., :3], tex[..., 6:7]], -1)
-    if asset.brdf == "blinn_phong":
+    if spec_attr is not None:
         spec = _u8(tex[..., -3:])
     return BakedAsset(atlas, vertex_normals(asset.V, asset.F), _u8(base), _u8(tex[..., 3:6]), spec, ch)
 
@@ -284,10 +277,10 @@ def glb_bytes(asset: MeshAsset, baked: BakedAsset, alpha_mode: str = "OPAQUE", d
         "extras": {"triplet_cl": {"brdf": asset.brdf,
                                   "orm": "R = occlusion, G = roughness, B = metallic"}},
     }
-    if asset.brdf == "cook_torrance":
+    brdf = get_brdf(asset.brdf)
+    if brdf.gltf_occlusion:
         material["occlusionTexture"] = {"index": 1}
-    else:
-        material["extras"]["triplet_cl"]["roughness"] = "(2 / (shininess + 3))^(1/4)"
+    material["extras"]["triplet_cl"].update(brdf.gltf_extras)
     light_defs, light_nodes = punctual_lights(asset.lights)
     doc = {
         "asset": {"version": "2.0", "generator": GENERATOR},
@@ -318,17 +311,19 @@ def punctual_lights(lights) -> tuple[list[dict], list[dict]]:
     A directional light shines along its node's −Z: the node's +Z is our ``direction`` (surface →
     light). Ambient and SH-environment lights are not punctual (see ``envmap.exr`` / ``lights.json``);
     a point light without falloff has no glTF equivalent and is left out."""
-    from ..lights import DirectionalLight, PointLight
-
     defs, nodes = [], []
     for lt in lights:
-        if isinstance(lt, PointLight) and lt.falloff:
-            kind, extra = "point", {"translation": [float(x) for x in lt.position]}
-        elif isinstance(lt, DirectionalLight):
-            kind, extra = "directional", {"rotation": _rotation_z_to(np.asarray(lt.direction, np.float64))}
-        else:
+        punctual = lt.gltf_punctual()  # (glTF type, position / direction, rgb intensity) or None
+        if punctual is None:
             continue
-        rgb = np.maximum(np.asarray(lt.intensity, np.float64), 0.0)
+        kind, where, intensity = punctual
+        if kind == "point":
+            extra = {"translation": [float(x) for x in where]}
+        elif kind == "directional":
+            extra = {"rotation": _rotation_z_to(np.asarray(where, np.float64))}
+        else:
+            raise ValueError(f"punctual_lights: glTF light type {kind!r} of {type(lt).__name__} is not supported")
+        rgb = np.maximum(np.asarray(intensity, np.float64), 0.0)
         peak = float(rgb.max())
         color = (rgb / peak).tolist() if peak > 0 else [1.0, 1.0, 1.0]
         i = len(defs)
@@ -413,9 +408,10 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
            f"{stem}_metallic.png": png_bytes(baked.orm[..., 2], data=True)}
     mtl = ["# triplet_cl PBR material (Kd texture sRGB; Pr/Pm textures linear, greyscale)", "newmtl material",
            "Ka 1.000000 1.000000 1.000000", "Kd 1.000000 1.000000 1.000000"]
-    if asset.brdf == "blinn_phong":
+    brdf = get_brdf(asset.brdf)
+    if brdf.specular is not None:
         tex[f"{stem}_specular.png"] = png_bytes(baked.specular)
-        e = float(np.mean(np.maximum(asset.attributes["shininess"], 0) + 1))
+        e = brdf.specular_exponent(asset.attributes)
         mtl += ["Ks 1.000000 1.000000 1.000000", f"Ns {e:.6f}", f"map_Ks {stem}_specular.png"]
     else:
         mtl += ["Ks 0.000000 0.000000 0.000000"]
@@ -461,21 +457,6 @@ def export_ply(asset: MeshAsset, path) -> Path:
     attrs = {"nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], **asset.attributes}
     write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh")
     return Path(path)
-
-
-# ---- lights ------------------------------------------------------------------------------------
-def lights_to_json(lights) -> dict:
-    """``{"lights": [{"type": class name, parameter: value, ...}, ...]}`` (the format of a run's
-    ``lights.json``; SH ``coeffs`` as ``[3][(D+1)^2]`` lists)."""
-    out = []
-    for i, lt in enumerate(lights):
-        if type(lt).__name__ not in LIGHT_CLASSES:
-            raise ValueError(f"lights[{i}] must be a triplet_cl.lights object, got {type(lt).__name__}")
-        for k, v in vars(lt).items():
-            if isinstance(v, np.ndarray) and not np.isfinite(v).all():
-                raise ValueError(f"lights[{i}] ({type(lt).__name__}).{k} must be finite, found NaN/Inf")
-        out.append(light_to_json(lt))
-    return {"lights": out}
 
 
 # ---- everything --------------------------------------------------------------------------------

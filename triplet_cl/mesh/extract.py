@@ -1,4 +1,4 @@
-"""Soup → connected mesh (DESIGN.md §1.5, §6): TSDF fusion of rendered depth + marching cubes, or
+"""Soup → connected mesh (docs/ARCHITECTURE.md §1, §9): TSDF fusion of rendered depth + marching cubes, or
 vertex welding; small-component removal; the full :func:`extract_mesh` with attribute transfer.
 
 **Depth of a soup** (:func:`render_depth`, forward only, one fused pass of ``ops.blend.raster_blend``

@@ -1,4 +1,4 @@
-"""The mesh stage (DESIGN.md §1.5, §6): extract a connected mesh from a trained soup and keep
+"""The mesh stage (docs/ARCHITECTURE.md §1, §9): extract a connected mesh from a trained soup and keep
 optimising it as a mesh, then export the PBR assets.
 
 One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extract.extract_scene`
@@ -178,6 +178,7 @@ class MeshStage:
         self.scene: Scene | None = None
         self.history: list[dict] = []
         self._roi = False  # not computed yet
+        self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
 
     # ---- one round -----------------------------------------------------------------------------
     def extract(self, source: Scene) -> Scene:
@@ -233,34 +234,54 @@ class MeshStage:
             opt.add_group("lights", [scene.light_params], lr=c.lr_lights, **kw)
         return opt
 
-    def settings(self, background) -> RenderSettings:
+    def settings(self, background, transfer: str | None = None) -> RenderSettings:
         tc = self.trainer.cfg
         sh = self.trainer.scene.vertex_sh is not None
         return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
                               background=tuple(float(x) for x in background), normals="vertex",
-                              sh_degree=tc.sh_degree if sh else None)
+                              sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer)
 
     def render(self, scene: Scene, cam, background, supersample: int | None = None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
-        adjoint back, at the config's ``supersample``)."""
+        adjoint back, at the config's ``supersample``). With the run's sRGB transfer, the linear premultiplied
+        radiance and the alpha are box-filtered (as a camera integrates a pixel) and the transfer follows."""
         f = supersample or self.cfg.supersample
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
-        r = render(scene, big, self.settings(background), self.device)
-        if f == 1:
-            return r, r.image, r.alpha
+        transfer = self.trainer.transfer
+        if f == 1 or transfer is None:
+            r = render(scene, big, self.settings(background, transfer), self.device)
+            if f == 1:
+                return r, r.image, r.alpha
+            H, W = cam.height, cam.width
+            img = r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3))
+            alpha = r.alpha.reshape(H, f, W, f).mean(axis=(1, 3))
+            return r, img, alpha
+        from ..ops.color import srgb_composite_host
+
+        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device)  # linear, over black
         H, W = cam.height, cam.width
-        img = r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3))
-        alpha = r.alpha.reshape(H, f, W, f).mean(axis=(1, 3))
-        return r, img, alpha
+        C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
+        alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
+        r.srgb_post = (C, alpha, tuple(float(x) for x in background))  # what backward_image differentiates
+        return r, srgb_composite_host(C, alpha, background, device=self.device), alpha
 
     def backward_image(self, r, v_img) -> None:
         f = self.cfg.supersample
+        post = getattr(r, "srgb_post", None)
+        v_alpha = None
+        if post is not None:
+            from ..ops.color import srgb_composite_backward_host
+
+            C, alpha, bg = post
+            v_img, v_alpha = srgb_composite_backward_host(C, alpha, bg, v_img, device=self.device)
         if f > 1:
             v_img = np.repeat(np.repeat(v_img, f, axis=0), f, axis=1) / (f * f)
-        r.backward(v_img)
+            if v_alpha is not None:
+                v_alpha = np.repeat(np.repeat(v_alpha, f, axis=0), f, axis=1) / (f * f)
+        r.backward(v_img, v_alpha)
 
     def refine(self, scene: Scene, round_index: int) -> Scene:
         from tqdm import tqdm
@@ -384,7 +405,8 @@ class MeshStage:
                 "views": per}
 
     def export(self) -> list[Path]:
-        return export_run_mesh(self.run_dir, self.asset(), self.cfg.formats, self.cfg.texture_size)
+        return export_run_mesh(self.run_dir, self.asset(), self.cfg.formats, self.cfg.texture_size,
+                               albedo_space=albedo_space(self.trainer.cfg.color))
 
     def asset(self) -> MeshAsset:
         return MeshAsset.from_scene(self.scene)
@@ -406,12 +428,13 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
     """The refined mesh (V, F, raw parameters, lights) as one ``.npz`` (atomic)."""
     import io as _io
 
-    from ..lights import light_to_json as _light_json
+    from ..lights import lights_to_json
 
     arrays = {"V": scene.V.data, "F": scene.F, "material": scene.material.data, "alpha": scene.alpha.data}
     if scene.vertex_sh is not None:
         arrays["vertex_sh"] = scene.vertex_sh.data
-    meta = {"brdf": scene.brdf, "lights": [_light_json(lt) for lt in scene.current_lights()], "mesh": cfg.to_dict()}
+    meta = {"brdf": scene.brdf, "lights": lights_to_json(scene.current_lights(), check_finite=False)["lights"],
+            "mesh": cfg.to_dict()}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     buf = _io.BytesIO()
     np.savez(buf, **arrays)
@@ -440,13 +463,29 @@ def load_mesh_state(path) -> Scene:
                              "again") from None
 
 
-def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), texture_size: int = 1024) -> list[Path]:
-    """Write the mesh assets of a run (``mesh.glb/.obj/.ply``, ``envmap.exr``, ``lights.json``)."""
+def albedo_space(color: str) -> str:
+    """The ``albedo_space`` of the exports of a run with colour pipeline ``color`` (``TrainConfig.color``):
+    the linear pipeline learns linear reflectance (encoded with the sRGB transfer for the base-colour textures),
+    the old encoded one fitted the photos' encoded values (stored unchanged)."""
+    return "linear" if color == "linear" else "srgb"
+
+
+def run_color(run_dir) -> str:
+    """``TrainConfig.color`` of the run in ``run_dir`` (``"encoded"`` for a run saved before the linear pipeline)."""
+    cfg = json.loads((Path(run_dir) / "config.json").read_text())
+    return cfg.get("train", {}).get("color", "encoded")
+
+
+def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), texture_size: int = 1024,
+                    albedo_space: str = "srgb") -> list[Path]:
+    """Write the mesh assets of a run (``mesh.glb/.obj/.ply``, ``envmap.exr``, ``lights.json``);
+    ``albedo_space``: see :func:`albedo_space`."""
     from .export import export_asset
 
     if asset.num_faces == 0:
         raise ValueError("the mesh has no faces: nothing to export")
-    written = export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size)
+    written = export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size,
+                           albedo_space=albedo_space)
     paths = []
     for v in written.values():
         paths += [Path(p) for p in v] if isinstance(v, list | tuple) else [Path(v)]

@@ -5,9 +5,8 @@ per-fragment attributes already interpolated by the rasterizer and materials alr
 by the parameter model:
 
 * ``pos [P, 3]`` world position, ``nrm [P, 3]`` shading normal (any length; normalised inside),
-* ``mat [P, C]`` material channels, layout per BRDF (``MATERIAL_LAYOUT``):
-  ``"cook_torrance"`` (C = 6): albedo r, g, b | roughness | metallic | ambient occlusion;
-  ``"blinn_phong"`` (C = 10): kd r, g, b | ks r, g, b | shininess (softplus'd, >= 0) | ka r, g, b,
+* ``mat [P, C]`` activated material channels, layout per BRDF (``triplet_cl.materials``; e.g.
+  Cook-Torrance C = 6: albedo r, g, b | roughness | metallic | ambient occlusion),
 * ``face_id [P] int32``: ``-1`` marks an empty slot (colour 0, zero gradients),
 * ``vlight [P, 6]`` (only with a :class:`~triplet_cl.lights.VertexSHLight`): per-fragment
   vertex-SH radiance (rgb) and direction ``wi`` (normalised inside),
@@ -28,28 +27,18 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..device import Device, get_device
-from ..lights import LightTable, pack_lights, unpack_gradients
-from .common import check_real, check_shape, empty, round_up, to_device, to_host
+from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
+from ..materials import DEFAULT_BRDF, get_brdf
+from .common import check_real, check_shape, empty, launch, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
 LOCAL_SIZE = 64
 RED_W = 16
-BRDFS = {"cook_torrance": 0, "blinn_phong": 1}
-MATERIAL_LAYOUT = {
-    "cook_torrance": ("albedo_r", "albedo_g", "albedo_b", "roughness", "metallic", "ao"),
-    "blinn_phong": ("kd_r", "kd_g", "kd_b", "ks_r", "ks_g", "ks_b", "shininess", "ka_r", "ka_g", "ka_b"),
-}
 
 
 def num_material_channels(brdf: str) -> int:
-    """6 for ``"cook_torrance"``, 10 for ``"blinn_phong"``."""
-    return len(MATERIAL_LAYOUT[_check_brdf(brdf)])
-
-
-def _check_brdf(brdf: str) -> str:
-    if brdf not in BRDFS:
-        raise ValueError(f"brdf must be one of {sorted(BRDFS)}, got {brdf!r}")
-    return brdf
+    """The material channel count ``C`` of ``brdf`` (``materials.BRDF.num_channels``)."""
+    return get_brdf(brdf).num_channels
 
 
 def _env_bucket(deg: int) -> int:
@@ -95,77 +84,95 @@ class ShadeGrads:
     v_lights: list[dict[str, np.ndarray]]  # per light: {parameter name: gradient}
 
 
-def _traced_args(dev: Device, inp: ShadeInputs):
-    """The optional ray-traced inputs (visibility, reflected radiance, per-fragment eye)."""
-    ph = inp.pos.base_data if inp.pos.size == 0 else inp.pos.data  # placeholder, never read when off
-    NV = inp.vis.shape[1] if inp.vis is not None else 0
-    return (np.int32(NV), np.int32(inp.vis is not None and NV > 0),
-            inp.vis.data if inp.vis is not None and inp.vis.size else ph,
-            np.int32(inp.refl is not None), inp.refl.data if inp.refl is not None and inp.refl.size else ph,
-            np.int32(inp.eye is not None), inp.eye.data if inp.eye is not None and inp.eye.size else ph)
+@dataclass
+class ShadeAdjoints:
+    """Adjoints of one shading call (:func:`backward`): device arrays, ``v_light_params`` numpy.
+    The optional inputs' adjoints are ``None`` where the input is absent."""
+
+    v_pos: cla.Array  # [P, 3]
+    v_nrm: cla.Array  # [P, 3]
+    v_mat: cla.Array  # [P, C]
+    v_vlight: cla.Array | None  # [P, 6]
+    v_light_params: np.ndarray  # [T] gradient of the packed light parameters (inactive ones 0)
+    v_vis: cla.Array | None = None  # [P, NV]
+    v_refl: cla.Array | None = None  # [P, 3]
+    v_eye: cla.Array | None = None  # [P, 3]
 
 
-def _kernel(dev: Device, inp: ShadeInputs, name: str):
-    defines = {"BRDF": BRDFS[inp.brdf], "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W}
-    return dev.kernel("shade", name, defines, inp.real)
+def _optional(inp: ShadeInputs) -> dict[str, bool]:
+    """Which optional inputs the call has: the ``HAS_*`` defines of ``shade.cl``."""
+    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.vis.shape[1] > 0,
+            "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None}
 
 
-def _common_args(dev: Device, inp: ShadeInputs):
-    t = np.dtype(inp.real).type
-    vl = inp.vlight.data if inp.vlight is not None else inp.pos.data  # placeholder, never read then
-    return (inp.pos.data, inp.nrm.data, inp.mat.data, vl, inp.face_id.data, np.int32(inp.P),
-            t(inp.cam[0]), t(inp.cam[1]), t(inp.cam[2]), np.int32(inp.two_sided), inp.lt_i.data, inp.lt_f.data,
-            np.int32(len(inp.table.ints)))
+def _defines(inp: ShadeInputs) -> dict:
+    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`)."""
+    return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp),
+            **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
+
+
+def _inputs(inp: ShadeInputs) -> dict:
+    """The kernels' input arguments by name (the optional ones only when present)."""
+    has = _optional(inp)
+    args = dict(pos=inp.pos, nrm=inp.nrm, mat=inp.mat, face_id=inp.face_id, P=inp.P, cx=inp.cam[0],
+                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_i=inp.lt_i, lt_f=inp.lt_f,
+                L=len(inp.table.ints))
+    if has["HAS_VLIGHT"]:
+        args["vlight"] = inp.vlight
+    if has["HAS_VIS"]:
+        args.update(NV=inp.vis.shape[1], vis=inp.vis)
+    if has["HAS_REFL"]:
+        args["refl"] = inp.refl
+    if has["HAS_EYE"]:
+        args["eye"] = inp.eye
+    return args
 
 
 def forward(dev: Device, inp: ShadeInputs) -> cla.Array:
     """``rgb [P, 3]`` (device array) for validated device inputs."""
     rgb = empty(dev.queue, (inp.P, 3), inp.real)
     if inp.P:
-        _kernel(dev, inp, "shade_fwd")(dev.queue, (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,),
-                                       *_common_args(dev, inp), *_traced_args(dev, inp), rgb.data)
+        launch(dev, "shade", "shade_fwd", (round_up(inp.P, LOCAL_SIZE),), (LOCAL_SIZE,), defines=_defines(inp),
+               real=inp.real, **_inputs(inp), rgb=rgb)
     return rgb
 
 
-def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
-    """``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params [T] numpy)`` for ``v_rgb [P, 3]``."""
-    return backward_full(dev, inp, v_rgb)[:5]
-
-
-def backward_full(dev: Device, inp: ShadeInputs, v_rgb: cla.Array):
-    """As :func:`backward`, plus the adjoints of the ray-traced inputs:
-    ``(v_pos, v_nrm, v_mat, v_vlight | None, v_light_params, v_vis [P, NV] | None, v_refl [P, 3] | None,
-    v_eye [P, 3] | None)``."""
+def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
+    """The adjoints (:class:`ShadeAdjoints`) of every input for the cotangent ``v_rgb [P, 3]``."""
     q, P, real = dev.queue, inp.P, inp.real
     C = inp.mat.shape[1]
     T = len(inp.table.params)
-    v_pos, v_nrm, v_mat = empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real)
-    v_vl = empty(q, (P, 6), real) if inp.vlight is not None else None
-    v_vis = empty(q, inp.vis.shape, real) if inp.vis is not None else None
-    v_refl = empty(q, (P, 3), real) if inp.refl is not None else None
-    v_eye = empty(q, (P, 3), real) if inp.eye is not None else None
+    has = _optional(inp)
+    out = ShadeAdjoints(empty(q, (P, 3), real), empty(q, (P, 3), real), empty(q, (P, C), real),
+                        empty(q, (P, 6), real) if inp.vlight is not None else None, np.zeros(T),
+                        empty(q, inp.vis.shape, real) if inp.vis is not None else None,
+                        empty(q, (P, 3), real) if inp.refl is not None else None,
+                        empty(q, (P, 3), real) if inp.eye is not None else None)
     groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
-        scratch = cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize)
-        _kernel(dev, inp, "shade_bwd")(
-            q, (groups * LOCAL_SIZE,), (LOCAL_SIZE,), *_common_args(dev, inp), np.int32(T), v_rgb.data,
-            v_pos.data, v_nrm.data, v_mat.data, np.int32(v_vl is not None),
-            (v_vl if v_vl is not None else v_pos).data, part.data, scratch, *_traced_args(dev, inp),
-            (v_vis if v_vis is not None and v_vis.size else v_pos).data,
-            (v_refl if v_refl is not None else v_pos).data, (v_eye if v_eye is not None else v_pos).data)
-        v_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
-    else:
-        v_params = np.zeros(T)
-    v_params[inp.table.inactive] = 0.0
-    return v_pos, v_nrm, v_mat, v_vl, v_params, v_vis, v_refl, v_eye
+        outs = dict(v_pos=out.v_pos, v_nrm=out.v_nrm, v_mat=out.v_mat)
+        if has["HAS_VLIGHT"]:
+            outs["v_vlight"] = out.v_vlight
+        if has["HAS_VIS"]:
+            outs["v_vis"] = out.v_vis
+        if has["HAS_REFL"]:
+            outs["v_refl"] = out.v_refl
+        if has["HAS_EYE"]:
+            outs["v_eye"] = out.v_eye
+        launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
+               **_inputs(inp), **outs, T=T, v_rgb=v_rgb, v_light_part=part,
+               scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
+        out.v_light_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
+    out.v_light_params[inp.table.inactive] = 0.0
+    return out
 
 
 # ---- validation ------------------------------------------------------------------------------
 
 
-def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None,
+def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vlight=None,
             two_sided: bool = True, device: Device | None = None, real=np.float32, vis=None, refl=None,
             eye=None) -> tuple[Device, ShadeInputs]:
     """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``.
@@ -175,8 +182,7 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     ``eye [P, 3]`` per-fragment viewpoint replacing ``cam``.
     """
     dev = device or get_device()
-    brdf = _check_brdf(brdf)
-    C = num_material_channels(brdf)
+    C = get_brdf(brdf).num_channels
     pos = check_real("pos", pos, (None, 3), real)
     P = pos.shape[0]
     nrm = check_real("nrm", nrm, (P, 3), real)
@@ -207,7 +213,7 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     inp = ShadeInputs(up(pos), up(nrm), up(mat), up(fid), None if vlight is None else up(vlight), cam, table,
                       to_device(q, lt_i), to_device(q, lt_f), brdf, bool(two_sided), real)
     if vis is not None:
-        nv = int(np.isin(table.ints[:, 0], (1, 2)).sum()) if len(table.ints) else 0
+        nv = table.num_shadowed
         inp.vis = up(check_real("vis", vis, (P, nv), real))
     if refl is not None:
         inp.refl = up(check_real("refl", refl, (P, 3), real))
@@ -216,16 +222,16 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance",
     return dev, inp
 
 
-def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", vlight=None, two_sided: bool = True,
+def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vlight=None, two_sided: bool = True,
           device: Device | None = None, real=np.float32) -> np.ndarray:
     """Shade ``P`` fragments.
 
     Args:
         pos: ``[P, 3]`` world positions.  nrm: ``[P, 3]`` normals (normalised inside).
-        mat: ``[P, C]`` activated materials, ``C`` = 6 (Cook-Torrance) or 10 (Blinn-Phong), see
-            ``MATERIAL_LAYOUT``.  face_id: ``[P]`` int, ``-1`` = empty slot.
+        mat: ``[P, C]`` activated materials, ``C`` channels of ``brdf`` (``triplet_cl.materials``).
+            face_id: ``[P]`` int, ``-1`` = empty slot.
         cam: ``[3]`` camera centre.  lights: sequence of :mod:`triplet_cl.lights` objects.
-        brdf: ``"cook_torrance"`` or ``"blinn_phong"``.  vlight: ``[P, 6]`` for a VertexSHLight.
+        brdf: a name of ``materials.BRDFS``.  vlight: ``[P, 6]`` for a VertexSHLight.
         two_sided: flip normals facing away from the camera.
     Returns:
         ``rgb [P, 3]`` (linear radiance, not clamped).
@@ -235,14 +241,15 @@ def shade(pos, nrm, mat, face_id, cam, lights, *, brdf: str = "cook_torrance", v
     return to_host(forward(dev, inp))
 
 
-def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = "cook_torrance", vlight=None,
+def shade_backward(pos, nrm, mat, face_id, cam, lights, v_rgb, *, brdf: str = DEFAULT_BRDF, vlight=None,
                    two_sided: bool = True, device: Device | None = None, real=np.float32) -> ShadeGrads:
     """Adjoint of :func:`shade` for the cotangent ``v_rgb [P, 3]``; returns :class:`ShadeGrads`."""
     dev, inp = prepare(pos, nrm, mat, face_id, cam, lights, brdf=brdf, vlight=vlight, two_sided=two_sided,
                        device=device, real=real)
     v_rgb = check_real("v_rgb", v_rgb, (inp.P, 3), real)
     v_rgb_d = to_device(dev.queue, v_rgb) if v_rgb.size else empty(dev.queue, (0, 3), real)
-    v_pos, v_nrm, v_mat, v_vl, v_params = backward(dev, inp, v_rgb_d)
+    g = backward(dev, inp, v_rgb_d)
     lights = list(lights)
-    return ShadeGrads(to_host(v_pos), to_host(v_nrm), to_host(v_mat), None if v_vl is None else to_host(v_vl),
-                      v_params, unpack_gradients(lights, v_params))
+    return ShadeGrads(to_host(g.v_pos), to_host(g.v_nrm), to_host(g.v_mat),
+                      None if g.v_vlight is None else to_host(g.v_vlight), g.v_light_params,
+                      unpack_gradients(lights, g.v_light_params))

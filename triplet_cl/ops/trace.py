@@ -25,14 +25,20 @@ import pyopencl.array as cla
 
 from ..camera import Camera
 from ..device import Device
-from ..lights import LightTable
+from ..lights import LightTable, kernel_defines
 from .bvh import BVH
-from .common import check_real, round_up, to_device
+from .common import check_real, launch, round_up, to_device
 from .raster import TILE, Fragments, bin_faces, camera_params, pack_fragment_lists
 from .scan import prefix_offsets
 
 LOCAL = 64
-SHADOWED_TYPES = (1, 2)  # LIGHT_DIRECTIONAL, LIGHT_POINT (shade_brdf.h)
+
+
+def _run(device: Device, name: str, real, gsize, lsize, defines: dict | None = None, /, **args):
+    """Launch kernel ``name`` of ``trace.cl`` (built with the light defines of ``lights.kernel_defines``
+    and ``defines``), its arguments bound by name (:func:`~triplet_cl.ops.common.launch`)."""
+    return launch(device, "trace", name, gsize, lsize, defines={**kernel_defines(), **(defines or {})}, real=real,
+                  **args)
 
 
 def _check_bvh(bvh: BVH, V) -> None:
@@ -70,12 +76,11 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
     count = cla.empty(q, (H, W), np.int32, allocator=alloc)
     c = camera.center
     cam = cla.to_device(q, camera_params(camera, real))
-    device.kernel("trace", "trace_primary", {"TILE": TILE, "K_MAX": K}, real)(
-        q, (round_up(W, TILE), round_up(H, TILE)), (TILE, TILE), bvh.nodes.data, bvh.prim.data,
-        np.int32(bvh.num_leaves), np.int32(mesh.num_faces), Vd.data, mesh.F.data, cam.data,
-        real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(W), np.int32(H), np.int32(binning.tiles_x),
-        np.int32(K), real.type(camera.far), binning.tile_off.data, binning.face_off.data,
-        binning.face_entries.data, face.data, entry.data, bary.data, depth.data, count.data)
+    _run(device, "trace_primary", real, (round_up(W, TILE), round_up(H, TILE)), (TILE, TILE),
+         {"TILE": TILE, "K_MAX": K}, nodes=bvh.nodes, prim=bvh.prim, P=bvh.num_leaves, M=mesh.num_faces, V=Vd,
+         F=mesh.F, cam=cam, ox=c[0], oy=c[1], oz=c[2], width=W, height=H, tiles_x=binning.tiles_x, K=K,
+         far=camera.far, tile_off=binning.tile_off, face_off=binning.face_off, face_entries=binning.face_entries,
+         frag_face=face, frag_entry=entry, frag_bary=bary, frag_depth=depth, frag_count=count)
     off, P, face, entry, bary, depth, _ = pack_fragment_lists(device, count, K, face, entry, bary, depth)
     return Fragments(W, H, K, binning.tiles_x, binning.tiles_y, binning.num_entries, np.dtype(real), face, entry,
                      bary, depth, count, binning.tile_off, binning.face_off, binning.face_entries, vs, mesh,
@@ -83,8 +88,8 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
 
 
 def num_shadowed_lights(table: LightTable) -> int:
-    """How many lights of a packed table cast ray-traced shadows (point and directional)."""
-    return int(np.isin(table.ints[:, 0], SHADOWED_TYPES).sum()) if len(table.ints) else 0
+    """How many lights of a packed table cast ray-traced shadows (``CASTS_SHADOWS`` in lights.py)."""
+    return table.num_shadowed
 
 
 @dataclass
@@ -94,7 +99,18 @@ class ShadowState:
     vis: cla.Array  # [P, NV] transmittance
     nhit: cla.Array  # [P, NV] int32 hits per ray
     NV: int
-    args: tuple  # kernel arguments shared by the forward and the backward
+    args: dict  # kernel arguments (by name) shared by the forward and the backward
+    defines: dict  # HAS_NRM
+
+
+@dataclass
+class ShadowGrads:
+    """Adjoints of :func:`shadow_forward` (:func:`shadow_backward`)."""
+
+    v_alpha: np.ndarray  # [N] occluders' vertex alphas
+    v_V: np.ndarray  # [N, 3] occluders' vertex positions
+    v_pos: cla.Array  # [P, 3] the shading points (device)
+    v_light: np.ndarray  # [P, NV, 3] each shadow caster's ray parameter (position / direction), per point
 
 
 def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alpha_col: int, pos: cla.Array,
@@ -125,39 +141,39 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
     vis = cla.empty(q, (max(P, 1), max(NV, 1)), real, allocator=device.allocator)[:P, :NV]
     nhit = cla.zeros(q, (max(P, 1) * max(NV, 1),), np.int32, allocator=device.allocator)
     c = np.zeros(3) if cam_center is None else np.asarray(cam_center, np.float64)
-    args = (bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves), np.int32(bvh.mesh.num_faces), V.data,
-            bvh.mesh.F.data, attr.data, np.int32(C), np.int32(alpha_col), pos.data, face.data,
-            (nrm if nrm is not None else pos).data, np.int32(nrm is not None), real.type(c[0]), real.type(c[1]),
-            real.type(c[2]), np.int32(bool(two_sided)), np.int32(P),
-            lt_i.data, lt_f.data, np.int32(len(table.ints)), np.int32(NV), real.type(eps))
+    args = dict(nodes=bvh.nodes, prim=bvh.prim, P=bvh.num_leaves, M=bvh.mesh.num_faces, V=V, F=bvh.mesh.F,
+                attr=attr, C=C, ca=alpha_col, pos=pos, face=face, Pf=P, lt_i=lt_i, lt_f=lt_f, L=len(table.ints),
+                NV=NV, eps=eps)
+    if nrm is not None:
+        args.update(nrm=nrm, cx=c[0], cy=c[1], cz=c[2], two_sided=int(bool(two_sided)))
+    defines = {"HAS_NRM": nrm is not None}
     if P and NV:
-        device.kernel("trace", "trace_shadow_fwd", real=real)(q, (round_up(P, LOCAL),), (LOCAL,), *args, vis.base_data,
-                                                              nhit.data)
-    return ShadowState(vis, nhit[: P * NV], NV, args)
+        _run(device, "trace_shadow_fwd", real, (round_up(P, LOCAL),), (LOCAL,), defines, **args, vis=vis.base_data,
+             nhit=nhit)
+    return ShadowState(vis, nhit[: P * NV], NV, args, defines)
 
 
-def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis):
+def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis) -> ShadowGrads:
     """Adjoint of :func:`shadow_forward` for ``v_vis [P, NV]``.
 
     Returns:
-        ``(v_alpha [N] numpy, v_V [N, 3] numpy, v_pos [P, 3] device, v_light [P, NV, 3] numpy)``:
-        adjoints of the vertex alphas and positions of the occluders, of the shading points and of
-        each light's position (point) or direction (directional), per shading point.
+        :class:`ShadowGrads`: adjoints of the vertex alphas and positions of the occluders, of the
+        shading points and of each light's position (point) or direction (directional), per shading point.
     """
     q, real = device.queue, bvh.real
     P, NV = st.vis.shape
     n = bvh.mesh.num_vertices
     v_pos = cla.zeros(q, (max(P, 1), 3), real, allocator=device.allocator)[:P]
     if P == 0 or NV == 0:
-        return np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3))
+        return ShadowGrads(np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3)))
     off, R = prefix_offsets(device, st.nhit)
     v_vis = v_vis if isinstance(v_vis, cla.Array) else to_device(q, np.ascontiguousarray(v_vis, real))
     rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
     rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)
     v_light = cla.empty(q, (P, NV, 3), real, allocator=device.allocator)
-    device.kernel("trace", "trace_shadow_bwd", real=real)(
-        q, (round_up(P, LOCAL),), (LOCAL,), *st.args, st.vis.base_data, v_vis.data, off.data, rec_face.data,
-        rec_w.data, v_pos.data, v_light.data)
+    _run(device, "trace_shadow_bwd", real, (round_up(P, LOCAL),), (LOCAL,), st.defines, **st.args,
+         vis=st.vis.base_data, v_vis=v_vis, rec_off=off, rec_face=rec_face, rec_w=rec_w, v_x=v_pos.base_data,
+         v_light=v_light)
     F = bvh.mesh.faces
     if R:
         fc = rec_face.get()[:R]
@@ -168,7 +184,7 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis):
         v_V = np.stack([np.bincount(verts, weights=wp[:, c], minlength=n) for c in range(3)], axis=1)
     else:
         v_alpha, v_V = np.zeros(n), np.zeros((n, 3))
-    return v_alpha, v_V, v_pos, v_light.get().astype(np.float64)
+    return ShadowGrads(v_alpha, v_V, v_pos, v_light.get().astype(np.float64))
 
 
 def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Array, face: cla.Array, cam_center,
@@ -188,11 +204,9 @@ def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Arra
     hb = cla.empty(q, (max(P, 1), 2), real, allocator=device.allocator)
     c = np.asarray(cam_center, np.float64)
     if P:
-        device.kernel("trace", "trace_bounce", real=real)(
-            q, (round_up(P, LOCAL),), (LOCAL,), bvh.nodes.data, bvh.prim.data, np.int32(bvh.num_leaves),
-            np.int32(bvh.mesh.num_faces), V.data, bvh.mesh.F.data, pos.data, nrm.data, face.data, np.int32(P),
-            real.type(c[0]), real.type(c[1]), real.type(c[2]), np.int32(bool(two_sided)), real.type(eps), hf.data,
-            hb.data)
+        _run(device, "trace_bounce", real, (round_up(P, LOCAL),), (LOCAL,), nodes=bvh.nodes, prim=bvh.prim,
+             P=bvh.num_leaves, M=bvh.mesh.num_faces, V=V, F=bvh.mesh.F, pos=pos, nrm=nrm, face=face, Pf=P,
+             cx=c[0], cy=c[1], cz=c[2], two_sided=int(bool(two_sided)), eps=eps, hit_face=hf, hit_bary=hb)
     return hf[:P], hb[:P]
 
 
@@ -223,10 +237,9 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
     n = V.shape[0]
     if P == 0:
         return vp[:0], vn[:0], np.zeros((n, 3))
-    device.kernel("trace", "bounce_bwd", real=real)(
-        q, (round_up(P, LOCAL),), (LOCAL,), V.data, mesh.F.data, attr.data, np.int32(C), pos.data,
-        nrm.data, hit_face.data, hit_bary.data, v_h.data, v_eye.data, np.int32(P), real.type(c[0]), real.type(c[1]),
-        real.type(c[2]), np.int32(bool(two_sided)), vp.data, vn.data, rec.data)
+    _run(device, "bounce_bwd", real, (round_up(P, LOCAL),), (LOCAL,), V=V, F=mesh.F, attr=attr, C=C, pos=pos,
+         nrm=nrm, hit_face=hit_face, hit_bary=hit_bary, v_h=v_h, v_eye=v_eye, Pf=P, cx=c[0], cy=c[1], cz=c[2],
+         two_sided=int(bool(two_sided)), v_pos=vp, v_nrm=vn, rec_pos=rec)
     hf = hit_face.get()
     ok = hf >= 0
     verts = mesh.faces[hf[ok]].reshape(-1)
@@ -243,9 +256,8 @@ def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, 
     real = attr.dtype
     out = cla.empty(q, (max(P, 1), n), real, allocator=device.allocator)
     if P:
-        device.kernel("trace", "gather_hits", real=real)(
-            q, (round_up(P, LOCAL),), (LOCAL,), attr.data, np.int32(attr.shape[1]), np.int32(c0), np.int32(n),
-            F.data, hit_face.data, hit_bary.data, np.int32(P), out.data)
+        _run(device, "gather_hits", real, (round_up(P, LOCAL),), (LOCAL,), attr=attr, C=attr.shape[1], c0=c0, n=n,
+             F=F, hit_face=hit_face, hit_bary=hit_bary, Pf=P, out=out)
     return out[:P]
 
 
@@ -271,12 +283,11 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
     P = face.shape[0]
     out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
     if P:
-        device.kernel("trace", "ray_mask", real=frags.real)(
-            device.queue, (H * W,), None, face.data, alpha.data, (win if win is not None else alpha).data,
-            np.int32(win is not None), frags.count.data, offsets.data, np.int32(H * W), frags.real.type(t_min),
-            out.data)
+        extra = {} if win is None else {"win": win}
+        _run(device, "ray_mask", frags.real, (H * W,), None, {"HAS_WIN": win is not None}, face=face,
+             alpha=alpha, **extra, frag_count=frags.count, offsets=offsets, npix=H * W, t_min=t_min, out=out)
     return out[:P]
 
 
-__all__ = ["ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "ray_mask",
+__all__ = ["ShadowGrads", "ShadowState", "bounce", "bounce_backward", "gather_hits", "num_shadowed_lights", "ray_mask",
            "scatter_hits", "shadow_backward", "shadow_forward", "trace_primary"]

@@ -1,0 +1,157 @@
+"""The light registry of triplet_cl.lights: one definition per light (ids, kinds, shadows, packing,
+reconstruction, JSON form, initial values) and the defines the kernels are built with."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from triplet_cl import lights as L
+from triplet_cl.lights import (
+    LIGHT_CLASSES,
+    LIGHT_KINDS,
+    LIGHT_TYPES,
+    AmbientLight,
+    DirectionalLight,
+    LightInit,
+    PointLight,
+    SHEnvironmentLight,
+    VertexSHLight,
+    initial_lights,
+    kernel_defines,
+    light_to_json,
+    lights_from_json,
+    lights_to_json,
+    pack_lights,
+    unpack_gradients,
+    unpack_lights,
+)
+
+
+def _init(seed=0):
+    return LightInit(np.array([0.1, 0.2, 0.3]), 2.0, np.array([0.0, 1.0, 0.0]), 2, np.random.default_rng(seed))
+
+
+def _mix():
+    rng = np.random.default_rng(1)
+    return [PointLight([1, 2, 3], [2, 1, 1], falloff=False), AmbientLight([0.1, 0.2, 0.3]),
+            SHEnvironmentLight(rng.normal(size=(3, 9)), 1), DirectionalLight([0, 1, 0.5], [1, 2, 3]), VertexSHLight()]
+
+
+def test_registry_is_consistent():
+    assert set(LIGHT_CLASSES) == {"AmbientLight", "DirectionalLight", "PointLight", "SHEnvironmentLight",
+                                  "VertexSHLight"}
+    assert {c.TYPE for c in LIGHT_TYPES.values()} == set(LIGHT_TYPES) == {0, 1, 2, 3, 4}
+    assert {c.KIND for c in LIGHT_KINDS.values()} == {"point", "directional", "ambient", "sh-env", "vertex-sh"}
+    d = kernel_defines()
+    for t, c in LIGHT_TYPES.items():
+        assert d[f"LIGHT_{c.DEFINE}"] == t
+        assert bool(d["LIGHT_SHADOW_MASK"] >> t & 1) == c.CASTS_SHADOWS
+    assert L.shadow_casting_types() == (DirectionalLight.TYPE, PointLight.TYPE)
+    # the historical module names of the ids still hold
+    assert (L.AMBIENT, L.DIRECTIONAL, L.POINT, L.SH_ENV, L.VERTEX_SH) == (0, 1, 2, 3, 4)
+
+
+def test_register_refuses_duplicates():
+    with pytest.raises(ValueError, match="already registered"):
+        @L.register_light
+        @dataclass
+        class Twin(L.Light):
+            TYPE: ClassVar[int] = PointLight.TYPE
+            DEFINE: ClassVar[str] = "TWIN"
+            KIND: ClassVar[str] = "twin"
+    assert "Twin" not in LIGHT_CLASSES and "twin" not in LIGHT_KINDS
+    with pytest.raises(TypeError, match="SHADOW_RAY_PARAM"):
+        @L.register_light
+        @dataclass
+        class Shadowy(L.Light):
+            TYPE: ClassVar[int] = 99
+            DEFINE: ClassVar[str] = "SHADOWY"
+            KIND: ClassVar[str] = "shadowy"
+            CASTS_SHADOWS: ClassVar[bool] = True
+    assert "Shadowy" not in LIGHT_CLASSES
+
+
+def test_pack_unpack_round_trip():
+    lights = _mix()
+    t = pack_lights(lights)
+    assert t.ints[:, 0].tolist() == [2, 0, 3, 1, 4]
+    assert t.ints[:, 1].tolist() == [0, 6, 9, 36, 42] and len(t.params) == 42
+    assert t.ints[0, 2] == 0 and tuple(t.ints[2, 2:]) == (1, 9)
+    assert t.env_degree == 1 and t.has_vertex_sh
+    assert t.shadowed.tolist() == [0, 3] and t.num_shadowed == 2
+    assert t.shadow_ray_offsets.tolist() == [0, 36]  # position (point), direction (directional)
+    assert lights[3].param_offset("intensity") == 3
+    assert t.inactive.sum() == 3 * 5 and not t.inactive[:9].any()
+    back = unpack_lights(lights, t.params)
+    assert [type(a) for a in back] == [type(b) for b in lights]
+    assert back[0].falloff is False and back[2].degree == 1
+    assert np.array_equal(pack_lights(back).params, t.params)
+    scaled = unpack_lights(lights, 2 * t.params)
+    assert np.array_equal(scaled[2].coeffs, 2 * lights[2].coeffs)
+    g = unpack_gradients(lights, np.arange(42.0))
+    assert list(g[3]) == ["direction", "intensity"] and np.array_equal(g[3]["intensity"], [39.0, 40.0, 41.0])
+    assert g[2]["coeffs"].shape == (3, 9) and g[4] == {}
+    with pytest.raises(ValueError, match="light classes"):
+        pack_lights([object()])
+
+
+def test_json_round_trip_and_checks():
+    lights = _mix()
+    doc = lights_to_json(lights)
+    assert doc["lights"][0] == light_to_json(lights[0]) == {"type": "PointLight", "position": [1.0, 2.0, 3.0],
+                                                            "intensity": [2.0, 1.0, 1.0], "falloff": False}
+    back = lights_from_json(json.loads(json.dumps(doc)))
+    assert np.array_equal(pack_lights(back).params, pack_lights(lights).params)
+    assert back[2].degree == 1
+    bad = PointLight()
+    bad.position = np.array([np.nan, 0.0, 0.0])
+    with pytest.raises(ValueError, match="must be finite"):
+        lights_to_json([bad])
+    assert lights_to_json([bad], check_finite=False)["lights"][0]["position"][1] == 0.0
+    with pytest.raises(ValueError, match="type must be one of"):
+        lights_from_json([{"type": "SpotLight"}])
+
+
+def test_initial_lights_per_kind():
+    init = _init()
+    out = initial_lights(["point", "directional", "ambient", "sh-env", "vertex-sh"], init)
+    assert [type(x) for x in out] == [PointLight, DirectionalLight, AmbientLight, SHEnvironmentLight, VertexSHLight]
+    rng = np.random.default_rng(0)
+    assert np.array_equal(out[0].position, init.center + 0.6 * 2.0 * init.up + 0.3 * 2.0 * rng.normal(size=3))
+    assert np.array_equal(out[0].intensity, [4.0] * 3)
+    assert out[3].coeffs.shape == (3, 9) and out[3].degree == 0
+    assert np.allclose(out[3].coeffs[:, 0] * 0.28209479177387814, 0.5)
+    with pytest.raises(ValueError, match="light kinds"):
+        initial_lights(["spot"], _init())
+
+
+def test_gltf_punctual_form():
+    p, d = PointLight([1, 2, 3], [2, 1, 1]), DirectionalLight([0, 0, 2], [1, 1, 1])
+    assert p.gltf_punctual()[0] == "point" and np.array_equal(p.gltf_punctual()[1], [1, 2, 3])
+    assert d.gltf_punctual()[0] == "directional" and np.array_equal(d.gltf_punctual()[2], [1, 1, 1])
+    assert PointLight(falloff=False).gltf_punctual() is None and AmbientLight().gltf_punctual() is None
+    assert SHEnvironmentLight().gltf_punctual() is None and VertexSHLight().gltf_punctual() is None
+
+
+def test_train_uses_the_registry():
+    from triplet_cl.train import LIGHT_KINDS as TRAIN_KINDS
+
+    assert set(TRAIN_KINDS) == set(LIGHT_KINDS)
+
+
+def test_scene_current_lights_reads_the_packed_parameters():
+    from triplet_cl.scene import Scene
+
+    V = np.random.default_rng(0).normal(size=(6, 3))
+    lights = _mix()
+    s = Scene.from_arrays(V, np.arange(6).reshape(2, 3), lights=lights, vertex_sh=np.zeros((6, 6, 1)),
+                          dtype=np.float64)
+    s.light_params.data = s.light_params.data * 3
+    cur = s.current_lights()
+    assert np.array_equal(pack_lights(cur).params, 3 * pack_lights(lights).params)
+    assert cur[0].falloff is False and isinstance(cur[4], VertexSHLight)
