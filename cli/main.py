@@ -191,6 +191,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
     tr = _load_run(args)
+    if spec is not None:
+        from triplet_cl.relight import check_references
+
+        check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
     path = run / "metrics.json"

@@ -630,3 +630,64 @@ def test_checkpoint_from_before_a_new_config_field_still_resumes(run, capsys):
     np.savez(ck, **a)
     rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
     assert rc == 0, err
+
+
+# ---- review of issue 17 / 23 surfaces: relight, eval --relight, colmap -----------------------------------
+_POINT = {"type": "point", "position": [0, 0, 3], "intensity": [1, 1, 1]}
+BAD_RELIGHT = {  # case -> (light file content or None (a folder), extra argv, what the one-line error names)
+    "folder": (None, [], "is a folder"),
+    "empty set name": ({"sets": {"a": {"lights": [_POINT]}}}, ["#"], "names no set"),
+    "unknown set": ({"sets": {"a": {"lights": [_POINT]}}}, ["#b"], "no set named 'b'"),
+    "env degree": ({"lights": [_POINT]}, ["--env-degree", "9"], "--env-degree"),
+    "negative env degree": ({"lights": [_POINT]}, ["--env-degree", "-1"], "--env-degree"),
+    "split": ({"lights": [_POINT]}, ["--split", "val"], "--split val"),
+    "not an image": ({"lights": [{"type": "envmap", "filename": "sky.exr"}]}, [], "sky.exr"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_RELIGHT))
+def test_bad_relight_inputs_are_one_line_and_write_nothing(run, tmp_path, capsys, case):
+    doc, extra, needle = BAD_RELIGHT[case]
+    lf = tmp_path / "lights"
+    lf.mkdir()
+    (lf / "sky.exr").write_text("not an image")
+    spec = str(lf)
+    if doc is not None:
+        (lf / "l.json").write_text(json.dumps(doc))
+        spec = str(lf / "l.json") + (extra[0] if extra and extra[0].startswith("#") else "")
+    argv = ["relight", run, "--lights", spec, "--out", tmp_path / "out", *[a for a in extra if not a.startswith("#")]]
+    before = _tree(run)
+    rc, err, _ = _run_cli(argv, capsys)
+    assert rc == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists() and _tree(run) == before
+
+
+def test_eval_relight_missing_references_fail_before_any_work(run, tmp_path, capsys):
+    rd = tmp_path / "rel"
+    rd.mkdir()
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
+                                                 "albedo": "albedo"}))
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "sets.a.images" in err and "folder not found" in err, err
+    assert "PSNR" not in out and _tree(run) == before  # the novel views were not even evaluated
+    (rd / "a").mkdir()
+    rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "sets.a.images" in err and "no image for the test view" in err, err
+    assert _tree(run) == before
+
+
+def test_colmap_paths_are_checked_before_any_work(tmp_path, demo_copy, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    f = tmp_path / "file"
+    f.write_text("x")
+    for argv, needle in ((["colmap", f, "--out", tmp_path / "o"], "IMAGES"),
+                         (["colmap", photos, "--out", f], "--out"),
+                         (["colmap", photos, "--out", photos / "sub"], "inside the photos folder"),
+                         (["colmap", photos, "--out", photos], "inside the photos folder"),
+                         (["colmap", photos, "--out", demo_copy / "sfm"], "inside the dataset folder")):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and needle in err, (argv, err)
+    assert list(photos.iterdir()) == [] and not (demo_copy / "sfm").exists()
+    assert not [p for p in demo_copy.iterdir() if p.name.startswith(".")]

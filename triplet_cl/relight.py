@@ -83,11 +83,17 @@ def split_spec(spec) -> tuple[Path, str | None]:
     s = str(spec)
     if "#" in s:
         path, name = s.rsplit("#", 1)
-        return Path(path), (name or None)
+        if not name:
+            raise LightFileError(Path(path), "", f"{s!r} ends with '#' but names no set (FILE#name picks one set, "
+                                                 "FILE alone every set)")
+        return Path(path), name
     return Path(s), None
 
 
 def _read_json(path: Path) -> dict:
+    if path.is_dir():
+        hint = f" (did you mean {path / 'relight.json'}?)" if (path / "relight.json").is_file() else ""
+        raise LightFileError(path, "", f"is a folder, expected a light file{hint}")
     if not path.is_file():
         raise LightFileError(path, "", "the light file does not exist")
     try:
@@ -333,7 +339,7 @@ class Relighter:
             raise ValueError(f"split must be train, val or test, got {split!r}")
         views = ds[split]
         if not views:
-            raise ValueError(f"the run's dataset {self.tr.data} has no {split!r} views")
+            raise ValueError(f"--split {split}: the run's dataset {self.tr.data} has no {split!r} views")
         if split == "test" and self.tr.cfg.max_test_views:
             views = views[: self.tr.cfg.max_test_views]
         return views
@@ -447,6 +453,31 @@ def albedo_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
         return 10 * math.log10(1 / mse) if mse > 0 else float("inf")
 
     return {"psnr_raw": _psnr(p), "psnr_scaled": _psnr(scaled), "scale": scale.tolist(), "pixels": int(m.sum())}
+
+
+def check_references(relight_dir, view_names, env_degree: int | None = None) -> None:
+    """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
+    ``albedo`` folder, one PNG per test view): checked before any rendering, one error naming the file."""
+    rdir = Path(relight_dir)
+    spec = rdir / "relight.json" if rdir.is_dir() else rdir
+    doc = _read_json(spec)
+    folders = []
+    for ls in load_light_sets(spec, env_degree):
+        if ls.images is None:
+            raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
+        folders.append((f"sets.{ls.name}.images", ls.images))
+    alb = doc.get("albedo")
+    if alb is not None:
+        if not isinstance(alb, str):
+            raise LightFileError(spec, "albedo", f"expected a folder name, found {alb!r}")
+        folders.append(("albedo", spec.parent / alb))
+    for where, folder in folders:
+        if not folder.is_dir():
+            raise LightFileError(spec, where, f"{folder}: folder not found")
+        missing = [n for n in view_names if not (folder / f"{Path(n).name}.png").is_file()]
+        if missing:
+            raise LightFileError(spec, where, f"{folder}: no image for the test view(s) "
+                                              f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
 
 
 def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None = None, out_dir=None) -> dict:

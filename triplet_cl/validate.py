@@ -43,6 +43,7 @@ _INT_OPTIONS = {
     "--background-shell": ("background_shell", 0, 10_000_000),
     "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
     "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
+    "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
@@ -304,6 +305,26 @@ def validate_args(args) -> None:
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
+    elif cmd == "colmap":
+        check_colmap_paths(args.images, args.out)
+
+
+def check_colmap_paths(images, out) -> None:
+    """``colmap IMAGES --out DATA``: IMAGES a folder; DATA a new (or empty) writable folder outside IMAGES
+    and outside any dataset (its work folder is made beside DATA, so that place must be clean too)."""
+    images, out = Path(images), Path(out)
+    if images.exists() and not images.is_dir():
+        raise UsageError("IMAGES", f"{images} is a file, expected a folder of photos")
+    if out.exists() and not out.is_dir():
+        raise UsageError("--out", f"{out} is a file, expected a new folder")
+    check_writable_dir(out, "--out")
+    if images.is_dir():
+        img = images.resolve()
+        o = out.absolute().resolve()
+        if o == img or img in o.parents:
+            raise UsageError("--out", f"{out} is inside the photos folder {images}: choose a folder outside it "
+                                      "(triplet never writes among the user's photos)")
+    check_not_in_dataset(out, "--out")
 
 
 class DeprecatedAlias:
