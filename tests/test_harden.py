@@ -86,6 +86,15 @@ BAD_TRAIN = {
     "mesh option without --mesh-stage": (["--mesh-faces", "5000"], "--mesh-faces"),
     "resume and overwrite": (["--resume", "--overwrite"], "--overwrite"),
     "missing data": ([], "DATA"),
+    "background-shell -1": (["--background-shell", "-1"], "--background-shell"),
+    "background-shell over the face budget": (["--background-shell", "300000"], "--background-shell"),
+    "bbox without --mesh-stage": (["--bbox", "0,0,0,1,1,1"], "--bbox"),
+    "bbox nan": (["--mesh-stage", "--bbox", "0,0,0,1,1,nan"], "--bbox"),
+    "bbox inf": (["--mesh-stage", "--bbox", "0,0,0,inf,1,1"], "--bbox"),
+    "bbox inverted": (["--mesh-stage", "--bbox", "1,1,1,0,0,0"], "--bbox"),
+    "bbox flat": (["--mesh-stage", "--bbox", "0,0,0,0,1,1"], "--bbox"),
+    "bbox 3 numbers": (["--mesh-stage", "--bbox", "1,2,3"], "--bbox"),
+    "bbox words": (["--mesh-stage", "--bbox", "a,b,c,d,e,f"], "--bbox"),
 }
 
 
@@ -597,6 +606,22 @@ def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)
     rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--init-points", "150000"], capsys)
     assert rc == 2 and "--init-points" in err and "GiB" in err and not (tmp_path / "o").exists()
+
+
+def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), "--color", "srgb"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--color" in err and "'linear', 'encoded'" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_background_shell_memory_is_checked(tmp_path, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)  # 20000 initial points fit, 150000 more do not
+    rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--background-shell", "150000"], capsys)
+    assert rc == 2 and "--background-shell" in err and "GiB" in err and not (tmp_path / "o").exists()
 
 
 def test_atlas_padding_grows_with_the_texture(monkeypatch):

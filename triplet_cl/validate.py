@@ -116,6 +116,15 @@ def _check_options(args) -> None:
         check_memory_for_points(init)
     if max_faces is not None:
         check_memory_for_points(max_faces, "--max-faces")
+    shell = getattr(args, "background_shell", None)
+    if shell:  # the shell's triangles join the initial soup: the same face budget and memory
+        budget = max_faces if max_faces is not None else 200_000
+        if shell > budget:
+            raise UsageError("--background-shell", f"{shell} shell triangles exceed the face budget ({budget}, "
+                                                   "--max-faces): density control would prune them at once; give "
+                                                   "at most the budget (a few thousand take the sky), or raise "
+                                                   "--max-faces")
+        check_memory_for_points((init if init is not None else 20_000) + shell, "--background-shell")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
