@@ -231,6 +231,25 @@ def test_resume_refuses_fixed_options_and_applies_the_others(run, capsys):
     assert ckpts == ["ckpt_0000005.npz", "ckpt_0000006.npz"], ckpts
 
 
+def test_resume_of_a_run_before_the_linear_pipeline(tmp_path, demo_copy, capsys):
+    """A config.json without "color" (trained before issue 17) resumes encoded; --color linear is refused, not
+    silently dropped; --background-shell likewise cannot change."""
+    run = tmp_path / "old"
+    assert cli_main(["train", str(demo_copy), "--out", str(run), *TINY_RUN, "--color", "encoded"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["train"].pop("color")
+    (run / "config.json").write_text(json.dumps(cfg))
+    before = _tree(run)
+    for extra, named in ((["--color", "linear"], "--color"), (["--background-shell", "100"], "--background-shell")):
+        rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "6", *extra], capsys)
+        assert rc == 2 and named in err and "cannot change on --resume" in err, (extra, err)
+    assert _tree(run) == before
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "6", "--color", "encoded"], capsys)
+    assert rc == 0, err
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 6
+    assert json.loads((run / "config.json").read_text())["train"].get("color", "encoded") == "encoded"
+
+
 def test_checkpoint_of_another_configuration_is_refused(run, capsys):
     cfg = json.loads((run / "config.json").read_text())
     cfg["train"]["lights"] = ["directional", "ambient"]

@@ -363,7 +363,8 @@ def resume_config(args, saved_cfg, given_cfg):
 
     fixed = {"--seed": "seed", "--brdf": "brdf", "--lights": "lights", "--sh-degree": "sh_degree",
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
-             "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer"}
+             "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
+             "--background-shell": "background_shell", "--color": "color"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue
