@@ -192,9 +192,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
     tr = _load_run(args)
     if spec is not None:
-        from triplet_cl.relight import check_references
+        from triplet_cl.relight import check_references, check_vertex_sh
 
         check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
+        check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
     path = run / "metrics.json"
@@ -241,7 +242,7 @@ def _check_image_outs(outs, names, option: str, dataset) -> None:
 
 
 def cmd_relight(args: argparse.Namespace) -> int:
-    from triplet_cl.relight import Relighter, load_light_sets, relight_run
+    from triplet_cl.relight import Relighter, check_vertex_sh, load_light_sets, relight_run
 
     sets = load_light_sets(args.light_file, args.env_degree)  # a bad light file fails before the run is loaded
     run = Path(args.run)
@@ -251,6 +252,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
     rl = Relighter(tr, args.stage, args.renderer)
     base = Path(args.out) if args.out else run / "relight"
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
+    check_vertex_sh(sets, rl.base.vertex_sh is not None)
     names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
     _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
     for ls, out in zip(sets, outs, strict=True):

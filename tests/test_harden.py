@@ -686,6 +686,12 @@ BAD_RELIGHT = {  # case -> (light file content or None (a folder), extra argv, w
     "negative env degree": ({"lights": [_POINT]}, ["--env-degree", "-1"], "--env-degree"),
     "split": ({"lights": [_POINT]}, ["--split", "val"], "--split val"),
     "not an image": ({"lights": [{"type": "envmap", "filename": "sky.exr"}]}, [], "sky.exr"),
+    "bool intensity": ({"lights": [{**_POINT, "intensity": True}]}, [], "lights[0].intensity"),
+    "bool in a vector": ({"lights": [{**_POINT, "position": [0, False, 3]}]}, [], "lights[0].position"),
+    "our form without its parameters": ({"lights": [{"type": "PointLight"}]}, [], "lights[0].position: missing"),
+    "our form, NaN": ({"lights": [{"type": "AmbientLight", "color": [0, float("nan"), 0]}]}, [], "lights[0].color"),
+    "our form, text": ({"lights": [{"type": "AmbientLight", "color": "grey"}]}, [], "lights[0].color"),
+    "vertex SH light on a run without one": ({"lights": [{"type": "VertexSHLight"}]}, [], "VertexSHLight"),
 }
 
 

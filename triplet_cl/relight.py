@@ -144,6 +144,9 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
 
 
 def _vec(path, where: str, v, n_ok=(3,), positive=False) -> np.ndarray:
+    if isinstance(v, bool) or (isinstance(v, list) and any(isinstance(x, bool) for x in v)):
+        want = " or ".join(f"{k} number{'s' if k > 1 else ''}" for k in n_ok)
+        raise LightFileError(path, where, f"expected {want}, found {v!r}")
     try:
         a = np.asarray(v, np.float64)
     except (TypeError, ValueError):
@@ -175,7 +178,17 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
         if not isinstance(it, dict):
             raise LightFileError(path, w, f"expected an object with a \"type\", found {it!r}")
         kind = it.get("type")
-        if kind in LIGHT_CLASSES:
+        if kind in LIGHT_CLASSES:  # our lights.json form: every parameter given, finite
+            for p in LIGHT_CLASSES[kind].PARAMS:
+                if p not in it:
+                    need = list(LIGHT_CLASSES[kind].PARAMS)
+                    raise LightFileError(path, f"{w}.{p}", f"missing (a {kind} needs {need})")
+                try:
+                    a = np.asarray(it[p], np.float64)
+                except (TypeError, ValueError):
+                    a = None
+                if a is None or a.size == 0 or not np.isfinite(a).all() or np.asarray(it[p]).dtype == bool:
+                    raise LightFileError(path, f"{w}.{p}", f"expected finite numbers, found {it[p]!r}")
             ours.append(it)
             continue
         extra = set(it) - {"type", *_FIELDS.get(kind, ())}
@@ -453,6 +466,14 @@ def albedo_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
         return 10 * math.log10(1 / mse) if mse > 0 else float("inf")
 
     return {"psnr_raw": _psnr(p), "psnr_scaled": _psnr(scaled), "scale": scale.tolist(), "pixels": int(m.sum())}
+
+
+def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
+    """A set with a ``VertexSHLight`` needs a run trained with the vertex-SH light (its per-vertex coefficients)."""
+    for ls in sets:
+        if not has_vertex_sh and any(isinstance(lt, VertexSHLight) for lt in ls.lights):
+            raise LightFileError(ls.source or ls.name, "", f"set {ls.name!r} has a VertexSHLight, but the run was "
+                                 "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
 def check_references(relight_dir, view_names, env_degree: int | None = None) -> None:
