@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -520,11 +521,26 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--bbox -1,-1,0,1,1,2`` as ``--bbox=-1,-1,0,1,1,2`` (argparse takes a value starting with '-' that is not
+    one number for an option and says "expected one argument")."""
+    out, i = [], 0
+    while i < len(argv):
+        a = str(argv[i])
+        if a == "--bbox" and i + 1 < len(argv) and re.match(r"^-[0-9.]", str(argv[i + 1])):
+            out.append(f"--bbox={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)

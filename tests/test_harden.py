@@ -123,6 +123,10 @@ BAD_MESH = {
     "resolution 2048": (["--mesh-resolution", "2048"], "--mesh-resolution"),
     "supersample 9": (["--mesh-supersample", "9"], "--mesh-supersample"),
     "formats": (["--formats", "obj,fbx"], "--formats"),
+    "bbox nan": (["--bbox", "0,0,0,1,1,nan"], "--bbox"),
+    "bbox inverted": (["--bbox", "1,1,1,0,0,0"], "--bbox"),
+    "bbox 7 numbers": (["--bbox=-1,-1,-1,1,1,1,1"], "--bbox"),
+    "bbox with --mesh-crop none": (["--bbox", "-1,-1,-1,1,1,1", "--mesh-crop", "none"], "--mesh-crop"),
 }
 
 

@@ -103,6 +103,9 @@ def _check_options(args) -> None:
             parse_bbox(args.bbox)
         except ValueError as exc:
             raise UsageError("--bbox", str(exc)) from None
+        if getattr(args, "mesh_crop", None) == "none":
+            raise UsageError("--mesh-crop", f"none (keep everything) contradicts --bbox {args.bbox} (crop to that "
+                                            "box): give one of them")
     mr = getattr(args, "min_registered", None)
     if mr is not None and not (math.isfinite(mr) and 0 <= mr <= 1):
         raise UsageError("--min-registered", f"expected a fraction in [0, 1], found {mr}")
