@@ -745,3 +745,17 @@ def test_colmap_paths_are_checked_before_any_work(tmp_path, demo_copy, capsys):
         assert rc == 2 and needle in err, (argv, err)
     assert list(photos.iterdir()) == [] and not (demo_copy / "sfm").exists()
     assert not [p for p in demo_copy.iterdir() if p.name.startswith(".")]
+
+
+def test_compare_runs_tool_tells_identical_from_different(run, tmp_path, capsys):
+    """tests/tools/compare_runs.py (the refactorings' bitwise check) had no test of its own."""
+    from tests.tools.compare_runs import main as compare_main
+
+    twin = tmp_path / "twin"
+    shutil.copytree(run, twin)
+    assert compare_main([str(run), str(twin)]) == 0
+    assert compare_main([str(run)]) == 2
+    lights = json.loads((twin / "lights.json").read_text())
+    (twin / "lights.json").write_text(json.dumps(lights) + " ")
+    assert compare_main([str(run), str(twin)]) == 1
+    assert "lights.json DIFFERS" in capsys.readouterr().out
