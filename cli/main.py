@@ -11,7 +11,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.datasets import FORMATS as DATASET_FORMATS
-from triplet_cl.errors import TripletError
+from triplet_cl.errors import RunError, TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -191,6 +191,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.relight import load_light_sets
 
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
+    path = run / "metrics.json"
+    old = {}
+    if path.is_file():  # read before any work: a damaged file is named, not met after the evaluation
+        try:
+            old = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
+                                 "kept: delete it to have eval write a new one") from None
+        if not isinstance(old, dict):
+            raise RunError(path, f"damaged (expected a JSON object, found {type(old).__name__}); delete it to have "
+                                 "eval write a new one")
     tr = _load_run(args)
     if spec is not None:
         from triplet_cl.relight import check_references, check_vertex_sh
@@ -199,9 +210,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
-    path = run / "metrics.json"
-    old = json.loads(path.read_text()) if path.is_file() else {}
-    old = old if isinstance(old, dict) else {}
     merged = {**old, **m}  # the other sections ("mesh", timings, "relight") stay
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views")
     if spec is not None:

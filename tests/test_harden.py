@@ -759,3 +759,12 @@ def test_compare_runs_tool_tells_identical_from_different(run, tmp_path, capsys)
     (twin / "lights.json").write_text(json.dumps(lights) + " ")
     assert compare_main([str(run), str(twin)]) == 1
     assert "lights.json DIFFERS" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
+def test_eval_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
+    (run / "metrics.json").write_text(content)
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run], capsys)
+    assert rc == 2 and "metrics.json: damaged" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before
