@@ -204,7 +204,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  "eval write a new one")
     tr = _load_run(args)
     if spec is not None:
+        from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
         from triplet_cl.relight import check_references, check_vertex_sh
+
+        if (run / MESH_STATE).is_file():
+            load_mesh_state(run / MESH_STATE)  # a damaged mesh stage is named before the soup is evaluated
 
         check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
         check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)

@@ -372,6 +372,22 @@ def test_damaged_mesh_stage_is_named(run, capsys, kind):
     rc, err, _ = _run_cli(["export", run, "--formats", "ply", "--out", run.parent / "exp"], capsys)
     assert rc == 2 and "mesh_stage.npz" in err
     assert not (run.parent / "exp" / "mesh.ply").exists()
+    if kind == "missing":  # relight / eval --relight then use the soup
+        return
+    # relight and eval --relight read it too (they raised a BadZipFile / KeyError traceback)
+    (run / "l.json").write_text(json.dumps({"lights": [{"type": "point", "position": [0, 0, 3],
+                                                        "intensity": [1, 1, 1]}]}))
+    rd = run.parent / "rel"
+    rd.mkdir()
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [{"type": "point", "position": [0, 0, 3],
+                                                                           "intensity": [1, 1, 1]}]}}}))
+    before = _tree(run)
+    for argv in (["relight", run, "--lights", run / "l.json", "--out", run.parent / "rl"],
+                 ["eval", run, "--relight", rd, "--out", run.parent / "ev"]):
+        rc, err, out = _run_cli(argv, capsys)
+        assert rc == 2 and "mesh_stage.npz" in err and err.count("\n") == 1, (argv, err)
+        assert "PSNR" not in out
+    assert _tree(run) == before and not (run.parent / "rl").exists() and not (run.parent / "ev").exists()
 
 
 def test_os_errors_are_one_line(run, capsys, monkeypatch):

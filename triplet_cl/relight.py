@@ -339,9 +339,9 @@ class Relighter:
         self.stage_name = stage
         self.renderer = renderer or (trainer.cfg.renderer if stage == "soup" else "raster")
         if stage == "mesh":
+            self.base = load_mesh_state(trainer.run_dir / MESH_STATE)  # first: a damaged file is named there
             self.mesh_stage = MeshStage(trainer, _mesh_config(trainer.run_dir / MESH_STATE), quiet=True)
             self.mesh_stage.renderer = self.renderer
-            self.base = load_mesh_state(trainer.run_dir / MESH_STATE)
         else:
             self.mesh_stage = None
             self.base = trainer.scene
@@ -415,11 +415,18 @@ class Relighter:
 
 def _mesh_config(path):
     """The :class:`MeshConfig` the refined mesh was trained with (saved in its state)."""
+    import zipfile
+
+    from .errors import RunError
     from .mesh.refine import MeshConfig
 
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-    return MeshConfig.from_dict(meta["mesh"]) if "mesh" in meta else MeshConfig()
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+        return MeshConfig.from_dict(meta["mesh"]) if "mesh" in meta else MeshConfig()
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise RunError(path, f"damaged mesh-stage result ({type(exc).__name__}: {exc}): run `triplet extract` "
+                             "again") from None
 
 
 def straight(img: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:
