@@ -33,8 +33,9 @@ is moved, removed or added — the original implementation computed its clone ma
 had reordered the faces):
 
 1. **prune** candidates: face alpha ``≤ prune_alpha``, world area ``> prune_world_area · extent²``
-   or max screen fraction ``> prune_screen_frac``; at most ``M − min_faces`` are pruned (most
-   transparent first). Pruning takes precedence: a pruned face is neither split nor cloned.
+   or max screen fraction ``> prune_screen_frac``; at most ``min(M − min_faces,
+   ⌊max_prune_fraction · M⌋)`` are pruned (most transparent first, then the largest): a prune
+   that would empty (or gut) the soup is limited to that many faces, never executed in full. Pruning takes precedence: a pruned face is neither split nor cloned.
 2. **densify** candidates: ``mean_grad ≥ grad_threshold`` among the faces not pruned; those whose
    longest edge ``> split_edge_ratio · extent`` are split, the others cloned. When the result would
    exceed ``max_faces``, candidates are taken by decreasing gradient (a split costs +3 faces, a
@@ -68,6 +69,7 @@ __all__ = [
     "face_alpha",
     "face_areas",
     "face_longest_edges",
+    "front_faces",
     "reset_alpha",
     "split_faces",
     "vertex_params",
@@ -94,6 +96,9 @@ class DensityConfig:
     densify_until: int = 15_000  # ... and strictly before this one (stats are accumulated until then)
     grad_threshold: float = 7.5e-5  # mean ‖∂L/∂(u,v)‖ per face, loss per *pixel of the rendered resolution*
     #                                 (times `grad_scale` given to DensityStats.add); 2e-4 for scenes
+    error_threshold: float | None = None  # also densify faces whose mean per-pixel error (over the pixels
+    #                                       where they are the nearest face) ≥ this (None: off) ...
+    error_min_pixels: float = 4.0  # ... and whose projected bbox reached this many pixels in some view
     split_edge_ratio: float = 0.01  # longest edge > ratio·extent: split into 4, otherwise clone
     clone_step: float = 0.5  # a clone is translated by clone_step × (its longest edge) along −∇_V
     prune_alpha: float = 0.05  # prune faces whose alpha (max over its vertices) ≤ this
@@ -103,6 +108,8 @@ class DensityConfig:
     alpha_reset_value: float = 0.01  # cap of the alpha reset (activated value)
     max_faces: int | None = None  # never densify above this many faces (None: no limit)
     min_faces: int = 1  # never prune below this many faces (an empty soup cannot be optimised)
+    max_prune_fraction: float = 1.0  # one call prunes at most this fraction of its faces (most transparent
+    #                                  first): a prune that would empty the soup is limited, not executed
     split_interp: str = "raw"  # children's midpoint attributes: "raw" (linear on raw values) or
     #                            "activated" (linear on sigmoid/softplus values, mapped back: render-exact)
 
@@ -114,10 +121,16 @@ class DensityConfig:
             raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold}")
         if not 0.0 < self.alpha_reset_value < 1.0 or not 0.0 <= self.prune_alpha < 1.0:
             raise ValueError("alpha_reset_value must lie in (0, 1) and prune_alpha in [0, 1)")
+        if self.error_threshold is not None and not self.error_threshold > 0:
+            raise ValueError(f"error_threshold must be > 0 or None, got {self.error_threshold}")
+        if self.error_min_pixels < 0:
+            raise ValueError(f"error_min_pixels must be >= 0, got {self.error_min_pixels}")
         if self.split_edge_ratio < 0 or self.clone_step < 0:
             raise ValueError("split_edge_ratio and clone_step must be >= 0")
         if self.min_faces < 0 or (self.max_faces is not None and self.max_faces < self.min_faces):
             raise ValueError(f"need 0 <= min_faces <= max_faces, got {self.min_faces}, {self.max_faces}")
+        if not 0.0 < self.max_prune_fraction <= 1.0:
+            raise ValueError(f"max_prune_fraction must lie in (0, 1], got {self.max_prune_fraction}")
         if self.split_interp not in ("raw", "activated"):
             raise ValueError(f"split_interp must be 'raw' or 'activated', got {self.split_interp!r}")
 
@@ -143,8 +156,9 @@ class DensifyReport:
     pruned_alpha: int = 0  # prune candidates by criterion (a face may meet several; before min_faces)
     pruned_world_area: int = 0
     pruned_screen: int = 0
+    by_error: int = 0  # densify candidates selected by the error criterion only (not by the gradient)
     skipped_max_faces: int = 0  # densify candidates dropped to respect max_faces
-    spared_min_faces: int = 0  # prune candidates kept to respect min_faces
+    spared_min_faces: int = 0  # prune candidates kept to respect min_faces / max_prune_fraction
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,8 +228,13 @@ class DensityStats:
         self.world_grad_accum = np.zeros((m, 3), np.float64)
         self.max_screen_area = np.zeros(m, np.float64)
         self.max_screen_frac = np.zeros(m, np.float64)
+        self.front_views = np.zeros(m, np.int64)
+        self.front_grad_accum = np.zeros(m, np.float64)
+        self.err_accum = np.zeros(m, np.float64)
+        self.err_pixels = np.zeros(m, np.int64)
 
-    def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0) -> None:
+    def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0,
+            front=None, error=None) -> None:
         """Accumulate one rendered view.
 
         Args:
@@ -227,6 +246,10 @@ class DensityStats:
                 ``image_size = (width, height)`` of that render.
             v_V: optional ``[N, 3]`` world-space position gradient of the view (e.g. ``scene.V.grad``).
             grad_scale: multiplies the screen gradient (e.g. ``0.5 * width`` for 3DGS's NDC units).
+            front: optional ``[H, W]`` id of the nearest face of every pixel (−1: none; :func:`front_faces`)
+                for the front-visibility statistics ``front_views`` / ``front_grad_accum``.
+            error: optional ``[H, W]`` per-pixel photometric error of the view (e.g. the mean absolute
+                colour error); with ``front``, accumulates ``err_accum`` / ``err_pixels`` per face.
         """
         F = np.asarray(F)
         m = self.num_faces
@@ -259,10 +282,48 @@ class DensityStats:
             area = ext[:, 0] * ext[:, 1]
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
             self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+        if front is not None:
+            fmap = np.asarray(to_host(front)).reshape(-1).astype(np.int64)
+            on = fmap >= 0
+            if on.any() and fmap.max() >= m:
+                raise ValueError(f"front holds face ids up to {fmap.max()}, the soup has {m} faces")
+            npix = np.bincount(fmap[on], minlength=m)
+            fv = npix > 0
+            gn = np.zeros(m)
+            gn[idx] = float(grad_scale) * np.linalg.norm(g_face, axis=1)
+            self.front_views[fv] += 1
+            self.front_grad_accum[fv] += gn[fv]
+            if error is not None:
+                e = np.asarray(to_host(error), np.float64).reshape(-1)
+                if e.shape != fmap.shape:
+                    raise ValueError(f"error must have the shape of front ({fmap.size} pixels), got {e.size}")
+                self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
+                self.err_pixels += npix
 
     def mean_grad(self) -> np.ndarray:
         """``[M]`` ``grad_accum / denom`` (0 for faces never visible)."""
         return self.grad_accum / np.maximum(self.denom, 1)
+
+    def mean_front_grad(self) -> np.ndarray:
+        """``[M]`` mean screen-gradient norm over the views where the face is the *nearest* face of at
+        least one pixel (0 if never): views where it is only hidden behind others do not dilute it."""
+        return self.front_grad_accum / np.maximum(self.front_views, 1)
+
+    def mean_error(self) -> np.ndarray:
+        """``[M]`` mean per-pixel error over the pixels where the face is the nearest (0 if none)."""
+        return self.err_accum / np.maximum(self.err_pixels, 1)
+
+
+def front_faces(frags) -> np.ndarray:
+    """Host ``[H, W] int64``: the nearest face of every pixel of a
+    :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none."""
+    count = np.asarray(to_host(frags.count)).reshape(-1)
+    off = np.asarray(to_host(frags.off)).reshape(-1)[:-1]
+    face = np.asarray(to_host(frags.face)).reshape(-1)
+    out = np.full(count.size, -1, np.int64)
+    has = count > 0
+    out[has] = face[off[has]]
+    return out.reshape(int(frags.height), int(frags.width))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -386,14 +447,22 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
     by_screen = stats.max_screen_frac > config.prune_screen_frac if prune_screen else np.zeros(m, bool)
     prune_cand = (by_alpha | by_world | by_screen) if prune else np.zeros(m, bool)
     cand_idx = np.flatnonzero(prune_cand)
-    allowed = max(0, m - config.min_faces)
+    allowed = max(0, min(m - config.min_faces, int(np.floor(config.max_prune_fraction * m))))
     if cand_idx.size > allowed:  # most transparent first, then the largest
         order = np.lexsort((-longest[cand_idx], alpha_f[cand_idx]))
         cand_idx = cand_idx[order[:allowed]]
     prune_mask = np.zeros(m, bool)
     prune_mask[cand_idx] = True
 
-    dens = (grads >= config.grad_threshold) & ~prune_mask if densify else np.zeros(m, bool)
+    # priority of a densify candidate: how far its statistic is above its threshold (≥ 1 = candidate)
+    prio = grads / config.grad_threshold
+    n_by_error = 0
+    if config.error_threshold is not None:
+        err_prio = np.where(stats.max_screen_area >= config.error_min_pixels,
+                            stats.mean_error() / config.error_threshold, 0.0)
+        n_by_error = int(((err_prio >= 1.0) & (prio < 1.0) & ~prune_mask).sum()) if densify else 0
+        prio = np.maximum(prio, err_prio)
+    dens = (prio >= 1.0) & ~prune_mask if densify else np.zeros(m, bool)
     big = longest > config.split_edge_ratio * extent
     d_idx = np.flatnonzero(dens)
     skipped = 0
@@ -401,7 +470,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
         budget = config.max_faces - (m - int(prune_mask.sum()))
         cost = np.where(big[d_idx], 3, 1)
         if cost.sum() > budget:
-            order = np.argsort(-grads[d_idx], kind="stable")
+            order = np.argsort(-prio[d_idx], kind="stable")
             take = order[np.cumsum(cost[order]) <= budget]
             skipped = d_idx.size - take.size
             d_idx = np.sort(d_idx[take])
@@ -443,7 +512,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
     return DensifyReport(
         faces_before=m, faces_after=m_new, split=s, cloned=c, pruned=int(prune_mask.sum()),
         pruned_alpha=int((by_alpha & prune).sum()), pruned_world_area=int((by_world & prune).sum()),
-        pruned_screen=int((by_screen & prune).sum()), skipped_max_faces=int(skipped),
+        pruned_screen=int((by_screen & prune).sum()), by_error=n_by_error, skipped_max_faces=int(skipped),
         spared_min_faces=int(prune_cand.sum() - prune_mask.sum()))
 
 
