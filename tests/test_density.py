@@ -513,8 +513,8 @@ def test_error_criterion_grows_faces_where_the_image_error_is_high(device):
     import dataclasses
 
     from triplet_cl.camera import Camera
-    from triplet_cl.losses import photometric_loss_and_grad
     from triplet_cl.density import front_faces
+    from triplet_cl.losses import photometric_loss_and_grad
     from triplet_cl.render import RenderSettings, render
     from triplet_cl.train import TrainConfig
 

@@ -28,8 +28,15 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .datasets import load_dataset
 from .datasets.base import Dataset, resolve_background
-from .density import (DensityConfig, DensityStats, densify_and_prune, front_faces, reorder_faces, reset_alpha,
-                      visible_faces)
+from .density import (
+    DensityConfig,
+    DensityStats,
+    densify_and_prune,
+    front_faces,
+    reorder_faces,
+    reset_alpha,
+    visible_faces,
+)
 from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
