@@ -555,3 +555,24 @@ def test_error_criterion_grows_faces_where_the_image_error_is_high(device):
         np.testing.assert_array_equal(Vn[:kept][Vn[:kept].mean(axis=1)[:, 0] > 0.25], V0[far])
         assert (Vn[kept:].mean(axis=1)[:, 0] < 0.25).all()
         assert (Vn[kept:].mean(axis=1)[:, 0] < 0).mean() > 0.75
+
+
+def test_stats_accumulate_the_error_over_each_faces_nearest_pixels(rng):
+    """``front`` / ``error``: per face, the mean error over the pixels where it is the nearest face
+    (over views), the views where it is nearest, and its gradient over those views only."""
+    sc = soup([tri([i, 0, 0], 0.1, rng) for i in range(3)], rng)
+    st = DensityStats(3)
+    front = np.array([[0, 0, -1], [2, 0, -1]])
+    error = np.array([[0.1, 0.3, 9.0], [0.5, 0.2, 9.0]])  # the background's error is nobody's
+    set_grads(st, sc.F, [1.0, 2.0, 4.0])  # a view without front / error: only the gradient statistic
+    v_vs = np.zeros((9, 3))
+    v_vs[sc.F[:, 0], 0] = [3.0, 5.0, 7.0]
+    st.add(v_vs, np.ones(3, bool), sc.F, front=front, error=error)
+    np.testing.assert_allclose(st.mean_error(), [0.2, 0.0, 0.5])
+    np.testing.assert_array_equal(st.front_views, [1, 0, 1])
+    np.testing.assert_allclose(st.mean_front_grad(), [3.0, 0.0, 7.0])
+    np.testing.assert_allclose(st.mean_grad(), [2.0, 3.5, 5.5])
+    with pytest.raises(ValueError, match="error must have the shape"):
+        st.add(v_vs, np.ones(3, bool), sc.F, front=front, error=error[:, :2])
+    with pytest.raises(ValueError, match="front holds face ids"):
+        st.add(v_vs, np.ones(3, bool), sc.F, front=np.array([[3]]))

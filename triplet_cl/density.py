@@ -284,6 +284,17 @@ class DensityStats:
         g = np.asarray(to_host(v_vs), np.float64)
         if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
             raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
+        fmap = e = None
+        if front is not None:
+            fmap = np.asarray(to_host(front)).reshape(-1).astype(np.int64)
+            if fmap.size and fmap.max() >= m:
+                raise ValueError(f"front holds face ids up to {fmap.max()}, the soup has {m} faces")
+            if error is not None:
+                e = np.asarray(to_host(error), np.float64).reshape(-1)
+                if e.shape != fmap.shape:
+                    raise ValueError(f"error must have the shape of front ({fmap.size} pixels), got {e.size}")
+        elif error is not None:
+            raise ValueError("error needs front (the nearest face of every pixel, density.front_faces)")
         idx = np.flatnonzero(vis)
         Fv = F[idx]
         g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
@@ -306,10 +317,7 @@ class DensityStats:
             self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
             self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
         if front is not None:
-            fmap = np.asarray(to_host(front)).reshape(-1).astype(np.int64)
             on = fmap >= 0
-            if on.any() and fmap.max() >= m:
-                raise ValueError(f"front holds face ids up to {fmap.max()}, the soup has {m} faces")
             npix = np.bincount(fmap[on], minlength=m)
             fv = npix > 0
             gn = np.zeros(m)
@@ -317,9 +325,6 @@ class DensityStats:
             self.front_views[fv] += 1
             self.front_grad_accum[fv] += gn[fv]
             if error is not None:
-                e = np.asarray(to_host(error), np.float64).reshape(-1)
-                if e.shape != fmap.shape:
-                    raise ValueError(f"error must have the shape of front ({fmap.size} pixels), got {e.size}")
                 self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
                 self.err_pixels += npix
 
