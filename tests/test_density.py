@@ -534,6 +534,13 @@ def test_error_criterion_grows_faces_where_the_image_error_is_high(device):
         stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(scene.F)), scene.F, vs=r.info["vs"].get(),
                   image_size=(cam.width, cam.height), grad_scale=0.5 * cam.width,
                   error=np.abs(r.image - target).mean(axis=2), front=front_faces(fr))
+        # the alpha-aware nearest face: the same on an opaque soup, none where every face is faint
+        m0 = len(scene.F)
+        np.testing.assert_array_equal(front_faces(fr, np.ones(m0), 0.5), front_faces(fr))
+        fa = np.where(left, 0.1, 1.0)
+        fmap, nearest = front_faces(fr, fa, 0.5), front_faces(fr)
+        assert (fmap[nearest >= 0] >= 0).mean() < 0.9 and not left[fmap[fmap >= 0]].any()
+        assert (front_faces(fr, np.zeros(m0), 0.5) == -1).all()
     err = stats.mean_error()
     assert np.median(err[left]) > dens.error_threshold and err[~left].max() < 0.1 * dens.error_threshold
     m = len(scene.F)

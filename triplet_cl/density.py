@@ -122,6 +122,7 @@ class DensityConfig:
     error_threshold: float | None = None  # also densify faces whose mean per-pixel error (over the pixels
     #                                       where they are the nearest face) ≥ this (None: off) ...
     error_min_pixels: float = 4.0  # ... and whose projected bbox reached this many pixels in some view
+    error_min_alpha: float = 0.5  # a pixel's error belongs to its nearest face with alpha ≥ this (the trainer)
     split_edge_ratio: float = 0.01  # longest edge > ratio·extent: split into 4, otherwise clone
     clone_step: float = 0.5  # a clone is translated by clone_step × (its longest edge) along −∇_V
     prune_alpha: float = 0.05  # prune faces whose alpha (max over its vertices) ≤ this
@@ -146,6 +147,8 @@ class DensityConfig:
             raise ValueError("alpha_reset_value must lie in (0, 1) and prune_alpha in [0, 1)")
         if self.error_threshold is not None and not self.error_threshold > 0:
             raise ValueError(f"error_threshold must be > 0 or None, got {self.error_threshold}")
+        if not 0.0 <= self.error_min_alpha < 1.0:
+            raise ValueError(f"error_min_alpha must lie in [0, 1), got {self.error_min_alpha}")
         if self.error_min_pixels < 0:
             raise ValueError(f"error_min_pixels must be >= 0, got {self.error_min_pixels}")
         if self.split_edge_ratio < 0 or self.clone_step < 0:
@@ -342,15 +345,26 @@ class DensityStats:
         return self.err_accum / np.maximum(self.err_pixels, 1)
 
 
-def front_faces(frags) -> np.ndarray:
+def front_faces(frags, face_alpha=None, min_alpha: float = 0.0) -> np.ndarray:
     """Host ``[H, W] int64``: the nearest face of every pixel of a
-    :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none."""
-    count = np.asarray(to_host(frags.count)).reshape(-1)
-    off = np.asarray(to_host(frags.off)).reshape(-1)[:-1]
-    face = np.asarray(to_host(frags.face)).reshape(-1)
+    :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none.
+
+    With ``face_alpha`` (``[M]``, e.g. :func:`face_alpha`) the nearest face whose alpha ≥ ``min_alpha``:
+    a faint face in front (a floater, a face fading out) does not own the colour of the pixel, the
+    first (nearly) opaque one behind it does."""
+    count = np.asarray(to_host(frags.count)).reshape(-1).astype(np.int64)
+    face = np.asarray(to_host(frags.face)).reshape(-1).astype(np.int64)
     out = np.full(count.size, -1, np.int64)
-    has = count > 0
-    out[has] = face[off[has]]
+    if face_alpha is None or min_alpha <= 0.0:
+        off = np.asarray(to_host(frags.off)).reshape(-1)[:-1]
+        has = count > 0
+        out[has] = face[off[has]]
+    else:
+        fa = np.asarray(face_alpha, np.float64).reshape(-1)
+        pix = np.repeat(np.arange(count.size), count)  # packed rows are nearest first within a pixel
+        ok = np.flatnonzero((face >= 0) & (fa[np.maximum(face, 0)] >= min_alpha))
+        first_pix, first = np.unique(pix[ok], return_index=True)
+        out[first_pix] = face[ok[first]]
     return out.reshape(int(frags.height), int(frags.width))
 
 

@@ -32,6 +32,7 @@ from .density import (
     DensityConfig,
     DensityStats,
     densify_and_prune,
+    face_alpha,
     front_faces,
     reorder_faces,
     reset_alpha,
@@ -384,7 +385,8 @@ class Trainer:
             err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
             self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
                            vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, error=err, front=None if err is None else front_faces(fr))
+                           grad_scale=0.5 * cam.width, error=err, front=None if err is None else
+                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
