@@ -390,6 +390,26 @@ def test_optimizer_moments_follow_densification(rng):
     assert np.all(sc.V.data < before)
 
 
+def test_children_and_clones_can_inherit_the_moments(rng):
+    """``inherit_moments``: a child vertex gets the moments of its parent's corner (a midpoint: its
+    edge's first corner), a clone those of its source; survivors keep theirs."""
+    sc = soup([tri([0, 0, 0], 2.0, rng), tri([5, 0, 0], 0.1, rng), tri([9, 0, 0], 0.1, rng)], rng)
+    opt = _adam(sc, rng)
+    m_old = {g: [m.copy() for m in opt.groups[g].exp_avg] for g in opt.groups}
+    v_old = {g: [v.copy() for v in opt.groups[g].exp_avg_sq] for g in opt.groups}
+    st = DensityStats(3)
+    set_grads(st, sc.F, [5.0, 5.0, 0.0])
+    rep = densify_and_prune(sc, opt, st, cfg(inherit_moments=True), extent=1.0)
+    assert (rep.split, rep.cloned, rep.faces_after) == (1, 1, 7)
+    # rows: survivor faces 1, 2 (0..5), the 4 children of face 0 (6..17), the clone of face 1 (18..20)
+    corner = np.array([0, 1, 2, 0, 1, 2])[np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])].reshape(-1)
+    src = np.concatenate([np.arange(3, 9), corner, [3, 4, 5]])
+    for g in opt.groups.values():
+        for k in range(len(g.params)):
+            np.testing.assert_array_equal(g.exp_avg[k], m_old[g.name][k][src])
+            np.testing.assert_array_equal(g.exp_avg_sq[k], v_old[g.name][k][src])
+
+
 def test_mixed_group_is_rejected(rng):
     sc = soup([tri([0, 0, 0], 0.1, rng)], rng)
     other = Param(np.zeros(3), "light_params")

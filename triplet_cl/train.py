@@ -102,7 +102,7 @@ class TrainConfig:
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
         interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100, error_threshold=0.1, error_min_pixels=16.0,
-        max_prune_fraction=0.5))
+        max_prune_fraction=0.5, inherit_moments=True))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
