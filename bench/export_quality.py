@@ -96,7 +96,10 @@ def main(argv=None):
         t_extract = time.perf_counter() - t0
         out = args.out or Path(tmp) / "export"
         t0 = time.perf_counter()
-        paths = export_asset(asset, out, formats=("glb",), texture_size=args.texture)
+        from triplet_cl.mesh.refine import albedo_space
+
+        paths = export_asset(asset, out, formats=("glb",), texture_size=args.texture,
+                             albedo_space=albedo_space(tr.cfg.color))  # linear-pipeline albedo: sRGB-encoded
         t_export = time.perf_counter() - t0
         scene = trimesh.load(paths["glb"], process=False)
         g = list(scene.geometry.values())[0]

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
+import time
 from pathlib import Path
 
 from triplet_cl import __version__
-from triplet_cl.errors import TripletError
+from triplet_cl.datasets import FORMATS as DATASET_FORMATS
+from triplet_cl.errors import RunError, TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -88,6 +91,10 @@ def _config_from_args(args: argparse.Namespace):
         over["keep_checkpoints"] = args.keep_checkpoints
     if args.renderer:
         over["renderer"] = args.renderer
+    if getattr(args, "background_shell", None) is not None:
+        over["background_shell"] = args.background_shell
+    if getattr(args, "color", None):
+        over["color"] = args.color
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -169,14 +176,103 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
     from triplet_cl.io import write_json
 
+    run = Path(args.run)
+    spec = None
+    if args.relight:
+        spec = Path(args.relight)
+        spec = spec / "relight.json" if spec.is_dir() else spec
+        if not spec.is_file():
+            raise FileNotFoundError(f"--relight {args.relight}: expected a folder holding relight.json (or the file "
+                                    f"itself); {spec} does not exist")
+        from triplet_cl.relight import load_light_sets
+
+        load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
+    path = run / "metrics.json"
+    old = {}
+    if path.is_file():  # read before any work: a damaged file is named, not met after the evaluation
+        try:
+            old = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
+                                 "kept: delete it to have eval write a new one") from None
+        if not isinstance(old, dict):
+            raise RunError(path, f"damaged (expected a JSON object, found {type(old).__name__}); delete it to have "
+                                 "eval write a new one")
     tr = _load_run(args)
+    if spec is not None:
+        from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
+        from triplet_cl.relight import check_references, check_vertex_sh
+
+        if (run / MESH_STATE).is_file():
+            load_mesh_state(run / MESH_STATE)  # a damaged mesh stage is named before the soup is evaluated
+
+        check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
+        check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
-    write_json(Path(args.run) / "metrics.json", m)
-    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views -> "
-          f"{Path(args.run) / 'metrics.json'}")
+    merged = {**old, **m}  # the other sections ("mesh", timings, "relight") stay
+    print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views")
+    if spec is not None:
+        from triplet_cl.relight import Relighter, evaluate_relight
+
+        stages = ["soup"] + (["mesh"] if (run / "mesh_stage.npz").is_file() else [])
+        if args.out:
+            from triplet_cl.relight import load_light_sets as _sets
+
+            names = [f"{Path(v.name).name}.png" for v in tr.ds["test"][: tr.cfg.max_test_views or None]]
+            _check_image_outs([Path(args.out) / st / ls.name for st in stages for ls in _sets(spec, args.env_degree)]
+                              + [Path(args.out) / st / "albedo" for st in stages], names, "--out", tr.ds.root)
+        rel = dict(merged.get("relight") or {})
+        for stage in stages:
+            rl = Relighter(tr, stage, args.renderer)
+            out_dir = Path(args.out) / stage if args.out else None
+            r = evaluate_relight(rl, spec.parent, args.env_degree, out_dir)
+            rel[stage] = r
+            sets = ", ".join(f"{k} {v['psnr']:.2f} dB" for k, v in r["sets"].items())
+            alb = r.get("albedo")
+            alb = f"; albedo {alb['psnr_raw']:.2f} / {alb['psnr_scaled']:.2f} dB (raw / scaled)" if alb else ""
+            print(f"relight ({stage}, {rl.renderer}): {sets}{alb}")
+        merged["relight"] = rel
+    write_json(path, merged)
+    print(f"-> {path}")
+    return 0
+
+
+def _check_image_outs(outs, names, option: str, dataset) -> None:
+    """Image folders triplet writes: not in the dataset, no file of the user replaced; then recorded as triplet's."""
+    from triplet_cl.runs import mark_output_dir
+    from triplet_cl.validate import check_not_in_dataset, check_output_files
+
+    for out in outs:
+        check_not_in_dataset(out, option, dataset)
+        check_output_files(out, names, option)
+    for out in outs:
+        mark_output_dir(out, names)
+
+
+def cmd_relight(args: argparse.Namespace) -> int:
+    from triplet_cl.relight import Relighter, check_vertex_sh, load_light_sets, relight_run
+
+    sets = load_light_sets(args.light_file, args.env_degree)  # a bad light file fails before the run is loaded
+    run = Path(args.run)
+    if args.out is not None and Path(args.out).is_file():
+        raise ValueError(f"--out {args.out} is a file; expected a folder")
+    tr = _load_run(args)
+    rl = Relighter(tr, args.stage, args.renderer)
+    base = Path(args.out) if args.out else run / "relight"
+    outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
+    check_vertex_sh(sets, rl.base.vertex_sh is not None)
+    names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
+    _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
+    for ls, out in zip(sets, outs, strict=True):
+        paths = relight_run(rl, ls, out, args.split)
+        kinds = ", ".join(type(lt).__name__ for lt in ls.lights)
+        print(f"relit {len(paths)} {args.split} views of the {rl.stage_name} under {ls.name!r} ({kinds}; "
+              f"{rl.renderer}) -> {out}")
     return 0
 
 
@@ -200,6 +296,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "(default 4)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
+    p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "
+                   "units of the dataset); default for photos without alpha: a box found from the cameras' look-at "
+                   "point, the ground plane and the sparse points")
+    p.add_argument("--mesh-crop", choices=["auto", "none"], help="auto (default): crop photos without alpha to the "
+                   "automatic region of interest; none: keep everything")
 
 
 def _mesh_config_from_args(args: argparse.Namespace):
@@ -218,9 +319,22 @@ def _mesh_config_from_args(args: argparse.Namespace):
             over[field] = v
     if getattr(args, "formats", None):
         over["formats"] = _formats(args.formats)
+    if getattr(args, "mesh_crop", None):
+        over["crop"] = args.mesh_crop
+    if getattr(args, "bbox", None):
+        over["bbox"] = _bbox(args.bbox)
     cfg = replace(MeshConfig(), **over)
     cfg.validate()
     return cfg
+
+
+def _bbox(text: str) -> tuple:
+    from triplet_cl.mesh.roi import parse_bbox
+
+    try:
+        return parse_bbox(text)
+    except ValueError as exc:
+        raise ValueError(f"--bbox: {exc}") from None
 
 
 def _formats(text: str) -> tuple:
@@ -252,7 +366,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
-    from triplet_cl.mesh.refine import MESH_STATE, export_run_mesh, load_mesh_state
+    from triplet_cl.mesh.refine import MESH_STATE, albedo_space, export_run_mesh, load_mesh_state, run_color
     from triplet_cl.validate import check_export_out, parse_formats
 
     run = Path(args.run)
@@ -264,9 +378,47 @@ def cmd_export(args: argparse.Namespace) -> int:
     scene = load_mesh_state(run / MESH_STATE)
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size)
+    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size,
+                            albedo_space=albedo_space(run_color(run)))
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------- colmap (photos)
+
+
+def cmd_colmap(args: argparse.Namespace) -> int:
+    """Cameras from a folder of photos: SfM with pycolmap, undistortion, a COLMAP folder for `train`."""
+    from triplet_cl.datasets.sfm import run_sfm
+
+    t0 = time.perf_counter()
+    s = run_sfm(args.images, args.out, camera_model=args.camera_model, max_features=args.max_features,
+                min_registered=args.min_registered, num_threads=args.threads, verbose=args.verbose,
+                progress=lambda line: print(line, flush=True))
+    cam = s["camera"]
+    print(f"registered {s['registered']} of {s['photos']} photos, {s['points']} points, mean reprojection error "
+          f"{s['mean_reprojection_error_px']:.2f} px; camera {cam['model']} "
+          f"{' '.join(f'{x:.5g}' for x in cam['params'])}")
+    print(f"wrote {args.out}/ (images/, sparse/0/, distorted/, sfm.json) in {time.perf_counter() - t0:.0f} s "
+          f"(CPU {s['cpu_s']:.0f} s); next: triplet train {args.out} --out RUN")
+    return 0
+
+
+def add_colmap_parser(sub) -> None:
+    c = sub.add_parser("colmap", help="solve the cameras of a folder of photos (pycolmap structure from motion) and "
+                       "write an undistorted COLMAP folder that `triplet train` reads")
+    c.add_argument("images", help="folder of photos (JPEG/PNG/TIFF, one camera, one size)")
+    c.add_argument("--out", required=True, help="new dataset folder to write (refused if it exists and is not empty)")
+    c.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   choices=["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"],
+                   help="COLMAP camera model shared by all photos (default SIMPLE_RADIAL)")
+    c.add_argument("--max-features", type=int, default=1024, help="SIFT features per photo (default 1024; matching "
+                   "time grows with its square: raise it for hard captures)")
+    c.add_argument("--min-registered", type=float, default=0.5, help="fail when fewer than this fraction of the "
+                   "photos register (default 0.5; at least 3 always)")
+    c.add_argument("--threads", type=int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")
+    c.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+    c.set_defaults(func=cmd_colmap)
 
 
 # ---------------------------------------------------------------------------------------------- parser
@@ -297,8 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
                    "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
     t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
-    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
-    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
@@ -310,12 +462,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
     t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
+    t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
+                   "far sphere for the sky / walls (default 0; see README 'Your own photos')")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
     t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
+    t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
+                   "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
     _add_mesh_options(t)
@@ -330,10 +486,33 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help=dev_help)
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean)")
+    e = sub.add_parser("eval", help="recompute RUN/metrics.json (PSNR, SSIM per test view and mean; other "
+                       "sections are kept)")
     e.add_argument("run", help="run directory")
+    e.add_argument("--relight", help="folder with relight.json (light sets + reference images + albedo/): relit "
+                   "PSNR/SSIM per set and albedo PSNR (raw / per-channel scaled) of soup and mesh, under \"relight\"")
+    e.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer of the relit views "
+                   "(default: as `triplet relight`)")
+    e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                   "(default 8)")
+    e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
     e.add_argument("--device", default=None, help=dev_help)
     e.set_defaults(func=cmd_eval)
+
+    lt = sub.add_parser("relight", help="render a run (its refined mesh, else the soup) under other lights")
+    lt.add_argument("run", help="run directory")
+    lt.add_argument("--lights", required=True, dest="light_file", help="light file: a relight.json (FILE#set picks "
+                    "one of its sets; without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
+    lt.add_argument("--split", default="test", choices=["test", "train", "val"], help="views to render (default test)")
+    lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
+    lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
+                    "soup, raster for the mesh; hybrid gives cast shadows)")
+    lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
+                    "the refined mesh when the run has one, else the soup)")
+    lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+                    "(default 8: see README, Relighting)")
+    lt.add_argument("--device", default=None, help=dev_help)
+    lt.set_defaults(func=cmd_relight)
 
     x = sub.add_parser("extract", help="soup → connected mesh: extract, refine as a mesh, export PBR assets")
     x.add_argument("run", help="run directory of a trained soup")
@@ -350,14 +529,30 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
                    "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
+    add_colmap_parser(sub)
     return p
+
+
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--bbox -1,-1,0,1,1,2`` as ``--bbox=-1,-1,0,1,1,2`` (argparse takes a value starting with '-' that is not
+    one number for an option and says "expected one argument")."""
+    out, i = [], 0
+    while i < len(argv):
+        a = str(argv[i])
+        if a == "--bbox" and i + 1 < len(argv) and re.match(r"^-[0-9.]", str(argv[i + 1])):
+            out.append(f"--bbox={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)

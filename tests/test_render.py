@@ -56,14 +56,16 @@ def cam():
     return Camera.look_at([0.4, 0.3, 3.0], [0, 0, 0], [0, 1, 0], 40, W, H)
 
 
-@pytest.mark.parametrize("brdf,vertex_sh,sigma,mesh", [("cook_torrance", True, 0.8, False),
-                                                        ("blinn_phong", False, None, False),
-                                                        ("cook_torrance", False, 1.5, True)])
-def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, sigma, mesh):
-    """Soups with face normals, and a connected mesh with area-weighted vertex normals."""
+@pytest.mark.parametrize("brdf,vertex_sh,sigma,mesh,transfer", [("cook_torrance", True, 0.8, False, None),
+                                                                 ("blinn_phong", False, None, False, None),
+                                                                 ("cook_torrance", False, 1.5, True, None),
+                                                                 ("cook_torrance", False, 0.8, False, "srgb")])
+def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, sigma, mesh, transfer):
+    """Soups with face normals, and a connected mesh with area-weighted vertex normals; the linear
+    pipeline with the sRGB transfer after compositing."""
     scene = small_scene(rng, brdf, vertex_sh, mesh=mesh)
     settings = RenderSettings(K=6, sigma=sigma, real=np.float64, t_min=0.0, background=(0.3, 0.5, 0.9),
-                              normals="vertex" if mesh else "face")
+                              normals="vertex" if mesh else "face", transfer=transfer)
     c = cam()
     w = rng.standard_normal((H, W, 4))
     r = render(scene, c, settings, device64)
@@ -98,6 +100,20 @@ def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, si
         np.testing.assert_allclose(ana[ok], num[ok], rtol=1e-5, atol=1e-7, err_msg=f"{brdf} {p.name}")
         if p.name != "vertex_sh":  # higher SH bands of hidden vertices may be exactly 0
             assert np.abs(ana).max() > 0, p.name
+
+
+def test_render_srgb_transfer_is_the_photo_model(device64, rng):
+    """``transfer="srgb"``: linear compositing over black, then ``A·s(C/A) + (1−A)·bg``."""
+    from tests.reference.color import srgb_composite
+
+    scene = small_scene(rng, "cook_torrance")
+    bg = (0.3, 0.5, 0.9)
+    lin = render(scene, cam(), RenderSettings(K=6, real=np.float64, background=(0, 0, 0)), device64)
+    enc = render(scene, cam(), RenderSettings(K=6, real=np.float64, background=bg, transfer="srgb"), device64)
+    np.testing.assert_allclose(enc.alpha, lin.alpha, rtol=1e-12)
+    np.testing.assert_allclose(enc.image, srgb_composite(lin.image, lin.alpha, bg), rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="transfer must be"):
+        RenderSettings(transfer="gamma")
 
 
 def test_render_then_loss_on_one_tape(device64, rng):

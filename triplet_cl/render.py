@@ -43,6 +43,7 @@ from .ops import shade as shade_op
 from .ops import trace as trace_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
+from .ops.color import SRGBComposite
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
@@ -51,6 +52,7 @@ from .scene import Scene
 from .topology import silhouette_edges
 
 RENDERERS = ("raster", "raytrace", "hybrid")
+TRANSFERS = (None, "srgb")
 
 
 @dataclass
@@ -73,8 +75,15 @@ class RenderSettings:
     # ray start offset, × the scene's bounding-box diagonal: past the soup's own layer of overlapping triplets
     # (measured on spot_small, hybrid, 800 it.: 1e-4 → 30.45 dB and more baked shadow than raster, 1e-2 → 31.06 dB)
     ray_eps: float = 1e-2
+    # the image formation after compositing: None = the composite of the shaded values over ``background`` is the
+    # image (values in whatever space the scene was fitted in); "srgb" = shading and compositing are linear
+    # radiance (over black), then ``A·s(C/A) + (1−A)·background`` with s the sRGB transfer (ops/color.py): the
+    # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space
+    transfer: str | None = None
 
     def __post_init__(self):
+        if self.transfer not in TRANSFERS:
+            raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if not (np.isfinite(self.ray_eps) and self.ray_eps >= 0):
@@ -428,17 +437,18 @@ def _as_device(d: Device, x, shape, real) -> cla.Array:
 
 
 class Composite(Function):
-    """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])``."""
+    """``(rgb [P, 3], alpha [P][, win [P]]) → (image [H, W, 3], acc [H, W])`` over ``background`` (default: the
+    settings' background)."""
 
-    def __init__(self, view: RenderState):
+    def __init__(self, view: RenderState, background=None):
         self.view = view
+        self.bg = np.asarray(view.settings.background if background is None else background, np.float64)
 
     def forward(self, ctx, rgb, alpha, win=None):
         v = self.view
         fr = v.frags
         a = alpha.reshape(fr.P)
-        img, trans, ncon = composite(v.device, fr, rgb, a, np.asarray(v.settings.background, np.float64), win=win,
-                                     t_min=v.settings.t_min)
+        img, trans, ncon = composite(v.device, fr, rgb, a, self.bg, win=win, t_min=v.settings.t_min)
         ctx.save(rgb, a, win, trans, ncon)
         return img, 1.0 - trans
 
@@ -448,8 +458,8 @@ class Composite(Function):
         fr = v.frags
         if _is_zero_scalar(v_acc) or (isinstance(v_acc, np.ndarray) and not v_acc.any()):
             v_acc = None
-        v_feat, v_alpha, v_win, _ = composite_backward(v.device, fr, rgb, a, np.asarray(v.settings.background),
-                                                       ncon, trans, v_img, v_acc, win=win)
+        v_feat, v_alpha, v_win, _ = composite_backward(v.device, fr, rgb, a, self.bg, ncon, trans, v_img, v_acc,
+                                                       win=win)
         out = (v_feat, v_alpha)
         return out + ((v_win,) if win is not None else ())
 
@@ -585,6 +595,10 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(fa, *lp)
         else:
             rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
-        img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
+        if s.transfer == "srgb":  # linear radiance over black, then the photos' encoding and background
+            img, acc = Composite(view, np.zeros(3))(rgb, alpha_f, *([win] if win is not None else []))
+            img = SRGBComposite(d, s.background, s.real)(img, acc)
+        else:
+            img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
         rgba = Stack()(img, acc)
     return RenderResult(rgba, tape, scene, view)

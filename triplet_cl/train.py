@@ -54,6 +54,7 @@ from .topology import morton_order
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
+COLOR_PIPELINES = ("linear", "encoded")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -70,6 +71,10 @@ class TrainConfig:
     init_points: int = 20_000  # random initial triangles (when the dataset has no sparse points)
     init_box: float = 0.4  # half-size of the random-point box, × the mean camera distance (3.2 → ±1.28)
     init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
+    # photos with a background (no alpha): this many extra triangles on a sphere of radius background_radius × the
+    # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none)
+    background_shell: int = 0
+    background_radius: float = 3.0
     faces_per_pixel: int = 30  # K after the warm-up
     warmup_faces_per_pixel: int = 150  # K during the warm-up
     warmup_until: int = 200  # warm-up length (¼ resolution and warm-up K)
@@ -108,6 +113,11 @@ class TrainConfig:
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
     downscale: int = 1  # dataset images reduced by this integer factor at load time
     max_test_views: int | None = None  # evaluate only the first N test views (None: all)
+    # "linear": shading, lights and compositing in linear radiance, the photos' sRGB transfer after compositing
+    # (8/16-bit datasets; linear EXR/HDR datasets skip it), albedo = linear reflectance. "encoded": the renderer
+    # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
+    # this key is such a run)
+    color: str = "linear"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -127,6 +137,7 @@ class TrainConfig:
         for k in ("lights", "betas"):
             if k in d:
                 d[k] = tuple(d[k])
+        d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
         return cls(**d)
 
     def validate(self) -> None:
@@ -138,6 +149,11 @@ class TrainConfig:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.background_shell < 0 or not self.background_radius > 0:
+            raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
+                             f"{self.background_radius}")
+        if self.color not in COLOR_PIPELINES:
+            raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
         if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
@@ -170,6 +186,15 @@ def random_points(ds: Dataset, n: int, box: float, rng: np.random.Generator) -> 
     c = look_at_center(ds)
     r = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean()) * box
     return c + rng.uniform(-r, r, (n, 3))
+
+
+def background_shell_points(ds: Dataset, n: int, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points uniform on a sphere around :func:`look_at_center`, of radius ``radius`` × the mean camera
+    distance from it: the far background of a capture (sky, walls) as part of the scene."""
+    c = look_at_center(ds)
+    r = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean()) * radius
+    d = rng.normal(size=(n, 3))
+    return c + r * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Generator) -> np.ndarray:
@@ -206,6 +231,10 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng)
     V = triangles_from_points(pts, cfg.init_size, rng)
+    if cfg.background_shell:
+        V = np.concatenate([V, triangles_from_points(background_shell_points(ds, cfg.background_shell,
+                                                                             cfg.background_radius, rng),
+                                                     cfg.init_size, rng)])
     F = np.arange(len(V)).reshape(-1, 3)
     lights = initial_lights(cfg, ds, rng)
     vsh = None
@@ -343,6 +372,11 @@ class Trainer:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
 
+    @property
+    def transfer(self) -> str | None:
+        """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos."""
+        return color_transfer(self.cfg.color, self.ds.color_space)
+
     def spatial_sort(self) -> None:
         """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
         V = self.scene.V.data.reshape(-1, 3, 3)
@@ -365,7 +399,7 @@ class Trainer:
         cam, target = self.targets.get(i, scale, np.asarray(bg, np.float32))
         settings = RenderSettings(K=K, sigma=cfg.sigma, background=tuple(float(x) for x in bg),
                                   sh_degree=deg if self.scene.vertex_sh is not None else None,
-                                  renderer=cfg.renderer)
+                                  renderer=cfg.renderer, transfer=self.transfer)
         t0 = time.perf_counter()
         r = render(self.scene, cam, settings, self.device)
         t1 = time.perf_counter()
@@ -532,7 +566,7 @@ class Trainer:
         bg = np.asarray(resolve_background("white" if self.cfg.background == "random" else self.cfg.background),
                         np.float32)
         settings = RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, background=tuple(bg),
-                                  renderer=self.cfg.renderer,
+                                  renderer=self.cfg.renderer, transfer=self.transfer,
                                   sh_degree=min(self.cfg.sh_degree, self.it // max(self.cfg.sh_band_every, 1))
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
@@ -629,7 +663,9 @@ class Trainer:
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}
-            default = TrainConfig().to_dict()  # a field added since the checkpoint was written: its default matches
+            # a field added since the checkpoint was written: its value when absent from a saved config matches
+            # (its default; "color": "encoded", the pipeline of every run before the field existed)
+            default = TrainConfig.from_dict({}).to_dict()
 
             def same(k):
                 theirs = saved[k] if k in saved else default.get(k)
@@ -665,6 +701,12 @@ class Trainer:
             extra = f"; missing {missing[:3]}" if missing else ""
             raise RunError(path, f"belongs to another configuration: optimizer groups {sorted(meta['opt_hyper'])}, "
                                  f"this run has {sorted(self.opt.groups)}{extra}")
+
+
+def color_transfer(color: str, color_space: str) -> str | None:
+    """The post-compositing transfer of a run's colour pipeline (``TrainConfig.color``) on a dataset whose
+    images are ``color_space`` (``"srgb"`` or ``"linear"``)."""
+    return "srgb" if color == "linear" and color_space == "srgb" else None
 
 
 def _json_default(o):

@@ -2,8 +2,9 @@
 
 Images are kept **as stored**: 8/16-bit files (PNG, JPEG) are sRGB-encoded values in [0, 1],
 float files (EXR, HDR) are linear; :attr:`Dataset.color_space` says which ("srgb" or
-"linear"). The renderer's output is compared with the targets in that same space, as the Triplet
-method (and NeRF, 3DGS, nvdiffrec's LDR path) do.
+"linear"). Training compares in that same space: the linear pipeline (``TrainConfig.color``) renders
+linear radiance and, for "srgb" datasets, applies the sRGB transfer and the encoded-space compositing
+of the targets (``ops/color.py``) before the loss; runs before it fitted the encoded values directly.
 
 Straight (unassociated) alpha is kept apart from the colour: ``View.rgb`` is the un-premultiplied
 colour and ``View.alpha`` the coverage, so the training loop can composite a different background

@@ -8,12 +8,13 @@ Textures (GLB and OBJ share one bake; see :mod:`triplet_cl.mesh.bake`): a ``xatl
 face rasterised in texel space with barycentric interpolation of the vertex attributes, and empty
 texels filled with the nearest chart texel so that bilinear filtering and mip-maps do not bleed.
 
-Colour spaces. The renderer compares its output with the 8-bit sRGB training photos *directly*
-(no linearisation), so the trained ``albedo`` is in the photos' display-referred (sRGB-encoded)
-space: ``albedo_space="srgb"`` (default) stores its values unchanged in the sRGB base-colour
-texture, which then looks like the object in the photos and like a ground-truth sRGB texture. For
-an asset trained on linear data (EXR / HDR photos) pass ``albedo_space="linear"``: the values are
-then encoded with the sRGB transfer function. Roughness, metallic and AO are linear data.
+Colour spaces. Runs of the linear pipeline (``TrainConfig.color = "linear"``, the default: shading in
+linear radiance, the photos' sRGB transfer after compositing) learn ``albedo`` as linear
+reflectance: ``albedo_space="linear"`` encodes it with the sRGB transfer function for the base-colour
+textures (glTF's convention; the run's exports do this). ``albedo_space="srgb"`` (this function's
+default, and the exports of runs trained before the linear pipeline, which fitted the photos'
+encoded values directly) stores the values unchanged. Roughness, metallic and AO are linear data;
+the PLY keeps the float attributes as trained.
 
 Material mapping:
     Cook-Torrance: base colour = albedo; glTF metallic-roughness image (also the occlusion image,

@@ -1,0 +1,191 @@
+"""Relighting table of the dev scenes (issue 17): per run and stage (soup, mesh), the novel-view PSNR, the relit
+PSNR of each light set of ``scenes/<scene>/relight/`` and the albedo PSNR (raw / per-channel scaled), and the
+training time; optionally the relit images of one view beside the ground truth.
+
+Runs are folders named after their scene under each ``--runs LABEL=FOLDER`` (e.g. ``before=/tmp/runs_before``):
+``FOLDER/<scene>`` (the demo run may be ``spot_small``). A run whose ``metrics.json`` has no ``"relight"``
+section (or with ``--force``) is evaluated first with ``triplet eval RUN --relight DIR``.
+
+    python bench/relight.py --runs before=/tmp/runs_before after=/tmp/runs_after --scenes spot_small,spot,bob_env \\
+        --images bench/results
+    python bench/relight.py --gt-ceiling spot_small --env-degrees 0,1,2,4,8   # our renderer on the true mesh+material
+
+``--gt-ceiling`` relights the ground-truth mesh (``gt_mesh.obj``, subdivided twice) with the ground-truth material
+(texture decoded to linear, ``roughness``/``metallic`` of ``ground_truth.json``) with our renderer: what the
+renderer itself can reach (no shadows in raster, no inter-reflection), and a check of the light-file conventions
+and of the environment's SH degree. It reads ``ground_truth.json`` to check, never to train.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SETS = ("point_left", "sun_and_sky", "env_rotated")
+
+
+def relight_dir(run: Path, scene: str, data: Path) -> Path:
+    cfg = json.loads((run / "config.json").read_text())
+    d = Path(cfg["data"]) / "relight"
+    return d if (d / "relight.json").is_file() else data / "scenes" / scene / "relight"
+
+
+def ensure_eval(run: Path, rdir: Path, force: bool, env_degree: int | None) -> dict:
+    from triplet_cl.cli.main import main as cli_main
+
+    m = json.loads((run / "metrics.json").read_text())
+    if force or "relight" not in m or "soup" not in m["relight"]:
+        args = ["eval", str(run), "--relight", str(rdir)]
+        if env_degree is not None:
+            args += ["--env-degree", str(env_degree)]
+        if cli_main(args) != 0:
+            raise SystemExit(f"triplet eval failed on {run}")
+        m = json.loads((run / "metrics.json").read_text())
+    return m
+
+
+def rows_of(label: str, scene: str, run: Path, m: dict) -> list[str]:
+    color = json.loads((run / "config.json").read_text())["train"].get("color", "encoded")
+    out = []
+    for stage in ("soup", "mesh"):
+        r = m.get("relight", {}).get(stage)
+        if r is None:
+            continue
+        nvs = m["psnr"] if stage == "soup" else m["mesh"]["psnr"]
+        t = m.get("wall_time_s", 0) if stage == "soup" else m["mesh"].get("wall_time_s", 0)
+        sets = " | ".join(f"{r['sets'][s]['psnr']:.2f}" if s in r["sets"] else "—" for s in SETS)
+        a = r.get("albedo")
+        alb = f"{a['psnr_raw']:.2f} / {a['psnr_scaled']:.2f}" if a else "—"
+        out.append(f"| {scene} | {label} ({color}) | {stage} | {nvs:.2f} | {sets} | {alb} | {t:.0f} s |")
+    return out
+
+
+def view_images(runs: dict, scene: str, data: Path, out: Path, view: int = 0) -> Path:
+    """One test view: rows = light sets + albedo; columns = ground truth, then each run's mesh (else soup)."""
+    from triplet_cl.datasets.images import read_image
+    from triplet_cl.io import write_png
+    from triplet_cl.relight import Relighter, load_light_sets
+    from triplet_cl.train import Trainer
+
+    rdir = None
+    cols: list[list[np.ndarray]] = []
+    for run in runs.values():
+        rdir = relight_dir(run, scene, data)
+        tr = Trainer(None, run, resume=True, quiet=True)
+        rl = Relighter(tr)
+        v = rl.views("test")[view]
+        col = []
+        for ls in load_light_sets(rdir / "relight.json"):
+            img, _ = rl.render(rl.with_lights(ls.lights), v.camera, np.ones(3))
+            col.append(np.clip(img, 0, 1))
+        rgb, a = rl.render_albedo(v.camera)
+        col.append(np.clip(rgb * a[..., None] + (1 - a[..., None]), 0, 1))
+        cols.append(col)
+    gt = []
+    for ls in load_light_sets(rdir / "relight.json"):
+        im = read_image(ls.images / f"{Path(v.name).name}.png")
+        gt.append(im.rgb * im.alpha[..., None] + (1 - im.alpha[..., None]))
+    alb = json.loads((rdir / "relight.json").read_text())["albedo"]
+    im = read_image(rdir / alb / f"{Path(v.name).name}.png")
+    gt.append(im.rgb * im.alpha[..., None] + (1 - im.alpha[..., None]))
+    grid = np.concatenate([np.concatenate(c, 0) for c in [gt, *cols]], 1)
+    path = out / f"relight_{scene}_view{view}.png"
+    write_png(path, grid)
+    return path
+
+
+def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> None:
+    import trimesh
+
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.datasets.images import read_image
+    from triplet_cl.ops.color import srgb_decode
+    from triplet_cl.relight import load_light_sets
+    from triplet_cl.render import RenderSettings, render
+    from triplet_cl.scene import Scene, logit
+    from triplet_cl.train import psnr
+
+    d = data / "scenes" / scene
+    gt = json.loads((d / "ground_truth.json").read_text())
+    m = trimesh.load(d / "gt_mesh.obj", process=False)
+    tex = next((data / "meshes").glob(f"*/{gt['texture']}"))
+    uv, V, F = np.asarray(m.visual.uv), np.asarray(m.vertices), np.asarray(m.faces)
+    for _ in range(2):
+        V, F, attr = trimesh.remesh.subdivide(V, F, vertex_attributes={"uv": uv})
+        uv = attr["uv"]
+    t = read_image(tex).rgb
+    h, w = t.shape[:2]
+    px = np.clip((uv[:, 0] % 1) * (w - 1), 0, w - 1).round().astype(int)
+    py = np.clip((1 - uv[:, 1] % 1) * (h - 1), 0, h - 1).round().astype(int)
+    n = len(V)
+    mat = np.concatenate([logit(np.clip(srgb_decode(t[py, px]), 1e-4, 1 - 1e-4)),
+                          np.full((n, 1), logit(gt["roughness"])), np.full((n, 1), logit(max(gt["metallic"], 1e-5))),
+                          np.full((n, 1), 30.0)], 1)
+    test = load_dataset(str(d))["test"][:views]
+    print(f"ground-truth mesh + material of {scene} ({n} vertices), {len(test)} test views, 2x2 supersampled:")
+    print("| env SH degree | renderer | " + " | ".join(SETS) + " |\n|---|---|" + "---|" * len(SETS))
+    for deg in degrees:
+        sets = load_light_sets(d / "relight" / "relight.json", deg)
+        for renderer in renderers:
+            res = []
+            for ls in sets:
+                sc = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=ls.lights)
+                ps = []
+                for v in test:
+                    st = RenderSettings(K=4, sigma=None, normals="vertex", background=(1, 1, 1), transfer="srgb",
+                                        renderer=renderer)
+                    r = render(sc, v.camera.scaled(2), st)
+                    img = r.image.reshape(v.camera.height, 2, v.camera.width, 2, 3).mean((1, 3))
+                    im = read_image(ls.images / f"{Path(v.name).name}.png")
+                    ps.append(psnr(img, im.rgb * im.alpha[..., None] + (1 - im.alpha[..., None])))
+                res.append(float(np.mean(ps)))
+            print(f"| {deg} | {renderer} | " + " | ".join(f"{x:.2f}" for x in res) + " |")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--runs", nargs="*", default=[], help="LABEL=FOLDER of runs named after their scenes")
+    p.add_argument("--scenes", default="spot_small,spot,bob_env")
+    p.add_argument("--data", default=str(DATA), help="the shared data folder (scenes/, envmaps/, meshes/)")
+    p.add_argument("--force", action="store_true", help="re-run the relight evaluation of every run")
+    p.add_argument("--env-degree", type=int, help="SH degree of the environment maps (default: triplet's)")
+    p.add_argument("--images", help="write relight_<scene>_view0.png (ground truth | each run) into this folder")
+    p.add_argument("--gt-ceiling", help="relight the ground-truth mesh + material of this scene instead")
+    p.add_argument("--env-degrees", default="8", help="with --gt-ceiling: comma-separated SH degrees")
+    p.add_argument("--renderers", default="raster,hybrid", help="with --gt-ceiling: comma-separated renderers")
+    a = p.parse_args(argv)
+    data = Path(a.data)
+    if a.gt_ceiling:
+        gt_ceiling(a.gt_ceiling, [int(x) for x in a.env_degrees.split(",")], a.renderers.split(","), data)
+        return 0
+    runs = {}
+    for spec in a.runs:
+        label, _, folder = spec.partition("=")
+        if not folder:
+            p.error(f"--runs expects LABEL=FOLDER, got {spec!r}")
+        runs[label] = Path(folder)
+    print("| scene | run | stage | NVS PSNR | " + " | ".join(SETS) + " | albedo raw / scaled | time |")
+    print("|---|---|---|---|" + "---|" * len(SETS) + "---|---|")
+    for scene in a.scenes.split(","):
+        found = {}
+        for label, folder in runs.items():
+            run = folder / scene
+            if not (run / "metrics.json").is_file():
+                print(f"| {scene} | {label} | — | (no run at {run}) |", file=sys.stderr)
+                continue
+            m = ensure_eval(run, relight_dir(run, scene, data), a.force, a.env_degree)
+            found[label] = run
+            for row in rows_of(label, scene, run, m):
+                print(row, flush=True)
+        if a.images and found:
+            print(f"  images: {view_images(found, scene, data, Path(a.images))}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

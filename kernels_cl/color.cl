@@ -1,0 +1,67 @@
+/* color.cl — the photos' image formation on top of linear compositing: the sRGB transfer function
+ * and compositing over the background in encoded space (straight alpha).
+ *
+ * Per pixel, linear premultiplied radiance C [3] (composited over a black background), accumulated
+ * alpha A, background bg [3] (encoded values), eps > 0 the alpha guard:
+ *   a' = max(A, eps),  u_c = C_c / a'                  (straight linear colour)
+ *   out_c = A s(u_c) + (1 - A) bg_c
+ *   s(u) = 12.92 u                        (u <= 0.0031308)
+ *        = 1.055 u^(1/2.4) - 0.055        (u >  0.0031308)
+ * Adjoint (v_out given; s' the derivative of s):
+ *   v_C_c = v_out_c A s'(u_c) / a'
+ *   v_A   = sum_c v_out_c ( s(u_c) - bg_c - [A >= eps] s'(u_c) u_c )
+ * (below eps the guard a' is the constant eps, so u no longer depends on A). One work-item per pixel.
+ */
+#include "real.h"
+
+#define SRGB_KNEE ((REAL)0.0031308)
+
+inline REAL srgb_s(const REAL u) {
+    return u <= SRGB_KNEE ? (REAL)12.92 * u : (REAL)1.055 * pow(u, (REAL)(1.0 / 2.4)) - (REAL)0.055;
+}
+
+inline REAL srgb_ds(const REAL u) {
+    return u <= SRGB_KNEE ? (REAL)12.92 : (REAL)(1.055 / 2.4) * pow(u, (REAL)(1.0 / 2.4 - 1.0));
+}
+
+__kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear premultiplied radiance
+                                 __global const REAL* A,   // [H*W]    accumulated alpha
+                                 const REAL bg0, const REAL bg1, const REAL bg2, const REAL eps,
+                                 const int npix,
+                                 __global REAL* out)       // [H*W, 3] encoded, over bg
+{
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    const REAL a = A[p];
+    const REAL ad = fmax(a, eps);
+    const REAL bg[3] = {bg0, bg1, bg2};
+    for (int c = 0; c < 3; ++c) {
+        const REAL u = C[p * 3 + c] / ad;
+        out[p * 3 + c] = a * srgb_s(u) + ((REAL)1 - a) * bg[c];
+    }
+}
+
+__kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
+                                 __global const REAL* A,     // [H*W]
+                                 const REAL bg0, const REAL bg1, const REAL bg2, const REAL eps,
+                                 const int npix,
+                                 __global const REAL* v_out, // [H*W, 3]
+                                 __global REAL* v_C,         // [H*W, 3]
+                                 __global REAL* v_A)         // [H*W]
+{
+    const int p = get_global_id(0);
+    if (p >= npix) return;
+    const REAL a = A[p];
+    const REAL ad = fmax(a, eps);
+    const REAL inside = a >= eps ? (REAL)1 : (REAL)0;
+    const REAL bg[3] = {bg0, bg1, bg2};
+    REAL va = (REAL)0;
+    for (int c = 0; c < 3; ++c) {
+        const REAL u = C[p * 3 + c] / ad;
+        const REAL g = v_out[p * 3 + c];
+        const REAL ds = srgb_ds(u);
+        v_C[p * 3 + c] = g * a * ds / ad;
+        va += g * (srgb_s(u) - bg[c] - inside * ds * u);
+    }
+    v_A[p] = va;
+}

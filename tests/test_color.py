@@ -1,0 +1,92 @@
+"""sRGB transfer + encoded-space compositing (kernels_cl/color.cl): forward, VJP, float64 FD, tape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from triplet_cl.autodiff import Param, Tape
+
+from tests.gradients import cs_grad, fd_grad
+from tests.reference import color as ref
+from triplet_cl.ops import color
+
+BG = np.array([1.0, 0.3, 0.0])
+
+
+def _inputs(rng, H=7, W=9):
+    A = rng.uniform(0, 1, (H, W))
+    A[0, :3] = [0.0, 1e-8, 1.0]  # empty pixel, below the guard, opaque
+    u = rng.uniform(0, 1.3, (H, W, 3))  # straight linear colour (also above 1: over-exposed)
+    u[1, 0] = [0.0, 0.001, 0.0031]  # the linear segment of the transfer
+    return u * A[..., None], A
+
+
+def test_transfer_matches_the_standard_and_inverts():
+    x = np.linspace(0, 1, 1001)
+    y = color.srgb_encode(x)
+    assert y[0] == 0 and y[-1] == pytest.approx(1.0, abs=1e-12)
+    assert color.srgb_encode(0.5) == pytest.approx(0.735356983, abs=1e-8)  # IEC 61966-2-1
+    assert color.srgb_encode(0.214041140) == pytest.approx(0.5, abs=1e-8)
+    np.testing.assert_allclose(color.srgb_decode(y), x, atol=1e-12)
+    np.testing.assert_allclose(y, ref.srgb_encode(x), atol=1e-15)
+
+
+def test_forward_float32(device, rng):
+    C, A = _inputs(rng)
+    got = color.srgb_composite_host(C, A, BG, device=device)
+    want = ref.srgb_composite(C, A, BG)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got[0, 0], BG, atol=1e-7)  # nothing covers: the background
+    np.testing.assert_allclose(got[0, 2], ref.srgb_encode(C[0, 2]), rtol=1e-5)  # opaque: the encoded colour
+
+
+def test_vjp_float32_vs_reference(device, rng):
+    C, A = _inputs(rng)
+    v = rng.standard_normal(C.shape)
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device)
+    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v), C)
+    want_A = cs_grad(lambda x: np.sum(ref.srgb_composite(C, x, BG) * v), A)
+    np.testing.assert_allclose(v_C, want_C, rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(v_A, want_A, rtol=2e-4, atol=2e-4)
+
+
+def test_vjp_float64_central_differences(device64, rng):
+    C, A = _inputs(rng, 4, 5)
+    A[0, :2] = 0.3  # keep every entry away from the kinks (the guard, the knee) for the differences
+    C[1, 0] = [0.2, 0.3, 0.4]
+    v = rng.standard_normal(C.shape)
+    kw = {"device": device64, "real": np.float64}
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, **kw)
+
+    def f_C(x):
+        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v))
+
+    def f_A(x):
+        return float(np.sum(color.srgb_composite_host(C, x, BG, **kw) * v))
+
+    np.testing.assert_allclose(v_C, fd_grad(f_C, C, 1e-7), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(v_A, fd_grad(f_A, A, 1e-7), rtol=1e-6, atol=1e-7)
+
+
+def test_tape_function_propagates_both_inputs(device64, rng):
+    import pyopencl.array as cla
+
+    C, A = _inputs(rng, 3, 4)
+    pc, pa = Param(C, "C"), Param(A, "A")
+    fn = color.SRGBComposite(device64, BG, np.float64)
+    with Tape() as tape:
+        out = fn(pc, pa)
+    assert isinstance(out.data, cla.Array)
+    np.testing.assert_allclose(out.data.get(), ref.srgb_composite(C, A, BG), rtol=1e-12, atol=1e-14)
+    v = rng.standard_normal(C.shape)
+    tape.backward(out, v)
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device64, real=np.float64)
+    np.testing.assert_allclose(np.asarray(pc.grad.get() if hasattr(pc.grad, "get") else pc.grad), v_C, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(pa.grad.get() if hasattr(pa.grad, "get") else pa.grad), v_A, rtol=1e-12)
+
+
+def test_bad_shapes_raise(device):
+    with pytest.raises(ValueError, match="A must have shape"):
+        color.srgb_composite_host(np.zeros((2, 3, 3)), np.zeros((3, 2)), BG, device=device)
+    with pytest.raises(ValueError, match="background"):
+        color.srgb_composite_host(np.zeros((2, 3, 3)), np.zeros((2, 3)), [np.nan, 0, 0], device=device)
