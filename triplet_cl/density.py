@@ -32,7 +32,7 @@ and compare against 3DGS-style thresholds independently of the resolution. The l
 face is ``Σ (pixel error × coverage derivative)`` along its edges, so it is large for big faces on a
 silhouette and small for the interior of a face whose *colour* is wrong (per-vertex colours: more
 colour detail needs more faces) and for small faces on thin parts. Measured on gadget (lego-like, 100
-views at 200², defaults before this criterion, ``tools``: a diagnostic hook on the trainer): between
+views at 200², defaults before this criterion, ``bench/density_stats.py``): between
 iterations 400 and 900 only the top ≈ 1–2 % of the faces (99th percentile of the mean gradient ≈ the
 5e-3 threshold) were ever split (45–100 per step, no clones: every edge > 0.01 · extent), while
 the alpha prune removed 130–1300 per step, so the soup shrank from 5.1k to 2.4k. Counting only
