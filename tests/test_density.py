@@ -288,6 +288,25 @@ def test_min_faces_spares_the_least_transparent(rng):
     np.testing.assert_allclose(face_alpha(sc.alpha.data, sc.F), [0.03, 0.5], rtol=1e-6)
 
 
+def test_a_prune_that_would_empty_the_soup_is_refused(rng):
+    """Every face is a prune candidate (e.g. right after an alpha reset): the call removes at most
+    ``max_prune_fraction`` of the faces, the most transparent first, and the soup survives."""
+    sc = soup([tri([i, 0, 0], 0.1, rng) for i in range(10)], rng)
+    alphas = [0.03, 0.001, 0.02, 0.04, 0.005, 0.01, 0.045, 0.002, 0.03, 0.015]
+    for f, a in enumerate(alphas):
+        sc.alpha.data[3 * f:3 * f + 3] = logit(a)
+    rep = densify_and_prune(sc, None, DensityStats(10), cfg(max_prune_fraction=0.3), extent=1.0)
+    assert (rep.pruned, rep.pruned_alpha, rep.spared_min_faces, rep.faces_after) == (3, 10, 7, 7)
+    np.testing.assert_allclose(np.sort(face_alpha(sc.alpha.data, sc.F)), np.sort(alphas)[3:], rtol=1e-6)
+    assert_soup(sc)
+    # repeated calls shrink it geometrically but never empty it, even with min_faces = 0
+    for _ in range(20):
+        densify_and_prune(sc, None, DensityStats(len(sc.F)), cfg(max_prune_fraction=0.3), extent=1.0)
+    assert len(sc.F) >= 1
+    with pytest.raises(ValueError, match="max_prune_fraction"):
+        DensityConfig(max_prune_fraction=0.0)
+
+
 def test_pruned_faces_are_not_densified(rng):
     sc = soup([tri([0, 0, 0], 0.1, rng)], rng, alpha=0.01)
     st = DensityStats(1)
@@ -369,6 +388,26 @@ def test_optimizer_moments_follow_densification(rng):
     before = sc.V.data.copy()
     opt.step()
     assert np.all(sc.V.data < before)
+
+
+def test_children_and_clones_can_inherit_the_moments(rng):
+    """``inherit_moments``: a child vertex gets the moments of its parent's corner (a midpoint: its
+    edge's first corner), a clone those of its source; survivors keep theirs."""
+    sc = soup([tri([0, 0, 0], 2.0, rng), tri([5, 0, 0], 0.1, rng), tri([9, 0, 0], 0.1, rng)], rng)
+    opt = _adam(sc, rng)
+    m_old = {g: [m.copy() for m in opt.groups[g].exp_avg] for g in opt.groups}
+    v_old = {g: [v.copy() for v in opt.groups[g].exp_avg_sq] for g in opt.groups}
+    st = DensityStats(3)
+    set_grads(st, sc.F, [5.0, 5.0, 0.0])
+    rep = densify_and_prune(sc, opt, st, cfg(inherit_moments=True), extent=1.0)
+    assert (rep.split, rep.cloned, rep.faces_after) == (1, 1, 7)
+    # rows: survivor faces 1, 2 (0..5), the 4 children of face 0 (6..17), the clone of face 1 (18..20)
+    corner = np.array([0, 1, 2, 0, 1, 2])[np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])].reshape(-1)
+    src = np.concatenate([np.arange(3, 9), corner, [3, 4, 5]])
+    for g in opt.groups.values():
+        for k in range(len(g.params)):
+            np.testing.assert_array_equal(g.exp_avg[k], m_old[g.name][k][src])
+            np.testing.assert_array_equal(g.exp_avg_sq[k], v_old[g.name][k][src])
 
 
 def test_mixed_group_is_rejected(rng):
@@ -496,3 +535,110 @@ def test_stats_add_on_device_matches_numpy(device, rng, dtype):
     # validation runs before any work, on either path
     with pytest.raises(ValueError, match="visible"):
         dev.add(np.zeros((3 * m, 3), np.float32), np.ones(m - 1, bool), F, device=device)
+
+
+# ---------------------------------------------------------------------------------------------- error-driven growth
+
+
+def _plane_soup(n=8, albedo_shift=0.0):
+    """An ``n × n`` grid of squares (2 triangles each) on z = 0, x, y ∈ [−1, 1], as a soup; the faces
+    with x < 0 get ``albedo_shift`` added to their raw albedo."""
+    from triplet_cl.lights import AmbientLight, PointLight
+
+    t = np.linspace(-1.0, 1.0, n + 1)
+    tris = []
+    for i in range(n):
+        for j in range(n):
+            a, b, c, d = ([t[i], t[j], 0], [t[i + 1], t[j], 0], [t[i + 1], t[j + 1], 0], [t[i], t[j + 1], 0])
+            tris += [[a, b, c], [a, c, d]]
+    V = np.asarray(tris, np.float64).reshape(-1, 3)
+    m = len(tris)
+    mat = np.zeros((3 * m, 6))
+    mat[:, 3] = 1.0
+    left = V.reshape(m, 3, 3).mean(axis=1)[:, 0] < 0
+    mat[np.repeat(left, 3), :3] += albedo_shift
+    scene = Scene.from_arrays(V, np.arange(3 * m).reshape(m, 3), material=mat, alpha=np.full((3 * m, 1), 4.0),
+                              lights=[PointLight([0.5, 1.0, 3.0], [20.0, 20.0, 20.0]), AmbientLight([0.6, 0.6, 0.6])],
+                              brdf="cook_torrance", dtype=np.float32)
+    return scene, left
+
+
+def test_error_criterion_grows_faces_where_the_image_error_is_high(device):
+    """A flat grid whose left half has the wrong colour (the target is the same grid with another albedo
+    there): the geometry is right, so the screen-space gradient barely moves, but the per-pixel error
+    over the left faces is high. With the training defaults (gradient and error criteria), density
+    control splits faces on the left only; the right half (rendered exactly) is left alone."""
+    import copy
+    import dataclasses
+
+    from triplet_cl.camera import Camera
+    from triplet_cl.density import front_faces
+    from triplet_cl.losses import photometric_loss_and_grad
+    from triplet_cl.render import RenderSettings, render
+    from triplet_cl.train import TrainConfig
+
+    dens = TrainConfig().density
+    assert dens.error_threshold is not None
+    scene, left = _plane_soup()
+    target_scene, _ = _plane_soup(albedo_shift=-5.0)
+    settings = RenderSettings(K=8, sigma=2.0)
+    stats = DensityStats(len(scene.F))
+    for eye in ([0.0, 0.0, 3.0], [0.4, 0.3, 3.0], [-0.4, -0.2, 3.0]):
+        cam = Camera.look_at(eye, [0, 0, 0], [0, 1, 0], 45, 48, 48)
+        target = render(target_scene, cam, settings, device).image
+        r = render(scene, cam, settings, device)
+        _, v_img = photometric_loss_and_grad(r.image, target)
+        r.backward(v_img)
+        fr = r.info["frags"]
+        stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(scene.F)), scene.F, vs=r.info["vs"].get(),
+                  image_size=(cam.width, cam.height), grad_scale=0.5 * cam.width,
+                  error=np.abs(r.image - target).mean(axis=2), front=front_faces(fr))
+        # the alpha-aware nearest face: the same on an opaque soup, none where every face is faint
+        m0 = len(scene.F)
+        np.testing.assert_array_equal(front_faces(fr, np.ones(m0), 0.5), front_faces(fr))
+        fa = np.where(left, 0.1, 1.0)
+        fmap, nearest = front_faces(fr, fa, 0.5), front_faces(fr)
+        assert (fmap[nearest >= 0] >= 0).mean() < 0.9 and not left[fmap[fmap >= 0]].any()
+        assert (front_faces(fr, np.zeros(m0), 0.5) == -1).all()
+    err = stats.mean_error()
+    assert np.median(err[left]) > dens.error_threshold and err[~left].max() < 0.1 * dens.error_threshold
+    m = len(scene.F)
+    V0 = scene.V.data.reshape(m, 3, 3).copy()
+    # the defaults (gradient or error), then the error criterion alone (gradient threshold out of reach)
+    for config, by_error in ((dens, None), (dataclasses.replace(dens, grad_threshold=1e30), True)):
+        sc, st = copy.deepcopy(scene), copy.deepcopy(stats)
+        rep = densify_and_prune(sc, None, st, config, extent=1.0, prune_screen=False)  # as before a reset
+        grown = rep.split + rep.cloned
+        assert rep.pruned == 0 and grown >= 0.5 * left.sum()
+        if by_error:
+            assert rep.by_error == grown
+        # the survivors come first, in order: every face away from the colour edge at x = 0 (the right
+        # half beyond the first column, whose faces see the edge's gradient) survives unchanged, and
+        # every child / clone lies on the left or in that first column
+        kept = m - grown
+        Vn = sc.V.data.reshape(-1, 3, 3)
+        far = V0.mean(axis=1)[:, 0] > 0.25
+        np.testing.assert_array_equal(Vn[:kept][Vn[:kept].mean(axis=1)[:, 0] > 0.25], V0[far])
+        assert (Vn[kept:].mean(axis=1)[:, 0] < 0.25).all()
+        assert (Vn[kept:].mean(axis=1)[:, 0] < 0).mean() > 0.75
+
+
+def test_stats_accumulate_the_error_over_each_faces_nearest_pixels(rng):
+    """``front`` / ``error``: per face, the mean error over the pixels where it is the nearest face
+    (over views), the views where it is nearest, and its gradient over those views only."""
+    sc = soup([tri([i, 0, 0], 0.1, rng) for i in range(3)], rng)
+    st = DensityStats(3)
+    front = np.array([[0, 0, -1], [2, 0, -1]])
+    error = np.array([[0.1, 0.3, 9.0], [0.5, 0.2, 9.0]])  # the background's error is nobody's
+    set_grads(st, sc.F, [1.0, 2.0, 4.0])  # a view without front / error: only the gradient statistic
+    v_vs = np.zeros((9, 3))
+    v_vs[sc.F[:, 0], 0] = [3.0, 5.0, 7.0]
+    st.add(v_vs, np.ones(3, bool), sc.F, front=front, error=error)
+    np.testing.assert_allclose(st.mean_error(), [0.2, 0.0, 0.5])
+    np.testing.assert_array_equal(st.front_views, [1, 0, 1])
+    np.testing.assert_allclose(st.mean_front_grad(), [3.0, 0.0, 7.0])
+    np.testing.assert_allclose(st.mean_grad(), [2.0, 3.5, 5.5])
+    with pytest.raises(ValueError, match="error must have the shape"):
+        st.add(v_vs, np.ones(3, bool), sc.F, front=front, error=error[:, :2])
+    with pytest.raises(ValueError, match="front holds face ids"):
+        st.add(v_vs, np.ones(3, bool), sc.F, front=np.array([[3]]))

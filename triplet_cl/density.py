@@ -28,22 +28,53 @@ gradient w.r.t. NDC coordinates, which is ``∂L/∂u · W/2``; pass ``grad_scal
 and compare against 3DGS-style thresholds independently of the resolution. The loss normalisation
 (a mean over pixels) also enters: the per-pixel gradient scales as ``1 / (H·W)``.
 
+**Error criterion** (``error_threshold``; why a second statistic). The screen-space gradient of a
+face is ``Σ (pixel error × coverage derivative)`` along its edges, so it is large for big faces on a
+silhouette and small for the interior of a face whose *colour* is wrong (per-vertex colours: more
+colour detail needs more faces) and for small faces on thin parts. Measured on gadget (lego-like, 100
+views at 200², defaults before this criterion, ``bench/density_stats.py``): between
+iterations 400 and 900 only the top ≈ 1–2 % of the faces (99th percentile of the mean gradient ≈ the
+5e-3 threshold) were ever split (45–100 per step, no clones: every edge > 0.01 · extent), while
+the alpha prune removed 130–1300 per step, so the soup shrank from 5.1k to 2.4k. Counting only
+the views where the face is the nearest one (``mean_front_grad``) raised the count ≈ 3× — still
+~200 faces a step. The faces were large (median projected bbox 160–670 px², mean error over their
+nearest pixels: median 0.03, 90th percentile 0.14). ``mean_error`` — the mean absolute colour
+error (0–1) over the pixels where the face is the nearest face, over all views of the interval —
+is by construction independent of the resolution (a mean over pixels) and of the number of views (a
+mean over views), and it is in colour units, so one threshold means the same on every scene: "the
+pixels this face draws are off by more than 10 % on average". ``error_min_pixels`` (bbox area in
+pixels of the rendered resolution, max over views) stops error-driven refinement once a face is a
+few pixels wide: splitting it cannot add detail the images resolve. ``DensityStats.add`` needs
+``error`` (``[H, W]``) and ``front`` (:func:`front_faces`) for it; without them ``mean_error`` is 0.
+
 Order of one :func:`densify_and_prune` call (every mask is computed on the state *before* any face
 is moved, removed or added — the original implementation computed its clone mask after the split
 had reordered the faces):
 
 1. **prune** candidates: face alpha ``≤ prune_alpha``, world area ``> prune_world_area · extent²``
-   or max screen fraction ``> prune_screen_frac``; at most ``M − min_faces`` are pruned (most
-   transparent first). Pruning takes precedence: a pruned face is neither split nor cloned.
-2. **densify** candidates: ``mean_grad ≥ grad_threshold`` among the faces not pruned; those whose
+   or max screen fraction ``> prune_screen_frac``; at most ``min(M − min_faces,
+   ⌊max_prune_fraction · M⌋)`` are pruned (most transparent first, then the largest): a prune
+   that would empty (or gut) the soup is limited to that many faces, never executed in full.
+   Pruning takes precedence: a pruned face is neither split nor cloned.
+2. **densify** candidates: ``mean_grad ≥ grad_threshold`` — or, with ``error_threshold`` set,
+   ``mean_error ≥ error_threshold`` for a face whose projected bbox reached ``error_min_pixels``
+   pixels (see *Error criterion* below) — among the faces not pruned; those whose
    longest edge ``> split_edge_ratio · extent`` are split, the others cloned. When the result would
-   exceed ``max_faces``, candidates are taken by decreasing gradient (a split costs +3 faces, a
+   exceed ``max_faces``, candidates are taken by decreasing ``max(mean_grad / grad_threshold,
+   mean_error / error_threshold)`` (a split costs +3 faces, a
    clone +1) until the budget is spent.
 3. the new soup is written: surviving faces (not pruned, not split) in their original order, then
    the 4 children of every split face (in parent order), then the clones (in source order).
 4. every per-vertex optimizer group is remapped (:meth:`triplet_cl.optim.Adam.remap`): surviving
    rows keep their Adam moments, new rows (children and clones) get **zero** moments
-   (``index_map = −1``; 3DGS does the same for densified points), and the statistics are reset.
+   (``index_map = −1``; 3DGS does the same for densified points) or, with ``inherit_moments``, the
+   moments of their parent's corner (a midpoint: its edge's first corner), and the statistics are
+   reset. Why inherit: with one global step count ``t`` and the method's betas (0.5, 0.999), a
+   zero-moment row's first update is ``m̂/√v̂ = 0.5 / √(0.001 / (1 − 0.999^t))`` ≈ 11× the learning
+   rate at t = 700 (and still ≈ 2× a hundred steps later). Measured on gadget with the error
+   criterion: with zero moments (1000+ new faces a step) the training loss rose to 0.058–0.072 by
+   iterations 800–900 (the gradient-only run: 0.017–0.024); with inherited moments it was
+   0.010–0.012 there.
 """
 
 from __future__ import annotations
@@ -68,6 +99,7 @@ __all__ = [
     "face_alpha",
     "face_areas",
     "face_longest_edges",
+    "front_faces",
     "reset_alpha",
     "split_faces",
     "vertex_params",
@@ -78,6 +110,7 @@ __all__ = [
 # m20 = 5: three corner children and the centre one, all with the parent's orientation.
 CHILDREN = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]], dtype=np.int64)
 _MID_PAIRS = np.array([[0, 1], [1, 2], [2, 0]], dtype=np.int64)
+_PARENT_CORNER = np.array([0, 1, 2, 0, 1, 2], dtype=np.int64)  # the parent corner of points 0..5 (moments)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -94,6 +127,10 @@ class DensityConfig:
     densify_until: int = 15_000  # ... and strictly before this one (stats are accumulated until then)
     grad_threshold: float = 7.5e-5  # mean ‖∂L/∂(u,v)‖ per face, loss per *pixel of the rendered resolution*
     #                                 (times `grad_scale` given to DensityStats.add); 2e-4 for scenes
+    error_threshold: float | None = None  # also densify faces whose mean per-pixel error (over the pixels
+    #                                       where they are the nearest face) ≥ this (None: off) ...
+    error_min_pixels: float = 4.0  # ... and whose projected bbox reached this many pixels in some view
+    error_min_alpha: float = 0.5  # a pixel's error belongs to its nearest face with alpha ≥ this (the trainer)
     split_edge_ratio: float = 0.01  # longest edge > ratio·extent: split into 4, otherwise clone
     clone_step: float = 0.5  # a clone is translated by clone_step × (its longest edge) along −∇_V
     prune_alpha: float = 0.05  # prune faces whose alpha (max over its vertices) ≤ this
@@ -103,6 +140,9 @@ class DensityConfig:
     alpha_reset_value: float = 0.01  # cap of the alpha reset (activated value)
     max_faces: int | None = None  # never densify above this many faces (None: no limit)
     min_faces: int = 1  # never prune below this many faces (an empty soup cannot be optimised)
+    inherit_moments: bool = False  # children / clones start with their parent's Adam moments (False: zero)
+    max_prune_fraction: float = 1.0  # one call prunes at most this fraction of its faces (most transparent
+    #                                  first): a prune that would empty the soup is limited, not executed
     split_interp: str = "raw"  # children's midpoint attributes: "raw" (linear on raw values) or
     #                            "activated" (linear on sigmoid/softplus values, mapped back: render-exact)
 
@@ -114,10 +154,18 @@ class DensityConfig:
             raise ValueError(f"grad_threshold must be > 0, got {self.grad_threshold}")
         if not 0.0 < self.alpha_reset_value < 1.0 or not 0.0 <= self.prune_alpha < 1.0:
             raise ValueError("alpha_reset_value must lie in (0, 1) and prune_alpha in [0, 1)")
+        if self.error_threshold is not None and not self.error_threshold > 0:
+            raise ValueError(f"error_threshold must be > 0 or None, got {self.error_threshold}")
+        if not 0.0 <= self.error_min_alpha < 1.0:
+            raise ValueError(f"error_min_alpha must lie in [0, 1), got {self.error_min_alpha}")
+        if self.error_min_pixels < 0:
+            raise ValueError(f"error_min_pixels must be >= 0, got {self.error_min_pixels}")
         if self.split_edge_ratio < 0 or self.clone_step < 0:
             raise ValueError("split_edge_ratio and clone_step must be >= 0")
         if self.min_faces < 0 or (self.max_faces is not None and self.max_faces < self.min_faces):
             raise ValueError(f"need 0 <= min_faces <= max_faces, got {self.min_faces}, {self.max_faces}")
+        if not 0.0 < self.max_prune_fraction <= 1.0:
+            raise ValueError(f"max_prune_fraction must lie in (0, 1], got {self.max_prune_fraction}")
         if self.split_interp not in ("raw", "activated"):
             raise ValueError(f"split_interp must be 'raw' or 'activated', got {self.split_interp!r}")
 
@@ -143,8 +191,9 @@ class DensifyReport:
     pruned_alpha: int = 0  # prune candidates by criterion (a face may meet several; before min_faces)
     pruned_world_area: int = 0
     pruned_screen: int = 0
+    by_error: int = 0  # densify candidates selected by the error criterion only (not by the gradient)
     skipped_max_faces: int = 0  # densify candidates dropped to respect max_faces
-    spared_min_faces: int = 0  # prune candidates kept to respect min_faces
+    spared_min_faces: int = 0  # prune candidates kept to respect min_faces / max_prune_fraction
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,9 +263,13 @@ class DensityStats:
         self.world_grad_accum = np.zeros((m, 3), np.float64)
         self.max_screen_area = np.zeros(m, np.float64)
         self.max_screen_frac = np.zeros(m, np.float64)
+        self.front_views = np.zeros(m, np.int64)
+        self.front_grad_accum = np.zeros(m, np.float64)
+        self.err_accum = np.zeros(m, np.float64)
+        self.err_pixels = np.zeros(m, np.int64)
 
     def add(self, v_vs, visible, F, *, vs=None, image_size=None, v_V=None, grad_scale: float = 1.0,
-            device=None) -> None:
+            device=None, front=None, error=None) -> None:
         """Accumulate one rendered view.
 
         Args:
@@ -231,6 +284,10 @@ class DensityStats:
             device: a :class:`~triplet_cl.device.Device` with fp64: the update runs as the
                 ``face_stats_add`` kernel (``kernels_cl/density.cl``, one pass over the faces, on the
                 statistics arrays themselves), bit for bit the numpy update; None: numpy.
+            front: optional ``[H, W]`` id of the nearest face of every pixel (−1: none; :func:`front_faces`)
+                for the front-visibility statistics ``front_views`` / ``front_grad_accum``.
+            error: optional ``[H, W]`` per-pixel photometric error of the view (e.g. the mean absolute
+                colour error); with ``front``, accumulates ``err_accum`` / ``err_pixels`` per face.
         """
         F = np.asarray(F)
         m = self.num_faces
@@ -242,6 +299,17 @@ class DensityStats:
         g = to_host(v_vs)
         if g.ndim != 2 or g.shape[1] not in (2, 3) or (m and g.shape[0] <= F.max()):
             raise ValueError(f"v_vs must have shape [N, 3] or [N, 2] covering F, got {list(g.shape)}")
+        fmap = e = None
+        if front is not None:
+            fmap = np.asarray(to_host(front)).reshape(-1).astype(np.int64)
+            if fmap.size and fmap.max() >= m:
+                raise ValueError(f"front holds face ids up to {fmap.max()}, the soup has {m} faces")
+            if error is not None:
+                e = np.asarray(to_host(error), np.float64).reshape(-1)
+                if e.shape != fmap.shape:
+                    raise ValueError(f"error must have the shape of front ({fmap.size} pixels), got {e.size}")
+        elif error is not None:
+            raise ValueError("error needs front (the nearest face of every pixel, density.front_faces)")
         gw = uv = None
         if v_V is not None:
             gw = to_host(v_V)
@@ -254,23 +322,37 @@ class DensityStats:
             if w <= 0 or h <= 0:
                 raise ValueError(f"image_size must be positive, got {image_size}")
             uv = to_host(vs)
-        if device is not None and device.fp64 and m:
+        on_device = device is not None and device.fp64 and m
+        if on_device:
             self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale))
+        if on_device and front is None:
             return
         g = np.asarray(g, np.float64)
         idx = np.flatnonzero(vis)
         Fv = F[idx]
         g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
-        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
-        self.denom[idx] += 1
-        if gw is not None:
-            self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
-        if uv is not None:
-            uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
-            ext = uv.max(axis=1) - uv.min(axis=1)
-            area = ext[:, 0] * ext[:, 1]
-            self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
-            self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+        if not on_device:
+            self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
+            self.denom[idx] += 1
+            if gw is not None:
+                self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
+            if uv is not None:
+                uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+                ext = uv.max(axis=1) - uv.min(axis=1)
+                area = ext[:, 0] * ext[:, 1]
+                self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
+                self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+        if front is not None:  # the front-visibility and error statistics (host: per-pixel bincounts)
+            on = fmap >= 0
+            npix = np.bincount(fmap[on], minlength=m)
+            fv = npix > 0
+            gn = np.zeros(m)
+            gn[idx] = float(grad_scale) * np.linalg.norm(g_face, axis=1)
+            self.front_views[fv] += 1
+            self.front_grad_accum[fv] += gn[fv]
+            if error is not None:
+                self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
+                self.err_pixels += npix
 
     def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale) -> None:
         """:meth:`add` as the ``face_stats_add`` kernel; the statistics (numpy) are the kernel's
@@ -317,6 +399,38 @@ class DensityStats:
     def mean_grad(self) -> np.ndarray:
         """``[M]`` ``grad_accum / denom`` (0 for faces never visible)."""
         return self.grad_accum / np.maximum(self.denom, 1)
+
+    def mean_front_grad(self) -> np.ndarray:
+        """``[M]`` mean screen-gradient norm over the views where the face is the *nearest* face of at
+        least one pixel (0 if never): views where it is only hidden behind others do not dilute it."""
+        return self.front_grad_accum / np.maximum(self.front_views, 1)
+
+    def mean_error(self) -> np.ndarray:
+        """``[M]`` mean per-pixel error over the pixels where the face is the nearest (0 if none)."""
+        return self.err_accum / np.maximum(self.err_pixels, 1)
+
+
+def front_faces(frags, face_alpha=None, min_alpha: float = 0.0) -> np.ndarray:
+    """Host ``[H, W] int64``: the nearest face of every pixel of a
+    :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none.
+
+    With ``face_alpha`` (``[M]``, e.g. :func:`face_alpha`) the nearest face whose alpha ≥ ``min_alpha``:
+    a faint face in front (a floater, a face fading out) does not own the colour of the pixel, the
+    first (nearly) opaque one behind it does."""
+    count = np.asarray(to_host(frags.count)).reshape(-1).astype(np.int64)
+    face = np.asarray(to_host(frags.face)).reshape(-1).astype(np.int64)
+    out = np.full(count.size, -1, np.int64)
+    if face_alpha is None or min_alpha <= 0.0:
+        off = np.asarray(to_host(frags.off)).reshape(-1)[:-1]
+        has = count > 0
+        out[has] = face[off[has]]
+    else:
+        fa = np.asarray(face_alpha, np.float64).reshape(-1)
+        pix = np.repeat(np.arange(count.size), count)  # packed rows are nearest first within a pixel
+        ok = np.flatnonzero((face >= 0) & (fa[np.maximum(face, 0)] >= min_alpha))
+        first_pix, first = np.unique(pix[ok], return_index=True)
+        out[first_pix] = face[ok[first]]
+    return out.reshape(int(frags.height), int(frags.width))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -440,14 +554,22 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
     by_screen = stats.max_screen_frac > config.prune_screen_frac if prune_screen else np.zeros(m, bool)
     prune_cand = (by_alpha | by_world | by_screen) if prune else np.zeros(m, bool)
     cand_idx = np.flatnonzero(prune_cand)
-    allowed = max(0, m - config.min_faces)
+    allowed = max(0, min(m - config.min_faces, int(np.floor(config.max_prune_fraction * m))))
     if cand_idx.size > allowed:  # most transparent first, then the largest
         order = np.lexsort((-longest[cand_idx], alpha_f[cand_idx]))
         cand_idx = cand_idx[order[:allowed]]
     prune_mask = np.zeros(m, bool)
     prune_mask[cand_idx] = True
 
-    dens = (grads >= config.grad_threshold) & ~prune_mask if densify else np.zeros(m, bool)
+    # priority of a densify candidate: how far its statistic is above its threshold (≥ 1 = candidate)
+    prio = grads / config.grad_threshold
+    n_by_error = 0
+    if config.error_threshold is not None:
+        err_prio = np.where(stats.max_screen_area >= config.error_min_pixels,
+                            stats.mean_error() / config.error_threshold, 0.0)
+        n_by_error = int(((err_prio >= 1.0) & (prio < 1.0) & ~prune_mask).sum()) if densify else 0
+        prio = np.maximum(prio, err_prio)
+    dens = (prio >= 1.0) & ~prune_mask if densify else np.zeros(m, bool)
     big = longest > config.split_edge_ratio * extent
     d_idx = np.flatnonzero(dens)
     skipped = 0
@@ -455,7 +577,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
         budget = config.max_faces - (m - int(prune_mask.sum()))
         cost = np.where(big[d_idx], 3, 1)
         if cost.sum() > budget:
-            order = np.argsort(-grads[d_idx], kind="stable")
+            order = np.argsort(-prio[d_idx], kind="stable")
             take = order[np.cumsum(cost[order]) <= budget]
             skipped = d_idx.size - take.size
             d_idx = np.sort(d_idx[take])
@@ -469,8 +591,12 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
     keep_idx = np.flatnonzero(keep)
     s, c = split_idx.size, clone_idx.size
     m_new = keep_idx.size + 4 * s + c
-    index_map = np.concatenate([(3 * keep_idx[:, None] + np.arange(3)).reshape(-1),
-                                np.full(12 * s + 3 * c, -1)]).astype(np.int64)
+    if config.inherit_moments:  # a child vertex: its parent's corner (a midpoint: the edge's first corner)
+        new_rows = np.concatenate([(3 * split_idx[:, None, None] + _PARENT_CORNER[CHILDREN][None]).reshape(-1),
+                                   (3 * clone_idx[:, None] + np.arange(3)).reshape(-1)])
+    else:
+        new_rows = np.full(12 * s + 3 * c, -1)
+    index_map = np.concatenate([(3 * keep_idx[:, None] + np.arange(3)).reshape(-1), new_rows]).astype(np.int64)
 
     shift = None
     if c:
@@ -497,7 +623,7 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
     return DensifyReport(
         faces_before=m, faces_after=m_new, split=s, cloned=c, pruned=int(prune_mask.sum()),
         pruned_alpha=int((by_alpha & prune).sum()), pruned_world_area=int((by_world & prune).sum()),
-        pruned_screen=int((by_screen & prune).sum()), skipped_max_faces=int(skipped),
+        pruned_screen=int((by_screen & prune).sum()), by_error=n_by_error, skipped_max_faces=int(skipped),
         spared_min_faces=int(prune_cand.sum() - prune_mask.sum()))
 
 

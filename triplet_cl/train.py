@@ -28,7 +28,16 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .datasets import load_dataset
 from .datasets.base import Dataset, resolve_background
-from .density import DensityConfig, DensityStats, densify_and_prune, reorder_faces, reset_alpha, visible_faces
+from .density import (
+    DensityConfig,
+    DensityStats,
+    densify_and_prune,
+    face_alpha,
+    front_faces,
+    reorder_faces,
+    reset_alpha,
+    visible_faces,
+)
 from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
@@ -97,7 +106,8 @@ class TrainConfig:
     # image removed most faces at 200² (1 % kept)
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
         interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
-        prune_screen_frac=0.01, max_faces=200_000, min_faces=100))
+        prune_screen_frac=0.01, max_faces=200_000, min_faces=100, error_threshold=0.1, error_min_pixels=16.0,
+        max_prune_fraction=0.5, inherit_moments=True))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
@@ -409,10 +419,13 @@ class Trainer:
         if it < dens.densify_until:
             fr = r.info["frags"]
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
-            # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule
+            # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule; the
+            # error criterion needs each pixel's error and nearest face (density.DensityStats.add)
+            err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
             self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
                            vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, device=self.device)
+                           grad_scale=0.5 * cam.width, device=self.device, error=err, front=None if err is None else
+                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
@@ -440,7 +453,8 @@ class Trainer:
         if report is not None:
             rec["densify"] = {"split": report.split, "cloned": report.cloned, "pruned": report.pruned,
                               "pruned_alpha": report.pruned_alpha, "pruned_world": report.pruned_world_area,
-                              "pruned_screen": report.pruned_screen}
+                              "pruned_screen": report.pruned_screen, "by_error": report.by_error,
+                              "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
 
     def _nonfinite_cause(self, exc: NonFiniteStep) -> str:
