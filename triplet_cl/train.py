@@ -36,9 +36,9 @@ from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
 from .lights import LightInit, lights_to_json
 from .lights import initial_lights as _initial_lights
 from .losses import photometric_loss_and_grad, ssim
-from .priors import Priors
 from .materials import DEFAULT_BRDF, get_brdf
 from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
+from .priors import Priors
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
