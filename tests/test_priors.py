@@ -85,10 +85,12 @@ def test_ambient_fraction_forward_and_gradients(rng):
     _check_grad(lambda x: P.ambient_fraction(L, x, c)[0], g, lp, rng)
     # it lowers the ambient light and raises the others
     assert g[0:3].min() > 0 and g[6:9].max() < 0
-    # no ambient light, or a non-positive ambient: no term
+    # no ambient light: no term; a negative ambient light is penalised like a positive one (pushed up to 0)
     assert P.ambient_fraction(L[1:], pack_lights(L[1:]).params, c)[0] == 0.0
-    neg = [AmbientLight(-np.ones(3)), L[1]]
-    assert P.ambient_fraction(neg, pack_lights(neg).params, c)[0] == 0.0
+    neg = [AmbientLight(-L[0].color), L[1], L[2]]
+    en, gn = P.ambient_fraction(neg, pack_lights(neg).params, c)
+    assert en == pytest.approx(e, rel=1e-12) and gn[0:3].max() < 0
+    _check_grad(lambda x: P.ambient_fraction(neg, x, c)[0], gn, pack_lights(neg).params.astype(np.float64), rng)
 
 
 def test_chroma_forward_and_gradients(rng):
@@ -111,6 +113,8 @@ def test_hook_adds_weighted_gradients_and_rebuilds_graph(rng):
     s = Scene.from_arrays(V, F, material=raw, lights=L, dtype=np.float64)
     cfg = TrainConfig(prior_smooth=0.3, prior_k=3, prior_metallic=0.2, prior_roughness=0.1, prior_ambient=0.5,
                       prior_chroma=0.05)
+    assert P.Priors(cfg, np.zeros(3)).apply(s, cfg.prior_from - 1) == {}  # not before prior_from
+    cfg.prior_from = 0
     pr = P.Priors(cfg, np.zeros(3))
     s.material.grad = np.ones_like(raw)
     terms = pr.apply(s, 0)

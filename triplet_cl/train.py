@@ -113,6 +113,7 @@ class TrainConfig:
     prior_roughness_target: float = 0.5
     prior_ambient: float = 0.0  # ambient share of the irradiance at the scene centre
     prior_chroma: float = 0.0  # scale-free colour variance of each light (white-ish lights)
+    prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
 
     def to_dict(self) -> dict:
         d = asdict(self)

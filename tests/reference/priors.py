@@ -47,7 +47,7 @@ def ambient_fraction(ambient_colors, points, directionals, center):
     for q, i in points:
         p += (sum(i) / 3.0) / max(sum((q[k] - center[k]) ** 2 for k in range(3)), 1e-6)
     p += sum(sum(i) / 3.0 for i in directionals)
-    a = max(a, 0.0)
+    a = abs(a)
     den = math.pi * a + p
     return 0.0 if den <= 0 else math.pi * a / den
 
