@@ -142,3 +142,27 @@ def test_priors_off_by_absent_config_and_validated():
         TrainConfig(prior_metallic=-1.0).validate()
     with pytest.raises(ValueError, match="prior_k"):
         TrainConfig(prior_k=0).validate()
+
+
+def test_priors_act_in_training_and_cli_switch(tmp_path, capsys):
+    """A training step records the priors' energies from prior_from on; `--priors off` zeroes every weight in
+    config.json and cannot change on --resume."""
+    import json
+
+    from cli.main import demo_data_path
+    from cli.main import main as cli_main
+    from triplet_cl.train import Trainer
+
+    tr = Trainer(demo_data_path(), tmp_path / "p", TrainConfig(iterations=2, init_points=300, prior_from=1),
+                 quiet=True)
+    first, second = tr.step(), tr.step()
+    assert "priors" not in first and set(second["priors"]) == {"smooth", "metallic", "roughness", "ambient", "chroma"}
+    assert all(np.isfinite(v) for v in second["priors"].values())
+    out = tmp_path / "off"
+    assert cli_main(["train", "--demo", "--iterations", "2", "--init-points", "300", "--out", str(out),
+                     "--priors", "off"]) == 0
+    saved = json.loads((out / "config.json").read_text())["train"]
+    assert all(saved[k] == 0.0 for k in P.WEIGHT_FIELDS)
+    capsys.readouterr()
+    assert cli_main(["train", "--resume", "--out", str(out), "--iterations", "3", "--priors", "on"]) == 2
+    assert "--priors" in capsys.readouterr().err

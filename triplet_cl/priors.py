@@ -39,6 +39,8 @@ from scipy.spatial import cKDTree
 from .lights import AmbientLight, DirectionalLight, PointLight
 from .materials import get_brdf
 
+#: the TrainConfig fields of the priors' weights (``--priors off`` sets them all to 0)
+WEIGHT_FIELDS = ("prior_smooth", "prior_metallic", "prior_roughness", "prior_ambient", "prior_chroma")
 CHARBONNIER_EPS = 0.01
 CHROMA_DELTA = 1e-6
 DIST_FLOOR = 1e-6  # the point-light kernel's clamp of |q - x|^2
@@ -221,6 +223,11 @@ class Priors:
     @property
     def active(self) -> bool:
         return any(w > 0 for w in (self.w_smooth, self.w_metallic, self.w_roughness, self.w_ambient, self.w_chroma))
+
+    @staticmethod
+    def off() -> dict:
+        """The ``TrainConfig`` fields that switch every prior off (``--priors off``; runs saved before them)."""
+        return dict.fromkeys(WEIGHT_FIELDS, 0.0)
 
     def invalidate(self) -> None:
         self.pairs = None

@@ -106,13 +106,13 @@ class TrainConfig:
     # this key is such a run)
     color: str = "linear"
     # material / light priors (priors.py; 0 disables a term); README "Priors" says why each default
-    prior_smooth: float = 0.0  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
+    prior_smooth: float = 0.01  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
     prior_k: int = 8  # neighbours of the smoothness graph
-    prior_metallic: float = 0.0  # mean metallic (L1 towards 0)
-    prior_roughness: float = 0.0  # mean (roughness − prior_roughness_target)²
+    prior_metallic: float = 0.01  # mean metallic (L1 towards 0)
+    prior_roughness: float = 0.01  # mean (roughness − prior_roughness_target)²
     prior_roughness_target: float = 0.5
-    prior_ambient: float = 0.0  # ambient share of the irradiance at the scene centre
-    prior_chroma: float = 0.0  # scale-free colour variance of each light (white-ish lights)
+    prior_ambient: float = 0.02  # ambient share of the irradiance at the scene centre
+    prior_chroma: float = 0.01  # scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
 
     def to_dict(self) -> dict:
@@ -134,8 +134,8 @@ class TrainConfig:
             if k in d:
                 d[k] = tuple(d[k])
         d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
-        for k in ("prior_smooth", "prior_metallic", "prior_roughness", "prior_ambient", "prior_chroma"):
-            d.setdefault(k, 0.0)  # saved before the priors: none
+        for k, v in Priors.off().items():
+            d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
 
     def validate(self) -> None:
@@ -155,8 +155,7 @@ class TrainConfig:
             raise ValueError(f"checkpoint_every and keep_checkpoints must be >= 0, got {self.checkpoint_every} "
                              f"and {self.keep_checkpoints}")
         resolve_background(self.background)
-        bad = {k: getattr(self, k) for k in ("prior_smooth", "prior_metallic", "prior_roughness", "prior_ambient",
-                                             "prior_chroma") if not getattr(self, k) >= 0}
+        bad = {k: getattr(self, k) for k in Priors.off() if not getattr(self, k) >= 0}
         if bad or self.prior_k < 1 or not 0 <= self.prior_roughness_target <= 1:
             raise ValueError(f"prior weights must be >= 0, prior_k >= 1, prior_roughness_target in [0, 1]; got "
                              f"{bad or ''} prior_k={self.prior_k} prior_roughness_target={self.prior_roughness_target}")
