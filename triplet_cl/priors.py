@@ -240,6 +240,19 @@ class Priors:
             self.built_at = it
         return self.pairs
 
+    def project(self, scene) -> None:
+        """After the optimizer step: light colours / intensities onto ``>= 0`` (a negative light is not physical
+        and, measured on the synthetic recovery scene, lets a negative ambient light carve the shading the
+        point light should make). Only while a prior is active (``--priors off`` leaves the run as before)."""
+        if not self.active or scene.light_params is None:
+            return
+        lp = scene.light_params.data
+        for lt, off in _slices(scene.lights):
+            name = {AmbientLight: "color", PointLight: "intensity", DirectionalLight: "intensity"}.get(type(lt))
+            if name is not None:
+                o = off + lt.param_offset(name)
+                np.maximum(lp[o:o + 3], 0, out=lp[o:o + 3])
+
     def apply(self, scene, it: int) -> dict:
         """Add the priors' gradients to ``scene.material.grad`` / ``scene.light_params.grad``;
         returns ``{term: energy}`` of the active terms."""

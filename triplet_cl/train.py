@@ -411,6 +411,7 @@ class Trainer:
         except NonFiniteStep as exc:
             raise NonFiniteError(it + 1, exc.group, exc.what, self._nonfinite_cause(exc)) from None
         self.opt.zero_grad()
+        self.priors.project(self.scene)
         t4 = time.perf_counter()
         report = None
         if dens.densify_at(it):
