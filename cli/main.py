@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 from triplet_cl import __version__
+from triplet_cl.datasets import FORMATS as DATASET_FORMATS
 from triplet_cl.errors import TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
@@ -88,6 +90,8 @@ def _config_from_args(args: argparse.Namespace):
         over["keep_checkpoints"] = args.keep_checkpoints
     if args.renderer:
         over["renderer"] = args.renderer
+    if getattr(args, "background_shell", None) is not None:
+        over["background_shell"] = args.background_shell
     if getattr(args, "color", None):
         over["color"] = args.color
     if getattr(args, "priors", None) == "off":
@@ -277,6 +281,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "(default 4)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
+    p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "
+                   "units of the dataset); default for photos without alpha: a box found from the cameras' look-at "
+                   "point, the ground plane and the sparse points")
+    p.add_argument("--mesh-crop", choices=["auto", "none"], help="auto (default): crop photos without alpha to the "
+                   "automatic region of interest; none: keep everything")
 
 
 def _mesh_config_from_args(args: argparse.Namespace):
@@ -295,9 +304,22 @@ def _mesh_config_from_args(args: argparse.Namespace):
             over[field] = v
     if getattr(args, "formats", None):
         over["formats"] = _formats(args.formats)
+    if getattr(args, "mesh_crop", None):
+        over["crop"] = args.mesh_crop
+    if getattr(args, "bbox", None):
+        over["bbox"] = _bbox(args.bbox)
     cfg = replace(MeshConfig(), **over)
     cfg.validate()
     return cfg
+
+
+def _bbox(text: str) -> tuple:
+    from triplet_cl.mesh.roi import parse_bbox
+
+    try:
+        return parse_bbox(text)
+    except ValueError as exc:
+        raise ValueError(f"--bbox: {exc}") from None
 
 
 def _formats(text: str) -> tuple:
@@ -347,6 +369,43 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------------- colmap (photos)
+
+
+def cmd_colmap(args: argparse.Namespace) -> int:
+    """Cameras from a folder of photos: SfM with pycolmap, undistortion, a COLMAP folder for `train`."""
+    from triplet_cl.datasets.sfm import run_sfm
+
+    t0 = time.perf_counter()
+    s = run_sfm(args.images, args.out, camera_model=args.camera_model, max_features=args.max_features,
+                min_registered=args.min_registered, num_threads=args.threads, verbose=args.verbose,
+                progress=lambda line: print(line, flush=True))
+    cam = s["camera"]
+    print(f"registered {s['registered']} of {s['photos']} photos, {s['points']} points, mean reprojection error "
+          f"{s['mean_reprojection_error_px']:.2f} px; camera {cam['model']} "
+          f"{' '.join(f'{x:.5g}' for x in cam['params'])}")
+    print(f"wrote {args.out}/ (images/, sparse/0/, distorted/, sfm.json) in {time.perf_counter() - t0:.0f} s "
+          f"(CPU {s['cpu_s']:.0f} s); next: triplet train {args.out} --out RUN")
+    return 0
+
+
+def add_colmap_parser(sub) -> None:
+    c = sub.add_parser("colmap", help="solve the cameras of a folder of photos (pycolmap structure from motion) and "
+                       "write an undistorted COLMAP folder that `triplet train` reads")
+    c.add_argument("images", help="folder of photos (JPEG/PNG/TIFF, one camera, one size)")
+    c.add_argument("--out", required=True, help="new dataset folder to write (refused if it exists and is not empty)")
+    c.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   choices=["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"],
+                   help="COLMAP camera model shared by all photos (default SIMPLE_RADIAL)")
+    c.add_argument("--max-features", type=int, default=1024, help="SIFT features per photo (default 1024; matching "
+                   "time grows with its square: raise it for hard captures)")
+    c.add_argument("--min-registered", type=float, default=0.5, help="fail when fewer than this fraction of the "
+                   "photos register (default 0.5; at least 3 always)")
+    c.add_argument("--threads", type=int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")
+    c.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+    c.set_defaults(func=cmd_colmap)
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -375,8 +434,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
                    "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
     t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
-    t.add_argument("--data-format", default="auto", choices=["auto", "nerf", "ngp", "colmap"], help="dataset format")
-    t.add_argument("--format", dest="data_format", choices=["auto", "nerf", "ngp", "colmap"],
+    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format")
+    t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
     t.add_argument("--seed", type=int, help="random seed (default 0)")
@@ -388,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
     t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
+    t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
+                   "far sphere for the sky / walls (default 0; see README 'Your own photos')")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
@@ -456,6 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
                    "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
+    add_colmap_parser(sub)
     return p
 
 

@@ -21,6 +21,7 @@ from triplet_cl.datasets import (
     holdout_split,
     load_dataset,
     read_image,
+    read_model,
     resolve_background,
 )
 from triplet_cl.errors import DatasetError, TripletError
@@ -177,13 +178,28 @@ def test_colmap_missing_image_warns(tmp_path):
 @pytest.mark.parametrize("model, params", [("SIMPLE_RADIAL", [7.0, 4.0, 3.0, 0.05]),
                                            ("RADIAL", [7.0, 4.0, 3.0, 0.05, 0.01]),
                                            ("OPENCV", [7.0, 7.0, 4.0, 3.0, 0.1, 0.0, 0.0, 0.0]),
-                                           ("OPENCV_FISHEYE", [7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])])
-def test_colmap_distorting_models_refused(tmp_path, binary, model, params):
+                                           ("OPENCV_FISHEYE", [7.0, 7.0, 4.0, 3.0, 0.05, 0.0, 0.0, 0.0])])
+def test_colmap_distorting_models_undistorted(tmp_path, binary, model, params, monkeypatch):
+    """Distorting cameras (refused before issue 23) are undistorted by pycolmap into a cache and loaded as
+    PINHOLE; the photos' exact undistortion is checked in tests/test_sfm.py."""
+    pytest.importorskip("pycolmap")
+    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
     fac.make_colmap(tmp_path, n=2, binary=binary, model=model, params=params)
-    with pytest.raises(DatasetError) as ei:
+    ds = load_dataset(tmp_path, split_holdout=0)
+    assert len(ds.train) == 2 and ds.points is not None and len(ds.points) == 5
+    cached = list((tmp_path / ".triplet_cache").iterdir())
+    assert len(cached) == 1
+    cams, *_ = read_model(cached[0] / "sparse" / "0")
+    assert {c.model for c in cams.values()} == {"PINHOLE"}
+
+
+def test_colmap_zero_fisheye_is_refused_clearly(tmp_path, monkeypatch):
+    """A fisheye with zero coefficients is still a fisheye; pycolmap leaves it as it is: a clear error."""
+    pytest.importorskip("pycolmap")
+    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
+    fac.make_colmap(tmp_path, n=2, model="OPENCV_FISHEYE", params=[7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(DatasetError, match="OPENCV_FISHEYE.*not a pinhole camera"):
         load_dataset(tmp_path)
-    msg = str(ei.value)
-    assert f"cameras.{'bin' if binary else 'txt'}" in msg and model in msg and "colmap image_undistorter" in msg
 
 
 def test_colmap_zero_distortion_is_pinhole(tmp_path):

@@ -1,4 +1,4 @@
-"""Activations of the raw parameters (DESIGN.md section 5) with their adjoints.
+"""Activations of the raw parameters (docs/ARCHITECTURE.md §8) with their adjoints.
 
 Each activation ``y = f(x)`` has a forward ``f(x)``, an adjoint ``f_bwd(..., v_y) -> v_x`` and a tape
 :class:`~triplet_cl.autodiff.Function` (``Sigmoid()``, ``Softplus()``, ``Exp()``, ``Normalize()``).

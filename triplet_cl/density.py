@@ -1,4 +1,4 @@
-"""Adaptive density control of the triangle soup (DESIGN.md section 5): split, clone, prune, alpha reset.
+"""Adaptive density control of the triangle soup (docs/ARCHITECTURE.md §8): split, clone, prune, alpha reset.
 
 Everything here runs on the host (numpy, vectorised over faces) between optimisation steps.
 
@@ -87,7 +87,7 @@ _MID_PAIRS = np.array([[0, 1], [1, 2], [2, 0]], dtype=np.int64)
 
 @dataclass
 class DensityConfig:
-    """Settings of density control (defaults: the method's values for objects, DESIGN.md §5)."""
+    """Settings of density control (defaults: the method's values for objects, docs/ARCHITECTURE.md §8)."""
 
     interval: int = 100  # densify every `interval` iterations ...
     densify_from: int = 500  # ... strictly after this iteration ...

@@ -1,6 +1,6 @@
 """The OpenCL device layer: device selection, one object holding context, queue and program cache.
 
-Selection order (DESIGN.md section 3):
+Selection order (docs/ARCHITECTURE.md §4):
 
 1. an explicit specification (``--device`` on the command line, the ``spec`` argument here),
 2. else the ``TRIPLET_DEVICE`` environment variable,

@@ -1,4 +1,4 @@
-"""Image losses with adjoints (DESIGN.md sections 4 and 5). Images are ``[H, W, C]``.
+"""Image losses with adjoints (docs/ARCHITECTURE.md §8). Images are ``[H, W, C]``.
 
 ===================  ======================================================================
 loss                 definition

@@ -1,5 +1,5 @@
 """Adam on numpy parameters, with parameter groups, learning-rate schedules, per-group gradient
-clipping, checkpointable state and row remapping for density control (DESIGN.md section 5).
+clipping, checkpointable state and row remapping for density control (docs/ARCHITECTURE.md §8).
 
 A group is a name, a list of parameters (objects with ``.data`` — a numpy array, updated in
 place — and ``.grad`` — numpy or device array, or None; e.g. :class:`triplet_cl.autodiff.Param`)

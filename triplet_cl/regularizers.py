@@ -1,4 +1,4 @@
-"""Mesh regularisers with adjoints for the connected-mesh phase (DESIGN.md section 6), host-side.
+"""Mesh regularisers with adjoints for the connected-mesh phase (docs/ARCHITECTURE.md §9), host-side.
 
 ``V [N, 3]`` vertex positions, ``F [M, 3]`` int faces, ``X [N, C]`` per-vertex attributes.
 Each energy is a tape :class:`~triplet_cl.autodiff.Function` built once per topology (the

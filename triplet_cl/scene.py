@@ -1,6 +1,6 @@
 """The scene model: a triangle soup (or mesh) with raw per-vertex parameters, and learnable lights.
 
-Parameters are stored raw and activated in the render graph (DESIGN.md §5):
+Parameters are stored raw and activated in the render graph (docs/ARCHITECTURE.md §8):
 
 | parameter | shape | activation | meaning |
 |---|---|---|---|

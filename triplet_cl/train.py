@@ -63,6 +63,10 @@ class TrainConfig:
     init_points: int = 20_000  # random initial triangles (when the dataset has no sparse points)
     init_box: float = 0.4  # half-size of the random-point box, × the mean camera distance (3.2 → ±1.28)
     init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
+    # photos with a background (no alpha): this many extra triangles on a sphere of radius background_radius × the
+    # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none)
+    background_shell: int = 0
+    background_radius: float = 3.0
     faces_per_pixel: int = 30  # K after the warm-up
     warmup_faces_per_pixel: int = 150  # K during the warm-up
     warmup_until: int = 200  # warm-up length (¼ resolution and warm-up K)
@@ -105,7 +109,7 @@ class TrainConfig:
     # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
     # this key is such a run)
     color: str = "linear"
-    # material / light priors (priors.py; 0 disables a term); README "Priors" says why each default
+    # material / light priors (priors.py; 0 disables a term); README "Material and light priors": why each default
     prior_smooth: float = 0.01  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
     prior_k: int = 8  # neighbours of the smoothness graph
     prior_metallic: float = 0.01  # mean metallic (L1 towards 0)
@@ -147,6 +151,9 @@ class TrainConfig:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.background_shell < 0 or not self.background_radius > 0:
+            raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
+                             f"{self.background_radius}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
@@ -187,6 +194,15 @@ def random_points(ds: Dataset, n: int, box: float, rng: np.random.Generator) -> 
     return c + rng.uniform(-r, r, (n, 3))
 
 
+def background_shell_points(ds: Dataset, n: int, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points uniform on a sphere around :func:`look_at_center`, of radius ``radius`` × the mean camera
+    distance from it: the far background of a capture (sky, walls) as part of the scene."""
+    c = look_at_center(ds)
+    r = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean()) * radius
+    d = rng.normal(size=(n, 3))
+    return c + r * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Generator) -> np.ndarray:
     """One small independent triangle per point: ``[P, 3] → V [3P, 3]`` (equilateral, random
     orientation, radius ``size`` × the mean distance to the 3 nearest other points)."""
@@ -221,6 +237,10 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng)
     V = triangles_from_points(pts, cfg.init_size, rng)
+    if cfg.background_shell:
+        V = np.concatenate([V, triangles_from_points(background_shell_points(ds, cfg.background_shell,
+                                                                             cfg.background_radius, rng),
+                                                     cfg.init_size, rng)])
     F = np.arange(len(V)).reshape(-1, 3)
     lights = initial_lights(cfg, ds, rng)
     vsh = None

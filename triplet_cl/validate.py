@@ -40,9 +40,13 @@ _INT_OPTIONS = {
     "--mesh-supersample": ("mesh_supersample", 1, 4),
     "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
     "--texture-size": ("texture_size", 16, 16384),
+    "--background-shell": ("background_shell", 0, 10_000_000),
+    "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
+    "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
-                 "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats")
+                 "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
+                 "--bbox", "--mesh-crop")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
 
 
@@ -91,6 +95,16 @@ def _check_options(args) -> None:
                                          f"{lights!r}")
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
+    if getattr(args, "bbox", None) is not None:
+        from .mesh.roi import parse_bbox
+
+        try:
+            parse_bbox(args.bbox)
+        except ValueError as exc:
+            raise UsageError("--bbox", str(exc)) from None
+    mr = getattr(args, "min_registered", None)
+    if mr is not None and not (math.isfinite(mr) and 0 <= mr <= 1):
+        raise UsageError("--min-registered", f"expected a fraction in [0, 1], found {mr}")
     init, max_faces = getattr(args, "init_points", None), getattr(args, "max_faces", None)
     if init is not None:
         budget = max_faces if max_faces is not None else 200_000

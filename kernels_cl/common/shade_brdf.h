@@ -14,7 +14,7 @@
  *     F0 = 0.04 (1 - m) + m albedo,  F = F0 + (1 - F0)(1 - hv)^5,
  *     out = [D F G / (4 nv nl + 1e-4) nl + relu(1 - F)(1 - m) albedo / pi nl] Li
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd nl] Li
- *     (the (N.L > 0) gate of DESIGN.md section 5 is the early return)
+ *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return)
  * ambient(La, m):  Cook-Torrance La albedo ao;  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)

@@ -45,7 +45,7 @@ def safe_pow(x, e):
 
 
 def ct_direct(N, V, L, Li, m):
-    """Cook-Torrance (GGX, Smith/Schlick-GGX, Fresnel-Schlick) per DESIGN.md section 5."""
+    """Cook-Torrance (GGX, Smith/Schlick-GGX, Fresnel-Schlick) per docs/ARCHITECTURE.md §8."""
     alb, r, met = m[:, 0:3], m[:, 3:4], m[:, 4:5]
     nl = dot(N, L)
     on = nl.real > 0

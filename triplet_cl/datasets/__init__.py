@@ -66,9 +66,23 @@ def detect_format(path) -> str:
         return "ngp"
     if find_model(path) is not None:
         return "colmap"
+    photos = _photo_folder(path)
+    if photos is not None:
+        raise DatasetError(path, f"a folder of photos without cameras ({photos}): solve the cameras first with "
+                                 f"`triplet colmap {photos} --out DATA`, then `triplet train DATA --out RUN`")
     raise DatasetError(path, "cannot tell the dataset format: found neither transforms_train.json (NeRF-synthetic), "
                              "transforms.json (instant-ngp) nor a COLMAP model (cameras + images .bin/.txt in "
                              "sparse/0/, sparse/ or the folder itself)")
+
+
+def _photo_folder(path: Path) -> Path | None:
+    """``path`` or ``path/images`` when it directly holds photos (a capture without cameras)."""
+    from .sfm import SFM_EXTENSIONS
+
+    for folder in (path, path / "images"):
+        if folder.is_dir() and any(p.suffix.lower() in SFM_EXTENSIONS for p in folder.iterdir() if p.is_file()):
+            return folder
+    return None
 
 
 def load_dataset(path, format: str = "auto", downscale: int = 1, background="white",

@@ -6,14 +6,17 @@ images at ``<root>/images/`` (for a model folder given directly: its own ``image
 or its grandparent's). COLMAP's pixel convention (upper-left pixel centre at (0.5, 0.5)) and axes
 (OpenCV) are ours, so intrinsics and poses are used as they are.
 
-Camera models PINHOLE and SIMPLE_PINHOLE are supported; distorting models (SIMPLE_RADIAL,
-RADIAL, OPENCV, the fisheyes, ...) are refused unless every distortion coefficient is exactly zero —
-undistort with ``colmap image_undistorter`` first.
+Camera models PINHOLE and SIMPLE_PINHOLE are used as they are (so are distorting models whose
+distortion coefficients are all exactly zero). A scene with distorting cameras (SIMPLE_RADIAL,
+RADIAL, OPENCV, the fisheyes, ...: COLMAP's defaults for phone photos) is undistorted to PINHOLE once
+with pycolmap into a cache (:func:`triplet_cl.datasets.sfm.undistorted_model`: ``ROOT/.triplet_cache/``
+when the folder is writable, else ``~/.cache/triplet_cl/``) and that copy is loaded.
 """
 
 from __future__ import annotations
 
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -291,6 +294,13 @@ def read_model(folder: Path):
     return cams, imgs, points, colors, cam_path, img_path
 
 
+def is_pinhole(cam: ColmapCamera) -> bool:
+    """PINHOLE / SIMPLE_PINHOLE, or a distorting model whose distortion is all zero."""
+    if cam.model in ("PINHOLE", "SIMPLE_PINHOLE"):
+        return True
+    return cam.model in _PINHOLE_PREFIX and not np.any(cam.params[_PINHOLE_PREFIX[cam.model]:])
+
+
 def pinhole_intrinsics(cam: ColmapCamera, path: Path) -> tuple[float, float, float, float]:
     """``(fx, fy, cx, cy)`` of a PINHOLE / SIMPLE_PINHOLE camera (or a distorting model whose
     distortion is all zero); :class:`DatasetError` naming the model otherwise."""
@@ -302,10 +312,8 @@ def pinhole_intrinsics(cam: ColmapCamera, path: Path) -> tuple[float, float, flo
         return p[0], p[0], p[1], p[2]
     if model == "PINHOLE":
         return p[0], p[1], p[2], p[3]
-    raise DatasetError(path, f"camera {cam.id} uses the {cam.model} camera model, which is not supported (only "
-                             "PINHOLE and SIMPLE_PINHOLE are): undistort the images first with `colmap "
-                             "image_undistorter --image_path IMAGES --input_path SPARSE --output_path OUT` and "
-                             "load OUT")
+    raise DatasetError(path, f"camera {cam.id} uses the {cam.model} camera model, which is not supported here (only "
+                             "PINHOLE and SIMPLE_PINHOLE are; load_colmap undistorts other models first)")
 
 
 def _images_folder(root: Path, model: Path, images: str | Path | None) -> Path:
@@ -324,11 +332,14 @@ def _images_folder(root: Path, model: Path, images: str | Path | None) -> Path:
                                         + ", ".join(str(c) for c in dict.fromkeys(cands)) + ")")
 
 
-def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images: str | Path | None = None) -> Dataset:
+def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images: str | Path | None = None,
+                progress=None, _undistorted: bool = False) -> Dataset:
     """A COLMAP scene: the sparse model (see :func:`find_model`) and its images folder.
 
     Views are sorted by image name; every ``split_holdout``-th one is the test split (LLFF).
-    ``images`` overrides the images folder (relative to ``root``).
+    ``images`` overrides the images folder (relative to ``root``). Distorting cameras: the scene
+    is undistorted once into a cache and the copy loaded (module docstring); ``progress`` is called
+    with a line when that happens (default: a :class:`DatasetWarning`-free print to stderr).
     """
     root = Path(root)
     if not root.is_dir():
@@ -341,6 +352,29 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
     if not imgs:
         raise DatasetError(img_path, "no images in the model")
     img_dir = _images_folder(root, model, images)
+    if not all(is_pinhole(c) for c in cams.values()) and _undistorted:
+        bad = next(c for c in cams.values() if not is_pinhole(c))
+        raise DatasetError(cam_path, f"camera {bad.id}: pycolmap's undistortion left the {bad.model} model with "
+                                     f"parameters {bad.params.tolist()} as it was (not a pinhole camera); this "
+                                     "camera cannot be used")
+    if not all(is_pinhole(c) for c in cams.values()):
+        from .sfm import undistorted_model
+
+        present = {k: im for k, im in imgs.items() if (img_dir / im.name).is_file()}
+        if not present:
+            raise DatasetError(img_dir, f"no images left: none of the {len(imgs)} image files of {img_path.name} "
+                                        "exists")
+        warn_missing(img_dir, sorted(im.name for im in imgs.values() if not (img_dir / im.name).is_file()),
+                     len(imgs), f"images of {img_path.name}")
+        say = progress if progress is not None else (lambda s: print(s, file=sys.stderr))
+        for im in present.values():
+            if im.camera_id not in cams:
+                raise DatasetError(img_path, f"image {im.id} ({im.name}) refers to camera {im.camera_id}, which "
+                                             f"{cam_path.name} does not define")
+        cached = undistorted_model(root, model, img_dir, cams, present, progress=say)
+        ds = load_colmap(cached, downscale, split_holdout, _undistorted=True)
+        ds.root = root
+        return ds
     records, missing = [], []
     for im in sorted(imgs.values(), key=lambda m: m.name):
         if im.camera_id not in cams:

@@ -1,4 +1,4 @@
-"""The mesh phase (DESIGN.md §1.5, §6): a connected mesh from the triplet soup, its refinement as a
+"""The mesh phase (docs/ARCHITECTURE.md §1, §9): a connected mesh from the triplet soup, its refinement as a
 mesh, and the exported PBR assets.
 
 Modules:

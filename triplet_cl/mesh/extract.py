@@ -1,4 +1,4 @@
-"""Soup → connected mesh (DESIGN.md §1.5, §6): TSDF fusion of rendered depth + marching cubes, or
+"""Soup → connected mesh (docs/ARCHITECTURE.md §1, §9): TSDF fusion of rendered depth + marching cubes, or
 vertex welding; small-component removal; the full :func:`extract_mesh` with attribute transfer.
 
 **Depth of a soup** (:func:`render_depth`, forward only, one fused pass of ``ops.blend.raster_blend``
@@ -165,7 +165,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
                 depth_quantile: float = 0.1,
                 min_view_fraction: float = 0.5, hidden_fraction: float = 0.9, carve_margin: int = 1,
                 median_filter_px: int = 3, device: Device | None = None, return_volume: bool = False,
-                masks=None, hull_views: int | None = 1):
+                masks=None, hull_views: int | None = 1, roi=None):
     """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
 
     Args:
@@ -197,6 +197,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         hull_views: with ``masks``, a voxel that projects onto the photos' background (eroded by
             ``carve_margin``) in at least this many views is outside whatever the other votes say
             (the visual hull of the photos; None: the masks only vote like free soup pixels).
+        roi: a :class:`~triplet_cl.mesh.roi.ROI` (oriented box): every voxel outside it is empty, so
+            the surface is the object inside it, closed where the box cuts it (photos with a
+            background: the object without the table); ``bounds`` default to its bounding box.
 
     Returns:
         ``(V [P, 3] float32, F [Q, 3] int32)`` the closed, outward-oriented surface (and the volume).
@@ -221,7 +224,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         raise ValueError(f"hidden_fraction must be > 0, got {hidden_fraction}")
     if carve_margin < 0 or median_filter_px < 0:
         raise ValueError(f"carve_margin and median_filter_px must be >= 0, got {carve_margin}, {median_filter_px}")
-    if bounds is None:
+    if bounds is None and roi is not None:
+        b = roi.aabb()
+    elif bounds is None:
         b = _soup_bounds(scene, alpha_threshold, 0.05)
     else:
         b = check_real("bounds", bounds, (2, 3), np.float64)
@@ -282,6 +287,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     tsdf = np.where(inside, -1.0, tsdf)
     if hull_views is not None:
         tsdf = np.where(hull_out >= hull_views, 1.0, tsdf)  # outside the photos' visual hull
+    if roi is not None:
+        tsdf = np.where(roi.contains(X), tsdf, 1.0)  # the region of interest: nothing outside it
     tsdf = tsdf.reshape(*dims).astype(np.float32)
     for ax in range(3):  # the outer layer is outside: the level set closes inside the grid
         sl = [slice(None)] * 3
@@ -469,16 +476,19 @@ def _check_inputs(scene, cameras, method):
 
 def _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
               min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=None, hull_views=1,
-              depth_quantile=0.1):
+              depth_quantile=0.1, roi=None):
     V = np.asarray(scene.V.data, np.float64)
     F = np.asarray(scene.F)
     if method == "tsdf":
         Vm, Fm = tsdf_fusion(scene, cameras, resolution=resolution, truncation=truncation,
                              alpha_threshold=alpha_threshold, bounds=bounds, K=K, sigma=sigma, depth_mode=depth_mode,
-                             depth_quantile=depth_quantile, device=device, masks=masks, hull_views=hull_views)
+                             depth_quantile=depth_quantile, device=device, masks=masks, hull_views=hull_views,
+                             roi=roi)
     else:
         a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
         opaque = F[a[F].mean(axis=1) >= alpha_threshold]
+        if roi is not None:
+            opaque = opaque[roi.contains(V[opaque].mean(axis=1))]
         if len(opaque) == 0:
             raise ValueError(f"no soup face has alpha >= alpha_threshold={alpha_threshold}: nothing to weld")
         tol = weld_tolerance
@@ -552,7 +562,7 @@ def extract_scene(scene, cameras=None, method: str = "tsdf", *, opaque_alpha: fl
 
     opts = {"resolution": None, "truncation": 3.0, "alpha_threshold": 0.5, "bounds": None, "weld_tolerance": None,
             "min_component_fraction": 0.02, "max_faces": None, "K": 30, "sigma": 1.0, "depth_mode": "quantile",
-            "depth_quantile": 0.1, "device": None, "masks": None, "hull_views": 1}
+            "depth_quantile": 0.1, "device": None, "masks": None, "hull_views": 1, "roi": None}
     bad = set(kwargs) - set(opts)
     if bad:
         raise ValueError(f"unknown extract_scene options {sorted(bad)} (expected some of {sorted(opts)})")

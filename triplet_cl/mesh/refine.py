@@ -1,4 +1,4 @@
-"""The mesh stage (DESIGN.md §1.5, §6): extract a connected mesh from a trained soup and keep
+"""The mesh stage (docs/ARCHITECTURE.md §1, §9): extract a connected mesh from a trained soup and keep
 optimising it as a mesh, then export the PBR assets.
 
 One round: soup (or the previous round's mesh) → :func:`~triplet_cl.mesh.extract.extract_scene`
@@ -82,6 +82,11 @@ class MeshConfig:
     max_faces: int = 300_000
     texture_size: int = 1024
     formats: tuple = ("glb", "obj", "ply")
+    # the object of a capture with a background (photos without alpha): "auto" crops the extraction to the box
+    # found from the cameras' look-at point, the ground plane and the sparse points (mesh/roi.py) when the dataset
+    # has no alpha; "none" never crops. ``bbox`` (XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX, world units) overrides both.
+    crop: str = "auto"
+    bbox: tuple | None = None
 
     def validate(self) -> None:
         if self.method not in ("tsdf", "weld"):
@@ -98,6 +103,12 @@ class MeshConfig:
             raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
             raise ValueError(f"mesh faces_per_pixel must be in [1, 1024], got {self.faces_per_pixel}")
+        if self.crop not in ("auto", "none"):
+            raise ValueError(f"mesh crop must be 'auto' or 'none', got {self.crop!r}")
+        if self.bbox is not None:
+            from .roi import ROI
+
+            ROI.from_bbox(self.bbox)
         bad = [f for f in self.formats if f not in ("glb", "obj", "ply")]
         if bad or not self.formats:
             raise ValueError(f"export formats must be a non-empty subset of glb, obj, ply; got {list(self.formats)}")
@@ -124,6 +135,8 @@ class MeshConfig:
         d = dict(d)
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
+        if d.get("bbox") is not None:
+            d["bbox"] = tuple(d["bbox"])
         return cls(**d)
 
 
@@ -164,6 +177,7 @@ class MeshStage:
         self.rng = np.random.default_rng(trainer.cfg.seed + 7)
         self.scene: Scene | None = None
         self.history: list[dict] = []
+        self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
 
     # ---- one round -----------------------------------------------------------------------------
@@ -178,12 +192,33 @@ class MeshStage:
                      for v in views]
             masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
+        roi = self.roi()
         scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution,
                               max_faces=self.cfg.extract_faces, device=self.device, masks=masks,
-                              hull_views=1 if self.cfg.photo_hull else None, depth_quantile=self.cfg.depth_quantile)
+                              hull_views=1 if self.cfg.photo_hull else None, depth_quantile=self.cfg.depth_quantile,
+                              roi=roi)
         self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, "
                               f"{scene.V.shape[0]} vertices, {time.perf_counter() - t:.1f} s")
         return scene
+
+    def roi(self):
+        """The region of interest (:mod:`triplet_cl.mesh.roi`): ``--bbox``, else the automatic one for a
+        dataset without alpha (photos with a background), else None."""
+        from .roi import ROI, auto_roi
+
+        if self._roi is not False:
+            return self._roi
+        roi = None
+        if self.cfg.bbox is not None:
+            roi = ROI.from_bbox(self.cfg.bbox)
+        elif self.cfg.crop == "auto" and not self.ds.has_alpha:
+            roi = auto_roi([v.camera for v in self.ds.train], self.ds.points)
+            if roi is None:
+                self.trainer.log.info("mesh crop: no region of interest found (too few sparse points)")
+        if roi is not None:
+            self.trainer.log.info(f"mesh crop ({roi.source}): {json.dumps(roi.to_dict())}")
+        self._roi = roi
+        return roi
 
     def build_optimizer(self, scene: Scene) -> Adam:
         tc, c = self.trainer.cfg, self.cfg
@@ -302,15 +337,26 @@ class MeshStage:
         """Extract → refine (``rounds`` times) → evaluate → export. Returns the ``"mesh"`` metrics."""
         t = time.perf_counter()
         source = self.trainer.scene
+        # the refinement compares renders of the mesh alone with the photos: with a background in them (no alpha)
+        # and the mesh cropped to the object, it would grow the mesh over the background; extraction only then
+        refine = self.cfg.iterations > 0 and not (self.roi() is not None and not self.ds.has_alpha)
+        if self.cfg.iterations and not refine:
+            msg = ("mesh refinement skipped: the photos have a background (no alpha) and the mesh is cropped to the "
+                   "object; the mesh is extracted, its materials transferred from the soup")
+            self.trainer.log.info(msg)
+            if not self.quiet:
+                print(msg)
         for k in range(self.cfg.rounds):
             scene = self.extract(source)
-            if self.cfg.iterations:
+            if refine:
                 scene = self.refine(scene, k)
             source = scene
         self.scene = source
         self.save_state()
         metrics = self.evaluate()
         metrics["wall_time_s"] = time.perf_counter() - t
+        if self.roi() is not None:
+            metrics["roi"] = self.roi().to_dict()
         self._write_metrics(metrics)  # before the export: a failing export loses no result
         metrics["files"] = [str(p.name) for p in self.export()]
         self._write_metrics(metrics)

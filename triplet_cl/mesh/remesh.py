@@ -1,4 +1,4 @@
-"""Refinement of the connected mesh (DESIGN.md §6): selective subdivision where the gradients are
+"""Refinement of the connected mesh (docs/ARCHITECTURE.md §9): selective subdivision where the gradients are
 large, QEM simplification where they are small, with every per-vertex parameter and its Adam
 moments carried across through an explicit vertex map.
 

@@ -9,7 +9,7 @@ view direction ``d = normalize(cam - V_i)`` with the real SH of ``kernels_cl/com
     out[i, 3:6] = s_{3:6}                    direction wi (normalised later, per fragment, by shade)
 
 ``deg`` (the active degree of the band schedule) is a run-time argument ``<= D``; the program is
-compiled once per storage degree ``D``. Init of the method (DESIGN.md section 5): radiance DC
+compiled once per storage degree ``D``. Init of the method (docs/ARCHITECTURE.md §8): radiance DC
 ``0.5 / Y_00 = 0.5 sqrt(4 pi)`` (radiance 1), direction DC ``0.1 * randn``, higher bands 0.
 
 The output ``[N, 6]`` is interpolated to fragments by the rasterizer's interpolate op and passed to

@@ -1,0 +1,360 @@
+"""Cameras from a folder of photos (structure from motion with pycolmap) and undistortion of COLMAP models.
+
+:func:`run_sfm` — ``triplet colmap IMAGES_DIR --out DATA``: SIFT features, exhaustive matching and
+COLMAP's incremental mapper (pycolmap, CPU), then undistortion to PINHOLE cameras. ``DATA`` is a
+standard COLMAP folder that :func:`~triplet_cl.datasets.load_dataset` reads::
+
+    DATA/images/            the undistorted photos (what training reads)
+    DATA/sparse/0/          cameras.bin (PINHOLE), images.bin, points3D.bin
+    DATA/distorted/sparse/0 the model as solved (one SIMPLE_RADIAL camera by default)
+    DATA/sfm.json           counts, timings, the solved camera, the unregistered photos
+
+Everything is written into a temporary folder beside ``DATA`` and renamed at the end: an existing
+``DATA`` is never touched (the command refuses it).
+
+:func:`undistorted_model` — a COLMAP scene whose cameras distort (SIMPLE_RADIAL, RADIAL, OPENCV, the
+fisheyes, …: COLMAP's defaults for phone photos) is undistorted once with pycolmap into a cache (see
+:func:`cache_root`) and that PINHOLE copy is loaded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import DatasetError
+from .images import IMAGE_EXTENSIONS
+
+# the formats COLMAP's image reader (FreeImage) takes among ours
+SFM_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
+REGISTER_HELP = ("what helps: more photos with more overlap (every part of the object in 3 or more photos, "
+                 "10-20 degrees apart), a textured, static scene (no plain white object on a plain table, nothing "
+                 "moving), sharp and evenly exposed photos, the same zoom for all")
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise DatasetError("pycolmap", f"the pycolmap module is needed for structure from motion and undistortion "
+                                       f"({exc}); install it with `pip install pycolmap`") from exc
+    return pycolmap
+
+
+def _quiet_colmap(pycolmap, verbose: bool) -> None:
+    """COLMAP logs every step to stderr (glog): warnings and up only, unless ``verbose``."""
+    pycolmap.logging.minloglevel = 0 if verbose else 2
+    pycolmap.logging.stderrthreshold = 0 if verbose else 2
+
+
+# ---------------------------------------------------------------------------------------------- inputs
+
+
+def list_photos(folder) -> list[Path]:
+    """The image files directly inside ``folder`` (sorted by name); :class:`DatasetError` when the
+    folder does not exist or holds none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(folder, "images folder not found")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SFM_EXTENSIONS)
+    if not photos:
+        others = sorted(p.name for p in folder.iterdir())[:3]
+        found = f"found {', '.join(others)}{', ...' if len(others) == 3 else ''}" if others else "the folder is empty"
+        raise DatasetError(folder, f"no images (expected {', '.join(SFM_EXTENSIONS)} files directly in the "
+                                   f"folder; {found})")
+    return photos
+
+
+def _has_photos(folder: Path) -> bool:
+    return folder.is_dir() and any(p.is_file() and p.suffix.lower() in SFM_EXTENSIONS for p in folder.iterdir())
+
+
+def photo_sizes(photos) -> dict[Path, tuple[int, int]]:
+    """``{path: (width, height)}`` read from the files' headers (OpenImageIO)."""
+    import OpenImageIO as oiio
+
+    sizes = {}
+    for p in photos:
+        inp = oiio.ImageInput.open(str(p))
+        if inp is None:
+            raise DatasetError(p, f"cannot read the image: {oiio.geterror() or 'unknown format'}")
+        try:
+            spec = inp.spec()
+            sizes[p] = (int(spec.width), int(spec.height))
+        finally:
+            inp.close()
+    return sizes
+
+
+def check_one_size(sizes: dict[Path, tuple[int, int]], folder) -> tuple[int, int]:
+    """The one size of the photos; :class:`DatasetError` listing the sizes found when they differ
+    (one camera model is solved for all photos: one camera, one zoom, one orientation)."""
+    count = Counter(sizes.values())
+    if len(count) > 1:
+        parts = []
+        for (w, h), n in count.most_common():
+            example = next(p.name for p, s in sizes.items() if s == (w, h))
+            parts.append(f"{n} are {w}x{h} (e.g. {example})")
+        raise DatasetError(folder, "the photos have different sizes: " + ", ".join(parts) + "; the photos must come "
+                                   "from one camera at one size and orientation (rotate/resize them to one size, or "
+                                   "keep only the photos of one size)")
+    return next(iter(count))
+
+
+# ---------------------------------------------------------------------------------------------- SfM
+
+
+def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_features: int = 1024,
+            min_registered: float = 0.5, num_threads: int = -1, verbose: bool = False,
+            progress: Callable[[str], None] | None = None) -> dict:
+    """Solve the cameras of the photos in ``images_dir`` and write an undistorted COLMAP folder at
+    ``out_dir`` (module docstring).
+
+    Args:
+        camera_model: COLMAP model of the one camera shared by all photos (SIMPLE_RADIAL: focal,
+            principal point and one radial coefficient, COLMAP's default for phone photos).
+        max_features: SIFT features per photo.
+        min_registered: fail (:class:`DatasetError`) when fewer than this fraction of the photos
+            register (at least 3 must, whatever the fraction).
+        num_threads: threads of COLMAP's steps (-1: all cores).
+        verbose: show COLMAP's own log.
+        progress: called with one line per step (default: nothing).
+
+    Returns:
+        the summary also written to ``out_dir/sfm.json``.
+    """
+    say = progress or (lambda s: None)
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
+    if not 0 <= min_registered <= 1:
+        raise ValueError(f"min_registered must lie in [0, 1], got {min_registered}")
+    if max_features < 64:
+        raise ValueError(f"max_features must be >= 64, got {max_features}")
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise DatasetError(out_dir, "already exists and is not empty; choose a new --out folder (nothing is "
+                                    "overwritten)")
+    if images_dir.is_dir() and not _has_photos(images_dir) and _has_photos(images_dir / "images"):
+        images_dir = images_dir / "images"  # a capture folder with its photos in images/
+    photos = list_photos(images_dir)
+    if len(photos) < 3:
+        raise DatasetError(images_dir, f"only {len(photos)} image(s); structure from motion needs at least 3 "
+                                       "overlapping photos (20 or more around an object)")
+    width, height = check_one_size(photo_sizes(photos), images_dir)
+    pycolmap = _pycolmap()
+    _quiet_colmap(pycolmap, verbose)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        summary = _solve(pycolmap, photos, images_dir, work, camera_model, max_features, min_registered,
+                         num_threads, say)
+        summary.update({"images_dir": str(images_dir.resolve()), "width": width, "height": height})
+        (work / "sfm.json").write_text(json.dumps(summary, indent=1) + "\n")
+        if out_dir.exists():  # an empty folder (checked above)
+            out_dir.rmdir()
+        os.replace(work, out_dir)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return summary
+
+
+def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, max_features: int,
+           min_registered: float, num_threads: int, say) -> dict:
+    n = len(photos)
+    names = [p.name for p in photos]
+    db = work / "database.db"
+    times = {}
+    cpu0 = time.process_time()
+
+    t = time.perf_counter()
+    say(f"features: SIFT on {n} photos ...")
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = num_threads
+    extraction.sift.max_num_features = max_features
+    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    times["features_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"matching: {n * (n - 1) // 2} pairs (exhaustive) ...")
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = num_threads
+    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    times["matching_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say("mapping: incremental reconstruction ...")
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = num_threads
+    registered = [0]
+
+    def next_image():
+        registered[0] += 1
+        say(f"  registered {registered[0] + 1} of {n} photos")
+
+    models = work / "distorted" / "sparse"
+    models.mkdir(parents=True)
+    recs = pycolmap.incremental_mapping(db, images_dir, models, options=mapping, next_image_callback=next_image)
+    times["mapping_s"] = time.perf_counter() - t
+    best = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+    n_reg = best.num_reg_images() if best is not None else 0
+    need = max(3, int(-(-min_registered * n // 1)))
+    if n_reg < need:
+        what = "no photo registered" if n_reg == 0 else f"only {n_reg} of {n} photos registered"
+        raise DatasetError(images_dir, f"structure from motion failed: {what} (at least {need} needed; "
+                                       f"{len(recs)} separate model(s) found); {REGISTER_HELP}")
+    # keep only the largest model, as sparse/0
+    for p in models.iterdir():
+        shutil.rmtree(p)
+    (models / "0").mkdir()
+    best.write(models / "0")
+    reg_names = {best.images[i].name for i in best.reg_image_ids()}
+    missing = [nm for nm in names if nm not in reg_names]
+    if missing:
+        shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
+        say(f"warning: {len(missing)} of {n} photos did not register and are left out ({shown}); {REGISTER_HELP}")
+
+    t = time.perf_counter()
+    say(f"undistortion: {n_reg} photos to PINHOLE ...")
+    undistort_model(pycolmap, models / "0", images_dir, work)
+    times["undistortion_s"] = time.perf_counter() - t
+    db.unlink(missing_ok=True)
+    cam = next(iter(best.cameras.values()))
+    return {
+        "photos": n, "registered": n_reg, "unregistered": missing, "models": len(recs),
+        "points": best.num_points3D(), "mean_reprojection_error_px": float(best.compute_mean_reprojection_error()),
+        "camera": {"model": cam.model.name, "width": cam.width, "height": cam.height,
+                   "params": [float(x) for x in cam.params]},
+        **times, "total_s": sum(times.values()), "cpu_s": time.process_time() - cpu0,
+    }
+
+
+# ---------------------------------------------------------------------------------------------- undistortion
+
+
+def undistort_model(pycolmap, model_dir: Path, images_dir: Path, out: Path, image_names=()) -> None:
+    """pycolmap's undistorter: ``out/images/`` (PINHOLE photos, cropped to valid pixels) and
+    ``out/sparse/0/`` (the model with PINHOLE cameras); its other outputs are removed."""
+    tmp = out / ".undistort"
+    options = pycolmap.UndistortCameraOptions()
+    options.blank_pixels = 0.0  # crop to the region every pixel of which is valid
+    pycolmap.undistort_images(tmp, model_dir, images_dir, image_names=list(image_names), output_type="COLMAP",
+                              undistort_options=options)
+    (out / "sparse").mkdir(parents=True, exist_ok=True)
+    os.replace(tmp / "images", out / "images")
+    sparse = tmp / "sparse"
+    if not (sparse / "cameras.bin").is_file() and (sparse / "0").is_dir():
+        sparse = sparse / "0"
+    os.replace(sparse, out / "sparse" / "0")
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def cache_root(root: Path) -> Path:
+    """Where undistorted copies go: ``ROOT/.triplet_cache/`` beside the data when that is writable,
+    else ``$TRIPLET_CACHE`` or ``~/.cache/triplet_cl/``."""
+    env = os.environ.get("TRIPLET_CACHE")
+    if env:
+        return Path(env)
+    if os.access(root, os.W_OK):
+        return root / ".triplet_cache"
+    return Path.home() / ".cache" / "triplet_cl"
+
+
+def _model_key(model_dir: Path, images_dir: Path, names) -> str:
+    h = hashlib.sha256()
+    for stem in ("cameras", "images", "points3D"):
+        for ext in (".bin", ".txt"):
+            p = model_dir / (stem + ext)
+            if p.is_file():
+                h.update(p.name.encode())
+                h.update(p.read_bytes())
+    for name in sorted(names):
+        p = images_dir / name
+        st = p.stat() if p.is_file() else None
+        h.update(f"{name}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1}".encode())
+    return h.hexdigest()[:16]
+
+
+def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: dict, images: dict,
+                      progress=None) -> Path:
+    """A PINHOLE copy of a distorted COLMAP scene, made once (pycolmap) and cached by the content of
+    the model files and the images' sizes/times: the cached scene folder (``images/``, ``sparse/0``).
+
+    ``cameras`` / ``images``: the model as read (:func:`~triplet_cl.datasets.colmap.read_model`),
+    the images restricted to those whose file exists. pycolmap is given a clean text copy of them
+    without the 2D-3D tracks (it refuses models whose tracks are inconsistent, and undistortion does
+    not need them); the sparse points are world coordinates, unchanged by undistortion, so the
+    model's ``points3D`` file is copied as it is.
+    """
+    say = progress or (lambda s: None)
+    names = [im.name for im in images.values()]
+    key = _model_key(model_dir, images_dir, names)
+    base = cache_root(root)
+    dest = base / f"undistorted-{key}"
+    if (dest / "sparse" / "0").is_dir() and (dest / "images").is_dir():
+        return dest
+    pycolmap = _pycolmap()
+    _quiet_colmap(pycolmap, False)
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".undistorted-{key}.tmp-", dir=base))
+    except OSError as exc:
+        raise DatasetError(base, f"cannot create the undistortion cache: {exc} (set $TRIPLET_CACHE to a writable "
+                                 "folder)") from exc
+    try:
+        src = _write_text_model(work / ".model", cameras, images)
+        say(f"undistorting the {len(names)} images of {model_dir} (camera model "
+            f"{', '.join(sorted({c.model for c in cameras.values()}))}) into {dest} (once) ...")
+        try:
+            undistort_model(pycolmap, src, images_dir, work, names)
+        except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError
+            raise DatasetError(model_dir, f"pycolmap could not undistort the model: {exc}") from exc
+        shutil.rmtree(src, ignore_errors=True)
+        sparse = work / "sparse" / "0"
+        for ext in (".bin", ".txt"):
+            (sparse / f"points3D{ext}").unlink(missing_ok=True)
+        for ext in (".bin", ".txt"):
+            if (model_dir / f"points3D{ext}").is_file():
+                shutil.copyfile(model_dir / f"points3D{ext}", sparse / f"points3D{ext}")
+                break
+        try:
+            os.replace(work, dest)
+        except OSError:  # made meanwhile by another process
+            if not (dest / "sparse" / "0").is_dir():
+                raise
+            shutil.rmtree(work, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return dest
+
+
+def _write_text_model(folder: Path, cameras: dict, images: dict) -> Path:
+    """``cameras.txt``, ``images.txt`` (no 2D points) and an empty ``points3D.txt``."""
+    folder.mkdir(parents=True)
+    used = {im.camera_id for im in images.values()}
+    lines = [f"{c.id} {c.model} {c.width} {c.height} " + " ".join(repr(float(p)) for p in c.params)
+             for c in cameras.values() if c.id in used]
+    (folder / "cameras.txt").write_text("\n".join(lines) + "\n")
+    lines = []
+    for im in images.values():
+        pose = " ".join(repr(float(v)) for v in (*im.qvec, *im.tvec))
+        lines += [f"{im.id} {pose} {im.camera_id} {im.name}", ""]
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+    (folder / "points3D.txt").write_text("")
+    return folder
+
+
+__all__ = ["CAMERA_MODELS", "IMAGE_EXTENSIONS", "REGISTER_HELP", "SFM_EXTENSIONS", "cache_root", "check_one_size",
+           "list_photos", "photo_sizes", "run_sfm", "undistort_model", "undistorted_model"]
