@@ -4,11 +4,12 @@ recover what the photos determine, so a regression in the decomposition fails a 
 
 1. Lights and materials jointly, from the training's initial values (albedo 0.5, roughness 0.9, metallic
    0.1, a point light above the object, ambient 0.1), the training loss (L1 + SSIM) and the default
-   priors: the light's direction, the albedo's colour (its per-channel ratios) and its level, and no
-   negative light. Measured (600 steps): direction 1.5° off, colour (0.488, 0.315, 0.197) against
-   (0.48, 0.32, 0.20), albedo (0.51, 0.33, 0.21) against (0.6, 0.4, 0.25), ambient 0.05 (truth 0).
+   priors (the light terms): the light's direction, the albedo's colour (its per-channel ratios) and its
+   level, and no negative light. Measured (600 steps): direction 3.0° off, colour (0.489, 0.316, 0.195)
+   against (0.48, 0.32, 0.20), albedo (0.59, 0.38, 0.23) against (0.6, 0.4, 0.25), ambient 0.011 (truth 0).
    Without the priors: direction 0.7°, but the light takes the colour: albedo colour (0.42, 0.34, 0.24),
-   albedo (0.89, 0.73, 0.50).
+   albedo (0.89, 0.73, 0.50); with the material priors too (`--priors all`): direction 1.5°, albedo
+   (0.51, 0.33, 0.21), ambient 0.05.
 2. The light alone, materials known: its direction from the object and its irradiance at the centre.
 """
 
@@ -98,7 +99,7 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     assert err < 0.01, f"the fit itself failed (RMSE {err:.4f})"
     pt, amb = scene.current_lights()
     assert (amb.color >= 0).all() and (pt.intensity >= 0).all()
-    assert amb.color.max() < 0.08, f"ambient light {amb.color} (started at 0.1, truth 0)"
+    assert amb.color.max() < 0.05, f"ambient light {amb.color} (started at 0.1, truth 0)"
     cos = pt.position @ TRUE_POS / np.linalg.norm(pt.position) / np.linalg.norm(TRUE_POS)
     ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))
     assert ang < 5.0, f"light direction off by {ang:.1f} deg ({pt.position})"
@@ -109,7 +110,7 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     lit = np.sum(n * to_light, axis=1) / np.linalg.norm(to_light, axis=1) > 0.3
     albedo = act[lit, :3].mean(axis=0)
     np.testing.assert_allclose(albedo / albedo.sum(), TRUE_ALBEDO / TRUE_ALBEDO.sum(), atol=0.02)
-    np.testing.assert_allclose(albedo, TRUE_ALBEDO, rtol=0.25)
+    np.testing.assert_allclose(albedo, TRUE_ALBEDO, rtol=0.15)
 
 
 @pytest.mark.slow

@@ -109,11 +109,13 @@ class TrainConfig:
     # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
     # this key is such a run)
     color: str = "linear"
-    # material / light priors (priors.py; 0 disables a term); README "Material and light priors": why each default
-    prior_smooth: float = 0.01  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
+    # material / light priors (priors.py; 0 disables a term); README "Material and light priors": why each default.
+    # The material terms are off by default (measured: on spot they cost 0.75 dB of novel-view PSNR);
+    # `--priors all` sets them to priors.MATERIAL_WEIGHTS
+    prior_smooth: float = 0.0  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
     prior_k: int = 8  # neighbours of the smoothness graph
-    prior_metallic: float = 0.01  # mean metallic (L1 towards 0)
-    prior_roughness: float = 0.01  # mean (roughness − prior_roughness_target)²
+    prior_metallic: float = 0.0  # mean metallic (L1 towards 0)
+    prior_roughness: float = 0.0  # mean (roughness − prior_roughness_target)²
     prior_roughness_target: float = 0.5
     prior_ambient: float = 0.02  # ambient share of the irradiance at the scene centre
     prior_chroma: float = 0.01  # scale-free colour variance of each light (white-ish lights)
