@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.datasets import FORMATS as DATASET_FORMATS
-from triplet_cl.errors import TripletError
+from triplet_cl.errors import RunError, TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -194,12 +195,29 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.relight import load_light_sets
 
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
+    path = run / "metrics.json"
+    old = {}
+    if path.is_file():  # read before any work: a damaged file is named, not met after the evaluation
+        try:
+            old = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
+                                 "kept: delete it to have eval write a new one") from None
+        if not isinstance(old, dict):
+            raise RunError(path, f"damaged (expected a JSON object, found {type(old).__name__}); delete it to have "
+                                 "eval write a new one")
     tr = _load_run(args)
+    if spec is not None:
+        from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
+        from triplet_cl.relight import check_references, check_vertex_sh
+
+        if (run / MESH_STATE).is_file():
+            load_mesh_state(run / MESH_STATE)  # a damaged mesh stage is named before the soup is evaluated
+
+        check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
+        check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
-    path = run / "metrics.json"
-    old = json.loads(path.read_text()) if path.is_file() else {}
-    old = old if isinstance(old, dict) else {}
     merged = {**old, **m}  # the other sections ("mesh", timings, "relight") stay
     print(f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} over {len(m['views'])} views")
     if spec is not None:
@@ -241,7 +259,7 @@ def _check_image_outs(outs, names, option: str, dataset) -> None:
 
 
 def cmd_relight(args: argparse.Namespace) -> int:
-    from triplet_cl.relight import Relighter, load_light_sets, relight_run
+    from triplet_cl.relight import Relighter, check_vertex_sh, load_light_sets, relight_run
 
     sets = load_light_sets(args.light_file, args.env_degree)  # a bad light file fails before the run is loaded
     run = Path(args.run)
@@ -251,6 +269,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
     rl = Relighter(tr, args.stage, args.renderer)
     base = Path(args.out) if args.out else run / "relight"
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
+    check_vertex_sh(sets, rl.base.vertex_sh is not None)
     names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
     _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
     for ls, out in zip(sets, outs, strict=True):
@@ -521,11 +540,26 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--bbox -1,-1,0,1,1,2`` as ``--bbox=-1,-1,0,1,1,2`` (argparse takes a value starting with '-' that is not
+    one number for an option and says "expected one argument")."""
+    out, i = [], 0
+    while i < len(argv):
+        a = str(argv[i])
+        if a == "--bbox" and i + 1 < len(argv) and re.match(r"^-[0-9.]", str(argv[i + 1])):
+            out.append(f"--bbox={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)

@@ -86,6 +86,15 @@ BAD_TRAIN = {
     "mesh option without --mesh-stage": (["--mesh-faces", "5000"], "--mesh-faces"),
     "resume and overwrite": (["--resume", "--overwrite"], "--overwrite"),
     "missing data": ([], "DATA"),
+    "background-shell -1": (["--background-shell", "-1"], "--background-shell"),
+    "background-shell over the face budget": (["--background-shell", "300000"], "--background-shell"),
+    "bbox without --mesh-stage": (["--bbox", "0,0,0,1,1,1"], "--bbox"),
+    "bbox nan": (["--mesh-stage", "--bbox", "0,0,0,1,1,nan"], "--bbox"),
+    "bbox inf": (["--mesh-stage", "--bbox", "0,0,0,inf,1,1"], "--bbox"),
+    "bbox inverted": (["--mesh-stage", "--bbox", "1,1,1,0,0,0"], "--bbox"),
+    "bbox flat": (["--mesh-stage", "--bbox", "0,0,0,0,1,1"], "--bbox"),
+    "bbox 3 numbers": (["--mesh-stage", "--bbox", "1,2,3"], "--bbox"),
+    "bbox words": (["--mesh-stage", "--bbox", "a,b,c,d,e,f"], "--bbox"),
 }
 
 
@@ -114,6 +123,10 @@ BAD_MESH = {
     "resolution 2048": (["--mesh-resolution", "2048"], "--mesh-resolution"),
     "supersample 9": (["--mesh-supersample", "9"], "--mesh-supersample"),
     "formats": (["--formats", "obj,fbx"], "--formats"),
+    "bbox nan": (["--bbox", "0,0,0,1,1,nan"], "--bbox"),
+    "bbox inverted": (["--bbox", "1,1,1,0,0,0"], "--bbox"),
+    "bbox 7 numbers": (["--bbox=-1,-1,-1,1,1,1,1"], "--bbox"),
+    "bbox with --mesh-crop none": (["--bbox", "-1,-1,-1,1,1,1", "--mesh-crop", "none"], "--mesh-crop"),
 }
 
 
@@ -220,6 +233,25 @@ def test_resume_refuses_fixed_options_and_applies_the_others(run, capsys):
     assert json.loads((run / "metrics.json").read_text())["iterations"] == 6
     ckpts = sorted(p.name for p in (run / "checkpoints").glob("ckpt_*.npz"))
     assert ckpts == ["ckpt_0000005.npz", "ckpt_0000006.npz"], ckpts
+
+
+def test_resume_of_a_run_before_the_linear_pipeline(tmp_path, demo_copy, capsys):
+    """A config.json without "color" (trained before issue 17) resumes encoded; --color linear is refused, not
+    silently dropped; --background-shell likewise cannot change."""
+    run = tmp_path / "old"
+    assert cli_main(["train", str(demo_copy), "--out", str(run), *TINY_RUN, "--color", "encoded"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["train"].pop("color")
+    (run / "config.json").write_text(json.dumps(cfg))
+    before = _tree(run)
+    for extra, named in ((["--color", "linear"], "--color"), (["--background-shell", "100"], "--background-shell")):
+        rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "6", *extra], capsys)
+        assert rc == 2 and named in err and "cannot change on --resume" in err, (extra, err)
+    assert _tree(run) == before
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "6", "--color", "encoded"], capsys)
+    assert rc == 0, err
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 6
+    assert json.loads((run / "config.json").read_text())["train"].get("color", "encoded") == "encoded"
 
 
 def test_checkpoint_of_another_configuration_is_refused(run, capsys):
@@ -340,6 +372,22 @@ def test_damaged_mesh_stage_is_named(run, capsys, kind):
     rc, err, _ = _run_cli(["export", run, "--formats", "ply", "--out", run.parent / "exp"], capsys)
     assert rc == 2 and "mesh_stage.npz" in err
     assert not (run.parent / "exp" / "mesh.ply").exists()
+    if kind == "missing":  # relight / eval --relight then use the soup
+        return
+    # relight and eval --relight read it too (they raised a BadZipFile / KeyError traceback)
+    (run / "l.json").write_text(json.dumps({"lights": [{"type": "point", "position": [0, 0, 3],
+                                                        "intensity": [1, 1, 1]}]}))
+    rd = run.parent / "rel"
+    rd.mkdir()
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [{"type": "point", "position": [0, 0, 3],
+                                                                           "intensity": [1, 1, 1]}]}}}))
+    before = _tree(run)
+    for argv in (["relight", run, "--lights", run / "l.json", "--out", run.parent / "rl"],
+                 ["eval", run, "--relight", rd, "--out", run.parent / "ev"]):
+        rc, err, out = _run_cli(argv, capsys)
+        assert rc == 2 and "mesh_stage.npz" in err and err.count("\n") == 1, (argv, err)
+        assert "PSNR" not in out
+    assert _tree(run) == before and not (run.parent / "rl").exists() and not (run.parent / "ev").exists()
 
 
 def test_os_errors_are_one_line(run, capsys, monkeypatch):
@@ -599,6 +647,22 @@ def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
     assert rc == 2 and "--init-points" in err and "GiB" in err and not (tmp_path / "o").exists()
 
 
+def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), "--color", "srgb"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--color" in err and "'linear', 'encoded'" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_background_shell_memory_is_checked(tmp_path, capsys, monkeypatch):
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 300 * 2**20)  # 20000 initial points fit, 150000 more do not
+    rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--background-shell", "150000"], capsys)
+    assert rc == 2 and "--background-shell" in err and "GiB" in err and not (tmp_path / "o").exists()
+
+
 def test_atlas_padding_grows_with_the_texture(monkeypatch):
     import triplet_cl.mesh.export as ex
     from triplet_cl.lights import PointLight
@@ -630,3 +694,93 @@ def test_checkpoint_from_before_a_new_config_field_still_resumes(run, capsys):
     np.savez(ck, **a)
     rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
     assert rc == 0, err
+
+
+# ---- review of issue 17 / 23 surfaces: relight, eval --relight, colmap -----------------------------------
+_POINT = {"type": "point", "position": [0, 0, 3], "intensity": [1, 1, 1]}
+BAD_RELIGHT = {  # case -> (light file content or None (a folder), extra argv, what the one-line error names)
+    "folder": (None, [], "is a folder"),
+    "empty set name": ({"sets": {"a": {"lights": [_POINT]}}}, ["#"], "names no set"),
+    "unknown set": ({"sets": {"a": {"lights": [_POINT]}}}, ["#b"], "no set named 'b'"),
+    "env degree": ({"lights": [_POINT]}, ["--env-degree", "9"], "--env-degree"),
+    "negative env degree": ({"lights": [_POINT]}, ["--env-degree", "-1"], "--env-degree"),
+    "split": ({"lights": [_POINT]}, ["--split", "val"], "--split val"),
+    "not an image": ({"lights": [{"type": "envmap", "filename": "sky.exr"}]}, [], "sky.exr"),
+    "bool intensity": ({"lights": [{**_POINT, "intensity": True}]}, [], "lights[0].intensity"),
+    "bool in a vector": ({"lights": [{**_POINT, "position": [0, False, 3]}]}, [], "lights[0].position"),
+    "our form without its parameters": ({"lights": [{"type": "PointLight"}]}, [], "lights[0].position: missing"),
+    "our form, NaN": ({"lights": [{"type": "AmbientLight", "color": [0, float("nan"), 0]}]}, [], "lights[0].color"),
+    "our form, text": ({"lights": [{"type": "AmbientLight", "color": "grey"}]}, [], "lights[0].color"),
+    "vertex SH light on a run without one": ({"lights": [{"type": "VertexSHLight"}]}, [], "VertexSHLight"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_RELIGHT))
+def test_bad_relight_inputs_are_one_line_and_write_nothing(run, tmp_path, capsys, case):
+    doc, extra, needle = BAD_RELIGHT[case]
+    lf = tmp_path / "lights"
+    lf.mkdir()
+    (lf / "sky.exr").write_text("not an image")
+    spec = str(lf)
+    if doc is not None:
+        (lf / "l.json").write_text(json.dumps(doc))
+        spec = str(lf / "l.json") + (extra[0] if extra and extra[0].startswith("#") else "")
+    argv = ["relight", run, "--lights", spec, "--out", tmp_path / "out", *[a for a in extra if not a.startswith("#")]]
+    before = _tree(run)
+    rc, err, _ = _run_cli(argv, capsys)
+    assert rc == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists() and _tree(run) == before
+
+
+def test_eval_relight_missing_references_fail_before_any_work(run, tmp_path, capsys):
+    rd = tmp_path / "rel"
+    rd.mkdir()
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
+                                                 "albedo": "albedo"}))
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "sets.a.images" in err and "folder not found" in err, err
+    assert "PSNR" not in out and _tree(run) == before  # the novel views were not even evaluated
+    (rd / "a").mkdir()
+    rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "sets.a.images" in err and "no image for the test view" in err, err
+    assert _tree(run) == before
+
+
+def test_colmap_paths_are_checked_before_any_work(tmp_path, demo_copy, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    f = tmp_path / "file"
+    f.write_text("x")
+    for argv, needle in ((["colmap", f, "--out", tmp_path / "o"], "IMAGES"),
+                         (["colmap", photos, "--out", f], "--out"),
+                         (["colmap", photos, "--out", photos / "sub"], "inside the photos folder"),
+                         (["colmap", photos, "--out", photos], "inside the photos folder"),
+                         (["colmap", photos, "--out", demo_copy / "sfm"], "inside the dataset folder")):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and needle in err, (argv, err)
+    assert list(photos.iterdir()) == [] and not (demo_copy / "sfm").exists()
+    assert not [p for p in demo_copy.iterdir() if p.name.startswith(".")]
+
+
+def test_compare_runs_tool_tells_identical_from_different(run, tmp_path, capsys):
+    """tests/tools/compare_runs.py (the refactorings' bitwise check) had no test of its own."""
+    from tests.tools.compare_runs import main as compare_main
+
+    twin = tmp_path / "twin"
+    shutil.copytree(run, twin)
+    assert compare_main([str(run), str(twin)]) == 0
+    assert compare_main([str(run)]) == 2
+    lights = json.loads((twin / "lights.json").read_text())
+    (twin / "lights.json").write_text(json.dumps(lights) + " ")
+    assert compare_main([str(run), str(twin)]) == 1
+    assert "lights.json DIFFERS" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
+def test_eval_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
+    (run / "metrics.json").write_text(content)
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run], capsys)
+    assert rc == 2 and "metrics.json: damaged" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before

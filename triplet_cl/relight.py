@@ -83,11 +83,17 @@ def split_spec(spec) -> tuple[Path, str | None]:
     s = str(spec)
     if "#" in s:
         path, name = s.rsplit("#", 1)
-        return Path(path), (name or None)
+        if not name:
+            raise LightFileError(Path(path), "", f"{s!r} ends with '#' but names no set (FILE#name picks one set, "
+                                                 "FILE alone every set)")
+        return Path(path), name
     return Path(s), None
 
 
 def _read_json(path: Path) -> dict:
+    if path.is_dir():
+        hint = f" (did you mean {path / 'relight.json'}?)" if (path / "relight.json").is_file() else ""
+        raise LightFileError(path, "", f"is a folder, expected a light file{hint}")
     if not path.is_file():
         raise LightFileError(path, "", "the light file does not exist")
     try:
@@ -138,6 +144,9 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
 
 
 def _vec(path, where: str, v, n_ok=(3,), positive=False) -> np.ndarray:
+    if isinstance(v, bool) or (isinstance(v, list) and any(isinstance(x, bool) for x in v)):
+        want = " or ".join(f"{k} number{'s' if k > 1 else ''}" for k in n_ok)
+        raise LightFileError(path, where, f"expected {want}, found {v!r}")
     try:
         a = np.asarray(v, np.float64)
     except (TypeError, ValueError):
@@ -169,7 +178,17 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
         if not isinstance(it, dict):
             raise LightFileError(path, w, f"expected an object with a \"type\", found {it!r}")
         kind = it.get("type")
-        if kind in LIGHT_CLASSES:
+        if kind in LIGHT_CLASSES:  # our lights.json form: every parameter given, finite
+            for p in LIGHT_CLASSES[kind].PARAMS:
+                if p not in it:
+                    need = list(LIGHT_CLASSES[kind].PARAMS)
+                    raise LightFileError(path, f"{w}.{p}", f"missing (a {kind} needs {need})")
+                try:
+                    a = np.asarray(it[p], np.float64)
+                except (TypeError, ValueError):
+                    a = None
+                if a is None or a.size == 0 or not np.isfinite(a).all() or np.asarray(it[p]).dtype == bool:
+                    raise LightFileError(path, f"{w}.{p}", f"expected finite numbers, found {it[p]!r}")
             ours.append(it)
             continue
         extra = set(it) - {"type", *_FIELDS.get(kind, ())}
@@ -320,9 +339,9 @@ class Relighter:
         self.stage_name = stage
         self.renderer = renderer or (trainer.cfg.renderer if stage == "soup" else "raster")
         if stage == "mesh":
+            self.base = load_mesh_state(trainer.run_dir / MESH_STATE)  # first: a damaged file is named there
             self.mesh_stage = MeshStage(trainer, _mesh_config(trainer.run_dir / MESH_STATE), quiet=True)
             self.mesh_stage.renderer = self.renderer
-            self.base = load_mesh_state(trainer.run_dir / MESH_STATE)
         else:
             self.mesh_stage = None
             self.base = trainer.scene
@@ -333,7 +352,7 @@ class Relighter:
             raise ValueError(f"split must be train, val or test, got {split!r}")
         views = ds[split]
         if not views:
-            raise ValueError(f"the run's dataset {self.tr.data} has no {split!r} views")
+            raise ValueError(f"--split {split}: the run's dataset {self.tr.data} has no {split!r} views")
         if split == "test" and self.tr.cfg.max_test_views:
             views = views[: self.tr.cfg.max_test_views]
         return views
@@ -396,11 +415,18 @@ class Relighter:
 
 def _mesh_config(path):
     """The :class:`MeshConfig` the refined mesh was trained with (saved in its state)."""
+    import zipfile
+
+    from .errors import RunError
     from .mesh.refine import MeshConfig
 
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-    return MeshConfig.from_dict(meta["mesh"]) if "mesh" in meta else MeshConfig()
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+        return MeshConfig.from_dict(meta["mesh"]) if "mesh" in meta else MeshConfig()
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise RunError(path, f"damaged mesh-stage result ({type(exc).__name__}: {exc}): run `triplet extract` "
+                             "again") from None
 
 
 def straight(img: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:
@@ -447,6 +473,39 @@ def albedo_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
         return 10 * math.log10(1 / mse) if mse > 0 else float("inf")
 
     return {"psnr_raw": _psnr(p), "psnr_scaled": _psnr(scaled), "scale": scale.tolist(), "pixels": int(m.sum())}
+
+
+def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
+    """A set with a ``VertexSHLight`` needs a run trained with the vertex-SH light (its per-vertex coefficients)."""
+    for ls in sets:
+        if not has_vertex_sh and any(isinstance(lt, VertexSHLight) for lt in ls.lights):
+            raise LightFileError(ls.source or ls.name, "", f"set {ls.name!r} has a VertexSHLight, but the run was "
+                                 "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
+
+
+def check_references(relight_dir, view_names, env_degree: int | None = None) -> None:
+    """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
+    ``albedo`` folder, one PNG per test view): checked before any rendering, one error naming the file."""
+    rdir = Path(relight_dir)
+    spec = rdir / "relight.json" if rdir.is_dir() else rdir
+    doc = _read_json(spec)
+    folders = []
+    for ls in load_light_sets(spec, env_degree):
+        if ls.images is None:
+            raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
+        folders.append((f"sets.{ls.name}.images", ls.images))
+    alb = doc.get("albedo")
+    if alb is not None:
+        if not isinstance(alb, str):
+            raise LightFileError(spec, "albedo", f"expected a folder name, found {alb!r}")
+        folders.append(("albedo", spec.parent / alb))
+    for where, folder in folders:
+        if not folder.is_dir():
+            raise LightFileError(spec, where, f"{folder}: folder not found")
+        missing = [n for n in view_names if not (folder / f"{Path(n).name}.png").is_file()]
+        if missing:
+            raise LightFileError(spec, where, f"{folder}: no image for the test view(s) "
+                                              f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
 
 
 def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None = None, out_dir=None) -> dict:

@@ -43,6 +43,7 @@ _INT_OPTIONS = {
     "--background-shell": ("background_shell", 0, 10_000_000),
     "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
     "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
+    "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
@@ -102,6 +103,9 @@ def _check_options(args) -> None:
             parse_bbox(args.bbox)
         except ValueError as exc:
             raise UsageError("--bbox", str(exc)) from None
+        if getattr(args, "mesh_crop", None) == "none":
+            raise UsageError("--mesh-crop", f"none (keep everything) contradicts --bbox {args.bbox} (crop to that "
+                                            "box): give one of them")
     mr = getattr(args, "min_registered", None)
     if mr is not None and not (math.isfinite(mr) and 0 <= mr <= 1):
         raise UsageError("--min-registered", f"expected a fraction in [0, 1], found {mr}")
@@ -115,6 +119,15 @@ def _check_options(args) -> None:
         check_memory_for_points(init)
     if max_faces is not None:
         check_memory_for_points(max_faces, "--max-faces")
+    shell = getattr(args, "background_shell", None)
+    if shell:  # the shell's triangles join the initial soup: the same face budget and memory
+        budget = max_faces if max_faces is not None else 200_000
+        if shell > budget:
+            raise UsageError("--background-shell", f"{shell} shell triangles exceed the face budget ({budget}, "
+                                                   "--max-faces): density control would prune them at once; give "
+                                                   "at most the budget (a few thousand take the sky), or raise "
+                                                   "--max-faces")
+        check_memory_for_points((init if init is not None else 20_000) + shell, "--background-shell")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
@@ -304,6 +317,26 @@ def validate_args(args) -> None:
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
+    elif cmd == "colmap":
+        check_colmap_paths(args.images, args.out)
+
+
+def check_colmap_paths(images, out) -> None:
+    """``colmap IMAGES --out DATA``: IMAGES a folder; DATA a new (or empty) writable folder outside IMAGES
+    and outside any dataset (its work folder is made beside DATA, so that place must be clean too)."""
+    images, out = Path(images), Path(out)
+    if images.exists() and not images.is_dir():
+        raise UsageError("IMAGES", f"{images} is a file, expected a folder of photos")
+    if out.exists() and not out.is_dir():
+        raise UsageError("--out", f"{out} is a file, expected a new folder")
+    check_writable_dir(out, "--out")
+    if images.is_dir():
+        img = images.resolve()
+        o = out.absolute().resolve()
+        if o == img or img in o.parents:
+            raise UsageError("--out", f"{out} is inside the photos folder {images}: choose a folder outside it "
+                                      "(triplet never writes among the user's photos)")
+    check_not_in_dataset(out, "--out")
 
 
 class DeprecatedAlias:
@@ -333,7 +366,8 @@ def resume_config(args, saved_cfg, given_cfg):
 
     fixed = {"--seed": "seed", "--brdf": "brdf", "--lights": "lights", "--sh-degree": "sh_degree",
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
-             "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer"}
+             "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
+             "--background-shell": "background_shell", "--color": "color"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue
