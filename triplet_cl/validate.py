@@ -375,6 +375,13 @@ def resume_config(args, saved_cfg, given_cfg):
             raise UsageError(option, f"cannot change on --resume (the run has {getattr(saved_cfg, field)!r}, "
                                      f"given {getattr(given_cfg, field)!r}); start a new run (another --out, or "
                                      "--overwrite) to change it")
+    if getattr(args, "priors", None) is not None:
+        from .priors import WEIGHT_FIELDS
+
+        if any(getattr(given_cfg, k) != getattr(saved_cfg, k) for k in WEIGHT_FIELDS):
+            had = {k: getattr(saved_cfg, k) for k in WEIGHT_FIELDS}
+            raise UsageError("--priors", f"cannot change on --resume (the run has {had}, given --priors "
+                                         f"{args.priors}); start a new run (another --out, or --overwrite)")
     if getattr(args, "max_faces", None) is not None and given_cfg.density.max_faces != saved_cfg.density.max_faces:
         raise UsageError("--max-faces", f"cannot change on --resume (the run has {saved_cfg.density.max_faces}, "
                                         f"given {given_cfg.density.max_faces})")
