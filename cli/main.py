@@ -95,10 +95,14 @@ def _config_from_args(args: argparse.Namespace):
         over["background_shell"] = args.background_shell
     if getattr(args, "color", None):
         over["color"] = args.color
-    if getattr(args, "priors", None) in ("off", "all"):
-        from triplet_cl.priors import MATERIAL_WEIGHTS, Priors
+    if getattr(args, "priors", None):
+        from triplet_cl.priors import LIGHT_WEIGHTS, MATERIAL_WEIGHTS, Priors
 
-        over.update(Priors.off() if args.priors == "off" else MATERIAL_WEIGHTS)
+        over.update(Priors.off())
+        if args.priors in ("lights", "all"):
+            over.update(LIGHT_WEIGHTS)
+        if args.priors == "all":
+            over.update(MATERIAL_WEIGHTS)
     cfg = replace(cfg, **over)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
@@ -476,9 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
-    t.add_argument("--priors", choices=["lights", "all", "off"], help="priors (default lights: a small ambient share, "
-                   "white-ish lights, light colours >= 0; all: also kNN smoothness of the materials, metallic towards "
-                   "0, roughness towards 0.5; off: none; README 'Material and light priors')")
+    t.add_argument("--priors", choices=["lights", "all", "off"], help="priors (default off; lights: a small "
+                   "ambient share, white-ish lights, light colours >= 0; all: also kNN smoothness of the materials, "
+                   "metallic towards 0, roughness towards 0.5; README 'Material and light priors')")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
     _add_mesh_options(t)

@@ -146,9 +146,9 @@ def test_priors_off_by_absent_config_and_validated():
 
 def test_priors_act_in_training_and_cli_switch(tmp_path, capsys):
     """A training step records the priors' energies from prior_from on; `--priors off` zeroes every weight in
-    config.json and cannot change on --resume; the default has the light terms only."""
+    config.json and cannot change on --resume; the default has none, `--priors lights` the light terms only."""
     d = TrainConfig()
-    assert d.prior_ambient > 0 and d.prior_chroma > 0 and all(getattr(d, k) == 0 for k in P.MATERIAL_WEIGHTS)
+    assert all(getattr(d, k) == 0 for k in P.WEIGHT_FIELDS) and not P.Priors(d, np.zeros(3)).active
     import json
 
     from cli.main import demo_data_path
@@ -156,7 +156,8 @@ def test_priors_act_in_training_and_cli_switch(tmp_path, capsys):
     from triplet_cl.train import Trainer
 
     tr = Trainer(demo_data_path(), tmp_path / "p", TrainConfig(iterations=2, init_points=300, prior_from=1,
-                                                               **P.MATERIAL_WEIGHTS), quiet=True)
+                                                               **P.MATERIAL_WEIGHTS, **P.LIGHT_WEIGHTS),
+                 quiet=True)
     first, second = tr.step(), tr.step()
     assert "priors" not in first and set(second["priors"]) == {"smooth", "metallic", "roughness", "ambient", "chroma"}
     assert all(np.isfinite(v) for v in second["priors"].values())
@@ -165,6 +166,12 @@ def test_priors_act_in_training_and_cli_switch(tmp_path, capsys):
                      "--priors", "off"]) == 0
     saved = json.loads((out / "config.json").read_text())["train"]
     assert all(saved[k] == 0.0 for k in P.WEIGHT_FIELDS)
+    lit = tmp_path / "lights"
+    assert cli_main(["train", "--demo", "--iterations", "2", "--init-points", "300", "--out", str(lit),
+                     "--priors", "lights"]) == 0
+    saved = json.loads((lit / "config.json").read_text())["train"]
+    assert all(saved[k] == v for k, v in P.LIGHT_WEIGHTS.items())
+    assert all(saved[k] == 0.0 for k in P.MATERIAL_WEIGHTS)
     capsys.readouterr()
     assert cli_main(["train", "--resume", "--out", str(out), "--iterations", "3", "--priors", "all"]) == 2
     assert "--priors" in capsys.readouterr().err

@@ -23,7 +23,7 @@ from triplet_cl.lights import AmbientLight, PointLight
 from triplet_cl.losses import photometric_loss_and_grad
 from triplet_cl.materials import get_brdf
 from triplet_cl.optim import Adam
-from triplet_cl.priors import Priors
+from triplet_cl.priors import LIGHT_WEIGHTS, Priors
 from triplet_cl.render import RenderSettings, render
 from triplet_cl.scene import Scene, logit
 from triplet_cl.train import TrainConfig
@@ -95,7 +95,7 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     scene = _scene(V, F, [ini[0].init] * 3, ini[3].init, ini[4].init,
                    [PointLight(START_POS, np.full(3, 2.0)), AmbientLight(np.full(3, 0.1))])
     err = _fit(scene, targets, cams, 600, {"material": 0.05, "light_params": 0.02},
-               Priors(TrainConfig(prior_from=0), np.zeros(3)))
+               Priors(TrainConfig(prior_from=0, **LIGHT_WEIGHTS), np.zeros(3)))
     assert err < 0.01, f"the fit itself failed (RMSE {err:.4f})"
     pt, amb = scene.current_lights()
     assert (amb.color >= 0).all() and (pt.intensity >= 0).all()

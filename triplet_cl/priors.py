@@ -43,6 +43,7 @@ from .materials import get_brdf
 WEIGHT_FIELDS = ("prior_smooth", "prior_metallic", "prior_roughness", "prior_ambient", "prior_chroma")
 #: the material terms' weights of ``--priors all`` (off by default: see README "Material and light priors")
 MATERIAL_WEIGHTS = {"prior_smooth": 0.01, "prior_metallic": 0.01, "prior_roughness": 0.01}
+LIGHT_WEIGHTS = {"prior_ambient": 0.02, "prior_chroma": 0.01}  # --priors lights (and all)
 CHARBONNIER_EPS = 0.01
 CHROMA_DELTA = 1e-6
 DIST_FLOOR = 1e-6  # the point-light kernel's clamp of |q - x|^2

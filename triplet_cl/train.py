@@ -120,15 +120,18 @@ class TrainConfig:
     # this key is such a run)
     color: str = "linear"
     # material / light priors (priors.py; 0 disables a term); README "Material and light priors": why each default.
-    # The material terms are off by default (measured: on spot they cost 0.75 dB of novel-view PSNR);
-    # `--priors all` sets them to priors.MATERIAL_WEIGHTS
+    # Every term is off by default (`--priors lights` sets priors.LIGHT_WEIGHTS, `--priors all` those and
+    # priors.MATERIAL_WEIGHTS). Measured at the end of 2026-11-24 with the other defaults of that day
+    # (bench/results/final_defaults_pocl_2026-11-24.txt): the light priors cost bob_env (environment-lit)
+    # 3.3 / 5.1 / 4.5 dB of relight PSNR, an ambient-share penalty being wrong where the light IS the
+    # environment; on spot they were mixed; the material terms cost spot 0.75 dB of novel-view PSNR.
     prior_smooth: float = 0.0  # Charbonnier smoothness of albedo / roughness / metallic over kNN triplets
     prior_k: int = 8  # neighbours of the smoothness graph
     prior_metallic: float = 0.0  # mean metallic (L1 towards 0)
     prior_roughness: float = 0.0  # mean (roughness − prior_roughness_target)²
     prior_roughness_target: float = 0.5
-    prior_ambient: float = 0.02  # ambient share of the irradiance at the scene centre
-    prior_chroma: float = 0.01  # scale-free colour variance of each light (white-ish lights)
+    prior_ambient: float = 0.0  # ambient share (--priors lights: 0.02) of the irradiance at the scene centre
+    prior_chroma: float = 0.0  # (--priors lights: 0.01) scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
 
     def to_dict(self) -> dict:
