@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from .lights import LIGHT_CLASSES, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, lights_from_json
+from .mesh.envmap import project_envmap, rotation_y  # noqa: F401  (rotation_y: re-exported)
 
 # SH degree of projected environment maps, chosen by accuracy (README "Relighting"). On the dataset's sky
 # (overcast_soil_puresky, rotated 130°): irradiance error against the brute-force integral (300 random normals)
@@ -282,35 +283,12 @@ def find_envmap(name: str, base: Path, path=None, where: str = "filename") -> Pa
     raise LightFileError(path or base, where, f"environment map {name!r} not found; tried: {', '.join(tried)}")
 
 
-def rotation_y(deg: float) -> np.ndarray:
-    """Right-handed rotation by ``deg`` degrees about +Y (column vectors)."""
-    t = math.radians(deg)
-    c, s = math.cos(t), math.sin(t)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def project_equirect(img, rotate_y_deg: float = 0.0, degree: int = ENV_DEGREE) -> np.ndarray:
-    """``c_k = Σ_pixels L(d) Y_k(R d) dΩ`` of an equirectangular radiance map ``img [H, W, 3]`` rotated by
-    ``R = R_y(rotate_y_deg)`` (midpoint rule, ``dΩ = (2π/W)(π/H) sin θ``): ``[3, (degree+1)^2]``."""
-    from .mesh.envmap import sh_basis
-
+    """:func:`~triplet_cl.mesh.envmap.project_envmap` of an equirectangular radiance map ``[H, W, 3]``
+    rotated by ``R_y(rotate_y_deg)``, with the degree checked: ``[3, (degree+1)^2]``."""
     if not 0 <= degree <= 8:
         raise ValueError(f"env SH degree must be in [0, 8], got {degree}")
-    img = np.asarray(img, np.float64)
-    if img.ndim != 3 or img.shape[2] < 3:
-        raise ValueError(f"an environment map must have shape [H, W, 3], got {list(img.shape)}")
-    h, w = img.shape[:2]
-    theta = math.pi * (np.arange(h) + 0.5) / h
-    phi = 2 * math.pi * (np.arange(w) + 0.5) / w
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    d = np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)
-    wd = d @ rotation_y(rotate_y_deg).T
-    dw = (2 * math.pi / w) * (math.pi / h) * np.sin(theta)
-    out = np.zeros((3, (degree + 1) ** 2))
-    for i0 in range(0, h, 64):  # rows in blocks: [64, W, K] at a time
-        Y = sh_basis(degree, wd[i0:i0 + 64])
-        out += np.einsum("hwk,hwc,h->ck", Y, img[i0:i0 + 64, :, :3], dw[i0:i0 + 64])
-    return out
+    return project_envmap(img, degree, rotate_y_deg)
 
 
 # ---------------------------------------------------------------------------------------------- rendering

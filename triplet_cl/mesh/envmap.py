@@ -119,14 +119,23 @@ def render_envmap(lights, height: int = 256, clamp_negative: bool = True) -> np.
     return img.astype(np.float32)
 
 
-def project_envmap(img, degree: int = 2) -> np.ndarray:
+def rotation_y(deg: float) -> np.ndarray:
+    """Right-handed rotation by ``deg`` degrees about +Y (column vectors), ``[3, 3]``."""
+    t = np.radians(deg)
+    c, s = float(np.cos(t)), float(np.sin(t))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def project_envmap(img, degree: int = 2, rotate_y_deg: float = 0.0) -> np.ndarray:
     """SH coefficients of a lat-long radiance map (the inverse of :func:`render_envmap` up to the
-    band limit): ``c_k = sum_pixels L(d) Y_k(d) dOmega`` with the pixel solid angle
-    ``dOmega = (2 pi / W)(pi / H) sin(theta)`` (midpoint rule).
+    band limit): ``c_k = sum_pixels L(d) Y_k(R d) dOmega`` with the pixel solid angle
+    ``dOmega = (2 pi / W)(pi / H) sin(theta)`` (midpoint rule) and ``R = R_y(rotate_y_deg)`` (the map
+    rotated about +Y, as Mitsuba's ``to_world``).
 
     Args:
         img: ``[H, W, 3]`` linear radiance in this module's lat-long convention (any ``W``).
         degree: largest SH band of the result.
+        rotate_y_deg: rotation of the map about +Y, degrees (right-handed).
     Returns:
         ``coeffs [3, (degree+1)^2] float64``, ready for :class:`SHEnvironmentLight`.
     """
@@ -138,9 +147,14 @@ def project_envmap(img, degree: int = 2) -> np.ndarray:
     phi = 2 * pi * (np.arange(w) + 0.5) / w
     st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
     d = np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)
+    if rotate_y_deg:
+        d = d @ rotation_y(rotate_y_deg).T
     dw = (2 * pi / w) * (pi / h) * np.sin(theta)  # [H]
-    Y = sh_basis(degree, d)  # [H, W, K]
-    return np.einsum("hwk,hwc,h->ck", Y, img[..., :3], dw)
+    out = np.zeros((3, (degree + 1) ** 2))
+    for i0 in range(0, h, 64):  # rows in blocks: the basis is [64, W, K] at a time, not [H, W, K]
+        Y = sh_basis(degree, d[i0:i0 + 64])
+        out += np.einsum("hwk,hwc,h->ck", Y, img[i0:i0 + 64, :, :3], dw[i0:i0 + 64])
+    return out
 
 
 def read_envmap_sh(path, degree: int = 2) -> np.ndarray:
