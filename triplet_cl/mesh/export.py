@@ -58,8 +58,9 @@ _LINEAR, _LINEAR_MIPMAP_LINEAR, _CLAMP_TO_EDGE = 9729, 9987, 33071
 # ---- materials ---------------------------------------------------------------------------------
 def srgb_encode(x: np.ndarray) -> np.ndarray:
     """The sRGB transfer function (linear → encoded), on values clipped to [0, 1]."""
-    x = np.clip(np.asarray(x, np.float64), 0, 1)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    from ..ops.color import srgb_encode as encode
+
+    return encode(np.clip(np.asarray(x, np.float64), 0, 1))
 
 
 def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.ndarray]:
