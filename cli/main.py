@@ -574,8 +574,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # not a folder, read-only, permission, no space left: one line
         print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"triplet {args.command}: error: out of memory (reduce --init-points / --max-faces or the image "
+    except MemoryError as exc:  # Device.check_alloc says which buffer and the device's limit; a bare one does not
+        detail = f"{exc}; " if str(exc) else ""
+        print(f"triplet {args.command}: error: out of memory ({detail}reduce --init-points / --max-faces or the image "
               "size with --downscale)", file=sys.stderr)
         return 2
     except Exception as exc:  # an OpenCL allocation failure is one line too; anything else is a bug: traceback

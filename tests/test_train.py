@@ -131,3 +131,58 @@ def test_renderer_option_trains_with_ray_traced_shadows(tmp_path, capsys):
     assert m["iterations"] == 12 and np.isfinite(m["psnr"])
     assert cli_main(["render", str(out), "--renderer", "raytrace", "--out", str(tmp_path / "rt")]) == 0
     assert len(list((tmp_path / "rt").glob("*.png"))) == 8
+
+
+# ---------------------------------------------------------------------------------------------- budgets
+
+
+def test_sparse_points_are_capped_by_the_face_budget(rng):
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.train import initial_scene
+
+    ds = load_dataset(DEMO)
+    ds.points = rng.uniform(-0.5, 0.5, (5000, 3))
+    cfg = TrainConfig(init_points=500, density=replace(TrainConfig().density, max_faces=1200))
+    sc = initial_scene(cfg, ds, np.random.default_rng(0))
+    assert len(sc.F) == 1200  # one triangle per kept point, not 5000
+    centres = np.asarray(sc.V.data, np.float64).reshape(-1, 3, 3).mean(axis=1)
+    d = np.min(np.linalg.norm(centres[:, None, :] - ds.points[None, ::7, :], axis=2), axis=1)
+    assert d.max() < 1.0  # sanity: the triangles sit on the sparse points' region
+    # with a background shell the points leave room for it
+    cfg2 = replace(cfg, background_shell=200)
+    assert len(initial_scene(cfg2, ds, np.random.default_rng(0)).F) == 1200
+    # no budget: every point
+    cfg3 = TrainConfig(init_points=500, density=replace(TrainConfig().density, max_faces=None))
+    assert len(initial_scene(cfg3, ds, np.random.default_rng(0)).F) == 5000
+
+
+def test_config_refuses_initial_triangles_over_the_budget():
+    cfg = TrainConfig(init_points=5000, density=replace(TrainConfig().density, max_faces=1000))
+    with pytest.raises(ValueError, match=r"init_points \(5000\).*max_faces \(1000\)"):
+        cfg.validate()
+
+
+def test_device_budget_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    from triplet_cl.device import get_device
+    from triplet_cl.validate import check_device_budget, device_budget
+
+    dev = get_device()
+    total, largest = device_budget(100, 100, 30, 1000)
+    assert total == 100 * 100 * 30 * 32 + 1000 * 2048 and largest == 100 * 100 * 30 * 8
+    small = replace(dev.info, global_mem_bytes=64 * 2**20, max_alloc_bytes=16 * 2**20)
+    check_device_budget(small, [(100, 100, 30, "--faces-per-pixel")], 1000)  # 2.9 + 2 MiB: fits
+    with pytest.raises(ValueError, match=r"--faces-per-pixel.*--downscale"):
+        check_device_budget(small, [(200, 200, 200, "--faces-per-pixel")], 1000)  # 61 MiB buffer > 16
+    with pytest.raises(ValueError, match=r"GiB of device memory"):
+        check_device_budget(replace(small, max_alloc_bytes=2**30), [(200, 200, 100, "--faces-per-pixel")], 1000)
+    # the CLI: one line, exit status 2, nothing written
+    monkeypatch.setattr(dev, "info", small)
+    rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), "--faces-per-pixel", "1024", "--max-faces", "1000",
+                   "--init-points", "500"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--faces-per-pixel" in err and "MiB" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+    # the face budget counts too
+    rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "200000 faces" in err and "--max-faces" in err and not (tmp_path / "o").exists()
