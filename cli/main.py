@@ -65,8 +65,6 @@ def _config_from_args(args: argparse.Namespace):
 
     cfg = TrainConfig()
     over = {}
-    if args.iterations is not None:
-        over["iterations"] = args.iterations
     if args.seed is not None:
         over["seed"] = args.seed
     if args.brdf:
@@ -104,6 +102,8 @@ def _config_from_args(args: argparse.Namespace):
         if args.priors == "all":
             over.update(MATERIAL_WEIGHTS)
     cfg = replace(cfg, **over)
+    if args.iterations is not None:  # every schedule follows the run's length (TrainConfig.with_iterations)
+        cfg = cfg.with_iterations(args.iterations)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
     return cfg

@@ -186,3 +186,47 @@ def test_device_budget_is_refused_before_any_work(tmp_path, capsys, monkeypatch)
     rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "200000 faces" in err and "--max-faces" in err and not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------------------------------------- schedules
+
+
+def test_with_iterations_scales_every_schedule():
+    from triplet_cl.train import REFERENCE_ITERATIONS
+
+    ref = TrainConfig()
+    assert ref.iterations == REFERENCE_ITERATIONS
+    same = ref.with_iterations(REFERENCE_ITERATIONS)
+    assert same == ref  # the reference length changes nothing
+    short = ref.with_iterations(1000)
+    d = short.density
+    assert (short.warmup_until, short.half_res_until, short.sh_band_every) == (67, 200, 333)
+    assert (d.densify_from, d.densify_until, d.interval) == (100, 833, 100)
+    assert short.lr_position_steps == 10_000 and d.alpha_reset_interval == 1000
+    assert d.grad_threshold == ref.density.grad_threshold and d.max_faces == ref.density.max_faces
+    long = ref.with_iterations(18_000)
+    assert (long.density.densify_from, long.density.densify_until, long.density.interval) == (1800, 15_000, 100)
+    assert long.half_res_until == 3600 and long.lr_position_steps == 180_000
+    # the position learning rate ends where the reference run's does (same decay shape)
+    from triplet_cl.optim import ExponentialDecay
+
+    for c in (short, ref, long):
+        lr = ExponentialDecay(c.lr_position, c.lr_position_final, c.lr_position_steps)
+        np.testing.assert_allclose(lr(c.iterations), ExponentialDecay(1e-3, 1e-5, 30_000)(3000), rtol=1e-6)
+    tiny = ref.with_iterations(40)  # a window too short for 5 intervals of 100: densify every few steps
+    assert tiny.density.interval == max(1, (tiny.density.densify_until - tiny.density.densify_from) // 5)
+    assert sum(tiny.density.densify_at(i) for i in range(1, 41)) >= 4
+    with pytest.raises(ValueError, match="iterations"):
+        ref.with_iterations(0)
+
+
+def test_cli_iterations_scale_the_schedules(tmp_path):
+    import argparse
+
+    from triplet_cl.cli.main import _config_from_args, build_parser
+
+    args = build_parser().parse_args(["train", str(DEMO), "--out", str(tmp_path / "o"), "--iterations", "600"])
+    assert isinstance(args, argparse.Namespace)
+    cfg = _config_from_args(args)
+    assert cfg == TrainConfig().with_iterations(600)
+    assert cfg.density.densify_until == 500 and cfg.half_res_until == 120

@@ -19,7 +19,7 @@ import logging
 import math
 import signal
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,7 @@ from .topology import morton_order
 
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
+REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned for (TrainConfig.with_iterations)
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 Y00 = 0.28209479177387814  # the constant real SH basis function
@@ -133,6 +134,33 @@ class TrainConfig:
     prior_ambient: float = 0.0  # ambient share (--priors lights: 0.02) of the irradiance at the scene centre
     prior_chroma: float = 0.0  # (--priors lights: 0.01) scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
+
+    def with_iterations(self, iterations: int) -> TrainConfig:
+        """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
+        tuned for :data:`REFERENCE_ITERATIONS` (3000), and a shorter or longer run keeps their shape — warm-up
+        and half resolution (200 / 600 of 3000), one SH band per third, the position learning-rate decay
+        (``lr_position_steps`` 10× the run: 1e-3 → 6.3e-4 × extent at the end), densification from 10 % to 83 %
+        of the run (300 … 2500 of 3000: the last 17 % fine-tune a fixed soup), the alpha reset, the priors' start
+        and the learning-rate boost. The densification ``interval`` stays 100 (the statistics need about one
+        pass over the views) unless the window holds fewer than 5 of them. ``--iterations N`` on the command
+        line is this (a resumed run keeps its saved schedules)."""
+        if iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations}")
+        r = iterations / REFERENCE_ITERATIONS
+        ref = TrainConfig()
+
+        def sc(v: int, low: int = 0) -> int:
+            return max(int(round(v * r)), low)
+
+        d, rd = self.density, ref.density
+        start, until = sc(rd.densify_from), sc(rd.densify_until)
+        density = replace(d, densify_from=start, densify_until=until,
+                          interval=max(1, min(rd.interval, (until - start) // 5)),
+                          alpha_reset_interval=sc(rd.alpha_reset_interval, 1))
+        return replace(self, iterations=int(iterations), warmup_until=sc(ref.warmup_until),
+                       half_res_until=sc(ref.half_res_until), sh_band_every=sc(ref.sh_band_every, 1),
+                       lr_position_steps=sc(ref.lr_position_steps, 1), prior_from=sc(ref.prior_from),
+                       lr_boost_at=sc(ref.lr_boost_at, 1), density=density)
 
     def to_dict(self) -> dict:
         d = asdict(self)
