@@ -207,9 +207,9 @@ class TrainConfig:
         resolve_background(self.background)
         mf = self.density.max_faces
         if mf is not None and self.init_points + self.background_shell > mf:
-            raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed the "
-                             f"face budget max_faces ({mf}): density control would prune them at once; give at most "
-                             "the budget, or raise max_faces")
+            raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
+                             f"the face budget max_faces ({mf}): density control would prune them at once; give at "
+                             "most the budget, or raise max_faces")
         bad = {k: getattr(self, k) for k in Priors.off() if not getattr(self, k) >= 0}
         if bad or self.prior_k < 1 or not 0 <= self.prior_roughness_target <= 1:
             raise ValueError(f"prior weights must be >= 0, prior_k >= 1, prior_roughness_target in [0, 1]; got "
