@@ -16,7 +16,11 @@ a regular grid over ``bounds`` (default: the opaque soup's bounding box, padded)
 Each view's depth (by default where the accumulated alpha reaches 0.1 — the outer surface of the
 soup's translucent shell, see :func:`render_depth`) and alpha maps are
 median-filtered (3×3) first: a soup has cracks, and a pixel centre that falls into one sees the
-far side of the object or the background, which would carve the inside. Then for every voxel
+far side of the object or the background, which would carve the inside. The filter
+(:func:`filter_depth`) only fills: a pixel takes the nearer of its own and the median depth where the
+median alpha is a surface, and its alpha is never lowered, so that a line a pixel wide (a rod, a cable of
+a lego-like object: the median over it is the background or the farther surface behind it) is kept
+rather than erased by a plain median. Then for every voxel
 centre ``x`` in front of the camera that projects inside the image at pixel ``p`` (nearest):
 
 * ``A(p) ≥ alpha_threshold`` (a surface was seen): ``s = (depth(p) − z(x)) / τ``; voxels with
