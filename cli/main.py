@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import sys
@@ -432,8 +433,16 @@ def add_colmap_parser(sub) -> None:
 # ---------------------------------------------------------------------------------------------- parser
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (``triplet train: error: argument --color: invalid choice ...``),
+    as every other error of the CLI, instead of the usage block followed by the message; exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="triplet",
         allow_abbrev=False,
         description="Mesh-based inverse rendering (Triplet) with OpenCL kernels and hand-derived adjoints.",
@@ -564,6 +573,32 @@ def main(argv: list[str] | None = None) -> int:
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
     args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    with _sigterm_as_interrupt():
+        return _dispatch(args)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM (``kill PID``, a scheduler's stop) raises KeyboardInterrupt like Ctrl-C, so that every
+    command's clean-up runs (temporary folders removed, a checkpoint saved by ``train``) instead of the
+    process vanishing mid-write; the previous handler is restored afterwards."""
+    import signal
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        old = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _dispatch(args) -> int:
     try:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)

@@ -653,6 +653,7 @@ def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "--color" in err and "'linear', 'encoded'" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+    assert err.count("\n") == 1 and "usage:" not in err, err  # one line, not argparse's usage block as well
 
 
 def test_background_shell_memory_is_checked(tmp_path, capsys, monkeypatch):
@@ -784,3 +785,189 @@ def test_eval_names_a_damaged_metrics_json_before_any_work(run, capsys, content)
     rc, err, out = _run_cli(["eval", run], capsys)
     assert rc == 2 and "metrics.json: damaged" in err and err.count("\n") == 1, err
     assert "PSNR" not in out and _tree(run) == before
+
+
+# ---- the verification pass of 2026-11-24 (issue 21, second round) --------------------------------------
+ARGPARSE_ERRORS = {  # argv -> what the one-line error names
+    "bad choice": (["train", "DEMO", "--out", "OUT", "--color", "srgb"], "--color"),
+    "abbreviation": (["train", "DEMO", "--out", "OUT", "--iter", "3"], "--iter"),
+    "not a number": (["train", "DEMO", "--out", "OUT", "--iterations", "ten"], "--iterations"),
+    "missing RUN": (["extract"], "run"),
+    "unknown command": (["frobnicate"], "frobnicate"),
+    "bad split": (["render", "OUT", "--split", "holdout"], "--split"),
+    "option without its value": (["train", "DEMO", "--out"], "--out"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ARGPARSE_ERRORS))
+def test_argparse_errors_are_one_line(tmp_path, capsys, case):
+    argv, named = ARGPARSE_ERRORS[case]
+    argv = [str(DEMO) if a == "DEMO" else str(tmp_path / "o") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as ei:
+        cli_main(argv)
+    err = capsys.readouterr().err
+    assert ei.value.code == 2 and named in err and err.count("\n") == 1 and "usage:" not in err, err
+    assert err.startswith("triplet") and "--help" in err
+    assert not (tmp_path / "o").exists()
+
+
+def _relight_dir(tmp_path) -> Path:
+    rd = tmp_path / "rel"
+    rd.mkdir(exist_ok=True)
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT]}}}))
+    return rd
+
+
+INTO_CHECKPOINTS = {  # a command writing into RUN/checkpoints (the run's own state) is refused before any work
+    "render": lambda run, tmp: ["render", run, "--out", run / "checkpoints"],
+    "render below": lambda run, tmp: ["render", run, "--out", run / "checkpoints" / "png"],
+    "eval --relight --out": lambda run, tmp: ["eval", run, "--relight", _relight_dir(tmp), "--out",
+                                              run / "checkpoints"],
+    "relight": lambda run, tmp: ["relight", run, "--lights", run / "lights.json", "--out", run / "checkpoints"],
+    "export": lambda run, tmp: ["export", run, "--out", run / "checkpoints"],
+    "train a new run there": lambda run, tmp: ["train", DEMO, "--out", run / "checkpoints" / "new", *TINY_RUN],
+}
+
+
+@pytest.mark.parametrize("case", sorted(INTO_CHECKPOINTS))
+def test_outputs_into_a_runs_checkpoints_are_refused(run, tmp_path, capsys, case):
+    argv = INTO_CHECKPOINTS[case](run, tmp_path)
+    before = _tree(run)
+    rc, err, out = _run_cli(argv, capsys)
+    assert rc == 2 and "--out" in err and "checkpoints folder of the run" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before
+
+
+def test_a_nerf_split_file_given_as_data_is_named(tmp_path, demo_copy, capsys):
+    """`train X/transforms_train.json` was read as an instant-ngp transforms.json."""
+    for extra in ([], ["--data-format", "nerf"]):
+        rc, err, _ = _run_cli(["train", demo_copy / "transforms_train.json", "--out", tmp_path / "o", *extra], capsys)
+        assert rc == 2 and "transforms_train.json" in err and str(demo_copy) in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists()
+    from triplet_cl.datasets import detect_format
+
+    ngp = tmp_path / "my_capture.json"  # any other JSON file given directly is still an instant-ngp file
+    ngp.write_text("{}")
+    assert detect_format(ngp) == "ngp"
+
+
+def test_undistortion_cache_is_outside_the_dataset(tmp_path, monkeypatch):
+    """The README says triplet never writes into a dataset: the undistorted copy goes to the user's cache;
+    one that an older version left in DATA/.triplet_cache is still used (read, nothing written)."""
+    pytest.importorskip("pycolmap")
+    from triplet_cl.datasets.sfm import LEGACY_CACHE, cache_root
+
+    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_root(tmp_path) == tmp_path / "xdg" / "triplet_cl"
+    root = tmp_path / "scene"
+    fac.make_colmap(root, n=3, model="SIMPLE_RADIAL", params=[7.0, 4.0, 3.0, 0.05])
+    before = _tree(root)
+    a = load_dataset(root, split_holdout=0)
+    assert _tree(root) == before
+    made = list((tmp_path / "xdg" / "triplet_cl").iterdir())
+    assert len(made) == 1
+    # an older version's copy inside the dataset is read, and nothing new is written anywhere
+    shutil.move(str(made[0]), str(root / LEGACY_CACHE / made[0].name))
+    before = _tree(root)
+    b = load_dataset(root, split_holdout=0)
+    assert _tree(root) == before and list((tmp_path / "xdg" / "triplet_cl").iterdir()) == []
+    assert np.array_equal(a.train[0].rgb, b.train[0].rgb)
+
+
+def _photos(folder: Path, n: int = 3) -> Path:
+    folder.mkdir(parents=True)
+    for k in range(n):
+        fac.write_image(folder / f"p{k}.png", np.full((fac.H, fac.W, 3), 0.1 * k, np.float32))
+    return folder
+
+
+def test_sigterm_during_colmap_removes_its_work_folder(tmp_path, capsys, monkeypatch):
+    """A SIGTERM (`kill PID`) in the middle of `triplet colmap` left its temporary folder beside --out."""
+    pytest.importorskip("pycolmap")
+    import os
+    import signal
+    import time
+
+    import triplet_cl.datasets.sfm as sfm
+
+    def solve(pycolmap, photos, images_dir, work, *a):
+        (work / "database.db").write_bytes(b"half a database")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the signal arrives here
+        raise AssertionError("not interrupted")
+
+    monkeypatch.setattr(sfm, "_solve", solve)
+    photos = _photos(tmp_path / "photos")
+    old = signal.getsignal(signal.SIGTERM)
+    rc, err, _ = _run_cli(["colmap", photos, "--out", tmp_path / "data"], capsys)
+    assert rc == 130 and "interrupted" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no .data.tmp-* left, no data/
+    assert signal.getsignal(signal.SIGTERM) == old  # the CLI restored the handler
+
+
+def test_work_folders_of_killed_colmap_runs_are_removed(tmp_path):
+    """SIGKILL cannot be caught: the next `triplet colmap` with the same --out removes the dead process's
+    folder, never one of a process still running."""
+    import os
+    import subprocess
+    import sys
+
+    from triplet_cl.datasets.sfm import WORK_PID, remove_dead_work_dirs
+
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    dead, alive, other = (tmp_path / ".data.tmp-dead", tmp_path / ".data.tmp-alive", tmp_path / ".data.tmp-nopid")
+    for d, pid in ((dead, p.pid), (alive, os.getpid()), (other, None)):
+        d.mkdir()
+        if pid is not None:
+            (d / WORK_PID).write_text(str(pid))
+    assert remove_dead_work_dirs(tmp_path / "data") == [dead]
+    assert not dead.exists() and alive.exists() and other.exists()
+
+
+def _ply_header_and_vertices(path: Path):
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    lines = head.decode().splitlines()
+    n = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+    props = [(ln.split()[2], "<f4" if ln.split()[1] == "float" else "u1") for ln in lines
+             if ln.startswith("property ") and not ln.startswith("property list")]
+    return lines, np.frombuffer(body[: n * np.dtype(props).itemsize], np.dtype(props))
+
+
+@pytest.mark.parametrize("brdf, color", [("blinn-phong", "linear"), ("cook-torrance", "encoded")])
+def test_triplets_ply_columns_and_byte_colours(tmp_path, demo_copy, capsys, brdf, color):
+    """triplets.ply of Blinn-Phong had no shininess column, and its byte colours were the linear albedo
+    (viewers take them as sRGB: too dark)."""
+    from triplet_cl.ops.color import srgb_encode
+
+    out = tmp_path / "r"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", out, *TINY_RUN, "--brdf", brdf, "--color", color], capsys)
+    assert rc == 0, err
+    lines, v = _ply_header_and_vertices(out / "triplets.ply")
+    names = set(v.dtype.names)
+    if brdf == "blinn-phong":
+        assert {"shininess", "ks_0", "ka_2", "albedo_0"} <= names
+        assert (v["shininess"] > 0).all() and np.isfinite(v["shininess"]).all()
+        assert abs(float(np.median(v["shininess"])) - 64) < 8  # softplus-activated (initial 64), not sigmoid
+    else:
+        assert {"roughness", "metallic", "ao", "albedo_0"} <= names
+    alb = np.stack([v[f"albedo_{i}"] for i in range(3)], 1).astype(np.float64)
+    want = srgb_encode(np.clip(alb, 0, 1)) if color == "linear" else np.clip(alb, 0, 1)
+    got = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.float64) / 255
+    assert np.abs(got - want).max() <= 0.5 / 255 + 1e-6
+    assert any("red/green/blue" in ln and ("sRGB-encoded" in ln) for ln in lines)
+
+
+def test_mesh_ply_byte_colours_are_srgb_for_a_linear_run(tmp_path):
+    from triplet_cl.lights import PointLight
+    from triplet_cl.mesh.export import export_asset
+    from triplet_cl.ops.color import srgb_encode
+
+    asset = _small_asset([PointLight([0, 3, 0], [1, 1, 1])])
+    asset.attributes["albedo"][:] = 0.2
+    for space, want in (("linear", srgb_encode(0.2)), ("srgb", 0.2)):
+        paths = export_asset(asset, tmp_path / space, formats=("ply",), albedo_space=space)
+        _, v = _ply_header_and_vertices(paths["ply"])
+        assert (v["red"] == int(want * 255 + 0.5)).all() and np.allclose(v["albedo_0"], 0.2)

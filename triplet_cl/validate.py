@@ -215,6 +215,18 @@ def check_not_in_dataset(path, option: str, dataset=None) -> None:
                                      "dataset (it would replace the photos); choose another folder")
 
 
+def check_not_run_internal(path, option: str) -> None:
+    """Never write outputs into a run's ``checkpoints/`` folder (or below it): it is the run's own state,
+    which ``--resume``, pruning and ``latest`` manage."""
+    from .runs import CHECKPOINTS, is_run_dir
+
+    p = Path(path).absolute().resolve()
+    for folder in (p, *p.parents):
+        if folder.name == CHECKPOINTS and is_run_dir(folder.parent):
+            raise UsageError(option, f"{path} is inside the checkpoints folder of the run {folder.parent}: "
+                                     "triplet writes nothing else there; choose another folder")
+
+
 def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
     """A run directory with a readable config.json; ``writable``: results can be written into it."""
     from .runs import read_run_config
@@ -233,6 +245,7 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
     out = Path(out)
     check_writable_dir(out, option)
     check_not_in_dataset(out, option, dataset)
+    check_not_run_internal(out, option)
     if resume and overwrite:
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
@@ -317,6 +330,7 @@ def validate_args(args) -> None:
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
+            check_not_run_internal(args.out, "--out")
     elif cmd == "colmap":
         check_colmap_paths(args.images, args.out)
 

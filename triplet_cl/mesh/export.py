@@ -445,18 +445,20 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
 
 
 # ---- PLY ---------------------------------------------------------------------------------------
-def export_ply(asset: MeshAsset, path) -> Path:
+def export_ply(asset: MeshAsset, path, albedo_space: str = "srgb") -> Path:
     """Binary little-endian PLY of the connected mesh with per-vertex attributes, atomically.
 
     Vertex properties (float32 unless said): ``x y z``, ``nx ny nz`` (area-weighted unit normals),
     every attribute of the asset (``[N, k]`` as ``name_0 .. name_{k-1}``, e.g. ``albedo_0..2``,
     ``roughness``, ``metallic``, ``ao``, ``alpha``; Blinn-Phong ``ks_*``, ``shininess``, ``ka_*``),
-    and ``red green blue`` uchar from the albedo; faces ``vertex_indices`` (uchar count, int).
+    and ``red green blue`` uchar from the albedo (sRGB-encoded when ``albedo_space="linear"``, as the
+    base-colour textures; the float ``albedo_*`` stay as trained); faces ``vertex_indices`` (uchar count, int).
     """
     _check_asset(asset, "export_ply")
     n = vertex_normals(asset.V, asset.F)
     attrs = {"nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], **asset.attributes}
-    write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh")
+    write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh",
+                   albedo_space=albedo_space)
     return Path(path)
 
 
@@ -507,7 +509,7 @@ def export_asset(asset: MeshAsset, out_dir, formats=FORMATS, texture_size: int =
         obj, mtl, *tex = export_obj(asset, out_dir / "mesh.obj", baked=baked)
         paths.update(obj=obj, mtl=mtl, textures=tex)
     if "ply" in formats:
-        paths["ply"] = export_ply(asset, out_dir / "mesh.ply")
+        paths["ply"] = export_ply(asset, out_dir / "mesh.ply", albedo_space)
     write_json(out_dir / "lights.json", lights_doc)
     paths["lights"] = out_dir / "lights.json"
     if has_env and envmap is not False:
