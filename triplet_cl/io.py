@@ -110,12 +110,12 @@ def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.
     for name, a in cols:
         verts[name] = a
     if rgb is not None:
-        rgb = np.clip(np.asarray(rgb, np.float64), 0, 1)
+        rgb = np.clip(np.asarray(rgb, np.float32), 0, 1)
         if albedo_space == "linear":
             from .ops.color import srgb_encode
 
-            rgb = srgb_encode(rgb)
-        c = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+            rgb = np.clip(srgb_encode(rgb), 0, 1).astype(np.float32)
+        c = (rgb * 255 + 0.5).astype(np.uint8)
         verts["red"], verts["green"], verts["blue"] = c[:, 0], c[:, 1], c[:, 2]
     F = np.asarray(F, np.int32)
     faces = np.empty(len(F), dtype=[("n", "u1"), ("idx", "<i4", (3,))])

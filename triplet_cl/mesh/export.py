@@ -136,8 +136,9 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
             (4 at 1024²). Measured with ``bench/gutter.py`` on a 50k-face marching-cubes Spot (695
             charts, 1024²): the fraction of chart texels whose mip-map block mixes in another chart's
             gutter at mip 2 / 3 / 4 is 0.2 / 4.8 / 24 % with padding 2, 0 / 2.4 / 20 % with 4 (8 %
-            fewer texels for the charts), 0 / 0.4 / 14 % with 8 (30 % fewer). dilate: see
-            :func:`bake.bake`.
+            fewer texels for the charts), 0 / 0.4 / 14 % with 8 (30 % fewer); with the gutter filled per
+            chart (``atlas.face_chart``, :func:`bake.gutter_sources`, the default now) 0 / 0.1 / 7.3 % with
+            4. dilate: see :func:`bake.bake`.
     """
     _check_asset(asset, "bake_asset")
     if int(texture_size) < 16 or int(texture_size) > 16384:
@@ -155,7 +156,7 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
         ks = np.clip(asset.attributes[spec_attr], 0, 1)
         cols.append(srgb_encode(ks) if albedo_space == "linear" else ks)
     values = np.concatenate(cols, 1)[atlas.vmap]  # per atlas vertex
-    tex = bake(face_img, bary, atlas.faces, values, dilate=dilate)
+    tex = bake(face_img, bary, atlas.faces, values, dilate=dilate, face_chart=atlas.face_chart)
     base = tex[..., :3] if not with_alpha else np.concatenate([tex[..., :3], tex[..., 6:7]], -1)
     if spec_attr is not None:
         spec = _u8(tex[..., -3:])
