@@ -971,3 +971,14 @@ def test_mesh_ply_byte_colours_are_srgb_for_a_linear_run(tmp_path):
         paths = export_asset(asset, tmp_path / space, formats=("ply",), albedo_space=space)
         _, v = _ply_header_and_vertices(paths["ply"])
         assert (v["red"] == int(want * 255 + 0.5)).all() and np.allclose(v["albedo_0"], 0.2)
+
+
+@pytest.mark.parametrize("extra, named", [(["--out", "OUT"], "--out"), (["--renderer", "hybrid"], "--renderer"),
+                                          (["--env-degree", "3"], "--env-degree")])
+def test_eval_options_of_the_relit_evaluation_need_relight(run, tmp_path, capsys, extra, named):
+    """`eval RUN --out DIR` (no --relight) was accepted and wrote nothing there: silently ignored."""
+    extra = [str(tmp_path / "e") if a == "OUT" else a for a in extra]
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run, *extra], capsys)
+    assert rc == 2 and named in err and "--relight" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before and not (tmp_path / "e").exists()

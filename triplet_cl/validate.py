@@ -319,6 +319,12 @@ def validate_args(args) -> None:
             check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
                               None if getattr(args, "demo", False) else data)
     elif cmd in ("render", "eval", "extract", "export", "relight"):
+        if cmd == "eval" and not getattr(args, "relight", None):  # they only apply to the relit evaluation
+            given = [o for o, a in (("--out", "out"), ("--renderer", "renderer"), ("--env-degree", "env_degree"))
+                     if getattr(args, a, None) is not None]
+            if given:
+                raise UsageError(given[0], "only applies with --relight (the relit images, their renderer and the "
+                                           "environment maps' SH degree); plain `eval` writes only metrics.json")
         writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
         if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
             if not (Path(args.run) / "config.json").is_file():
