@@ -80,6 +80,8 @@ BAD_TRAIN = {
     "checkpoint-every -1": (["--checkpoint-every", "-1"], "--checkpoint-every"),
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
     "lights": (["--lights", "laser"], "--lights"),
+    "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
+    "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),
     "texture-size -4": (["--mesh-stage", "--texture-size", "-4"], "--texture-size"),
     "mesh-faces 0": (["--mesh-stage", "--mesh-faces", "0"], "--mesh-faces"),
     "formats": (["--mesh-stage", "--formats", "fbx"], "--formats"),

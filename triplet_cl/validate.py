@@ -94,6 +94,11 @@ def _check_options(args) -> None:
         if bad or not names:
             raise UsageError("--lights", f"lights must be a comma-separated mix of {', '.join(LIGHT_KINDS)}, found "
                                          f"{lights!r}")
+        twice = sorted({x for x in names if names.count(x) > 1 and x != "point"})
+        if twice:  # they start identical and get identical gradients: one light's worth, twice
+            raise UsageError("--lights", f"{', '.join(twice)} given more than once ({lights!r}): only point lights "
+                                         "may repeat (each starts at its own random position); the others would "
+                                         "start identical and stay so")
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
     if getattr(args, "bbox", None) is not None:
