@@ -984,3 +984,24 @@ def test_eval_options_of_the_relit_evaluation_need_relight(run, tmp_path, capsys
     rc, err, out = _run_cli(["eval", run, *extra], capsys)
     assert rc == 2 and named in err and "--relight" in err and err.count("\n") == 1, err
     assert "PSNR" not in out and _tree(run) == before and not (tmp_path / "e").exists()
+
+
+INTO_ANOTHER_RUN = {  # RUN's outputs into another run's folder replaced that run's own files (its lights.json)
+    "export": lambda run, other: ["export", run, "--formats", "ply", "--out", other],
+    "render": lambda run, other: ["render", run, "--out", other / "renders" / "test"],
+    "relight": lambda run, other: ["relight", run, "--lights", run / "lights.json", "--out", other / "relit"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(INTO_ANOTHER_RUN))
+def test_outputs_into_another_run_are_refused(run, tmp_path, capsys, case):
+    other = tmp_path / "other"
+    shutil.copytree(run, other)
+    (other / "lights.json").write_text('{"lights": "the other run\'s"}')
+    before = _tree(other)
+    rc, err, _ = _run_cli(INTO_ANOTHER_RUN[case](run, other), capsys)
+    assert rc == 2 and "--out" in err and "inside another run" in err and err.count("\n") == 1, err
+    assert _tree(other) == before
+    # the run's own folders stay allowed
+    rc, err, _ = _run_cli(["render", run, "--out", run / "renders" / "again"], capsys)
+    assert rc == 0, err

@@ -232,6 +232,21 @@ def check_not_run_internal(path, option: str) -> None:
                                      "triplet writes nothing else there; choose another folder")
 
 
+def check_not_other_run(path, run, option: str) -> None:
+    """Outputs of a command on ``run`` go into that run or outside every run: never into another run's
+    folder, whose own files (``lights.json``, ``mesh.*``, ``renders/``) they would replace."""
+    from .runs import is_run_dir
+
+    p = Path(path).absolute().resolve()
+    mine = Path(run).absolute().resolve()
+    for folder in (p, *p.parents):
+        if folder == mine:
+            return
+        if is_run_dir(folder):
+            raise UsageError(option, f"{path} is inside another run, {folder}: its own files (lights.json, mesh.*, "
+                                     f"renders) would be replaced by those of {run}; choose a folder outside it")
+
+
 def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
     """A run directory with a readable config.json; ``writable``: results can be written into it."""
     from .runs import read_run_config
@@ -342,6 +357,7 @@ def validate_args(args) -> None:
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
             check_not_run_internal(args.out, "--out")
+            check_not_other_run(args.out, args.run, "--out")
     elif cmd == "colmap":
         check_colmap_paths(args.images, args.out)
 
