@@ -1005,3 +1005,25 @@ def test_outputs_into_another_run_are_refused(run, tmp_path, capsys, case):
     # the run's own folders stay allowed
     rc, err, _ = _run_cli(["render", run, "--out", run / "renders" / "again"], capsys)
     assert rc == 0, err
+
+
+@pytest.mark.parametrize("command", ["train", "render", "export", "colmap"])
+def test_out_that_cannot_be_created_names_the_option(run, tmp_path, capsys, command):
+    """/proc (and /sys in a container) pass os.access for root but refuse mkdir: the error came from deep inside
+    the command (`/proc/x: no such file or folder`, no option named); now --out is tried up front."""
+    if not Path("/proc/self").exists():
+        pytest.skip("no /proc here")
+    out = Path("/proc/triplet_harden_test/sub")
+    argv = {"train": ["train", DEMO, "--out", out], "render": ["render", run, "--out", out],
+            "export": ["export", run, "--out", out], "colmap": ["colmap", _photos(tmp_path / "p"), "--out", out]}
+    before = _tree(run)
+    rc, err, _ = _run_cli(argv[command], capsys)
+    assert rc == 2 and err.startswith(f"triplet {command}: error: --out:") and "cannot be created" in err, err
+    assert err.count("\n") == 1 and _tree(run) == before
+
+
+def test_out_probe_leaves_nothing_behind(tmp_path):
+    from triplet_cl.validate import check_writable_dir
+
+    check_writable_dir(tmp_path / "a" / "b" / "c", "--out")
+    assert list(tmp_path.iterdir()) == []

@@ -185,6 +185,20 @@ def check_writable_dir(path, option: str) -> None:
         ro = _read_only_fs(base)
         raise UsageError(option, f"{path}: {base} is not writable" + (" (read-only filesystem)" if ro else
                                                                        " (permission denied)"))
+    if not path.exists():  # os.access says yes for root, and on /sys, /proc: try it (and take it back at once)
+        made = []
+        try:
+            for p in reversed([q for q in (path.absolute(), *path.absolute().parents) if not q.exists()]):
+                p.mkdir()
+                made.append(p)
+        except OSError as exc:
+            raise UsageError(option, f"{path}: the folder cannot be created ({os_error_message(exc)})") from None
+        finally:
+            for p in reversed(made):
+                try:
+                    p.rmdir()
+                except OSError:
+                    pass
 
 
 def _read_only_fs(path: Path) -> bool:
