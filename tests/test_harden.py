@@ -1027,3 +1027,28 @@ def test_out_probe_leaves_nothing_behind(tmp_path):
 
     check_writable_dir(tmp_path / "a" / "b" / "c", "--out")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_interrupted_training_saves_a_checkpoint_and_resumes(tmp_path, sig):
+    """Ctrl-C, and now SIGTERM (`kill PID`, a scheduler's stop) too, end training cleanly: a checkpoint of
+    the iteration reached, the handlers restored, and --resume continues from it."""
+    import os
+    import signal
+
+    signum = getattr(signal, sig)
+    old = signal.getsignal(signum)
+    tr = Trainer(DEMO, tmp_path / "r", _small_cfg(checkpoint_every=0), quiet=True)
+    orig = tr.step
+
+    def step():
+        if tr.it == 4:
+            os.kill(os.getpid(), signum)
+        return orig()
+
+    tr.step = step
+    with pytest.raises(KeyboardInterrupt):
+        tr.train()
+    assert signal.getsignal(signum) == old
+    assert (tmp_path / "r" / "checkpoints" / "latest").read_text() == "ckpt_0000005.npz"
+    assert Trainer(None, tmp_path / "r", quiet=True, resume=True).it == 5
