@@ -12,7 +12,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.datasets import FORMATS as DATASET_FORMATS
-from triplet_cl.errors import RunError, TripletError
+from triplet_cl.errors import TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -185,7 +185,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    import json
 
     from triplet_cl.io import write_json
 
@@ -200,17 +199,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.relight import load_light_sets
 
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
+    from triplet_cl.runs import read_metrics
+
     path = run / "metrics.json"
-    old = {}
-    if path.is_file():  # read before any work: a damaged file is named, not met after the evaluation
-        try:
-            old = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
-                                 "kept: delete it to have eval write a new one") from None
-        if not isinstance(old, dict):
-            raise RunError(path, f"damaged (expected a JSON object, found {type(old).__name__}); delete it to have "
-                                 "eval write a new one")
+    old = read_metrics(run, "eval")  # before any work: a damaged file is named, not met after the evaluation
     tr = _load_run(args)
     if spec is not None:
         from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
@@ -367,7 +359,10 @@ def _run_mesh_stage(tr, cfg) -> int:
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
+    from triplet_cl.runs import read_metrics
+
     cfg = _mesh_config_from_args(args)
+    read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
     tr = _load_run(args)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)

@@ -781,6 +781,17 @@ def test_compare_runs_tool_tells_identical_from_different(run, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
+def test_extract_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
+    """The mesh stage merges its "mesh" section into metrics.json: a damaged one failed at the end, after
+    minutes of work (a JSON error), or with a TypeError traceback (a list)."""
+    (run / "metrics.json").write_text(content)
+    before = _tree(run)
+    rc, err, out = _run_cli(["extract", run], capsys)
+    assert rc == 2 and "metrics.json: damaged" in err and "extract" in err and err.count("\n") == 1, err
+    assert "mesh" not in out and _tree(run) == before
+
+
+@pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
 def test_eval_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
     (run / "metrics.json").write_text(content)
     before = _tree(run)

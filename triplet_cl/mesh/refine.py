@@ -442,8 +442,10 @@ class MeshStage:
         return self.run_dir / MESH_STATE
 
     def _write_metrics(self, mesh_metrics: dict) -> None:
+        from ..runs import read_metrics
+
         path = self.run_dir / "metrics.json"
-        metrics = json.loads(path.read_text()) if path.is_file() else {}
+        metrics = read_metrics(self.run_dir, "extract")
         metrics["mesh"] = mesh_metrics
         write_json(path, metrics)
         self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))
