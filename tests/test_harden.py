@@ -641,6 +641,20 @@ def test_mesh_resolution_memory_is_checked(run, capsys, monkeypatch):
     assert rc == 2 and "--mesh-resolution" in err and "GiB" in err
 
 
+@pytest.mark.parametrize("command", ["extract", "export", "train"])
+def test_texture_size_memory_is_checked(run, tmp_path, capsys, monkeypatch, command):
+    """--texture-size 16384 is in range but needs ~32 GiB while baking: a MemoryError after the whole mesh stage."""
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 8 * 2**30)
+    argv = {"extract": ["extract", run], "export": ["export", run, "--out", tmp_path / "x"],
+            "train": ["train", DEMO, "--out", tmp_path / "x", "--mesh-stage"]}[command]
+    before = _tree(run)
+    rc, err, _ = _run_cli([*argv, "--texture-size", "16384"], capsys)
+    assert rc == 2 and "--texture-size" in err and "GiB" in err and err.count("\n") == 1, err
+    assert _tree(run) == before and not (tmp_path / "x").exists()
+
+
 def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
     import triplet_cl.validate as val
 

@@ -19,6 +19,7 @@ from .errors import RunError, UsageError
 
 K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the OpenCL layers)
 TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
+TEXTURE_BYTES_PER_TEXEL = 128  # mesh.bake while baking: measured peak 113 B / texel (export of a 15k-face mesh, 4096²)
 HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initialising; ×4 for training copies
 
 # option -> (args attribute, kind, low, high, what it is); None bound = unbounded
@@ -133,6 +134,12 @@ def _check_options(args) -> None:
                                                    "at most the budget (a few thousand take the sky), or raise "
                                                    "--max-faces")
         check_memory_for_points((init if init is not None else 20_000) + shell, "--background-shell")
+    tex = getattr(args, "texture_size", None)
+    if tex is not None and tex > 0:
+        need, avail = tex * tex * TEXTURE_BYTES_PER_TEXEL, available_memory()
+        if avail is not None and need > 0.8 * avail:
+            raise UsageError("--texture-size", f"baking a {tex}² texture needs about {need / 2**30:.1f} GiB of memory, "
+                                               f"this machine has {avail / 2**30:.1f} GiB available")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
