@@ -1077,3 +1077,17 @@ def test_interrupted_training_saves_a_checkpoint_and_resumes(tmp_path, sig):
     assert signal.getsignal(signum) == old
     assert (tmp_path / "r" / "checkpoints" / "latest").read_text() == "ckpt_0000005.npz"
     assert Trainer(None, tmp_path / "r", quiet=True, resume=True).it == 5
+
+
+def test_a_split_mixing_images_with_and_without_alpha_warns(tmp_path):
+    """One RGB image among RGBA ones trained its white background as part of the object, silently."""
+    from triplet_cl.datasets import DatasetWarning
+
+    fac.make_nerf(tmp_path / "ds")
+    p = sorted((tmp_path / "ds").rglob("*.png"))[0]
+    from triplet_cl.datasets.images import read_image
+
+    img = read_image(p)
+    fac.write_image(p, img.rgb)  # the same picture without its alpha channel
+    with pytest.warns(DatasetWarning, match=rf"no alpha channel \({p.name}\)"):
+        load_dataset(tmp_path / "ds")
