@@ -1091,3 +1091,11 @@ def test_a_split_mixing_images_with_and_without_alpha_warns(tmp_path):
     fac.write_image(p, img.rgb)  # the same picture without its alpha channel
     with pytest.warns(DatasetWarning, match=rf"no alpha channel \({p.name}\)"):
         load_dataset(tmp_path / "ds")
+
+
+def test_extract_of_an_untrained_soup_says_why(run, capsys):
+    """The 4-iteration soup is still transparent: the message named tsdf_fusion and alpha_threshold only."""
+    before = _tree(run)
+    rc, err, _ = _run_cli(["extract", run, "--mesh-iterations", "0", "--mesh-resolution", "16"], capsys)
+    assert rc == 2 and "no surface" in err and "untrained" in err and "tsdf_fusion" not in err, err
+    assert err.count("\n") == 1 and _tree(run) == before

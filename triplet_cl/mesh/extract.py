@@ -313,8 +313,9 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         sl[ax] = -1
         tsdf[tuple(sl)] = 1.0
     if not (tsdf.min() < 0 < tsdf.max()):
-        raise ValueError("tsdf_fusion found no surface (the fused volume has no zero crossing): check the cameras "
-                         "see the soup and alpha_threshold")
+        raise ValueError("the mesh extraction found no surface (the fused volume has no zero crossing): the soup "
+                         "looks (almost) transparent or empty from the cameras — an untrained or barely trained run, "
+                         f"or a crop box that misses the object (alpha_threshold {alpha_threshold})")
     verts, faces, _, _ = marching_cubes(tsdf, level=0.0, spacing=(h, h, h), allow_degenerate=False)
     Vm = (verts + origin).astype(np.float32)
     Fm = faces.astype(np.int32)
