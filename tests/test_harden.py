@@ -88,6 +88,7 @@ BAD_TRAIN = {
     "mesh option without --mesh-stage": (["--mesh-faces", "5000"], "--mesh-faces"),
     "resume and overwrite": (["--resume", "--overwrite"], "--overwrite"),
     "missing data": ([], "DATA"),
+    "DATA and --demo": (["--demo"], "--demo"),
     "background-shell -1": (["--background-shell", "-1"], "--background-shell"),
     "background-shell over the face budget": (["--background-shell", "300000"], "--background-shell"),
     "bbox without --mesh-stage": (["--bbox", "0,0,0,1,1,1"], "--bbox"),

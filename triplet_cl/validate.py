@@ -353,6 +353,9 @@ def validate_args(args) -> None:
             if given:
                 raise UsageError(given[0], "only applies with --mesh-stage (or use `triplet extract RUN`)")
         data = getattr(args, "data", None)
+        if data is not None and getattr(args, "demo", False):
+            raise UsageError("--demo", f"trains the dataset shipped with the package, and DATA {data} was given too: "
+                                       "give one of them")
         if data is not None and not Path(data).exists():
             raise UsageError("DATA", f"{data}: dataset folder not found")
         out = getattr(args, "out", None) or ("runs/demo" if getattr(args, "demo", False) else None)
