@@ -205,7 +205,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         hull_exact_views: with ``masks``, a voxel whose exact (sub-pixel) projection falls on the photos'
             background — their alpha, bilinearly interpolated, below ``alpha_threshold``, no erosion — in at
             least this many views is outside too: the gaps narrower than the erosion that only a few
-            views see through (between a cow's legs, under its belly) are carved (None: off).
+            views see through (between a cow's legs, under its belly) are carved (None: off; off as well
+            with ``hull_views=None``, which turns every visual-hull rule off).
         roi: a :class:`~triplet_cl.mesh.roi.ROI` (oriented box): every voxel outside it is empty, so
             the surface is the object inside it, closed where the box cuts it (photos with a
             background: the object without the table); ``bounds`` default to its bounding box.
@@ -284,7 +285,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         seen[idx] += 1
         if photo_bg is not None:
             hull_out[idx[photo_bg.reshape(-1)[pix]]] += 1
-        if m is not None and hull_exact_views is not None:
+        if m is not None and hull_views is not None and hull_exact_views is not None:
             hull_exact[idx[_bilinear(m, uv) < alpha_threshold]] += 1
         a = acc.reshape(-1)[pix]
         surf = a >= alpha_threshold
@@ -301,7 +302,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     tsdf = np.where(inside, -1.0, tsdf)
     if hull_views is not None:
         tsdf = np.where(hull_out >= hull_views, 1.0, tsdf)  # outside the photos' visual hull
-    if masks is not None and hull_exact_views is not None:
+    if masks is not None and hull_views is not None and hull_exact_views is not None:
         tsdf = np.where(hull_exact >= hull_exact_views, 1.0, tsdf)  # ... seen through narrow gaps
     if roi is not None:
         tsdf = np.where(roi.contains(X), tsdf, 1.0)  # the region of interest: nothing outside it
