@@ -61,6 +61,15 @@ def test_topology_of_known_shapes():
     assert (t["genus"], t["watertight"], t["self_intersections"], t["euler"]) == (0, True, 0, 2)
     t = mesh_topology(torus.vertices, torus.faces)
     assert (t["genus"], t["watertight"], t["self_intersections"]) == (1, True, 0)
+    # two tetrahedra sharing one vertex (a bow tie): every edge has two faces, but the vertex is not manifold
+    t1 = trimesh.creation.box().subdivide()
+    t2 = t1.copy()
+    t2.vertices = -t2.vertices + 2 * t1.vertices[0]  # point-mirrored through vertex 0 of t1: touches there
+    both = trimesh.util.concatenate([t1, t2])
+    Vb, inv = np.unique(np.round(both.vertices, 9), axis=0, return_inverse=True)
+    t = mesh_topology(Vb, inv.reshape(-1)[both.faces])
+    assert t["nonmanifold_edges"] == 0 and t["nonmanifold_vertices"] == 1 and not t["watertight"]
+    assert mesh_topology(sphere.vertices, sphere.faces)["nonmanifold_vertices"] == 0
     open_f = sphere.faces[1:]
     t = mesh_topology(sphere.vertices, open_f)
     assert not t["watertight"] and t["genus"] is None and t["boundary_edges"] == 3

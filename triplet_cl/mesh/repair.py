@@ -1,7 +1,8 @@
 """Topology of the exported mesh and repair of its self-intersections (issue 21), on the host in numpy.
 
 **Topology** (:func:`mesh_topology`): vertices, edges, faces, connected components, boundary and
-non-manifold edges, watertightness (every edge shared by exactly two faces), the Euler characteristic
+non-manifold edges, non-manifold vertices (faces around a vertex that form more than one fan),
+watertightness (every edge shared by exactly two faces, every vertex manifold), the Euler characteristic
 ``χ = V − E + F`` and, for a closed orientable mesh, the genus ``g = (2·components − χ) / 2`` (a sphere
 or a cow: 0, a torus: 1), and the number of self-intersecting face pairs.
 
@@ -46,10 +47,30 @@ def _edges(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uniq, count
 
 
+def _nonmanifold_vertices(F: np.ndarray) -> int:
+    """Vertices whose faces do not form one fan (two cones touching at a vertex, a "bow tie"): the link of
+    the vertex — the edges opposite it in its faces — has more than one connected piece."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v = F.reshape(-1)  # the vertex of each corner
+    a = np.roll(F, -1, axis=1).reshape(-1)  # the link edge (a, b) opposite it
+    b = np.roll(F, -2, axis=1).reshape(-1)
+    n = int(F.max()) + 1
+    key_a, key_b = v * n + a, v * n + b  # link nodes: (vertex, neighbour)
+    keys, inv = np.unique(np.concatenate([key_a, key_b]), return_inverse=True)
+    m = len(v)
+    g = coo_matrix((np.ones(m), (inv[:m], inv[m:])), shape=(len(keys), len(keys)))
+    _, lab = connected_components(g, directed=False)
+    owner = keys // n
+    pieces = np.unique(np.stack([owner, lab], 1), axis=0)[:, 0]  # one row per (vertex, link piece)
+    return int((np.bincount(pieces) > 1).sum())
+
+
 def mesh_topology(V, F, intersections: bool = True) -> dict:
     """``{"vertices", "edges", "faces", "components", "boundary_edges", "nonmanifold_edges",
-    "watertight", "euler", "genus", "self_intersections"}`` (module docstring). ``genus`` is None
-    for a mesh that is not closed; ``vertices`` counts only the vertices faces use."""
+    "nonmanifold_vertices", "watertight", "euler", "genus", "self_intersections"}`` (module docstring).
+    ``genus`` is None for a mesh that is not closed; ``vertices`` counts only the vertices faces use."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -65,10 +86,12 @@ def mesh_topology(V, F, intersections: bool = True) -> dict:
     else:
         comps = 0
     chi = len(used) - len(E) + len(F)
-    closed = bool(len(F)) and bool((count == 2).all())
+    bad_v = _nonmanifold_vertices(F) if len(F) else 0
+    closed = bool(len(F)) and bool((count == 2).all()) and bad_v == 0
     out = {"vertices": int(len(used)), "edges": int(len(E)), "faces": int(len(F)), "components": int(comps),
            "boundary_edges": int((count == 1).sum()), "nonmanifold_edges": int((count > 2).sum()),
-           "watertight": closed, "euler": int(chi), "genus": int((2 * comps - chi) // 2) if closed else None}
+           "nonmanifold_vertices": int(bad_v), "watertight": closed, "euler": int(chi),
+           "genus": int((2 * comps - chi) // 2) if closed else None}
     if intersections:
         out["self_intersections"] = int(len(self_intersections(V, F)))
     return out
