@@ -203,10 +203,11 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
             ``carve_margin``) in at least this many views is outside whatever the other votes say
             (the visual hull of the photos; None: the masks only vote like free soup pixels).
         hull_exact_views: with ``masks``, a voxel whose exact (sub-pixel) projection falls on the photos'
-            background — their alpha, bilinearly interpolated, below ``alpha_threshold``, no erosion — in at
-            least this many views is outside too: the gaps narrower than the erosion that only a few
-            views see through (between a cow's legs, under its belly) are carved (None: off; off as well
-            with ``hull_views=None``, which turns every visual-hull rule off).
+            background — outside the silhouette (alpha ``alpha_threshold``), no erosion — in at least this many
+            views is outside too, its TSDF at least its largest distance outside a silhouette cone (/τ): the
+            gaps narrower than the erosion that only a few views see through (between a cow's legs, under
+            its belly) are carved (None: off; off as well with ``hull_views=None``, which turns every
+            visual-hull rule off).
         roi: a :class:`~triplet_cl.mesh.roi.ROI` (oriented box): every voxel outside it is empty, so
             the surface is the object inside it, closed where the box cuts it (photos with a
             background: the object without the table); ``bounds`` default to its bounding box.
@@ -255,7 +256,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     seen = np.zeros(len(X), np.int32)
     hidden = np.zeros(len(X), np.int32)
     hull_out = np.zeros(len(X), np.int32)
-    hull_exact = np.zeros(len(X), np.int32)
+    hull_exact = np.zeros(len(X), np.int32)  # views whose exact projection is on the background
+    hull_sdf = np.full(len(X), -np.inf, np.float32)  # the largest signed distance outside a silhouette cone (/τ)
     if hull_views is not None and hull_views < 1:
         raise ValueError(f"hull_views must be None or >= 1, got {hull_views}")
     if hull_exact_views is not None and hull_exact_views < 1:
@@ -286,7 +288,10 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         if photo_bg is not None:
             hull_out[idx[photo_bg.reshape(-1)[pix]]] += 1
         if m is not None and hull_views is not None and hull_exact_views is not None:
-            hull_exact[idx[_bilinear(m, uv) < alpha_threshold]] += 1
+            sd = _bilinear(_silhouette_distance(m < alpha_threshold), uv) * z * np.float32(1.0 / (cam.fx * tau))
+            out = sd > 0
+            hull_exact[idx[out]] += 1
+            hull_sdf[idx[out]] = np.maximum(hull_sdf[idx[out]], np.minimum(sd[out], np.float32(1.0)))
         a = acc.reshape(-1)[pix]
         surf = a >= alpha_threshold
         s = (depth.reshape(-1)[pix] - z) * np.float32(1.0 / tau)
@@ -303,7 +308,10 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     if hull_views is not None:
         tsdf = np.where(hull_out >= hull_views, 1.0, tsdf)  # outside the photos' visual hull
     if masks is not None and hull_views is not None and hull_exact_views is not None:
-        tsdf = np.where(hull_exact >= hull_exact_views, 1.0, tsdf)  # ... seen through narrow gaps
+        # ... seen through narrow gaps: at least the distance outside the silhouette's cone (a smooth zero
+        # crossing on the exact silhouette; a flat +1 there would stair-step the surface by half a voxel)
+        out = hull_exact >= hull_exact_views
+        tsdf = np.where(out, np.maximum(tsdf, hull_sdf), tsdf)
     if roi is not None:
         tsdf = np.where(roi.contains(X), tsdf, 1.0)  # the region of interest: nothing outside it
     tsdf = tsdf.reshape(*dims).astype(np.float32)
@@ -344,6 +352,21 @@ def _project_voxels(X: np.ndarray, cam: Camera, subpixel: bool = False):
     if subpixel:
         return idx[ok], pix, z[ok], np.stack([uc[ok], vc[ok]], 1)
     return idx[ok], pix, z[ok]
+
+
+def _silhouette_distance(background: np.ndarray) -> np.ndarray:
+    """Signed distance in pixels from each pixel centre to the silhouette of a mask (``background [H, W]``
+    bool): positive on the background, negative on the object; the silhouette lies half way between a
+    background and an object pixel centre."""
+    from scipy.ndimage import distance_transform_edt
+
+    if background.all():
+        return np.full(background.shape, 1e6, np.float32)
+    if not background.any():
+        return np.full(background.shape, -1e6, np.float32)
+    out = distance_transform_edt(background) - 0.5
+    inside = distance_transform_edt(~background) - 0.5
+    return np.where(background, out, -inside).astype(np.float32)
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
