@@ -42,9 +42,12 @@ and the rule above say: the photos' visual hull bounds the object, and a soup th
 concavity (between legs), or whose median depth lies inside the surface, is cut back to it. The
 erosion also closes gaps narrower than two pixels that only a few views see through (between spot's
 legs: 2 of 60 views, none after erosion — the webbing of issue 21, genus 3 for a genus-0 cow), so a
-voxel whose exact projection (sub-pixel, the photo's alpha bilinearly interpolated, no erosion) falls
-on the background in ``hull_exact_views`` (1) views is outside as well: spot genus 3 → 0 and Chamfer of
-the extraction 0.00728 → 0.00708, bob_env 0.00803 → 0.00728, gadget 0.0243 → 0.0215.
+voxel whose exact projection (sub-pixel, no erosion) lies outside the photo's silhouette in
+``hull_exact_views`` (1) views is outside as well, its TSDF at least its distance outside the
+silhouette's cone (the signed pixel distance to the silhouette, bilinearly interpolated, × depth / focal
+/ τ; a flat +1 stair-steps the surface by half a voxel: spot_small 0.00879 → 0.00987). Measured
+(``bench/topology.py``, extraction only, Chamfer): spot genus 3 → 0, 0.00728 → 0.00660; bob_env genus
+3 → 1 (as Bob), 0.00803 → 0.00699; gadget 0.0243 → 0.0224; spot_small 0.00879 → 0.00775.
 The outer layer of the grid is forced to +1 so that ``skimage.measure.marching_cubes`` at level 0
 returns a **closed** (watertight) surface; faces are oriented outward (positive signed volume) and
 closed components of negative volume (bubbles inside the object, invisible from outside) are
