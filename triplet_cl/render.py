@@ -143,6 +143,8 @@ class Normals(Function):
         if self.mode == "vertex":
             return normals_op.vertex_forward(d, ctx.Vd, m.F, m.csr_off, m.csr_corner, self.real).get()
         fn = normals_op.face_forward(d, ctx.Vd, m.F, True, self.real).get()
+        if m.corners_are_vertices:  # the training layout (face f on 3f, 3f + 1, 3f + 2): no scatter
+            return np.repeat(fn, 3, axis=0)
         n[m.faces.reshape(-1)] = np.repeat(fn, 3, axis=0)  # each soup vertex takes its face's normal
         return n
 
@@ -154,9 +156,11 @@ class Normals(Function):
         if self.mode == "vertex":
             return normals_op.vertex_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_n), m.csr_off, m.csr_corner,
                                               self.real).get()
-        v_fn = np.ascontiguousarray(v_n[m.faces].sum(axis=1))  # adjoint of the per-corner copy
+        # adjoint of the per-corner copy (the training layout: a reshape, the same sums as the gather)
+        v_c = v_n.reshape(m.num_faces, 3, 3) if m.corners_are_vertices else v_n[m.faces]
+        v_fn = np.ascontiguousarray(v_c.sum(axis=1))
         return normals_op.face_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_fn), m.csr_off, m.csr_corner,
-                                        True, self.real).get()
+                                        True, self.real, corners_are_vertices=m.corners_are_vertices).get()
 
 
 class MaterialActivation(Function):
