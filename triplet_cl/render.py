@@ -280,10 +280,12 @@ class ShadeFragments(Function):
     def __init__(self, view: RenderState, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
 
-    def _blocks(self, comp, fa) -> dict:
-        """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``."""
+    def _blocks(self, comp, fa, keys=("pos", "nrm", "mat", "vlight")) -> dict:
+        """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``
+        (one pass over the fragments: ``columns.split_columns``)."""
         L = self.layout
-        return {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+        keys = [k for k in keys if k in L]
+        return dict(zip(keys, columns.split_columns(comp.device, comp.frags, fa, [L[k] for k in keys]), strict=True))
 
     def _prepare(self, blk: dict, face, light_params=None):
         """``shade_op`` inputs of shaded points ``blk`` (faces ``face``), with the current light parameters."""
@@ -295,13 +297,14 @@ class ShadeFragments(Function):
             inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
         return inp
 
-    def _outputs(self, ctx, comp, inp, fa, n_rest):
-        """Shade (``[P, 3]``), take alpha's column; keep the backward's state."""
+    def _outputs(self, ctx, comp, inp, fa, n_rest, alpha=None):
+        """Shade (``[P, 3]``), take alpha's column (unless split already); keep the backward's state."""
         d, fr = self.view.device, self.view.frags
         P = fr.P
         rgb = shade_op.forward(d, inp).reshape(P, 3)  # the fragments are packed: [P, 3] as they come
-        alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
-        columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
+        if alpha is None:
+            alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
+            columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
         ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], n_rest
         return rgb, alpha.reshape(P)
 
@@ -309,22 +312,23 @@ class ShadeFragments(Function):
         d = self.view.device
         comp = columns.Compaction(d, self.view.frags)
         face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
-        inp = self._prepare(self._blocks(comp, fa), face_id, rest[0] if rest else None)
-        return self._outputs(ctx, comp, inp, fa, len(rest))
+        blk = self._blocks(comp, fa, ("pos", "nrm", "mat", "vlight", "alpha"))  # one pass, alpha included
+        inp = self._prepare(blk, face_id, rest[0] if rest else None)
+        return self._outputs(ctx, comp, inp, fa, len(rest), alpha=blk["alpha"])
 
     def backward(self, ctx, v_rgb, v_alpha):
         d, fr = self.view.device, self.view.frags
         P = fr.P
-        comp, L = ctx.comp, self.layout
+        L = self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
         g = shade_op.backward(d, ctx.inp, v_rgb)
         v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
-        for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
-            if key in L:
-                comp.unpack(g, v_fa, L[key][0])
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
-        columns.copy_columns(d, fr, v_alpha.reshape(P, 1), 0, v_fa, L["alpha"][0], 1)
+        # every column of the layout, in one pass over the fragments
+        parts = [(gk, L[key][0]) for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl),
+                                                 ("alpha", v_alpha.reshape(P, 1))) if key in L]
+        columns.merge_columns(d, fr, parts, v_fa)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
 
