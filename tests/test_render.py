@@ -208,3 +208,55 @@ def test_render_a_view_that_sees_nothing(device, rng, renderer):
     for k, v in g.items():
         if v is not None and k != "light_params":
             assert np.all(np.asarray(v) == 0), k
+
+
+@pytest.mark.parametrize("brdf,vertex_sh,mesh,K,renderer", [("cook_torrance", True, False, 6, "raster"),
+                                                            ("blinn_phong", False, False, 1, "raster"),
+                                                            ("cook_torrance", False, True, 150, "raster"),
+                                                            ("blinn_phong", True, False, 150, "raster"),
+                                                            ("cook_torrance", False, False, 6, "hybrid")])
+@pytest.mark.parametrize("real", [np.float64, np.float32])
+def test_device_attributes_equal_the_host_chain(device, device64, rng, brdf, vertex_sh, mesh, K, renderer, real):
+    """``RenderSettings.attributes="device"`` (VertexAttributes: normals, activations and the packed
+    attribute array in one kernel, adjoint on the device) against the host chain Normals →
+    MaterialActivation → SigmoidHost → Concat: the same image and every parameter's gradient, per
+    BRDF (Blinn-Phong has a softplus channel), with vertex SH, on soups (face normals) and a mesh
+    (vertex normals), K = 1 and 150, rasterized and hybrid (traced shadows and bounce read the
+    device array)."""
+    dev = device64 if real == np.float64 else device
+    scene = small_scene(rng, brdf, vertex_sh, mesh=mesh)
+    for p in scene.params:
+        p.data = np.asarray(p.data, real)
+    c = cam()
+    w = rng.standard_normal((H, W, 4))
+    out = {}
+    for attributes in ("host", "device"):
+        settings = RenderSettings(K=K, sigma=0.8, real=real, background=(0.3, 0.5, 0.9), renderer=renderer,
+                                  normals="vertex" if mesh else "face", transfer="srgb", attributes=attributes)
+        scene.zero_grad()
+        r = render(scene, c, settings, dev)
+        out[attributes] = (r.rgba.data.copy(), r.backward(w[..., :3], w[..., 3]))
+    (img_h, g_h), (img_d, g_d) = out["host"], out["device"]
+    tol = dict(rtol=1e-10, atol=1e-12) if real == np.float64 else dict(rtol=2e-4, atol=2e-5)
+    np.testing.assert_allclose(img_d, img_h, **tol)
+    assert set(g_d) == set(g_h)
+    for k in g_h:
+        scale = max(float(np.abs(g_h[k]).max()), 1e-12)
+        np.testing.assert_allclose(g_d[k] / scale, g_h[k] / scale, rtol=0, atol=tol["rtol"] * 10, err_msg=k)
+        assert np.abs(g_h[k]).max() > 0 or k == "vertex_sh", k
+
+
+def test_device_attributes_setting_and_fallbacks(device, rng):
+    """A bad value is refused; a soup not in the training layout (rotated corners) and
+    ``attributes="host"`` take the host chain."""
+    with pytest.raises(ValueError, match="attributes must be"):
+        RenderSettings(attributes="gpu")
+    from triplet_cl.ops.mesh import DeviceMesh
+    from triplet_cl.render import use_device_attributes
+
+    scene = small_scene(rng, "cook_torrance")
+    F = np.asarray(scene.F)
+    assert use_device_attributes(RenderSettings(), DeviceMesh(device, F, len(scene.V.data)))
+    perm = F[:, [1, 2, 0]]
+    assert not use_device_attributes(RenderSettings(), DeviceMesh(device, perm, len(scene.V.data)))
+    assert not use_device_attributes(RenderSettings(attributes="host"), DeviceMesh(device, F, len(scene.V.data)))

@@ -41,6 +41,7 @@ from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
 from .ops import trace as trace_op
+from .ops import vertex_attr as vattr_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
 from .ops.color import SRGBComposite
@@ -80,8 +81,14 @@ class RenderSettings:
     # radiance (over black), then ``A·s(C/A) + (1−A)·background`` with s the sRGB transfer (ops/color.py): the
     # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space
     transfer: str | None = None
+    # where the per-vertex attribute array (positions, normals, activated materials and alpha) is built:
+    # "device" (one kernel, ops/vertex_attr.py; the default) or "host" (the numpy chain Normals →
+    # MaterialActivation → SigmoidHost → Concat: the reference the device op is tested against)
+    attributes: str = "device"
 
     def __post_init__(self):
+        if self.attributes not in ("device", "host"):
+            raise ValueError(f"attributes must be 'device' or 'host', got {self.attributes!r}")
         if self.transfer not in TRANSFERS:
             raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
         if self.renderer not in RENDERERS:
@@ -118,6 +125,15 @@ class RenderState:
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
         self.win = None  # [P] coverage window of the forward pass (sigma set)
         self.info: dict = {"frags": None, "vs": None, "v_vs": None}
+        self._V_src = self._Vd = None  # the vertex positions on the device, uploaded once per render
+
+    def device_V(self, V) -> cla.Array:
+        """``V [N, 3]`` (host) on the device in the settings' REAL: uploaded once per render call and
+        shared by the ops that read it (the same host array object)."""
+        if self._Vd is None or self._V_src is not V:
+            self._Vd = cla.to_device(self.device.queue, np.ascontiguousarray(V, self.settings.real))
+            self._V_src = V
+        return self._Vd
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -231,6 +247,59 @@ class Concat(Function):
         return tuple(out)
 
 
+class VertexAttributes(Function):
+    """``(V [N, 3], material raw [N, Cm], alpha raw [N, 1][, vlight [N, 6]]) → attr [N, C]`` (a device
+    array, layout ``pos | nrm | mat | alpha [| vlight]``): what ``Concat(V, Normals(V),
+    MaterialActivation(material), SigmoidHost(alpha)[, vlight])`` computes, as one kernel on the device
+    (``ops/vertex_attr.py``) with the normals kept there; the adjoint takes ``v_attr`` apart on the
+    device and downloads only the parameters' gradients. Applies to a soup in the training layout
+    (``normals="face"``, face f on vertices 3f … 3f + 2) and to ``normals="vertex"``
+    (:func:`use_device_attributes`)."""
+
+    def __init__(self, view: RenderState, brdf: str):
+        self.view, self.softplus = view, get_brdf(brdf).softplus_columns
+
+    def forward(self, ctx, V, material, alpha, *vl):
+        v, s = self.view, self.view.settings
+        d, m, real = v.device, v.mesh, s.real
+        Vd = v.device_V(V)
+        ctx.face = s.normals == "face"
+        if ctx.face:
+            nrm = normals_op.face_forward(d, Vd, m.F, True, real)  # [M, 3]: vertex i takes face i // 3
+        else:
+            nrm = normals_op.vertex_forward(d, Vd, m.F, m.csr_off, m.csr_corner, real)
+        ctx.Vd = Vd
+        ctx.mat = cla.to_device(d.queue, np.ascontiguousarray(material, real))
+        ctx.alpha = cla.to_device(d.queue, np.ascontiguousarray(alpha, real).reshape(-1))
+        vld = cla.to_device(d.queue, np.ascontiguousarray(vl[0], real)) if vl else None
+        ctx.has_vl = bool(vl)
+        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real)
+
+    def backward(self, ctx, v_attr):
+        v, s = self.view, self.view.settings
+        d, m, real = v.device, v.mesh, s.real
+        if not isinstance(v_attr, cla.Array) or v_attr.dtype != real:
+            v_attr = cla.to_device(d.queue, np.ascontiguousarray(to_host(v_attr), real))
+        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.alpha, v_attr,
+                                                                             self.softplus, ctx.has_vl, real)
+        if ctx.face:
+            v_Vn = normals_op.face_backward(d, ctx.Vd, m.F, vattr_op.face_sum3(d, v_nrm, real), m.csr_off,
+                                            m.csr_corner, True, real, corners_are_vertices=True)
+        else:
+            v_Vn = normals_op.vertex_backward(d, ctx.Vd, m.F, v_nrm, m.csr_off, m.csr_corner, real)
+        out = ((v_pos + v_Vn).get(), v_mat.get(), v_alpha.get().reshape(-1, 1))
+        return out + ((v_vl.get(),) if ctx.has_vl else ())
+
+
+def use_device_attributes(settings: RenderSettings, mesh: DeviceMesh) -> bool:
+    """Whether :func:`render` builds the attribute array with :class:`VertexAttributes` (else the
+    host chain): ``settings.attributes == "device"``, at least one face, and normals the device op
+    handles (``"vertex"``, or ``"face"`` on a soup whose corners are its vertices)."""
+    if settings.attributes != "device" or mesh.num_faces == 0:
+        return False
+    return settings.normals == "vertex" or mesh.corners_are_vertices
+
+
 # ---------------------------------------------------------------------------------------------- per fragment
 
 
@@ -243,8 +312,9 @@ class RasterInterpolate(Function):
     def forward(self, ctx, V, attr):
         v, s = self.view, self.view.settings
         d, cam = v.device, v.camera
-        ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, s.real))
-        ctx.attr = cla.to_device(d.queue, np.ascontiguousarray(attr, s.real))
+        ctx.Vd = v.device_V(V)
+        ctx.attr = attr if isinstance(attr, cla.Array) and attr.dtype == s.real else \
+            cla.to_device(d.queue, np.ascontiguousarray(to_host(attr), s.real))
         vs = project(d, ctx.Vd, cam)
         if s.renderer == "raytrace":
             fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
@@ -360,8 +430,8 @@ class TracedShadeFragments(ShadeFragments):
         face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), v.win, s.t_min) \
             if s.t_min > 0 else face_c
         inp = self._prepare(blk, face_c, rest[0] if rest else None)
-        attr_h = np.ascontiguousarray(attr, s.real)
-        attr_d = cla.to_device(d.queue, attr_h)
+        attr_h = np.ascontiguousarray(to_host(attr), s.real)
+        attr_d = attr if isinstance(attr, cla.Array) and attr.dtype == s.real else cla.to_device(d.queue, attr_h)
         p0 = L["pos"][0]
         Vd = cla.to_device(d.queue, np.ascontiguousarray(attr_h[:, p0:p0 + 3]))
         ctx.shadow = ctx.hits = None
@@ -585,14 +655,16 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     outer = active_tape()
     tape = outer if outer is not None else Tape()
     with tape if outer is None else _nullcontext():
-        nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
-        mat = MaterialActivation(scene.brdf)(scene.material)
-        alpha = SigmoidHost()(scene.alpha)
-        blocks, sizes = [scene.V, nrm, mat, alpha], [3, 3, cm, 1]
-        if scene.vertex_sh is not None:
-            blocks.append(VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh))
-            sizes.append(6)
-        attr = Concat()(*blocks)
+        sizes = [3, 3, cm, 1] + ([6] if scene.vertex_sh is not None else [])
+        vl = [VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh)] \
+            if scene.vertex_sh is not None else []
+        if use_device_attributes(s, mesh):
+            attr = VertexAttributes(view, scene.brdf)(scene.V, scene.material, scene.alpha, *vl)
+        else:  # the host chain (the reference of VertexAttributes)
+            nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
+            mat = MaterialActivation(scene.brdf)(scene.material)
+            alpha = SigmoidHost()(scene.alpha)
+            attr = Concat()(scene.V, nrm, mat, alpha, *vl)
         ri = RasterInterpolate(view)(scene.V, attr)
         fa, win = (ri, None) if s.sigma is None else ri
         names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])
