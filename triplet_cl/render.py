@@ -7,6 +7,9 @@ Graph (every box a :class:`~triplet_cl.autodiff.Function` with a hand-derived ad
     material ─ MaterialActivation┤
     alpha ─ Sigmoid ─────────────┤
        └─────────────────────────┴─ Concat → attr [N, C]
+       (settings.attributes == "device", the default: one VertexAttributes op builds the same attr
+        on the device, normals included, and takes its adjoint apart there; the chain above is
+        its reference and the fallback for layouts it does not handle)
     RasterInterpolate(V, attr)  → fragment attributes [P, C], coverage window [P] (packed fragments)
     ShadeFragments(…, light_params) → rgb [P, 3], alpha [P]
     Composite(rgb, alpha, win)  → image [H, W, 3], accumulated alpha [H, W]
