@@ -660,7 +660,7 @@ def test_offsets_are_the_exclusive_prefix_sum(device, rng, monkeypatch, path):
 
 @pytest.mark.parametrize("real", [np.float32, np.float64])
 def test_split_and_merge_columns_equal_copy_columns(device, device64, rng, real):
-    """split_columns / merge_columns (one pass, up to 5 blocks) move exactly what one copy_columns
+    """split_columns / merge_columns (one pass, up to SPLIT_BLOCKS = 8 blocks) move exactly what one copy_columns
     per block moves; a layout that covers every column round-trips bit for bit."""
     import pyopencl.array as cla
 
@@ -670,8 +670,9 @@ def test_split_and_merge_columns_equal_copy_columns(device, device64, rng, real)
     V, F = soup(rng, M=60)
     _, _, _, fr = run_raster(dev, V, F, 6, real=real)
     assert fr.P > 0
-    layout = [(0, 3), (3, 3), (6, 6), (12, 1), (13, 6)]  # pos | nrm | mat | alpha | vlight
-    C = 19
+    layout = [(0, 3), (3, 3), (6, 6), (12, 1), (13, 6), (19, 2), (21, 1), (22, 2)]  # pos|nrm|mat|alpha|vlight|…
+    assert len(layout) == SPLIT_BLOCKS  # every slot of the kernels
+    C = 24
     src_h = rng.standard_normal((fr.P, C)).astype(real)
     src = cla.to_device(dev.queue, src_h)
     parts = split_columns(dev, fr, src, layout)

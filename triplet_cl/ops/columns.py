@@ -29,7 +29,7 @@ def copy_columns(device: Device, frags: Fragments, src: cla.Array | None, cs0: i
         np.int32(Cd), np.int32(cd0), np.int32(n), np.int32(P), np.int32(src is not None), np.int32(bool(accumulate)))
 
 
-SPLIT_BLOCKS = 5  # channel blocks per split_columns / merge_columns launch (columns.cl)
+SPLIT_BLOCKS = 8  # channel blocks per split_columns / merge_columns launch (columns.cl)
 
 
 def _block_args(device: Device, arrays, cols, ns) -> list:
