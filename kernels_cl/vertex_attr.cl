@@ -2,18 +2,20 @@
  * device from the raw parameters (render.py's VertexAttributes; the host chain Normals →
  * MaterialActivation → SigmoidHost → Concat computes the same and stays as its reference).
  *
- * Layout of attr [N, C] (C = 3 + 3 + NMAT + 1 (+ 6)):  pos | nrm | mat | alpha | vlight
+ * Layout of attr [N, C] (C = 3 + 3 + NMAT + 1 (+ 6) (+ NCONST)):  pos | nrm | mat | alpha | vlight | const
  *   pos   = V
  *   nrm   = n[i]                  (the normal array, per vertex; FACE_NRM: per face, vertex i on face i / 3:
  *                                  a soup whose face f has the vertices 3f, 3f + 1, 3f + 2)
  *   mat_j = sigmoid(raw_j), or softplus(raw_j) where bit j of SOFTPLUS_MASK is set
  *   alpha = sigmoid(alpha_raw)
  *   vlight = the vertex-SH light values as given (HAS_VLIGHT)
+ *   const = NCONST constant per-vertex columns as given (HAS_CONST; e.g. a cached visibility): no adjoint
  * sigmoid(x) = 1 / (1 + exp(-x)),  softplus(x) = max(x, 0) + log1p(exp(-|x|))  (activations.py)
  * Adjoint (v_attr given): v_pos = v_attr[pos], v_nrm = v_attr[nrm] (to the normals' adjoint, done by
  * normals.cl; FACE_NRM: face_sum3 sums the three corners of a face), v_raw_j = v_mat_j y (1 - y)
  * (sigmoid) or v_mat_j sigmoid(raw_j) (softplus), v_alpha_raw = v_alpha y (1 - y), v_vlight.
- * Defines: NMAT, SOFTPLUS_MASK, FACE_NRM, HAS_VLIGHT. One work-item per vertex (face for face_sum3).
+ * Defines: NMAT, SOFTPLUS_MASK, FACE_NRM, HAS_VLIGHT, HAS_CONST with NCONST (default 0).
+ * One work-item per vertex (per face for face_sum3).
  */
 #include "real.h"
 
@@ -25,7 +27,10 @@
 #else
 #define NVL 0
 #endif
-#define ATTR_C (3 + 3 + NMAT + 1 + NVL)
+#ifndef NCONST
+#define NCONST 0
+#endif
+#define ATTR_C (3 + 3 + NMAT + 1 + NVL + NCONST)
 
 inline REAL va_sigmoid(const REAL x) { return (REAL)1 / ((REAL)1 + exp(-x)); }
 inline REAL va_softplus(const REAL x) { return fmax(x, (REAL)0) + log1p(exp(-fabs(x))); }
@@ -36,6 +41,9 @@ __kernel void vertex_attr_fwd(__global const REAL* V,          // [N, 3]
                               __global const REAL* alpha_raw,  // [N]
 #ifdef HAS_VLIGHT
                               __global const REAL* vlight,     // [N, 6]
+#endif
+#ifdef HAS_CONST
+                              __global const REAL* cst,        // [N, NCONST]
 #endif
                               const int N,
                               __global REAL* attr)             // [N, ATTR_C]
@@ -59,6 +67,9 @@ __kernel void vertex_attr_fwd(__global const REAL* V,          // [N, 3]
     a[6 + NMAT] = va_sigmoid(alpha_raw[i]);
 #ifdef HAS_VLIGHT
     for (int c = 0; c < 6; ++c) a[7 + NMAT + c] = vlight[(long)i * 6 + c];
+#endif
+#ifdef HAS_CONST
+    for (int c = 0; c < NCONST; ++c) a[7 + NMAT + NVL + c] = cst[(long)i * NCONST + c];
 #endif
 }
 

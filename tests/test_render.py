@@ -260,3 +260,48 @@ def test_device_attributes_setting_and_fallbacks(device, rng):
     perm = F[:, [1, 2, 0]]
     assert not use_device_attributes(RenderSettings(), DeviceMesh(device, perm, len(scene.V.data)))
     assert not use_device_attributes(RenderSettings(attributes="host"), DeviceMesh(device, F, len(scene.V.data)))
+
+
+@pytest.mark.parametrize("mesh,vertex_sh", [(False, True), (True, False)])
+def test_vertex_attributes_with_constant_columns_equal_concat(device64, rng, mesh, vertex_sh):
+    """``VertexAttributes(..., const=c)`` equals ``Concat(V, Normals(V), MaterialActivation(m),
+    SigmoidHost(a)[, vlight], c)`` (a constant block last, e.g. a cached visibility): the array and,
+    for a random cotangent, every input's adjoint (the constant columns have none)."""
+    from triplet_cl.autodiff import Context
+
+    from triplet_cl.render import (
+        Concat,
+        MaterialActivation,
+        Normals,
+        RenderState,
+        SigmoidHost,
+        VertexAttributes,
+        device_mesh,
+    )
+
+    scene = small_scene(rng, "blinn_phong", vertex_sh=vertex_sh, mesh=mesh)
+    V, m, a = scene.V.data, scene.material.data, scene.alpha.data
+    n = len(V)
+    vl = [rng.normal(size=(n, 6))] if vertex_sh else []
+    const = rng.uniform(0, 1, (n, 2))
+    settings = RenderSettings(real=np.float64, normals="vertex" if mesh else "face")
+    dmesh = device_mesh(device64, scene.F, n)
+    view = RenderState(device64, dmesh, cam(), settings)
+    op = VertexAttributes(view, scene.brdf, const=const)
+    ctx = Context((True,) * (3 + len(vl)))
+    attr = op.forward(ctx, V, m, a, *vl).get()
+    # the host chain
+    fns = [Normals(dmesh, settings.normals, np.float64, device64), MaterialActivation(scene.brdf), SigmoidHost()]
+    cts = [Context((True,)) for _ in fns]
+    blocks = [V] + [f.forward(c, x) for f, c, x in zip(fns, cts, (V, m, a), strict=True)] + vl + [const]
+    cat, cctx = Concat(), Context((True,) * len(blocks))
+    want = cat.forward(cctx, *blocks)
+    np.testing.assert_allclose(attr, want, rtol=1e-12, atol=1e-14)
+    v = rng.standard_normal(want.shape)
+    got = op.backward(ctx, v)
+    parts = cat.backward(cctx, v)
+    v_V = parts[0] + fns[0].backward(cts[0], parts[1])
+    want_g = [v_V, fns[1].backward(cts[1], parts[2]), fns[2].backward(cts[2], parts[3])] + list(parts[4:4 + len(vl)])
+    assert len(got) == len(want_g)
+    for g, w in zip(got, want_g, strict=True):
+        np.testing.assert_allclose(np.asarray(g), w, rtol=1e-10, atol=1e-12)

@@ -257,10 +257,12 @@ class VertexAttributes(Function):
     (``ops/vertex_attr.py``) with the normals kept there; the adjoint takes ``v_attr`` apart on the
     device and downloads only the parameters' gradients. Applies to a soup in the training layout
     (``normals="face"``, face f on vertices 3f … 3f + 2) and to ``normals="vertex"``
-    (:func:`use_device_attributes`)."""
+    (:func:`use_device_attributes`). ``const`` (``[N, k]``, optional): constant per-vertex columns
+    appended last (a block that ``Concat`` would take as a plain array: no adjoint)."""
 
-    def __init__(self, view: RenderState, brdf: str):
+    def __init__(self, view: RenderState, brdf: str, const: np.ndarray | None = None):
         self.view, self.softplus = view, get_brdf(brdf).softplus_columns
+        self.const = None if const is None else np.asarray(const)
 
     def forward(self, ctx, V, material, alpha, *vl):
         v, s = self.view, self.view.settings
@@ -276,7 +278,9 @@ class VertexAttributes(Function):
         ctx.alpha = cla.to_device(d.queue, np.ascontiguousarray(alpha, real).reshape(-1))
         vld = cla.to_device(d.queue, np.ascontiguousarray(vl[0], real)) if vl else None
         ctx.has_vl = bool(vl)
-        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real)
+        cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
+        ctx.nconst = 0 if cst is None else cst.shape[1]
+        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real, const=cst)
 
     def backward(self, ctx, v_attr):
         v, s = self.view, self.view.settings
@@ -284,7 +288,8 @@ class VertexAttributes(Function):
         if not isinstance(v_attr, cla.Array) or v_attr.dtype != real:
             v_attr = cla.to_device(d.queue, np.ascontiguousarray(to_host(v_attr), real))
         v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.alpha, v_attr,
-                                                                             self.softplus, ctx.has_vl, real)
+                                                                             self.softplus, ctx.has_vl, real,
+                                                                             ctx.nconst)
         if ctx.face:
             v_Vn = normals_op.face_backward(d, ctx.Vd, m.F, vattr_op.face_sum3(d, v_nrm, real), m.csr_off,
                                             m.csr_corner, True, real, corners_are_vertices=True)
