@@ -502,7 +502,11 @@ def _rod_kept(V, F, rod) -> float:
 
 def test_thin_parts_survive_the_extraction(device, parts_scene):
     parts, rod, soup, cams, masks = parts_scene
-    A = extract_mesh(soup, cams, sigma=None, device=device, masks=masks)
+    # without the exact visual hull (hull_exact_views, issue 21): it carves a voxel whose centre projects just
+    # outside a silhouette in any one view, and a rod thinner than a voxel passes through voxels whose centres
+    # do (here 43 % of the rod is kept with it; on gadget it costs the cable 88 → 15 % and the rungs 81 → 68 %
+    # of their surface, and gains Chamfer 0.0236 → 0.0218: bench/results/parts_pocl_2026-11-24.txt)
+    A = extract_mesh(soup, cams, sigma=None, device=device, masks=masks, hull_exact_views=None)
     V, F = np.asarray(A.V, np.float64), np.asarray(A.F)
     # the hanging rod is there: its surface within a voxel of the mesh, its axis inside it
     assert _rod_kept(V, F, rod) > 0.9, f"rod surface within a voxel of the mesh: {_rod_kept(V, F, rod):.2f}"
@@ -519,12 +523,11 @@ def test_thin_parts_survive_the_extraction(device, parts_scene):
 
 
 def test_thin_parts_rules_each_keep_the_rod(device, parts_scene):
-    """Each of the two rules matters: without the thin-line-preserving median filter (a plain 3×3 median of
-    depth and alpha erases a line a pixel wide) and with spot's small-piece rule (under 2 % of the faces) the
-    rod is gone."""
+    """With spot's small-piece rule (under 2 % of the faces) the detached rod is gone (the median filter's part
+    is :func:`test_depth_filter_fills_cracks_and_keeps_lines`)."""
     parts, rod, soup, cams, masks = parts_scene
     A = extract_mesh(soup, cams, sigma=None, device=device, masks=masks, min_component_voxels=None,
-                     min_component_fraction=0.02)
+                     min_component_fraction=0.02, hull_exact_views=None)
     assert _rod_kept(np.asarray(A.V, np.float64), np.asarray(A.F), rod) < 0.1
 
 

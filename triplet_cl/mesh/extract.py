@@ -618,14 +618,16 @@ def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int |
                  min_component_fraction: float = 0.02, max_faces: int | None = None, k: int = 4,
                  opaque: bool = True, K: int = 30, sigma: float | None = 1.0, depth_mode: str = "quantile",
                  depth_quantile: float = 0.1, device: Device | None = None, masks=None,
-                 hull_views: int | None = 1, min_component_voxels: float | None = MIN_COMPONENT_VOXELS) -> MeshAsset:
+                 hull_views: int | None = 1, hull_exact_views: int | None = 1,
+                 min_component_voxels: float | None = MIN_COMPONENT_VOXELS) -> MeshAsset:
     """The soup of ``scene`` → a connected :class:`MeshAsset` with activated attributes and the lights.
 
     Args:
         scene: the trained soup (:class:`~triplet_cl.scene.Scene`).
         cameras: the views to fuse (``"tsdf"``; ignored by ``"weld"``).
         method: ``"tsdf"`` (default: closed surface, see ``bench/extract.py``) or ``"weld"``.
-        resolution, truncation, bounds, K, sigma, depth_mode, depth_quantile, masks, hull_views: see
+        resolution, truncation, bounds, K, sigma, depth_mode, depth_quantile, masks, hull_views,
+            hull_exact_views: see
             :func:`tsdf_fusion` (the depth where the accumulated alpha reaches 0.1 is the default
             here: the expected depth and the median of a soup lie behind its surface).
         alpha_threshold: free-space threshold (tsdf) / faces below it are dropped before welding.
@@ -644,7 +646,7 @@ def extract_mesh(scene, cameras=None, method: str = "tsdf", *, resolution: int |
     cameras = _check_inputs(scene, cameras, method)
     Vm, Fm = _geometry(scene, cameras, method, resolution, truncation, alpha_threshold, bounds, weld_tolerance,
                        min_component_fraction, max_faces, K, sigma, depth_mode, device, masks=masks,
-                       hull_views=hull_views, depth_quantile=depth_quantile,
+                       hull_views=hull_views, depth_quantile=depth_quantile, hull_exact_views=hull_exact_views,
                        min_component_voxels=min_component_voxels)
     src = MeshAsset.from_scene(scene)
     alpha = src.attributes["alpha"]
