@@ -279,7 +279,7 @@ class ShadeFragments(Function):
     def _blocks(self, comp, fa) -> dict:
         """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``."""
         L = self.layout
-        return {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+        return {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight", "vis") if k in L}
 
     def _prepare(self, blk: dict, face, light_params=None):
         """``shade_op`` inputs of shaded points ``blk`` (faces ``face``), with the current light parameters."""
@@ -289,6 +289,8 @@ class ShadeFragments(Function):
                                   real=s.real)
         if light_params is not None and len(inp.table.params):
             inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
+        if "vis" in blk:  # cached per-vertex visibility, interpolated (a constant: no adjoint)
+            inp.vis = blk["vis"]
         return inp
 
     def _outputs(self, ctx, comp, inp, fa, n_rest):
@@ -314,6 +316,7 @@ class ShadeFragments(Function):
         comp, L = ctx.comp, self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
         g = shade_op.backward(d, ctx.inp, v_rgb)
+        v_vis = g.v_vis
         v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
@@ -321,6 +324,8 @@ class ShadeFragments(Function):
                 comp.unpack(g, v_fa, L[key][0])
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
         columns.copy_columns(d, fr, v_alpha.reshape(P, 1), 0, v_fa, L["alpha"][0], 1)
+        if "vis" in L:  # per-vertex visibility is a constant; its interpolation moves with the barycentrics (V)
+            comp.unpack(v_vis, v_fa, L["vis"][0])
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
 
@@ -556,8 +561,13 @@ def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
 
 
 def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
-           device: Device | None = None) -> RenderResult:
+           device: Device | None = None, vis: np.ndarray | None = None) -> RenderResult:
     """Render ``scene`` from ``camera``, recording on the active tape (or a new one).
+
+    ``vis`` (optional, ``renderer="raster"`` only): ``[N, NV]`` per-vertex transmittance towards each
+    shadow-casting light of ``scene.lights`` in light order (``visibility.vertex_visibility``), interpolated
+    per fragment and scaling each light's term: cached cast shadows. The per-vertex values are constants (no
+    gradient through the shadow boundary); their interpolation moves with the barycentrics like any attribute.
 
     Returns:
         :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
@@ -566,6 +576,15 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     s = settings or RenderSettings()
     d = device or get_device()
     N = scene.V.shape[0]
+    if vis is not None:
+        nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)
+        vis = np.asarray(vis)
+        if vis.shape != (N, nv):
+            raise ValueError(f"vis must have shape [{N}, {nv}] (vertices, shadow-casting lights), got {list(vis.shape)}")
+        if s.renderer != "raster":
+            raise ValueError(f"vis (cached visibility) needs renderer='raster', got {s.renderer!r} (its own shadows)")
+        if nv == 0:
+            vis = None
     mesh = device_mesh(d, scene.F, N)
     view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
@@ -581,13 +600,18 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         mat = MaterialActivation(scene.brdf)(scene.material)
         alpha = SigmoidHost()(scene.alpha)
         blocks, sizes = [scene.V, nrm, mat, alpha], [3, 3, cm, 1]
+        names = ["pos", "nrm", "mat", "alpha"]
         if scene.vertex_sh is not None:
             blocks.append(VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh))
             sizes.append(6)
+            names.append("vlight")
+        if vis is not None:  # a constant block: interpolated with the rest, no adjoint
+            blocks.append(np.ascontiguousarray(vis, s.real))
+            sizes.append(vis.shape[1])
+            names.append("vis")
         attr = Concat()(*blocks)
         ri = RasterInterpolate(view)(scene.V, attr)
         fa, win = (ri, None) if s.sigma is None else ri
-        names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         layout = {k: (int(offsets[i]), int(sizes[i])) for i, k in enumerate(names)}
         lp = [scene.light_params] if scene.light_params is not None else []
