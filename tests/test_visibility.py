@@ -17,8 +17,8 @@ from tests.reference import trace as ref
 from triplet_cl.camera import Camera
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight
 from triplet_cl.losses import photometric_loss_and_grad
-from triplet_cl.optim import Adam
 from triplet_cl.ops.raster import read_fragments
+from triplet_cl.optim import Adam
 from triplet_cl.render import RenderSettings, render
 from triplet_cl.scene import Scene, logit
 from triplet_cl.visibility import VisibilityCache, owner_faces, vertex_visibility

@@ -580,7 +580,8 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)
         vis = np.asarray(vis)
         if vis.shape != (N, nv):
-            raise ValueError(f"vis must have shape [{N}, {nv}] (vertices, shadow-casting lights), got {list(vis.shape)}")
+            raise ValueError(f"vis must have shape [{N}, {nv}] (vertices, shadow-casting lights), got "
+                             f"{list(vis.shape)}")
         if s.renderer != "raster":
             raise ValueError(f"vis (cached visibility) needs renderer='raster', got {s.renderer!r} (its own shadows)")
         if nv == 0:

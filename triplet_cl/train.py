@@ -51,6 +51,7 @@ from .priors import Priors
 from .render import RENDERERS, RenderSettings, render
 from .scene import Scene
 from .topology import morton_order
+from .visibility import SHADOW_MODES, VisibilityCache
 
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
@@ -83,6 +84,12 @@ class TrainConfig:
     sigma: float | None = 2.0  # soft-coverage sharpness (1/px); None = hard edges (measured: much worse)
     renderer: str = "raster"  # "raster", "raytrace" (BVH primary rays) or "hybrid" (raster + ray-traced
     #                           shadows and reflection bounce); see render.RenderSettings
+    # cast shadows with renderer "raster" (visibility.py): "vertex" = transmittance from every vertex towards each
+    # point / directional light, ray-traced through the soup every shadow_every steps (and after density control
+    # or when a light moved), interpolated per fragment, a constant for the gradient; "off" = none
+    shadows: str = "off"
+    shadow_every: int = 100
+    shadow_from: int = 600  # no shadows before (the warm-up soup is a half-transparent cloud)
     background: str = "white"  # "white", "black" or "random" (per iteration)
     ssim_lambda: float = 0.2  # loss = (1 − λ)·L1 + λ·(1 − SSIM)
     # × scene extent, decays exponentially to lr_position_final. The method's 1.1e-4 is tuned for 18k
@@ -153,6 +160,7 @@ class TrainConfig:
             if k in d:
                 d[k] = tuple(d[k])
         d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
+        d.setdefault("shadows", "off")  # saved before the cached shadows: none
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -169,6 +177,11 @@ class TrainConfig:
         if self.background_shell < 0 or not self.background_radius > 0:
             raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
                              f"{self.background_radius}")
+        if self.shadows not in SHADOW_MODES:
+            raise ValueError(f"shadows must be one of {SHADOW_MODES}, got {self.shadows!r}")
+        if self.shadow_every < 1 or self.shadow_from < 0:
+            raise ValueError(f"shadow_every must be >= 1 and shadow_from >= 0, got {self.shadow_every} and "
+                             f"{self.shadow_from}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
@@ -384,6 +397,7 @@ class Trainer:
         self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
         self.priors = Priors(self.cfg, look_at_center(self.ds))
+        self.shadow_cache = VisibilityCache(self.cfg.shadow_every, self.cfg.shadow_from, self.extent)
         self.targets = Targets(self.ds)
         self.it = 0
         self.last_alpha_reset: int | None = None
@@ -426,7 +440,9 @@ class Trainer:
                                   sh_degree=deg if self.scene.vertex_sh is not None else None,
                                   renderer=cfg.renderer, transfer=self.transfer)
         t0 = time.perf_counter()
-        r = render(self.scene, cam, settings, self.device)
+        vis = self.visibility(it)
+        tv = time.perf_counter()
+        r = render(self.scene, cam, settings, self.device, vis=vis)
         t1 = time.perf_counter()
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
@@ -467,6 +483,7 @@ class Trainer:
             self.spatial_sort()
             self.stats = DensityStats(len(self.scene.F))
             self.priors.invalidate()
+            self.shadow_cache.invalidate()  # new rows, new order
             self.check_finite(f"after densification at iteration {it + 1}")
         if dens.reset_alpha_at(it):
             reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
@@ -474,7 +491,8 @@ class Trainer:
         t5 = time.perf_counter()
         self.it += 1
         rec = {"it": self.it, "loss": float(loss), "psnr": psnr(r.image, target), "faces": len(self.scene.F),
-               "render": t1 - t0, "loss_t": t2 - t1, "backward": t3 - t2, "step": t4 - t3, "density": t5 - t4}
+               "render": t1 - t0, "shadow": tv - t0, "loss_t": t2 - t1, "backward": t3 - t2, "step": t4 - t3,
+               "density": t5 - t4}
         if prior_terms:
             rec["priors"] = prior_terms
         if report is not None:
@@ -483,6 +501,13 @@ class Trainer:
                               "pruned_screen": report.pruned_screen, "by_error": report.by_error,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
+
+    def visibility(self, it: int | None = None) -> np.ndarray | None:
+        """The cached per-vertex visibility (``[N, NV]``) for iteration ``it`` (default: the current one), or
+        None (``shadows`` off, a ray-traced renderer with its own shadows, or before ``shadow_from``)."""
+        if self.cfg.shadows != "vertex" or self.cfg.renderer != "raster":
+            return None
+        return self.shadow_cache.get(self.scene, self.it if it is None else it, self.device)
 
     def _nonfinite_cause(self, exc: NonFiniteStep) -> str:
         last = self.checkpoint_hint()
@@ -603,8 +628,9 @@ class Trainer:
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
         per = []
+        vis = self.visibility()
         for v in views:
-            r = render(self.scene, v.camera, settings, self.device)
+            r = render(self.scene, v.camera, settings, self.device, vis=vis)
             target = v.target(bg)
             img = np.clip(r.image, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
@@ -642,6 +668,10 @@ class Trainer:
         for k, v in vars(self.stats).items():
             if isinstance(v, np.ndarray):
                 arrays[f"stats.{k}"] = v
+        sc = self.shadow_cache
+        if sc.vis is not None:  # the cached visibility: a resumed run continues bit for bit
+            arrays["shadow.vis"], arrays["shadow.rays"] = sc.vis, sc.rays
+            arrays["shadow.at"] = np.array([sc.at], np.int64)
         opt_state = self.opt.state_dict()
         for g, st in opt_state["groups"].items():
             for j, (m, v) in enumerate(zip(st["exp_avg"], st["exp_avg_sq"], strict=True)):
@@ -675,6 +705,10 @@ class Trainer:
             s.vertex_sh.data = a["vertex_sh"]
         if s.light_params is not None:
             s.light_params.data = a["light_params"]
+        self.shadow_cache.invalidate()
+        if "shadow.vis" in a and a["shadow.vis"].shape[0] == len(s.V.data):
+            sc = self.shadow_cache
+            sc.vis, sc.rays, sc.at, sc.F = a["shadow.vis"], a["shadow.rays"], int(a["shadow.at"][0]), s.F
         self.stats = DensityStats(len(s.F))
         for k in list(vars(self.stats)):
             if f"stats.{k}" in a:
