@@ -392,7 +392,7 @@ class Relighter:
 
         key = id(scene)
         if key not in self._vis or self._vis[key][0] is not scene:
-            self._vis[key] = (scene, vertex_visibility(scene, self.tr.device))
+            self._vis[key] = (scene, vertex_visibility(scene, self.tr.device, ray_eps=self.tr.cfg.shadow_eps))
         return self._vis[key][1]
 
     @property

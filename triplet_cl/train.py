@@ -90,6 +90,10 @@ class TrainConfig:
     shadows: str = "off"
     shadow_every: int = 100
     shadow_from: int = 600  # no shadows before (the warm-up soup is a half-transparent cloud)
+    # shadow-ray start offset, × the soup's bounding-box diagonal: past the soup's own layers. Measured on the
+    # spot_small demo soup against the ground-truth mesh's visibility (facing points): 0.003 / 0.01 / 0.03 →
+    # 41 / 21 / 15 % shadowed against the truth's 14 % (agreement 73 / 93 / 98 %)
+    shadow_eps: float = 0.03
     background: str = "white"  # "white", "black" or "random" (per iteration)
     ssim_lambda: float = 0.2  # loss = (1 − λ)·L1 + λ·(1 − SSIM)
     # × scene extent, decays exponentially to lr_position_final. The method's 1.1e-4 is tuned for 18k
@@ -179,9 +183,10 @@ class TrainConfig:
                              f"{self.background_radius}")
         if self.shadows not in SHADOW_MODES:
             raise ValueError(f"shadows must be one of {SHADOW_MODES}, got {self.shadows!r}")
-        if self.shadow_every < 1 or self.shadow_from < 0:
-            raise ValueError(f"shadow_every must be >= 1 and shadow_from >= 0, got {self.shadow_every} and "
-                             f"{self.shadow_from}")
+        if self.shadow_every < 1 or self.shadow_from < 0 or not (np.isfinite(self.shadow_eps)
+                                                                  and self.shadow_eps >= 0):
+            raise ValueError(f"shadow_every must be >= 1, shadow_from >= 0 and shadow_eps >= 0, got "
+                             f"{self.shadow_every}, {self.shadow_from} and {self.shadow_eps}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
@@ -397,7 +402,8 @@ class Trainer:
         self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
         self.priors = Priors(self.cfg, look_at_center(self.ds))
-        self.shadow_cache = VisibilityCache(self.cfg.shadow_every, self.cfg.shadow_from, self.extent)
+        self.shadow_cache = VisibilityCache(self.cfg.shadow_every, self.cfg.shadow_from, self.extent,
+                                            ray_eps=self.cfg.shadow_eps)
         self.targets = Targets(self.ds)
         self.it = 0
         self.last_alpha_reset: int | None = None
