@@ -51,8 +51,6 @@ def main() -> None:
     ap.add_argument("--out")
     args = ap.parse_args()
 
-    import numpy as np
-
     from triplet_cl import render as render_mod
     from triplet_cl.train import Trainer
     from triplet_cl.visibility import vertex_visibility
@@ -76,9 +74,9 @@ def main() -> None:
             # hybrid without the bounce: RenderSettings(reflections=False) through the trainer
             import triplet_cl.train as train_mod
 
-            def settings_factory(*a, **kw):
+            def settings_factory(*a, _tr=tr, **kw):
                 st = orig_settings(*a, **kw)
-                if st.renderer == "hybrid" and not getattr(tr, "_hybrid_reflections", True):
+                if st.renderer == "hybrid" and not getattr(_tr, "_hybrid_reflections", True):
                     st.reflections = False
                 return st
 
