@@ -28,7 +28,8 @@ from .activations import sigmoid
 from .device import Device, get_device
 from .lights import pack_lights
 from .ops import trace as trace_op
-from .render import device_mesh, scene_bvh
+from .ops.bvh import build_bvh
+from .render import device_mesh
 from .scene import Scene
 
 SHADOW_MODES = ("off", "vertex")
@@ -68,7 +69,9 @@ def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, r
     if NV == 0 or N == 0 or len(scene.F) == 0:
         return np.ones((N, NV))
     mesh = device_mesh(d, scene.F, N)
-    bvh = scene_bvh(d, mesh, V, real)
+    # built afresh (not refitted): the hit order, hence T's rounding, depends on the tree, which must depend on V
+    # alone for a resumed run to continue bit for bit
+    bvh = build_bvh(d, np.ascontiguousarray(V, real), mesh)
     diag = float(np.linalg.norm(V.max(0) - V.min(0)))
     eps = ray_eps * max(diag, 1e-12)
     q = d.queue
