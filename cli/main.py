@@ -530,8 +530,8 @@ def build_parser() -> argparse.ArgumentParser:
     lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
                     "soup, raster for the mesh; hybrid gives cast shadows)")
     lt.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows of the relit lights on the soup with "
-                    "the raster renderer (vertex: per-vertex visibility traced once per light set; default off: "
-                    "measured lower relight PSNR on spot; the mesh stage has none; README 'Cached shadows')")
+                    "the raster renderer (vertex: per-vertex visibility traced once per light set; off: none; default: "
+                    "as the run was trained; the mesh stage has none; README 'Cached shadows')")
     lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
                     "the refined mesh when the run has one, else the soup)")
     lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "

@@ -160,6 +160,19 @@ def test_cached_shadows_train_resume_bit_for_bit_and_cli(tmp_path, capsys):
         c.step()
     for name in ("V", "material", "alpha", "light_params"):
         np.testing.assert_array_equal(a.scene.__dict__[name].data, c.scene.__dict__[name].data, err_msg=name)
+    # relighting follows the run: under its own lights, the relighter's default (cached shadows) renders what the
+    # evaluation renders (the visibility of the final state, traced afresh)
+    from triplet_cl.relight import Relighter
+    from triplet_cl.render import RenderSettings, render
+
+    rl = Relighter(a, "soup")
+    assert rl.shadows_used == "vertex" and Relighter(a, "soup", shadows="off").shadows_used == "off"
+    v = a.ds["test"][0]
+    img, _ = rl.render(rl.with_lights(a.scene.current_lights()), v.camera, np.ones(3))
+    st = RenderSettings(K=a.cfg.faces_per_pixel, sigma=a.cfg.sigma, background=(1.0, 1.0, 1.0), transfer=a.transfer)
+    ref = render(a.scene, v.camera, st, a.device, vis=a.final_visibility()).image
+    np.testing.assert_allclose(img, ref, atol=1e-5)
+    assert np.abs(ref - render(a.scene, v.camera, st, a.device).image).max() > 1e-3  # and the shadows show
     # shadows change the training: the same run without them ends elsewhere
     d = Trainer(DEMO, tmp_path / "d", replace(cfg, shadows="off"), quiet=True)
     for _ in range(30):

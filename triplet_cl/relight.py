@@ -294,9 +294,6 @@ def project_equirect(img, rotate_y_deg: float = 0.0, degree: int = ENV_DEGREE) -
 # ---------------------------------------------------------------------------------------------- rendering
 
 
-RELIGHT_SHADOWS = "off"  # the relighter's default shadows (see the README's relighting section for the measurements)
-
-
 class Relighter:
     """Renders a trained run (its refined mesh when it has one, else the soup) under other lights.
 
@@ -312,8 +309,9 @@ class Relighter:
         if shadows is not None and shadows not in SHADOW_MODES:
             raise ValueError(f"shadows must be one of {SHADOW_MODES}, got {shadows!r}")
         self.tr = trainer
-        # cast shadows of the relit lights with the raster renderer (visibility.py), traced once per light set
-        self.shadows = shadows or RELIGHT_SHADOWS
+        # cast shadows of the relit lights with the raster renderer (visibility.py), traced once per light set;
+        # default: as the run was trained (its albedo fitted with shadows, or with the photos' shadows in it)
+        self.shadows = shadows or ("vertex" if trainer.shadows_active() else "off")
         self._vis: dict = {}
         has_mesh = (trainer.run_dir / MESH_STATE).is_file()
         if stage == "auto":

@@ -518,6 +518,20 @@ class Trainer:
             return None
         return self.shadow_cache.get(self.scene, self.it if it is None else it, self.device)
 
+    def shadows_active(self) -> bool:
+        """Whether this run's state was trained with the cached shadows (``--shadows vertex``, raster, past
+        ``shadow_from``): its renders and relit images then have them."""
+        return self.cfg.shadows == "vertex" and self.cfg.renderer == "raster" and self.it >= self.cfg.shadow_from
+
+    def final_visibility(self) -> np.ndarray | None:
+        """The per-vertex visibility of the current state, traced afresh (evaluation, relighting under the
+        learned lights: the same images), or None without shadows; the training cache is left alone."""
+        if not self.shadows_active():
+            return None
+        from .visibility import vertex_visibility
+
+        return vertex_visibility(self.scene, self.device, ray_eps=self.cfg.shadow_eps)
+
     def _nonfinite_cause(self, exc: NonFiniteStep) -> str:
         last = self.checkpoint_hint()
         if exc.what == "gradient":
@@ -637,7 +651,7 @@ class Trainer:
                                   if self.scene.vertex_sh is not None else None)
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
         per = []
-        vis = self.visibility()
+        vis = self.final_visibility()
         for v in views:
             r = render(self.scene, v.camera, settings, self.device, vis=vis)
             target = v.target(bg)
