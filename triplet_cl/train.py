@@ -616,6 +616,9 @@ class Trainer:
             if steps:
                 metrics["seconds_per_iteration"] = {k: float(np.mean([h[k] for h in steps]))
                                                     for k in ("render", "loss_t", "backward", "step", "density")}
+                shadow = [h.get("shadow", 0.0) for h in steps]  # the visibility traces, inside "render"
+                metrics["shadows"] = {"mode": self.cfg.shadows, "traces": self.shadow_cache.traces,
+                                      "trace_s": float(np.sum(shadow))}
         write_json(self.run_dir / "metrics.json", metrics)
         self.log.info(f"metrics: {json.dumps({k: v for k, v in metrics.items() if k != 'views'})}")
         return metrics
