@@ -127,15 +127,17 @@ def test_render_rejects_bad_vis(device):
         render(scene, c, RenderSettings(K=4, renderer="hybrid"), device, vis=np.ones((len(scene.V.data), 1)))
 
 
-def test_gradients_with_cached_visibility_central_differences(device64, rng):
+@pytest.mark.parametrize("attributes", ["device", "host"])
+def test_gradients_with_cached_visibility_central_differences(device64, rng, attributes):
     """Every parameter's gradient with the visibility held constant (it has no adjoint); perturbations
-    that change the fragments are left out, as in tests/test_render.py."""
+    that change the fragments are left out, as in tests/test_render.py. Both attribute paths (the device op
+    with a constant block, the host Concat)."""
     from tests.test_render import cam as rcam
     from tests.test_render import small_scene
 
     scene = small_scene(rng, "cook_torrance", False, M=12)
     vis = rng.uniform(0.0, 1.0, (len(scene.V.data), 2))  # point + directional light
-    s = RenderSettings(K=6, sigma=1.0, real=np.float64, t_min=0.0)
+    s = RenderSettings(K=6, sigma=1.0, real=np.float64, t_min=0.0, attributes=attributes)
     c = rcam()
     r = render(scene, c, s, device64, vis=vis)
     assert np.abs(r.image - render(scene, c, s, device64).image).max() > 1e-3  # the visibility acts
