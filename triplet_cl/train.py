@@ -87,9 +87,9 @@ class TrainConfig:
     # cast shadows with renderer "raster" (visibility.py): "vertex" = transmittance from every vertex towards each
     # point / directional light, ray-traced through the soup every shadow_every steps (and after density control
     # or when a light moved), interpolated per fragment, a constant for the gradient; "off" = none. Measured
-    # (soup, seed 0, one run each, README "Cached shadows"): spot_small / spot / gadget novel-view PSNR +0.18 /
-    # +0.18 / +0.23 dB, relight up on every set (+0.1 to +0.3 dB), albedo -0.21 / +0.01 / +0.12 dB, the step
-    # 0.91-1.09x a raster step (bench/shadow_step.py): the default
+    # (soup, seed 0, one run each, README "Cached shadows"): spot_small / spot / gadget / bob_env novel-view PSNR
+    # +0.18 / +0.18 / +0.23 / +0.19 dB, relight (relit alike) up on all 12 sets (+0.03 to +0.29 dB), albedo
+    # -0.21 / +0.01 / +0.12 / -0.03 dB, the step 0.91-1.09x a raster step (bench/shadow_step.py): the default
     shadows: str = "vertex"
     shadow_every: int = 100
     shadow_from: int = 600  # no shadows before (the warm-up soup is a half-transparent cloud)
