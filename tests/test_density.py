@@ -642,3 +642,58 @@ def test_stats_accumulate_the_error_over_each_faces_nearest_pixels(rng):
         st.add(v_vs, np.ones(3, bool), sc.F, front=front, error=error[:, :2])
     with pytest.raises(ValueError, match="front holds face ids"):
         st.add(v_vs, np.ones(3, bool), sc.F, front=np.array([[3]]))
+
+
+def _error_stats(m, errors, pixels=100.0):
+    """Statistics of ``m`` faces with no gradient, mean error ``errors[f]`` and a projected bbox of ``pixels``."""
+    st = DensityStats(m)
+    st.err_accum[:] = np.asarray(errors, np.float64) * 10
+    st.err_pixels[:] = 10
+    st.max_screen_area[:] = pixels
+    st.denom[:] = 1
+    return st
+
+
+def test_error_resplit_needs_the_error_to_drop_since_the_last_split(rng):
+    """``error_resplit_ratio``: a face split by the error criterion records its error and its 4 children
+    inherit the record; a child is split by error again only when its own error has dropped to ≤ ratio ×
+    the record (the split helped), not when it stays as high (a shading mismatch a split cannot fix).
+    Without records (None: ``inf``) or with the rule off, every face over the threshold is split."""
+    c = cfg(error_threshold=0.1, error_min_pixels=4.0, error_resplit_ratio=0.9, split_edge_ratio=0.01)
+    sc = soup([tri([2 * i, 0, 0], 1.0, rng) for i in range(2)], rng, alpha=0.9)
+    # step 1: both faces over the threshold, no records: both split by error, the records are their errors
+    rep = densify_and_prune(sc, None, _error_stats(2, [0.3, 0.3]), c, extent=1.0)
+    assert (rep.split, rep.by_error, rep.error_blocked) == (2, 2, 0)
+    assert rep.faces_after == 8 and assert_soup(sc) == 8
+    np.testing.assert_array_equal(rep.split_error, np.full(8, 0.3))
+    # step 2: the first parent's children stayed at 0.3 (no drop), the second's dropped to 0.2 (still > 0.1)
+    err = np.repeat([0.3, 0.2], 4)
+    rep2 = densify_and_prune(sc, None, _error_stats(8, err), c, extent=1.0, split_error=rep.split_error)
+    assert (rep2.split, rep2.by_error, rep2.error_blocked) == (4, 4, 4)
+    assert rep2.faces_after == 4 + 16
+    # survivors first (the 4 stuck children keep their record), then the grandchildren with the new one
+    np.testing.assert_array_equal(rep2.split_error, np.r_[np.full(4, 0.3), np.full(16, 0.2)])
+    V = sc.V.data.reshape(-1, 3, 3).mean(axis=1)
+    assert (V[:4, 0] < 1.5).all() and (V[4:, 0] > 1.5).all()  # the split ones are the second parent's
+    # a drop just above the ratio is not enough; at the ratio it is
+    sc3 = soup([tri([2 * i, 0, 0], 1.0, rng) for i in range(2)], rng, alpha=0.9)
+    rep3 = densify_and_prune(sc3, None, _error_stats(2, [0.271, 0.27]), c, extent=1.0,
+                             split_error=np.array([0.3, 0.3]))
+    assert (rep3.split, rep3.error_blocked) == (1, 1)
+    # the rule off (None) or no records: the stuck faces are split as before
+    for conf, rec in ((cfg(error_threshold=0.1, error_min_pixels=4.0, split_edge_ratio=0.01), np.full(2, 0.3)),
+                      (c, None)):
+        sc4 = soup([tri([2 * i, 0, 0], 1.0, rng) for i in range(2)], rng, alpha=0.9)
+        rep4 = densify_and_prune(sc4, None, _error_stats(2, [0.3, 0.3]), conf, extent=1.0, split_error=rec)
+        assert (rep4.split, rep4.error_blocked) == (2, 0)
+    # a face over the gradient threshold is densified whatever its error record (the rule is the error's)
+    sc5 = soup([tri([2 * i, 0, 0], 1.0, rng) for i in range(2)], rng, alpha=0.9)
+    st5 = _error_stats(2, [0.3, 0.3])
+    st5.grad_accum[:] = [2.0, 0.0]
+    rep5 = densify_and_prune(sc5, None, st5, c, extent=1.0, split_error=np.array([0.3, 0.3]))
+    assert (rep5.split, rep5.by_error, rep5.error_blocked) == (1, 0, 1)
+    np.testing.assert_array_equal(rep5.split_error, np.r_[0.3, np.full(4, 0.3)])
+    with pytest.raises(ValueError, match="split_error must have shape"):
+        densify_and_prune(sc5, None, _error_stats(5, np.zeros(5)), c, extent=1.0, split_error=np.zeros(3))
+    with pytest.raises(ValueError, match="error_resplit_ratio"):
+        cfg(error_resplit_ratio=0.0)

@@ -144,6 +144,9 @@ class DensityConfig:
     max_faces: int | None = None  # never densify above this many faces (None: no limit)
     min_faces: int = 1  # never prune below this many faces (an empty soup cannot be optimised)
     inherit_moments: bool = False  # children / clones start with their parent's Adam moments (False: zero)
+    error_resplit_ratio: float | None = None  # a face densified by the error criterion records its mean error
+    #                                           (children / clones inherit it); it is densified by error again
+    #                                           only once its error is <= ratio x that record (None: off)
     max_prune_fraction: float = 1.0  # one call prunes at most this fraction of its faces (most transparent
     #                                  first): a prune that would empty the soup is limited, not executed
     split_interp: str = "raw"  # children's midpoint attributes: "raw" (linear on raw values) or
@@ -163,6 +166,8 @@ class DensityConfig:
             raise ValueError(f"error_min_alpha must lie in [0, 1), got {self.error_min_alpha}")
         if self.error_min_pixels < 0:
             raise ValueError(f"error_min_pixels must be >= 0, got {self.error_min_pixels}")
+        if self.error_resplit_ratio is not None and not self.error_resplit_ratio > 0:
+            raise ValueError(f"error_resplit_ratio must be > 0 or None, got {self.error_resplit_ratio}")
         if self.split_edge_ratio < 0 or self.clone_step < 0:
             raise ValueError("split_edge_ratio and clone_step must be >= 0")
         if self.min_faces < 0 or (self.max_faces is not None and self.max_faces < self.min_faces):
@@ -195,6 +200,8 @@ class DensifyReport:
     pruned_world_area: int = 0
     pruned_screen: int = 0
     by_error: int = 0  # densify candidates selected by the error criterion only (not by the gradient)
+    error_blocked: int = 0  # faces over the error threshold refused by error_resplit_ratio (no drop since last split)
+    split_error: np.ndarray | None = None  # [faces_after] the error record of every new face (error_resplit_ratio)
     skipped_max_faces: int = 0  # densify candidates dropped to respect max_faces
     spared_min_faces: int = 0  # prune candidates kept to respect min_faces / max_prune_fraction
 
@@ -524,7 +531,8 @@ def reorder_faces(scene, optimizer, order: np.ndarray) -> None:
 
 
 def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConfig, extent: float, *,
-                      densify: bool = True, prune: bool = True, prune_screen: bool = True) -> DensifyReport:
+                      densify: bool = True, prune: bool = True, prune_screen: bool = True,
+                      split_error: np.ndarray | None = None) -> DensifyReport:
     """Split, clone and prune the soup of ``scene`` in place (see the module docstring for the order).
 
     Args:
@@ -535,6 +543,8 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
         config: thresholds; extent: the scene extent (radius of the cameras / object, world units).
         densify, prune: switch the two halves; prune_screen: use the screen-size criterion (3DGS
             enables it only after the first alpha reset).
+        split_error: ``[M]`` per-face error records for ``config.error_resplit_ratio`` (the previous
+            report's ``split_error``, permuted with the faces; None: no face has a record, ``inf``).
 
     Returns:
         a :class:`DensifyReport`. ``scene.V/material/alpha/vertex_sh`` and ``scene.F`` are replaced, the
@@ -545,6 +555,11 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
         raise ValueError(f"stats hold {stats.num_faces} faces, the scene has {m} (reset the stats after changes)")
     if not (np.isfinite(extent) and extent > 0):
         raise ValueError(f"extent must be > 0, got {extent}")
+    if split_error is None:
+        split_error = np.full(m, np.inf)
+    split_error = np.asarray(split_error, np.float64)
+    if split_error.shape != (m,):
+        raise ValueError(f"split_error must have shape [{m}], got {list(split_error.shape)}")
     F = np.asarray(scene.F)
     V = np.asarray(scene.V.data)
 
@@ -566,10 +581,15 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
 
     # priority of a densify candidate: how far its statistic is above its threshold (≥ 1 = candidate)
     prio = grads / config.grad_threshold
-    n_by_error = 0
+    n_by_error = n_blocked = 0
+    err_prio = np.zeros(m)
+    mean_err = stats.mean_error() if config.error_threshold is not None else np.zeros(m)
     if config.error_threshold is not None:
-        err_prio = np.where(stats.max_screen_area >= config.error_min_pixels,
-                            stats.mean_error() / config.error_threshold, 0.0)
+        err_prio = np.where(stats.max_screen_area >= config.error_min_pixels, mean_err / config.error_threshold, 0.0)
+        if config.error_resplit_ratio is not None:  # no drop since its last error split: splitting did not help
+            stuck = (err_prio >= 1.0) & (mean_err > config.error_resplit_ratio * split_error)
+            n_blocked = int((stuck & (prio < 1.0) & ~prune_mask).sum()) if densify else 0
+            err_prio = np.where(stuck, 0.0, err_prio)
         n_by_error = int(((err_prio >= 1.0) & (prio < 1.0) & ~prune_mask).sum()) if densify else 0
         prio = np.maximum(prio, err_prio)
     dens = (prio >= 1.0) & ~prune_mask if densify else np.zeros(m, bool)
@@ -621,12 +641,20 @@ def densify_and_prune(scene, optimizer, stats: DensityStats, config: DensityConf
         new_data[id(p)] = np.concatenate([Xf[keep_idx].reshape(-1, *tail),
                                           children.reshape(-1, *tail).astype(X.dtype),
                                           clones.reshape(-1, *tail).astype(X.dtype)]).astype(X.dtype, copy=False)
+    # error records: a face densified by the error criterion records its error, children / clones inherit
+    rec = np.where(err_prio >= 1.0, mean_err, split_error)
+    new_rec = np.concatenate([split_error[keep_idx], np.repeat(rec[split_idx], 4), rec[clone_idx]])
+    if c:
+        rec_src = split_error.copy()
+        rec_src[clone_idx] = rec[clone_idx]  # the source of a clone was densified too
+        new_rec[:keep_idx.size] = rec_src[keep_idx]
     _apply(scene, optimizer, index_map, new_data, m_new)
     stats.reset(m_new)
     return DensifyReport(
         faces_before=m, faces_after=m_new, split=s, cloned=c, pruned=int(prune_mask.sum()),
         pruned_alpha=int((by_alpha & prune).sum()), pruned_world_area=int((by_world & prune).sum()),
         pruned_screen=int((by_screen & prune).sum()), by_error=n_by_error, skipped_max_faces=int(skipped),
+        error_blocked=n_blocked, split_error=new_rec,
         spared_min_faces=int(prune_cand.sum() - prune_mask.sum()))
 
 

@@ -123,7 +123,7 @@ class TrainConfig:
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
         interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100, error_threshold=0.1, error_min_pixels=16.0,
-        max_prune_fraction=0.5, inherit_moments=True))
+        max_prune_fraction=0.5, inherit_moments=True, error_resplit_ratio=0.9))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
@@ -450,6 +450,7 @@ class Trainer:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         self.opt = build_optimizer(self.cfg, self.scene, self.extent)
+        self.split_error = np.full(len(self.scene.F), np.inf)  # per-face error records (error_resplit_ratio)
         self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
         self.priors = Priors(self.cfg, look_at_center(self.ds))
@@ -490,7 +491,9 @@ class Trainer:
     def spatial_sort(self) -> None:
         """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
         V = self.scene.V.data.reshape(-1, 3, 3)
-        reorder_faces(self.scene, self.opt, morton_order(V.mean(axis=1)))
+        order = morton_order(V.mean(axis=1))
+        reorder_faces(self.scene, self.opt, order)
+        self.split_error = self.split_error[order]
 
     # ---- one step ------------------------------------------------------------------------------
     def next_view(self) -> int:
@@ -550,7 +553,8 @@ class Trainer:
             # a reset removed 98 % of the faces (29 dB -> 20 dB); so no pruning during a grace period
             grace = self.last_alpha_reset is not None and it - self.last_alpha_reset < cfg.alpha_reset_grace
             report = densify_and_prune(self.scene, self.opt, self.stats, dens, self.extent, prune=not grace,
-                                       prune_screen=it > dens.alpha_reset_interval)
+                                       prune_screen=it > dens.alpha_reset_interval, split_error=self.split_error)
+            self.split_error = report.split_error
             self.spatial_sort()
             self.stats = DensityStats(len(self.scene.F))
             self.priors.invalidate()
@@ -570,6 +574,7 @@ class Trainer:
             rec["densify"] = {"split": report.split, "cloned": report.cloned, "pruned": report.pruned,
                               "pruned_alpha": report.pruned_alpha, "pruned_world": report.pruned_world_area,
                               "pruned_screen": report.pruned_screen, "by_error": report.by_error,
+                              "error_blocked": report.error_blocked,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
 
@@ -758,6 +763,7 @@ class Trainer:
         for k, v in vars(self.stats).items():
             if isinstance(v, np.ndarray):
                 arrays[f"stats.{k}"] = v
+        arrays["density.split_error"] = self.split_error
         sc = self.shadow_cache
         if sc.vis is not None:  # the cached visibility: a resumed run continues bit for bit
             arrays["shadow.vis"], arrays["shadow.rays"] = sc.vis, sc.rays
@@ -800,6 +806,8 @@ class Trainer:
             sc = self.shadow_cache
             sc.vis, sc.rays, sc.at, sc.F = a["shadow.vis"], a["shadow.rays"], int(a["shadow.at"][0]), s.F
         self.stats = DensityStats(len(s.F))
+        se = a.get("density.split_error")
+        self.split_error = se if se is not None and se.shape == (len(s.F),) else np.full(len(s.F), np.inf)
         for k in list(vars(self.stats)):
             if f"stats.{k}" in a:
                 setattr(self.stats, k, a[f"stats.{k}"])
