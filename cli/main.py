@@ -111,6 +111,8 @@ def _config_from_args(args: argparse.Namespace):
         cfg = cfg.with_iterations(args.iterations)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
+    if getattr(args, "error_resplit_ratio", None) is not None:
+        cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
     return cfg
 
 
@@ -477,6 +479,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
+    t.add_argument("--error-resplit-ratio", type=float, metavar="R",
+                   help="split a face by the error criterion again only once its error is <= R x its error at its "
+                   "last error split (default off; README 'Density control')")
     t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
     t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
                    "far sphere for the sky / walls (default 0; see README 'Your own photos')")

@@ -123,7 +123,7 @@ class TrainConfig:
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
         interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100, error_threshold=0.1, error_min_pixels=16.0,
-        max_prune_fraction=0.5, inherit_moments=True, error_resplit_ratio=0.9))
+        max_prune_fraction=0.5, inherit_moments=True))
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
@@ -833,6 +833,8 @@ class Trainer:
 
             def same(k):
                 theirs = saved[k] if k in saved else default.get(k)
+                if k == "density" and isinstance(theirs, dict):  # a density field added since: its default
+                    theirs = TrainConfig.from_dict({"density": theirs}).to_dict()["density"]
                 return json.dumps(mine.get(k), sort_keys=True) == json.dumps(theirs, sort_keys=True)
 
             diff = [k for k in sorted(mine) if not same(k)]

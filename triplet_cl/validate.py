@@ -93,6 +93,9 @@ def _check_options(args) -> None:
     sigma = getattr(args, "sigma", None)
     if sigma is not None and not (math.isfinite(sigma) and 0 <= sigma <= 1000):
         raise UsageError("--sigma", f"expected a number in [0, 1000] (0 = hard edges), found {sigma}")
+    ratio = getattr(args, "error_resplit_ratio", None)
+    if ratio is not None and not (math.isfinite(ratio) and 0 < ratio <= 10):
+        raise UsageError("--error-resplit-ratio", f"expected a number in (0, 10] (e.g. 0.9), found {ratio}")
     lights = getattr(args, "lights", None)
     if lights is not None:
         from .train import LIGHT_KINDS
