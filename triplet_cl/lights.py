@@ -107,6 +107,8 @@ class LightInit:
     up: np.ndarray  # [3] unit mean camera up direction
     sh_degree: int  # max SH degree of SH lights
     rng: np.random.Generator
+    index: int = 0  # this light's rank among the lights of its kind (initial_lights sets it)
+    count: int = 1  # how many lights of this kind are placed
 
 
 def _vec3(name: str, v) -> np.ndarray:
@@ -206,6 +208,18 @@ class Light:
         raise NotImplementedError
 
 
+def _ring_direction(init: LightInit) -> np.ndarray:
+    """Unit direction ``k = init.index`` of ``n = init.count`` on a ring 31° above the horizon:
+    ``normalize(0.6 up + cos(2πk/n) a + sin(2πk/n) b)``, ``a, b`` unit and orthogonal to ``up``."""
+    up = init.up / max(np.linalg.norm(init.up), 1e-12)
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 0.0, 1.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    t = 2 * np.pi * init.index / init.count
+    d = 0.6 * up + np.cos(t) * a + np.sin(t) * b
+    return d / np.linalg.norm(d)
+
+
 @register_light
 @dataclass
 class AmbientLight(Light):
@@ -251,8 +265,11 @@ class DirectionalLight(Light):
 
     @classmethod
     def initial(cls, init: LightInit) -> DirectionalLight:
-        """From the cameras' mean up direction, intensity 1."""
-        return cls(init.up, np.full(3, 1.0))
+        """One: from the cameras' mean up direction, intensity 1. Light ``k`` of ``n >= 2``: from the ring
+        direction ``k`` of :meth:`PointLight.initial`, intensity 1 / n."""
+        if init.count <= 1:
+            return cls(init.up, np.full(3, 1.0))
+        return cls(_ring_direction(init), np.full(3, 1.0 / init.count))
 
 
 @register_light
@@ -286,9 +303,17 @@ class PointLight(Light):
 
     @classmethod
     def initial(cls, init: LightInit) -> PointLight:
-        """Above the scene (0.6 extent along up, jittered by 0.3 extent), intensity extent²."""
+        """One point light: above the scene (0.6 extent along up, jittered by 0.3 extent), intensity extent².
+        Light ``k`` of ``n >= 2``: 0.6 extent from the centre towards ``0.6 up + cos(2πk/n) a + sin(2πk/n) b``
+        (``a, b`` unit, orthogonal to ``up``: a ring tilted 31° above the horizon), jittered by 0.05 extent,
+        intensity extent² / n. Spread, because lights started at one place stay together: measured on the
+        two-light synthetic scene (tests/test_recovery.py) both converged on the brighter light and the
+        ambient light and the albedo took the other's share; spread, each found its light within 2°."""
         e = init.extent
-        return cls(init.center + 0.6 * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, e * e))
+        if init.count <= 1:
+            return cls(init.center + 0.6 * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, e * e))
+        pos = init.center + 0.6 * e * _ring_direction(init) + 0.05 * e * init.rng.normal(size=3)
+        return cls(pos, np.full(3, e * e / init.count))
 
 
 @register_light
@@ -498,4 +523,9 @@ def initial_lights(kinds, init: LightInit) -> list:
     bad = [k for k in kinds if k not in LIGHT_KINDS]
     if bad:
         raise ValueError(f"light kinds must be among {tuple(LIGHT_KINDS)}, got {bad}")
-    return [LIGHT_KINDS[k].initial(init) for k in kinds]
+    kinds = list(kinds)
+    out = []
+    for i, k in enumerate(kinds):
+        rank, count = kinds[:i].count(k), kinds.count(k)
+        out.append(LIGHT_KINDS[k].initial(dataclasses.replace(init, index=rank, count=count)))
+    return out
