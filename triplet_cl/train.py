@@ -42,7 +42,7 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, lights_to_json
+from .lights import LightInit, SHEnvironmentLight, lights_to_json
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -416,6 +416,7 @@ class Trainer:
     def step(self) -> dict:
         cfg, it = self.cfg, self.it
         scale, K, deg = schedule(cfg, it)
+        self.set_env_degree(deg)
         if cfg.background == "random":
             bg = self.rng.uniform(0, 1, 3)
         else:
@@ -483,6 +484,14 @@ class Trainer:
                               "pruned_screen": report.pruned_screen, "by_error": report.by_error,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
+
+    def set_env_degree(self, deg: int) -> None:
+        """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``
+        iterations up to ``sh_degree``), as the vertex-SH light's: before this, nothing raised it from the
+        initial 0, so ``--lights sh-env`` trained a constant environment only."""
+        for lt in self.scene.lights:
+            if isinstance(lt, SHEnvironmentLight):
+                lt.degree = min(int(deg), lt.stored_degree)
 
     def _nonfinite_cause(self, exc: NonFiniteStep) -> str:
         last = self.checkpoint_hint()
@@ -686,6 +695,7 @@ class Trainer:
                              exp_avg_sq=[a[f"opt.{g}.{j}.v"] for j in range(n)])
         self.opt.load_state_dict({"t": meta["t"], "groups": groups})
         self.it = int(meta["it"])
+        self.set_env_degree(schedule(self.cfg, max(self.it - 1, 0))[2])  # the degree of the last step
         self.last_alpha_reset = meta.get("last_alpha_reset")
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
