@@ -42,7 +42,8 @@ def train_frozen(data: Path, out: Path, iterations: int, priors: str = "off") ->
     from triplet_cl.train import TrainConfig, Trainer
 
     lights = gt_lights(data)
-    weights = {"off": {}, "materials": MATERIAL_WEIGHTS, "metallic": {"prior_metallic": MATERIAL_WEIGHTS["prior_metallic"]},
+    weights = {"off": {}, "materials": MATERIAL_WEIGHTS,
+               "metallic": {"prior_metallic": MATERIAL_WEIGHTS["prior_metallic"]},
                "all": {**MATERIAL_WEIGHTS, **LIGHT_WEIGHTS}}[priors]
     cfg = TrainConfig(iterations=iterations, lights=tuple(lt.KIND for lt in lights), lr_lights=0.0, **weights)
     tr = Trainer(str(data), out, cfg, quiet=True)
@@ -64,7 +65,7 @@ def material_stats(run: Path) -> dict:
     keep = alpha > 0.5
     names = ("roughness", "metallic", "ao") if s.brdf == "cook_torrance" else ()
     out = {"lights": [lt.to_json() for lt in s.current_lights()]}
-    for j, n in zip((3, 4, 5), names):
+    for j, n in zip((3, 4, 5), names, strict=False):
         v = act[keep, j]
         out[n] = {"mean": float(v.mean()), "p10": float(np.percentile(v, 10)), "median": float(np.median(v)),
                   "p90": float(np.percentile(v, 90)), "frac>0.9": float(np.mean(v > 0.9))}

@@ -107,6 +107,7 @@ def lights_vs_truth(run: Path, scene: str, data: Path, label: str = "") -> list[
     env = [lt for lt in rec if isinstance(lt, SHEnvironmentLight)]
     amb += sum(float(lt.coeffs[:, 0].mean() * Y00) for lt in env)
     out = []
+    lab = label or run.parent.name
     rec_desc = "; ".join(
         [f"point at ({', '.join(f'{x:.2f}' for x in p.position)}) I {p.intensity.mean():.1f} "
          f"E(0) {p.intensity.mean() / max(p.position @ p.position, 1e-6):.2f}" for p in pts]
@@ -119,12 +120,13 @@ def lights_vs_truth(run: Path, scene: str, data: Path, label: str = "") -> list[
             if pts:
                 p = min(pts, key=lambda p: _angle(p.position, q))
                 pi = float(p.intensity.mean())
-                out.append(f"| {scene} | {label or run.parent.name} | point | {np.linalg.norm(p.position - q):.2f} | "
+                e_rec = pi / max(p.position @ p.position, 1e-6)
+                out.append(f"| {scene} | {lab} | point | {np.linalg.norm(p.position - q):.2f} | "
                            f"{_angle(p.position, q):.1f} | {pi / it:.2f} | "
-                           f"{pi / max(p.position @ p.position, 1e-6) / e_true:.2f} | {amb:.3f} / {gt.get('ambient', 0)} |")
+                           f"{e_rec / e_true:.2f} | {amb:.3f} / {gt.get('ambient', 0)} |")
             elif dirs:
                 d = min(dirs, key=lambda d: _angle(d.direction, q))
-                out.append(f"| {scene} | {label or run.parent.name} | point (as directional) | — | {_angle(d.direction, q):.1f} | — | "
+                out.append(f"| {scene} | {lab} | point (as directional) | — | {_angle(d.direction, q):.1f} | — | "
                            f"{d.intensity.mean() / e_true:.2f} | {amb:.3f} / {gt.get('ambient', 0)} |")
         elif t["type"] == "envmap":
             c = envmap_item_sh(t, gt_file, "lights", 1)
@@ -134,9 +136,11 @@ def lights_vs_truth(run: Path, scene: str, data: Path, label: str = "") -> list[
                      [(d.direction, d.intensity.mean()) for d in dirs]
             ang = " / ".join(f"{_angle(v, d_true):.1f}" for v, _ in direct) or "—"
             e_dir = sum(e for _, e in direct)
-            env_dir = " / ".join(f"{_angle(_band1_dir(e.coeffs), d_true):.1f}" for e in env if e.coeffs.shape[1] >= 4)
-            out.append(f"| {scene} | {label or run.parent.name} | envmap | — | direct {ang}; SH band 1 {env_dir or '—'} | — | "
-                       f"direct E(0) {e_dir:.2f} vs env πL̄ {np.pi * mean_true:.2f} | {amb:.3f} / {mean_true:.3f} (env mean) |")
+            env_dir = " / ".join(f"{_angle(_band1_dir(e.coeffs), d_true):.1f}" for e in env
+                                 if e.coeffs.shape[1] >= 4 and e.degree >= 1)
+            out.append(f"| {scene} | {lab} | envmap | — | direct {ang}; SH band 1 {env_dir or '—'} | — | "
+                       f"direct E(0) {e_dir:.2f} vs env πL̄ {np.pi * mean_true:.2f} | "
+                       f"{amb:.3f} / {mean_true:.3f} (env mean) |")
     out.append(f"|  |  | recovered: {rec_desc} |  |  |  |  |  |")
     return out
 

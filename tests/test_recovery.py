@@ -180,10 +180,10 @@ def test_two_point_lights_are_recovered_with_the_albedo():
     (amb,) = [lt for lt in lights if isinstance(lt, AmbientLight)]
     matched = [min(pts, key=lambda p: _angle(p.position, q)) for q in P]
     assert matched[0] is not matched[1], "both lights converged on one"
-    for p, q in zip(matched, P):
+    for p, q in zip(matched, P, strict=False):
         assert _angle(p.position, q) < 5.0, f"light at {p.position}: {_angle(p.position, q):.1f} deg off {q}"
     irr = [p.intensity.mean() / (p.position @ p.position) for p in matched]  # irradiance at the centre
-    true_irr = [i / (q @ q) for i, q in zip(I, P)]
+    true_irr = [i / (q @ q) for i, q in zip(I, P, strict=False)]
     assert irr[0] / irr[1] == pytest.approx(true_irr[0] / true_irr[1], rel=0.2)
     assert amb.color.max() < 0.08, f"ambient light {amb.color} (truth 0)"
     # both sides are lit; the albedo's level trades against the lights' (only the product is seen): its colour
