@@ -270,7 +270,8 @@ def test_a_linear_runs_exports_encode_the_albedo(relit_run):
 
 def test_blinn_phong_run_relights(tmp_path):
     """--brdf blinn-phong: `triplet relight` under the run's own lights gives its test renders back, and
-    `eval --relight` with a Mitsuba-style set (point + constant) evaluates it; its albedo image is kd (the base colour)."""
+    `eval --relight` with a Mitsuba-style set (point + constant) evaluates it; its albedo image is kd (the base
+    colour)."""
     from triplet_cl.cli.main import demo_data_path
     from triplet_cl.cli.main import main as cli_main
 
