@@ -149,6 +149,20 @@ def test_several_lights_of_a_kind_start_spread():
     assert np.array_equal(initial_lights(["directional"], init)[0].direction, init.up)
 
 
+def test_relative_lr_scales_follow_the_radiometric_parameters():
+    """Colours / intensities / SH radiance: their magnitude (at least 1e-3); positions and directions: 1."""
+    from triplet_cl.lights import relative_lr_scales
+
+    lights = [PointLight([1, 2, 3], [12.0, 10.0, 11.0]), AmbientLight([0.1, 0.05, 0.0]),
+              DirectionalLight([0, 1, 0], [0.0, 0.0, 0.0]), SHEnvironmentLight.constant([0.5] * 3, 1)]
+    s = relative_lr_scales(lights)
+    assert len(s) == pack_lights(lights).params.size
+    np.testing.assert_allclose(s[:6], [1, 1, 1, 12, 12, 12])
+    np.testing.assert_allclose(s[6:9], 0.1)
+    np.testing.assert_allclose(s[9:15], [1, 1, 1, 1e-3, 1e-3, 1e-3])
+    np.testing.assert_allclose(s[15:], 0.5 * np.sqrt(4 * np.pi))
+
+
 def test_gltf_punctual_form():
     p, d = PointLight([1, 2, 3], [2, 1, 1]), DirectionalLight([0, 0, 2], [1, 1, 1])
     assert p.gltf_punctual()[0] == "point" and np.array_equal(p.gltf_punctual()[1], [1, 2, 3])

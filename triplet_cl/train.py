@@ -42,7 +42,7 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, SHEnvironmentLight, lights_to_json
+from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -56,6 +56,7 @@ LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered l
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
+LR_LIGHTS_MODES = ("absolute", "relative")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -94,6 +95,9 @@ class TrainConfig:
     lr_alpha: float = 0.1  # the method: 0.05
     lr_vertex_sh: float = 0.005
     lr_lights: float = 0.01
+    # "absolute": lr_lights in the parameters' units (before issue 18); "relative": the radiometric light parameters
+    # (colours, intensities, SH radiance) step by lr_lights × their initial magnitude (lights.relative_lr_scales)
+    lr_lights_mode: str = "absolute"
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
     betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
@@ -153,6 +157,7 @@ class TrainConfig:
             if k in d:
                 d[k] = tuple(d[k])
         d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
+        d.setdefault("lr_lights_mode", "absolute")  # saved before the relative light learning rates
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -169,6 +174,8 @@ class TrainConfig:
         if self.background_shell < 0 or not self.background_radius > 0:
             raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
                              f"{self.background_radius}")
+        if self.lr_lights_mode not in LR_LIGHTS_MODES:
+            raise ValueError(f"lr_lights_mode must be one of {LR_LIGHTS_MODES}, got {self.lr_lights_mode!r}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
@@ -282,7 +289,8 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),
                       max_grad_norm=cfg.sh_clip, **kw)
     if scene.light_params is not None:
-        opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, **kw)
+        scale = [relative_lr_scales(scene.lights)] if cfg.lr_lights_mode == "relative" else None
+        opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
 
 
