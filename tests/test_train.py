@@ -150,3 +150,22 @@ def test_renderer_option_trains_with_ray_traced_shadows(tmp_path, capsys):
     assert m["iterations"] == 12 and np.isfinite(m["psnr"])
     assert cli_main(["render", str(out), "--renderer", "raytrace", "--out", str(tmp_path / "rt")]) == 0
     assert len(list((tmp_path / "rt").glob("*.png"))) == 8
+
+
+def test_an_old_blinn_phong_run_is_warned_about(tmp_path):
+    """A Blinn-Phong run saved before the kd/π diffuse lobe (no lr_lights_mode in its config) loads with a warning
+    naming the change; a Cook-Torrance one without it loads silently (absolute light learning rates)."""
+    import json
+    import warnings
+
+    from triplet_cl.runs import config_from_saved
+
+    old = small_cfg(brdf="blinn_phong").to_dict()
+    del old["lr_lights_mode"]
+    with pytest.warns(UserWarning, match="kd/pi"):
+        cfg = config_from_saved(tmp_path, {"train": old})
+    assert cfg.lr_lights_mode == "absolute"
+    old["brdf"] = "cook_torrance"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert config_from_saved(tmp_path, {"train": json.loads(json.dumps(old))}).lr_lights_mode == "absolute"
