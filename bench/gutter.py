@@ -16,31 +16,17 @@ import time
 
 import numpy as np
 import trimesh
-from scipy.ndimage import distance_transform_edt
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
-from triplet_cl.mesh.bake import rasterize_uv, uv_atlas
+from triplet_cl.mesh.bake import gutter_sources, rasterize_uv, uv_atlas
 
 
-def chart_of_faces(faces: np.ndarray, pos: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Charts: connected components of the atlas faces through shared corners, a corner being a
-    3D position at one UV position (xatlas joins colocated vertices into one chart)."""
-    key = np.column_stack([np.round(np.asarray(pos, np.float64) * 2**20).astype(np.int64),
-                           np.round(np.asarray(uv, np.float64) * 2**20).astype(np.int64)])
-    _, corner = np.unique(key, axis=0, return_inverse=True)
-    f = corner.reshape(-1)[np.asarray(faces, np.int64)]
-    rows = np.repeat(np.arange(len(f)), 3)
-    g = coo_matrix((np.ones(rows.size), (rows, f.ravel())), shape=(len(f), int(corner.max()) + 1)).tocsr()
-    n, lab = connected_components(g @ g.T, directed=False)
-    return lab
-
-
-def bleed(face_img: np.ndarray, chart: np.ndarray, levels=(1, 2, 3, 4)) -> dict[int, float]:
+def bleed(face_img: np.ndarray, chart: np.ndarray, levels=(1, 2, 3, 4), fill: str = "chart") -> dict[int, float]:
+    """Bleeding fraction per mip level with the gutter filled as ``bake.bake`` does: ``"nearest"`` (the
+    nearest covered texel of any chart) or ``"chart"`` (per chart, ``bake.gutter_sources``)."""
     covered = face_img >= 0
     own = np.full(face_img.shape, -1, np.int64)
     own[covered] = chart[face_img[covered]]
-    _, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
+    iy, ix, _ = gutter_sources(face_img, chart if fill == "chart" else None)
     owner = own[iy, ix]
     h, w = owner.shape
     out = {}
@@ -60,6 +46,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--faces", type=int, default=50_000, help="simplify to this many faces first (0: keep)")
     ap.add_argument("--padding", type=int, nargs="+", default=[2, 4, 8])
+    ap.add_argument("--fill", nargs="+", default=["nearest", "chart"], choices=["nearest", "chart"],
+                    help="gutter fill: nearest covered texel (before) or per chart (bake's default now)")
     ap.add_argument("--voxel", type=float, default=0.0, help="remesh by marching cubes at this voxel size "
                     "(× the bounding-box diagonal) first: a mesh like the mesh stage's (0: keep)")
     a = ap.parse_args()
@@ -71,16 +59,20 @@ def main() -> None:
         s = m.simplify_quadric_decimation(face_count=a.faces)
         V, F = np.asarray(s.vertices), np.asarray(s.faces)
     print(f"{a.mesh}: {len(F)} faces, {a.size}² texture")
-    print(f"{'padding':>7} {'charts':>6} {'util':>6} {'covered':>8} " + " ".join(f"{'mip' + str(lv):>7}" for lv in
-                                                                                (1, 2, 3, 4)) + "   seconds")
+    print(f"{'padding':>7} {'fill':>7} {'charts':>6} {'util':>6} {'covered':>8} "
+          + " ".join(f"{'mip' + str(lv):>7}" for lv in (1, 2, 3, 4, 5)) + "   seconds")
     for pad in a.padding:
         t0 = time.perf_counter()
         at = uv_atlas(V, F, a.size, pad)
         face_img, _ = rasterize_uv(at.uv, at.faces, a.size, a.size)
-        chart = chart_of_faces(at.faces, V[at.vmap], at.uv)
-        b = bleed(face_img, chart)
-        print(f"{pad:7d} {chart.max() + 1:6d} {at.utilization:6.3f} {(face_img >= 0).mean():8.3f} "
-              + " ".join(f"{b[lv]:7.3f}" for lv in (1, 2, 3, 4)) + f"   {time.perf_counter() - t0:.1f}")
+        chart = at.face_chart
+        t_atlas = time.perf_counter() - t0
+        for fill in a.fill:
+            t1 = time.perf_counter()
+            b = bleed(face_img, chart, (1, 2, 3, 4, 5), fill)
+            print(f"{pad:7d} {fill:>7} {chart.max() + 1:6d} {at.utilization:6.3f} {(face_img >= 0).mean():8.3f} "
+                  + " ".join(f"{b[lv]:7.3f}" for lv in (1, 2, 3, 4, 5))
+                  + f"   {t_atlas + time.perf_counter() - t1:.1f}", flush=True)
 
 
 if __name__ == "__main__":

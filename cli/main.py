@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import sys
@@ -11,7 +12,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.datasets import FORMATS as DATASET_FORMATS
-from triplet_cl.errors import RunError, TripletError
+from triplet_cl.errors import TripletError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -184,7 +185,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    import json
 
     from triplet_cl.io import write_json
 
@@ -199,17 +199,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.relight import load_light_sets
 
         load_light_sets(spec, args.env_degree)  # a bad light file fails before any rendering
+    from triplet_cl.runs import read_metrics
+
     path = run / "metrics.json"
-    old = {}
-    if path.is_file():  # read before any work: a damaged file is named, not met after the evaluation
-        try:
-            old = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
-                                 "kept: delete it to have eval write a new one") from None
-        if not isinstance(old, dict):
-            raise RunError(path, f"damaged (expected a JSON object, found {type(old).__name__}); delete it to have "
-                                 "eval write a new one")
+    old = read_metrics(run, "eval")  # before any work: a damaged file is named, not met after the evaluation
     tr = _load_run(args)
     if spec is not None:
         from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
@@ -366,7 +359,10 @@ def _run_mesh_stage(tr, cfg) -> int:
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
+    from triplet_cl.runs import read_metrics
+
     cfg = _mesh_config_from_args(args)
+    read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
     tr = _load_run(args)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)
@@ -432,8 +428,16 @@ def add_colmap_parser(sub) -> None:
 # ---------------------------------------------------------------------------------------------- parser
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (``triplet train: error: argument --color: invalid choice ...``),
+    as every other error of the CLI, instead of the usage block followed by the message; exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="triplet",
         allow_abbrev=False,
         description="Mesh-based inverse rendering (Triplet) with OpenCL kernels and hand-derived adjoints.",
@@ -565,6 +569,32 @@ def main(argv: list[str] | None = None) -> int:
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
     args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    with _sigterm_as_interrupt():
+        return _dispatch(args)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM (``kill PID``, a scheduler's stop) raises KeyboardInterrupt like Ctrl-C, so that every
+    command's clean-up runs (temporary folders removed, a checkpoint saved by ``train``) instead of the
+    process vanishing mid-write; the previous handler is restored afterwards."""
+    import signal
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        old = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _dispatch(args) -> int:
     try:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)

@@ -16,12 +16,19 @@
 
 #define SRGB_KNEE ((REAL)0.0031308)
 
-inline REAL srgb_s(const REAL u) {
-    return u <= SRGB_KNEE ? (REAL)12.92 * u : (REAL)1.055 * pow(u, (REAL)(1.0 / 2.4)) - (REAL)0.055;
+/* u^(1/2.4) for u > 0 as exp2(log2(u) / 2.4): PoCL's generic pow() measured 0.2 us per call on
+ * the CPU (27 ms for one 200x200 forward); exp2/log2 vectorise */
+inline REAL srgb_root(const REAL u) {
+    return exp2(log2(u) * (REAL)(1.0 / 2.4));
 }
 
+inline REAL srgb_s(const REAL u) {
+    return u <= SRGB_KNEE ? (REAL)12.92 * u : (REAL)1.055 * srgb_root(u) - (REAL)0.055;
+}
+
+/* s'(u) = 1.055 / 2.4 · u^(1/2.4 − 1) = 1.055 / 2.4 · u^(1/2.4) / u  (u > knee > 0) */
 inline REAL srgb_ds(const REAL u) {
-    return u <= SRGB_KNEE ? (REAL)12.92 : (REAL)(1.055 / 2.4) * pow(u, (REAL)(1.0 / 2.4 - 1.0));
+    return u <= SRGB_KNEE ? (REAL)12.92 : (REAL)(1.055 / 2.4) * srgb_root(u) / u;
 }
 
 __kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear premultiplied radiance

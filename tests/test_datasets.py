@@ -184,10 +184,14 @@ def test_colmap_distorting_models_undistorted(tmp_path, binary, model, params, m
     PINHOLE; the photos' exact undistortion is checked in tests/test_sfm.py."""
     pytest.importorskip("pycolmap")
     monkeypatch.delenv("TRIPLET_CACHE", raising=False)
-    fac.make_colmap(tmp_path, n=2, binary=binary, model=model, params=params)
-    ds = load_dataset(tmp_path, split_holdout=0)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))  # the default: the user's cache
+    root = tmp_path / "scene"
+    fac.make_colmap(root, n=2, binary=binary, model=model, params=params)
+    before = sorted(root.rglob("*"))
+    ds = load_dataset(root, split_holdout=0)
     assert len(ds.train) == 2 and ds.points is not None and len(ds.points) == 5
-    cached = list((tmp_path / ".triplet_cache").iterdir())
+    assert sorted(root.rglob("*")) == before  # nothing written into the dataset
+    cached = list((tmp_path / "xdg" / "triplet_cl").iterdir())
     assert len(cached) == 1
     cams, *_ = read_model(cached[0] / "sparse" / "0")
     assert {c.model for c in cams.values()} == {"PINHOLE"}
@@ -196,7 +200,7 @@ def test_colmap_distorting_models_undistorted(tmp_path, binary, model, params, m
 def test_colmap_zero_fisheye_is_refused_clearly(tmp_path, monkeypatch):
     """A fisheye with zero coefficients is still a fisheye; pycolmap leaves it as it is: a clear error."""
     pytest.importorskip("pycolmap")
-    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
+    monkeypatch.setenv("TRIPLET_CACHE", str(tmp_path / "cache"))
     fac.make_colmap(tmp_path, n=2, model="OPENCV_FISHEYE", params=[7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])
     with pytest.raises(DatasetError, match="OPENCV_FISHEYE.*not a pinhole camera"):
         load_dataset(tmp_path)

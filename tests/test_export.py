@@ -599,3 +599,28 @@ def test_clear_errors_and_nothing_written(tmp_path):
     with pytest.raises(ValueError, match="lights\\[0\\].type"):
         lights_from_json({"lights": [{"type": "Sun"}]})
     assert not out.exists() or not any(out.iterdir())  # every failure came before any write
+
+
+def test_gutter_is_filled_per_chart_for_mip_maps():
+    """Issue 21 (Eevee speckles): chart A covers columns 0-2, chart B columns 9-15 of a 16² texture. The
+    nearest-texel fill gives columns 6-7 to B, so the 8×8 mip block over columns 0-7 averages B's value into
+    A's texels; the per-chart fill gives them to A (the block holds A's texels only), and every texel next to
+    a chart (what bilinear filtering reads) still takes that chart's value."""
+    from triplet_cl.mesh.bake import bake, gutter_sources
+
+    face_img = np.full((16, 16), -1, np.int32)
+    face_img[:, :3] = 0
+    face_img[:, 9:] = 1
+    bary = np.full((16, 16, 3), 1 / 3, np.float32)
+    faces = np.array([[0, 1, 2], [3, 4, 5]])
+    values = np.array([0, 0, 0, 1, 1, 1], np.float32)[:, None]
+    near = bake(face_img, bary, faces, values)[..., 0]
+    per = bake(face_img, bary, faces, values, face_chart=np.array([0, 1]))[..., 0]
+    np.testing.assert_array_equal(near[:, 6:9], 1)
+    np.testing.assert_array_equal(per[:, :8], 0)  # columns 3-7: A's mip block
+    np.testing.assert_array_equal(per[:, 8], 1)  # column 8 is next to B (bilinear footprint): B's
+    np.testing.assert_array_equal(near[:, :6], 0)
+    mip3 = per.reshape(2, 8, 2, 8).mean(axis=(1, 3))
+    assert (mip3[:, 0] == 0).all() and (near.reshape(2, 8, 2, 8).mean(axis=(1, 3))[:, 0] > 0).all()
+    iy, ix, dist = gutter_sources(face_img, np.array([0, 1]))
+    assert (face_img[iy, ix] >= 0).all() and dist[0, 8] == 1

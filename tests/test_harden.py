@@ -80,12 +80,15 @@ BAD_TRAIN = {
     "checkpoint-every -1": (["--checkpoint-every", "-1"], "--checkpoint-every"),
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
     "lights": (["--lights", "laser"], "--lights"),
+    "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
+    "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),
     "texture-size -4": (["--mesh-stage", "--texture-size", "-4"], "--texture-size"),
     "mesh-faces 0": (["--mesh-stage", "--mesh-faces", "0"], "--mesh-faces"),
     "formats": (["--mesh-stage", "--formats", "fbx"], "--formats"),
     "mesh option without --mesh-stage": (["--mesh-faces", "5000"], "--mesh-faces"),
     "resume and overwrite": (["--resume", "--overwrite"], "--overwrite"),
     "missing data": ([], "DATA"),
+    "DATA and --demo": (["--demo"], "--demo"),
     "background-shell -1": (["--background-shell", "-1"], "--background-shell"),
     "background-shell over the face budget": (["--background-shell", "300000"], "--background-shell"),
     "bbox without --mesh-stage": (["--bbox", "0,0,0,1,1,1"], "--bbox"),
@@ -639,6 +642,20 @@ def test_mesh_resolution_memory_is_checked(run, capsys, monkeypatch):
     assert rc == 2 and "--mesh-resolution" in err and "GiB" in err
 
 
+@pytest.mark.parametrize("command", ["extract", "export", "train"])
+def test_texture_size_memory_is_checked(run, tmp_path, capsys, monkeypatch, command):
+    """--texture-size 16384 is in range but needs ~32 GiB while baking: a MemoryError after the whole mesh stage."""
+    import triplet_cl.validate as val
+
+    monkeypatch.setattr(val, "available_memory", lambda: 8 * 2**30)
+    argv = {"extract": ["extract", run], "export": ["export", run, "--out", tmp_path / "x"],
+            "train": ["train", DEMO, "--out", tmp_path / "x", "--mesh-stage"]}[command]
+    before = _tree(run)
+    rc, err, _ = _run_cli([*argv, "--texture-size", "16384"], capsys)
+    assert rc == 2 and "--texture-size" in err and "GiB" in err and err.count("\n") == 1, err
+    assert _tree(run) == before and not (tmp_path / "x").exists()
+
+
 def test_init_points_memory_is_checked(tmp_path, capsys, monkeypatch):
     import triplet_cl.validate as val
 
@@ -653,6 +670,7 @@ def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "--color" in err and "'linear', 'encoded'" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+    assert err.count("\n") == 1 and "usage:" not in err, err  # one line, not argparse's usage block as well
 
 
 def test_background_shell_memory_is_checked(tmp_path, capsys, monkeypatch):
@@ -778,9 +796,307 @@ def test_compare_runs_tool_tells_identical_from_different(run, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
+def test_extract_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
+    """The mesh stage merges its "mesh" section into metrics.json: a damaged one failed at the end, after
+    minutes of work (a JSON error), or with a TypeError traceback (a list)."""
+    (run / "metrics.json").write_text(content)
+    before = _tree(run)
+    rc, err, out = _run_cli(["extract", run], capsys)
+    assert rc == 2 and "metrics.json: damaged" in err and "extract" in err and err.count("\n") == 1, err
+    assert "mesh" not in out and _tree(run) == before
+
+
+@pytest.mark.parametrize("content", ['{"psnr": ', "[1, 2]", ""])
 def test_eval_names_a_damaged_metrics_json_before_any_work(run, capsys, content):
     (run / "metrics.json").write_text(content)
     before = _tree(run)
     rc, err, out = _run_cli(["eval", run], capsys)
     assert rc == 2 and "metrics.json: damaged" in err and err.count("\n") == 1, err
     assert "PSNR" not in out and _tree(run) == before
+
+
+# ---- the verification pass of 2026-11-24 (issue 21, second round) --------------------------------------
+ARGPARSE_ERRORS = {  # argv -> what the one-line error names
+    "bad choice": (["train", "DEMO", "--out", "OUT", "--color", "srgb"], "--color"),
+    "abbreviation": (["train", "DEMO", "--out", "OUT", "--iter", "3"], "--iter"),
+    "not a number": (["train", "DEMO", "--out", "OUT", "--iterations", "ten"], "--iterations"),
+    "missing RUN": (["extract"], "run"),
+    "unknown command": (["frobnicate"], "frobnicate"),
+    "bad split": (["render", "OUT", "--split", "holdout"], "--split"),
+    "option without its value": (["train", "DEMO", "--out"], "--out"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ARGPARSE_ERRORS))
+def test_argparse_errors_are_one_line(tmp_path, capsys, case):
+    argv, named = ARGPARSE_ERRORS[case]
+    argv = [str(DEMO) if a == "DEMO" else str(tmp_path / "o") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as ei:
+        cli_main(argv)
+    err = capsys.readouterr().err
+    assert ei.value.code == 2 and named in err and err.count("\n") == 1 and "usage:" not in err, err
+    assert err.startswith("triplet") and "--help" in err
+    assert not (tmp_path / "o").exists()
+
+
+def _relight_dir(tmp_path) -> Path:
+    rd = tmp_path / "rel"
+    rd.mkdir(exist_ok=True)
+    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT]}}}))
+    return rd
+
+
+INTO_CHECKPOINTS = {  # a command writing into RUN/checkpoints (the run's own state) is refused before any work
+    "render": lambda run, tmp: ["render", run, "--out", run / "checkpoints"],
+    "render below": lambda run, tmp: ["render", run, "--out", run / "checkpoints" / "png"],
+    "eval --relight --out": lambda run, tmp: ["eval", run, "--relight", _relight_dir(tmp), "--out",
+                                              run / "checkpoints"],
+    "relight": lambda run, tmp: ["relight", run, "--lights", run / "lights.json", "--out", run / "checkpoints"],
+    "export": lambda run, tmp: ["export", run, "--out", run / "checkpoints"],
+    "train a new run there": lambda run, tmp: ["train", DEMO, "--out", run / "checkpoints" / "new", *TINY_RUN],
+}
+
+
+@pytest.mark.parametrize("case", sorted(INTO_CHECKPOINTS))
+def test_outputs_into_a_runs_checkpoints_are_refused(run, tmp_path, capsys, case):
+    argv = INTO_CHECKPOINTS[case](run, tmp_path)
+    before = _tree(run)
+    rc, err, out = _run_cli(argv, capsys)
+    assert rc == 2 and "--out" in err and "checkpoints folder of the run" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before
+
+
+def test_a_nerf_split_file_given_as_data_is_named(tmp_path, demo_copy, capsys):
+    """`train X/transforms_train.json` was read as an instant-ngp transforms.json."""
+    for extra in ([], ["--data-format", "nerf"]):
+        rc, err, _ = _run_cli(["train", demo_copy / "transforms_train.json", "--out", tmp_path / "o", *extra], capsys)
+        assert rc == 2 and "transforms_train.json" in err and str(demo_copy) in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists()
+    from triplet_cl.datasets import detect_format
+
+    ngp = tmp_path / "my_capture.json"  # any other JSON file given directly is still an instant-ngp file
+    ngp.write_text("{}")
+    assert detect_format(ngp) == "ngp"
+
+
+def test_undistortion_cache_is_outside_the_dataset(tmp_path, monkeypatch):
+    """The README says triplet never writes into a dataset: the undistorted copy goes to the user's cache;
+    one that an older version left in DATA/.triplet_cache is still used (read, nothing written)."""
+    pytest.importorskip("pycolmap")
+    from triplet_cl.datasets.sfm import LEGACY_CACHE, cache_root
+
+    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_root(tmp_path) == tmp_path / "xdg" / "triplet_cl"
+    root = tmp_path / "scene"
+    fac.make_colmap(root, n=3, model="SIMPLE_RADIAL", params=[7.0, 4.0, 3.0, 0.05])
+    before = _tree(root)
+    a = load_dataset(root, split_holdout=0)
+    assert _tree(root) == before
+    made = list((tmp_path / "xdg" / "triplet_cl").iterdir())
+    assert len(made) == 1
+    # an older version's copy inside the dataset is read, and nothing new is written anywhere
+    shutil.move(str(made[0]), str(root / LEGACY_CACHE / made[0].name))
+    before = _tree(root)
+    b = load_dataset(root, split_holdout=0)
+    assert _tree(root) == before and list((tmp_path / "xdg" / "triplet_cl").iterdir()) == []
+    assert np.array_equal(a.train[0].rgb, b.train[0].rgb)
+
+
+def _photos(folder: Path, n: int = 3) -> Path:
+    folder.mkdir(parents=True)
+    for k in range(n):
+        fac.write_image(folder / f"p{k}.png", np.full((fac.H, fac.W, 3), 0.1 * k, np.float32))
+    return folder
+
+
+def test_sigterm_during_colmap_removes_its_work_folder(tmp_path, capsys, monkeypatch):
+    """A SIGTERM (`kill PID`) in the middle of `triplet colmap` left its temporary folder beside --out."""
+    pytest.importorskip("pycolmap")
+    import os
+    import signal
+    import time
+
+    import triplet_cl.datasets.sfm as sfm
+
+    def solve(pycolmap, photos, images_dir, work, *a):
+        (work / "database.db").write_bytes(b"half a database")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the signal arrives here
+        raise AssertionError("not interrupted")
+
+    monkeypatch.setattr(sfm, "_solve", solve)
+    photos = _photos(tmp_path / "photos")
+    old = signal.getsignal(signal.SIGTERM)
+    rc, err, _ = _run_cli(["colmap", photos, "--out", tmp_path / "data"], capsys)
+    assert rc == 130 and "interrupted" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no .data.tmp-* left, no data/
+    assert signal.getsignal(signal.SIGTERM) == old  # the CLI restored the handler
+
+
+def test_work_folders_of_killed_colmap_runs_are_removed(tmp_path):
+    """SIGKILL cannot be caught: the next `triplet colmap` with the same --out removes the dead process's
+    folder, never one of a process still running."""
+    import os
+    import subprocess
+    import sys
+
+    from triplet_cl.datasets.sfm import WORK_PID, remove_dead_work_dirs
+
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    dead, alive, other = (tmp_path / ".data.tmp-dead", tmp_path / ".data.tmp-alive", tmp_path / ".data.tmp-nopid")
+    for d, pid in ((dead, p.pid), (alive, os.getpid()), (other, None)):
+        d.mkdir()
+        if pid is not None:
+            (d / WORK_PID).write_text(str(pid))
+    assert remove_dead_work_dirs(tmp_path / "data") == [dead]
+    assert not dead.exists() and alive.exists() and other.exists()
+
+
+def _ply_header_and_vertices(path: Path):
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    lines = head.decode().splitlines()
+    n = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+    props = [(ln.split()[2], "<f4" if ln.split()[1] == "float" else "u1") for ln in lines
+             if ln.startswith("property ") and not ln.startswith("property list")]
+    return lines, np.frombuffer(body[: n * np.dtype(props).itemsize], np.dtype(props))
+
+
+@pytest.mark.parametrize("brdf, color", [("blinn-phong", "linear"), ("cook-torrance", "encoded")])
+def test_triplets_ply_columns_and_byte_colours(tmp_path, demo_copy, capsys, brdf, color):
+    """triplets.ply of Blinn-Phong had no shininess column, and its byte colours were the linear albedo
+    (viewers take them as sRGB: too dark)."""
+    from triplet_cl.ops.color import srgb_encode
+
+    out = tmp_path / "r"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", out, *TINY_RUN, "--brdf", brdf, "--color", color], capsys)
+    assert rc == 0, err
+    lines, v = _ply_header_and_vertices(out / "triplets.ply")
+    names = set(v.dtype.names)
+    if brdf == "blinn-phong":
+        assert {"shininess", "ks_0", "ka_2", "albedo_0"} <= names
+        assert (v["shininess"] > 0).all() and np.isfinite(v["shininess"]).all()
+        assert abs(float(np.median(v["shininess"])) - 64) < 8  # softplus-activated (initial 64), not sigmoid
+    else:
+        assert {"roughness", "metallic", "ao", "albedo_0"} <= names
+    alb = np.stack([v[f"albedo_{i}"] for i in range(3)], 1).astype(np.float64)
+    want = srgb_encode(np.clip(alb, 0, 1)) if color == "linear" else np.clip(alb, 0, 1)
+    got = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.float64) / 255
+    assert np.abs(got - want).max() <= 0.5 / 255 + 1e-6
+    assert any("red/green/blue" in ln and ("sRGB-encoded" in ln) for ln in lines)
+
+
+def test_mesh_ply_byte_colours_are_srgb_for_a_linear_run(tmp_path):
+    from triplet_cl.lights import PointLight
+    from triplet_cl.mesh.export import export_asset
+    from triplet_cl.ops.color import srgb_encode
+
+    asset = _small_asset([PointLight([0, 3, 0], [1, 1, 1])])
+    asset.attributes["albedo"][:] = 0.2
+    for space, want in (("linear", srgb_encode(0.2)), ("srgb", 0.2)):
+        paths = export_asset(asset, tmp_path / space, formats=("ply",), albedo_space=space)
+        _, v = _ply_header_and_vertices(paths["ply"])
+        assert (v["red"] == int(want * 255 + 0.5)).all() and np.allclose(v["albedo_0"], 0.2)
+
+
+@pytest.mark.parametrize("extra, named", [(["--out", "OUT"], "--out"), (["--renderer", "hybrid"], "--renderer"),
+                                          (["--env-degree", "3"], "--env-degree")])
+def test_eval_options_of_the_relit_evaluation_need_relight(run, tmp_path, capsys, extra, named):
+    """`eval RUN --out DIR` (no --relight) was accepted and wrote nothing there: silently ignored."""
+    extra = [str(tmp_path / "e") if a == "OUT" else a for a in extra]
+    before = _tree(run)
+    rc, err, out = _run_cli(["eval", run, *extra], capsys)
+    assert rc == 2 and named in err and "--relight" in err and err.count("\n") == 1, err
+    assert "PSNR" not in out and _tree(run) == before and not (tmp_path / "e").exists()
+
+
+INTO_ANOTHER_RUN = {  # RUN's outputs into another run's folder replaced that run's own files (its lights.json)
+    "export": lambda run, other: ["export", run, "--formats", "ply", "--out", other],
+    "render": lambda run, other: ["render", run, "--out", other / "renders" / "test"],
+    "relight": lambda run, other: ["relight", run, "--lights", run / "lights.json", "--out", other / "relit"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(INTO_ANOTHER_RUN))
+def test_outputs_into_another_run_are_refused(run, tmp_path, capsys, case):
+    other = tmp_path / "other"
+    shutil.copytree(run, other)
+    (other / "lights.json").write_text('{"lights": "the other run\'s"}')
+    before = _tree(other)
+    rc, err, _ = _run_cli(INTO_ANOTHER_RUN[case](run, other), capsys)
+    assert rc == 2 and "--out" in err and "inside another run" in err and err.count("\n") == 1, err
+    assert _tree(other) == before
+    # the run's own folders stay allowed
+    rc, err, _ = _run_cli(["render", run, "--out", run / "renders" / "again"], capsys)
+    assert rc == 0, err
+
+
+@pytest.mark.parametrize("command", ["train", "render", "export", "colmap"])
+def test_out_that_cannot_be_created_names_the_option(run, tmp_path, capsys, command):
+    """/proc (and /sys in a container) pass os.access for root but refuse mkdir: the error came from deep inside
+    the command (`/proc/x: no such file or folder`, no option named); now --out is tried up front."""
+    if not Path("/proc/self").exists():
+        pytest.skip("no /proc here")
+    out = Path("/proc/triplet_harden_test/sub")
+    argv = {"train": ["train", DEMO, "--out", out], "render": ["render", run, "--out", out],
+            "export": ["export", run, "--out", out], "colmap": ["colmap", _photos(tmp_path / "p"), "--out", out]}
+    before = _tree(run)
+    rc, err, _ = _run_cli(argv[command], capsys)
+    assert rc == 2 and err.startswith(f"triplet {command}: error: --out:") and "cannot be created" in err, err
+    assert err.count("\n") == 1 and _tree(run) == before
+
+
+def test_out_probe_leaves_nothing_behind(tmp_path):
+    from triplet_cl.validate import check_writable_dir
+
+    check_writable_dir(tmp_path / "a" / "b" / "c", "--out")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_interrupted_training_saves_a_checkpoint_and_resumes(tmp_path, sig):
+    """Ctrl-C, and now SIGTERM (`kill PID`, a scheduler's stop) too, end training cleanly: a checkpoint of
+    the iteration reached, the handlers restored, and --resume continues from it."""
+    import os
+    import signal
+
+    signum = getattr(signal, sig)
+    old = signal.getsignal(signum)
+    tr = Trainer(DEMO, tmp_path / "r", _small_cfg(checkpoint_every=0), quiet=True)
+    orig = tr.step
+
+    def step():
+        if tr.it == 4:
+            os.kill(os.getpid(), signum)
+        return orig()
+
+    tr.step = step
+    with pytest.raises(KeyboardInterrupt):
+        tr.train()
+    assert signal.getsignal(signum) == old
+    assert (tmp_path / "r" / "checkpoints" / "latest").read_text() == "ckpt_0000005.npz"
+    assert Trainer(None, tmp_path / "r", quiet=True, resume=True).it == 5
+
+
+def test_a_split_mixing_images_with_and_without_alpha_warns(tmp_path):
+    """One RGB image among RGBA ones trained its white background as part of the object, silently."""
+    from triplet_cl.datasets import DatasetWarning
+
+    fac.make_nerf(tmp_path / "ds")
+    p = sorted((tmp_path / "ds").rglob("*.png"))[0]
+    from triplet_cl.datasets.images import read_image
+
+    img = read_image(p)
+    fac.write_image(p, img.rgb)  # the same picture without its alpha channel
+    with pytest.warns(DatasetWarning, match=rf"no alpha channel \({p.name}\)"):
+        load_dataset(tmp_path / "ds")
+
+
+def test_extract_of_an_untrained_soup_says_why(run, capsys):
+    """The 4-iteration soup is still transparent: the message named tsdf_fusion and alpha_threshold only."""
+    before = _tree(run)
+    rc, err, _ = _run_cli(["extract", run, "--mesh-iterations", "0", "--mesh-resolution", "16"], capsys)
+    assert rc == 2 and "no surface" in err and "untrained" in err and "tsdf_fusion" not in err, err
+    assert err.count("\n") == 1 and _tree(run) == before

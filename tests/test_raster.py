@@ -653,3 +653,46 @@ def test_offsets_are_the_exclusive_prefix_sum(device, rng, monkeypatch, path):
         off, total = S.prefix_offsets(device, cla.to_device(device.queue, c), total=False)
         np.testing.assert_array_equal(off.get(), expect)
         assert total is None
+
+
+# ------------------------------------------------------------------------------------------------ columns
+
+
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_split_and_merge_columns_equal_copy_columns(device, device64, rng, real):
+    """split_columns / merge_columns (one pass, up to SPLIT_BLOCKS = 8 blocks) move exactly what one copy_columns
+    per block moves; a layout that covers every column round-trips bit for bit."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops.columns import SPLIT_BLOCKS, copy_columns, merge_columns, split_columns
+
+    dev = device64 if real == np.float64 else device
+    V, F = soup(rng, M=60)
+    _, _, _, fr = run_raster(dev, V, F, 6, real=real)
+    assert fr.P > 0
+    layout = [(0, 3), (3, 3), (6, 6), (12, 1), (13, 6), (19, 2), (21, 1), (22, 2)]  # pos|nrm|mat|alpha|vlight|…
+    assert len(layout) == SPLIT_BLOCKS  # every slot of the kernels
+    C = 24
+    src_h = rng.standard_normal((fr.P, C)).astype(real)
+    src = cla.to_device(dev.queue, src_h)
+    parts = split_columns(dev, fr, src, layout)
+    for (c0, n), part in zip(layout, parts, strict=True):
+        want = cla.zeros(dev.queue, (fr.P, n), real)
+        copy_columns(dev, fr, src, c0, want, 0, n)
+        np.testing.assert_array_equal(part.get(), want.get())
+        np.testing.assert_array_equal(part.get(), src_h[:, c0:c0 + n])
+    dst = cla.zeros(dev.queue, (fr.P, C), real)
+    merge_columns(dev, fr, [(p, c0) for p, (c0, _) in zip(parts, layout, strict=True)], dst)
+    np.testing.assert_array_equal(dst.get(), src_h)
+    # fewer blocks: the others untouched
+    dst = cla.zeros(dev.queue, (fr.P, C), real)
+    merge_columns(dev, fr, [(parts[3], 12)], dst)
+    want = np.zeros((fr.P, C), real)
+    want[:, 12] = src_h[:, 12]
+    np.testing.assert_array_equal(dst.get(), want)
+    with pytest.raises(ValueError, match="at most"):
+        split_columns(dev, fr, src, [(0, 1)] * (SPLIT_BLOCKS + 1))
+    with pytest.raises(ValueError, match="inside"):
+        split_columns(dev, fr, src, [(C - 1, 2)])
+    with pytest.raises(ValueError, match="inside"):
+        merge_columns(dev, fr, [(parts[2], C - 2)], dst)

@@ -208,3 +208,100 @@ def test_render_a_view_that_sees_nothing(device, rng, renderer):
     for k, v in g.items():
         if v is not None and k != "light_params":
             assert np.all(np.asarray(v) == 0), k
+
+
+@pytest.mark.parametrize("brdf,vertex_sh,mesh,K,renderer", [("cook_torrance", True, False, 6, "raster"),
+                                                            ("blinn_phong", False, False, 1, "raster"),
+                                                            ("cook_torrance", False, True, 150, "raster"),
+                                                            ("blinn_phong", True, False, 150, "raster"),
+                                                            ("cook_torrance", False, False, 6, "hybrid")])
+@pytest.mark.parametrize("real", [np.float64, np.float32])
+def test_device_attributes_equal_the_host_chain(device, device64, rng, brdf, vertex_sh, mesh, K, renderer, real):
+    """``RenderSettings.attributes="device"`` (VertexAttributes: normals, activations and the packed
+    attribute array in one kernel, adjoint on the device) against the host chain Normals →
+    MaterialActivation → SigmoidHost → Concat: the same image and every parameter's gradient, per
+    BRDF (Blinn-Phong has a softplus channel), with vertex SH, on soups (face normals) and a mesh
+    (vertex normals), K = 1 and 150, rasterized and hybrid (traced shadows and bounce read the
+    device array)."""
+    dev = device64 if real == np.float64 else device
+    scene = small_scene(rng, brdf, vertex_sh, mesh=mesh)
+    for p in scene.params:
+        p.data = np.asarray(p.data, real)
+    c = cam()
+    w = rng.standard_normal((H, W, 4))
+    out = {}
+    for attributes in ("host", "device"):
+        settings = RenderSettings(K=K, sigma=0.8, real=real, background=(0.3, 0.5, 0.9), renderer=renderer,
+                                  normals="vertex" if mesh else "face", transfer="srgb", attributes=attributes)
+        scene.zero_grad()
+        r = render(scene, c, settings, dev)
+        out[attributes] = (r.rgba.data.copy(), r.backward(w[..., :3], w[..., 3]))
+    (img_h, g_h), (img_d, g_d) = out["host"], out["device"]
+    tol = dict(rtol=1e-10, atol=1e-12) if real == np.float64 else dict(rtol=2e-4, atol=2e-5)
+    np.testing.assert_allclose(img_d, img_h, **tol)
+    assert set(g_d) == set(g_h)
+    for k in g_h:
+        scale = max(float(np.abs(g_h[k]).max()), 1e-12)
+        np.testing.assert_allclose(g_d[k] / scale, g_h[k] / scale, rtol=0, atol=tol["rtol"] * 10, err_msg=k)
+        assert np.abs(g_h[k]).max() > 0 or k == "vertex_sh", k
+
+
+def test_device_attributes_setting_and_fallbacks(device, rng):
+    """A bad value is refused; a soup not in the training layout (rotated corners) and
+    ``attributes="host"`` take the host chain."""
+    with pytest.raises(ValueError, match="attributes must be"):
+        RenderSettings(attributes="gpu")
+    from triplet_cl.ops.mesh import DeviceMesh
+    from triplet_cl.render import use_device_attributes
+
+    scene = small_scene(rng, "cook_torrance")
+    F = np.asarray(scene.F)
+    assert use_device_attributes(RenderSettings(), DeviceMesh(device, F, len(scene.V.data)))
+    perm = F[:, [1, 2, 0]]
+    assert not use_device_attributes(RenderSettings(), DeviceMesh(device, perm, len(scene.V.data)))
+    assert not use_device_attributes(RenderSettings(attributes="host"), DeviceMesh(device, F, len(scene.V.data)))
+
+
+@pytest.mark.parametrize("mesh,vertex_sh", [(False, True), (True, False)])
+def test_vertex_attributes_with_constant_columns_equal_concat(device64, rng, mesh, vertex_sh):
+    """``VertexAttributes(..., const=c)`` equals ``Concat(V, Normals(V), MaterialActivation(m),
+    SigmoidHost(a)[, vlight], c)`` (a constant block last, e.g. a cached visibility): the array and,
+    for a random cotangent, every input's adjoint (the constant columns have none)."""
+    from triplet_cl.autodiff import Context
+
+    from triplet_cl.render import (
+        Concat,
+        MaterialActivation,
+        Normals,
+        RenderState,
+        SigmoidHost,
+        VertexAttributes,
+        device_mesh,
+    )
+
+    scene = small_scene(rng, "blinn_phong", vertex_sh=vertex_sh, mesh=mesh)
+    V, m, a = scene.V.data, scene.material.data, scene.alpha.data
+    n = len(V)
+    vl = [rng.normal(size=(n, 6))] if vertex_sh else []
+    const = rng.uniform(0, 1, (n, 2))
+    settings = RenderSettings(real=np.float64, normals="vertex" if mesh else "face")
+    dmesh = device_mesh(device64, scene.F, n)
+    view = RenderState(device64, dmesh, cam(), settings)
+    op = VertexAttributes(view, scene.brdf, const=const)
+    ctx = Context((True,) * (3 + len(vl)))
+    attr = op.forward(ctx, V, m, a, *vl).get()
+    # the host chain
+    fns = [Normals(dmesh, settings.normals, np.float64, device64), MaterialActivation(scene.brdf), SigmoidHost()]
+    cts = [Context((True,)) for _ in fns]
+    blocks = [V] + [f.forward(c, x) for f, c, x in zip(fns, cts, (V, m, a), strict=True)] + vl + [const]
+    cat, cctx = Concat(), Context((True,) * len(blocks))
+    want = cat.forward(cctx, *blocks)
+    np.testing.assert_allclose(attr, want, rtol=1e-12, atol=1e-14)
+    v = rng.standard_normal(want.shape)
+    got = op.backward(ctx, v)
+    parts = cat.backward(cctx, v)
+    v_V = parts[0] + fns[0].backward(cts[0], parts[1])
+    want_g = [v_V, fns[1].backward(cts[1], parts[2]), fns[2].backward(cts[2], parts[3])] + list(parts[4:4 + len(vl)])
+    assert len(got) == len(want_g)
+    for g, w in zip(got, want_g, strict=True):
+        np.testing.assert_allclose(np.asarray(g), w, rtol=1e-10, atol=1e-12)

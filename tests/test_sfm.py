@@ -223,7 +223,7 @@ def _distort(img: np.ndarray, model: str, params) -> np.ndarray:
 
 @pytest.mark.parametrize("model, params", [("SIMPLE_RADIAL", [166.0, 96.0, 72.0, -0.12]),
                                            ("OPENCV", [166.0, 160.0, 95.0, 73.0, 0.08, -0.02, 0.002, -0.001])])
-def test_distorted_colmap_loads_through_undistortion(device, tmp_path, model, params):
+def test_distorted_colmap_loads_through_undistortion(device, tmp_path, model, params, monkeypatch):
     cams = ring_cameras(4)
     fx, fy, cx, cy = params[:4] if model == "OPENCV" else (params[0], params[0], params[1], params[2])
     pinhole = [Camera(fx, fy, cx, cy, W, H, c.w2c) for c in cams]
@@ -239,11 +239,13 @@ def test_distorted_colmap_loads_through_undistortion(device, tmp_path, model, pa
     fac.write_colmap_text(root / "sparse" / "0", [(1, model, W, H, params)], images,
                           [(1, [0.0, 0.0, 0.3], [10, 20, 30], 0.5, [(1, 0)])])
     before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    monkeypatch.delenv("TRIPLET_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     ds = load_dataset(root, split_holdout=0)
     assert ds.root == root and len(ds.train) == 4 and ds.points.shape == (1, 3)
-    # the user's files are untouched; the undistorted copy is in the cache beside them
-    assert sorted(p.relative_to(root) for p in root.rglob("*") if ".triplet_cache" not in p.parts) == before
-    cache = list((root / ".triplet_cache").iterdir())
+    # the dataset folder is untouched (nothing added either); the undistorted copy is in the user's cache
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
+    cache = list((tmp_path / "xdg" / "triplet_cl").iterdir())
     assert len(cache) == 1 and (cache[0] / "sparse" / "0").is_dir()
     for k, v in enumerate(sorted(ds.train, key=lambda v: v.name)):
         cam = v.camera
@@ -256,7 +258,7 @@ def test_distorted_colmap_loads_through_undistortion(device, tmp_path, model, pa
     # a second load uses the cache (nothing new written)
     mtime = cache[0].stat().st_mtime_ns
     ds2 = load_dataset(root, split_holdout=0)
-    assert len(ds2.train) == 4 and list((root / ".triplet_cache").iterdir()) == cache
+    assert len(ds2.train) == 4 and list((tmp_path / "xdg" / "triplet_cl").iterdir()) == cache
     assert cache[0].stat().st_mtime_ns == mtime
 
 

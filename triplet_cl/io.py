@@ -83,9 +83,16 @@ def write_png(path, rgb: np.ndarray, alpha: np.ndarray | None = None) -> None:
 
 
 def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.ndarray],
-                   comment: str = "triplet_cl triangle soup") -> None:
+                   comment: str = "triplet_cl triangle soup", albedo_space: str = "srgb") -> None:
     """Binary PLY of a triangle soup with per-vertex float attributes (``name -> [N] or [N, k]``;
-    ``[N, k]`` becomes ``name_0 .. name_{k-1}``, ``albedo`` [N,3] becomes ``red/green/blue`` bytes too)."""
+    ``[N, k]`` becomes ``name_0 .. name_{k-1}``, ``albedo`` [N,3] becomes ``red/green/blue`` bytes too).
+
+    The float attributes are written as given. The ``red/green/blue`` bytes are display colours, which
+    viewers (MeshLab, Blender, Open3D) take as sRGB-encoded: ``albedo_space="linear"`` (a run of the linear
+    colour pipeline) encodes the albedo with the sRGB transfer function for them; ``"srgb"`` (already
+    encoded values) writes it unchanged. The header says which."""
+    if albedo_space not in ("srgb", "linear"):
+        raise ValueError(f"albedo_space must be 'srgb' or 'linear', got {albedo_space!r}")
     V = np.asarray(V, np.float32)
     n = len(V)
     cols = [("x", V[:, 0]), ("y", V[:, 1]), ("z", V[:, 2])]
@@ -103,7 +110,12 @@ def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.
     for name, a in cols:
         verts[name] = a
     if rgb is not None:
-        c = (np.clip(np.asarray(rgb, np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
+        rgb = np.clip(np.asarray(rgb, np.float32), 0, 1)
+        if albedo_space == "linear":
+            from .ops.color import srgb_encode
+
+            rgb = np.clip(srgb_encode(rgb), 0, 1).astype(np.float32)
+        c = (rgb * 255 + 0.5).astype(np.uint8)
         verts["red"], verts["green"], verts["blue"] = c[:, 0], c[:, 1], c[:, 2]
     F = np.asarray(F, np.int32)
     faces = np.empty(len(F), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
@@ -112,6 +124,10 @@ def write_soup_ply(path, V: np.ndarray, F: np.ndarray, attributes: dict[str, np.
     props = "".join(
         f"property {'float' if t == '<f4' else 'uchar'} {name}\n" for name, t in dtype
     )
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {n}\n{props}"
+    note = ""
+    if rgb is not None:
+        note = ("comment red/green/blue: the linear albedo sRGB-encoded (the float albedo_* are linear)\n"
+                if albedo_space == "linear" else "comment red/green/blue: the albedo as stored (sRGB-encoded)\n")
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\n{note}element vertex {n}\n{props}"
               f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n")
     atomic_write_bytes(path, header.encode() + verts.tobytes() + faces.tobytes())

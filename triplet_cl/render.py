@@ -7,6 +7,9 @@ Graph (every box a :class:`~triplet_cl.autodiff.Function` with a hand-derived ad
     material ─ MaterialActivation┤
     alpha ─ Sigmoid ─────────────┤
        └─────────────────────────┴─ Concat → attr [N, C]
+       (settings.attributes == "device", the default: one VertexAttributes op builds the same attr
+        on the device, normals included, and takes its adjoint apart there; the chain above is
+        its reference and the fallback for layouts it does not handle)
     RasterInterpolate(V, attr)  → fragment attributes [P, C], coverage window [P] (packed fragments)
     ShadeFragments(…, light_params) → rgb [P, 3], alpha [P]
     Composite(rgb, alpha, win)  → image [H, W, 3], accumulated alpha [H, W]
@@ -41,6 +44,7 @@ from .ops import columns
 from .ops import normals as normals_op
 from .ops import shade as shade_op
 from .ops import trace as trace_op
+from .ops import vertex_attr as vattr_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
 from .ops.color import SRGBComposite
@@ -80,8 +84,14 @@ class RenderSettings:
     # radiance (over black), then ``A·s(C/A) + (1−A)·background`` with s the sRGB transfer (ops/color.py): the
     # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space
     transfer: str | None = None
+    # where the per-vertex attribute array (positions, normals, activated materials and alpha) is built:
+    # "device" (one kernel, ops/vertex_attr.py; the default) or "host" (the numpy chain Normals →
+    # MaterialActivation → SigmoidHost → Concat: the reference the device op is tested against)
+    attributes: str = "device"
 
     def __post_init__(self):
+        if self.attributes not in ("device", "host"):
+            raise ValueError(f"attributes must be 'device' or 'host', got {self.attributes!r}")
         if self.transfer not in TRANSFERS:
             raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
         if self.renderer not in RENDERERS:
@@ -118,6 +128,15 @@ class RenderState:
         self.traced: dict = {}  # ray-traced renderers: the discrete choices of the last forward pass
         self.win = None  # [P] coverage window of the forward pass (sigma set)
         self.info: dict = {"frags": None, "vs": None, "v_vs": None}
+        self._V_src = self._Vd = None  # the vertex positions on the device, uploaded once per render
+
+    def device_V(self, V) -> cla.Array:
+        """``V [N, 3]`` (host) on the device in the settings' REAL: uploaded once per render call and
+        shared by the ops that read it (the same host array object)."""
+        if self._Vd is None or self._V_src is not V:
+            self._Vd = cla.to_device(self.device.queue, np.ascontiguousarray(V, self.settings.real))
+            self._V_src = V
+        return self._Vd
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -143,6 +162,8 @@ class Normals(Function):
         if self.mode == "vertex":
             return normals_op.vertex_forward(d, ctx.Vd, m.F, m.csr_off, m.csr_corner, self.real).get()
         fn = normals_op.face_forward(d, ctx.Vd, m.F, True, self.real).get()
+        if m.corners_are_vertices:  # the training layout (face f on 3f, 3f + 1, 3f + 2): no scatter
+            return np.repeat(fn, 3, axis=0)
         n[m.faces.reshape(-1)] = np.repeat(fn, 3, axis=0)  # each soup vertex takes its face's normal
         return n
 
@@ -154,9 +175,11 @@ class Normals(Function):
         if self.mode == "vertex":
             return normals_op.vertex_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_n), m.csr_off, m.csr_corner,
                                               self.real).get()
-        v_fn = np.ascontiguousarray(v_n[m.faces].sum(axis=1))  # adjoint of the per-corner copy
+        # adjoint of the per-corner copy (the training layout: a reshape, the same sums as the gather)
+        v_c = v_n.reshape(m.num_faces, 3, 3) if m.corners_are_vertices else v_n[m.faces]
+        v_fn = np.ascontiguousarray(v_c.sum(axis=1))
         return normals_op.face_backward(d, ctx.Vd, m.F, cla.to_device(d.queue, v_fn), m.csr_off, m.csr_corner,
-                                        True, self.real).get()
+                                        True, self.real, corners_are_vertices=m.corners_are_vertices).get()
 
 
 class MaterialActivation(Function):
@@ -227,6 +250,64 @@ class Concat(Function):
         return tuple(out)
 
 
+class VertexAttributes(Function):
+    """``(V [N, 3], material raw [N, Cm], alpha raw [N, 1][, vlight [N, 6]]) → attr [N, C]`` (a device
+    array, layout ``pos | nrm | mat | alpha [| vlight]``): what ``Concat(V, Normals(V),
+    MaterialActivation(material), SigmoidHost(alpha)[, vlight])`` computes, as one kernel on the device
+    (``ops/vertex_attr.py``) with the normals kept there; the adjoint takes ``v_attr`` apart on the
+    device and downloads only the parameters' gradients. Applies to a soup in the training layout
+    (``normals="face"``, face f on vertices 3f … 3f + 2) and to ``normals="vertex"``
+    (:func:`use_device_attributes`). ``const`` (``[N, k]``, optional): constant per-vertex columns
+    appended last (a block that ``Concat`` would take as a plain array: no adjoint)."""
+
+    def __init__(self, view: RenderState, brdf: str, const: np.ndarray | None = None):
+        self.view, self.softplus = view, get_brdf(brdf).softplus_columns
+        self.const = None if const is None else np.asarray(const)
+
+    def forward(self, ctx, V, material, alpha, *vl):
+        v, s = self.view, self.view.settings
+        d, m, real = v.device, v.mesh, s.real
+        Vd = v.device_V(V)
+        ctx.face = s.normals == "face"
+        if ctx.face:
+            nrm = normals_op.face_forward(d, Vd, m.F, True, real)  # [M, 3]: vertex i takes face i // 3
+        else:
+            nrm = normals_op.vertex_forward(d, Vd, m.F, m.csr_off, m.csr_corner, real)
+        ctx.Vd = Vd
+        ctx.mat = cla.to_device(d.queue, np.ascontiguousarray(material, real))
+        ctx.alpha = cla.to_device(d.queue, np.ascontiguousarray(alpha, real).reshape(-1))
+        vld = cla.to_device(d.queue, np.ascontiguousarray(vl[0], real)) if vl else None
+        ctx.has_vl = bool(vl)
+        cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
+        ctx.nconst = 0 if cst is None else cst.shape[1]
+        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real, const=cst)
+
+    def backward(self, ctx, v_attr):
+        v, s = self.view, self.view.settings
+        d, m, real = v.device, v.mesh, s.real
+        if not isinstance(v_attr, cla.Array) or v_attr.dtype != real:
+            v_attr = cla.to_device(d.queue, np.ascontiguousarray(to_host(v_attr), real))
+        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.alpha, v_attr,
+                                                                             self.softplus, ctx.has_vl, real,
+                                                                             ctx.nconst)
+        if ctx.face:
+            v_Vn = normals_op.face_backward(d, ctx.Vd, m.F, vattr_op.face_sum3(d, v_nrm, real), m.csr_off,
+                                            m.csr_corner, True, real, corners_are_vertices=True)
+        else:
+            v_Vn = normals_op.vertex_backward(d, ctx.Vd, m.F, v_nrm, m.csr_off, m.csr_corner, real)
+        out = ((v_pos + v_Vn).get(), v_mat.get(), v_alpha.get().reshape(-1, 1))
+        return out + ((v_vl.get(),) if ctx.has_vl else ())
+
+
+def use_device_attributes(settings: RenderSettings, mesh: DeviceMesh) -> bool:
+    """Whether :func:`render` builds the attribute array with :class:`VertexAttributes` (else the
+    host chain): ``settings.attributes == "device"``, at least one face, and normals the device op
+    handles (``"vertex"``, or ``"face"`` on a soup whose corners are its vertices)."""
+    if settings.attributes != "device" or mesh.num_faces == 0:
+        return False
+    return settings.normals == "vertex" or mesh.corners_are_vertices
+
+
 # ---------------------------------------------------------------------------------------------- per fragment
 
 
@@ -239,8 +320,9 @@ class RasterInterpolate(Function):
     def forward(self, ctx, V, attr):
         v, s = self.view, self.view.settings
         d, cam = v.device, v.camera
-        ctx.Vd = cla.to_device(d.queue, np.ascontiguousarray(V, s.real))
-        ctx.attr = cla.to_device(d.queue, np.ascontiguousarray(attr, s.real))
+        ctx.Vd = v.device_V(V)
+        ctx.attr = attr if isinstance(attr, cla.Array) and attr.dtype == s.real else \
+            cla.to_device(d.queue, np.ascontiguousarray(to_host(attr), s.real))
         vs = project(d, ctx.Vd, cam)
         if s.renderer == "raytrace":
             fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
@@ -276,10 +358,12 @@ class ShadeFragments(Function):
     def __init__(self, view: RenderState, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
 
-    def _blocks(self, comp, fa) -> dict:
-        """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``."""
+    def _blocks(self, comp, fa, keys=("pos", "nrm", "mat", "vlight")) -> dict:
+        """The shading inputs' columns of the packed fragment attributes, compacted to ``[P, c]``
+        (one pass over the fragments: ``columns.split_columns``)."""
         L = self.layout
-        return {k: comp.pack(fa, *L[k]) for k in ("pos", "nrm", "mat", "vlight") if k in L}
+        keys = [k for k in keys if k in L]
+        return dict(zip(keys, columns.split_columns(comp.device, comp.frags, fa, [L[k] for k in keys]), strict=True))
 
     def _prepare(self, blk: dict, face, light_params=None):
         """``shade_op`` inputs of shaded points ``blk`` (faces ``face``), with the current light parameters."""
@@ -291,13 +375,14 @@ class ShadeFragments(Function):
             inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
         return inp
 
-    def _outputs(self, ctx, comp, inp, fa, n_rest):
-        """Shade (``[P, 3]``), take alpha's column; keep the backward's state."""
+    def _outputs(self, ctx, comp, inp, fa, n_rest, alpha=None):
+        """Shade (``[P, 3]``), take alpha's column (unless split already); keep the backward's state."""
         d, fr = self.view.device, self.view.frags
         P = fr.P
         rgb = shade_op.forward(d, inp).reshape(P, 3)  # the fragments are packed: [P, 3] as they come
-        alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
-        columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
+        if alpha is None:
+            alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
+            columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
         ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], n_rest
         return rgb, alpha.reshape(P)
 
@@ -305,22 +390,23 @@ class ShadeFragments(Function):
         d = self.view.device
         comp = columns.Compaction(d, self.view.frags)
         face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
-        inp = self._prepare(self._blocks(comp, fa), face_id, rest[0] if rest else None)
-        return self._outputs(ctx, comp, inp, fa, len(rest))
+        blk = self._blocks(comp, fa, ("pos", "nrm", "mat", "vlight", "alpha"))  # one pass, alpha included
+        inp = self._prepare(blk, face_id, rest[0] if rest else None)
+        return self._outputs(ctx, comp, inp, fa, len(rest), alpha=blk["alpha"])
 
     def backward(self, ctx, v_rgb, v_alpha):
         d, fr = self.view.device, self.view.frags
         P = fr.P
-        comp, L = ctx.comp, self.layout
+        L = self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
         g = shade_op.backward(d, ctx.inp, v_rgb)
         v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
-        for key, g in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
-            if key in L:
-                comp.unpack(g, v_fa, L[key][0])
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
-        columns.copy_columns(d, fr, v_alpha.reshape(P, 1), 0, v_fa, L["alpha"][0], 1)
+        # every column of the layout, in one pass over the fragments
+        parts = [(gk, L[key][0]) for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl),
+                                                 ("alpha", v_alpha.reshape(P, 1))) if key in L]
+        columns.merge_columns(d, fr, parts, v_fa)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
 
@@ -352,8 +438,8 @@ class TracedShadeFragments(ShadeFragments):
         face_r = trace_op.ray_mask(d, fr, comp.offsets, face_c, comp.pack(fa, L["alpha"][0], 1), v.win, s.t_min) \
             if s.t_min > 0 else face_c
         inp = self._prepare(blk, face_c, rest[0] if rest else None)
-        attr_h = np.ascontiguousarray(attr, s.real)
-        attr_d = cla.to_device(d.queue, attr_h)
+        attr_h = np.ascontiguousarray(to_host(attr), s.real)
+        attr_d = attr if isinstance(attr, cla.Array) and attr.dtype == s.real else cla.to_device(d.queue, attr_h)
         p0 = L["pos"][0]
         Vd = cla.to_device(d.queue, np.ascontiguousarray(attr_h[:, p0:p0 + 3]))
         ctx.shadow = ctx.hits = None
@@ -577,14 +663,16 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     outer = active_tape()
     tape = outer if outer is not None else Tape()
     with tape if outer is None else _nullcontext():
-        nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
-        mat = MaterialActivation(scene.brdf)(scene.material)
-        alpha = SigmoidHost()(scene.alpha)
-        blocks, sizes = [scene.V, nrm, mat, alpha], [3, 3, cm, 1]
-        if scene.vertex_sh is not None:
-            blocks.append(VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh))
-            sizes.append(6)
-        attr = Concat()(*blocks)
+        sizes = [3, 3, cm, 1] + ([6] if scene.vertex_sh is not None else [])
+        vl = [VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh)] \
+            if scene.vertex_sh is not None else []
+        if use_device_attributes(s, mesh):
+            attr = VertexAttributes(view, scene.brdf)(scene.V, scene.material, scene.alpha, *vl)
+        else:  # the host chain (the reference of VertexAttributes)
+            nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
+            mat = MaterialActivation(scene.brdf)(scene.material)
+            alpha = SigmoidHost()(scene.alpha)
+            attr = Concat()(scene.V, nrm, mat, alpha, *vl)
         ri = RasterInterpolate(view)(scene.V, attr)
         fa, win = (ri, None) if s.sigma is None else ri
         names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])

@@ -131,6 +131,23 @@ def config_from_saved(run_dir, saved: dict):
     return cfg
 
 
+def read_metrics(run_dir, command: str = "eval") -> dict:
+    """``metrics.json`` of a run as a dict (``{}`` when there is none), for a command that merges its section
+    into it; a damaged file is a :class:`RunError` naming it (callers read it before any work)."""
+    path = Path(run_dir) / "metrics.json"
+    if not path.is_file():
+        return {}
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
+                             f"kept: delete it to have {command} write a new one") from None
+    if not isinstance(d, dict):
+        raise RunError(path, f"damaged (expected a JSON object, found {type(d).__name__}); delete it to have "
+                             f"{command} write a new one")
+    return d
+
+
 # ---- checkpoints ---------------------------------------------------------------------------------------
 def read_checkpoint(path) -> tuple[dict, dict]:
     """``(arrays, meta)`` of a checkpoint ``.npz``; a truncated, empty or foreign file is a RunError."""

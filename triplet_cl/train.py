@@ -548,6 +548,7 @@ class Trainer:
             remove_stale_temp_files(folder)
         self.check_finite("before training")
         old = signal.signal(signal.SIGINT, on_sigint)
+        old_term = signal.signal(signal.SIGTERM, on_sigint)  # `kill PID`: the same clean stop as Ctrl-C
         bar = tqdm(total=cfg.iterations, initial=self.it, desc="train", unit="it", disable=self.quiet,
                    dynamic_ncols=True)
         t_start = time.perf_counter()
@@ -572,6 +573,7 @@ class Trainer:
         finally:
             bar.close()
             signal.signal(signal.SIGINT, old)
+            signal.signal(signal.SIGTERM, old_term)
         wall = time.perf_counter() - t_start
         self.save_checkpoint()
         return self.finish(wall)
@@ -597,10 +599,10 @@ class Trainer:
 
         s = self.scene
         brdf = get_brdf(s.brdf)
-        mat = sigmoid(s.material.data.astype(np.float64))
         attrs = {"alpha": sigmoid(s.alpha.data.astype(np.float64))}
-        attrs.update(brdf.split(mat, brdf.bounded_attributes))  # the [0, 1] attributes
-        write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs)
+        attrs.update(brdf.split(brdf.activate(s.material.data)))  # every attribute (Blinn-Phong's shininess too)
+        write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs,
+                       albedo_space="linear" if self.cfg.color == "linear" else "srgb")
         write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
 
     def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:

@@ -19,6 +19,7 @@ from .errors import RunError, UsageError
 
 K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the OpenCL layers)
 TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
+TEXTURE_BYTES_PER_TEXEL = 128  # mesh.bake while baking: measured peak 113 B / texel (export of a 15k-face mesh, 4096²)
 HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initialising; ×4 for training copies
 
 # option -> (args attribute, kind, low, high, what it is); None bound = unbounded
@@ -94,6 +95,11 @@ def _check_options(args) -> None:
         if bad or not names:
             raise UsageError("--lights", f"lights must be a comma-separated mix of {', '.join(LIGHT_KINDS)}, found "
                                          f"{lights!r}")
+        twice = sorted({x for x in names if names.count(x) > 1 and x != "point"})
+        if twice:  # they start identical and get identical gradients: one light's worth, twice
+            raise UsageError("--lights", f"{', '.join(twice)} given more than once ({lights!r}): only point lights "
+                                         "may repeat (each starts at its own random position); the others would "
+                                         "start identical and stay so")
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
     if getattr(args, "bbox", None) is not None:
@@ -128,6 +134,12 @@ def _check_options(args) -> None:
                                                    "at most the budget (a few thousand take the sky), or raise "
                                                    "--max-faces")
         check_memory_for_points((init if init is not None else 20_000) + shell, "--background-shell")
+    tex = getattr(args, "texture_size", None)
+    if tex is not None and tex > 0:
+        need, avail = tex * tex * TEXTURE_BYTES_PER_TEXEL, available_memory()
+        if avail is not None and need > 0.8 * avail:
+            raise UsageError("--texture-size", f"baking a {tex}² texture needs about {need / 2**30:.1f} GiB of memory, "
+                                               f"this machine has {avail / 2**30:.1f} GiB available")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
@@ -180,6 +192,20 @@ def check_writable_dir(path, option: str) -> None:
         ro = _read_only_fs(base)
         raise UsageError(option, f"{path}: {base} is not writable" + (" (read-only filesystem)" if ro else
                                                                        " (permission denied)"))
+    if not path.exists():  # os.access says yes for root, and on /sys, /proc: try it (and take it back at once)
+        made = []
+        try:
+            for p in reversed([q for q in (path.absolute(), *path.absolute().parents) if not q.exists()]):
+                p.mkdir()
+                made.append(p)
+        except OSError as exc:
+            raise UsageError(option, f"{path}: the folder cannot be created ({os_error_message(exc)})") from None
+        finally:
+            for p in reversed(made):
+                try:
+                    p.rmdir()
+                except OSError:
+                    pass
 
 
 def _read_only_fs(path: Path) -> bool:
@@ -215,6 +241,33 @@ def check_not_in_dataset(path, option: str, dataset=None) -> None:
                                      "dataset (it would replace the photos); choose another folder")
 
 
+def check_not_run_internal(path, option: str) -> None:
+    """Never write outputs into a run's ``checkpoints/`` folder (or below it): it is the run's own state,
+    which ``--resume``, pruning and ``latest`` manage."""
+    from .runs import CHECKPOINTS, is_run_dir
+
+    p = Path(path).absolute().resolve()
+    for folder in (p, *p.parents):
+        if folder.name == CHECKPOINTS and is_run_dir(folder.parent):
+            raise UsageError(option, f"{path} is inside the checkpoints folder of the run {folder.parent}: "
+                                     "triplet writes nothing else there; choose another folder")
+
+
+def check_not_other_run(path, run, option: str) -> None:
+    """Outputs of a command on ``run`` go into that run or outside every run: never into another run's
+    folder, whose own files (``lights.json``, ``mesh.*``, ``renders/``) they would replace."""
+    from .runs import is_run_dir
+
+    p = Path(path).absolute().resolve()
+    mine = Path(run).absolute().resolve()
+    for folder in (p, *p.parents):
+        if folder == mine:
+            return
+        if is_run_dir(folder):
+            raise UsageError(option, f"{path} is inside another run, {folder}: its own files (lights.json, mesh.*, "
+                                     f"renders) would be replaced by those of {run}; choose a folder outside it")
+
+
 def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
     """A run directory with a readable config.json; ``writable``: results can be written into it."""
     from .runs import read_run_config
@@ -233,6 +286,7 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
     out = Path(out)
     check_writable_dir(out, option)
     check_not_in_dataset(out, option, dataset)
+    check_not_run_internal(out, option)
     if resume and overwrite:
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
@@ -299,6 +353,9 @@ def validate_args(args) -> None:
             if given:
                 raise UsageError(given[0], "only applies with --mesh-stage (or use `triplet extract RUN`)")
         data = getattr(args, "data", None)
+        if data is not None and getattr(args, "demo", False):
+            raise UsageError("--demo", f"trains the dataset shipped with the package, and DATA {data} was given too: "
+                                       "give one of them")
         if data is not None and not Path(data).exists():
             raise UsageError("DATA", f"{data}: dataset folder not found")
         out = getattr(args, "out", None) or ("runs/demo" if getattr(args, "demo", False) else None)
@@ -306,6 +363,12 @@ def validate_args(args) -> None:
             check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
                               None if getattr(args, "demo", False) else data)
     elif cmd in ("render", "eval", "extract", "export", "relight"):
+        if cmd == "eval" and not getattr(args, "relight", None):  # they only apply to the relit evaluation
+            given = [o for o, a in (("--out", "out"), ("--renderer", "renderer"), ("--env-degree", "env_degree"))
+                     if getattr(args, a, None) is not None]
+            if given:
+                raise UsageError(given[0], "only applies with --relight (the relit images, their renderer and the "
+                                           "environment maps' SH degree); plain `eval` writes only metrics.json")
         writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
         if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
             if not (Path(args.run) / "config.json").is_file():
@@ -317,6 +380,8 @@ def validate_args(args) -> None:
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
+            check_not_run_internal(args.out, "--out")
+            check_not_other_run(args.out, args.run, "--out")
     elif cmd == "colmap":
         check_colmap_paths(args.images, args.out)
 

@@ -28,6 +28,7 @@ from .nerf import load_nerf
 from .ngp import load_ngp
 
 FORMATS = ("nerf", "ngp", "colmap")
+NERF_SPLIT_FILES = ("transforms_train.json", "transforms_val.json", "transforms_test.json")
 
 __all__ = [
     "BACKGROUNDS",
@@ -56,6 +57,9 @@ def detect_format(path) -> str:
     """``"nerf"`` (``transforms_train.json``), ``"ngp"`` (``transforms.json``, or a ``.json`` file
     given directly) or ``"colmap"`` (a sparse model in ``sparse/0/``, ``sparse/`` or the folder)."""
     path = Path(path)
+    if path.is_file() and path.name.lower() in NERF_SPLIT_FILES:
+        raise DatasetError(path, f"a NeRF-synthetic split file, not a dataset: give its folder {path.parent} "
+                                 "(triplet reads transforms_train/_val/_test.json there together)")
     if path.is_file() and path.suffix.lower() == ".json":
         return "ngp"
     if not path.is_dir():

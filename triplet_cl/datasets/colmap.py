@@ -9,8 +9,8 @@ or its grandparent's). COLMAP's pixel convention (upper-left pixel centre at (0.
 Camera models PINHOLE and SIMPLE_PINHOLE are used as they are (so are distorting models whose
 distortion coefficients are all exactly zero). A scene with distorting cameras (SIMPLE_RADIAL,
 RADIAL, OPENCV, the fisheyes, ...: COLMAP's defaults for phone photos) is undistorted to PINHOLE once
-with pycolmap into a cache (:func:`triplet_cl.datasets.sfm.undistorted_model`: ``ROOT/.triplet_cache/``
-when the folder is writable, else ``~/.cache/triplet_cl/``) and that copy is loaded.
+with pycolmap into a cache (:func:`triplet_cl.datasets.sfm.undistorted_model`: ``$TRIPLET_CACHE``, else
+``$XDG_CACHE_HOME/triplet_cl/`` = ``~/.cache/triplet_cl/``; never the dataset folder) and that copy is loaded.
 """
 
 from __future__ import annotations

@@ -184,4 +184,14 @@ def load_views(records, downscale: int = 1, split: str = "train"):
         cam = downscale_camera(make_camera(img.width, img.height), downscale)
         views.append(View(name, cam, img.rgb, img.alpha, path))
         spaces.add(img.color_space)
+    bare = [v for v in views if v.alpha is None]
+    if bare and len(bare) < len(views):  # a mix: those views' background would be trained as the object
+        import warnings
+
+        from .base import DatasetWarning
+
+        shown = ", ".join(Path(v.path).name for v in bare[:3]) + (", ..." if len(bare) > 3 else "")
+        warnings.warn(f"{Path(bare[0].path).parent}: {len(bare)} of {len(views)} {split} images have no alpha channel "
+                      f"({shown}) while the others have: their background is taken as part of the object (give every "
+                      "image alpha, or none)", DatasetWarning, stacklevel=2)
     return views, spaces

@@ -196,6 +196,9 @@ def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Datase
     ``transforms_test.json`` (optional; without a test file, the LLFF hold-out of
     :func:`~triplet_cl.datasets.base.holdout_split` makes one from the training frames)."""
     root = Path(root)
+    if root.is_file():
+        raise DatasetError(root, f"is a file; expected the dataset folder (the one holding transforms_train.json, "
+                                 f"e.g. {root.parent})")
     if not root.is_dir():
         raise DatasetError(root, "dataset folder not found")
     if not (root / "transforms_train.json").is_file():

@@ -152,12 +152,15 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
     pycolmap = _pycolmap()
     _quiet_colmap(pycolmap, verbose)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
+    remove_dead_work_dirs(out_dir)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
     try:
+        (work / WORK_PID).write_text(str(os.getpid()))
         summary = _solve(pycolmap, photos, images_dir, work, camera_model, max_features, min_registered,
                          num_threads, say)
         summary.update({"images_dir": str(images_dir.resolve()), "width": width, "height": height})
         (work / "sfm.json").write_text(json.dumps(summary, indent=1) + "\n")
+        (work / WORK_PID).unlink()
         if out_dir.exists():  # an empty folder (checked above)
             out_dir.rmdir()
         os.replace(work, out_dir)
@@ -165,6 +168,34 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
         shutil.rmtree(work, ignore_errors=True)
         raise
     return summary
+
+
+WORK_PID = ".pid"  # the process writing a work folder (a folder whose process is gone is removed)
+
+
+def remove_dead_work_dirs(out_dir) -> list[Path]:
+    """Remove the work folders ``.<DATA>.tmp-*`` beside ``out_dir`` left by a ``triplet colmap`` that was
+    killed (SIGKILL, power loss: SIGTERM and Ctrl-C clean up themselves): those whose recorded process no
+    longer runs. A folder of a process still running (another ``colmap`` with the same ``--out``) stays."""
+    out_dir = Path(out_dir)
+    removed = []
+    if not out_dir.parent.is_dir():
+        return removed
+    for p in out_dir.parent.glob(f".{out_dir.name}.tmp-*"):
+        try:
+            pid = int((p / WORK_PID).read_text().strip())
+        except (OSError, ValueError):
+            continue  # not ours, or being created this instant
+        try:
+            os.kill(pid, 0)
+            continue  # still running
+        except ProcessLookupError:
+            pass
+        except OSError:  # exists but belongs to someone else
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+    return removed
 
 
 def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, max_features: int,
@@ -260,15 +291,18 @@ def undistort_model(pycolmap, model_dir: Path, images_dir: Path, out: Path, imag
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-def cache_root(root: Path) -> Path:
-    """Where undistorted copies go: ``ROOT/.triplet_cache/`` beside the data when that is writable,
-    else ``$TRIPLET_CACHE`` or ``~/.cache/triplet_cl/``."""
+def cache_root(root: Path | None = None) -> Path:
+    """Where undistorted copies go: ``$TRIPLET_CACHE``, else the user's cache folder
+    ``$XDG_CACHE_HOME/triplet_cl/`` (``~/.cache/triplet_cl/``) — never the dataset folder ``root``
+    (triplet writes nothing into a dataset). ``root`` is unused (kept for callers of the old signature)."""
     env = os.environ.get("TRIPLET_CACHE")
     if env:
         return Path(env)
-    if os.access(root, os.W_OK):
-        return root / ".triplet_cache"
-    return Path.home() / ".cache" / "triplet_cl"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "triplet_cl"
+
+
+LEGACY_CACHE = ".triplet_cache"  # ROOT/.triplet_cache/: where versions before 2026-11-24 put the copies
 
 
 def _model_key(model_dir: Path, images_dir: Path, names) -> str:
@@ -300,6 +334,9 @@ def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: di
     say = progress or (lambda s: None)
     names = [im.name for im in images.values()]
     key = _model_key(model_dir, images_dir, names)
+    legacy = Path(root) / LEGACY_CACHE / f"undistorted-{key}"  # made by an older version: read, never written
+    if (legacy / "sparse" / "0").is_dir() and (legacy / "images").is_dir():
+        return legacy
     base = cache_root(root)
     dest = base / f"undistorted-{key}"
     if (dest / "sparse" / "0").is_dir() and (dest / "images").is_dir():
@@ -357,4 +394,4 @@ def _write_text_model(folder: Path, cameras: dict, images: dict) -> Path:
 
 
 __all__ = ["CAMERA_MODELS", "IMAGE_EXTENSIONS", "REGISTER_HELP", "SFM_EXTENSIONS", "cache_root", "check_one_size",
-           "list_photos", "photo_sizes", "run_sfm", "undistort_model", "undistorted_model"]
+           "list_photos", "photo_sizes", "remove_dead_work_dirs", "run_sfm", "undistort_model", "undistorted_model"]

@@ -11,6 +11,7 @@ Modules:
     envmap    lat-long EXR of the SH environment light (and back)
     refine    the mesh stage: extract → refine as a mesh → export (``triplet extract``)
     metrics   Chamfer distance to a reference mesh
+    repair    topology (genus, watertightness) and self-intersection detection / local repair
 """
 
 from .asset import MeshAsset

@@ -7,11 +7,15 @@ the image (row ``i`` covers ``v`` in ``[i/H, (i+1)/H)``); texel ``(i, j)`` has i
 Baking: every face is rasterised in texel space (a texel belongs to the face that contains its
 centre, barycentric ``w`` of the centre; texels that only overlap a face get its clamped
 barycentrics, so that every face, however small, owns a texel: :func:`rasterize_uv`), and each
-attribute is ``sum_k w_k a[corner k]`` there. Texels that no face reaches are then filled with
+attribute is ``sum_k w_k a[corner k]`` there. Texels that no face reaches (the gutter) are then filled with
 the value of the *nearest* reached texel (``scipy.ndimage.distance_transform_edt``), out to
 ``dilate`` texels or everywhere: bilinear
 filtering and mip-maps near chart borders then average values of the same chart instead of the
-background.
+background. Given the faces' charts (:attr:`UVAtlas.face_chart`), the gutter is filled **per chart**
+(:func:`gutter_sources`): a gutter texel not next to a chart whose mip-map block (2×2 … 32×32, coarsest first) holds
+covered texels of one chart only is given to that chart and takes the value of that chart's nearest
+texel, so that the block averages one chart's values; the other gutter texels take the nearest chart's
+(measured with ``bench/gutter.py``, see ``bench/results/gutter_2026-11-24.txt``).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ class UVAtlas:
         faces: ``[M, 3] int32`` faces into the atlas vertices (same order as ``F``).
         uv: ``[N2, 2] float32`` texture coordinates in [0, 1] (glTF convention, ``v`` down).
         charts: number of charts; utilization: fraction of the atlas the charts cover.
+        face_chart: ``[M] int64`` the chart of each face (:func:`chart_of_faces`), or None.
     """
 
     vmap: np.ndarray
@@ -37,6 +42,78 @@ class UVAtlas:
     uv: np.ndarray
     charts: int
     utilization: float
+    face_chart: np.ndarray | None = None
+
+
+def chart_of_faces(faces: np.ndarray, pos: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Charts of an atlas: connected components of its faces ``[M, 3]`` (into the atlas vertices) through
+    shared corners, a corner being one 3D position ``pos`` at one UV position ``uv`` (xatlas splits
+    vertices at seams and joins colocated ones of a chart). Returns ``[M] int64`` labels."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = np.asarray(faces, np.int64)
+    if len(faces) == 0:
+        return np.zeros(0, np.int64)
+    key = np.column_stack([np.round(np.asarray(pos, np.float64) * 2**20).astype(np.int64),
+                           np.round(np.asarray(uv, np.float64) * 2**20).astype(np.int64)])
+    _, corner = np.unique(key, axis=0, return_inverse=True)
+    f = corner.reshape(-1)[faces]
+    rows = np.repeat(np.arange(len(f)), 3)
+    g = coo_matrix((np.ones(rows.size), (rows, f.ravel())), shape=(len(f), int(corner.max()) + 1)).tocsr()
+    _, lab = connected_components(g @ g.T, directed=False)
+    return lab.astype(np.int64)
+
+
+def gutter_sources(face_img: np.ndarray, face_chart: np.ndarray | None = None, levels: int = 5):
+    """For every texel, the covered texel whose value it takes: ``(iy, ix, dist)`` ``[H, W]`` (a covered
+    texel takes its own; ``dist``: distance to the nearest covered texel of any chart).
+
+    Without ``face_chart``: the nearest covered texel. With it (module docstring): each gutter texel is
+    first given a chart — a texel next to a chart (8-neighbourhood, what bilinear filtering reads) the
+    nearest; then for ``L = levels … 1``, a ``2^L × 2^L`` block whose covered texels all belong to one chart
+    gives its still unassigned gutter texels to that chart; the rest go to the nearest chart — and then
+    takes the value of the nearest covered texel of that chart."""
+    from scipy.ndimage import distance_transform_edt
+
+    covered = face_img >= 0
+    dist, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
+    if face_chart is None or covered.all():
+        return iy, ix, dist
+    h, w = face_img.shape
+    own = np.full((h, w), -1, np.int64)
+    own[covered] = np.asarray(face_chart, np.int64)[face_img[covered]]
+    assigned = own.copy()
+    near = ~covered & (dist < 1.5)  # next to a chart (8-neighbourhood): bilinear filtering reads it, the nearest
+    assigned[near] = own[iy[near], ix[near]]  # chart's value keeps a chart's border clean at full resolution
+    big = np.iinfo(np.int64).max
+    for lv in range(int(levels), 0, -1):
+        b = 2**lv
+        H, W = -(-h // b) * b, -(-w // b) * b
+        o = np.full((H, W), -1, np.int64)
+        o[:h, :w] = own
+        blk = o.reshape(H // b, b, W // b, b)
+        mx = blk.max(axis=(1, 3))
+        mn = np.where(blk >= 0, blk, big).min(axis=(1, 3))
+        single = np.where((mx >= 0) & (mn == mx), mx, -1)  # [H/b, W/b] the one chart, or -1
+        cand = np.repeat(np.repeat(single, b, 0), b, 1)[:h, :w]
+        take = (assigned < 0) & (cand >= 0)
+        assigned[take] = cand[take]
+    rest = assigned < 0
+    assigned[rest] = own[iy[rest], ix[rest]]
+    # the nearest covered texel of the assigned chart, where it is not the nearest of all
+    from scipy.ndimage import find_objects
+
+    wrong = ~covered & (own[iy, ix] != assigned)
+    label = np.where(covered, own, np.where(wrong, assigned, -1)) + 1  # the chart's texels and its wrong gutter
+    boxes = find_objects(label.astype(np.int32))
+    for c in np.unique(assigned[wrong]):
+        box = boxes[int(c)]
+        tgt = wrong[box] & (assigned[box] == c)
+        _, (sy, sx) = distance_transform_edt(own[box] != c, return_indices=True)
+        iy[box][tgt] = sy[tgt] + box[0].start
+        ix[box][tgt] = sx[tgt] + box[1].start
+    return iy, ix, dist
 
 
 def spatial_pieces(V: np.ndarray, F: np.ndarray, piece_faces: int) -> list[np.ndarray]:
@@ -110,9 +187,10 @@ def uv_atlas(V: np.ndarray, F: np.ndarray, texture_size: int = 1024, padding: in
         faces[idx] = fi.astype(np.int64) + offset
         offset += len(vm)
     util = atlas.utilization
-    return UVAtlas(np.concatenate(vmaps).astype(np.int64), faces,
-                   np.clip(np.concatenate(uvs), 0, 1).astype(np.float32), int(atlas.chart_count),
-                   float(np.ravel(util)[0]) if np.ndim(util) else float(util))
+    vmap = np.concatenate(vmaps).astype(np.int64)
+    uv = np.clip(np.concatenate(uvs), 0, 1).astype(np.float32)
+    return UVAtlas(vmap, faces, uv, int(atlas.chart_count), float(np.ravel(util)[0]) if np.ndim(util) else float(util),
+                   chart_of_faces(faces, V[vmap], uv))
 
 
 def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
@@ -180,7 +258,7 @@ def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
 
 
 def bake(face_img: np.ndarray, bary_img: np.ndarray, faces: np.ndarray, values: np.ndarray,
-         dilate: int | None = None, fill=None) -> np.ndarray:
+         dilate: int | None = None, fill=None, face_chart: np.ndarray | None = None) -> np.ndarray:
     """Bake per-vertex ``values`` into a texture from a UV rasterisation (:func:`rasterize_uv`).
 
     Args:
@@ -189,11 +267,11 @@ def bake(face_img: np.ndarray, bary_img: np.ndarray, faces: np.ndarray, values: 
         dilate: fill empty texels within this many texels of a covered one with the nearest covered
             value; ``None`` fills every empty texel that way (best for mip-maps).
         fill: ``[C]`` value of the texels left empty (default: the mean of the covered texels).
+        face_chart: ``[M]`` chart of each face (:attr:`UVAtlas.face_chart`): fill the gutter per chart
+            (:func:`gutter_sources`); None: from the nearest covered texel.
     Returns:
         ``[H, W, C] float32``.
     """
-    from scipy.ndimage import distance_transform_edt
-
     values = np.asarray(values, np.float32)
     values = values.reshape(len(values), -1)
     h, w = face_img.shape
@@ -206,7 +284,7 @@ def bake(face_img: np.ndarray, bary_img: np.ndarray, faces: np.ndarray, values: 
     out[covered] = np.einsum("tk,tkc->tc", bary_img[covered], values[f])
     if covered.all():
         return out
-    dist, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
+    iy, ix, dist = gutter_sources(face_img, face_chart)
     grow = ~covered if dilate is None else (~covered) & (dist <= float(dilate))
     out[grow] = out[iy[grow], ix[grow]]
     rest = ~covered & ~grow

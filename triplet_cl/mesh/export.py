@@ -136,8 +136,9 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
             (4 at 1024²). Measured with ``bench/gutter.py`` on a 50k-face marching-cubes Spot (695
             charts, 1024²): the fraction of chart texels whose mip-map block mixes in another chart's
             gutter at mip 2 / 3 / 4 is 0.2 / 4.8 / 24 % with padding 2, 0 / 2.4 / 20 % with 4 (8 %
-            fewer texels for the charts), 0 / 0.4 / 14 % with 8 (30 % fewer). dilate: see
-            :func:`bake.bake`.
+            fewer texels for the charts), 0 / 0.4 / 14 % with 8 (30 % fewer); with the gutter filled per
+            chart (``atlas.face_chart``, :func:`bake.gutter_sources`, the default now) 0 / 0.1 / 7.3 % with
+            4. dilate: see :func:`bake.bake`.
     """
     _check_asset(asset, "bake_asset")
     if int(texture_size) < 16 or int(texture_size) > 16384:
@@ -155,7 +156,7 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
         ks = np.clip(asset.attributes[spec_attr], 0, 1)
         cols.append(srgb_encode(ks) if albedo_space == "linear" else ks)
     values = np.concatenate(cols, 1)[atlas.vmap]  # per atlas vertex
-    tex = bake(face_img, bary, atlas.faces, values, dilate=dilate)
+    tex = bake(face_img, bary, atlas.faces, values, dilate=dilate, face_chart=atlas.face_chart)
     base = tex[..., :3] if not with_alpha else np.concatenate([tex[..., :3], tex[..., 6:7]], -1)
     if spec_attr is not None:
         spec = _u8(tex[..., -3:])
@@ -445,18 +446,20 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
 
 
 # ---- PLY ---------------------------------------------------------------------------------------
-def export_ply(asset: MeshAsset, path) -> Path:
+def export_ply(asset: MeshAsset, path, albedo_space: str = "srgb") -> Path:
     """Binary little-endian PLY of the connected mesh with per-vertex attributes, atomically.
 
     Vertex properties (float32 unless said): ``x y z``, ``nx ny nz`` (area-weighted unit normals),
     every attribute of the asset (``[N, k]`` as ``name_0 .. name_{k-1}``, e.g. ``albedo_0..2``,
     ``roughness``, ``metallic``, ``ao``, ``alpha``; Blinn-Phong ``ks_*``, ``shininess``, ``ka_*``),
-    and ``red green blue`` uchar from the albedo; faces ``vertex_indices`` (uchar count, int).
+    and ``red green blue`` uchar from the albedo (sRGB-encoded when ``albedo_space="linear"``, as the
+    base-colour textures; the float ``albedo_*`` stay as trained); faces ``vertex_indices`` (uchar count, int).
     """
     _check_asset(asset, "export_ply")
     n = vertex_normals(asset.V, asset.F)
     attrs = {"nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], **asset.attributes}
-    write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh")
+    write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh",
+                   albedo_space=albedo_space)
     return Path(path)
 
 
@@ -507,7 +510,7 @@ def export_asset(asset: MeshAsset, out_dir, formats=FORMATS, texture_size: int =
         obj, mtl, *tex = export_obj(asset, out_dir / "mesh.obj", baked=baked)
         paths.update(obj=obj, mtl=mtl, textures=tex)
     if "ply" in formats:
-        paths["ply"] = export_ply(asset, out_dir / "mesh.ply")
+        paths["ply"] = export_ply(asset, out_dir / "mesh.ply", albedo_space)
     write_json(out_dir / "lights.json", lights_doc)
     paths["lights"] = out_dir / "lights.json"
     if has_env and envmap is not False:

@@ -352,8 +352,10 @@ class MeshStage:
                 scene = self.refine(scene, k)
             source = scene
         self.scene = source
+        topology = self.repair()
         self.save_state()
         metrics = self.evaluate()
+        metrics["topology"] = topology
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()
@@ -361,6 +363,29 @@ class MeshStage:
         metrics["files"] = [str(p.name) for p in self.export()]
         self._write_metrics(metrics)
         return metrics
+
+    def repair(self) -> dict:
+        """Remove the final mesh's self-intersections (:func:`~triplet_cl.mesh.repair.repair_self_intersections`:
+        QEM simplification and the refinement's vertex steps can make faces cross) and report its topology
+        before and after (genus, watertightness, crossing face pairs) for ``metrics.json``."""
+        from dataclasses import asdict
+
+        from .repair import mesh_topology, repair_self_intersections
+
+        t = time.perf_counter()
+        V, F = np.asarray(self.scene.V.data), np.asarray(self.scene.F)
+        before = mesh_topology(V, F, intersections=False)
+        Vn, rep = repair_self_intersections(V, F)
+        if rep.before:
+            self.scene.V.data = Vn.astype(V.dtype)
+        after = mesh_topology(self.scene.V.data, F, intersections=False)
+        before["self_intersections"], after["self_intersections"] = rep.before, rep.after
+        out = {"before_repair": before, "after_repair": after, "repair": {**asdict(rep),
+                                                                            "seconds": time.perf_counter() - t}}
+        self.trainer.log.info(f"mesh repair: {rep.before} -> {rep.after} self-intersecting face pairs "
+                              f"({rep.moved_vertices} vertices moved, at most {rep.max_displacement:.2g}); genus "
+                              f"{after['genus']}, watertight {after['watertight']}, {time.perf_counter() - t:.1f} s")
+        return out
 
     def evaluate(self) -> dict:
         """Test-view PSNR/SSIM of the mesh (and of the soup, for comparison), Chamfer to ``gt_mesh.ply``."""
@@ -417,8 +442,10 @@ class MeshStage:
         return self.run_dir / MESH_STATE
 
     def _write_metrics(self, mesh_metrics: dict) -> None:
+        from ..runs import read_metrics
+
         path = self.run_dir / "metrics.json"
-        metrics = json.loads(path.read_text()) if path.is_file() else {}
+        metrics = read_metrics(self.run_dir, "extract")
         metrics["mesh"] = mesh_metrics
         write_json(path, metrics)
         self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))

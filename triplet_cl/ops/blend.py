@@ -113,16 +113,20 @@ class Blend:
         (``1 / Σ_k b_k / z_k`` from the entry's set-up, in REAL); 0 where ``entry < 0``."""
         e = np.asarray(entry)
         r = self.real.type
-        s = self.binning.entry_setup.get()[np.maximum(e, 0)]  # [H, W, SETUP]
-        y, x = np.mgrid[:self.height, :self.width]
-        dx = (x.astype(self.real) + r(0.5)) - s[..., 0]
-        dy = (y.astype(self.real) + r(0.5)) - s[..., 1]
-        b0 = r(1) + s[..., 2] * dx + s[..., 3] * dy
-        b1 = s[..., 4] * dx + s[..., 5] * dy
+        hit = e >= 0
+        out = np.zeros(e.shape, self.real)
+        if not hit.any():
+            return out
+        s = self.binning.entry_setup.get()[e[hit]]  # [P, SETUP] of the hit pixels only (the set-up of
+        y, x = np.nonzero(hit)                      # an unused entry may hold anything, even overflow)
+        dx = (x.astype(self.real) + r(0.5)) - s[:, 0]
+        dy = (y.astype(self.real) + r(0.5)) - s[:, 1]
+        b0 = r(1) + s[:, 2] * dx + s[:, 3] * dy
+        b1 = s[:, 4] * dx + s[:, 5] * dy
         b2 = r(1) - b0 - b1
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = r(1) / (b0 * s[..., 6] + b1 * s[..., 7] + b2 * s[..., 8])
-        return np.where(e >= 0, z, r(0))
+            out[hit] = r(1) / (b0 * s[:, 6] + b1 * s[:, 7] + b2 * s[:, 8])
+        return out
 
     @property
     def alpha(self) -> np.ndarray:

@@ -50,13 +50,18 @@ def face_forward(dev: Device, V: cla.Array, F: cla.Array, unit: bool = True, rea
 
 
 def face_backward(dev: Device, V: cla.Array, F: cla.Array, v_n: cla.Array, offsets: cla.Array,
-                  corners: cla.Array, unit: bool = True, real=np.float32) -> cla.Array:
-    """``v_V [N, 3]`` from ``v_n [M, 3]`` (adjoint of the unit normal when ``unit``, else of the cross)."""
+                  corners: cla.Array, unit: bool = True, real=np.float32,
+                  corners_are_vertices: bool = False) -> cla.Array:
+    """``v_V [N, 3]`` from ``v_n [M, 3]`` (adjoint of the unit normal when ``unit``, else of the cross).
+    ``corners_are_vertices`` (``DeviceMesh.corners_are_vertices``: face f on vertices 3f … 3f + 2):
+    the per-corner adjoints are the per-vertex ones, the gather is skipped."""
     N, M = V.shape[0], F.shape[0]
     v_corner = empty(dev.queue, (M, 3, 3), real)
-    v_V = empty(dev.queue, (N, 3), real)
     k = dev.kernel("normals", "face_normals_bwd", real=real)
     _run(dev, k, M, V.data, F.data, np.int32(M), np.int32(unit), v_n.data, v_corner.data)
+    if corners_are_vertices and N == 3 * M:
+        return v_corner.reshape(N, 3)
+    v_V = empty(dev.queue, (N, 3), real)
     k = dev.kernel("normals", "corner_gather", real=real)
     _run(dev, k, N, offsets.data, corners.data, np.int32(N), v_corner.data, v_V.data)
     return v_V

@@ -1,0 +1,149 @@
+"""Where one training step spends its time: every kernel, and the host share of every op on the tape.
+
+Usage::
+
+    python bench/step_profile.py [SCENE] [--steps 15] [--warmup 3] [--downscale 1] [--top 30]
+
+SCENE: a folder, or a name under ``/work/shared/data/scenes`` (default ``spot``). The training
+configuration is ``bench/train_step.py``'s (``TrainConfig`` defaults at full resolution from step 0).
+Every kernel launch (``Device.kernel``) is wrapped with ``queue.finish()`` before and after, so its
+wall time is its own; every :class:`~triplet_cl.autodiff.Function` of ``render.py``, ``losses.py``
+and ``ops/color.py``, ``Adam.step`` and ``DensityStats.add`` is timed the same way and its host
+share is its time minus the kernels it launched. Serialising the queue costs a little overlap, so
+the step is slower than ``train_step.py`` says; the split is what this is for. Per row: the
+minimum over the measured steps (load only adds time) and the median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENES = Path("/work/shared/data/scenes")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", nargs="?", default="spot", help="a folder or a name under " + str(SCENES))
+    ap.add_argument("--steps", type=int, default=15, help="measured steps")
+    ap.add_argument("--warmup", type=int, default=3, help="unmeasured steps first (kernel builds)")
+    ap.add_argument("--downscale", type=int, default=1, help="dataset downscale factor")
+    ap.add_argument("--top", type=int, default=30, help="rows per table")
+    args = ap.parse_args()
+    scene = args.scene if Path(args.scene).is_dir() else str(SCENES / args.scene)
+    if not Path(scene).is_dir():
+        raise SystemExit(f"step_profile.py: error: scene {args.scene!r} is neither a folder nor a name under {SCENES}")
+
+    from triplet_cl.autodiff import Function
+
+    from triplet_cl import density as density_mod
+    from triplet_cl import device as device_mod
+    from triplet_cl import losses, optim, render
+    from triplet_cl import train as train_mod
+    from triplet_cl.ops import color
+
+    kern_t = collections.defaultdict(float)  # per kernel name, this step
+    kern_n = collections.Counter()  # launches per kernel name, all measured steps
+    total_k = [0.0]
+    fetch = device_mod.Device.kernel
+
+    class Timed:
+        def __init__(self, k, name):
+            self.k, self.name = k, name
+
+        def __call__(self, queue, *a, **kw):
+            queue.finish()
+            t0 = time.perf_counter()
+            ev = self.k(queue, *a, **kw)
+            queue.finish()
+            dt = time.perf_counter() - t0
+            kern_t[self.name] += dt
+            kern_n[self.name] += 1
+            total_k[0] += dt
+            return ev
+
+        def __getattr__(self, a):
+            return getattr(self.k, a)
+
+    def timed_fetch(self, f, k, defines=None, real=np.float32):
+        return Timed(fetch(self, f, k, defines, real), k)
+
+    device_mod.Device.kernel = timed_fetch
+    op_wall = collections.defaultdict(float)
+    op_host = collections.defaultdict(float)
+    dev = [None]
+
+    def wrap(cls, meth):
+        fn = getattr(cls, meth)
+
+        def timed(self, *a, **kw):
+            if dev[0] is not None:
+                dev[0].queue.finish()
+            k0, t0 = total_k[0], time.perf_counter()
+            out = fn(self, *a, **kw)
+            if dev[0] is not None:
+                dev[0].queue.finish()
+            dt = time.perf_counter() - t0
+            op_wall[f"{cls.__name__}.{meth}"] += dt
+            op_host[f"{cls.__name__}.{meth}"] += dt - (total_k[0] - k0)
+            return out
+        setattr(cls, meth, timed)
+
+    seen = set()
+    for mod in (render, losses, color):
+        for c in vars(mod).values():
+            if isinstance(c, type) and issubclass(c, Function) and c is not Function and c not in seen:
+                seen.add(c)
+                for m in ("forward", "backward"):
+                    if m in c.__dict__:
+                        wrap(c, m)
+    wrap(optim.Adam, "step")
+    wrap(density_mod.DensityStats, "add")
+
+    cfg = train_mod.TrainConfig(iterations=10**6, warmup_until=0, half_res_until=0, checkpoint_every=0,
+                                downscale=args.downscale, seed=0)
+    rows_k, rows_w, rows_h, steps, kernels = (collections.defaultdict(list), collections.defaultdict(list),
+                                              collections.defaultdict(list), [], [])
+    with tempfile.TemporaryDirectory(prefix="step_profile_") as run_dir:
+        tr = train_mod.Trainer(scene, run_dir, cfg, quiet=True)
+        dev[0] = tr.device
+        for i in range(args.warmup + args.steps):
+            kern_t.clear()
+            op_wall.clear()
+            op_host.clear()
+            k0, t0 = total_k[0], time.perf_counter()
+            tr.step()
+            if i < args.warmup:
+                kern_n.clear()
+                continue
+            steps.append(time.perf_counter() - t0)
+            kernels.append(total_k[0] - k0)
+            for k, v in kern_t.items():
+                rows_k[k].append(v)
+            for k in op_wall:
+                rows_w[k].append(op_wall[k])
+                rows_h[k].append(op_host[k])
+        cam = tr.ds.train[0].camera
+        print(f"# bench/step_profile.py {Path(scene).name} {cam.width}x{cam.height}, {len(tr.scene.F)} faces, "
+              f"{args.steps} steps, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+
+    def ms(x):
+        return 1e3 * float(x)
+
+    print(f"step (serialised)  min {ms(min(steps)):8.2f}  median {ms(np.median(steps)):8.2f} ms")
+    print(f"kernels            min {ms(min(kernels)):8.2f}  median {ms(np.median(kernels)):8.2f} ms")
+    print(f"\n{'kernel':<28}{'min':>9}{'median':>9}{'launches':>10}")
+    for k in sorted(rows_k, key=lambda k: -min(rows_k[k]))[:args.top]:
+        print(f"{k:<28}{ms(min(rows_k[k])):>9.2f}{ms(np.median(rows_k[k])):>9.2f}{kern_n[k] / args.steps:>10.1f}")
+    print(f"\n{'op':<32}{'wall min':>9}{'host min':>9}{'host med':>9}")
+    for k in sorted(rows_h, key=lambda k: -min(rows_h[k]))[:args.top]:
+        print(f"{k:<32}{ms(min(rows_w[k])):>9.2f}{ms(min(rows_h[k])):>9.2f}{ms(np.median(rows_h[k])):>9.2f}")
+
+
+if __name__ == "__main__":
+    main()

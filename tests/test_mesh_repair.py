@@ -1,0 +1,119 @@
+"""Topology and self-intersection repair of the exported mesh (triplet_cl/mesh/repair.py, issue 21)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from triplet_cl.mesh.repair import mesh_topology, repair_self_intersections, self_intersections
+
+
+def _brute_force_pairs(V, F) -> set:
+    """Every pair of faces without a common vertex that intersect, by an independent test: Möller–Trumbore
+    ray/triangle on each edge as a ray, the hit inside the edge (0 < t < 1)."""
+    tri = np.asarray(V, np.float64)[np.asarray(F)]
+
+    def edge_hits(p, q, t3):
+        d = q - p
+        e1, e2 = t3[1] - t3[0], t3[2] - t3[0]
+        h = np.cross(d, e2)
+        a = e1 @ h
+        if abs(a) < 1e-15:
+            return False
+        f = 1 / a
+        s = p - t3[0]
+        u = f * (s @ h)
+        qv = np.cross(s, e1)
+        v = f * (d @ qv)
+        t = f * (e2 @ qv)
+        return 0 < u < 1 and 0 < v and u + v < 1 and 0 < t < 1
+
+    out = set()
+    lo, hi = tri.min(1), tri.max(1)
+    for a in range(len(F)):
+        for b in range(a + 1, len(F)):
+            if set(F[a]) & set(F[b]) or (lo[a] > hi[b]).any() or (lo[b] > hi[a]).any():  # boxes apart: no hit
+                continue
+            A, B = tri[a], tri[b]
+            if any(edge_hits(A[i], A[(i + 1) % 3], B) or edge_hits(B[i], B[(i + 1) % 3], A) for i in range(3)):
+                out.add((a, b))
+    return out
+
+
+def test_two_overlapping_spheres_match_brute_force():
+    s1 = trimesh.creation.icosphere(1, radius=1.0)
+    s2 = trimesh.creation.icosphere(1, radius=0.8)
+    s2.vertices += [0.9, 0.13, 0.07]
+    m = trimesh.util.concatenate([s1, s2])
+    got = {tuple(p) for p in self_intersections(m.vertices, m.faces)}
+    want = _brute_force_pairs(m.vertices, m.faces)
+    assert len(want) > 10 and got == want
+    top = mesh_topology(m.vertices, m.faces)
+    assert top["components"] == 2 and top["watertight"] and top["genus"] == 0
+    assert top["self_intersections"] == len(want)
+
+
+def test_topology_of_known_shapes():
+    sphere = trimesh.creation.icosphere(2)
+    torus = trimesh.creation.torus(1.0, 0.3, major_sections=24, minor_sections=12)
+    t = mesh_topology(sphere.vertices, sphere.faces)
+    assert (t["genus"], t["watertight"], t["self_intersections"], t["euler"]) == (0, True, 0, 2)
+    t = mesh_topology(torus.vertices, torus.faces)
+    assert (t["genus"], t["watertight"], t["self_intersections"]) == (1, True, 0)
+    # two tetrahedra sharing one vertex (a bow tie): every edge has two faces, but the vertex is not manifold
+    t1 = trimesh.creation.box().subdivide()
+    t2 = t1.copy()
+    t2.vertices = -t2.vertices + 2 * t1.vertices[0]  # point-mirrored through vertex 0 of t1: touches there
+    both = trimesh.util.concatenate([t1, t2])
+    Vb, inv = np.unique(np.round(both.vertices, 9), axis=0, return_inverse=True)
+    t = mesh_topology(Vb, inv.reshape(-1)[both.faces])
+    assert t["nonmanifold_edges"] == 0 and t["nonmanifold_vertices"] == 1 and not t["watertight"]
+    assert mesh_topology(sphere.vertices, sphere.faces)["nonmanifold_vertices"] == 0
+    open_f = sphere.faces[1:]
+    t = mesh_topology(sphere.vertices, open_f)
+    assert not t["watertight"] and t["genus"] is None and t["boundary_edges"] == 3
+
+
+def test_a_fold_and_a_poke_are_found_and_repaired_locally():
+    """A vertex pushed through the far side of a sphere (a spike crossing the surface) and a fold of two
+    neighbours: found; the repair removes every crossing and leaves far vertices exactly where they were."""
+    m = trimesh.creation.icosphere(3)
+    V = np.asarray(m.vertices, np.float64).copy()
+    F = np.asarray(m.faces)
+    assert len(self_intersections(V, F)) == 0
+    k = int(np.argmax(V[:, 0]))
+    V[k] = [-1.3, 0.0, 0.0] + 0.0 * V[k]  # through the sphere and out of the far side
+    pairs = self_intersections(V, F)
+    assert len(pairs) > 0
+    Vn, rep = repair_self_intersections(V, F)
+    assert rep.before == len(pairs) and rep.after == 0 and len(self_intersections(Vn, F)) == 0
+    far = np.linalg.norm(np.asarray(m.vertices) - [1, 0, 0], axis=1) > 0.9
+    far &= np.linalg.norm(np.asarray(m.vertices) - [-1, 0, 0], axis=1) > 0.9
+    assert np.array_equal(Vn[far], V[far]) and far.sum() > len(V) // 3
+    assert rep.moved_vertices < len(V) // 2
+    # a fold: two neighbours flattened onto each other (the second's free corner mirrored onto the first's side)
+    V2 = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, 0.8, 0.0]], np.float64)
+    F2 = np.array([[0, 1, 2], [1, 0, 3]])
+    assert {tuple(p) for p in self_intersections(V2, F2)} == {(0, 1)}
+    V2[3] = [0.5, -0.8, 0.0]  # unfolded: flat and fine
+    assert len(self_intersections(V2, F2)) == 0
+
+
+def test_no_faces_and_float32():
+    assert mesh_topology(np.zeros((0, 3)), np.zeros((0, 3), int))["faces"] == 0
+    m = trimesh.creation.icosphere(2)
+    V = np.asarray(m.vertices, np.float32)
+    Vn, rep = repair_self_intersections(V, m.faces)
+    assert rep.before == 0 and np.array_equal(Vn, V.astype(np.float64))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_triangles_match_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    V = rng.uniform(-1, 1, (150, 3))
+    F = rng.integers(0, 150, (50, 3))
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])]
+    got = {tuple(p) for p in self_intersections(V, F)
+           if not set(F[p[0]]) & set(F[p[1]])}
+    assert got == _brute_force_pairs(V, F)
