@@ -98,7 +98,8 @@ class TrainConfig:
     # "relative" (issue 18): the radiometric light parameters (colours, intensities, SH radiance) step by lr_lights ×
     # their initial magnitude (lights.relative_lr_scales: an ambient light of 0.1 by 0.001, a point light of intensity
     # extent² ≈ 12 by 0.12); "absolute": lr_lights in the parameters' units (runs before). Measured on spot_small /
-    # bob_env at 100² (1500 it.): relight +0.2/+0.1/+0.2 and +0.4/+1.5/+0.2 dB, albedo (scaled) +1.1 / +1.4 dB
+    # bob_env at 100² (1500 it.): relight +0.2/+0.1/+0.2 and +0.4/+1.5/+0.2 dB, albedo (scaled) +1.1 / +1.4 dB; at 200²,
+    # 3000 it.: spot +1.2/+1.5/+1.9 dB (albedo +1.6), gadget -0.1/0.0/+0.8 (+0.3), bob_env -0.0/+0.2/-1.0 (+0.5)
     lr_lights_mode: str = "relative"
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
