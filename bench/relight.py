@@ -215,11 +215,16 @@ def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> No
             res = []
             for ls in sets:
                 sc = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=ls.lights)
+                vis = None
+                if renderer == "vertex":  # raster with the cached per-vertex shadows (visibility.py)
+                    from triplet_cl.visibility import vertex_visibility
+
+                    vis = vertex_visibility(sc, ray_eps=0.01)
                 ps = []
                 for v in test:
                     st = RenderSettings(K=4, sigma=None, normals="vertex", background=(1, 1, 1), transfer="srgb",
-                                        renderer=renderer)
-                    r = render(sc, v.camera.scaled(2), st)
+                                        renderer="raster" if renderer == "vertex" else renderer)
+                    r = render(sc, v.camera.scaled(2), st, vis=vis)
                     img = r.image.reshape(v.camera.height, 2, v.camera.width, 2, 3).mean((1, 3))
                     im = read_image(ls.images / f"{Path(v.name).name}.png")
                     ps.append(psnr(img, im.rgb * im.alpha[..., None] + (1 - im.alpha[..., None])))
@@ -238,7 +243,8 @@ def main(argv=None) -> int:
     p.add_argument("--lights", action="store_true", help="also the recovered lights against ground_truth.json")
     p.add_argument("--gt-ceiling", help="relight the ground-truth mesh + material of this scene instead")
     p.add_argument("--env-degrees", default="8", help="with --gt-ceiling: comma-separated SH degrees")
-    p.add_argument("--renderers", default="raster,hybrid", help="with --gt-ceiling: comma-separated renderers")
+    p.add_argument("--renderers", default="raster,hybrid", help="with --gt-ceiling: comma-separated renderers "
+                   "(raster, hybrid, raytrace, or vertex: raster with the cached per-vertex shadows)")
     a = p.parse_args(argv)
     data = Path(a.data)
     if a.gt_ceiling:

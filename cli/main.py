@@ -92,6 +92,10 @@ def _config_from_args(args: argparse.Namespace):
         over["keep_checkpoints"] = args.keep_checkpoints
     if args.renderer:
         over["renderer"] = args.renderer
+    if getattr(args, "shadows", None):
+        over["shadows"] = args.shadows
+    if getattr(args, "shadow_every", None) is not None:
+        over["shadow_every"] = args.shadow_every
     if getattr(args, "background_shell", None) is not None:
         over["background_shell"] = args.background_shell
     if getattr(args, "color", None):
@@ -229,14 +233,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
                               + [Path(args.out) / st / "albedo" for st in stages], names, "--out", tr.ds.root)
         rel = dict(merged.get("relight") or {})
         for stage in stages:
-            rl = Relighter(tr, stage, args.renderer)
+            rl = Relighter(tr, stage, args.renderer, args.shadows)
             out_dir = Path(args.out) / stage if args.out else None
             r = evaluate_relight(rl, spec.parent, args.env_degree, out_dir)
             rel[stage] = r
             sets = ", ".join(f"{k} {v['psnr']:.2f} dB" for k, v in r["sets"].items())
             alb = r.get("albedo")
             alb = f"; albedo {alb['psnr_raw']:.2f} / {alb['psnr_scaled']:.2f} dB (raw / scaled)" if alb else ""
-            print(f"relight ({stage}, {rl.renderer}): {sets}{alb}")
+            print(f"relight ({stage}, {rl.renderer}, shadows {rl.shadows_used}): {sets}{alb}")
         merged["relight"] = rel
     write_json(path, merged)
     print(f"-> {path}")
@@ -263,7 +267,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
     if args.out is not None and Path(args.out).is_file():
         raise ValueError(f"--out {args.out} is a file; expected a folder")
     tr = _load_run(args)
-    rl = Relighter(tr, args.stage, args.renderer)
+    rl = Relighter(tr, args.stage, args.renderer, args.shadows)
     base = Path(args.out) if args.out else run / "relight"
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
     check_vertex_sh(sets, rl.base.vertex_sh is not None)
@@ -481,6 +485,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
     t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
+    t.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows in training with the raster renderer "
+                   "(default vertex: per-vertex visibility towards point / directional lights, ray-traced through the "
+                   "soup every --shadow-every steps, from iteration 600; off: none; README 'Cached shadows')")
+    t.add_argument("--shadow-every", type=int, help="steps between visibility refreshes (default 100; also after "
+                   "density control and when a light moved)")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
@@ -509,6 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "PSNR/SSIM per set and albedo PSNR (raw / per-channel scaled) of soup and mesh, under \"relight\"")
     e.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer of the relit views "
                    "(default: as `triplet relight`)")
+    e.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows of the relit soup with the raster "
+                   "renderer (default: as `triplet relight`)")
     e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
                    "(default 8)")
     e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
@@ -523,6 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
     lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
     lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
                     "soup, raster for the mesh; hybrid gives cast shadows)")
+    lt.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows of the relit lights on the soup with "
+                    "the raster renderer (vertex: per-vertex visibility traced once per light set; off: none; default: "
+                    "as the run was trained; the mesh stage has none; README 'Cached shadows')")
     lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
                     "the refined mesh when the run has one, else the soup)")
     lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "

@@ -79,6 +79,7 @@ BAD_TRAIN = {
     "sh-degree 9": (["--sh-degree", "9"], "--sh-degree"),
     "checkpoint-every -1": (["--checkpoint-every", "-1"], "--checkpoint-every"),
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
+    "shadow-every 0": (["--shadow-every", "0"], "--shadow-every"),
     "lights": (["--lights", "laser"], "--lights"),
     "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
     "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),

@@ -169,3 +169,69 @@ def test_an_old_blinn_phong_run_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert config_from_saved(tmp_path, {"train": json.loads(json.dumps(old))}).lr_lights_mode == "absolute"
+
+
+def test_cached_shadows_train_resume_bit_for_bit_and_cli(tmp_path, capsys):
+    """``shadows="vertex"``: the cached visibility is used from ``shadow_from``, re-traced every
+    ``shadow_every`` steps and after density control, saved in checkpoints (a resumed run continues bit for
+    bit); the CLI options reach config.json, eval / relight take ``--shadows``; bad values are refused."""
+    with pytest.raises(ValueError, match="shadows must be"):
+        TrainConfig(shadows="maps").validate()
+    with pytest.raises(ValueError, match="shadow_every"):
+        TrainConfig(shadow_every=0).validate()
+    assert TrainConfig.from_dict({}).shadows == "off"  # a run saved before the option had none
+    cfg = small_cfg(iterations=30, shadows="vertex", shadow_from=8, shadow_every=5)
+    a = Trainer(DEMO, tmp_path / "a", cfg, quiet=True)
+    assert a.visibility() is None  # before shadow_from
+    for _ in range(30):
+        a.step()
+    vis = a.visibility()
+    assert vis.shape == (len(a.scene.V.data), 1) and (vis < 0.99).any() and (vis > 0.99).any()
+    assert a.shadow_cache.traces >= 30 // 5 - 2
+    b = Trainer(DEMO, tmp_path / "b", cfg, quiet=True)
+    for _ in range(12):  # a trace at 8, density control at 15 / 25: resume between
+        b.step()
+    b.save_checkpoint()
+    c = Trainer(None, tmp_path / "b", quiet=True, resume=True)
+    np.testing.assert_array_equal(c.shadow_cache.vis, b.shadow_cache.vis)
+    for _ in range(30 - 12):
+        c.step()
+    for name in ("V", "material", "alpha", "light_params"):
+        np.testing.assert_array_equal(a.scene.__dict__[name].data, c.scene.__dict__[name].data, err_msg=name)
+    # relighting follows the run: under its own lights, the relighter's default (cached shadows) renders what the
+    # evaluation renders (the visibility of the final state, traced afresh)
+    from triplet_cl.relight import Relighter
+    from triplet_cl.render import RenderSettings, render
+
+    rl = Relighter(a, "soup")
+    assert rl.shadows_used == "vertex" and Relighter(a, "soup", shadows="off").shadows_used == "off"
+    v = a.ds["test"][0]
+    img, _ = rl.render(rl.with_lights(a.scene.current_lights()), v.camera, np.ones(3))
+    st = RenderSettings(K=a.cfg.faces_per_pixel, sigma=a.cfg.sigma, background=(1.0, 1.0, 1.0), transfer=a.transfer)
+    ref = render(a.scene, v.camera, st, a.device, vis=a.final_visibility()).image
+    np.testing.assert_allclose(img, ref, atol=1e-5)
+    assert np.abs(ref - render(a.scene, v.camera, st, a.device).image).max() > 1e-3  # and the shadows show
+    # shadows change the training: the same run without them ends elsewhere
+    d = Trainer(DEMO, tmp_path / "d", replace(cfg, shadows="off"), quiet=True)
+    for _ in range(30):
+        d.step()
+    assert not np.array_equal(d.scene.material.data, a.scene.material.data)
+
+    out = tmp_path / "cli"
+    rc = cli_main(["train", "--demo", "--iterations", "12", "--init-points", "600", "--out", str(out),
+                   "--shadows", "vertex", "--shadow-every", "7", "--checkpoint-every", "0"])
+    assert rc == 0
+    t = json.loads((out / "config.json").read_text())["train"]
+    assert t["shadows"] == "vertex" and t["shadow_every"] == 7
+    lights = tmp_path / "lights.json"
+    lights.write_text(json.dumps({"lights": [{"type": "point", "position": [2, 3, 2.5], "intensity": 30.0}]}))
+    for mode in ("vertex", "off"):
+        assert cli_main(["relight", str(out), "--lights", str(lights), "--shadows", mode, "--out",
+                         str(tmp_path / mode)]) == 0
+    on = sorted((tmp_path / "vertex").glob("*.png"))
+    off = sorted((tmp_path / "off").glob("*.png"))
+    assert len(on) == len(off) == 8
+    from triplet_cl.datasets.images import read_image
+
+    diff = [np.abs(read_image(x)[0] - read_image(y)[0]).max() for x, y in zip(on, off, strict=True)]
+    assert max(diff) > 0  # the shadows show

@@ -302,10 +302,17 @@ class Relighter:
     rendered the same way (lights in linear units then do not mean what they say: that is what it learned).
     """
 
-    def __init__(self, trainer, stage: str = "auto", renderer: str | None = None):
+    def __init__(self, trainer, stage: str = "auto", renderer: str | None = None, shadows: str | None = None):
         from .mesh.refine import MESH_STATE, MeshStage, load_mesh_state
+        from .visibility import SHADOW_MODES
 
+        if shadows is not None and shadows not in SHADOW_MODES:
+            raise ValueError(f"shadows must be one of {SHADOW_MODES}, got {shadows!r}")
         self.tr = trainer
+        # cast shadows of the relit lights with the raster renderer (visibility.py), traced once per light set;
+        # default: as the run was trained (its albedo fitted with shadows, or with the photos' shadows in it)
+        self.shadows = shadows or ("vertex" if trainer.shadows_active() else "off")
+        self._vis: dict = {}
         has_mesh = (trainer.run_dir / MESH_STATE).is_file()
         if stage == "auto":
             stage = "mesh" if has_mesh else "soup"
@@ -368,11 +375,30 @@ class Relighter:
             return np.asarray(img), np.asarray(alpha)
         tc = self.tr.cfg
         sh = scene.vertex_sh is not None
+        vis = None
+        if self.shadows == "vertex" and renderer == "raster":
+            vis = self.visibility(scene)
         st = RenderSettings(K=tc.faces_per_pixel, sigma=tc.sigma, background=tuple(float(x) for x in background),
                             renderer=renderer, transfer=self.tr.transfer,
                             sh_degree=min(tc.sh_degree, self.tr.it // max(tc.sh_band_every, 1)) if sh else None)
-        r = render(scene, camera, st, self.tr.device)
+        r = render(scene, camera, st, self.tr.device, vis=vis)
         return r.image, r.alpha
+
+    def visibility(self, scene) -> np.ndarray:
+        """``[N, NV]`` per-vertex visibility of ``scene`` towards its own lights (traced once per scene)."""
+        from .visibility import vertex_visibility
+
+        key = id(scene)
+        if key not in self._vis or self._vis[key][0] is not scene:
+            self._vis[key] = (scene, vertex_visibility(scene, self.tr.device, ray_eps=self.tr.cfg.shadow_eps))
+        return self._vis[key][1]
+
+    @property
+    def shadows_used(self) -> str:
+        """The cast shadows of the relit images: "vertex" (cached, raster), "traced" (raytrace / hybrid) or "off"."""
+        if self.renderer != "raster":
+            return "traced"
+        return "vertex" if self.shadows == "vertex" and self.mesh_stage is None else "off"
 
     def render_albedo(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """``(straight base colour [H, W, 3] sRGB-encoded, alpha [H, W])`` through ``camera`` (rasterized: no
@@ -517,6 +543,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
         return im.rgb, a
 
     out: dict = {"dir": str(rdir), "stage": relighter.stage_name, "renderer": relighter.renderer,
+                 "shadows": relighter.shadows_used,
                  "env_sh_degree": env_degree, "sets": {}}
     for ls in sets:
         if ls.images is None:

@@ -373,6 +373,8 @@ class ShadeFragments(Function):
                                   real=s.real)
         if light_params is not None and len(inp.table.params):
             inp.lt_f = cla.to_device(v.device.queue, np.ascontiguousarray(light_params, s.real))
+        if "vis" in blk:  # cached per-vertex visibility, interpolated (a constant: no adjoint)
+            inp.vis = blk["vis"]
         return inp
 
     def _outputs(self, ctx, comp, inp, fa, n_rest, alpha=None):
@@ -390,7 +392,7 @@ class ShadeFragments(Function):
         d = self.view.device
         comp = columns.Compaction(d, self.view.frags)
         face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
-        blk = self._blocks(comp, fa, ("pos", "nrm", "mat", "vlight", "alpha"))  # one pass, alpha included
+        blk = self._blocks(comp, fa, ("pos", "nrm", "mat", "vlight", "alpha", "vis"))  # one pass, alpha included
         inp = self._prepare(blk, face_id, rest[0] if rest else None)
         return self._outputs(ctx, comp, inp, fa, len(rest), alpha=blk["alpha"])
 
@@ -400,12 +402,14 @@ class ShadeFragments(Function):
         L = self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
         g = shade_op.backward(d, ctx.inp, v_rgb)
+        v_vis = g.v_vis
         v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
         v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
-        # every column of the layout, in one pass over the fragments
+        # every column of the layout, in one pass over the fragments; the cached visibility's per-vertex values
+        # are constants, but their interpolation moves with the barycentrics (V): its adjoint goes back too
         parts = [(gk, L[key][0]) for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl),
-                                                 ("alpha", v_alpha.reshape(P, 1))) if key in L]
+                                                 ("alpha", v_alpha.reshape(P, 1)), ("vis", v_vis)) if key in L]
         columns.merge_columns(d, fr, parts, v_fa)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
@@ -642,8 +646,13 @@ def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
 
 
 def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
-           device: Device | None = None) -> RenderResult:
+           device: Device | None = None, vis: np.ndarray | None = None) -> RenderResult:
     """Render ``scene`` from ``camera``, recording on the active tape (or a new one).
+
+    ``vis`` (optional, ``renderer="raster"`` only): ``[N, NV]`` per-vertex transmittance towards each
+    shadow-casting light of ``scene.lights`` in light order (``visibility.vertex_visibility``), interpolated
+    per fragment and scaling each light's term: cached cast shadows. The per-vertex values are constants (no
+    gradient through the shadow boundary); their interpolation moves with the barycentrics like any attribute.
 
     Returns:
         :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
@@ -652,6 +661,16 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     s = settings or RenderSettings()
     d = device or get_device()
     N = scene.V.shape[0]
+    if vis is not None:
+        nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)
+        vis = np.asarray(vis)
+        if vis.shape != (N, nv):
+            raise ValueError(f"vis must have shape [{N}, {nv}] (vertices, shadow-casting lights), got "
+                             f"{list(vis.shape)}")
+        if s.renderer != "raster":
+            raise ValueError(f"vis (cached visibility) needs renderer='raster', got {s.renderer!r} (its own shadows)")
+        if nv == 0:
+            vis = None
     mesh = device_mesh(d, scene.F, N)
     view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
@@ -664,18 +683,23 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     tape = outer if outer is not None else Tape()
     with tape if outer is None else _nullcontext():
         sizes = [3, 3, cm, 1] + ([6] if scene.vertex_sh is not None else [])
+        names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])
         vl = [VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh)] \
             if scene.vertex_sh is not None else []
+        const = None
+        if vis is not None:  # a constant block, last: interpolated with the rest, no adjoint of its own
+            const = np.ascontiguousarray(vis, s.real)
+            sizes.append(vis.shape[1])
+            names.append("vis")
         if use_device_attributes(s, mesh):
-            attr = VertexAttributes(view, scene.brdf)(scene.V, scene.material, scene.alpha, *vl)
+            attr = VertexAttributes(view, scene.brdf, const=const)(scene.V, scene.material, scene.alpha, *vl)
         else:  # the host chain (the reference of VertexAttributes)
             nrm = Normals(mesh, s.normals, s.real, d)(scene.V)
             mat = MaterialActivation(scene.brdf)(scene.material)
             alpha = SigmoidHost()(scene.alpha)
-            attr = Concat()(scene.V, nrm, mat, alpha, *vl)
+            attr = Concat()(scene.V, nrm, mat, alpha, *vl, *([const] if const is not None else []))
         ri = RasterInterpolate(view)(scene.V, attr)
         fa, win = (ri, None) if s.sigma is None else ri
-        names = ["pos", "nrm", "mat", "alpha"] + (["vlight"] if scene.vertex_sh is not None else [])
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         layout = {k: (int(offsets[i]), int(sizes[i])) for i, k in enumerate(names)}
         lp = [scene.light_params] if scene.light_params is not None else []

@@ -33,6 +33,7 @@ _INT_OPTIONS = {
     "--downscale": ("downscale", 1, 64),  # and the images must stay >= 4 px (Trainer checks the dataset)
     "--checkpoint-every": ("checkpoint_every", 0, None),
     "--keep-checkpoints": ("keep_checkpoints", 0, None),
+    "--shadow-every": ("shadow_every", 1, None),
     "--mesh-resolution": ("mesh_resolution", 16, 1024),  # mesh.extract.tsdf_fusion's range; memory checked too
     "--mesh-faces": ("mesh_faces", 100, 50_000_000),
     "--mesh-rounds": ("mesh_rounds", 1, 100),
@@ -432,7 +433,8 @@ def resume_config(args, saved_cfg, given_cfg):
     fixed = {"--seed": "seed", "--brdf": "brdf", "--lights": "lights", "--sh-degree": "sh_degree",
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
-             "--background-shell": "background_shell", "--color": "color"}
+             "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
+             "--shadow-every": "shadow_every"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue

@@ -1,0 +1,232 @@
+"""Cached per-vertex visibility (``triplet_cl/visibility.py``, issue 18 item 2 / issue 20 item 4).
+
+A box shadows a plane (a soup of separate square tiles, each tile wholly inside or outside the shadow
+of a light straight above), so per-vertex visibility is exact there and the cached shadows must
+render what the hybrid renderer's per-fragment shadow rays render. Also: the visibility against the
+numpy transmittance reference, the render's gradients with the visibility held constant (float64
+central differences), the cache's refresh rules, and a recovery: the plane's albedo under the cast
+shadow comes out uniform when fitted with shadows, and darkened (the shadow painted in) without.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.reference import trace as ref
+from triplet_cl.camera import Camera
+from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight
+from triplet_cl.losses import photometric_loss_and_grad
+from triplet_cl.ops.raster import read_fragments
+from triplet_cl.optim import Adam
+from triplet_cl.render import RenderSettings, render
+from triplet_cl.scene import Scene, logit
+from triplet_cl.visibility import VisibilityCache, owner_faces, vertex_visibility
+
+RES = 40
+HALF = 0.305  # the box's half-width; tile edges fall at ±0.31 (outside) and ±0.29 (inside)
+
+
+def _tiles(n=10, lo=-1.5, hi=1.5, gap=0.02, y=0.0):
+    """A plane at height ``y`` as separate square tiles (2 triangles each, shrunk by ``gap``)."""
+    edges = np.linspace(lo, hi, n + 1)
+    tris = []
+    for i in range(n):
+        for k in range(n):
+            x0, x1 = edges[i] + gap / 2, edges[i + 1] - gap / 2
+            z0, z1 = edges[k] + gap / 2, edges[k + 1] - gap / 2
+            a, b, c, d = [x0, y, z0], [x1, y, z0], [x1, y, z1], [x0, y, z1]
+            tris += [[a, b, c], [a, c, d]]
+    return np.array(tris, np.float64)
+
+
+def _box(lo, hi):
+    """An axis-aligned box as 12 triangles."""
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    c = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]])
+    quads = [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (3, 2, 6, 7), (0, 3, 7, 4), (1, 2, 6, 5)]
+    return np.array([t for a, b, cc, d in quads for t in ([c[a], c[b], c[cc]], [c[a], c[cc], c[d]])], np.float64)
+
+
+def box_over_plane(lights, albedo=0.6, dtype=np.float64):
+    tris = np.concatenate([_tiles(), _box([-HALF, 0.35, -HALF], [HALF, 0.65, HALF])])
+    V = tris.reshape(-1, 3)
+    F = np.arange(len(V)).reshape(-1, 3)
+    n = len(V)
+    mat = np.tile(np.r_[np.full(3, albedo), 0.9, 0.02, 0.99], (n, 1))
+    return Scene.from_arrays(V, F, material=logit(mat), alpha=np.full((n, 1), logit(0.999)), lights=lights,
+                             dtype=dtype), 200  # the first 200 faces are the plane's
+
+
+def cameras():
+    out = []
+    for k in range(4):
+        t = 2 * np.pi * (k + 0.3) / 4
+        out.append(Camera.look_at([2.6 * np.sin(t), 2.2, 2.6 * np.cos(t)], [0, 0.1, 0], [0, 1, 0], 45, RES, RES))
+    return out
+
+
+def overhead():
+    return [DirectionalLight([0.0, 1.0, 0.0], [2.0, 2.0, 2.0]), AmbientLight([0.3, 0.3, 0.3])]
+
+
+def test_vertex_visibility_matches_reference(device64):
+    lights = [PointLight([0.3, 3.0, -0.2], [9.0, 9.0, 9.0]), DirectionalLight([0.2, 1.0, 0.1], [1.0, 1.0, 1.0]),
+              AmbientLight([0.1, 0.1, 0.1])]
+    scene, _ = box_over_plane(lights)
+    scene.alpha.data[:] = np.random.default_rng(3).normal(1.0, 1.5, scene.alpha.data.shape)  # partial occluders
+    vis = vertex_visibility(scene, device64, real=np.float64)
+    V = scene.V.data
+    alpha_v = 1.0 / (1.0 + np.exp(-scene.alpha.data[:, 0]))
+    eps = 1e-2 * np.linalg.norm(V.max(0) - V.min(0))
+    T, n = ref.transmittance_ref(V, scene.F, alpha_v, V, owner_faces(scene.F, len(V)),
+                                 [("point", [0.3, 3.0, -0.2]), ("dir", [0.2, 1.0, 0.1])], eps)
+    assert vis.shape == (len(V), 2)
+    assert (n > 0).mean() > 0.05 and (n == 0).mean() > 0.3  # some vertices are shadowed, many are not
+    np.testing.assert_allclose(vis, T, rtol=1e-10, atol=1e-12)
+
+
+def test_owner_faces_and_no_shadow_casters(device):
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    np.testing.assert_array_equal(owner_faces(F, 7), [0, 0, 0, 1, 1, 1, -1])
+    scene, _ = box_over_plane([AmbientLight([0.5, 0.5, 0.5])], dtype=np.float32)
+    assert vertex_visibility(scene, device).shape == (len(scene.V.data), 0)
+    with pytest.raises(ValueError, match="ray_eps"):
+        vertex_visibility(scene, device, ray_eps=-1.0)
+
+
+def test_cached_shadows_render_the_hybrid_image(device64):
+    scene, plane = box_over_plane(overhead())
+    vis = vertex_visibility(scene, device64, real=np.float64)
+    # the plane: the tiles under the box are dark, the others lit, nothing in between
+    pv = vis[: 3 * plane, 0]
+    dark = pv < 1e-5  # alpha is clamped below 1 - 1e-6 in the shadow rays
+    assert np.all(dark | (pv == 1.0)) and dark.sum() == 4 * 6  # the 2 x 2 tiles under the box
+    for c in cameras()[:2]:
+        # t_min = 0: the hybrid renderer traces every fragment (else none behind transmittance 1e-4, T = 1 there)
+        traced = render(scene, c, RenderSettings(K=8, sigma=1.0, real=np.float64, t_min=0.0, renderer="hybrid",
+                                                 reflections=False), device64).image
+        cached = render(scene, c, RenderSettings(K=8, sigma=1.0, real=np.float64, t_min=0.0), device64, vis=vis).image
+        plain = render(scene, c, RenderSettings(K=8, sigma=1.0, real=np.float64, t_min=0.0), device64).image
+        assert np.abs(plain - traced).max() > 0.1  # the shadow is in the picture
+        # up to 3e-4: the box's hidden bottom, seen through its top (alpha 0.999: weight 1e-3), has corner vertices
+        # whose rays graze the box's edges (T 1e-3 against 1e-6 per fragment); elsewhere exact but for the alpha
+        # clamp at 1 - 1e-6 (T ~1e-6 in the shadow)
+        np.testing.assert_allclose(cached, traced, atol=3e-4)
+        assert (np.abs(cached - traced).max(-1) > 1e-5).mean() < 0.05
+
+
+def test_render_rejects_bad_vis(device):
+    scene, _ = box_over_plane(overhead(), dtype=np.float32)
+    c = cameras()[0]
+    with pytest.raises(ValueError, match="vis must have shape"):
+        render(scene, c, RenderSettings(K=4), device, vis=np.ones((5, 1)))
+    with pytest.raises(ValueError, match="renderer='raster'"):
+        render(scene, c, RenderSettings(K=4, renderer="hybrid"), device, vis=np.ones((len(scene.V.data), 1)))
+
+
+@pytest.mark.parametrize("attributes", ["device", "host"])
+def test_gradients_with_cached_visibility_central_differences(device64, rng, attributes):
+    """Every parameter's gradient with the visibility held constant (it has no adjoint); perturbations
+    that change the fragments are left out, as in tests/test_render.py. Both attribute paths (the device op
+    with a constant block, the host Concat)."""
+    from tests.test_render import cam as rcam
+    from tests.test_render import small_scene
+
+    scene = small_scene(rng, "cook_torrance", False, M=12)
+    vis = rng.uniform(0.0, 1.0, (len(scene.V.data), 2))  # point + directional light
+    s = RenderSettings(K=6, sigma=1.0, real=np.float64, t_min=0.0, attributes=attributes)
+    c = rcam()
+    r = render(scene, c, s, device64, vis=vis)
+    assert np.abs(r.image - render(scene, c, s, device64).image).max() > 1e-3  # the visibility acts
+    faces0 = read_fragments(r.info["frags"])["face"]
+    w = rng.standard_normal(r.rgba.data.shape)
+    scene.zero_grad()
+    grads = r.backward(w[..., :3], w[..., 3])
+
+    def loss():
+        rr = render(scene, c, s, device64, vis=vis)
+        return float((rr.rgba.data * w).sum()), np.array_equal(read_fragments(rr.info["frags"])["face"], faces0)
+
+    eps = 1e-6
+    for p in scene.params:
+        flat = p.data.reshape(-1)
+        num, ana, ok = [], [], []
+        for i in rng.choice(flat.size, size=min(flat.size, 30), replace=False):
+            old = flat[i]
+            flat[i] = old + eps
+            lp, sp = loss()
+            flat[i] = old - eps
+            lm, sm = loss()
+            flat[i] = old
+            num.append((lp - lm) / (2 * eps))
+            ana.append(grads[p.name].reshape(-1)[i])
+            ok.append(sp and sm)
+        num, ana, ok = map(np.asarray, (num, ana, ok))
+        assert ok.mean() > 0.8, f"{p.name}: perturbations changed coverage too often"
+        np.testing.assert_allclose(ana[ok], num[ok], rtol=1e-5, atol=1e-7, err_msg=p.name)
+        assert np.abs(ana).max() > 0, p.name
+
+
+def test_cache_refresh_rules(device):
+    scene, _ = box_over_plane(overhead(), dtype=np.float32)
+    cache = VisibilityCache(every=10, start=5, extent=2.0, move_tol=0.05)
+    assert cache.get(scene, 0, device) is None and cache.traces == 0
+    v = cache.get(scene, 5, device)
+    assert v.shape == (len(scene.V.data), 1) and cache.traces == 1
+    assert cache.get(scene, 14, device) is v and cache.traces == 1  # within the interval: cached
+    cache.get(scene, 15, device)
+    assert cache.traces == 2  # interval over
+    scene.light_params.data[:3] += np.array([0.5, 0.0, 0.0], np.float32)  # the light turned: early re-trace
+    cache.get(scene, 16, device)
+    assert cache.traces == 3
+    cache.invalidate()  # density control
+    cache.get(scene, 17, device)
+    assert cache.traces == 4
+    with pytest.raises(ValueError, match="every"):
+        VisibilityCache(every=0)
+
+
+def _fit_albedo(device, scene, targets, cams, vis, steps=120):
+    """Fit the materials (geometry and lights fixed) to ``targets``; returns the plane's albedo [n, 3]."""
+    opt = Adam()
+    opt.add_group("material", [scene.material], lr=0.05, betas=(0.5, 0.999), eps=1e-15)
+    s = RenderSettings(K=8, sigma=1.0, background=(0.0, 0.0, 0.0))
+    for it in range(steps):
+        k = it % len(cams)
+        r = render(scene, cams[k], s, device, vis=vis)
+        _, v_img = photometric_loss_and_grad(r.image, targets[k], lam=0.2)
+        r.backward(v_img)
+        opt.step()
+        opt.zero_grad()
+    return 1.0 / (1.0 + np.exp(-scene.material.data[:, :3].astype(np.float64)))
+
+
+def test_recovery_uniform_albedo_under_a_cast_shadow(device):
+    """Photos path-traced in spirit (per-fragment shadow rays, the hybrid renderer) of a uniform plane
+    (albedo 0.6) under a box; fitting the albedo with the cached shadows gives a uniform plane
+    (measured, 120 steps: 0.599 under the shadow, 0.595 elsewhere), without shadows the shadow is painted
+    in (measured: 0.201 under the shadow, 0.596 elsewhere, std over the plane 0.078)."""
+    truth, plane = box_over_plane(overhead(), dtype=np.float32)
+    cams = cameras()
+    gts = [render(truth, c, RenderSettings(K=8, sigma=1.0, background=(0.0, 0.0, 0.0), renderer="hybrid",
+                                           reflections=False), device).image for c in cams]
+    vis = vertex_visibility(truth, device)
+    shadowed = vis[: 3 * plane, 0] < 0.5
+    seen = np.zeros(3 * plane, bool)  # plane vertices some camera sees (the rest keep their initial value)
+    for c in cams:
+        fr = render(truth, c, RenderSettings(K=8, sigma=1.0), device).info["frags"].face.get()
+        f = np.unique(fr[(fr >= 0) & (fr < plane)])
+        seen[(3 * f[:, None] + np.arange(3)).reshape(-1)] = True
+    assert (shadowed & seen).sum() > 20
+    out = {}
+    for mode in ("shadows", "none"):
+        scene, _ = box_over_plane(overhead(), albedo=0.5, dtype=np.float32)
+        alb = _fit_albedo(device, scene, gts, cams, vis if mode == "shadows" else None)[: 3 * plane]
+        out[mode] = (alb[shadowed & seen].mean(0), alb[~shadowed & seen].mean(0), alb[seen].std(0).max())
+    in_s, out_s, spread = out["shadows"]
+    assert np.abs(in_s - 0.6).max() < 0.03 and np.abs(out_s - 0.6).max() < 0.03 and spread < 0.03, out
+    in_n, out_n, spread_n = out["none"]
+    assert (in_n < 0.35).all() and np.abs(out_n - 0.6).max() < 0.03 and spread_n > 0.05, out

@@ -1,0 +1,143 @@
+"""Cached per-vertex visibility: cast shadows at the price of one extra interpolated column.
+
+``vertex_visibility(scene)`` traces one shadow ray from every vertex towards every shadow-casting
+light (point, directional: ``CASTS_SHADOWS`` in ``lights.py``) through the BVH of the soup and
+returns the transmittance ``T = Π(1 − α)`` of the triplets crossed (the kernels of
+``ops/trace.py``: own face skipped, start offset ``ray_eps`` × the bounding-box diagonal, as the
+hybrid renderer). :func:`~triplet_cl.render.render` takes it as ``vis=[N, NV]``: the values are
+interpolated over each triangle like any attribute and scale each light's intensity in the shading
+(``HAS_VIS`` of ``shade.cl``). Visibility is a constant for the gradient (no adjoint through the
+shadow boundary, the occluders' alphas or the light position's shadow rays); the shading's own
+gradients are unchanged.
+
+:class:`VisibilityCache` is what training holds: the visibility is re-traced every ``every`` steps,
+whenever the topology changes (density control) and whenever the lights' shadow-ray parameters
+moved by more than ``move_tol`` × the scene extent since the last trace.
+
+Why per vertex: a training step renders a few hundred thousand fragments but the soup has tens of
+thousands of vertices, and the lights move slowly; one trace per vertex every 100 steps costs
+a fraction of one hybrid step (``bench/shadow_step.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from .activations import sigmoid
+from .device import Device, get_device
+from .lights import pack_lights
+from .ops import trace as trace_op
+from .ops.bvh import build_bvh
+from .render import device_mesh
+from .scene import Scene
+
+SHADOW_MODES = ("off", "vertex")
+
+
+def owner_faces(F: np.ndarray, n: int) -> np.ndarray:
+    """``[n] int32``: a face of each vertex (the last one listing it; −1 for unused vertices). In a soup
+    every vertex has exactly one face, which its shadow ray skips."""
+    own = np.full(n, -1, np.int32)
+    F = np.asarray(F)
+    if F.size:
+        own[F.reshape(-1)] = np.repeat(np.arange(len(F), dtype=np.int32), 3)
+    return own
+
+
+def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, ray_eps: float = 1e-2,
+                      real=np.float32) -> np.ndarray:
+    """``[N, NV]`` transmittance from every vertex of ``scene`` towards each shadow-casting light.
+
+    Args:
+        scene: the soup (its current ``V``, ``alpha`` and, unless ``lights`` is given, its current lights).
+        lights: other lights to trace towards (relighting); default ``scene.current_lights()``.
+        ray_eps: ray start offset, × the bounding-box diagonal of ``V`` (``RenderSettings.ray_eps``).
+
+    Returns:
+        float64 ``[N, NV]``, NV the number of shadow-casting lights in light order (the columns of
+        ``shade.cl``'s ``vis``); ``[N, 0]`` when no light casts shadows.
+    """
+    if not (np.isfinite(ray_eps) and ray_eps >= 0):
+        raise ValueError(f"ray_eps must be a finite number >= 0, got {ray_eps}")
+    d = device or get_device()
+    lights = scene.current_lights() if lights is None else list(lights)
+    table = pack_lights(lights)
+    V = np.asarray(scene.V.data, np.float64)
+    N = V.shape[0]
+    NV = table.num_shadowed
+    if NV == 0 or N == 0 or len(scene.F) == 0:
+        return np.ones((N, NV))
+    mesh = device_mesh(d, scene.F, N)
+    # built afresh (not refitted): the hit order, hence T's rounding, depends on the tree, which must depend on V
+    # alone for a resumed run to continue bit for bit
+    bvh = build_bvh(d, np.ascontiguousarray(V, real), mesh)
+    diag = float(np.linalg.norm(V.max(0) - V.min(0)))
+    eps = ray_eps * max(diag, 1e-12)
+    q = d.queue
+    Vd = cla.to_device(q, np.ascontiguousarray(V, real))
+    alpha = cla.to_device(q, np.ascontiguousarray(sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(N, 1),
+                                                  real))
+    own = cla.to_device(q, owner_faces(scene.F, N))
+    st = trace_op.shadow_forward(d, bvh, Vd, alpha, 0, Vd, own, cla.to_device(q, table.ints),
+                                 cla.to_device(q, np.ascontiguousarray(table.params, real)), table, eps)
+    return st.vis.get().astype(np.float64).reshape(N, NV)
+
+
+def _shadow_rays(scene: Scene) -> np.ndarray:
+    """The shadow casters' ray parameters (positions / directions) ``[NV, 3]``, for the move test."""
+    table = pack_lights(scene.current_lights())
+    p = np.asarray(table.params, np.float64)
+    return np.array([p[o:o + 3] for o in table.shadow_ray_offsets]).reshape(-1, 3)
+
+
+class VisibilityCache:
+    """Per-vertex visibility held across training steps (see the module docstring).
+
+    Args:
+        every: re-trace every this many steps (≥ 1).
+        start: no shadows before this iteration (``get`` returns None): the soup is a cloud of
+            half-transparent triangles at first, whose transmittance says nothing yet.
+        extent: the scene's size (the unit of ``move_tol``).
+        move_tol: re-trace early when a shadow caster's position / direction moved by more than this
+            (× ``extent`` for positions, radians-ish for unit directions).
+    """
+
+    def __init__(self, every: int = 100, start: int = 0, extent: float = 1.0, move_tol: float = 0.05,
+                 ray_eps: float = 1e-2):
+        if int(every) < 1:
+            raise ValueError(f"every must be >= 1, got {every}")
+        self.every, self.start, self.extent, self.move_tol = int(every), int(start), float(extent), float(move_tol)
+        self.ray_eps = ray_eps
+        self.vis: np.ndarray | None = None
+        self.at = -1  # iteration of the last trace
+        self.rays: np.ndarray | None = None
+        self.F = None
+        self.traces = 0  # how many traces so far (tests, benchmarks)
+
+    def invalidate(self) -> None:
+        """Forget the cached values (the next :meth:`get` traces)."""
+        self.vis = None
+
+    def stale(self, scene: Scene, it: int) -> bool:
+        if self.vis is None or self.F is not scene.F or self.vis.shape[0] != scene.V.shape[0]:
+            return True
+        if it - self.at >= self.every:
+            return True
+        rays = _shadow_rays(scene)
+        if self.rays is None or rays.shape != self.rays.shape:
+            return True
+        return bool(len(rays)) and float(np.abs(rays - self.rays).max()) > self.move_tol * max(self.extent, 1e-12)
+
+    def get(self, scene: Scene, it: int, device: Device | None = None) -> np.ndarray | None:
+        """``[N, NV]`` visibility for iteration ``it`` (re-traced when stale), None before ``start``."""
+        if it < self.start:
+            return None
+        if self.stale(scene, it):
+            self.vis = vertex_visibility(scene, device, ray_eps=self.ray_eps)
+            self.at, self.F, self.rays = it, scene.F, _shadow_rays(scene)
+            self.traces += 1
+        return self.vis
+
+
+__all__ = ["SHADOW_MODES", "VisibilityCache", "owner_faces", "vertex_visibility"]
