@@ -66,8 +66,6 @@ def _config_from_args(args: argparse.Namespace):
 
     cfg = TrainConfig()
     over = {}
-    if args.iterations is not None:
-        over["iterations"] = args.iterations
     if args.seed is not None:
         over["seed"] = args.seed
     if args.brdf:
@@ -109,6 +107,8 @@ def _config_from_args(args: argparse.Namespace):
         if args.priors in ("materials", "all"):
             over.update(MATERIAL_WEIGHTS)
     cfg = replace(cfg, **over)
+    if args.iterations is not None:  # every schedule follows the run's length (TrainConfig.with_iterations)
+        cfg = cfg.with_iterations(args.iterations)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
     return cfg
@@ -619,8 +619,9 @@ def _dispatch(args) -> int:
     except OSError as exc:  # not a folder, read-only, permission, no space left: one line
         print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"triplet {args.command}: error: out of memory (reduce --init-points / --max-faces or the image "
+    except MemoryError as exc:  # Device.check_alloc says which buffer and the device's limit; a bare one does not
+        detail = f"{exc}; " if str(exc) else ""
+        print(f"triplet {args.command}: error: out of memory ({detail}reduce --init-points / --max-faces or the image "
               "size with --downscale)", file=sys.stderr)
         return 2
     except Exception as exc:  # an OpenCL allocation failure is one line too; anything else is a bug: traceback

@@ -235,3 +235,102 @@ def test_cached_shadows_train_resume_bit_for_bit_and_cli(tmp_path, capsys):
 
     diff = [np.abs(read_image(x)[0] - read_image(y)[0]).max() for x, y in zip(on, off, strict=True)]
     assert max(diff) > 0  # the shadows show
+
+
+# ---------------------------------------------------------------------------------------------- budgets
+
+
+def test_sparse_points_are_capped_by_the_face_budget(rng):
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.train import initial_scene
+
+    ds = load_dataset(DEMO)
+    ds.points = rng.uniform(-0.5, 0.5, (5000, 3))
+    cfg = TrainConfig(init_points=500, density=replace(TrainConfig().density, max_faces=1200))
+    sc = initial_scene(cfg, ds, np.random.default_rng(0))
+    assert len(sc.F) == 1200  # one triangle per kept point, not 5000
+    centres = np.asarray(sc.V.data, np.float64).reshape(-1, 3, 3).mean(axis=1)
+    d = np.min(np.linalg.norm(centres[:, None, :] - ds.points[None, ::7, :], axis=2), axis=1)
+    assert d.max() < 1.0  # sanity: the triangles sit on the sparse points' region
+    # with a background shell the points leave room for it
+    cfg2 = replace(cfg, background_shell=200)
+    assert len(initial_scene(cfg2, ds, np.random.default_rng(0)).F) == 1200
+    # no budget: every point
+    cfg3 = TrainConfig(init_points=500, density=replace(TrainConfig().density, max_faces=None))
+    assert len(initial_scene(cfg3, ds, np.random.default_rng(0)).F) == 5000
+
+
+def test_config_refuses_initial_triangles_over_the_budget():
+    cfg = TrainConfig(init_points=5000, density=replace(TrainConfig().density, max_faces=1000))
+    with pytest.raises(ValueError, match=r"init_points \(5000\).*max_faces \(1000\)"):
+        cfg.validate()
+
+
+def test_device_budget_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    from triplet_cl.device import get_device
+    from triplet_cl.validate import check_device_budget, device_budget
+
+    dev = get_device()
+    total, largest = device_budget(100, 100, 30, 1000)
+    assert total == 100 * 100 * 30 * 32 + 1000 * 2048 and largest == 100 * 100 * 30 * 8
+    small = replace(dev.info, global_mem_bytes=64 * 2**20, max_alloc_bytes=16 * 2**20)
+    check_device_budget(small, [(100, 100, 30, "--faces-per-pixel")], 1000)  # 2.9 + 2 MiB: fits
+    with pytest.raises(ValueError, match=r"--faces-per-pixel.*--downscale"):
+        check_device_budget(small, [(200, 200, 200, "--faces-per-pixel")], 1000)  # 61 MiB buffer > 16
+    with pytest.raises(ValueError, match=r"GiB of device memory"):
+        check_device_budget(replace(small, max_alloc_bytes=2**30), [(200, 200, 100, "--faces-per-pixel")], 1000)
+    # the CLI: one line, exit status 2, nothing written
+    monkeypatch.setattr(dev, "info", small)
+    rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), "--faces-per-pixel", "1024", "--max-faces", "1000",
+                   "--init-points", "500"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--faces-per-pixel" in err and "MiB" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+    # the face budget counts too
+    rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "200000 faces" in err and "--max-faces" in err and not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------------------------------------- schedules
+
+
+def test_with_iterations_scales_every_schedule():
+    from triplet_cl.train import REFERENCE_ITERATIONS
+
+    ref = TrainConfig()
+    assert ref.iterations == REFERENCE_ITERATIONS
+    same = ref.with_iterations(REFERENCE_ITERATIONS)
+    assert same == ref  # the reference length changes nothing
+    short = ref.with_iterations(1000)
+    d = short.density
+    assert (short.warmup_until, short.half_res_until, short.sh_band_every) == (67, 200, 333)
+    assert (d.densify_from, d.densify_until, d.interval) == (100, 833, 100)
+    assert short.lr_position_steps == 10_000 and d.alpha_reset_interval == 1000
+    assert d.grad_threshold == ref.density.grad_threshold and d.max_faces == ref.density.max_faces
+    long = ref.with_iterations(18_000)
+    assert (long.density.densify_from, long.density.densify_until, long.density.interval) == (1800, 15_000, 100)
+    assert long.half_res_until == 3600 and long.lr_position_steps == 180_000
+    # the position learning rate ends where the reference run's does (same decay shape)
+    from triplet_cl.optim import ExponentialDecay
+
+    for c in (short, ref, long):
+        lr = ExponentialDecay(c.lr_position, c.lr_position_final, c.lr_position_steps)
+        np.testing.assert_allclose(lr(c.iterations), ExponentialDecay(1e-3, 1e-5, 30_000)(3000), rtol=1e-6)
+    tiny = ref.with_iterations(40)  # a window too short for 5 intervals of 100: densify every few steps
+    assert tiny.density.interval == max(1, (tiny.density.densify_until - tiny.density.densify_from) // 5)
+    assert sum(tiny.density.densify_at(i) for i in range(1, 41)) >= 4
+    with pytest.raises(ValueError, match="iterations"):
+        ref.with_iterations(0)
+
+
+def test_cli_iterations_scale_the_schedules(tmp_path):
+    import argparse
+
+    from triplet_cl.cli.main import _config_from_args, build_parser
+
+    args = build_parser().parse_args(["train", str(DEMO), "--out", str(tmp_path / "o"), "--iterations", "600"])
+    assert isinstance(args, argparse.Namespace)
+    cfg = _config_from_args(args)
+    assert cfg == TrainConfig().with_iterations(600)
+    assert cfg.density.densify_until == 500 and cfg.half_res_until == 120

@@ -59,7 +59,10 @@ had reordered the faces):
 2. **densify** candidates: ``mean_grad ≥ grad_threshold`` — or, with ``error_threshold`` set,
    ``mean_error ≥ error_threshold`` for a face whose projected bbox reached ``error_min_pixels``
    pixels (see *Error criterion* below) — among the faces not pruned; those whose
-   longest edge ``> split_edge_ratio · extent`` are split, the others cloned. When the result would
+   longest edge ``> split_edge_ratio · extent`` are split, the others cloned (clones do happen since the
+   error criterion splits faces down to that size: totals over the 3000-iteration runs with today's
+   defaults, clones / splits — spot 66 / 3632, gadget 154 / 2955, bob_env 1082 / 5582, spot_small 46 / 882;
+   so the clone rule is kept). When the result would
    exceed ``max_faces``, candidates are taken by decreasing ``max(mean_grad / grad_threshold,
    mean_error / error_threshold)`` (a split costs +3 faces, a
    clone +1) until the budget is spent.

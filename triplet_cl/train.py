@@ -19,7 +19,7 @@ import logging
 import math
 import signal
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,7 @@ from .visibility import SHADOW_MODES, VisibilityCache
 
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
+REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned for (TrainConfig.with_iterations)
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
@@ -155,6 +156,33 @@ class TrainConfig:
     prior_chroma: float = 0.0  # (--priors lights: 0.01) scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
 
+    def with_iterations(self, iterations: int) -> TrainConfig:
+        """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
+        tuned for :data:`REFERENCE_ITERATIONS` (3000), and a shorter or longer run keeps their shape — warm-up
+        and half resolution (200 / 600 of 3000), one SH band per third, the position learning-rate decay
+        (``lr_position_steps`` 10× the run: 1e-3 → 6.3e-4 × extent at the end), densification from 10 % to 83 %
+        of the run (300 … 2500 of 3000: the last 17 % fine-tune a fixed soup), the alpha reset, the priors' start
+        and the learning-rate boost. The densification ``interval`` stays 100 (the statistics need about one
+        pass over the views) unless the window holds fewer than 5 of them. ``--iterations N`` on the command
+        line is this (a resumed run keeps its saved schedules)."""
+        if iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations}")
+        r = iterations / REFERENCE_ITERATIONS
+        ref = TrainConfig()
+
+        def sc(v: int, low: int = 0) -> int:
+            return max(int(round(v * r)), low)
+
+        d, rd = self.density, ref.density
+        start, until = sc(rd.densify_from), sc(rd.densify_until)
+        density = replace(d, densify_from=start, densify_until=until,
+                          interval=max(1, min(rd.interval, (until - start) // 5)),
+                          alpha_reset_interval=sc(rd.alpha_reset_interval, 1))
+        return replace(self, iterations=int(iterations), warmup_until=sc(ref.warmup_until),
+                       half_res_until=sc(ref.half_res_until), sh_band_every=sc(ref.sh_band_every, 1),
+                       lr_position_steps=sc(ref.lr_position_steps, 1), prior_from=sc(ref.prior_from),
+                       lr_boost_at=sc(ref.lr_boost_at, 1), density=density)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["lights"] = list(self.lights)
@@ -208,6 +236,11 @@ class TrainConfig:
             raise ValueError(f"checkpoint_every and keep_checkpoints must be >= 0, got {self.checkpoint_every} "
                              f"and {self.keep_checkpoints}")
         resolve_background(self.background)
+        mf = self.density.max_faces
+        if mf is not None and self.init_points + self.background_shell > mf:
+            raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
+                             f"the face budget max_faces ({mf}): density control would prune them at once; give at "
+                             "most the budget, or raise max_faces")
         bad = {k: getattr(self, k) for k in Priors.off() if not getattr(self, k) >= 0}
         if bad or self.prior_k < 1 or not 0 <= self.prior_roughness_target <= 1:
             raise ValueError(f"prior weights must be >= 0, prior_k >= 1, prior_roughness_target in [0, 1]; got "
@@ -266,6 +299,14 @@ def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Genera
     return (p[:, None, :] + r[:, None, None] * off).reshape(-1, 3)
 
 
+def initial_budget(cfg: TrainConfig) -> int | None:
+    """How many initial triangles from sparse points fit the face budget: ``max_faces`` less the background
+    shell (None: no budget)."""
+    if cfg.density.max_faces is None:
+        return None
+    return max(cfg.density.max_faces - cfg.background_shell, 4)
+
+
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     """The configured lights, placed from the cameras (each light class's ``initial``: a point light
     above the scene, a directional light from the cameras' mean up direction, dim ambient, a
@@ -282,6 +323,12 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     pts = ds.points if ds.points is not None and len(ds.points) >= 4 else None
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng)
+    else:
+        budget = initial_budget(cfg)
+        if budget is not None and len(pts) > budget:
+            # one triangle per sparse point: more points than the face budget would be pruned at once (and
+            # cost memory and time until then); a uniform, seeded subsample keeps their spatial density
+            pts = pts[np.sort(rng.choice(len(pts), size=budget, replace=False))]
     V = triangles_from_points(pts, cfg.init_size, rng)
     if cfg.background_shell:
         V = np.concatenate([V, triangles_from_points(background_shell_points(ds, cfg.background_shell,
@@ -409,6 +456,7 @@ class Trainer:
             raise ValueError(f"--downscale {self.cfg.downscale} leaves {w}x{h}-pixel training images ({small.name}); "
                              "the warm-up renders at 1/4 of that: they must stay at least 4 pixels, so lower "
                              "--downscale")
+        self.check_device_budget()
         self.extent = self.ds.scene_extent()
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
@@ -430,6 +478,20 @@ class Trainer:
         else:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
+
+    def check_device_budget(self) -> None:
+        """Refuse (``ValueError``, before any work) a schedule whose largest renders cannot fit the device
+        (:func:`~triplet_cl.validate.check_device_budget`): the warm-up (¼ resolution, warm-up K) and the full
+        resolution (K) of the largest training view, with up to ``max_faces`` faces."""
+        from .validate import check_device_budget
+
+        big = max(self.ds.train, key=lambda v: v.rgb.shape[0] * v.rgb.shape[1])
+        h, w = big.rgb.shape[:2]
+        c = self.cfg
+        check_device_budget(self.device.info, [(max(w // 4, 1), max(h // 4, 1), c.warmup_faces_per_pixel,
+                                                "the warm-up's fragments per pixel (warmup_faces_per_pixel)"),
+                                               (w, h, c.faces_per_pixel, "--faces-per-pixel")],
+                            c.density.max_faces)
 
     @property
     def transfer(self) -> str | None:

@@ -21,6 +21,12 @@ K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the
 TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
 TEXTURE_BYTES_PER_TEXEL = 128  # mesh.bake while baking: measured peak 113 B / texel (export of a 15k-face mesh, 4096²)
 HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initialising; ×4 for training copies
+# device memory of one training render (ops/raster.py, ops/blend.py): per pixel and fragment slot the K-strided
+# scratch (entry int32 + depth float32) and, at worst every slot filled, the packed lists (face, entry, bary×2,
+# depth, window): 8 + 24 bytes; per face, its 3 vertices' projected position, attributes and their adjoints (3 +
+# up to 70 channels of float32, ×2), rounded up
+DEVICE_BYTES_PER_FRAGMENT = 32
+DEVICE_BYTES_PER_FACE = 2048
 
 # option -> (args attribute, kind, low, high, what it is); None bound = unbounded
 _INT_OPTIONS = {
@@ -156,6 +162,34 @@ def check_memory_for_points(n: int, option: str = "--init-points") -> None:
     if avail is not None and need > 0.8 * avail:
         raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, this machine has "
                                  f"{avail / 2**30:.1f} GiB available")
+
+
+def device_budget(width: int, height: int, K: int, max_faces: int | None) -> tuple[int, int]:
+    """``(total bytes, largest single buffer in bytes)`` a training render of ``width × height`` pixels with ``K``
+    fragments per pixel and up to ``max_faces`` faces needs on the device, at worst (every fragment slot used)."""
+    frags = int(width) * int(height) * int(K)
+    faces = int(max_faces) if max_faces is not None else 0
+    return frags * DEVICE_BYTES_PER_FRAGMENT + faces * DEVICE_BYTES_PER_FACE, frags * 8
+
+
+def check_device_budget(info, renders, max_faces: int | None) -> None:
+    """Refuse, before any work, a run whose renders cannot fit the device: ``info`` a
+    :class:`~triplet_cl.device.DeviceInfo`; ``renders`` ``[(width, height, K, what)]`` the largest renders of the
+    schedule (``what`` names the options that set them). Raises ``ValueError`` with the estimate, the device's
+    limits and what to lower."""
+    for width, height, K, what in renders:
+        total, largest = device_budget(width, height, K, max_faces)
+        fix = (f"lower {what}, reduce the images with --downscale, lower --max-faces, or choose a device with more "
+               "memory (--device)")
+        if largest > info.max_alloc_bytes:
+            raise ValueError(f"a {width}x{height} render with K={K} fragments per pixel needs a buffer of "
+                             f"{largest / 2**20:.0f} MiB, more than the largest allocation of {info.device_name!r} "
+                             f"({info.max_alloc_bytes / 2**20:.0f} MiB): {fix}")
+        if total > 0.9 * info.global_mem_bytes:
+            faces = f" and {max_faces} faces" if max_faces is not None else ""
+            raise ValueError(f"a {width}x{height} render with K={K} fragments per pixel{faces} needs up to "
+                             f"{total / 2**30:.2f} GiB of device memory, {info.device_name!r} has "
+                             f"{info.global_mem_bytes / 2**30:.2f} GiB: {fix}")
 
 
 def available_memory() -> int | None:
