@@ -14,6 +14,15 @@ section (or with ``--force``) is evaluated first with ``triplet eval RUN --relig
 (texture decoded to linear, ``roughness``/``metallic`` of ``ground_truth.json``) with our renderer: what the
 renderer itself can reach (no shadows in raster, no inter-reflection), and a check of the light-file conventions
 and of the environment's SH degree. It reads ``ground_truth.json`` to check, never to train.
+
+``--lights`` adds the recovered lights against ``ground_truth.json`` per run (issue 18): for each true point light
+the recovered point light nearest in direction (seen from the object's centre, the origin of the dev scenes) with
+its position error, direction error (degrees), intensity ratio and irradiance ratio at the centre (``I / d²``, the
+quantity the photos fix; the intensity alone trades against the distance); a recovered directional light is
+compared by direction and irradiance. The ambient (or SH environment's band 0) radiance is set against the true
+``ambient``. For an environment-lit scene (an ``envmap`` light) the comparable quantities are the environment's
+mean radiance (its band 0) and its dominant direction (the direction of its luminance band 1), set against the
+recovered ambient / SH band 0 plus the recovered direct lights' direction and irradiance.
 """
 
 from __future__ import annotations
@@ -62,6 +71,77 @@ def rows_of(label: str, scene: str, run: Path, m: dict) -> list[str]:
         a = r.get("albedo")
         alb = f"{a['psnr_raw']:.2f} / {a['psnr_scaled']:.2f}" if a else "—"
         out.append(f"| {scene} | {label} ({color}) | {stage} | {nvs:.2f} | {sets} | {alb} | {t:.0f} s |")
+    return out
+
+
+Y00 = 0.28209479177387814
+LUM = np.array([0.2126, 0.7152, 0.0722])
+
+
+def _angle(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-30)
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+def _band1_dir(c: np.ndarray) -> np.ndarray:
+    """Dominant direction of SH coefficients ``[3, >=4]`` (luminance band 1; ``kernels_cl/common/sh.h``:
+    Y_1,-1 = -c y, Y_1,0 = c z, Y_1,1 = -c x)."""
+    lum = LUM @ c[:, 1:4]
+    return np.array([-lum[2], -lum[0], lum[1]])
+
+
+def lights_vs_truth(run: Path, scene: str, data: Path, label: str = "") -> list[str]:
+    """Rows comparing ``run/lights.json`` with ``scenes/<scene>/ground_truth.json`` (see the module docstring)."""
+    from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, lights_from_json
+    from triplet_cl.relight import envmap_item_sh
+
+    gt_file = data / "scenes" / scene / "ground_truth.json"
+    if not gt_file.is_file():
+        return [f"  {run}: no {gt_file}"]
+    gt = json.loads(gt_file.read_text())
+    rec = lights_from_json(json.loads((run / "lights.json").read_text()))
+    pts = [lt for lt in rec if isinstance(lt, PointLight)]
+    dirs = [lt for lt in rec if isinstance(lt, DirectionalLight)]
+    amb = sum(float(lt.color.mean()) for lt in rec if isinstance(lt, AmbientLight))
+    env = [lt for lt in rec if isinstance(lt, SHEnvironmentLight)]
+    amb += sum(float(lt.coeffs[:, 0].mean() * Y00) for lt in env)
+    out = []
+    lab = label or run.parent.name
+    rec_desc = "; ".join(
+        [f"point at ({', '.join(f'{x:.2f}' for x in p.position)}) I {p.intensity.mean():.1f} "
+         f"E(0) {p.intensity.mean() / max(p.position @ p.position, 1e-6):.2f}" for p in pts]
+        + [f"directional to ({', '.join(f'{x:.2f}' for x in d.direction / np.linalg.norm(d.direction))}) "
+           f"E {d.intensity.mean():.2f}" for d in dirs])
+    for t in gt["lights"]:
+        if t["type"] == "point":
+            q, it = np.asarray(t["position"], float), float(np.mean(t["intensity"]))
+            e_true = it / (q @ q)
+            if pts:
+                p = min(pts, key=lambda p: _angle(p.position, q))
+                pi = float(p.intensity.mean())
+                e_rec = pi / max(p.position @ p.position, 1e-6)
+                out.append(f"| {scene} | {lab} | point | {np.linalg.norm(p.position - q):.2f} | "
+                           f"{_angle(p.position, q):.1f} | {pi / it:.2f} | "
+                           f"{e_rec / e_true:.2f} | {amb:.3f} / {gt.get('ambient', 0)} |")
+            elif dirs:
+                d = min(dirs, key=lambda d: _angle(d.direction, q))
+                out.append(f"| {scene} | {lab} | point (as directional) | — | {_angle(d.direction, q):.1f} | — | "
+                           f"{d.intensity.mean() / e_true:.2f} | {amb:.3f} / {gt.get('ambient', 0)} |")
+        elif t["type"] == "envmap":
+            c = envmap_item_sh(t, gt_file, "lights", 1)
+            mean_true = float(c[:, 0].mean() * Y00)
+            d_true = _band1_dir(c)
+            direct = [(p.position, p.intensity.mean() / max(p.position @ p.position, 1e-6)) for p in pts] + \
+                     [(d.direction, d.intensity.mean()) for d in dirs]
+            ang = " / ".join(f"{_angle(v, d_true):.1f}" for v, _ in direct) or "—"
+            e_dir = sum(e for _, e in direct)
+            env_dir = " / ".join(f"{_angle(_band1_dir(e.coeffs), d_true):.1f}" for e in env
+                                 if e.coeffs.shape[1] >= 4 and e.degree >= 1)
+            out.append(f"| {scene} | {lab} | envmap | — | direct {ang}; SH band 1 {env_dir or '—'} | — | "
+                       f"direct E(0) {e_dir:.2f} vs env πL̄ {np.pi * mean_true:.2f} | "
+                       f"{amb:.3f} / {mean_true:.3f} (env mean) |")
+    out.append(f"|  |  | recovered: {rec_desc} |  |  |  |  |  |")
     return out
 
 
@@ -160,6 +240,7 @@ def main(argv=None) -> int:
     p.add_argument("--force", action="store_true", help="re-run the relight evaluation of every run")
     p.add_argument("--env-degree", type=int, help="SH degree of the environment maps (default: triplet's)")
     p.add_argument("--images", help="write relight_<scene>_view0.png (ground truth | each run) into this folder")
+    p.add_argument("--lights", action="store_true", help="also the recovered lights against ground_truth.json")
     p.add_argument("--gt-ceiling", help="relight the ground-truth mesh + material of this scene instead")
     p.add_argument("--env-degrees", default="8", help="with --gt-ceiling: comma-separated SH degrees")
     p.add_argument("--renderers", default="raster,hybrid", help="with --gt-ceiling: comma-separated renderers "
@@ -188,6 +269,13 @@ def main(argv=None) -> int:
             found[label] = run
             for row in rows_of(label, scene, run, m):
                 print(row, flush=True)
+        if a.lights and found:
+            print("\n| scene | run | true light | position error | direction error (deg) | intensity ratio | "
+                  "irradiance ratio at centre | ambient: recovered / true |\n|---|---|---|---|---|---|---|---|")
+            for label, run in found.items():
+                for row in lights_vs_truth(run, scene, data, label):
+                    print(row)
+            print()
         if a.images and found:
             print(f"  images: {view_images(found, scene, data, Path(a.images))}", file=sys.stderr)
     return 0

@@ -104,7 +104,7 @@ def _config_from_args(args: argparse.Namespace):
         over.update(Priors.off())
         if args.priors in ("lights", "all"):
             over.update(LIGHT_WEIGHTS)
-        if args.priors == "all":
+        if args.priors in ("materials", "all"):
             over.update(MATERIAL_WEIGHTS)
     cfg = replace(cfg, **over)
     if args.iterations is not None:  # every schedule follows the run's length (TrainConfig.with_iterations)
@@ -498,9 +498,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")
-    t.add_argument("--priors", choices=["lights", "all", "off"], help="priors (default off; lights: a small "
-                   "ambient share, white-ish lights, light colours >= 0; all: also kNN smoothness of the materials, "
-                   "metallic towards 0, roughness towards 0.5; README 'Material and light priors')")
+    t.add_argument("--priors", choices=["lights", "materials", "all", "off"], help="priors (default off; lights: a "
+                   "small ambient share, white-ish lights, light colours >= 0; materials: kNN smoothness of the "
+                   "materials, metallic towards 0, roughness towards 0.5; all: both; README 'Material and light "
+                   "priors')")
     t.add_argument("--mesh-stage", action="store_true", help="after the soup stage, extract a connected mesh, "
                    "refine it and export mesh.glb/.obj/.ply (as `triplet extract`)")
     _add_mesh_options(t)

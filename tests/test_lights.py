@@ -130,6 +130,39 @@ def test_initial_lights_per_kind():
         initial_lights(["spot"], _init())
 
 
+def test_several_lights_of_a_kind_start_spread():
+    """Two or more point / directional lights start on a ring around the up axis (distinct directions, 0.6 extent
+    from the centre, intensity shared), so that each can find its own light; one light keeps its old place."""
+    init = _init()
+    pts = initial_lights(["point", "ambient", "point", "point"], init)
+    pts = [p for p in pts if isinstance(p, PointLight)]
+    dirs = [(p.position - init.center) / np.linalg.norm(p.position - init.center) for p in pts]
+    for i in range(3):
+        assert np.linalg.norm(pts[i].position - init.center) == pytest.approx(0.6 * 2.0, rel=0.2)
+        assert np.allclose(pts[i].intensity, 4.0 / 3)
+        assert dirs[i] @ init.up > 0.3  # above the horizon
+        for j in range(i):
+            assert np.degrees(np.arccos(dirs[i] @ dirs[j])) > 60
+    d2 = initial_lights(["directional", "directional"], init)
+    assert np.degrees(np.arccos(d2[0].direction @ d2[1].direction)) > 60
+    assert np.allclose(d2[0].intensity, 0.5) and np.isclose(np.linalg.norm(d2[0].direction), 1)
+    assert np.array_equal(initial_lights(["directional"], init)[0].direction, init.up)
+
+
+def test_relative_lr_scales_follow_the_radiometric_parameters():
+    """Colours / intensities / SH radiance: their magnitude (at least 1e-3); positions and directions: 1."""
+    from triplet_cl.lights import relative_lr_scales
+
+    lights = [PointLight([1, 2, 3], [12.0, 10.0, 11.0]), AmbientLight([0.1, 0.05, 0.0]),
+              DirectionalLight([0, 1, 0], [0.0, 0.0, 0.0]), SHEnvironmentLight.constant([0.5] * 3, 1)]
+    s = relative_lr_scales(lights)
+    assert len(s) == pack_lights(lights).params.size
+    np.testing.assert_allclose(s[:6], [1, 1, 1, 12, 12, 12])
+    np.testing.assert_allclose(s[6:9], 0.1)
+    np.testing.assert_allclose(s[9:15], [1, 1, 1, 1e-3, 1e-3, 1e-3])
+    np.testing.assert_allclose(s[15:], 0.5 * np.sqrt(4 * np.pi))
+
+
 def test_gltf_punctual_form():
     p, d = PointLight([1, 2, 3], [2, 1, 1]), DirectionalLight([0, 0, 2], [1, 1, 1])
     assert p.gltf_punctual()[0] == "point" and np.array_equal(p.gltf_punctual()[1], [1, 2, 3])

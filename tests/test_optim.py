@@ -286,3 +286,23 @@ def test_device_adam_finiteness_guard(device):
             opt.step()
         assert (ei.value.group, ei.value.what) == ("a", "gradient")
         np.testing.assert_array_equal(a.data, before)
+
+
+def test_lr_scale_multiplies_the_update_elementwise(rng):
+    """``lr_scale``: the update of each element is the plain one times its factor (0 freezes it); a bad scale is
+    refused when the group is added; with a device the scaled parameter is updated by numpy."""
+    x0 = rng.normal(size=6)
+    scale = np.array([1.0, 2.0, 0.5, 0.0, 10.0, 1.0])
+    plain, scaled = Param(x0.copy(), "a"), Param(x0.copy(), "b")
+    a, b = Adam(), Adam()
+    a.add_group("p", [plain], lr=0.01)
+    b.add_group("p", [scaled], lr=0.01, lr_scale=[scale])
+    for _ in range(3):
+        g = rng.normal(size=6)
+        plain.grad, scaled.grad = g.copy(), g.copy()
+        a.step()
+        b.step()
+    np.testing.assert_allclose(scaled.data - x0, (plain.data - x0) * scale, rtol=1e-12, atol=1e-15)
+    for bad, what in (([np.ones(5)], "broadcast"), ([-np.ones(6)], ">= 0"), ([None, None], "one entry")):
+        with pytest.raises(ValueError, match=what):
+            Adam().add_group("p", [Param(x0.copy(), "c")], lr=0.01, lr_scale=bad)

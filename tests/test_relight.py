@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -265,3 +266,43 @@ def test_a_linear_runs_exports_encode_the_albedo(relit_run):
     enc, raw = np.median(srgb_encode(alb)), np.median(alb)
     assert abs(enc - raw) > 0.1  # the check can tell them apart
     assert abs(np.median(tex) - enc) < 0.25 * abs(enc - raw), (np.median(tex), enc, raw)
+
+
+def test_blinn_phong_run_relights(tmp_path):
+    """--brdf blinn-phong: `triplet relight` under the run's own lights gives its test renders back, and
+    `eval --relight` with a Mitsuba-style set (point + constant) evaluates it; its albedo image is kd (the base
+    colour)."""
+    from triplet_cl.cli.main import demo_data_path
+    from triplet_cl.cli.main import main as cli_main
+
+    from tests.test_train import small_cfg
+    from triplet_cl.relight import Relighter
+    from triplet_cl.train import Trainer
+
+    run = tmp_path / "bp"
+    tr = Trainer(demo_data_path(), run, small_cfg(iterations=30, init_points=1500, brdf="blinn_phong"), quiet=True)
+    tr.train()
+    own = tmp_path / "own"
+    assert cli_main(["relight", str(run), "--lights", str(run / "lights.json"), "--out", str(own)]) == 0
+    names = sorted(p.name for p in (run / "renders" / "test").glob("*.png"))
+    assert names and names == sorted(p.name for p in own.glob("*.png"))
+    for n in names:
+        (a, aa), (b, ba) = _read(run / "renders" / "test" / n), _read(own / n)
+        assert np.abs(aa - ba).max() <= 1 / 255 + 1e-6
+        assert np.abs(a - b)[aa > 0.05].max() <= 2 / 255 + 1e-6, n
+    rdir = tmp_path / "relight"
+    shutil.copytree(run / "renders" / "test", rdir / "set")
+    shutil.copytree(run / "renders" / "test", rdir / "albedo")
+    lights = [{"type": "point", "position": [2.0, 3.0, 2.5], "intensity": 30.0}, {"type": "constant", "radiance": 0.1}]
+    (rdir / "relight.json").write_text(json.dumps({"sets": {"s": {"lights": lights, "images": "set"}},
+                                                   "albedo": "albedo"}))
+    assert cli_main(["eval", str(run), "--relight", str(rdir)]) == 0
+    m = json.loads((run / "metrics.json").read_text())["relight"]["soup"]
+    assert np.isfinite(m["sets"]["s"]["psnr"]) and np.isfinite(m["albedo"]["psnr_scaled"])
+    tr2 = Trainer(None, run, resume=True, quiet=True)
+    rl = Relighter(tr2)
+    v = rl.views("test")[0]
+    rgb, a = rl.render_albedo(v.camera)
+    kd_scene = rl.albedo_scene()
+    assert np.array_equal(np.asarray(kd_scene.material.data)[:, 7:10], np.asarray(tr2.scene.material.data)[:, 0:3])
+    assert rgb.shape[:2] == a.shape and np.isfinite(rgb).all()

@@ -211,6 +211,38 @@ def test_sh_irradiance_of_constant_environment_is_constant(device, rng, degree):
 
 
 @pytest.mark.parametrize("brdf", BRDFS)
+def test_direct_and_environment_diffuse_agree(device, rng, brdf):
+    """A purely diffuse material (Blinn-Phong ks = 0; Cook-Torrance metallic 0, roughness 1, seen and lit along
+    the normal) reflects kd/π·E under a light of irradiance E and kd·c under a constant environment of radiance c:
+    the same albedo relights the same under a Mitsuba point light and an environment (Blinn-Phong's diffuse was
+    kd·N·L, π times the environment term's)."""
+    P = 50
+    nrm = _sphere_dirs(rng, P)
+    pos = np.zeros((P, 3))
+    kd = rng.uniform(0.1, 0.9, (P, 3))
+    if brdf == "blinn_phong":
+        mat = np.concatenate([kd, np.zeros((P, 3)), np.full((P, 1), 10.0), np.zeros((P, 3))], 1)
+    else:
+        mat = np.concatenate([kd, np.ones((P, 1)), np.zeros((P, 1)), np.ones((P, 1))], 1)
+    direct, env = [], []
+    for p in range(P):  # the light along the normal, 2 units away: irradiance I / 4 = pi
+        n = nrm[p]
+        cam = 3.0 * n
+        d = shade(pos[p:p + 1], nrm[p:p + 1], mat[p:p + 1], [0], cam, [PointLight(2.0 * n, [4 * np.pi] * 3)],
+                  brdf=brdf, device=device)
+        e = shade(pos[p:p + 1], nrm[p:p + 1], mat[p:p + 1], [0], cam, [SHEnvironmentLight.constant([1.0] * 3, 2)],
+                  brdf=brdf, device=device)
+        direct.append(d[0])
+        env.append(e[0])
+    direct, env = np.array(direct), np.array(env)
+    if brdf == "blinn_phong":
+        np.testing.assert_allclose(direct, kd, rtol=1e-5)
+        np.testing.assert_allclose(env, kd, rtol=1e-5)
+    else:  # Fresnel takes F0 = 0.04 off the diffuse lobe at normal incidence (and adds a specular part): close
+        np.testing.assert_allclose(direct, env, rtol=0.1, atol=0.03)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
 def test_degenerate_configurations_stay_finite(device, brdf):
     C = num_material_channels(brdf)
     n = np.array([0.0, 0.0, 1.0])

@@ -79,6 +79,25 @@ def test_checkpoint_resume_is_bit_for_bit(tmp_path):
     np.testing.assert_array_equal(a.scene.F, c.scene.F)
 
 
+def test_sh_environment_light_follows_the_band_schedule(tmp_path):
+    """--lights sh-env: the environment's active degree rises one band every sh_band_every iterations (it stayed at
+    0 before: a constant environment), its higher bands learn, and a resumed run knows its degree."""
+    from triplet_cl.lights import SHEnvironmentLight
+
+    cfg = small_cfg(iterations=24, lights=("point", "sh-env"), sh_degree=2, sh_band_every=10)
+    tr = Trainer(DEMO, tmp_path / "run", cfg, quiet=True)
+    env = tr.scene.lights[1]
+    assert isinstance(env, SHEnvironmentLight) and env.degree == 0
+    for _ in range(24):
+        tr.step()
+    assert env.degree == 2
+    (cur,) = [lt for lt in tr.scene.current_lights() if isinstance(lt, SHEnvironmentLight)]
+    assert np.abs(cur.coeffs[:, 1:4]).max() > 0 and np.abs(cur.coeffs[:, 4:9]).max() > 0  # bands 1 and 2 moved
+    tr.save_checkpoint()
+    again = Trainer(None, tmp_path / "run", quiet=True, resume=True)
+    assert again.scene.lights[1].degree == 2
+
+
 def test_run_outputs_and_cli(tmp_path, capsys):
     out = tmp_path / "demo"
     rc = cli_main(["train", "--demo", "--iterations", "30", "--init-points", "1500", "--out", str(out),
@@ -131,6 +150,25 @@ def test_renderer_option_trains_with_ray_traced_shadows(tmp_path, capsys):
     assert m["iterations"] == 12 and np.isfinite(m["psnr"])
     assert cli_main(["render", str(out), "--renderer", "raytrace", "--out", str(tmp_path / "rt")]) == 0
     assert len(list((tmp_path / "rt").glob("*.png"))) == 8
+
+
+def test_an_old_blinn_phong_run_is_warned_about(tmp_path):
+    """A Blinn-Phong run saved before the kd/π diffuse lobe (no lr_lights_mode in its config) loads with a warning
+    naming the change; a Cook-Torrance one without it loads silently (absolute light learning rates)."""
+    import json
+    import warnings
+
+    from triplet_cl.runs import config_from_saved
+
+    old = small_cfg(brdf="blinn_phong").to_dict()
+    del old["lr_lights_mode"]
+    with pytest.warns(UserWarning, match="kd/pi"):
+        cfg = config_from_saved(tmp_path, {"train": old})
+    assert cfg.lr_lights_mode == "absolute"
+    old["brdf"] = "cook_torrance"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert config_from_saved(tmp_path, {"train": json.loads(json.dumps(old))}).lr_lights_mode == "absolute"
 
 
 def test_cached_shadows_train_resume_bit_for_bit_and_cli(tmp_path, capsys):

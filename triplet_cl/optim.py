@@ -14,7 +14,8 @@ and its own hyper-parameters. One ``step()``:
    exceeds it, every gradient of the group is scaled by ``max_grad_norm / (‖g‖ + 1e-6)``
    (``torch.nn.utils.clip_grad_norm_``);
 3. per parameter with a gradient: ``m = β1 m + (1 − β1) g``, ``v = β2 v + (1 − β2) g²``,
-   ``x −= lr · (m / (1 − β1^t)) / (sqrt(v / (1 − β2^t)) + eps)`` (PyTorch's Adam).
+   ``x −= lr · (m / (1 − β1^t)) / (sqrt(v / (1 − β2^t)) + eps)`` (PyTorch's Adam); with the group's
+   optional ``lr_scale`` for the parameter, ``lr`` is multiplied elementwise by it.
 
 Parameters whose ``.grad`` is None are skipped (their moments do not decay).
 
@@ -148,6 +149,9 @@ class ParamGroup:
     exp_avg: list[np.ndarray] = field(default_factory=list)
     exp_avg_sq: list[np.ndarray] = field(default_factory=list)
     last_grad_norm: float = 0.0  # the group's gradient norm before clipping at the last step
+    #: per parameter, None or an array broadcasting to its shape: the update is multiplied by it (elementwise
+    #: learning rates, e.g. each light parameter relative to its magnitude); not part of ``state_dict``
+    lr_scale: list | None = None
 
     @property
     def num_rows(self) -> int:
@@ -181,10 +185,12 @@ class Adam:
 
     # ---- groups -------------------------------------------------------------------------------
     def add_group(self, name: str, params: list, lr=1e-3, betas=(0.9, 0.999), eps: float = 1e-8,
-                  max_grad_norm: float | None = None) -> ParamGroup:
+                  max_grad_norm: float | None = None, lr_scale: list | None = None) -> ParamGroup:
         """Register ``params`` (each with ``.data`` a float numpy array, ``.grad``) as group ``name``.
 
-        ``lr``: a float or a schedule; ``betas`` in [0, 1); ``max_grad_norm``: None or > 0.
+        ``lr``: a float or a schedule; ``betas`` in [0, 1); ``max_grad_norm``: None or > 0; ``lr_scale``:
+        None or one entry per parameter (None or a finite ``>= 0`` array broadcasting to its shape) multiplying
+        its update elementwise (such a parameter is updated by numpy, also with a device).
         """
         if not name or name in self.groups:
             raise ValueError(f"name must be a new non-empty group name, got {name!r}")
@@ -201,8 +207,26 @@ class Adam:
             raise ValueError(f"eps must be >= 0, got {eps}")
         if max_grad_norm is not None and max_grad_norm <= 0:
             raise ValueError(f"max_grad_norm must be None or > 0, got {max_grad_norm}")
+        if lr_scale is not None:
+            lr_scale = list(lr_scale)
+            if len(lr_scale) != len(params):
+                raise ValueError(f"lr_scale of group {name!r} must hold one entry per parameter ({len(params)}), "
+                                 f"got {len(lr_scale)}")
+            for i, (sc, p) in enumerate(zip(lr_scale, params, strict=True)):
+                if sc is None:
+                    continue
+                sc = np.asarray(sc, np.float64)
+                if not (np.isfinite(sc).all() and (sc >= 0).all()):
+                    raise ValueError(f"lr_scale[{i}] of group {name!r} must be finite and >= 0")
+                try:
+                    np.broadcast_to(sc, p.data.shape)
+                except ValueError:
+                    raise ValueError(f"lr_scale[{i}] of group {name!r} has shape {list(sc.shape)}, which does not "
+                                     f"broadcast to the parameter's {list(p.data.shape)}") from None
+                lr_scale[i] = sc.astype(p.data.dtype)
         g = ParamGroup(name, params, _as_schedule(lr), (b1, b2), float(eps), max_grad_norm,
-                       [np.zeros_like(p.data) for p in params], [np.zeros_like(p.data) for p in params])
+                       [np.zeros_like(p.data) for p in params], [np.zeros_like(p.data) for p in params],
+                       lr_scale=lr_scale)
         self.groups[name] = g
         return g
 
@@ -252,7 +276,8 @@ class Adam:
             for k, (p, gr) in enumerate(zip(g.params, grads, strict=True)):
                 if gr is None:
                     continue
-                if self._on_device(p.data, g.exp_avg[k], g.exp_avg_sq[k]):
+                scale = None if g.lr_scale is None else g.lr_scale[k]
+                if scale is None and self._on_device(p.data, g.exp_avg[k], g.exp_avg_sq[k]):
                     finite = self._step_device(p.data, g.exp_avg[k], g.exp_avg_sq[k], gr, coef, b1, b2, lr / bc1,
                                                bc2, g.eps)
                     if bad is None and not finite:
@@ -264,7 +289,10 @@ class Adam:
                 m += (1.0 - b1) * gr
                 v *= b2
                 v += (1.0 - b2) * gr * gr
-                p.data -= (lr / bc1) * m / (np.sqrt(v / bc2) + g.eps)
+                if scale is None:
+                    p.data -= (lr / bc1) * m / (np.sqrt(v / bc2) + g.eps)
+                else:
+                    p.data -= (lr / bc1) * scale * m / (np.sqrt(v / bc2) + g.eps)
                 if bad is None and not np.isfinite(p.data).all():
                     bad = g.name
         if bad is not None:

@@ -117,6 +117,12 @@ def config_from_saved(run_dir, saved: dict):
                                      f"{type(default).__name__}, found {type(v).__name__} ({v!r})")
 
     check(TrainConfig, t, "")
+    if t.get("brdf") == "blinn_phong" and "lr_lights_mode" not in t:  # saved before issue 18's changes
+        import warnings
+
+        warnings.warn(f"{path}: this Blinn-Phong run was trained before its diffuse lobe became kd/pi (issue 18): its "
+                      "kd was learned as albedo/pi, so under point / directional lights it now renders pi times darker "
+                      "than it was trained (the environment term is unchanged); train it again", stacklevel=2)
     try:
         cfg = TrainConfig.from_dict(t)
         cfg.validate()

@@ -13,8 +13,11 @@
  *     k = (r+1)^2/8, G = G1(nv) G1(nl), G1(x) = x / (x (1 - k) + k),
  *     F0 = 0.04 (1 - m) + m albedo,  F = F0 + (1 - F0)(1 - hv)^5,
  *     out = [D F G / (4 nv nl + 1e-4) nl + relu(1 - F)(1 - m) albedo / pi nl] Li
- *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd nl] Li
- *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return)
+ *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd / pi nl] Li
+ *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return; the diffuse lobe is
+ *     the normalised Lambert kd / pi, as Cook-Torrance's and the environment term's, so that kd is the
+ *     base colour the exports write and a Mitsuba light set relights it in its units: the method's
+ *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
  * ambient(La, m):  Cook-Torrance La albedo ao;  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
@@ -247,7 +250,7 @@ inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL
     const REAL3 H = safe_normalize(L + V);
     const REAL nh = fmax(dot(N, H), (REAL)0);
     const REAL e = fmax(m[6], (REAL)0) + (REAL)1;
-    return (LOAD_RGB(m, 3) * safe_pow(nh, e) + LOAD_RGB(m, 0) * nl) * Li;
+    return (LOAD_RGB(m, 3) * safe_pow(nh, e) + LOAD_RGB(m, 0) * (nl / R_PI)) * Li;
 }
 
 inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m,
@@ -262,12 +265,13 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     const REAL nh = fmax(nhr, (REAL)0);
     const REAL e = fmax(m[6], (REAL)0) + (REAL)1;
     const REAL sp = safe_pow(nh, e);
-    *v_Li += v_out * (ks * sp + kd * nl);
+    const REAL nlp = nl / R_PI;
+    *v_Li += v_out * (ks * sp + kd * nlp);
     const REAL3 g = v_out * Li;
-    const REAL3 v_ks = g * sp, v_kd = g * nl;
+    const REAL3 v_ks = g * sp, v_kd = g * nlp;
     REAL v_nh = (REAL)0, v_e = (REAL)0;
     safe_pow_vjp(nh, e, dot(g, ks), &v_nh, &v_e);
-    const REAL v_nl = dot(g, kd);
+    const REAL v_nl = dot(g, kd) / R_PI;
     if (nhr > (REAL)0) {
         *v_N += v_nh * H;
         const REAL3 v_Hu = safe_normalize_vjp(Hu, v_nh * N);

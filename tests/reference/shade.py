@@ -66,13 +66,13 @@ def ct_direct(N, V, L, Li, m):
 
 
 def bp_direct(N, V, L, Li, m):
-    """Blinn-Phong: ks (relu(N.H) [N.L > 0])^(relu(s)+1) Li + kd relu(N.L) Li."""
+    """Blinn-Phong: ks (relu(N.H) [N.L > 0])^(relu(s)+1) Li + kd / pi relu(N.L) Li."""
     kd, ks, s = m[:, 0:3], m[:, 3:6], m[:, 6:7]
     nl = dot(N, L)
     on = nl.real > 0
     nh = relu(dot(N, normalize(L + V)))
     e = relu(s) + 1
-    return np.where(on, (ks * safe_pow(nh, e) + kd * nl) * Li, 0)
+    return np.where(on, (ks * safe_pow(nh, e) + kd / np.pi * nl) * Li, 0)
 
 
 def ambient(La, m, brdf):
