@@ -24,3 +24,22 @@ def fd_grad(f, x, h=1e-6):
         xm[i] -= h
         g[i] = (f(xp) - f(xm)) / (2 * h)
     return g
+
+
+def sampled_fd(param, loss, rng, n, eps=1e-6):
+    """Central differences of ``loss() -> (value, same_fragments)`` at ``n`` random entries of ``param.data``
+    (perturbed in place and restored): ``(indices, numerical, ok)``, ``ok`` false where a perturbation changed
+    which fragments a pixel holds (the render is then not differentiable there)."""
+    flat = param.data.reshape(-1)
+    idx = rng.choice(flat.size, size=min(flat.size, n), replace=False)
+    num, ok = [], []
+    for i in idx:
+        old = flat[i]
+        flat[i] = old + eps
+        lp, sp = loss()
+        flat[i] = old - eps
+        lm, sm = loss()
+        flat[i] = old
+        num.append((lp - lm) / (2 * eps))
+        ok.append(sp and sm)
+    return idx, np.asarray(num), np.asarray(ok)

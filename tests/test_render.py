@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from triplet_cl.autodiff import Tape
 
+from tests.gradients import sampled_fd
 from triplet_cl.camera import Camera
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 from triplet_cl.losses import PhotometricLoss
@@ -79,23 +80,9 @@ def test_render_gradients_central_differences(device64, rng, brdf, vertex_sh, si
         same = np.array_equal(read_fragments(rr.info["frags"])["face"], faces0)
         return float((rr.rgba.data * w).sum()), same
 
-    eps = 1e-6
     for p in scene.params:
-        x = p.data
-        flat = x.reshape(-1)
-        idx = rng.choice(flat.size, size=min(flat.size, 40), replace=False)
-        num, ana, ok = [], [], []
-        for i in idx:
-            old = flat[i]
-            flat[i] = old + eps
-            lp, sp = loss()
-            flat[i] = old - eps
-            lm, sm = loss()
-            flat[i] = old
-            num.append((lp - lm) / (2 * eps))
-            ana.append(grads[p.name].reshape(-1)[i])
-            ok.append(sp and sm)
-        num, ana, ok = map(np.asarray, (num, ana, ok))
+        idx, num, ok = sampled_fd(p, loss, rng, 40)
+        ana = grads[p.name].reshape(-1)[idx]
         assert ok.mean() > 0.9, f"{p.name}: perturbations changed coverage too often"
         np.testing.assert_allclose(ana[ok], num[ok], rtol=1e-5, atol=1e-7, err_msg=f"{brdf} {p.name}")
         if p.name != "vertex_sh":  # higher SH bands of hidden vertices may be exactly 0

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.gradients import sampled_fd
 from tests.reference import trace as ref
 from triplet_cl.camera import Camera
 from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight
@@ -150,21 +151,9 @@ def test_gradients_with_cached_visibility_central_differences(device64, rng, att
         rr = render(scene, c, s, device64, vis=vis)
         return float((rr.rgba.data * w).sum()), np.array_equal(read_fragments(rr.info["frags"])["face"], faces0)
 
-    eps = 1e-6
     for p in scene.params:
-        flat = p.data.reshape(-1)
-        num, ana, ok = [], [], []
-        for i in rng.choice(flat.size, size=min(flat.size, 30), replace=False):
-            old = flat[i]
-            flat[i] = old + eps
-            lp, sp = loss()
-            flat[i] = old - eps
-            lm, sm = loss()
-            flat[i] = old
-            num.append((lp - lm) / (2 * eps))
-            ana.append(grads[p.name].reshape(-1)[i])
-            ok.append(sp and sm)
-        num, ana, ok = map(np.asarray, (num, ana, ok))
+        idx, num, ok = sampled_fd(p, loss, rng, 30)
+        ana = grads[p.name].reshape(-1)[idx]
         assert ok.mean() > 0.8, f"{p.name}: perturbations changed coverage too often"
         np.testing.assert_allclose(ana[ok], num[ok], rtol=1e-5, atol=1e-7, err_msg=p.name)
         assert np.abs(ana).max() > 0, p.name
