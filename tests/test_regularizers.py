@@ -45,6 +45,31 @@ def test_laplacian_closed_form_and_gradcheck(rng):
     assert_gradcheck(lambda v: reg.UniformLaplacian(OCTA_F, 6)(v), {"x": _noisy(rng)}, rtol=1e-6, atol=1e-10)
 
 
+def test_rest_laplacian_zero_at_rest_closed_form_and_gradcheck(rng):
+    rest = _noisy(rng)
+    # zero energy and zero gradient at the rest shape (a curved shape is not pulled flat) ...
+    assert float(reg.rest_laplacian(rest, OCTA_F, rest)) == pytest.approx(0.0, abs=1e-28)
+    op = reg.RestLaplacian(OCTA_F, 6, rest)
+    from triplet_cl.autodiff import Tape, Variable
+
+    x = Variable(rest.copy(), requires_grad=True)
+    with Tape() as tape:
+        e = op(x)
+    tape.backward(e, np.asarray(1.0))
+    assert np.abs(x.grad).max() == 0.0
+    # ... the plain Laplacian's energy against a zero rest shape, and a translated shape costs nothing
+    assert float(reg.rest_laplacian(OCTA_V, OCTA_F, np.zeros((6, 3)))) == pytest.approx(1.0)
+    assert float(reg.rest_laplacian(rest + [0.3, -1.0, 2.0], OCTA_F, rest)) == pytest.approx(0.0, abs=1e-24)
+    # the energy of a displacement d is the plain Laplacian energy of d
+    d = 0.05 * rng.standard_normal((6, 3))
+    assert float(reg.rest_laplacian(rest + d, OCTA_F, rest)) == pytest.approx(float(reg.uniform_laplacian(d, OCTA_F)))
+    assert_gradcheck(lambda v: reg.RestLaplacian(OCTA_F, 6, rest)(v), {"x": _noisy(rng)}, rtol=1e-6, atol=1e-10)
+    with pytest.raises(ValueError, match="rest must have shape"):
+        reg.RestLaplacian(OCTA_F, 6, rest[:5])
+    with pytest.raises(ValueError, match="columns"):
+        reg.rest_laplacian(rest[:, :2], OCTA_F, rest)
+
+
 def test_material_gtv_closed_form_and_gradcheck(rng):
     x = np.zeros((6, 2))
     x[4] = [1.0, -2.0]  # only the 4 edges at vertex 4 differ, |Δ|₁ = 3, counted in both directions

@@ -33,7 +33,7 @@ from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import photometric_loss_and_grad
 from ..optim import Adam, ExponentialDecay
-from ..regularizers import FaceNormalConsistency, MaterialGTV, UniformLaplacian
+from ..regularizers import FaceNormalConsistency, MaterialGTV, RestLaplacian, UniformLaplacian
 from ..render import RenderSettings, render
 from ..scene import Scene
 from .asset import MeshAsset
@@ -75,6 +75,9 @@ class MeshConfig:
     # 20 / 0.1: 29.1 → 30.3 → 30.7 dB; 100 / 0.3: 27.1 → 28.1 → 28.5 dB (too stiff to follow the silhouettes)
     normal_weight: float = 0.1  # face-normal consistency
     laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in scene units)
+    # "uniform": |L x|² (flattens every curved part, thin ones first); "rest": |L x − L x₀|², x₀ the positions at
+    # the extraction and after each remesh (keeps the extracted shape's curvature, damps the noise the steps grow)
+    laplacian: str = "uniform"
     gtv_weight: float = 0.002  # graph TV of the raw materials
     remesh_every: int = 200  # steps between subdivision / simplification (0: never)
     subdivide_fraction: float = 0.03  # faces with the largest position gradients, subdivided
@@ -118,6 +121,8 @@ class MeshConfig:
             raise ValueError(f"mesh resolution (--mesh-resolution) must be in [16, 1024], got {self.resolution}")
         if not 16 <= self.texture_size <= 16384:
             raise ValueError(f"texture_size (--texture-size) must be in [16, 16384], got {self.texture_size}")
+        if self.laplacian not in ("uniform", "rest"):
+            raise ValueError(f"mesh laplacian (--mesh-laplacian) must be 'uniform' or 'rest', got {self.laplacian!r}")
         if self.remesh_every < 0:
             raise ValueError(f"mesh remesh_every (--remesh-every) must be >= 0, got {self.remesh_every}")
 
@@ -147,7 +152,10 @@ class Regularizers:
         n = scene.V.shape[0]
         self.cfg = cfg
         self.normal = FaceNormalConsistency(scene.F, n) if cfg.normal_weight > 0 else None
-        self.lap = UniformLaplacian(scene.F, n) if cfg.laplacian_weight > 0 else None
+        self.lap = None
+        if cfg.laplacian_weight > 0:
+            self.lap = (RestLaplacian(scene.F, n, np.asarray(scene.V.data)) if cfg.laplacian == "rest"
+                        else UniformLaplacian(scene.F, n))
         self.gtv = MaterialGTV(scene.F, n) if cfg.gtv_weight > 0 else None
 
     def __call__(self, scene: Scene) -> float:
