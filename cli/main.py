@@ -301,6 +301,8 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "and box-filter down (antialiased outlines; default 3, 2 is ~1.5× faster)")
     p.add_argument("--mesh-eval-supersample", type=int, help="samples per pixel side of the mesh's test renders "
                    "(default 4)")
+    p.add_argument("--mesh-laplacian", choices=["uniform", "rest"], help="the refinement's position Laplacian: "
+                   "uniform |L x|² (default), or rest |L x - L x0|² against the extracted shape (keeps thin parts)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
     p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "
@@ -320,7 +322,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_rounds", "rounds"),
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
-                       ("texture_size", "texture_size")):
+                       ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)
         if v is not None:
             over[field] = v
