@@ -92,6 +92,10 @@ def test_a_fold_and_a_poke_are_found_and_repaired_locally():
     far &= np.linalg.norm(np.asarray(m.vertices) - [-1, 0, 0], axis=1) > 0.9
     assert np.array_equal(Vn[far], V[far]) and far.sum() > len(V) // 3
     assert rep.moved_vertices < len(V) // 2
+    # the mesh stage's first neighbourhood (no extra rings): the crossings go too, fewer vertices move
+    Vn0, rep0 = repair_self_intersections(V, F, rings=0)
+    assert rep0.after == 0 and len(self_intersections(Vn0, F)) == 0
+    assert rep0.moved_vertices < rep.moved_vertices, (rep0, rep)
     # a fold: two neighbours flattened onto each other (the second's free corner mirrored onto the first's side)
     V2 = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, 0.8, 0.0]], np.float64)
     F2 = np.array([[0, 1, 2], [1, 0, 3]])
