@@ -297,6 +297,9 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "(default 50000)")
     p.add_argument("--mesh-rounds", type=int, help="extraction → refinement rounds (default 1)")
     p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
+    p.add_argument("--mesh-light-phase", type=int, metavar="N", help="the first N refinement steps of a round keep "
+                   "roughness, metallic and AO one value for the whole mesh (started at their mean), the lights "
+                   "learning; then per vertex (default 300; 0 = none)")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
     p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
@@ -321,6 +324,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
     for opt, field in (("mesh_method", "method"), ("mesh_resolution", "resolution"), ("mesh_faces", "extract_faces"),
                        ("mesh_rounds", "rounds"),
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
+                       ("mesh_light_phase", "material_tie"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("texture_size", "texture_size")):
         v = getattr(args, opt, None)
