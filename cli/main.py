@@ -113,6 +113,8 @@ def _config_from_args(args: argparse.Namespace):
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
     if getattr(args, "error_resplit_ratio", None) is not None:
         cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
+    if getattr(args, "white_light", None):
+        cfg = replace(cfg, white_light=args.white_light)
     if getattr(args, "light_phase", None) is not None:  # after --iterations: the value given, not scaled
         cfg = replace(cfg, material_tie_until=args.light_phase)
     return cfg
@@ -504,6 +506,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
                    "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
+    t.add_argument("--white-light", choices=["total", "off"], help="total (default): after each step the lights are "
+                   "rescaled per colour channel so that together they are white at the scene centre (the colour common "
+                   "to all of them goes to the albedo; their colours relative to each other stay free); off: the "
+                   "lights may take any tint")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")

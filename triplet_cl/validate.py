@@ -474,7 +474,8 @@ def resume_config(args, saved_cfg, given_cfg):
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
-             "--shadow-every": "shadow_every", "--light-phase": "material_tie_until"}
+             "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
+             "--white-light": "white_light"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue
