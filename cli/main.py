@@ -309,8 +309,8 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-eval-supersample", type=int, help="samples per pixel side of the mesh's test renders "
                    "(default 4)")
     p.add_argument("--mesh-laplacian", choices=["uniform", "rest"], help="the refinement's position Laplacian: "
-                   "rest |L x - L x0|² against the extracted shape (default: keeps thin parts and sharp edges), or "
-                   "uniform |L x|² (the rule before)")
+                   "uniform |L x|² (default), or rest |L x - L x0|², the Laplacian of the displacement from the "
+                   "extracted shape (does not round its edges and thin parts)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
     p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "

@@ -75,12 +75,13 @@ class MeshConfig:
     # 20 / 0.1: 29.1 → 30.3 → 30.7 dB; 100 / 0.3: 27.1 → 28.1 → 28.5 dB (too stiff to follow the silhouettes)
     normal_weight: float = 0.1  # face-normal consistency
     laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in scene units)
-    # "uniform": |L x|² (its gradient, the bi-Laplacian, rounds every edge and corner, a thin part's first); "rest":
+    # "uniform": |L x|² (its gradient, the bi-Laplacian, rounds edges and corners, a thin part's first); "rest":
     # |L x − L x₀|², x₀ the positions at the extraction and after each remesh (keeps the extracted shape's
-    # curvature, damps the noise the steps grow). Same soups, 600 steps, before the repair: gadget uniform → rest
-    # 29.49 → 29.57 dB (after the repair), Chamfer 0.0209 → 0.0208, surface within 1 % of the radius: cable 0.35
-    # → 0.45, rungs 0.80 → 0.88, braces 0.55 → 0.64; spot 34.61 → 34.56 dB, 0.00500 both
-    laplacian: str = "rest"
+    # curvature, damps the noise the steps grow). Measured, same soups (bench/results/parts_pocl_2026-11-24b.txt):
+    # before issue 18's light phase, gadget 29.49 → 29.57 dB, cable 0.35 → 0.45 and rungs 0.80 → 0.88 of their
+    # surface within 1 %, spot 34.61 → 34.56 dB; with it, gadget (repair rings 0) 29.77 → 29.82 dB but the cable
+    # 0.47 → 0.43: a tie, so the rule before stays the default
+    laplacian: str = "uniform"
     gtv_weight: float = 0.002  # graph TV of the raw materials
     # the mesh stage's light phase (issue 18): every material channel but the albedo (roughness, metallic, AO; Blinn-
     # Phong's ks, shininess, ka) starts each round at its mean over the mesh and stays one value for this many steps
@@ -92,7 +93,8 @@ class MeshConfig:
     remesh_every: int = 200  # steps between subdivision / simplification (0: never)
     # the final repair's first neighbourhood (rings around the crossing faces' vertices that are smoothed; it grows
     # by a ring per round): 0 smooths fewer vertices (gadget, 838 crossing pairs: 1185 moved instead of 2804, the
-    # test PSNR lost to the repair 0.50 -> 0.20 dB)
+    # test PSNR lost to the repair 0.50 → 0.20 dB; with issue 18's light phase 29.71 → 29.77 dB; spot −0.02 dB,
+    # bob_env +0.01 dB, both still free of crossings)
     repair_rings: int = 0
     subdivide_fraction: float = 0.03  # faces with the largest position gradients, subdivided
     simplify_fraction: float = 0.05  # faces with the smallest, simplified away
