@@ -94,6 +94,25 @@ def test_mesh_light_phase_ties_all_but_the_albedo_and_keeps_the_lights_white(tra
         MeshConfig(material_tie=-1).validate()
 
 
+def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):
+    """A soup trained with the cached shadows gives a mesh shaded with them (per-vertex visibility traced through
+    the mesh, ``MeshConfig.shadow_eps``): the shadowed render is nowhere brighter and somewhere darker."""
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0))
+    assert not stage.shadows_active()  # this soup stopped before shadow_from
+    tr.cfg.shadow_from = 0
+    assert stage.shadows_active()
+    mesh = stage.extract(tr.scene)
+    vis = stage.visibility(mesh)
+    assert vis.shape == (mesh.V.shape[0], 1) and vis.min() >= 0 and vis.max() <= 1 and (vis < 0.5).any()
+    cam = tr.ds.train[0].camera
+    _, lit, _ = stage.render(mesh, cam, np.zeros(3), 1)
+    _, shadowed, _ = stage.render(mesh, cam, np.zeros(3), 1, vis=vis)
+    assert (shadowed <= lit + 1e-5).all() and (shadowed < lit - 1e-3).any()
+    with pytest.raises(ValueError, match="shadow_eps"):
+        MeshConfig(shadow_eps=-1.0).validate()
+
+
 def test_export_without_a_mesh_stage_fails_clearly(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
