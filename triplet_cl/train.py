@@ -42,7 +42,14 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales, white_balance
+from .lights import (
+    LightInit,
+    SHEnvironmentLight,
+    grey_lights,
+    lights_to_json,
+    relative_lr_scales,
+    white_balance,
+)
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -621,9 +628,13 @@ class Trainer:
         return rec
 
     def balance_lights(self) -> None:
-        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`)."""
+        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`);
+        during the light phase (``material_tie_until``) each light white (:func:`lights.grey_lights`): with one
+        albedo for the whole object, a light's own tint would only stand in for the object's colours."""
         lp = self.scene.light_params
         if self.cfg.white_light == "total" and lp is not None:
+            if self.it < self.cfg.material_tie_until:
+                lp.data[...] = grey_lights(self.scene.lights, lp.data)
             lp.data[...] = white_balance(self.scene.lights, lp.data, self.priors.center)
 
     def set_env_degree(self, deg: int) -> None:
