@@ -95,6 +95,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.special import expit
 
 from .activations import inverse_softplus, logit
@@ -245,9 +246,17 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
     return expit(a[np.asarray(F)].max(axis=1))
 
 
-def visible_faces(face_ids, num_faces: int) -> np.ndarray:
+def visible_faces(face_ids, num_faces: int, device=None) -> np.ndarray:
     """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
-    ``[P]``, or any array of face ids with −1 = empty; numpy or device array)."""
+    ``[P]``, or any array of face ids with −1 = empty; numpy or device array).
+
+    ``device`` (a :class:`~triplet_cl.device.Device`) with an int32 device array: the ``visible_mark``
+    kernel (``ops/face_visibility.py``) marks the faces there and only ``[M]`` bytes come down (the
+    same result; this host bincount is its reference)."""
+    if device is not None and isinstance(face_ids, cla.Array) and face_ids.dtype == np.int32:
+        from .ops.face_visibility import visible_mask
+
+        return visible_mask(device, face_ids.reshape(-1), num_faces)
     f = to_host(face_ids).reshape(-1)
     f = f[f >= 0]
     return np.bincount(f, minlength=num_faces)[:num_faces] > 0
@@ -430,13 +439,25 @@ class DensityStats:
         return self.err_accum / np.maximum(self.err_pixels, 1)
 
 
-def front_faces(frags, face_alpha=None, min_alpha: float = 0.0) -> np.ndarray:
+def front_faces(frags, face_alpha=None, min_alpha: float = 0.0, device=None) -> np.ndarray:
     """Host ``[H, W] int64``: the nearest face of every pixel of a
     :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none.
 
     With ``face_alpha`` (``[M]``, e.g. :func:`face_alpha`) the nearest face whose alpha ≥ ``min_alpha``:
     a faint face in front (a floater, a face fading out) does not own the colour of the pixel, the
-    first (nearly) opaque one behind it does."""
+    first (nearly) opaque one behind it does.
+
+    ``device`` (a :class:`~triplet_cl.device.Device`): the ``front_face`` kernel walks each pixel's
+    fragments there (``ops/face_visibility.py``; the alpha test ``face_alpha ≥ min_alpha`` is decided
+    here per face, in float64 as below) and only the ``[H, W]`` map comes down: the same result, without
+    the ``[P]`` download and the sort of this host path (its reference)."""
+    if device is not None:
+        from .ops.face_visibility import front_face_map
+
+        ok = None
+        if face_alpha is not None and min_alpha > 0.0:
+            ok = np.asarray(face_alpha, np.float64).reshape(-1) >= min_alpha
+        return front_face_map(device, frags, ok)
     count = np.asarray(to_host(frags.count)).reshape(-1).astype(np.int64)
     face = np.asarray(to_host(frags.face)).reshape(-1).astype(np.int64)
     out = np.full(count.size, -1, np.int64)

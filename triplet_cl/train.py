@@ -546,11 +546,16 @@ class Trainer:
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule; the
             # error criterion needs each pixel's error and nearest face (density.DensityStats.add)
+            # visibility and the nearest faces from the fragments on the device (face_visibility.cl): only
+            # [M] bytes and the [H, W] map come down, not the [P] face ids (density.py's host functions are
+            # the reference, bit for bit)
             err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
-            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, device=self.device, error=err, front=None if err is None else
-                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F), device=self.device),
+                           self.scene.F, vs=r.info["vs"].get(), image_size=(cam.width, cam.height),
+                           v_V=self.scene.V.grad, grad_scale=0.5 * cam.width, device=self.device, error=err,
+                           front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
+                                                                                    self.scene.F),
+                                                                      dens.error_min_alpha, device=self.device))
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
