@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.spatial import cKDTree
 
 from .camera import Camera
@@ -533,11 +534,18 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # above 96² the losses.cl kernels (upload, kernels, download): 2-3x the host SSIM at 200² in the loop
-        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda,
-                                                backend=loss_backend(target.shape))
-        t2 = time.perf_counter()
-        r.backward(v_img)
+        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on, the losses.cl kernels on the rendered image where it already is
+        # (only the target goes up and the loss value comes down; the adjoint seeds the backward on the device);
+        # below, the host loss (kernel launches cost more than the host SSIM of a small image)
+        if loss_backend(target.shape, resident=True) == "opencl":
+            target_d = cla.to_device(self.device.queue, np.ascontiguousarray(target, r.device_image.dtype))
+            loss, v_img = photometric_loss_and_grad(r.device_image, target_d, lam=cfg.ssim_lambda)
+            t2 = time.perf_counter()
+            r.backward_device(v_img)
+        else:
+            loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="numpy")
+            t2 = time.perf_counter()
+            r.backward(v_img)
         prior_terms = self.priors.apply(self.scene, it)
         t3 = time.perf_counter()
         dens = cfg.density
