@@ -518,13 +518,19 @@ def test_stats_add_on_device_matches_numpy(device, rng, dtype):
         cols = 3 if view % 2 else 2
         v_vs = rng.standard_normal((3 * m, cols)).astype(dtype)
         kw = {"grad_scale": 0.5 * (100 + view)}
+        if view != 2:  # the front-visibility and error statistics (the nearest face of each of 70 pixels)
+            front = np.where(rng.random(70) < 0.8, rng.integers(0, m, 70), -1).reshape(7, 10)
+            if view == 5:
+                front[0, :3] = np.flatnonzero(~vis)[:3]  # inconsistent inputs: nearest somewhere, not visible
+            kw.update(front=front, error=rng.random((7, 10)))
         if view != 3:
             kw["v_V"] = rng.standard_normal((3 * m, 3)).astype(np.float32)
         if view != 4:
             kw.update(vs=(rng.random((3 * m, 3)) * 90).astype(dtype), image_size=(100 + view, 80))
         host.add(v_vs, vis, F, **kw)
         dev.add(v_vs, vis, F, device=device, **kw)
-        for k in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+        for k in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac", "front_views",
+                  "front_grad_accum", "err_accum", "err_pixels"):
             a, b = getattr(host, k), getattr(dev, k)
             assert a.dtype == b.dtype and a.shape == b.shape, k
             if exact:
@@ -532,6 +538,7 @@ def test_stats_add_on_device_matches_numpy(device, rng, dtype):
             else:
                 np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-300, err_msg=k)
     assert host.denom.max() > 1 and host.max_screen_frac.max() > 0
+    assert host.front_views.max() > 1 and host.front_grad_accum.max() > 0 and host.err_pixels.sum() > 0
     # validation runs before any work, on either path
     with pytest.raises(ValueError, match="visible"):
         dev.add(np.zeros((3 * m, 3), np.float32), np.ones(m - 1, bool), F, device=device)

@@ -312,7 +312,8 @@ class DensityStats:
             grad_scale: multiplies the screen gradient (e.g. ``0.5 * width`` for 3DGS's NDC units).
             device: a :class:`~triplet_cl.device.Device` with fp64: the update runs as the
                 ``face_stats_add`` kernel (``kernels_cl/density.cl``, one pass over the faces, on the
-                statistics arrays themselves), bit for bit the numpy update; None: numpy.
+                statistics arrays themselves, the front-visibility statistics included; the per-pixel
+                bincounts of ``front`` / ``error`` stay numpy), bit for bit the numpy update; None: numpy.
             front: optional ``[H, W]`` id of the nearest face of every pixel (−1: none; :func:`front_faces`)
                 for the front-visibility statistics ``front_views`` / ``front_grad_accum``.
             error: optional ``[H, W]`` per-pixel photometric error of the view (e.g. the mean absolute
@@ -353,24 +354,35 @@ class DensityStats:
             uv = to_host(vs)
         on_device = device is not None and device.fp64 and m
         if on_device:
-            self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale))
-        if on_device and front is None:
+            npix = None
+            if front is not None:
+                on = fmap >= 0
+                npix = np.bincount(fmap[on], minlength=m)
+            self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale),
+                             None if npix is None else npix > 0)
+            if front is None:
+                return
+            # the front statistics of the visible faces came from the kernel; a face nearest somewhere but not
+            # in ``visible`` (inconsistent inputs only) counts its view with a zero gradient, as below
+            self.front_views[(npix > 0) & ~vis] += 1
+            if error is not None:
+                self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
+                self.err_pixels += npix
             return
         g = np.asarray(g, np.float64)
         idx = np.flatnonzero(vis)
         Fv = F[idx]
         g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
-        if not on_device:
-            self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
-            self.denom[idx] += 1
-            if gw is not None:
-                self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
-            if uv is not None:
-                uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
-                ext = uv.max(axis=1) - uv.min(axis=1)
-                area = ext[:, 0] * ext[:, 1]
-                self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
-                self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
+        self.denom[idx] += 1
+        if gw is not None:
+            self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
+        if uv is not None:
+            uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+            ext = uv.max(axis=1) - uv.min(axis=1)
+            area = ext[:, 0] * ext[:, 1]
+            self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
+            self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
         if front is not None:  # the front-visibility and error statistics (host: per-pixel bincounts)
             on = fmap >= 0
             npix = np.bincount(fmap[on], minlength=m)
@@ -383,7 +395,7 @@ class DensityStats:
                 self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
                 self.err_pixels += npix
 
-    def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale) -> None:
+    def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale, front_hit=None) -> None:
         """:meth:`add` as the ``face_stats_add`` kernel; the statistics (numpy) are the kernel's
         buffers (USE_HOST_PTR: no copy on a CPU device) and are mapped back afterwards."""
         import pyopencl as cl
@@ -403,7 +415,8 @@ class DensityStats:
             written.append(cl.Buffer(device.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=a))
             return written[-1]
 
-        for name in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+        for name in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac", "front_views",
+                     "front_grad_accum"):
             if not getattr(self, name).flags.c_contiguous:
                 setattr(self, name, np.ascontiguousarray(getattr(self, name)))
         keep = [src(F, np.int32), src(vis, np.uint8), src(g)]  # the host arrays stay alive until finish()
@@ -417,6 +430,10 @@ class DensityStats:
             keep.append(src(uv))
             args += [keep[-1][1], np.float64(image_area), dst(self.max_screen_area), dst(self.max_screen_frac)]
             defines["VS"] = 1
+        if front_hit is not None:
+            keep.append(src(front_hit, np.uint8))
+            args += [keep[-1][1], dst(self.front_views), dst(self.front_grad_accum)]
+            defines["FRONT"] = 1
         args += [dst(self.grad_accum), dst(self.denom)]
         run_1d(device, device.kernel("density", "face_stats_add", defines, real=real), len(F), *args)
         q = device.queue
