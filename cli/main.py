@@ -113,6 +113,8 @@ def _config_from_args(args: argparse.Namespace):
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
     if getattr(args, "error_resplit_ratio", None) is not None:
         cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
+    if getattr(args, "light_phase", None) is not None:  # after --iterations: the value given, not scaled
+        cfg = replace(cfg, material_tie_until=args.light_phase)
     return cfg
 
 
@@ -495,6 +497,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "soup every --shadow-every steps, from iteration 600; off: none; README 'Cached shadows')")
     t.add_argument("--shadow-every", type=int, help="steps between visibility refreshes (default 100; also after "
                    "density control and when a light moved)")
+    t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
+                   "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
+                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")

@@ -156,6 +156,12 @@ class TrainConfig:
     prior_ambient: float = 0.0  # ambient share (--priors lights: 0.02) of the irradiance at the scene centre
     prior_chroma: float = 0.0  # (--priors lights: 0.01) scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
+    # the light phase (issue 18): until this iteration every material channel is one value for the whole soup (each
+    # step applies the mean of the per-vertex material gradients), so the lights, not per-vertex albedo / AO /
+    # metallic, must explain the shading; then each vertex goes its own way from there. Photos of a Lambertian
+    # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
+    # stay wherever the first steps left them (ambient 3x the truth on spot)
+    material_tie_until: int = 1200
 
     def with_iterations(self, iterations: int) -> TrainConfig:
         """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
@@ -182,6 +188,7 @@ class TrainConfig:
         return replace(self, iterations=int(iterations), warmup_until=sc(ref.warmup_until),
                        half_res_until=sc(ref.half_res_until), sh_band_every=sc(ref.sh_band_every, 1),
                        lr_position_steps=sc(ref.lr_position_steps, 1), prior_from=sc(ref.prior_from),
+                       material_tie_until=sc(ref.material_tie_until),
                        lr_boost_at=sc(ref.lr_boost_at, 1), density=density)
 
     def to_dict(self) -> dict:
@@ -205,6 +212,7 @@ class TrainConfig:
         d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
         d.setdefault("lr_lights_mode", "absolute")  # saved before the relative light learning rates
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
+        d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -214,6 +222,8 @@ class TrainConfig:
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
         get_brdf(self.brdf)  # ValueError naming the BRDFs
+        if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
+            raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
@@ -364,6 +374,14 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         scale = [relative_lr_scales(scene.lights)] if cfg.lr_lights_mode == "relative" else None
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
+
+
+def tie_rows(param) -> None:
+    """Every row of ``param``'s gradient replaced by their mean: the rows (equal at the start, with equal Adam
+    moments) take the same step and stay one value (the light phase, ``TrainConfig.material_tie_until``)."""
+    g = param.grad
+    if g is not None and len(g):
+        g[...] = np.asarray(g).mean(axis=0, keepdims=True)
 
 
 # ------------------------------------------------------------------------------------------------ schedules
@@ -534,9 +552,9 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on, the losses.cl kernels on the rendered image where it already is
-        # (only the target goes up and the loss value comes down; the adjoint seeds the backward on the device);
-        # below, the host loss (kernel launches cost more than the host SSIM of a small image)
+        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on (every size on PoCL, measured: losses.py), the losses.cl kernels on
+        # the rendered image where it already is (only the target goes up and the loss value comes down; the adjoint
+        # seeds the backward on the device); below that threshold, the host (numpy) loss
         if loss_backend(target.shape, resident=True) == "opencl":
             target_d = cla.to_device(self.device.queue, np.ascontiguousarray(target, r.device_image.dtype))
             loss, v_img = photometric_loss_and_grad(r.device_image, target_d, lam=cfg.ssim_lambda)
@@ -564,6 +582,8 @@ class Trainer:
                            front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
                                                                                     self.scene.F),
                                                                       dens.error_min_alpha, device=self.device))
+        if it < cfg.material_tie_until:
+            tie_rows(self.scene.material)
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:

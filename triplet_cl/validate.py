@@ -40,6 +40,7 @@ _INT_OPTIONS = {
     "--checkpoint-every": ("checkpoint_every", 0, None),
     "--keep-checkpoints": ("keep_checkpoints", 0, None),
     "--shadow-every": ("shadow_every", 1, None),
+    "--light-phase": ("light_phase", 0, None),
     "--mesh-resolution": ("mesh_resolution", 16, 1024),  # mesh.extract.tsdf_fusion's range; memory checked too
     "--mesh-faces": ("mesh_faces", 100, 50_000_000),
     "--mesh-rounds": ("mesh_rounds", 1, 100),
@@ -471,7 +472,7 @@ def resume_config(args, saved_cfg, given_cfg):
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
-             "--shadow-every": "shadow_every"}
+             "--shadow-every": "shadow_every", "--light-phase": "material_tie_until"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue

@@ -231,7 +231,13 @@ class MeshStage:
         if scene.vertex_sh is not None:
             opt.add_group("vertex_sh", [scene.vertex_sh], lr=c.lr_vertex_sh, max_grad_norm=tc.sh_clip, **kw)
         if scene.light_params is not None:
-            opt.add_group("lights", [scene.light_params], lr=c.lr_lights, **kw)
+            # the soup stage's light rates: "relative" steps each radiometric value by lr × its size at the start of
+            # the stage (lights.relative_lr_scales; with one absolute rate a point light's intensity of ~20 moved by
+            # 0.03 % a step and the ambient light by 2 %: the mesh stage could not move the intensity at all)
+            from ..lights import relative_lr_scales
+
+            scale = [relative_lr_scales(scene.lights)] if tc.lr_lights_mode == "relative" else None
+            opt.add_group("lights", [scene.light_params], lr=c.lr_lights, lr_scale=scale, **kw)
         return opt
 
     def settings(self, background, transfer: str | None = None) -> RenderSettings:
