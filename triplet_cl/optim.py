@@ -182,7 +182,7 @@ class Adam:
         self.groups: dict[str, ParamGroup] = {}
         self.t = 0  # completed steps
         self.device = device  # a triplet_cl Device: the update runs as the adam.cl kernel there
-        self._work: dict = {}  # (shape, dtype) -> two scratch arrays of the numpy update
+        self._work: dict = {}  # dtype -> two flat scratch buffers of the numpy update (_workspace)
 
     # ---- groups -------------------------------------------------------------------------------
     def add_group(self, name: str, params: list, lr=1e-3, betas=(0.9, 0.999), eps: float = 1e-8,
@@ -301,15 +301,13 @@ class Adam:
             raise NonFiniteStep(bad, "parameter")
 
     def _workspace(self, like: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Two scratch arrays of ``like``'s shape and dtype, kept between steps (no allocation, no fresh
-        pages per step; one pair per shape: density control changes the row count now and then)."""
-        key = (like.shape, like.dtype.str)
-        w = self._work.get(key)
-        if w is None:
-            if len(self._work) > 8:
-                self._work.clear()
-            w = self._work[key] = (np.empty_like(like), np.empty_like(like))
-        return w
+        """Two scratch arrays of ``like``'s shape and dtype: views of two flat buffers per dtype kept between
+        steps and shared by every parameter (no allocation, no fresh pages per step; the buffers grow to the
+        largest parameter, e.g. after density control, and hold 2 × its size in all)."""
+        w = self._work.get(like.dtype.str)
+        if w is None or w[0].size < like.size:
+            w = self._work[like.dtype.str] = (np.empty(like.size, like.dtype), np.empty(like.size, like.dtype))
+        return w[0][:like.size].reshape(like.shape), w[1][:like.size].reshape(like.shape)
 
     def _update_numpy(self, x, m, v, gr, coef, b1, b2, step_size, bc2, eps) -> None:
         """Step 3 in place with two scratch arrays: the operations and their order of the textbook
