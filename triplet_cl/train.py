@@ -43,7 +43,7 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales
+from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales, white_balance
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -60,6 +60,7 @@ REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned 
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
+WHITE_LIGHT_MODES = ("total", "off")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -162,6 +163,11 @@ class TrainConfig:
     # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
     # stay wherever the first steps left them (ambient 3x the truth on spot)
     material_tie_until: int = 1200
+    # "total": after each step the lights' colours are rescaled per channel so that together they are white at the
+    # scene centre (lights.white_balance; each light's colour relative to the others' stays free); "off": the
+    # lights may take any tint. Photos fix albedo × light per point: the tint common to every light is the albedo's
+    # or the lights' alike, and relighting needs it in the albedo (spot_small: the lights took the cow's pink)
+    white_light: str = "total"
 
     def with_iterations(self, iterations: int) -> TrainConfig:
         """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
@@ -213,6 +219,7 @@ class TrainConfig:
         d.setdefault("lr_lights_mode", "absolute")  # saved before the relative light learning rates
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
+        d.setdefault("white_light", "off")  # saved before the white balance of the lights
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -222,6 +229,8 @@ class TrainConfig:
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
         get_brdf(self.brdf)  # ValueError naming the BRDFs
+        if self.white_light not in WHITE_LIGHT_MODES:
+            raise ValueError(f"white_light must be one of {WHITE_LIGHT_MODES}, got {self.white_light!r}")
         if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
             raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
@@ -590,6 +599,7 @@ class Trainer:
             raise NonFiniteError(it + 1, exc.group, exc.what, self._nonfinite_cause(exc)) from None
         self.opt.zero_grad()
         self.priors.project(self.scene)
+        self.balance_lights()
         t4 = time.perf_counter()
         report = None
         if dens.densify_at(it):
@@ -622,6 +632,12 @@ class Trainer:
                               "error_blocked": report.error_blocked,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
+
+    def balance_lights(self) -> None:
+        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`)."""
+        lp = self.scene.light_params
+        if self.cfg.white_light == "total" and lp is not None:
+            lp.data[...] = white_balance(self.scene.lights, lp.data, self.priors.center)
 
     def set_env_degree(self, deg: int) -> None:
         """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``
