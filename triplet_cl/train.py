@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.spatial import cKDTree
 
 from .camera import Camera
@@ -567,11 +568,18 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # above 96² the losses.cl kernels (upload, kernels, download): 2-3x the host SSIM at 200² in the loop
-        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda,
-                                                backend=loss_backend(target.shape))
-        t2 = time.perf_counter()
-        r.backward(v_img)
+        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on (every size on PoCL, measured: losses.py), the losses.cl kernels on
+        # the rendered image where it already is (only the target goes up and the loss value comes down; the adjoint
+        # seeds the backward on the device); below that threshold, the host (numpy) loss
+        if loss_backend(target.shape, resident=True) == "opencl":
+            target_d = cla.to_device(self.device.queue, np.ascontiguousarray(target, r.device_image.dtype))
+            loss, v_img = photometric_loss_and_grad(r.device_image, target_d, lam=cfg.ssim_lambda)
+            t2 = time.perf_counter()
+            r.backward_device(v_img)
+        else:
+            loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="numpy")
+            t2 = time.perf_counter()
+            r.backward(v_img)
         prior_terms = self.priors.apply(self.scene, it)
         t3 = time.perf_counter()
         dens = cfg.density
@@ -580,11 +588,16 @@ class Trainer:
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule; the
             # error criterion needs each pixel's error and nearest face (density.DensityStats.add)
+            # visibility and the nearest faces from the fragments on the device (face_visibility.cl): only
+            # [M] bytes and the [H, W] map come down, not the [P] face ids (density.py's host functions are
+            # the reference, bit for bit)
             err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
-            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, device=self.device, error=err, front=None if err is None else
-                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F), device=self.device),
+                           self.scene.F, vs=r.info["vs"].get(), image_size=(cam.width, cam.height),
+                           v_V=self.scene.V.grad, grad_scale=0.5 * cam.width, device=self.device, error=err,
+                           front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
+                                                                                    self.scene.F),
+                                                                      dens.error_min_alpha, device=self.device))
         if it < cfg.material_tie_until:
             tie_rows(self.scene.material)
         try:

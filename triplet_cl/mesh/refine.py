@@ -31,7 +31,7 @@ import numpy as np
 from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
-from ..losses import photometric_loss_and_grad
+from ..losses import loss_backend, photometric_loss_and_grad
 from ..optim import Adam, ExponentialDecay
 from ..regularizers import FaceNormalConsistency, MaterialGTV, UniformLaplacian
 from ..render import RenderSettings, render
@@ -351,7 +351,10 @@ class MeshStage:
                 t0 = time.perf_counter()
                 vis = None if shadows is None else shadows.get(scene, it, self.device)
                 r, img, _ = self.render(scene, cam, bg, vis=vis)
-                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda)
+                # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
+                # at 200² about half the numpy SSIM's time); before, every size went through numpy
+                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
+                                                        backend=loss_backend(target.shape))
                 self.backward_image(r, v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
