@@ -655,9 +655,7 @@ class Trainer:
         return rec
 
     def balance_lights(self) -> None:
-        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`);
-        during the light phase (``material_tie_until``) each light white (:func:`lights.grey_lights`): with one
-        albedo for the whole object, a light's own tint would only stand in for the object's colours."""
+        """The white-light rule (``TrainConfig.white_light``, :func:`balanced_lights`) after each step."""
         lp = self.scene.light_params
         if lp is not None:
             lp.data[...] = balanced_lights(self.cfg.white_light, self.scene.lights, lp.data, self.priors.center,
