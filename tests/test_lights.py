@@ -222,3 +222,14 @@ def test_white_balance_leaves_what_it_cannot_balance():
     dark = [AmbientLight(np.array([0.1, 0.0, 0.1]))]  # a channel without light: nothing to scale it by
     p = pack_lights(dark).params
     np.testing.assert_array_equal(white_balance(dark, p, np.zeros(3)), p)
+
+
+def test_grey_lights_keeps_each_lights_brightness():
+    from triplet_cl.lights import grey_lights, pack_lights, unpack_lights
+
+    lights = [PointLight(np.array([1.0, 2.0, 3.0]), np.array([20.0, 17.0, 11.0])),
+              AmbientLight(np.array([0.05, 0.08, 0.14]))]
+    q = unpack_lights(lights, grey_lights(lights, pack_lights(lights).params))
+    np.testing.assert_allclose(q[0].intensity, np.full(3, 16.0))
+    np.testing.assert_allclose(q[1].color, np.full(3, 0.09))
+    np.testing.assert_array_equal(q[0].position, lights[0].position)

@@ -513,6 +513,22 @@ def irradiance_rgb(light, center) -> np.ndarray | None:
     return None
 
 
+def grey_lights(lights, params: np.ndarray) -> np.ndarray:
+    """The packed light ``params [T]`` with every light's colour made grey (each radiometric parameter's channels
+    replaced by their mean; SH radiance band by band): white lights of the same brightness."""
+    params = np.asarray(params)
+    out = []
+    for lt in unpack_lights(lights, params):
+        flat = []
+        for n in lt.PARAMS:
+            v = np.asarray(getattr(lt, n), np.float64)
+            if n in lt.RADIOMETRIC:
+                v = np.broadcast_to(v.mean(axis=0, keepdims=True), v.shape)
+            flat.append(np.asarray(v).reshape(-1))
+        out.append(np.concatenate(flat) if flat else np.zeros(0))
+    return np.concatenate(out).astype(params.dtype) if out else params
+
+
 def white_balance(lights, params: np.ndarray, center) -> np.ndarray:
     """The packed light ``params [T]`` rescaled per colour channel so that the lights *together* are white at
     ``center``: the summed irradiance (:func:`irradiance_rgb`) gets equal channels at its mean, every radiometric

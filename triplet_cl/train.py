@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.spatial import cKDTree
 
 from .camera import Camera
@@ -42,7 +43,14 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales, white_balance
+from .lights import (
+    LightInit,
+    SHEnvironmentLight,
+    grey_lights,
+    lights_to_json,
+    relative_lr_scales,
+    white_balance,
+)
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -59,7 +67,7 @@ REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned 
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
-WHITE_LIGHT_MODES = ("total", "off")
+WHITE_LIGHT_MODES = ("each", "total", "off")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -162,11 +170,14 @@ class TrainConfig:
     # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
     # stay wherever the first steps left them (ambient 3x the truth on spot)
     material_tie_until: int = 1200
-    # "total": after each step the lights' colours are rescaled per channel so that together they are white at the
-    # scene centre (lights.white_balance; each light's colour relative to the others' stays free); "off": the
-    # lights may take any tint. Photos fix albedo × light per point: the tint common to every light is the albedo's
-    # or the lights' alike, and relighting needs it in the albedo (spot_small: the lights took the cow's pink)
-    white_light: str = "total"
+    # "each": after each step every light's colour is made grey (its brightness kept; lights.grey_lights); "total":
+    # the lights' colours rescaled per channel so that together they are white at the scene centre
+    # (lights.white_balance; each light's colour relative to the others' free, each grey during the light phase);
+    # "off": the lights may take any tint. Photos fix albedo × light per point: the tint common to every light is
+    # the albedo's or the lights' alike (spot_small: the lights took the cow's pink), and with "total" the colours
+    # relative to each other wandered as far (spot, bob_env: a red point light under a cyan ambient, bob_env 100²
+    # novel views -2 to -4.8 dB); white lights are the usual reading where the photos cannot tell
+    white_light: str = "each"
 
     def with_iterations(self, iterations: int) -> TrainConfig:
         """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
@@ -384,6 +395,17 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
     return opt
 
 
+def balanced_lights(mode: str, lights, params, center, light_phase: bool = False):
+    """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``): "each" every
+    light grey (:func:`lights.grey_lights`); "total" the lights together white at ``center``
+    (:func:`lights.white_balance`), each grey during the light phase; "off" unchanged."""
+    if mode == "each" or (mode == "total" and light_phase):
+        params = grey_lights(lights, params)
+    if mode == "total":
+        params = white_balance(lights, params, center)
+    return params
+
+
 def tie_rows(param) -> None:
     """Every row of ``param``'s gradient replaced by their mean: the rows (equal at the start, with equal Adam
     moments) take the same step and stay one value (the light phase, ``TrainConfig.material_tie_until``)."""
@@ -560,11 +582,18 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # above 96² the losses.cl kernels (upload, kernels, download): 2-3x the host SSIM at 200² in the loop
-        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda,
-                                                backend=loss_backend(target.shape))
-        t2 = time.perf_counter()
-        r.backward(v_img)
+        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on (every size on PoCL, measured: losses.py), the losses.cl kernels on
+        # the rendered image where it already is (only the target goes up and the loss value comes down; the adjoint
+        # seeds the backward on the device); below that threshold, the host (numpy) loss
+        if loss_backend(target.shape, resident=True) == "opencl":
+            target_d = cla.to_device(self.device.queue, np.ascontiguousarray(target, r.device_image.dtype))
+            loss, v_img = photometric_loss_and_grad(r.device_image, target_d, lam=cfg.ssim_lambda)
+            t2 = time.perf_counter()
+            r.backward_device(v_img)
+        else:
+            loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="numpy")
+            t2 = time.perf_counter()
+            r.backward(v_img)
         prior_terms = self.priors.apply(self.scene, it)
         t3 = time.perf_counter()
         dens = cfg.density
@@ -573,11 +602,16 @@ class Trainer:
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule; the
             # error criterion needs each pixel's error and nearest face (density.DensityStats.add)
+            # visibility and the nearest faces from the fragments on the device (face_visibility.cl): only
+            # [M] bytes and the [H, W] map come down, not the [P] face ids (density.py's host functions are
+            # the reference, bit for bit)
             err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
-            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, device=self.device, error=err, front=None if err is None else
-                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F), device=self.device),
+                           self.scene.F, vs=r.info["vs"].get(), image_size=(cam.width, cam.height),
+                           v_V=self.scene.V.grad, grad_scale=0.5 * cam.width, device=self.device, error=err,
+                           front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
+                                                                                    self.scene.F),
+                                                                      dens.error_min_alpha, device=self.device))
         if it < cfg.material_tie_until:
             tie_rows(self.scene.material)
         try:
@@ -621,10 +655,11 @@ class Trainer:
         return rec
 
     def balance_lights(self) -> None:
-        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`)."""
+        """The white-light rule (``TrainConfig.white_light``, :func:`balanced_lights`) after each step."""
         lp = self.scene.light_params
-        if self.cfg.white_light == "total" and lp is not None:
-            lp.data[...] = white_balance(self.scene.lights, lp.data, self.priors.center)
+        if lp is not None:
+            lp.data[...] = balanced_lights(self.cfg.white_light, self.scene.lights, lp.data, self.priors.center,
+                                           self.it < self.cfg.material_tie_until)
 
     def set_env_degree(self, deg: int) -> None:
         """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``

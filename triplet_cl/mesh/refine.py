@@ -31,7 +31,7 @@ import numpy as np
 from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
-from ..losses import photometric_loss_and_grad
+from ..losses import loss_backend, photometric_loss_and_grad
 from ..optim import Adam, ExponentialDecay
 from ..regularizers import FaceNormalConsistency, MaterialGTV, RestLaplacian, UniformLaplacian
 from ..render import RenderSettings, render
@@ -90,6 +90,11 @@ class MeshConfig:
     # value each lets the highlights and the lights explain it. spot_small (1500-it. soup): albedo (scaled) 20.75 →
     # 24.57 dB, relight +0.5 / +0.5 / +1.4 dB (AO alone set to 1: 23.20 dB)
     material_tie: int = 300
+    # cast shadows as the soup stage (``--shadows vertex``): per-vertex visibility towards the point / directional
+    # lights, traced through the mesh every ``shadow_every`` steps of the run and after each remesh; the ray start
+    # offset × the mesh's bounding-box diagonal (an opaque mesh needs less than the soup's layers: 0.01, as
+    # bench/relight.py --gt-ceiling on the true meshes)
+    shadow_eps: float = 0.01
     remesh_every: int = 200  # steps between subdivision / simplification (0: never)
     # the final repair's first neighbourhood (rings around the crossing faces' vertices that are smoothed; it grows
     # by a ring per round): 0 smooths fewer vertices (gadget, 838 crossing pairs: 1185 moved instead of 2804, the
@@ -114,6 +119,8 @@ class MeshConfig:
             raise ValueError(f"mesh rounds must be >= 1, got {self.rounds}")
         if self.iterations < 0:
             raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
+        if not (np.isfinite(self.shadow_eps) and self.shadow_eps >= 0):
+            raise ValueError(f"mesh shadow_eps must be a finite number >= 0, got {self.shadow_eps!r}")
         if not isinstance(self.material_tie, int) or self.material_tie < 0:
             raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
         if not 1 <= self.supersample <= 4:
@@ -275,7 +282,20 @@ class MeshStage:
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer)
 
-    def render(self, scene: Scene, cam, background, supersample: int | None = None):
+    def shadows_active(self) -> bool:
+        """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
+        return self.trainer.shadows_active() and self.renderer == "raster"
+
+    def visibility(self, scene: Scene, lights=None):
+        """``[N, NV]`` per-vertex visibility of ``scene`` towards ``lights`` (default its own), or None without
+        shadows (:meth:`shadows_active`)."""
+        if not self.shadows_active():
+            return None
+        from ..visibility import vertex_visibility
+
+        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps)
+
+    def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
         adjoint back, at the config's ``supersample``). With the run's sRGB transfer, the linear premultiplied
@@ -286,7 +306,7 @@ class MeshStage:
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
         transfer = self.trainer.transfer
         if f == 1 or transfer is None:
-            r = render(scene, big, self.settings(background, transfer), self.device)
+            r = render(scene, big, self.settings(background, transfer), self.device, vis=vis)
             if f == 1:
                 return r, r.image, r.alpha
             H, W = cam.height, cam.width
@@ -295,7 +315,7 @@ class MeshStage:
             return r, img, alpha
         from ..ops.color import srgb_composite_host
 
-        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device)  # linear, over black
+        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device, vis=vis)  # linear, over black
         H, W = cam.height, cam.width
         C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
         alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
@@ -330,6 +350,11 @@ class MeshStage:
             m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         opt = self.build_optimizer(scene)
         reg = Regularizers(scene, c)
+        shadows = None
+        if self.shadows_active():
+            from ..visibility import VisibilityCache
+
+            shadows = VisibilityCache(every=tc.shadow_every, extent=self.trainer.extent, ray_eps=c.shadow_eps)
         grad_acc = np.zeros(len(scene.F))
         targets = self.trainer.targets
         order: list[int] = []
@@ -343,8 +368,12 @@ class MeshStage:
                 bg = self.rng.uniform(0, 1, 3) if tc.background == "random" else resolve_background(tc.background)
                 cam, target = targets.get(i, 1.0, np.asarray(bg, np.float32))
                 t0 = time.perf_counter()
-                r, img, _ = self.render(scene, cam, bg)
-                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda)
+                vis = None if shadows is None else shadows.get(scene, it, self.device)
+                r, img, _ = self.render(scene, cam, bg, vis=vis)
+                # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
+                # at 200² about half the numpy SSIM's time); before, every size went through numpy
+                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
+                                                        backend=loss_backend(target.shape))
                 self.backward_image(r, v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
@@ -354,11 +383,11 @@ class MeshStage:
                     g[:, tied] = np.asarray(g[:, tied]).mean(axis=0, keepdims=True)
                 opt.step()
                 opt.zero_grad()
-                if tc.white_light == "total" and scene.light_params is not None:  # as the soup stage
-                    from ..lights import white_balance
+                if scene.light_params is not None:  # the soup stage's white-light rule
+                    from ..train import balanced_lights
 
-                    scene.light_params.data[...] = white_balance(scene.lights, scene.light_params.data,
-                                                                 self.trainer.priors.center)
+                    scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
+                                                                   scene.light_params.data, self.trainer.priors.center)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
@@ -460,9 +489,10 @@ class MeshStage:
             views = views[: tr.cfg.max_test_views]
         bg = np.asarray(resolve_background("white" if tr.cfg.background == "random" else tr.cfg.background),
                         np.float32)
+        vis = self.visibility(scene)
         per = []
         for v in views:
-            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample)
+            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
