@@ -100,6 +100,12 @@ class BRDF:
         return [i for i, c in enumerate(self.channels) if c.activation == "softplus"]
 
     @property
+    def lobe_columns(self) -> list[int]:
+        """The columns that shape the specular lobe and its weight: Cook-Torrance roughness and metallic,
+        Blinn-Phong shininess (``TrainConfig.lr_lobe_scale`` scales their learning rate)."""
+        return [i for i, c in enumerate(self.channels) if c.name in ("roughness", "metallic", "shininess")]
+
+    @property
     def attribute_widths(self) -> dict[str, int]:
         """``{attribute name: width}`` in channel order."""
         return {a.name: a.width for a in self.attributes}
