@@ -2,7 +2,7 @@
 
 A sphere soup (icosphere, one triangle = one triplet, per-vertex materials) is rendered from 8 views with a known
 material and known lights; the materials are then fitted from training's initial values
-(``materials.BRDF.initial_raw``: albedo 0.5, roughness 0.9, metallic 0.1, AO 0.99) with training's loss
+(``materials.BRDF.initial_raw``: albedo 0.5, roughness 0.5 (0.9 before), metallic 0.1, AO 0.99) with training's loss
 (L1 + SSIM), optimiser (Adam, betas (0.5, 0.999)) and material learning rate, the lights either frozen at the truth
 (``--lights known``: the BRDF parameters alone) or learned from training's initial lights (``--lights learn``).
 Prints the trajectory of the mean roughness / metallic / albedo over the vertices that see the light, and the
@@ -169,7 +169,8 @@ def run(args) -> dict:
     def report(it):
         act = brdf.activate(np.asarray(scene.material.data, np.float64))
         row = dict(it=it, rough=act[seen, 3].mean(), rough_hl=act[hl, 3].mean() if hl.any() else np.nan,
-                   metal=act[seen, 4].mean(), alb=act[seen, :3].mean(axis=0))
+                   metal=act[seen, 4].mean(), metal_hl=act[hl, 4].mean() if hl.any() else np.nan,
+                   alb=act[seen, :3].mean(axis=0))
         rows.append(row)
         if not args.quiet:
             print(f"it {it:5d} rough {row['rough']:.3f} (highlit {row['rough_hl']:.3f}) metal {row['metal']:.3f} "
@@ -192,7 +193,7 @@ def run(args) -> dict:
     out = dict(rows[-1], rmse=rmse, seconds=time.perf_counter() - t0, n_seen=int(seen.sum()), n_hl=int(hl.sum()))
     print(f"RESULT case={args.case} views={args.views} lights={args.lights} set={args.set} truth rough {case['roughness']} metal "
           f"{case['metallic']}: rough {out['rough']:.3f} (highlit {out['rough_hl']:.3f}, {out['n_hl']} vertices) "
-          f"metal {out['metal']:.3f} albedo {np.round(out['alb'], 3)} RMSE {rmse:.4f} ({out['seconds']:.0f} s)",
+          f"metal {out['metal']:.3f} (highlit {out['metal_hl']:.3f}) albedo {np.round(out['alb'], 3)} RMSE {rmse:.4f} ({out['seconds']:.0f} s)",
           flush=True)
     return out
 
