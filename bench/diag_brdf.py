@@ -119,7 +119,7 @@ def run(args) -> dict:
     a0 = [ini["albedo_r"]] * 3 if a0 is None else (case["albedo"] if a0 == "truth" else [float(a0)] * 3)
     lr = float(kv.pop("lr_material", 0.05))
     lr_rm = float(kv.pop("lr_rm", lr))
-    lr_final = float(kv.pop("lr_final", lr))  # exponential decay to this over the run (default: constant)  # roughness / metallic columns (a per-column scale)
+    lr_final = float(kv.pop("lr_final", lr))  # exponential decay to this over the run (default: constant)
     if args.lights == "known":
         lights = true_lights(case)
     else:
@@ -191,9 +191,10 @@ def run(args) -> dict:
     rmse = float(np.sqrt(np.mean((np.concatenate([x.reshape(-1, 3) for x in imgs])
                                   - np.concatenate([t.reshape(-1, 3) for t in targets])) ** 2)))
     out = dict(rows[-1], rmse=rmse, seconds=time.perf_counter() - t0, n_seen=int(seen.sum()), n_hl=int(hl.sum()))
-    print(f"RESULT case={args.case} views={args.views} lights={args.lights} set={args.set} truth rough {case['roughness']} metal "
-          f"{case['metallic']}: rough {out['rough']:.3f} (highlit {out['rough_hl']:.3f}, {out['n_hl']} vertices) "
-          f"metal {out['metal']:.3f} (highlit {out['metal_hl']:.3f}) albedo {np.round(out['alb'], 3)} RMSE {rmse:.4f} ({out['seconds']:.0f} s)",
+    print(f"RESULT case={args.case} views={args.views} lights={args.lights} set={args.set} truth rough "
+          f"{case['roughness']} metal {case['metallic']}: rough {out['rough']:.3f} (highlit {out['rough_hl']:.3f}, {out['n_hl']} vertices) "
+          f"metal {out['metal']:.3f} (highlit {out['metal_hl']:.3f}) albedo {np.round(out['alb'], 3)} "
+          f"RMSE {rmse:.4f} ({out['seconds']:.0f} s)",
           flush=True)
     return out
 
@@ -209,7 +210,8 @@ def main(argv=None):
     p.add_argument("--subdivisions", type=int, default=3)
     p.add_argument("--lr-lights", type=float, default=0.02)
     p.add_argument("--set", nargs="*", default=[], help="KEY=VALUE: init_roughness, init_metallic, lr_material, "
-                   "init_albedo (a value or truth), lr_final (decay), lr_rm (roughness / metallic columns' rate) or any TrainConfig prior_* field")
+                   "init_albedo (a value or truth), lr_final (decay), lr_rm (roughness / metallic columns' rate), "
+                   "scale_<channel> (0 freezes it) or any TrainConfig prior_* field")
     p.add_argument("--quiet", action="store_true")
     run(p.parse_args(argv))
 
