@@ -192,7 +192,8 @@ def run(args) -> dict:
                                   - np.concatenate([t.reshape(-1, 3) for t in targets])) ** 2)))
     out = dict(rows[-1], rmse=rmse, seconds=time.perf_counter() - t0, n_seen=int(seen.sum()), n_hl=int(hl.sum()))
     print(f"RESULT case={args.case} views={args.views} lights={args.lights} set={args.set} truth rough "
-          f"{case['roughness']} metal {case['metallic']}: rough {out['rough']:.3f} (highlit {out['rough_hl']:.3f}, {out['n_hl']} vertices) "
+          f"{case['roughness']} metal {case['metallic']}: "
+          f"rough {out['rough']:.3f} (highlit {out['rough_hl']:.3f}, {out['n_hl']} vertices) "
           f"metal {out['metal']:.3f} (highlit {out['metal_hl']:.3f}) albedo {np.round(out['alb'], 3)} "
           f"RMSE {rmse:.4f} ({out['seconds']:.0f} s)",
           flush=True)
