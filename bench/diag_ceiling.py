@@ -43,8 +43,8 @@ def gt_mesh(data: Path, subdivide: int):
     return V, F, srgb_decode(t[py, px])
 
 
-def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int, fix: str, gtv: float | None = None
-        ) -> dict:
+def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int, fix: str, gtv: float | None = None,
+        light_phase: int = 0) -> dict:
     from diag_lights import gt_lights
 
     from triplet_cl.mesh.refine import MeshConfig, MeshStage, save_mesh_state
@@ -71,33 +71,41 @@ def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int
         lights = lights_from_json(json.loads((Path(lights_mode[4:]) / "lights.json").read_text())["lights"])
     else:
         lights = tr.scene.current_lights()
+    if "ao" in fix:
+        mat[:, 5] = 30.0
     scene = Scene.from_arrays(V, F, material=mat, alpha=np.full((len(V), 1), 30.0), lights=lights,
                               brdf=tr.scene.brdf, dtype=np.float32)
     mc = MeshConfig(iterations=iterations, lr_position=0.0, remesh_every=0,
                     lr_lights=0.0 if lights_mode == "gt" else MeshConfig.lr_lights,
                     gtv_weight=MeshConfig.gtv_weight if gtv is None else gtv)
     stage = MeshStage(tr, mc, quiet=True)
-    # the frozen channels keep their value: zero their learning rate through a gradient hook on the material
-    if "ao" in fix:
-        mat[:, 5] = 30.0
+    # the frozen channels keep their value: zero their gradient before each step (Adam then never moves them);
+    # a light phase (light_phase steps first) ties every material channel to one value (the mean gradient)
     frozen = [j for j, name in ((0, "albedo"), (1, "albedo"), (2, "albedo"), (3, "roughness"), (4, "metallic"),
                                 (5, "ao")) if name in fix]
-    if frozen:
-        orig = stage.build_optimizer
+    orig = stage.build_optimizer
+    state = {"tied": light_phase > 0}
 
-        def build(sc):
-            opt = orig(sc)
-            step = opt.step
+    def build(sc):
+        opt = orig(sc)
+        step = opt.step
 
-            def masked_step():
-                g = np.asarray(sc.material.grad)
-                g[:, frozen] = 0
-                step()
+        def masked_step():
+            g = np.asarray(sc.material.grad)
+            if state["tied"]:
+                g[:] = g.mean(0)
+            g[:, frozen] = 0
+            step()
 
-            opt.step = masked_step
-            return opt
+        opt.step = masked_step
+        return opt
 
-        stage.build_optimizer = build
+    stage.build_optimizer = build
+    if light_phase:
+        stage.cfg.iterations = light_phase
+        scene = stage.refine(scene, 0)
+        state["tied"] = False
+        stage.cfg.iterations = iterations
     scene = stage.refine(scene, 0)
     save_mesh_state(out / "mesh_stage.npz", scene, mc)
     rel = Relighter(tr, stage="mesh")
@@ -118,6 +126,8 @@ def main(argv=None) -> int:
                    "lights, learned), run:RUN (the lights of a trained run, learned)")
     p.add_argument("--iterations", type=int, default=600)
     p.add_argument("--subdivide", type=int, default=1)
+    p.add_argument("--light-phase", type=int, default=0, help="steps with the albedo tied to one value per channel "
+                   "before the free fit")
     p.add_argument("--gtv", type=float, default=None, help="graph-TV weight of the materials (default: the stage's)")
     p.add_argument("--fix", default="",
                    help="comma list of channels held at the truth / 0: albedo, roughness, metallic, ao")
@@ -126,9 +136,9 @@ def main(argv=None) -> int:
           "rough / metal / ao |\n|---|---|---|---|---|---|---|---|")
     for mode in a.lights.split(","):
         out = a.out / f"{mode.split(':')[0]}_{a.fix.replace(',', '+') or 'none'}"
-        r = run(a.data, out, mode, a.iterations, a.subdivide, a.fix, a.gtv)
+        r = run(a.data, out, mode, a.iterations, a.subdivide, a.fix, a.gtv, a.light_phase)
         s, al, m = r["sets"], r["albedo"], r["materials"]
-        print(f"| {mode} | {a.fix or '-'} gtv {a.gtv} | {r['train_psnr_last100']:.2f} | "
+        print(f"| {mode} | {a.fix or '-'} gtv {a.gtv} phase {a.light_phase} | {r['train_psnr_last100']:.2f} | "
               + " | ".join(f"{s[k]['psnr']:.2f}" for k in ("point_left", "sun_and_sky", "env_rotated"))
               + f" | {al['psnr_raw']:.2f} / {al['psnr_scaled']:.2f} | {m['roughness_mean']:.2f} / "
               f"{m['metallic_mean']:.2f} / {m['ao_mean']:.2f} |", flush=True)

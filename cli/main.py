@@ -113,6 +113,10 @@ def _config_from_args(args: argparse.Namespace):
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
     if getattr(args, "error_resplit_ratio", None) is not None:
         cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
+    if getattr(args, "white_light", None):
+        cfg = replace(cfg, white_light=args.white_light)
+    if getattr(args, "light_phase", None) is not None:  # after --iterations: the value given, not scaled
+        cfg = replace(cfg, material_tie_until=args.light_phase)
     return cfg
 
 
@@ -295,6 +299,9 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "(default 50000)")
     p.add_argument("--mesh-rounds", type=int, help="extraction → refinement rounds (default 1)")
     p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
+    p.add_argument("--mesh-light-phase", type=int, metavar="N", help="the first N refinement steps of a round keep "
+                   "roughness, metallic and AO one value for the whole mesh (started at their mean), the lights "
+                   "learning; then per vertex (default 300; 0 = none)")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
     p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
@@ -319,6 +326,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
     for opt, field in (("mesh_method", "method"), ("mesh_resolution", "resolution"), ("mesh_faces", "extract_faces"),
                        ("mesh_rounds", "rounds"),
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
+                       ("mesh_light_phase", "material_tie"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("texture_size", "texture_size")):
         v = getattr(args, opt, None)
@@ -495,6 +503,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "soup every --shadow-every steps, from iteration 600; off: none; README 'Cached shadows')")
     t.add_argument("--shadow-every", type=int, help="steps between visibility refreshes (default 100; also after "
                    "density control and when a light moved)")
+    t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
+                   "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
+                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
+    t.add_argument("--white-light", choices=["total", "off"], help="total (default): after each step the lights are "
+                   "rescaled per colour channel so that together they are white at the scene centre (the colour common "
+                   "to all of them goes to the albedo; their colours relative to each other stay free); off: the "
+                   "lights may take any tint")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")

@@ -66,9 +66,14 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
     for (int c = 0; c < 3; ++c) {
         const REAL u = C[p * 3 + c] / ad;
         const REAL g = v_out[p * 3 + c];
-        const REAL ds = srgb_ds(u);
+        /* s and s' from one root (the same expressions as srgb_s / srgb_ds: bit for bit, half the
+         * exp2/log2 calls) */
+        const int lin = u <= SRGB_KNEE;
+        const REAL r = lin ? (REAL)0 : srgb_root(u);
+        const REAL ds = lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u;
+        const REAL s = lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055;
         v_C[p * 3 + c] = g * a * ds / ad;
-        va += g * (srgb_s(u) - bg[c] - inside * ds * u);
+        va += g * (s - bg[c] - inside * ds * u);
     }
     v_A[p] = va;
 }

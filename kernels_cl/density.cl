@@ -7,6 +7,8 @@
  *   V_GRAD:  world_grad_accum[f] += Σ_c v_V[F[f,c]]
  *   VS:      ext = max_c vs[F[f,c], 0:2] − min_c ...;  area = ext.x · ext.y;
  *            max_screen_area[f] = max(.., area);  max_screen_frac[f] = max(.., area / (W·H))
+ *   FRONT:   where front_hit[f] (the face is the nearest face of at least one pixel of the view):
+ *            front_views[f] += 1;  front_grad_accum[f] += grad_scale · sqrt(g.x² + g.y²)
  * Inputs are REAL (the renderer's arrays), widened to double; v_vs rows have VS_STRIDE (2 or 3)
  * entries. One face per work-item writes only its own rows: no atomics.
  */
@@ -34,6 +36,11 @@ __kernel void face_stats_add(__global const int* F,          // [M, 3]
                              __global double* max_screen_area,  // [M]
                              __global double* max_screen_frac,  // [M]
 #endif
+#ifdef FRONT
+                             __global const uchar* front_hit,   // [M] the face is the nearest of >= 1 pixel
+                             __global long* front_views,        // [M]
+                             __global double* front_grad_accum, // [M]
+#endif
                              __global double* grad_accum,    // [M]
                              __global long* denom)           // [M]
 {
@@ -43,8 +50,15 @@ __kernel void face_stats_add(__global const int* F,          // [M, 3]
     const double gx = ((double)v_vs[VS_STRIDE * c0] + (double)v_vs[VS_STRIDE * c1]) + (double)v_vs[VS_STRIDE * c2];
     const double gy = ((double)v_vs[VS_STRIDE * c0 + 1] + (double)v_vs[VS_STRIDE * c1 + 1])
                       + (double)v_vs[VS_STRIDE * c2 + 1];
-    grad_accum[f] = grad_accum[f] + grad_scale * sqrt(gx * gx + gy * gy);
+    const double gn = grad_scale * sqrt(gx * gx + gy * gy);
+    grad_accum[f] = grad_accum[f] + gn;
     denom[f] += 1;
+#ifdef FRONT
+    if (front_hit[f]) {
+        front_views[f] += 1;
+        front_grad_accum[f] = front_grad_accum[f] + gn;
+    }
+#endif
 #ifdef V_GRAD
     for (int k = 0; k < 3; ++k) {
         const double w = ((double)v_V[3 * c0 + k] + (double)v_V[3 * c1 + k]) + (double)v_V[3 * c2 + k];

@@ -518,13 +518,19 @@ def test_stats_add_on_device_matches_numpy(device, rng, dtype):
         cols = 3 if view % 2 else 2
         v_vs = rng.standard_normal((3 * m, cols)).astype(dtype)
         kw = {"grad_scale": 0.5 * (100 + view)}
+        if view != 2:  # the front-visibility and error statistics (the nearest face of each of 70 pixels)
+            front = np.where(rng.random(70) < 0.8, rng.integers(0, m, 70), -1).reshape(7, 10)
+            if view == 5:
+                front[0, :3] = np.flatnonzero(~vis)[:3]  # inconsistent inputs: nearest somewhere, not visible
+            kw.update(front=front, error=rng.random((7, 10)))
         if view != 3:
             kw["v_V"] = rng.standard_normal((3 * m, 3)).astype(np.float32)
         if view != 4:
             kw.update(vs=(rng.random((3 * m, 3)) * 90).astype(dtype), image_size=(100 + view, 80))
         host.add(v_vs, vis, F, **kw)
         dev.add(v_vs, vis, F, device=device, **kw)
-        for k in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+        for k in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac", "front_views",
+                  "front_grad_accum", "err_accum", "err_pixels"):
             a, b = getattr(host, k), getattr(dev, k)
             assert a.dtype == b.dtype and a.shape == b.shape, k
             if exact:
@@ -532,6 +538,7 @@ def test_stats_add_on_device_matches_numpy(device, rng, dtype):
             else:
                 np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-300, err_msg=k)
     assert host.denom.max() > 1 and host.max_screen_frac.max() > 0
+    assert host.front_views.max() > 1 and host.front_grad_accum.max() > 0 and host.err_pixels.sum() > 0
     # validation runs before any work, on either path
     with pytest.raises(ValueError, match="visible"):
         dev.add(np.zeros((3 * m, 3), np.float32), np.ones(m - 1, bool), F, device=device)
@@ -697,3 +704,49 @@ def test_error_resplit_needs_the_error_to_drop_since_the_last_split(rng):
         densify_and_prune(sc5, None, _error_stats(5, np.zeros(5)), c, extent=1.0, split_error=np.zeros(3))
     with pytest.raises(ValueError, match="error_resplit_ratio"):
         cfg(error_resplit_ratio=0.0)
+
+
+# ---------------------------------------------------------------------------------------------- device visibility
+
+
+def _layered_soup(rng, m=60):
+    """``m`` random overlapping triangles around the origin (several fragments per pixel), as a soup."""
+    from triplet_cl.lights import AmbientLight
+
+    c = rng.uniform(-0.6, 0.6, (m, 1, 3))
+    V = (c + rng.normal(scale=0.35, size=(m, 3, 3))).reshape(-1, 3)
+    return Scene.from_arrays(V, np.arange(3 * m).reshape(m, 3), alpha=np.full((3 * m, 1), 2.0),
+                             lights=[AmbientLight([1.0, 1.0, 1.0])], dtype=np.float32)
+
+
+@pytest.mark.parametrize("K", [1, 8, 150])
+def test_visibility_on_device_matches_the_host(device, rng, K):
+    """visible_faces / front_faces with a device (the face_visibility.cl kernels, only [M] / [H, W] come
+    down) against the host reference (the [P] face ids downloaded, bincount / sort): identical, with and
+    without the alpha threshold, for K = 1, 8, 150, and for a view that sees nothing."""
+    from triplet_cl.camera import Camera
+    from triplet_cl.render import RenderSettings, render
+
+    scene = _layered_soup(rng)
+    m = len(scene.F)
+    settings = RenderSettings(K=K, sigma=1.0)
+    eyes = ([0.0, 0.0, 3.0], [1.5, 0.7, 2.0], [0.0, 0.0, -3.0])
+    for eye, target in zip(eyes, ([0, 0, 0], [0, 0, 0], [0, 0, -9.0]), strict=True):  # the last one looks away
+        cam = Camera.look_at(eye, target, [0, 1, 0], 45, 40, 32)
+        fr = render(scene, cam, settings, device).info["frags"]
+        host_vis = visible_faces(fr.face, m)
+        np.testing.assert_array_equal(visible_faces(fr.face, m, device=device), host_vis)
+        np.testing.assert_array_equal(visible_faces(fr.face, m - 5, device=device), visible_faces(fr.face, m - 5))
+        from triplet_cl.density import front_faces
+
+        fa = rng.uniform(0, 1, m)
+        for args in ((), (fa, 0.5), (fa, 0.0), (np.zeros(m), 0.5), (np.ones(m), 0.5)):
+            host = front_faces(fr, *args)
+            dev = front_faces(fr, *args, device=device)
+            assert dev.dtype == host.dtype and dev.shape == host.shape == (32, 40)
+            np.testing.assert_array_equal(dev, host)
+        if eye[2] < 0:
+            assert fr.P == 0 and not host_vis.any()
+        else:
+            assert host_vis.sum() > 10 and (front_faces(fr) >= 0).any()
+            assert (front_faces(fr, fa, 0.5) != front_faces(fr)).any()  # the threshold changes some pixels

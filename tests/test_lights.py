@@ -188,3 +188,48 @@ def test_scene_current_lights_reads_the_packed_parameters():
     cur = s.current_lights()
     assert np.array_equal(pack_lights(cur).params, 3 * pack_lights(lights).params)
     assert cur[0].falloff is False and isinstance(cur[4], VertexSHLight)
+
+
+def test_white_balance_makes_the_lights_white_together_and_keeps_their_relative_colours():
+    """``white_balance``: the summed irradiance at the centre gets equal channels at its mean; each light keeps its
+    colour relative to the others (a warm point light under a blue sky stays warmer than the sky)."""
+    from triplet_cl.lights import irradiance_rgb, pack_lights, unpack_lights, white_balance
+
+    c = np.array([0.1, -0.2, 0.3])
+    lights = [PointLight(np.array([1.0, 2.0, 3.0]), np.array([20.0, 17.0, 12.0])),
+              AmbientLight(np.array([0.05, 0.08, 0.12])),
+              DirectionalLight(np.array([0, 1.0, 0]), np.array([1.0, 0.9, 0.7])),
+              SHEnvironmentLight(np.array([[1.0, 0.2, 0.1, 0.0], [0.8, 0.1, 0.1, 0.0], [0.6, 0.0, 0.3, 0.1]]))]
+    p = pack_lights(lights).params
+    q = white_balance(lights, p, c)
+    before = [irradiance_rgb(lt, c) for lt in unpack_lights(lights, p)]
+    after = [irradiance_rgb(lt, c) for lt in unpack_lights(lights, q)]
+    total = np.sum(after, axis=0)
+    np.testing.assert_allclose(total, np.full(3, np.sum(before, axis=0).mean()), rtol=1e-10)
+    f = after[0] / before[0]
+    for b, a in zip(before, after, strict=True):
+        np.testing.assert_allclose(a / b, f, rtol=1e-10)  # one factor per channel for every light
+    pos = lambda ls: np.asarray(ls[0].position)  # noqa: E731
+    np.testing.assert_array_equal(pos(unpack_lights(lights, q)), pos(lights))  # geometry untouched
+    sh_b, sh_a = unpack_lights(lights, p)[3].coeffs, unpack_lights(lights, q)[3].coeffs
+    np.testing.assert_allclose(sh_a, sh_b * f[:, None], rtol=1e-10)  # every band of a channel alike
+    np.testing.assert_allclose(white_balance(lights, q, c), q, rtol=1e-10)  # a projection
+
+
+def test_white_balance_leaves_what_it_cannot_balance():
+    from triplet_cl.lights import pack_lights, white_balance
+
+    dark = [AmbientLight(np.array([0.1, 0.0, 0.1]))]  # a channel without light: nothing to scale it by
+    p = pack_lights(dark).params
+    np.testing.assert_array_equal(white_balance(dark, p, np.zeros(3)), p)
+
+
+def test_grey_lights_keeps_each_lights_brightness():
+    from triplet_cl.lights import grey_lights, pack_lights, unpack_lights
+
+    lights = [PointLight(np.array([1.0, 2.0, 3.0]), np.array([20.0, 17.0, 11.0])),
+              AmbientLight(np.array([0.05, 0.08, 0.14]))]
+    q = unpack_lights(lights, grey_lights(lights, pack_lights(lights).params))
+    np.testing.assert_allclose(q[0].intensity, np.full(3, 16.0))
+    np.testing.assert_allclose(q[1].color, np.full(3, 0.09))
+    np.testing.assert_array_equal(q[0].position, lights[0].position)

@@ -155,6 +155,13 @@ def test_loss_backend_by_size(device, rng):
     assert loss_backend((96, 96, 3)) == "numpy" and loss_backend((24, 24, 3)) == "numpy"
     assert loss_backend((97, 96, 3)) == "opencl" and loss_backend((200, 200, 3)) == "opencl"
     assert 96 * 96 < DEVICE_LOSS_MIN_PIXELS <= 97 * 96
+    # an image already on the device (the training loop's RenderResult.device_image): the kernels from
+    # DEVICE_LOSS_RESIDENT_MIN_PIXELS on, never later than for a host image
+    from triplet_cl.losses import DEVICE_LOSS_RESIDENT_MIN_PIXELS
+
+    assert DEVICE_LOSS_RESIDENT_MIN_PIXELS <= DEVICE_LOSS_MIN_PIXELS
+    assert loss_backend((200, 200, 3), resident=True) == "opencl"
+    assert loss_backend((97, 96, 3), resident=True) == "opencl"
     a = rng.random((97, 96, 3)).astype(np.float32)
     b = rng.random((97, 96, 3)).astype(np.float32)
     la, ga = photometric_loss_and_grad(a, b, backend="numpy")

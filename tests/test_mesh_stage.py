@@ -69,6 +69,50 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
     assert (out / "mesh.obj").is_file() and (out / "mesh.mtl").is_file()
 
 
+def test_mesh_light_phase_ties_all_but_the_albedo_and_keeps_the_lights_white(trained_run):
+    """``MeshConfig.material_tie``: each round starts roughness / metallic / AO at their mean and keeps them one value
+    for the phase's steps while the albedo goes per vertex; the soup stage's white balance holds in the mesh stage
+    (lights together white at the centre), and after the phase the tied channels go per vertex again."""
+    from triplet_cl.lights import irradiance_rgb
+    from triplet_cl.mesh.refine import tied_channels
+
+    assert tied_channels("cook_torrance") == [3, 4, 5]
+    assert tied_channels("blinn_phong") == [3, 4, 5, 6, 7, 8, 9]
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    assert tr.cfg.white_light == "total"
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=8, material_tie=8, remesh_every=0))
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    m = np.asarray(scene.material.data)
+    assert np.ptp(m[:, [3, 4, 5]], axis=0).max() == 0, "tied channels stayed one value"
+    assert np.ptp(m[:, :3], axis=0).min() > 0, "the albedo is per vertex"
+    total = np.sum([irradiance_rgb(lt, tr.priors.center) for lt in scene.current_lights()], axis=0)
+    np.testing.assert_allclose(total, total.mean(), rtol=1e-5)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=12, material_tie=4, remesh_every=0))
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    assert np.ptp(np.asarray(scene.material.data)[:, [3, 4, 5]], axis=0).min() > 0, "per vertex after the phase"
+    with pytest.raises(ValueError, match="material_tie"):
+        MeshConfig(material_tie=-1).validate()
+
+
+def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):
+    """A soup trained with the cached shadows gives a mesh shaded with them (per-vertex visibility traced through
+    the mesh, ``MeshConfig.shadow_eps``): the shadowed render is nowhere brighter and somewhere darker."""
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0))
+    assert not stage.shadows_active()  # this soup stopped before shadow_from
+    tr.cfg.shadow_from = 0
+    assert stage.shadows_active()
+    mesh = stage.extract(tr.scene)
+    vis = stage.visibility(mesh)
+    assert vis.shape == (mesh.V.shape[0], 1) and vis.min() >= 0 and vis.max() <= 1 and (vis < 0.5).any()
+    cam = tr.ds.train[0].camera
+    _, lit, _ = stage.render(mesh, cam, np.zeros(3), 1)
+    _, shadowed, _ = stage.render(mesh, cam, np.zeros(3), 1, vis=vis)
+    assert (shadowed <= lit + 1e-5).all() and (shadowed < lit - 1e-3).any()
+    with pytest.raises(ValueError, match="shadow_eps"):
+        MeshConfig(shadow_eps=-1.0).validate()
+
+
 def test_export_without_a_mesh_stage_fails_clearly(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()

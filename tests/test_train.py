@@ -17,7 +17,8 @@ DEMO = demo_data_path()
 
 
 def small_cfg(**kw) -> TrainConfig:
-    base = TrainConfig(iterations=40, init_points=1500, warmup_until=10, half_res_until=20, checkpoint_every=0,
+    base = TrainConfig(iterations=40, init_points=1500, warmup_until=10, half_res_until=20, material_tie_until=10,
+                       checkpoint_every=0,
                        max_test_views=2, faces_per_pixel=16, warmup_faces_per_pixel=32,
                        density=DensityConfig(interval=10, densify_from=15, densify_until=35, grad_threshold=2e-4,
                                              alpha_reset_interval=30, max_faces=4000, min_faces=10))

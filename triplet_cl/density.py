@@ -95,6 +95,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.special import expit
 
 from .activations import inverse_softplus, logit
@@ -245,9 +246,17 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
     return expit(a[np.asarray(F)].max(axis=1))
 
 
-def visible_faces(face_ids, num_faces: int) -> np.ndarray:
+def visible_faces(face_ids, num_faces: int, device=None) -> np.ndarray:
     """``[M] bool``: faces with at least one fragment in ``face_ids`` (the rasterizer's ``frags.face``
-    ``[P]``, or any array of face ids with −1 = empty; numpy or device array)."""
+    ``[P]``, or any array of face ids with −1 = empty; numpy or device array).
+
+    ``device`` (a :class:`~triplet_cl.device.Device`) with an int32 device array: the ``visible_mark``
+    kernel (``ops/face_visibility.py``) marks the faces there and only ``[M]`` bytes come down (the
+    same result; this host bincount is its reference)."""
+    if device is not None and isinstance(face_ids, cla.Array) and face_ids.dtype == np.int32:
+        from .ops.face_visibility import visible_mask
+
+        return visible_mask(device, face_ids.reshape(-1), num_faces)
     f = to_host(face_ids).reshape(-1)
     f = f[f >= 0]
     return np.bincount(f, minlength=num_faces)[:num_faces] > 0
@@ -303,7 +312,8 @@ class DensityStats:
             grad_scale: multiplies the screen gradient (e.g. ``0.5 * width`` for 3DGS's NDC units).
             device: a :class:`~triplet_cl.device.Device` with fp64: the update runs as the
                 ``face_stats_add`` kernel (``kernels_cl/density.cl``, one pass over the faces, on the
-                statistics arrays themselves), bit for bit the numpy update; None: numpy.
+                statistics arrays themselves, the front-visibility statistics included; the per-pixel
+                bincounts of ``front`` / ``error`` stay numpy), bit for bit the numpy update; None: numpy.
             front: optional ``[H, W]`` id of the nearest face of every pixel (−1: none; :func:`front_faces`)
                 for the front-visibility statistics ``front_views`` / ``front_grad_accum``.
             error: optional ``[H, W]`` per-pixel photometric error of the view (e.g. the mean absolute
@@ -344,24 +354,35 @@ class DensityStats:
             uv = to_host(vs)
         on_device = device is not None and device.fp64 and m
         if on_device:
-            self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale))
-        if on_device and front is None:
+            npix = None
+            if front is not None:
+                on = fmap >= 0
+                npix = np.bincount(fmap[on], minlength=m)
+            self._add_device(device, F, vis, g, gw, uv, None if vs is None else w * h, float(grad_scale),
+                             None if npix is None else npix > 0)
+            if front is None:
+                return
+            # the front statistics of the visible faces came from the kernel; a face nearest somewhere but not
+            # in ``visible`` (inconsistent inputs only) counts its view with a zero gradient, as below
+            self.front_views[(npix > 0) & ~vis] += 1
+            if error is not None:
+                self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
+                self.err_pixels += npix
             return
         g = np.asarray(g, np.float64)
         idx = np.flatnonzero(vis)
         Fv = F[idx]
         g_face = g[Fv, :2].sum(axis=1)  # [m_vis, 2]: Σ over corners
-        if not on_device:
-            self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
-            self.denom[idx] += 1
-            if gw is not None:
-                self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
-            if uv is not None:
-                uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
-                ext = uv.max(axis=1) - uv.min(axis=1)
-                area = ext[:, 0] * ext[:, 1]
-                self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
-                self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
+        self.grad_accum[idx] += float(grad_scale) * np.linalg.norm(g_face, axis=1)
+        self.denom[idx] += 1
+        if gw is not None:
+            self.world_grad_accum[idx] += np.asarray(gw, np.float64)[Fv].sum(axis=1)
+        if uv is not None:
+            uv = np.asarray(uv, np.float64)[:, :2][Fv]  # [m_vis, 3, 2]
+            ext = uv.max(axis=1) - uv.min(axis=1)
+            area = ext[:, 0] * ext[:, 1]
+            self.max_screen_area[idx] = np.maximum(self.max_screen_area[idx], area)
+            self.max_screen_frac[idx] = np.maximum(self.max_screen_frac[idx], area / (w * h))
         if front is not None:  # the front-visibility and error statistics (host: per-pixel bincounts)
             on = fmap >= 0
             npix = np.bincount(fmap[on], minlength=m)
@@ -374,7 +395,7 @@ class DensityStats:
                 self.err_accum += np.bincount(fmap[on], weights=e[on], minlength=m)
                 self.err_pixels += npix
 
-    def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale) -> None:
+    def _add_device(self, device, F, vis, g, gw, uv, image_area, grad_scale, front_hit=None) -> None:
         """:meth:`add` as the ``face_stats_add`` kernel; the statistics (numpy) are the kernel's
         buffers (USE_HOST_PTR: no copy on a CPU device) and are mapped back afterwards."""
         import pyopencl as cl
@@ -394,7 +415,8 @@ class DensityStats:
             written.append(cl.Buffer(device.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=a))
             return written[-1]
 
-        for name in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac"):
+        for name in ("grad_accum", "denom", "world_grad_accum", "max_screen_area", "max_screen_frac", "front_views",
+                     "front_grad_accum"):
             if not getattr(self, name).flags.c_contiguous:
                 setattr(self, name, np.ascontiguousarray(getattr(self, name)))
         keep = [src(F, np.int32), src(vis, np.uint8), src(g)]  # the host arrays stay alive until finish()
@@ -408,6 +430,10 @@ class DensityStats:
             keep.append(src(uv))
             args += [keep[-1][1], np.float64(image_area), dst(self.max_screen_area), dst(self.max_screen_frac)]
             defines["VS"] = 1
+        if front_hit is not None:
+            keep.append(src(front_hit, np.uint8))
+            args += [keep[-1][1], dst(self.front_views), dst(self.front_grad_accum)]
+            defines["FRONT"] = 1
         args += [dst(self.grad_accum), dst(self.denom)]
         run_1d(device, device.kernel("density", "face_stats_add", defines, real=real), len(F), *args)
         q = device.queue
@@ -430,13 +456,25 @@ class DensityStats:
         return self.err_accum / np.maximum(self.err_pixels, 1)
 
 
-def front_faces(frags, face_alpha=None, min_alpha: float = 0.0) -> np.ndarray:
+def front_faces(frags, face_alpha=None, min_alpha: float = 0.0, device=None) -> np.ndarray:
     """Host ``[H, W] int64``: the nearest face of every pixel of a
     :class:`~triplet_cl.ops.fragments.Fragments` (its first packed fragment), −1 where none.
 
     With ``face_alpha`` (``[M]``, e.g. :func:`face_alpha`) the nearest face whose alpha ≥ ``min_alpha``:
     a faint face in front (a floater, a face fading out) does not own the colour of the pixel, the
-    first (nearly) opaque one behind it does."""
+    first (nearly) opaque one behind it does.
+
+    ``device`` (a :class:`~triplet_cl.device.Device`): the ``front_face`` kernel walks each pixel's
+    fragments there (``ops/face_visibility.py``; the alpha test ``face_alpha ≥ min_alpha`` is decided
+    here per face, in float64 as below) and only the ``[H, W]`` map comes down: the same result, without
+    the ``[P]`` download and the sort of this host path (its reference)."""
+    if device is not None:
+        from .ops.face_visibility import front_face_map
+
+        ok = None
+        if face_alpha is not None and min_alpha > 0.0:
+            ok = np.asarray(face_alpha, np.float64).reshape(-1) >= min_alpha
+        return front_face_map(device, frags, ok)
     count = np.asarray(to_host(frags.count)).reshape(-1).astype(np.int64)
     face = np.asarray(to_host(frags.face)).reshape(-1).astype(np.int64)
     out = np.full(count.size, -1, np.int64)

@@ -494,6 +494,69 @@ def unpack_gradients(lights, v_params: np.ndarray) -> list[dict[str, np.ndarray]
     return out
 
 
+def irradiance_rgb(light, center) -> np.ndarray | None:
+    """``[3]`` the irradiance a surface at ``center`` facing the light receives from ``light`` (a point light
+    ``I / d²``, a directional light its intensity, a uniform / SH environment ``π ×`` its mean radiance); None
+    for a light without one colour for the whole scene (the per-vertex SH light)."""
+    if isinstance(light, AmbientLight):
+        return np.pi * np.asarray(light.color, np.float64)
+    if isinstance(light, PointLight):
+        i = np.asarray(light.intensity, np.float64)
+        if not light.falloff:
+            return i
+        q = np.asarray(light.position, np.float64) - np.asarray(center, np.float64)
+        return i / max(float(q @ q), 1e-6)
+    if isinstance(light, DirectionalLight):
+        return np.asarray(light.intensity, np.float64)
+    if isinstance(light, SHEnvironmentLight):
+        return np.pi * np.asarray(light.coeffs, np.float64)[:, 0] * 0.28209479177387814  # Y00: the mean radiance
+    return None
+
+
+def grey_lights(lights, params: np.ndarray) -> np.ndarray:
+    """The packed light ``params [T]`` with every light's colour made grey (each radiometric parameter's channels
+    replaced by their mean; SH radiance band by band): white lights of the same brightness."""
+    params = np.asarray(params)
+    out = []
+    for lt in unpack_lights(lights, params):
+        flat = []
+        for n in lt.PARAMS:
+            v = np.asarray(getattr(lt, n), np.float64)
+            if n in lt.RADIOMETRIC:
+                v = np.broadcast_to(v.mean(axis=0, keepdims=True), v.shape)
+            flat.append(np.asarray(v).reshape(-1))
+        out.append(np.concatenate(flat) if flat else np.zeros(0))
+    return np.concatenate(out).astype(params.dtype) if out else params
+
+
+def white_balance(lights, params: np.ndarray, center) -> np.ndarray:
+    """The packed light ``params [T]`` rescaled per colour channel so that the lights *together* are white at
+    ``center``: the summed irradiance (:func:`irradiance_rgb`) gets equal channels at its mean, every radiometric
+    parameter of channel ``k`` × ``mean(T) / T_k``. Each light's colour relative to the others' stays free (a
+    warm sun under a blue sky), only the tint common to all of them goes: photos fix albedo × light per point,
+    so that tint is the albedo's or the lights' alike, and an object's colour is the usual reading (white
+    light). Returns ``params`` unchanged when a channel's total is not positive or a light has no one colour."""
+    params = np.asarray(params)
+    cur = unpack_lights(lights, params)
+    parts = [irradiance_rgb(lt, center) for lt in cur]
+    if not parts or any(p is None for p in parts):
+        return params
+    total = np.sum(parts, axis=0)
+    if not np.all(np.isfinite(total)) or total.min() <= 0:
+        return params
+    f = total.mean() / total
+    out = []
+    for lt in cur:
+        flat = []
+        for n in lt.PARAMS:
+            v = np.asarray(getattr(lt, n), np.float64)
+            if n in lt.RADIOMETRIC:
+                v = v * (f if v.ndim == 1 else f[:, None])
+            flat.append(v.reshape(-1))
+        out.append(np.concatenate(flat) if flat else np.zeros(0))
+    return np.concatenate(out).astype(params.dtype) if out else params
+
+
 def unpack_lights(lights, params: np.ndarray) -> list:
     """The lights with their parameters read from the packed ``params [T]`` (other fields kept): the
     inverse of :func:`pack_lights` for a table built from ``lights``."""

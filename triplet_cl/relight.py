@@ -373,7 +373,9 @@ class Relighter:
         renderer = renderer or self.renderer
         if self.mesh_stage is not None:
             self.mesh_stage.renderer = renderer
-            _, img, alpha = self.mesh_stage.render(scene, camera, background, self.mesh_stage.cfg.eval_supersample)
+            vis = self.visibility(scene) if self.shadows == "vertex" and renderer == "raster" else None
+            _, img, alpha = self.mesh_stage.render(scene, camera, background, self.mesh_stage.cfg.eval_supersample,
+                                                   vis=vis)
             return np.asarray(img), np.asarray(alpha)
         tc = self.tr.cfg
         sh = scene.vertex_sh is not None
@@ -392,7 +394,8 @@ class Relighter:
 
         key = id(scene)
         if key not in self._vis or self._vis[key][0] is not scene:
-            self._vis[key] = (scene, vertex_visibility(scene, self.tr.device, ray_eps=self.tr.cfg.shadow_eps))
+            eps = self.tr.cfg.shadow_eps if self.mesh_stage is None else self.mesh_stage.cfg.shadow_eps
+            self._vis[key] = (scene, vertex_visibility(scene, self.tr.device, ray_eps=eps))
         return self._vis[key][1]
 
     @property
@@ -400,7 +403,7 @@ class Relighter:
         """The cast shadows of the relit images: "vertex" (cached, raster), "traced" (raytrace / hybrid) or "off"."""
         if self.renderer != "raster":
             return "traced"
-        return "vertex" if self.shadows == "vertex" and self.mesh_stage is None else "off"
+        return "vertex" if self.shadows == "vertex" else "off"
 
     def render_albedo(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """``(straight base colour [H, W, 3] sRGB-encoded, alpha [H, W])`` through ``camera`` (rasterized: no

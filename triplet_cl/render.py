@@ -579,6 +579,9 @@ class RenderResult:
     tape: Tape
     scene: Scene
     state: RenderState
+    #: ``[H, W, 3]`` the image on the device before :class:`Stack` downloads it (the same values as
+    #: :attr:`image`): the training loop's device loss reads it and seeds :meth:`backward_device` there
+    image_var: Variable | None = None
 
     @property
     def info(self) -> dict:
@@ -615,6 +618,24 @@ class RenderResult:
             v[..., 3] = v_alpha
         self.tape.backward(self.rgba, v)
         return {p.name: None if p.grad is None else to_host(p.grad) for p in self.scene.params}
+
+    @property
+    def device_image(self) -> cla.Array:
+        """``[H, W, 3]`` rendered colour on the device (what :attr:`image` was downloaded from)."""
+        return self.image_var.data
+
+    def backward_device(self, v_image: cla.Array) -> None:
+        """:meth:`backward` for a device cotangent ``v_image [H, W, 3]`` of :attr:`device_image` (e.g. the
+        device photometric loss's adjoint): the tape is seeded at the device image, so no host round trip
+        (the accumulated alpha gets no cotangent, as ``backward(v_image)``). Gradients land in each
+        ``Param.grad``."""
+        s = self.state.settings
+        H, W = self.state.camera.height, self.state.camera.width
+        if not isinstance(v_image, cla.Array) or v_image.shape != (H, W, 3) or v_image.dtype != s.real:
+            raise ValueError(f"v_image must be a device array of shape [{H}, {W}, 3] and dtype "
+                             f"{np.dtype(s.real).name}, got {type(v_image).__name__} "
+                             f"{list(getattr(v_image, 'shape', ()))} {getattr(v_image, 'dtype', '')}")
+        self.tape.backward(self.image_var, v_image)
 
 
 _MESH_CACHE: dict = {}
@@ -713,4 +734,4 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         else:
             img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
         rgba = Stack()(img, acc)
-    return RenderResult(rgba, tape, scene, view)
+    return RenderResult(rgba, tape, scene, view, image_var=img)

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
 from scipy.spatial import cKDTree
 
 from .camera import Camera
@@ -42,7 +43,14 @@ from .device import Device, get_device
 from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
-from .lights import LightInit, SHEnvironmentLight, lights_to_json, relative_lr_scales
+from .lights import (
+    LightInit,
+    SHEnvironmentLight,
+    grey_lights,
+    lights_to_json,
+    relative_lr_scales,
+    white_balance,
+)
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
 from .materials import DEFAULT_BRDF, get_brdf
@@ -59,6 +67,7 @@ REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned 
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
+WHITE_LIGHT_MODES = ("total", "off")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -158,6 +167,17 @@ class TrainConfig:
     prior_ambient: float = 0.0  # ambient share (--priors lights: 0.02) of the irradiance at the scene centre
     prior_chroma: float = 0.0  # (--priors lights: 0.01) scale-free colour variance of each light (white-ish lights)
     prior_from: int = 600  # the priors act from this iteration (full resolution, the soup pruned once)
+    # the light phase (issue 18): until this iteration every material channel is one value for the whole soup (each
+    # step applies the mean of the per-vertex material gradients), so the lights, not per-vertex albedo / AO /
+    # metallic, must explain the shading; then each vertex goes its own way from there. Photos of a Lambertian
+    # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
+    # stay wherever the first steps left them (ambient 3x the truth on spot)
+    material_tie_until: int = 1200
+    # "total": after each step the lights' colours are rescaled per channel so that together they are white at the
+    # scene centre (lights.white_balance; each light's colour relative to the others' stays free); "off": the
+    # lights may take any tint. Photos fix albedo × light per point: the tint common to every light is the albedo's
+    # or the lights' alike, and relighting needs it in the albedo (spot_small: the lights took the cow's pink)
+    white_light: str = "total"
 
     def with_iterations(self, iterations: int) -> TrainConfig:
         """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
@@ -184,6 +204,7 @@ class TrainConfig:
         return replace(self, iterations=int(iterations), warmup_until=sc(ref.warmup_until),
                        half_res_until=sc(ref.half_res_until), sh_band_every=sc(ref.sh_band_every, 1),
                        lr_position_steps=sc(ref.lr_position_steps, 1), prior_from=sc(ref.prior_from),
+                       material_tie_until=sc(ref.material_tie_until),
                        lr_boost_at=sc(ref.lr_boost_at, 1), density=density)
 
     def to_dict(self) -> dict:
@@ -208,6 +229,8 @@ class TrainConfig:
         d.setdefault("lr_lights_mode", "absolute")  # saved before the relative light learning rates
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
+        d.setdefault("material_tie_until", 0)  # saved before the light phase: none
+        d.setdefault("white_light", "off")  # saved before the white balance of the lights
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -217,6 +240,10 @@ class TrainConfig:
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
         get_brdf(self.brdf)  # ValueError naming the BRDFs
+        if self.white_light not in WHITE_LIGHT_MODES:
+            raise ValueError(f"white_light must be one of {WHITE_LIGHT_MODES}, got {self.white_light!r}")
+        if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
+            raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
@@ -375,6 +402,14 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         scale = [relative_lr_scales(scene.lights)] if cfg.lr_lights_mode == "relative" else None
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
+
+
+def tie_rows(param) -> None:
+    """Every row of ``param``'s gradient replaced by their mean: the rows (equal at the start, with equal Adam
+    moments) take the same step and stay one value (the light phase, ``TrainConfig.material_tie_until``)."""
+    g = param.grad
+    if g is not None and len(g):
+        g[...] = np.asarray(g).mean(axis=0, keepdims=True)
 
 
 # ------------------------------------------------------------------------------------------------ schedules
@@ -545,11 +580,18 @@ class Trainer:
         if not np.isfinite(r.image).all():
             raise NonFiniteError(it + 1, "render", "image", "the rendered image holds NaN/Inf (non-finite "
                                  f"lights or materials?); {self.checkpoint_hint()}")
-        # above 96² the losses.cl kernels (upload, kernels, download): 2-3x the host SSIM at 200² in the loop
-        loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda,
-                                                backend=loss_backend(target.shape))
-        t2 = time.perf_counter()
-        r.backward(v_img)
+        # from DEVICE_LOSS_RESIDENT_MIN_PIXELS on (every size on PoCL, measured: losses.py), the losses.cl kernels on
+        # the rendered image where it already is (only the target goes up and the loss value comes down; the adjoint
+        # seeds the backward on the device); below that threshold, the host (numpy) loss
+        if loss_backend(target.shape, resident=True) == "opencl":
+            target_d = cla.to_device(self.device.queue, np.ascontiguousarray(target, r.device_image.dtype))
+            loss, v_img = photometric_loss_and_grad(r.device_image, target_d, lam=cfg.ssim_lambda)
+            t2 = time.perf_counter()
+            r.backward_device(v_img)
+        else:
+            loss, v_img = photometric_loss_and_grad(r.image, target, lam=cfg.ssim_lambda, backend="numpy")
+            t2 = time.perf_counter()
+            r.backward(v_img)
         prior_terms = self.priors.apply(self.scene, it)
         t3 = time.perf_counter()
         dens = cfg.density
@@ -558,17 +600,25 @@ class Trainer:
             # gradients in NDC units (× W/2, as 3D Gaussian Splatting): the same face gets the same
             # statistic at ¼, ½ and full resolution, so one threshold serves the whole schedule; the
             # error criterion needs each pixel's error and nearest face (density.DensityStats.add)
+            # visibility and the nearest faces from the fragments on the device (face_visibility.cl): only
+            # [M] bytes and the [H, W] map come down, not the [P] face ids (density.py's host functions are
+            # the reference, bit for bit)
             err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
-            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F)), self.scene.F,
-                           vs=r.info["vs"].get(), image_size=(cam.width, cam.height), v_V=self.scene.V.grad,
-                           grad_scale=0.5 * cam.width, device=self.device, error=err, front=None if err is None else
-                           front_faces(fr, face_alpha(self.scene.alpha.data, self.scene.F), dens.error_min_alpha))
+            self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F), device=self.device),
+                           self.scene.F, vs=r.info["vs"].get(), image_size=(cam.width, cam.height),
+                           v_V=self.scene.V.grad, grad_scale=0.5 * cam.width, device=self.device, error=err,
+                           front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
+                                                                                    self.scene.F),
+                                                                      dens.error_min_alpha, device=self.device))
+        if it < cfg.material_tie_until:
+            tie_rows(self.scene.material)
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
             raise NonFiniteError(it + 1, exc.group, exc.what, self._nonfinite_cause(exc)) from None
         self.opt.zero_grad()
         self.priors.project(self.scene)
+        self.balance_lights()
         t4 = time.perf_counter()
         report = None
         if dens.densify_at(it):
@@ -601,6 +651,16 @@ class Trainer:
                               "error_blocked": report.error_blocked,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
         return rec
+
+    def balance_lights(self) -> None:
+        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`);
+        during the light phase (``material_tie_until``) each light white (:func:`lights.grey_lights`): with one
+        albedo for the whole object, a light's own tint would only stand in for the object's colours."""
+        lp = self.scene.light_params
+        if self.cfg.white_light == "total" and lp is not None:
+            if self.it < self.cfg.material_tie_until:
+                lp.data[...] = grey_lights(self.scene.lights, lp.data)
+            lp.data[...] = white_balance(self.scene.lights, lp.data, self.priors.center)
 
     def set_env_degree(self, deg: int) -> None:
         """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``

@@ -40,11 +40,13 @@ _INT_OPTIONS = {
     "--checkpoint-every": ("checkpoint_every", 0, None),
     "--keep-checkpoints": ("keep_checkpoints", 0, None),
     "--shadow-every": ("shadow_every", 1, None),
+    "--light-phase": ("light_phase", 0, None),
     "--mesh-resolution": ("mesh_resolution", 16, 1024),  # mesh.extract.tsdf_fusion's range; memory checked too
     "--mesh-faces": ("mesh_faces", 100, 50_000_000),
     "--mesh-rounds": ("mesh_rounds", 1, 100),
     "--mesh-iterations": ("mesh_iterations", 0, 10_000_000),
     "--remesh-every": ("remesh_every", 0, None),
+    "--mesh-light-phase": ("mesh_light_phase", 0, None),
     "--mesh-supersample": ("mesh_supersample", 1, 4),
     "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
     "--texture-size": ("texture_size", 16, 16384),
@@ -54,6 +56,7 @@ _INT_OPTIONS = {
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
+                 "--mesh-light-phase",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
                  "--bbox", "--mesh-crop")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
@@ -471,7 +474,8 @@ def resume_config(args, saved_cfg, given_cfg):
              "--faces-per-pixel": "faces_per_pixel", "--init-points": "init_points", "--background": "background",
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
-             "--shadow-every": "shadow_every"}
+             "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
+             "--white-light": "white_light"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue

@@ -31,7 +31,7 @@ import numpy as np
 from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
-from ..losses import photometric_loss_and_grad
+from ..losses import loss_backend, photometric_loss_and_grad
 from ..optim import Adam, ExponentialDecay
 from ..regularizers import FaceNormalConsistency, MaterialGTV, UniformLaplacian
 from ..render import RenderSettings, render
@@ -76,6 +76,18 @@ class MeshConfig:
     normal_weight: float = 0.1  # face-normal consistency
     laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in scene units)
     gtv_weight: float = 0.002  # graph TV of the raw materials
+    # the mesh stage's light phase (issue 18): every material channel but the albedo (roughness, metallic, AO; Blinn-
+    # Phong's ks, shininess, ka) starts each round at its mean over the mesh and stays one value for this many steps
+    # (the mean of the per-vertex gradients), the lights learning, then per vertex again. The soup's per-vertex AO
+    # and roughness hold shading painted in while its normals were noisy; on the mesh, with clean normals, one
+    # value each lets the highlights and the lights explain it. spot_small (1500-it. soup): albedo (scaled) 20.75 →
+    # 24.57 dB, relight +0.5 / +0.5 / +1.4 dB (AO alone set to 1: 23.20 dB)
+    material_tie: int = 300
+    # cast shadows as the soup stage (``--shadows vertex``): per-vertex visibility towards the point / directional
+    # lights, traced through the mesh every ``shadow_every`` steps of the run and after each remesh; the ray start
+    # offset × the mesh's bounding-box diagonal (an opaque mesh needs less than the soup's layers: 0.01, as
+    # bench/relight.py --gt-ceiling on the true meshes)
+    shadow_eps: float = 0.01
     remesh_every: int = 200  # steps between subdivision / simplification (0: never)
     subdivide_fraction: float = 0.03  # faces with the largest position gradients, subdivided
     simplify_fraction: float = 0.05  # faces with the smallest, simplified away
@@ -95,6 +107,10 @@ class MeshConfig:
             raise ValueError(f"mesh rounds must be >= 1, got {self.rounds}")
         if self.iterations < 0:
             raise ValueError(f"mesh iterations must be >= 0, got {self.iterations}")
+        if not (np.isfinite(self.shadow_eps) and self.shadow_eps >= 0):
+            raise ValueError(f"mesh shadow_eps must be a finite number >= 0, got {self.shadow_eps!r}")
+        if not isinstance(self.material_tie, int) or self.material_tie < 0:
+            raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
         if not 1 <= self.supersample <= 4:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
         if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
@@ -231,7 +247,13 @@ class MeshStage:
         if scene.vertex_sh is not None:
             opt.add_group("vertex_sh", [scene.vertex_sh], lr=c.lr_vertex_sh, max_grad_norm=tc.sh_clip, **kw)
         if scene.light_params is not None:
-            opt.add_group("lights", [scene.light_params], lr=c.lr_lights, **kw)
+            # the soup stage's light rates: "relative" steps each radiometric value by lr × its size at the start of
+            # the stage (lights.relative_lr_scales; with one absolute rate a point light's intensity of ~20 moved by
+            # 0.03 % a step and the ambient light by 2 %: the mesh stage could not move the intensity at all)
+            from ..lights import relative_lr_scales
+
+            scale = [relative_lr_scales(scene.lights)] if tc.lr_lights_mode == "relative" else None
+            opt.add_group("lights", [scene.light_params], lr=c.lr_lights, lr_scale=scale, **kw)
         return opt
 
     def settings(self, background, transfer: str | None = None) -> RenderSettings:
@@ -241,7 +263,20 @@ class MeshStage:
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer)
 
-    def render(self, scene: Scene, cam, background, supersample: int | None = None):
+    def shadows_active(self) -> bool:
+        """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
+        return self.trainer.shadows_active() and self.renderer == "raster"
+
+    def visibility(self, scene: Scene, lights=None):
+        """``[N, NV]`` per-vertex visibility of ``scene`` towards ``lights`` (default its own), or None without
+        shadows (:meth:`shadows_active`)."""
+        if not self.shadows_active():
+            return None
+        from ..visibility import vertex_visibility
+
+        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps)
+
+    def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
         adjoint back, at the config's ``supersample``). With the run's sRGB transfer, the linear premultiplied
@@ -252,7 +287,7 @@ class MeshStage:
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
         transfer = self.trainer.transfer
         if f == 1 or transfer is None:
-            r = render(scene, big, self.settings(background, transfer), self.device)
+            r = render(scene, big, self.settings(background, transfer), self.device, vis=vis)
             if f == 1:
                 return r, r.image, r.alpha
             H, W = cam.height, cam.width
@@ -261,7 +296,7 @@ class MeshStage:
             return r, img, alpha
         from ..ops.color import srgb_composite_host
 
-        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device)  # linear, over black
+        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device, vis=vis)  # linear, over black
         H, W = cam.height, cam.width
         C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
         alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
@@ -290,8 +325,17 @@ class MeshStage:
         from .remesh import refine_scene
 
         c, tc = self.cfg, self.trainer.cfg
+        tied = tied_channels(scene.brdf) if c.material_tie > 0 else []
+        if tied:  # the light phase starts from one value per tied channel
+            m = np.asarray(scene.material.data)
+            m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         opt = self.build_optimizer(scene)
         reg = Regularizers(scene, c)
+        shadows = None
+        if self.shadows_active():
+            from ..visibility import VisibilityCache
+
+            shadows = VisibilityCache(every=tc.shadow_every, extent=self.trainer.extent, ray_eps=c.shadow_eps)
         grad_acc = np.zeros(len(scene.F))
         targets = self.trainer.targets
         order: list[int] = []
@@ -305,14 +349,26 @@ class MeshStage:
                 bg = self.rng.uniform(0, 1, 3) if tc.background == "random" else resolve_background(tc.background)
                 cam, target = targets.get(i, 1.0, np.asarray(bg, np.float32))
                 t0 = time.perf_counter()
-                r, img, _ = self.render(scene, cam, bg)
-                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda)
+                vis = None if shadows is None else shadows.get(scene, it, self.device)
+                r, img, _ = self.render(scene, cam, bg, vis=vis)
+                # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
+                # at 200² about half the numpy SSIM's time); before, every size went through numpy
+                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
+                                                        backend=loss_backend(target.shape))
                 self.backward_image(r, v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
+                if it < c.material_tie and tied:
+                    g = scene.material.grad
+                    g[:, tied] = np.asarray(g[:, tied]).mean(axis=0, keepdims=True)
                 opt.step()
                 opt.zero_grad()
+                if tc.white_light == "total" and scene.light_params is not None:  # as the soup stage
+                    from ..lights import white_balance
+
+                    scene.light_params.data[...] = white_balance(scene.lights, scene.light_params.data,
+                                                                 self.trainer.priors.center)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
@@ -414,9 +470,10 @@ class MeshStage:
             views = views[: tr.cfg.max_test_views]
         bg = np.asarray(resolve_background("white" if tr.cfg.background == "random" else tr.cfg.background),
                         np.float32)
+        vis = self.visibility(scene)
         per = []
         for v in views:
-            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample)
+            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
@@ -449,6 +506,13 @@ class MeshStage:
         metrics["mesh"] = mesh_metrics
         write_json(path, metrics)
         self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))
+
+
+def tied_channels(brdf: str) -> list[int]:
+    """The material columns the mesh stage's light phase ties (``MeshConfig.material_tie``): all but the albedo."""
+    from ..materials import get_brdf
+
+    return [i for i, n in enumerate(get_brdf(brdf).channel_names) if not n.startswith(("albedo_", "kd_"))]
 
 
 def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
