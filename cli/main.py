@@ -506,10 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
                    "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
-    t.add_argument("--white-light", choices=["total", "off"], help="total (default): after each step the lights are "
-                   "rescaled per colour channel so that together they are white at the scene centre (the colour common "
-                   "to all of them goes to the albedo; their colours relative to each other stay free); off: the "
-                   "lights may take any tint")
+    t.add_argument("--white-light", choices=["each", "total", "off"], help="each (default): every light stays white "
+                   "(its brightness learned; the photos' colours go to the albedo); total: the lights together white "
+                   "at the scene centre, their colours relative to each other free; off: the lights may take any tint")
     t.add_argument("--save-train-renders", action="store_true", help="also render the training views")
     t.add_argument("--color", choices=["linear", "encoded"], help="colour pipeline (default linear: linear radiance "
                    "inside, the photos' sRGB transfer before the loss; encoded: fit the encoded values, as before)")

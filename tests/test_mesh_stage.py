@@ -71,22 +71,23 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
 
 def test_mesh_light_phase_ties_all_but_the_albedo_and_keeps_the_lights_white(trained_run):
     """``MeshConfig.material_tie``: each round starts roughness / metallic / AO at their mean and keeps them one value
-    for the phase's steps while the albedo goes per vertex; the soup stage's white balance holds in the mesh stage
-    (lights together white at the centre), and after the phase the tied channels go per vertex again."""
+    for the phase's steps while the albedo goes per vertex; the soup stage's white-light rule holds in the mesh stage
+    (every light white), and after the phase the tied channels go per vertex again."""
     from triplet_cl.lights import irradiance_rgb
     from triplet_cl.mesh.refine import tied_channels
 
     assert tied_channels("cook_torrance") == [3, 4, 5]
     assert tied_channels("blinn_phong") == [3, 4, 5, 6, 7, 8, 9]
     tr = Trainer(None, trained_run, resume=True, quiet=True)
-    assert tr.cfg.white_light == "total"
+    assert tr.cfg.white_light == "each"
     stage = MeshStage(tr, tiny_mesh_cfg(iterations=8, material_tie=8, remesh_every=0))
     scene = stage.refine(stage.extract(tr.scene), 0)
     m = np.asarray(scene.material.data)
     assert np.ptp(m[:, [3, 4, 5]], axis=0).max() == 0, "tied channels stayed one value"
     assert np.ptp(m[:, :3], axis=0).min() > 0, "the albedo is per vertex"
-    total = np.sum([irradiance_rgb(lt, tr.priors.center) for lt in scene.current_lights()], axis=0)
-    np.testing.assert_allclose(total, total.mean(), rtol=1e-5)
+    for lt in scene.current_lights():  # every light stays white
+        e = irradiance_rgb(lt, tr.priors.center)
+        np.testing.assert_allclose(e, e.mean(), rtol=1e-5)
     stage = MeshStage(tr, tiny_mesh_cfg(iterations=12, material_tie=4, remesh_every=0))
     scene = stage.refine(stage.extract(tr.scene), 0)
     assert np.ptp(np.asarray(scene.material.data)[:, [3, 4, 5]], axis=0).min() > 0, "per vertex after the phase"

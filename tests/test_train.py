@@ -364,3 +364,29 @@ def test_error_records_follow_the_faces_and_resume_bit_for_bit(tmp_path):
     np.testing.assert_array_equal(a.split_error, c.split_error)
     for name in ("V", "material", "alpha"):
         np.testing.assert_array_equal(getattr(a.scene, name).data, getattr(c.scene, name).data, err_msg=name)
+
+
+def test_white_light_rules():
+    """``balanced_lights``: "each" makes every light grey (brightness kept), "total" the sum white at the centre
+    (each grey during the light phase), "off" nothing."""
+    from triplet_cl.lights import AmbientLight, PointLight, irradiance_rgb, pack_lights, unpack_lights
+    from triplet_cl.train import balanced_lights
+
+    lights = [PointLight(np.array([1.0, 2.0, 2.0]), np.array([18.0, 9.0, 9.0])),
+              AmbientLight(np.array([0.1, 0.3, 0.3]))]
+    p = pack_lights(lights).params
+    c = np.zeros(3)
+
+    def irr(q):
+        return [irradiance_rgb(lt, c) for lt in unpack_lights(lights, q)]
+
+    for e in irr(balanced_lights("each", lights, p, c)):
+        np.testing.assert_allclose(e, e.mean())
+    total = irr(balanced_lights("total", lights, p, c))
+    np.testing.assert_allclose(np.sum(total, axis=0), np.sum(total, axis=0).mean())
+    assert np.ptp(total[0]) > 0.1  # the point light keeps its colour relative to the ambient light
+    for e in irr(balanced_lights("total", lights, p, c, light_phase=True)):
+        np.testing.assert_allclose(e, e.mean())
+    np.testing.assert_array_equal(balanced_lights("off", lights, p, c), p)
+    with pytest.raises(ValueError, match="white_light"):
+        TrainConfig(white_light="blue").validate()

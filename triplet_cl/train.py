@@ -67,7 +67,7 @@ REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned 
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
-WHITE_LIGHT_MODES = ("total", "off")
+WHITE_LIGHT_MODES = ("each", "total", "off")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -173,11 +173,14 @@ class TrainConfig:
     # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
     # stay wherever the first steps left them (ambient 3x the truth on spot)
     material_tie_until: int = 1200
-    # "total": after each step the lights' colours are rescaled per channel so that together they are white at the
-    # scene centre (lights.white_balance; each light's colour relative to the others' stays free); "off": the
-    # lights may take any tint. Photos fix albedo × light per point: the tint common to every light is the albedo's
-    # or the lights' alike, and relighting needs it in the albedo (spot_small: the lights took the cow's pink)
-    white_light: str = "total"
+    # "each": after each step every light's colour is made grey (its brightness kept; lights.grey_lights); "total":
+    # the lights' colours rescaled per channel so that together they are white at the scene centre
+    # (lights.white_balance; each light's colour relative to the others' free, each grey during the light phase);
+    # "off": the lights may take any tint. Photos fix albedo × light per point: the tint common to every light is
+    # the albedo's or the lights' alike (spot_small: the lights took the cow's pink), and with "total" the colours
+    # relative to each other wandered as far (spot, bob_env: a red point light under a cyan ambient, bob_env 100²
+    # novel views -2 to -4.8 dB); white lights are the usual reading where the photos cannot tell
+    white_light: str = "each"
 
     def with_iterations(self, iterations: int) -> TrainConfig:
         """This configuration for a run of ``iterations`` steps, every schedule scaled with it: the defaults are
@@ -402,6 +405,17 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         scale = [relative_lr_scales(scene.lights)] if cfg.lr_lights_mode == "relative" else None
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
+
+
+def balanced_lights(mode: str, lights, params, center, light_phase: bool = False):
+    """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``): "each" every
+    light grey (:func:`lights.grey_lights`); "total" the lights together white at ``center``
+    (:func:`lights.white_balance`), each grey during the light phase; "off" unchanged."""
+    if mode == "each" or (mode == "total" and light_phase):
+        params = grey_lights(lights, params)
+    if mode == "total":
+        params = white_balance(lights, params, center)
+    return params
 
 
 def tie_rows(param) -> None:
@@ -653,14 +667,11 @@ class Trainer:
         return rec
 
     def balance_lights(self) -> None:
-        """``white_light == "total"``: the lights together white at the scene centre (:func:`lights.white_balance`);
-        during the light phase (``material_tie_until``) each light white (:func:`lights.grey_lights`): with one
-        albedo for the whole object, a light's own tint would only stand in for the object's colours."""
+        """The white-light rule (``TrainConfig.white_light``, :func:`balanced_lights`) after each step."""
         lp = self.scene.light_params
-        if self.cfg.white_light == "total" and lp is not None:
-            if self.it < self.cfg.material_tie_until:
-                lp.data[...] = grey_lights(self.scene.lights, lp.data)
-            lp.data[...] = white_balance(self.scene.lights, lp.data, self.priors.center)
+        if lp is not None:
+            lp.data[...] = balanced_lights(self.cfg.white_light, self.scene.lights, lp.data, self.priors.center,
+                                           self.it < self.cfg.material_tie_until)
 
     def set_env_degree(self, deg: int) -> None:
         """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``

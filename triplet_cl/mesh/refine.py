@@ -364,11 +364,11 @@ class MeshStage:
                     g[:, tied] = np.asarray(g[:, tied]).mean(axis=0, keepdims=True)
                 opt.step()
                 opt.zero_grad()
-                if tc.white_light == "total" and scene.light_params is not None:  # as the soup stage
-                    from ..lights import white_balance
+                if scene.light_params is not None:  # the soup stage's white-light rule
+                    from ..train import balanced_lights
 
-                    scene.light_params.data[...] = white_balance(scene.lights, scene.light_params.data,
-                                                                 self.trainer.priors.center)
+                    scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
+                                                                   scene.light_params.data, self.trainer.priors.center)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
