@@ -46,9 +46,7 @@ def shadow_masks(scene_dir: Path, views):
     facing = (np.asarray(m.vertex_normals) * (pos - V)).sum(1) > 0
     shade = np.where(facing, vis, 1.0)
     mat = np.concatenate([logit(np.clip(np.repeat(shade[:, None], 3, 1), 1e-4, 1 - 1e-4)), np.full((n, 3), 0.0)], 1)
-    mat[:, 3] = logit(0.99)
-    mat[:, 4] = logit(1e-4)
-    mat[:, 5] = 30.0
+    mat[:, 3:6] = 30.0  # roughness, metallic, AO 1: the ambient term shows the "albedo" column exactly (Fe = F0)
     show = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=[AmbientLight(np.ones(3))])
     out = []
     for v in views:

@@ -9,7 +9,7 @@
  * Forward, per fragment p with face_id[p] >= 0 (else rgb = 0):
  *   V = safe_normalize(cam - x),  N = s safe_normalize(n)   (s = -1 when two_sided and N.V < 0)
  *   rgb = sum over lights of
- *     ambient     (La)                   ambient_term(La, m)
+ *     ambient     (La)                   ambient_term(N, V, La, m)
  *     directional (d, I)                 brdf_direct(N, V, safe_normalize(d), I, m)
  *     point       (q, I, falloff)        w = q - x, brdf_direct(N, V, safe_normalize(w),
  *                                               falloff ? I / max(|w|^2, 1e-6) : I, m)
@@ -146,7 +146,7 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
         REAL3 Lw, Li;
         const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
         if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, Lw, Li, m);
-        else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(Li, m);
+        else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(N, V, Li, m);
         else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
     }
     if (has_refl) {
@@ -301,7 +301,7 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             if (term == LIGHT_TERM_DIRECT)
                 brdf_direct_vjp(N, V, Lw, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
             else if (term == LIGHT_TERM_AMBIENT)
-                ambient_term_vjp(Li, m, v_o, &v_Li, v_m);
+                ambient_term_vjp(N, V, Li, m, v_o, &v_N, &v_V, &v_Li, v_m);
             REAL v_tv = (REAL)0;
             light_incident_vjp(type, a, q, x, vlight, p, tv, has_vis, v_L, v_Li, g, &v_x, &v_rad, &v_wi, &v_tv);
             if (has_vis && shadowed) v_vis[p * NV + jv] = v_tv;

@@ -66,7 +66,9 @@ def textured_scene(seed: int = 0):
     albedo = np.clip(0.5 + 0.45 * np.tanh(0.6 * field), 0.02, 0.98)
     mat = np.zeros((len(V), 6))
     mat[:, :3] = logit(albedo)
-    mat[:, 3:] = logit(np.array([0.9, 0.01, 0.999]))
+    # roughness and metallic 1: the ambient term's Fresnel reflectance is the albedo and its diffuse share 0, so the
+    # ambient light shows albedo x AO exactly (the flat-lit texture this capture was made with before issue 18)
+    mat[:, 3:] = [30.0, 30.0, logit(0.999)]
     alpha = np.full((len(V), 1), logit(0.999))
     return Scene.from_arrays(V, F, material=mat, alpha=alpha, lights=[AmbientLight(np.ones(3))])
 

@@ -154,6 +154,38 @@ def test_vjp_float64_finite_differences(device64, rng, brdf):
                                        err_msg=f"light {i} {pname}")
 
 
+@pytest.mark.parametrize("kind", ["point", "env"])
+def test_vjp_float64_finite_differences_in_the_highlight(device64, rng, kind):
+    """Issue 18 (roughness / metallic recovery): the specular lobe's material gradient where it matters, at and
+    near the highlight (the normal within ~0.1 rad of the half vector, a glossy roughness 0.15-0.5, metallic over
+    [0, 1]); the random directions of the check above rarely fall there."""
+    P, h = 48, 1e-6
+    pos, _, mat, face_id, vlight = make_fragments(rng, "cook_torrance", P=P)
+    face_id[:] = np.arange(P) % 50
+    light = make_lights(kind, rng)[0] if kind == "env" else PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0])
+    if kind == "env":
+        light = SHEnvironmentLight(light.coeffs, 2)
+        nrm = CAM - pos  # the glossy env lobe: its roughness gradient everywhere, strongest at grazing
+        nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True) + rng.normal(0, 0.6, (P, 3))
+    else:
+        to_l = light.position - pos
+        to_c = CAM - pos
+        nrm = to_l / np.linalg.norm(to_l, axis=1, keepdims=True) + to_c / np.linalg.norm(to_c, axis=1, keepdims=True)
+        nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True) + rng.normal(0, 0.05, (P, 3))
+    mat[:, 3] = rng.uniform(0.15, 0.5, P)
+    mat[:, 4] = rng.uniform(0.0, 1.0, P)
+    v_rgb = rng.standard_normal((P, 3))
+    kw = {"brdf": "cook_torrance", "device": device64, "real": np.float64}
+    got = shade_backward(pos, nrm, mat, face_id, CAM, [light], v_rgb, vlight=vlight, **kw)
+    out = shade(pos, nrm, mat, face_id, CAM, [light], vlight=vlight, **kw)
+    if kind == "point":
+        assert out.max() > 1.0  # the peak is in the set
+    cols = _fd_columns(lambda y: shade(pos, nrm, y, face_id, CAM, [light], vlight=vlight, **kw), mat, h)
+    fd = np.stack([np.sum(v_rgb * c, axis=1) for c in cols], 1)
+    np.testing.assert_allclose(got.v_mat, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+    assert np.abs(fd[:, 3]).max() > 0.02 and np.abs(fd[:, 4]).max() > 0.01  # roughness / metallic do matter here
+
+
 def test_inactive_sh_bands_get_no_gradient(device, rng):
     frag = make_fragments(rng, "cook_torrance", P=32)
     lights = [SHEnvironmentLight(rng.standard_normal((3, 16)), degree=1)]

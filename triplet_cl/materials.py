@@ -9,7 +9,7 @@ kernel define that selects the BRDF in ``kernels_cl/common/shade_brdf.h``.
 ========================  =====  ===============================================================
 BRDF                      C      channels (activation; initial value)
 ========================  =====  ===============================================================
-``"cook_torrance"``       6      albedo r, g, b (sigmoid; 0.5) | roughness (sigmoid; 0.9) |
+``"cook_torrance"``       6      albedo r, g, b (sigmoid; 0.5) | roughness (sigmoid; 0.5) |
                                  metallic (sigmoid; 0.1) | ambient occlusion (sigmoid; 0.99)
 ``"blinn_phong"``         10     kd r, g, b (sigmoid; 0.5) | ks r, g, b (sigmoid; 0.7) |
                                  shininess (softplus; 64) | ka r, g, b (sigmoid; 0.2)
@@ -100,6 +100,12 @@ class BRDF:
         return [i for i, c in enumerate(self.channels) if c.activation == "softplus"]
 
     @property
+    def lobe_columns(self) -> list[int]:
+        """The columns that shape the specular lobe and its weight: Cook-Torrance roughness and metallic,
+        Blinn-Phong shininess (``TrainConfig.lr_lobe_scale`` scales their learning rate)."""
+        return [i for i, c in enumerate(self.channels) if c.name in ("roughness", "metallic", "shininess")]
+
+    @property
     def attribute_widths(self) -> dict[str, int]:
         """``{attribute name: width}`` in channel order."""
         return {a.name: a.width for a in self.attributes}
@@ -159,7 +165,7 @@ def blinn_phong_roughness(shininess: np.ndarray) -> np.ndarray:
 
 COOK_TORRANCE = BRDF(
     name="cook_torrance", cli="cook-torrance", kernel_id=0,
-    channels=(*_rgb("albedo", "sigmoid", 0.5), Channel("roughness", "sigmoid", 0.9),
+    channels=(*_rgb("albedo", "sigmoid", 0.5), Channel("roughness", "sigmoid", 0.5),
               Channel("metallic", "sigmoid", 0.1), Channel("ao", "sigmoid", 0.99)),
     attributes=(Attribute("albedo", 0, 3), Attribute("roughness", 3, 1), Attribute("metallic", 4, 1),
                 Attribute("ao", 5, 1)),

@@ -356,7 +356,9 @@ class Relighter:
                 mat[:, 7:10] = mat[:, 0:3]  # Blinn-Phong ambient term: La ka; show kd
             else:
                 mat = mat.copy()
-                mat[:, 5] = 30.0  # sigmoid → 1: no ambient occlusion
+                # sigmoid → 1: no ambient occlusion; metallic 1 and roughness 1 make the ambient term's Fresnel
+                # reflectance Fe = F0 = albedo and its diffuse share 0, so the ambient light shows the albedo exactly
+                mat[:, 3:6] = 30.0
             lights = [AmbientLight(np.ones(3))]
         keep_vsh = any(isinstance(lt, VertexSHLight) for lt in lights)
         return Scene.from_arrays(s.V.data, s.F, material=mat, alpha=s.alpha.data, lights=lights,

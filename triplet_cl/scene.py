@@ -29,7 +29,7 @@ from .ops.common import check_faces, check_real
 
 def default_material_raw(n: int, brdf: str) -> np.ndarray:
     """The method's initial materials, raw ``[n, Cm]``: the BRDF descriptor's initial values
-    (``materials.BRDF.initial_raw``; e.g. albedo 0.5, roughness 0.9, metallic 0.1, AO 0.99)."""
+    (``materials.BRDF.initial_raw``; e.g. albedo 0.5, roughness 0.5, metallic 0.1, AO 0.99)."""
     return get_brdf(brdf).initial_raw(n)
 
 

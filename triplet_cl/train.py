@@ -116,6 +116,9 @@ class TrainConfig:
     lr_position_final: float = 1e-5
     lr_position_steps: int = 30_000
     lr_material: float = 0.05  # the method: 0.01 (measured here: 0.05 learns faster at equal final quality)
+    # × lr_material for the BRDF's roughness / metallic channels (materials.BRDF.lobe_columns; issue 18, README
+    # "Roughness and metallic"); 1 = the material rate (runs before)
+    lr_lobe_scale: float = 1.0
     lr_alpha: float = 0.1  # the method: 0.05
     lr_vertex_sh: float = 0.005
     lr_lights: float = 0.01
@@ -228,6 +231,7 @@ class TrainConfig:
         d.setdefault("color", "encoded")  # saved before the linear pipeline: it rendered encoded values
         d.setdefault("lr_lights_mode", "absolute")  # saved before the relative light learning rates
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
+        d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         for k, v in Priors.off().items():
@@ -258,6 +262,8 @@ class TrainConfig:
                                                                   and self.shadow_eps >= 0):
             raise ValueError(f"shadow_every must be >= 1, shadow_from >= 0 and shadow_eps >= 0, got "
                              f"{self.shadow_every}, {self.shadow_from} and {self.shadow_eps}")
+        if not (np.isfinite(self.lr_lobe_scale) and self.lr_lobe_scale >= 0):
+            raise ValueError(f"lr_lobe_scale must be finite and >= 0, got {self.lr_lobe_scale}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
         if not 0 <= self.sh_degree <= 8:
@@ -384,7 +390,13 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
     opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
                                                       cfg.lr_position_steps), **kw)
     boost = {cfg.lr_boost_at: cfg.lr_boost}
-    opt.add_group("material", [scene.material], lr=StepUp(Constant(cfg.lr_material), boost), **kw)
+    mscale = None
+    if cfg.lr_lobe_scale != 1.0:
+        brdf = get_brdf(scene.brdf)
+        sc = np.ones((1, brdf.num_channels))
+        sc[0, brdf.lobe_columns] = cfg.lr_lobe_scale
+        mscale = [sc]
+    opt.add_group("material", [scene.material], lr=StepUp(Constant(cfg.lr_material), boost), lr_scale=mscale, **kw)
     opt.add_group("alpha", [scene.alpha], lr=cfg.lr_alpha, **kw)
     if scene.vertex_sh is not None:
         opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),

@@ -12,7 +12,7 @@
  *     point (q, I, falloff a):     w = q - x, L = safe_normalize(w), sc = a ? 1 / max(|w|^2, 1e-6) : 1,
  *                                  Li = I (sc T)
  *     vertex SH (vlight[p]):       L = safe_normalize(wi), Li = rad  (per-fragment rad, wi)
- *   LIGHT_TERM_AMBIENT  constant radiance Li from every direction -> ambient_term(Li, m)
+ *   LIGHT_TERM_AMBIENT  constant radiance Li from every direction -> ambient_term(N, V, Li, m)
  *     ambient (La):                Li = La
  *   LIGHT_TERM_SH_ENV   SH radiance c [3, b], active degree a -> env_term (shade_brdf.h)
  *   (T: the transmittance vis[p, j] towards the j-th shadow caster, 1 without ray-traced shadows.)

@@ -18,7 +18,10 @@
  *     the normalised Lambert kd / pi, as Cook-Torrance's and the environment term's, so that kd is the
  *     base colour the exports write and a Mitsuba light set relights it in its units: the method's
  *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
- * ambient(La, m):  Cook-Torrance La albedo ao;  Blinn-Phong La ka.
+ * ambient(N, V, La, m):  Cook-Torrance: the environment term below of a constant radiance La (E = pi La,
+ *   Gl = La): ao [(1 - Fe)(1 - m) albedo + Fe] La, the Fresnel reflection of the surroundings included (issue 18:
+ *   La albedo ao alone, the model before, left the grazing-angle reflection of a lit room to be faked by a rough,
+ *   partly metallic lobe);  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
@@ -170,20 +173,26 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     v_m[4] += v_met;
 }
 
-inline REAL3 ambient_term(const REAL3 La, const REAL* m)
+/* env_scales is defined below; the ambient term is the environment term of a constant radiance La (E = pi La,
+ * Gl = La): ao [(1 - Fe)(1 - m) albedo + Fe] La — the Fresnel reflection of the surroundings as well (issue 18) */
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g);
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
+                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m);
+
+inline REAL3 ambient_term(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m)
 {
-    return La * LOAD_RGB(m, 0) * m[5];
+    REAL3 s_d, s_g;
+    env_scales(N, V, m, &s_d, &s_g);
+    return (s_d * R_PI + s_g) * La;
 }
 
-inline void ambient_term_vjp(const REAL3 La, const REAL* m, const REAL3 v_out, REAL3* v_La, REAL* v_m)
+inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m, const REAL3 v_out,
+                             REAL3* v_N, REAL3* v_V, REAL3* v_La, REAL* v_m)
 {
-    const REAL3 alb = LOAD_RGB(m, 0);
-    *v_La += v_out * alb * m[5];
-    const REAL3 v_alb = v_out * La * m[5];
-    v_m[0] += v_alb.x;
-    v_m[1] += v_alb.y;
-    v_m[2] += v_alb.z;
-    v_m[5] += dot(v_out, La * alb);
+    REAL3 s_d, s_g;
+    env_scales(N, V, m, &s_d, &s_g);
+    *v_La += v_out * (s_d * R_PI + s_g);
+    env_scales_vjp(N, V, m, v_out * La * R_PI, v_out * La, (REAL)0, v_N, v_V, v_m);
 }
 
 inline REAL env_sigma2(const REAL* m)
@@ -289,12 +298,13 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     if (m[6] > (REAL)0) v_m[6] += v_e;
 }
 
-inline REAL3 ambient_term(const REAL3 La, const REAL* m)
+inline REAL3 ambient_term(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m)
 {
     return La * LOAD_RGB(m, 7);
 }
 
-inline void ambient_term_vjp(const REAL3 La, const REAL* m, const REAL3 v_out, REAL3* v_La, REAL* v_m)
+inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m, const REAL3 v_out,
+                             REAL3* v_N, REAL3* v_V, REAL3* v_La, REAL* v_m)
 {
     *v_La += v_out * LOAD_RGB(m, 7);
     const REAL3 v_ka = v_out * La;

@@ -75,8 +75,14 @@ def bp_direct(N, V, L, Li, m):
     return np.where(on, (ks * safe_pow(nh, e) + kd / np.pi * nl) * Li, 0)
 
 
-def ambient(La, m, brdf):
-    return La * (m[:, 0:3] * m[:, 5:6] if brdf == "cook_torrance" else m[:, 7:10])
+def ambient(N, V, La, m, brdf):
+    """Cook-Torrance: the SH environment term of a constant radiance La (E = pi La, Gl = La); Blinn-Phong: La ka."""
+    if brdf != "cook_torrance":
+        return La * m[:, 7:10]
+    alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
+    F0 = 0.04 * (1 - met) + met * alb
+    Fe = F0 + (1 - F0) * (1 - r) * (1 - relu(dot(N, V))) ** 5
+    return ao * ((1 - Fe) * (1 - met) * alb + Fe) * La
 
 
 def env(N, V, m, brdf, c, deg):
@@ -114,7 +120,7 @@ def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vligh
     for typ, off, a, b in np.asarray(ints):
         q = params[off:]
         if typ == AMBIENT:
-            out = out + ambient(q[0:3], mat, brdf)
+            out = out + ambient(N, V, q[0:3], mat, brdf)
         elif typ == DIRECTIONAL:
             out = out + direct(N, V, normalize(q[0:3])[None], q[3:6], mat)
         elif typ == POINT:
