@@ -97,7 +97,7 @@ def make_scene(V, F, albedo, rough, metal, lights, ao=0.99):
 def run(args) -> dict:
     from triplet_cl.lights import LightInit, initial_lights
     from triplet_cl.losses import photometric_loss_and_grad
-    from triplet_cl.materials import get_brdf
+    from triplet_cl.materials import get_brdf, highlight_vertices
     from triplet_cl.optim import Adam, ExponentialDecay
     from triplet_cl.priors import Priors
     from triplet_cl.render import RenderSettings, render
@@ -152,15 +152,7 @@ def run(args) -> dict:
         to_l = LIGHT_POS - V
         seen = np.sum(n * to_l, axis=1) / np.linalg.norm(to_l, axis=1) > 0.2
     # vertices in (or near) a highlight in at least one view: the mirror direction of some camera is near the light
-    hl = np.zeros(len(V), bool)
-    if not case["env"]:
-        ldir = (LIGHT_POS - V) / np.linalg.norm(LIGHT_POS - V, axis=1, keepdims=True)
-        for c in cams:
-            eye = -c.w2c[:3, :3].T @ c.w2c[:3, 3]
-            vdir = (eye - V) / np.linalg.norm(eye - V, axis=1, keepdims=True)
-            h = ldir + vdir
-            h /= np.linalg.norm(h, axis=1, keepdims=True)
-            hl |= (np.sum(n * h, axis=1) > 0.97) & (np.sum(n * vdir, axis=1) > 0.1)
+    hl = np.zeros(len(V), bool) if case["env"] else highlight_vertices(V, n, LIGHT_POS, cams)
 
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()

@@ -43,7 +43,7 @@ from triplet_cl.lights import (
     initial_lights,
 )
 from triplet_cl.losses import photometric_loss_and_grad
-from triplet_cl.materials import get_brdf
+from triplet_cl.materials import get_brdf, highlight_vertices
 from triplet_cl.optim import Adam
 from triplet_cl.priors import LIGHT_WEIGHTS, Priors
 from triplet_cl.render import RenderSettings, render
@@ -260,13 +260,7 @@ def _brdf_fit(albedo, rough, metal, ambient, iterations=1000):
     n = V / np.linalg.norm(V, axis=1, keepdims=True)
     ldir = (HL_LIGHT - V) / np.linalg.norm(HL_LIGHT - V, axis=1, keepdims=True)
     seen = np.sum(n * ldir, axis=1) > 0.2
-    hl = np.zeros(len(V), bool)
-    for c in cams:
-        eye = -c.w2c[:3, :3].T @ c.w2c[:3, 3]
-        vdir = (eye - V) / np.linalg.norm(eye - V, axis=1, keepdims=True)
-        h = ldir + vdir
-        h /= np.linalg.norm(h, axis=1, keepdims=True)
-        hl |= (np.sum(n * h, axis=1) > 0.97) & (np.sum(n * vdir, axis=1) > 0.1)
+    hl = highlight_vertices(V, n, HL_LIGHT, cams)
     assert hl.sum() > 100
     return act, seen, hl
 

@@ -190,6 +190,25 @@ BRDFS: dict[str, BRDF] = {b.name: b for b in (COOK_TORRANCE, BLINN_PHONG)}
 DEFAULT_BRDF = COOK_TORRANCE.name
 
 
+def highlight_vertices(V, normals, light_position, cameras, cos_half: float = 0.97,
+                       cos_view: float = 0.1) -> np.ndarray:
+    """``[N] bool``: the vertices some camera sees near the mirror direction of a point light at
+    ``light_position`` (the half vector within ``acos(cos_half)`` of the normal, the camera in front): where a
+    highlight can tell the specular lobe (roughness, metallic) from the diffuse one. Diagnostics and tests."""
+    V = np.asarray(V, np.float64)
+    n = np.asarray(normals, np.float64)
+    ldir = np.asarray(light_position, np.float64) - V
+    ldir /= np.linalg.norm(ldir, axis=1, keepdims=True)
+    out = np.zeros(len(V), bool)
+    for c in cameras:
+        eye = -c.w2c[:3, :3].T @ c.w2c[:3, 3]
+        vdir = (eye - V) / np.linalg.norm(eye - V, axis=1, keepdims=True)
+        h = ldir + vdir
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        out |= (np.sum(n * h, axis=1) > cos_half) & (np.sum(n * vdir, axis=1) > cos_view)
+    return out
+
+
 def get_brdf(name: str) -> BRDF:
     """The descriptor of ``name``; ``ValueError`` naming the choices otherwise."""
     b = BRDFS.get(name) if isinstance(name, str) else None
