@@ -50,7 +50,7 @@ def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int
     from triplet_cl.mesh.refine import MeshConfig, MeshStage, save_mesh_state
     from triplet_cl.relight import Relighter, evaluate_relight
     from triplet_cl.scene import Scene, default_material_raw, logit
-    from triplet_cl.train import TrainConfig, Trainer
+    from triplet_cl.train import TrainConfig, Trainer, tie_rows
 
     cfg = TrainConfig(iterations=1)
     tr = Trainer(str(data), out, cfg, quiet=True)
@@ -93,7 +93,7 @@ def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int
         def masked_step():
             g = np.asarray(sc.material.grad)
             if state["tied"]:
-                g[:] = g.mean(0)
+                tie_rows(sc.material)
             g[:, frozen] = 0
             step()
 

@@ -369,8 +369,7 @@ def test_error_records_follow_the_faces_and_resume_bit_for_bit(tmp_path):
 def test_white_light_rules():
     """``balanced_lights``: "each" makes every light grey (brightness kept), "total" the sum white at the centre
     (each grey during the light phase), "off" nothing."""
-    from triplet_cl.lights import AmbientLight, PointLight, irradiance_rgb, pack_lights, unpack_lights
-    from triplet_cl.train import balanced_lights
+    from triplet_cl.lights import AmbientLight, PointLight, balanced_lights, irradiance_rgb, pack_lights, unpack_lights
 
     lights = [PointLight(np.array([1.0, 2.0, 2.0]), np.array([18.0, 9.0, 9.0])),
               AmbientLight(np.array([0.1, 0.3, 0.3]))]

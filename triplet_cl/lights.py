@@ -509,24 +509,30 @@ def irradiance_rgb(light, center) -> np.ndarray | None:
     if isinstance(light, DirectionalLight):
         return np.asarray(light.intensity, np.float64)
     if isinstance(light, SHEnvironmentLight):
-        return np.pi * np.asarray(light.coeffs, np.float64)[:, 0] * 0.28209479177387814  # Y00: the mean radiance
+        return np.pi * np.asarray(light.coeffs, np.float64)[:, 0] * _Y00  # band 0 × Y00: the mean radiance
     return None
+
+
+def _map_radiometric(lights, params: np.ndarray, fn) -> np.ndarray:
+    """A copy of the packed light ``params [T]`` with ``fn(value)`` applied to each radiometric parameter
+    (``RADIOMETRIC``, in its own shape: ``[3]`` colours, ``[3, (D+1)²]`` SH radiance); positions and directions
+    untouched."""
+    params = np.asarray(params)
+    out = params.astype(np.float64).copy()
+    off = 0
+    for lt in _check_lights(lights):
+        for n, shape in lt.param_shapes().items():
+            k = int(np.prod(shape))
+            if n in lt.RADIOMETRIC:
+                out[off:off + k] = np.broadcast_to(fn(out[off:off + k].reshape(shape)), shape).reshape(-1)
+            off += k
+    return out.astype(params.dtype)
 
 
 def grey_lights(lights, params: np.ndarray) -> np.ndarray:
     """The packed light ``params [T]`` with every light's colour made grey (each radiometric parameter's channels
     replaced by their mean; SH radiance band by band): white lights of the same brightness."""
-    params = np.asarray(params)
-    out = []
-    for lt in unpack_lights(lights, params):
-        flat = []
-        for n in lt.PARAMS:
-            v = np.asarray(getattr(lt, n), np.float64)
-            if n in lt.RADIOMETRIC:
-                v = np.broadcast_to(v.mean(axis=0, keepdims=True), v.shape)
-            flat.append(np.asarray(v).reshape(-1))
-        out.append(np.concatenate(flat) if flat else np.zeros(0))
-    return np.concatenate(out).astype(params.dtype) if out else params
+    return _map_radiometric(lights, params, lambda v: v.mean(axis=0, keepdims=True))
 
 
 def white_balance(lights, params: np.ndarray, center) -> np.ndarray:
@@ -536,25 +542,30 @@ def white_balance(lights, params: np.ndarray, center) -> np.ndarray:
     warm sun under a blue sky), only the tint common to all of them goes: photos fix albedo × light per point,
     so that tint is the albedo's or the lights' alike, and an object's colour is the usual reading (white
     light). Returns ``params`` unchanged when a channel's total is not positive or a light has no one colour."""
-    params = np.asarray(params)
-    cur = unpack_lights(lights, params)
-    parts = [irradiance_rgb(lt, center) for lt in cur]
+    parts = [irradiance_rgb(lt, center) for lt in unpack_lights(lights, params)]
     if not parts or any(p is None for p in parts):
-        return params
+        return np.asarray(params)
     total = np.sum(parts, axis=0)
     if not np.all(np.isfinite(total)) or total.min() <= 0:
-        return params
+        return np.asarray(params)
     f = total.mean() / total
-    out = []
-    for lt in cur:
-        flat = []
-        for n in lt.PARAMS:
-            v = np.asarray(getattr(lt, n), np.float64)
-            if n in lt.RADIOMETRIC:
-                v = v * (f if v.ndim == 1 else f[:, None])
-            flat.append(v.reshape(-1))
-        out.append(np.concatenate(flat) if flat else np.zeros(0))
-    return np.concatenate(out).astype(params.dtype) if out else params
+    return _map_radiometric(lights, params, lambda v: v * (f if v.ndim == 1 else f[:, None]))
+
+
+#: ``TrainConfig.white_light``: every light white / the lights together white / any tint
+WHITE_LIGHT_MODES = ("each", "total", "off")
+
+
+def balanced_lights(mode: str, lights, params, center, light_phase: bool = False) -> np.ndarray:
+    """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``), applied after
+    each optimiser step of the soup and mesh stages: "each" every light grey (:func:`grey_lights`); "total" the
+    lights together white at ``center`` (:func:`white_balance`), each grey during the light phase; "off"
+    unchanged."""
+    if mode == "each" or (mode == "total" and light_phase):
+        params = grey_lights(lights, params)
+    if mode == "total":
+        params = white_balance(lights, params, center)
+    return params
 
 
 def unpack_lights(lights, params: np.ndarray) -> list:

@@ -44,12 +44,12 @@ from .errors import DatasetError, NonFiniteError, RunError
 from .io import atomic_write_bytes, write_json, write_png, write_soup_ply
 from .lights import LIGHT_KINDS as _LIGHT_CLASSES_BY_KIND
 from .lights import (
+    WHITE_LIGHT_MODES,
     LightInit,
     SHEnvironmentLight,
-    grey_lights,
+    balanced_lights,
     lights_to_json,
     relative_lr_scales,
-    white_balance,
 )
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
@@ -67,7 +67,6 @@ REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned 
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
-WHITE_LIGHT_MODES = ("each", "total", "off")
 Y00 = 0.28209479177387814  # the constant real SH basis function
 
 
@@ -407,23 +406,17 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
     return opt
 
 
-def balanced_lights(mode: str, lights, params, center, light_phase: bool = False):
-    """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``): "each" every
-    light grey (:func:`lights.grey_lights`); "total" the lights together white at ``center``
-    (:func:`lights.white_balance`), each grey during the light phase; "off" unchanged."""
-    if mode == "each" or (mode == "total" and light_phase):
-        params = grey_lights(lights, params)
-    if mode == "total":
-        params = white_balance(lights, params, center)
-    return params
-
-
-def tie_rows(param) -> None:
-    """Every row of ``param``'s gradient replaced by their mean: the rows (equal at the start, with equal Adam
-    moments) take the same step and stay one value (the light phase, ``TrainConfig.material_tie_until``)."""
+def tie_rows(param, columns=None) -> None:
+    """Every row of ``param``'s gradient (in ``columns``, default all) replaced by their mean: the rows (equal at
+    the start, with equal Adam moments) take the same step and stay one value (the light phases,
+    ``TrainConfig.material_tie_until`` and ``MeshConfig.material_tie``)."""
     g = param.grad
-    if g is not None and len(g):
+    if g is None or not len(g):
+        return
+    if columns is None:
         g[...] = np.asarray(g).mean(axis=0, keepdims=True)
+    else:
+        g[:, columns] = np.asarray(g[:, columns]).mean(axis=0, keepdims=True)
 
 
 # ------------------------------------------------------------------------------------------------ schedules
@@ -667,7 +660,7 @@ class Trainer:
         return rec
 
     def balance_lights(self) -> None:
-        """The white-light rule (``TrainConfig.white_light``, :func:`balanced_lights`) after each step."""
+        """The white-light rule (``TrainConfig.white_light``, :func:`lights.balanced_lights`) after each step."""
         lp = self.scene.light_params
         if lp is not None:
             lp.data[...] = balanced_lights(self.cfg.white_light, self.scene.lights, lp.data, self.priors.center,

@@ -340,7 +340,8 @@ class MeshStage:
     def refine(self, scene: Scene, round_index: int) -> Scene:
         from tqdm import tqdm
 
-        from ..train import psnr
+        from ..lights import balanced_lights
+        from ..train import psnr, tie_rows
         from .remesh import refine_scene
 
         c, tc = self.cfg, self.trainer.cfg
@@ -379,13 +380,10 @@ class MeshStage:
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
                 if it < c.material_tie and tied:
-                    g = scene.material.grad
-                    g[:, tied] = np.asarray(g[:, tied]).mean(axis=0, keepdims=True)
+                    tie_rows(scene.material, tied)
                 opt.step()
                 opt.zero_grad()
                 if scene.light_params is not None:  # the soup stage's white-light rule
-                    from ..train import balanced_lights
-
                     scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
                                                                    scene.light_params.data, self.trainer.priors.center)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
