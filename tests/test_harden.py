@@ -82,6 +82,8 @@ BAD_TRAIN = {
     "checkpoint-every -1": (["--checkpoint-every", "-1"], "--checkpoint-every"),
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
     "shadow-every 0": (["--shadow-every", "0"], "--shadow-every"),
+    "light-phase -1": (["--light-phase", "-1"], "--light-phase"),
+    "mesh-light-phase -2": (["--mesh-stage", "--mesh-light-phase", "-2"], "--mesh-light-phase"),
     "lights": (["--lights", "laser"], "--lights"),
     "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
     "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),
@@ -674,6 +676,16 @@ def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
     assert exc.value.code == 2 and "--color" in err and "'linear', 'encoded'" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
     assert err.count("\n") == 1 and "usage:" not in err, err  # one line, not argparse's usage block as well
+
+
+@pytest.mark.parametrize("extra", [["--white-light", "blue"], ["--light-phase", "1.5"]])
+def test_bad_light_rules_are_refused_by_argparse(tmp_path, capsys, extra):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), *extra])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and extra[0] in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+    assert err.count("\n") == 1 and "usage:" not in err, err
 
 
 def test_background_shell_memory_is_checked(tmp_path, capsys, monkeypatch):
