@@ -74,6 +74,8 @@ def _config_from_args(args: argparse.Namespace):
         over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
     if args.sh_degree is not None:
         over["sh_degree"] = args.sh_degree
+    if args.light_distance is not None:
+        over["light_distance"] = args.light_distance
     if args.faces_per_pixel is not None:
         over["faces_per_pixel"] = args.faces_per_pixel
     if args.init_points is not None:
@@ -486,6 +488,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
                    help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
     t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
+    t.add_argument("--light-distance", type=float, metavar="D", help="point lights start D scene extents from the "
+                   "centre (default 0.6); their intensity follows so that the irradiance at the centre is the same")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")

@@ -389,3 +389,35 @@ def test_white_light_rules():
     np.testing.assert_array_equal(balanced_lights("off", lights, p, c), p)
     with pytest.raises(ValueError, match="white_light"):
         TrainConfig(white_light="blue").validate()
+
+
+def test_lights_stay_nonnegative_in_every_mode():
+    """A negative light is not physical (an environment-lit capture drove the point light to -2.4): every mode
+    clamps colours / intensities / an SH environment's band 0 to >= 0 and leaves positions, directions and the
+    higher SH bands alone."""
+    from triplet_cl.lights import (
+        AmbientLight,
+        PointLight,
+        SHEnvironmentLight,
+        balanced_lights,
+        pack_lights,
+        unpack_lights,
+    )
+
+    coeffs = np.array([[-0.5, 0.3, -0.2, 0.1]] * 3)
+    lights = [PointLight(np.array([1.0, -2.0, 2.0]), np.array([-3.0, -3.0, 6.0])),
+              AmbientLight(np.array([-0.1, -0.1, -0.1])), SHEnvironmentLight(coeffs)]
+    p = pack_lights(lights).params
+    for mode in ("each", "total", "off"):
+        pt, amb, env = unpack_lights(lights, balanced_lights(mode, lights, p, np.zeros(3)))
+        np.testing.assert_array_equal(pt.position, [1.0, -2.0, 2.0])
+        assert (pt.intensity >= 0).all() and (amb.color == 0).all(), mode
+        np.testing.assert_array_equal(env.coeffs[:, 0], 0.0)
+        np.testing.assert_allclose(env.coeffs[:, 1:], coeffs[:, 1:], rtol=1e-12)
+    pt, _, _ = unpack_lights(lights, balanced_lights("off", lights, p, np.zeros(3)))
+    np.testing.assert_array_equal(pt.intensity, [0.0, 0.0, 6.0])  # "off" keeps the tint, only clamps
+
+
+def test_white_light_config_is_checked():
+    with pytest.raises(ValueError, match="white_light"):
+        TrainConfig(white_light="blue").validate()

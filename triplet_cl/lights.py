@@ -109,6 +109,7 @@ class LightInit:
     rng: np.random.Generator
     index: int = 0  # this light's rank among the lights of its kind (initial_lights sets it)
     count: int = 1  # how many lights of this kind are placed
+    distance: float = 0.6  # a point light starts this many extents from the centre (TrainConfig.light_distance)
 
 
 def _vec3(name: str, v) -> np.ndarray:
@@ -309,17 +310,20 @@ class PointLight(Light):
 
     @classmethod
     def initial(cls, init: LightInit) -> PointLight:
-        """One point light: above the scene (0.6 extent along up, jittered by 0.3 extent), intensity extent².
-        Light ``k`` of ``n >= 2``: 0.6 extent from the centre towards ``0.6 up + cos(2πk/n) a + sin(2πk/n) b``
-        (``a, b`` unit, orthogonal to ``up``: a ring tilted 31° above the horizon), jittered by 0.05 extent,
-        intensity extent² / n. Spread, because lights started at one place stay together: measured on the
-        two-light synthetic scene (tests/test_recovery.py) both converged on the brighter light and the
-        ambient light and the albedo took the other's share; spread, each found its light within 2°."""
-        e = init.extent
+        """One point light: above the scene (``init.distance`` extents along up, jittered by 0.3 extent). Light
+        ``k`` of ``n >= 2``: ``init.distance`` extents from the centre towards ``0.6 up + cos(2πk/n) a +
+        sin(2πk/n) b`` (``a, b`` unit, orthogonal to ``up``: a ring tilted 31° above the horizon), jittered by
+        0.05 extent. Intensity ``(distance · extent / 0.6)² / n``: the irradiance at the centre does not depend
+        on the distance (extent² at the original 0.6 extents). Spread, because lights started at one place stay
+        together: measured on the two-light synthetic scene (tests/test_recovery.py) both converged on the
+        brighter light and the ambient light and the albedo took the other's share; spread, each found its
+        light within 2°."""
+        e, k = init.extent, init.distance
+        intensity = (k * e / 0.6) ** 2
         if init.count <= 1:
-            return cls(init.center + 0.6 * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, e * e))
-        pos = init.center + 0.6 * e * _ring_direction(init) + 0.05 * e * init.rng.normal(size=3)
-        return cls(pos, np.full(3, e * e / init.count))
+            return cls(init.center + k * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, intensity))
+        pos = init.center + k * e * _ring_direction(init) + 0.05 * e * init.rng.normal(size=3)
+        return cls(pos, np.full(3, intensity / init.count))
 
 
 @register_light
@@ -552,6 +556,22 @@ def white_balance(lights, params: np.ndarray, center) -> np.ndarray:
     return _map_radiometric(lights, params, lambda v: v * (f if v.ndim == 1 else f[:, None]))
 
 
+def _nonnegative(v: np.ndarray) -> np.ndarray:
+    if v.ndim == 1:
+        return np.maximum(v, 0.0)
+    v = v.copy()
+    v[:, 0] = np.maximum(v[:, 0], 0.0)  # SH radiance: the mean (band 0) only; higher bands carry signed detail
+    return v
+
+
+def nonnegative_lights(lights, params: np.ndarray) -> np.ndarray:
+    """The packed light ``params [T]`` with every colour / intensity clamped to ``>= 0`` (an SH environment's mean
+    radiance, its band 0). A physical constraint, applied after every step whatever the white-light mode: measured
+    on spot re-rendered under an HDR environment (``bench/make_scene.py --lights env``), the default point light's
+    intensity went to −2.4 while the ambient light rose to 0.45 and the albedo fell to 6.9 dB (scaled)."""
+    return _map_radiometric(lights, params, _nonnegative)
+
+
 #: ``TrainConfig.white_light``: every light white / the lights together white / any tint
 WHITE_LIGHT_MODES = ("each", "total", "off")
 
@@ -560,12 +580,12 @@ def balanced_lights(mode: str, lights, params, center, light_phase: bool = False
     """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``), applied after
     each optimiser step of the soup and mesh stages: "each" every light grey (:func:`grey_lights`); "total" the
     lights together white at ``center`` (:func:`white_balance`), each grey during the light phase; "off"
-    unchanged."""
+    any tint. In every mode the colours and intensities end clamped to ``>= 0`` (:func:`nonnegative_lights`)."""
     if mode == "each" or (mode == "total" and light_phase):
         params = grey_lights(lights, params)
     if mode == "total":
         params = white_balance(lights, params, center)
-    return params
+    return nonnegative_lights(lights, params)
 
 
 def unpack_lights(lights, params: np.ndarray) -> list:

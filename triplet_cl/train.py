@@ -78,6 +78,7 @@ class TrainConfig:
     seed: int = 0  # seeds the initial points, view order and random backgrounds
     brdf: str = DEFAULT_BRDF  # a name of materials.BRDFS
     lights: tuple = ("point", "ambient")  # any mix of LIGHT_KINDS
+    light_distance: float = 0.6  # point lights start this many scene extents from the centre (lights.PointLight.initial)
     sh_degree: int = 2  # max degree of the vertex-SH / SH-environment light
     sh_band_every: int = 1000  # one more SH band every this many iterations (until sh_degree)
     init_points: int = 20_000  # random initial triangles (when the dataset has no sparse points)
@@ -265,6 +266,8 @@ class TrainConfig:
             raise ValueError(f"lr_lobe_scale must be finite and >= 0, got {self.lr_lobe_scale}")
         if self.color not in COLOR_PIPELINES:
             raise ValueError(f"color must be one of {COLOR_PIPELINES}, got {self.color!r}")
+        if not (np.isfinite(self.light_distance) and self.light_distance > 0):
+            raise ValueError(f"light_distance must be finite and > 0, got {self.light_distance}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
         if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
@@ -350,7 +353,7 @@ def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     ext = ds.scene_extent()
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
     up = up / (np.linalg.norm(up) + 1e-12)
-    return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng))
+    return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng, distance=cfg.light_distance))
 
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:

@@ -93,6 +93,9 @@ def parse_formats(option: str, text: str | None) -> tuple | None:
 def _check_options(args) -> None:
     for option, (attr, low, high) in _INT_OPTIONS.items():
         check_int(option, getattr(args, attr, None), low, high)
+    dist = getattr(args, "light_distance", None)
+    if dist is not None and not (math.isfinite(dist) and 0 < dist <= 1000):
+        raise UsageError("--light-distance", f"expected a number of scene extents in (0, 1000], found {dist}")
     sigma = getattr(args, "sigma", None)
     if sigma is not None and not (math.isfinite(sigma) and 0 <= sigma <= 1000):
         raise UsageError("--sigma", f"expected a number in [0, 1000] (0 = hard edges), found {sigma}")
@@ -475,7 +478,8 @@ def resume_config(args, saved_cfg, given_cfg):
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
              "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
-             "--white-light": "white_light"}
+             "--white-light": "white_light",
+             "--light-distance": "light_distance"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue
