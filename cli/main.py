@@ -76,6 +76,8 @@ def _config_from_args(args: argparse.Namespace):
         over["sh_degree"] = args.sh_degree
     if args.light_distance is not None:
         over["light_distance"] = args.light_distance
+    if args.sensor_clip is not None:
+        over["sensor_clip"] = args.sensor_clip == "on"
     if args.faces_per_pixel is not None:
         over["faces_per_pixel"] = args.faces_per_pixel
     if args.init_points is not None:
@@ -488,6 +490,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
                    help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
     t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
+    t.add_argument("--sensor-clip", choices=["on", "off"], help="model the photos' saturation: a render above a "
+                   "clipped (white) photo value is not pulled down (default on; sRGB photos only)")
     t.add_argument("--light-distance", type=float, metavar="D", help="point lights start D scene extents from the "
                    "centre (default 0.6); their intensity follows so that the irradiance at the centre is the same")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")

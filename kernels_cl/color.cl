@@ -11,6 +11,9 @@
  *   v_C_c = v_out_c A s'(u_c) / a'
  *   v_A   = sum_c v_out_c ( s(u_c) - bg_c - [A >= eps] s'(u_c) u_c )
  * (below eps the guard a' is the constant eps, so u no longer depends on A). One work-item per pixel.
+ *
+ * With SRGB_CLIP defined, the camera's saturation: s(u) = 1 and s'(u) = 0 for u >= 1 (s(1) = 1). An 8/16-bit
+ * photo clips there, so a clipped photo pixel only says "at least 1": a render above it is not pulled down.
  */
 #include "real.h"
 
@@ -23,6 +26,9 @@ inline REAL srgb_root(const REAL u) {
 }
 
 inline REAL srgb_s(const REAL u) {
+#ifdef SRGB_CLIP
+    if (u >= (REAL)1) return (REAL)1;
+#endif
     return u <= SRGB_KNEE ? (REAL)12.92 * u : (REAL)1.055 * srgb_root(u) - (REAL)0.055;
 }
 
@@ -70,8 +76,13 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
          * exp2/log2 calls) */
         const int lin = u <= SRGB_KNEE;
         const REAL r = lin ? (REAL)0 : srgb_root(u);
-        const REAL ds = lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u;
-        const REAL s = lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055;
+#ifdef SRGB_CLIP
+        const int sat = u >= (REAL)1;
+#else
+        const int sat = 0;
+#endif
+        const REAL ds = sat ? (REAL)0 : (lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u);
+        const REAL s = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
         v_C[p * 3 + c] = g * a * ds / ad;
         va += g * (s - bg[c] - inside * ds * u);
     }

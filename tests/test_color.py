@@ -90,3 +90,49 @@ def test_bad_shapes_raise(device):
         color.srgb_composite_host(np.zeros((2, 3, 3)), np.zeros((3, 2)), BG, device=device)
     with pytest.raises(ValueError, match="background"):
         color.srgb_composite_host(np.zeros((2, 3, 3)), np.zeros((2, 3)), [np.nan, 0, 0], device=device)
+
+
+def _clip_inputs(rng, H=6, W=7):
+    """Straight colours on both sides of the clip at u = 1 but away from it (the kink) for the differences."""
+    C, A = _inputs(rng, H, W)
+    u = rng.uniform(0.05, 0.9, (H, W, 3))
+    u[::2, :, 0] = rng.uniform(1.1, 2.0, u[::2, :, 0].shape)  # over-exposed in red on every other row
+    u[1, 0] = [0.0, 0.001, 0.0031]
+    A = np.where(A < 1e-6, A, np.maximum(A, 0.05))
+    return u * A[..., None], A
+
+
+def test_sensor_clip_forward_and_vjp(device, rng):
+    """SRGB_CLIP: encoded colour = min(s(u), 1); no gradient through a saturated channel (forward and random-
+    cotangent VJP against the numpy reference)."""
+    C, A = _clip_inputs(rng)
+    got = color.srgb_composite_host(C, A, BG, device=device, clip=True)
+    want = ref.srgb_composite(C, A, BG, clip=True)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(got, color.srgb_composite_host(C, A, BG, device=device))  # the clip did something
+    v = rng.standard_normal(C.shape)
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device, clip=True)
+    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG, clip=True) * v), C)
+    want_A = cs_grad(lambda x: np.sum(ref.srgb_composite(C, x, BG, clip=True) * v), A)
+    np.testing.assert_allclose(v_C, want_C, rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(v_A, want_A, rtol=2e-4, atol=2e-4)
+    sat = C / np.maximum(A, 1e-6)[..., None] >= 1
+    assert sat.any() and np.all(v_C[sat] == 0)
+
+
+def test_sensor_clip_float64_central_differences(device64, rng):
+    C, A = _clip_inputs(rng, 4, 5)
+    A[0, :2] = 0.3
+    C[0, :2] = np.array([[0.2, 0.3, 1.5], [1.6, 0.1, 0.5]]) * 0.3  # straight u on both sides of 1
+    v = rng.standard_normal(C.shape)
+    kw = {"device": device64, "real": np.float64, "clip": True}
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, **kw)
+
+    def f_C(x):
+        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v))
+
+    def f_A(x):
+        return float(np.sum(color.srgb_composite_host(C, x, BG, **kw) * v))
+
+    np.testing.assert_allclose(v_C, fd_grad(f_C, C, 1e-7), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(v_A, fd_grad(f_A, A, 1e-7), rtol=1e-6, atol=1e-7)

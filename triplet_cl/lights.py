@@ -389,9 +389,12 @@ class SHEnvironmentLight(Light):
 
     @classmethod
     def initial(cls, init: LightInit) -> SHEnvironmentLight:
-        """A constant environment of radiance 0.5 stored with ``sh_degree`` bands, active degree 0."""
+        """A constant environment of radiance 0.1 (the ambient light's) stored with ``sh_degree`` bands, active
+        degree 0. Not 0.5: photos fix albedo × light, so the lights' overall scale stays near where it starts; at
+        0.5 (irradiance 1.6 on top of the point light's) the albedo of spot ended 1.6–2.1× too dark on every
+        point-lit capture (bench/results/light_models_pocl_2026-11-26.txt)."""
         coeffs = np.zeros((3, (init.sh_degree + 1) ** 2))
-        coeffs[:, 0] = 0.5 / _Y00
+        coeffs[:, 0] = 0.1 / _Y00
         return cls(coeffs, 0)
 
 

@@ -56,7 +56,7 @@ from .scene import Scene
 from .topology import silhouette_edges
 
 RENDERERS = ("raster", "raytrace", "hybrid")
-TRANSFERS = (None, "srgb")
+TRANSFERS = (None, "srgb", "srgb-clip")
 
 
 @dataclass
@@ -82,7 +82,8 @@ class RenderSettings:
     # the image formation after compositing: None = the composite of the shaded values over ``background`` is the
     # image (values in whatever space the scene was fitted in); "srgb" = shading and compositing are linear
     # radiance (over black), then ``A·s(C/A) + (1−A)·background`` with s the sRGB transfer (ops/color.py): the
-    # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space
+    # model of straight-alpha sRGB-encoded photos composited over ``background`` in encoded space; "srgb-clip" the
+    # same with the encoded colour saturating at 1 (8/16-bit photos clip there: TrainConfig.sensor_clip)
     transfer: str | None = None
     # where the per-vertex attribute array (positions, normals, activated materials and alpha) is built:
     # "device" (one kernel, ops/vertex_attr.py; the default) or "host" (the numpy chain Normals →
@@ -728,9 +729,9 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(fa, *lp)
         else:
             rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
-        if s.transfer == "srgb":  # linear radiance over black, then the photos' encoding and background
+        if s.transfer in ("srgb", "srgb-clip"):  # linear radiance over black, then the photos' encoding and background
             img, acc = Composite(view, np.zeros(3))(rgb, alpha_f, *([win] if win is not None else []))
-            img = SRGBComposite(d, s.background, s.real)(img, acc)
+            img = SRGBComposite(d, s.background, s.real, clip=s.transfer == "srgb-clip")(img, acc)
         else:
             img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
         rgba = Stack()(img, acc)

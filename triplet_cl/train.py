@@ -153,6 +153,12 @@ class TrainConfig:
     # fits the photos' encoded values directly (every run before the linear pipeline; a config.json without
     # this key is such a run)
     color: str = "linear"
+    # the camera's saturation in the photo model (render.RenderSettings.transfer "srgb-clip", color.cl SRGB_CLIP):
+    # an 8/16-bit photo clips at 1, so a clipped pixel says only "at least 1" and a render above it is not pulled
+    # down. Without it the lights and albedo were fitted to the clipped values: spot re-rendered under the HDR
+    # environment (bench/make_scene.py --lights env) has 54 % of its object pixels clipped, bob_env 76 %
+    # (bench/results/light_models_pocl_2026-11-26.txt). Linear (EXR/HDR) data have no transfer and no clip.
+    sensor_clip: bool = True
     # material / light priors (priors.py; 0 disables a term); README "Material and light priors": why each default.
     # Every term is off by default (`--priors lights` sets priors.LIGHT_WEIGHTS, `--priors all` those and
     # priors.MATERIAL_WEIGHTS). Measured at the end of 2026-11-24 with the other defaults of that day
@@ -234,6 +240,7 @@ class TrainConfig:
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
+        d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -554,7 +561,7 @@ class Trainer:
     @property
     def transfer(self) -> str | None:
         """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos."""
-        return color_transfer(self.cfg.color, self.ds.color_space)
+        return color_transfer(self.cfg.color, self.ds.color_space, self.cfg.sensor_clip)
 
     def spatial_sort(self) -> None:
         """Store the faces in Morton order of their centroids (coherent memory for the kernels)."""
@@ -969,10 +976,13 @@ class Trainer:
                                  f"this run has {sorted(self.opt.groups)}{extra}")
 
 
-def color_transfer(color: str, color_space: str) -> str | None:
+def color_transfer(color: str, color_space: str, sensor_clip: bool = False) -> str | None:
     """The post-compositing transfer of a run's colour pipeline (``TrainConfig.color``) on a dataset whose
-    images are ``color_space`` (``"srgb"`` or ``"linear"``)."""
-    return "srgb" if color == "linear" and color_space == "srgb" else None
+    images are ``color_space`` (``"srgb"`` or ``"linear"``); ``sensor_clip`` (``TrainConfig.sensor_clip``): the
+    encoded colour saturates at 1, as the photo did."""
+    if color == "linear" and color_space == "srgb":
+        return "srgb-clip" if sensor_clip else "srgb"
+    return None
 
 
 def _json_default(o):

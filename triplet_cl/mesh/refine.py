@@ -320,7 +320,7 @@ class MeshStage:
         C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
         alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
         r.srgb_post = (C, alpha, tuple(float(x) for x in background))  # what backward_image differentiates
-        return r, srgb_composite_host(C, alpha, background, device=self.device), alpha
+        return r, srgb_composite_host(C, alpha, background, device=self.device, clip=transfer == "srgb-clip"), alpha
 
     def backward_image(self, r, v_img) -> None:
         f = self.cfg.supersample
@@ -330,7 +330,8 @@ class MeshStage:
             from ..ops.color import srgb_composite_backward_host
 
             C, alpha, bg = post
-            v_img, v_alpha = srgb_composite_backward_host(C, alpha, bg, v_img, device=self.device)
+            v_img, v_alpha = srgb_composite_backward_host(C, alpha, bg, v_img, device=self.device,
+                                                          clip=self.trainer.transfer == "srgb-clip")
         if f > 1:
             v_img = np.repeat(np.repeat(v_img, f, axis=0), f, axis=1) / (f * f)
             if v_alpha is not None:

@@ -42,21 +42,26 @@ def _check_pair(C: cla.Array, A: cla.Array) -> int:
     return int(np.prod(A.shape))
 
 
-def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALPHA_EPS) -> cla.Array:
-    """``out [..., 3]`` (device) of linear premultiplied ``C [..., 3]`` and alpha ``A [...]`` over ``bg``."""
+def _defines(clip: bool) -> dict | None:
+    return {"SRGB_CLIP": True} if clip else None
+
+
+def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALPHA_EPS, clip: bool = False) -> cla.Array:
+    """``out [..., 3]`` (device) of linear premultiplied ``C [..., 3]`` and alpha ``A [...]`` over ``bg``; ``clip``:
+    the encoded colour saturates at 1 (a photo's sensor / 8-bit range, ``color.cl``'s ``SRGB_CLIP``)."""
     n = _check_pair(C, A)
     real = C.dtype
     out = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator)
     if n:
         t = real.type
         g, loc = grid_1d(n)
-        dev.kernel("color", "srgb_composite_fwd", real=real)(
+        dev.kernel("color", "srgb_composite_fwd", defines=_defines(clip), real=real)(
             dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n), out.data)
     return out
 
 
 def srgb_composite_backward(dev: Device, C: cla.Array, A: cla.Array, bg, v_out: cla.Array,
-                            eps: float = ALPHA_EPS) -> tuple[cla.Array, cla.Array]:
+                            eps: float = ALPHA_EPS, clip: bool = False) -> tuple[cla.Array, cla.Array]:
     """``(v_C [..., 3], v_A [...])`` (device) of the cotangent ``v_out [..., 3]``."""
     n = _check_pair(C, A)
     if tuple(v_out.shape) != tuple(C.shape):
@@ -67,7 +72,7 @@ def srgb_composite_backward(dev: Device, C: cla.Array, A: cla.Array, bg, v_out: 
     if n:
         t = real.type
         g, loc = grid_1d(n)
-        dev.kernel("color", "srgb_composite_bwd", real=real)(
+        dev.kernel("color", "srgb_composite_bwd", defines=_defines(clip), real=real)(
             dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n),
             v_out.astype(real).data, v_C.data, v_A.data)
     return v_C, v_A
@@ -82,39 +87,39 @@ def _device_pair(dev: Device, C, A, real):
 
 
 def srgb_composite_host(C, A, bg, *, eps: float = ALPHA_EPS, device: Device | None = None,
-                        real=np.float32) -> np.ndarray:
+                        real=np.float32, clip: bool = False) -> np.ndarray:
     """:func:`srgb_composite` of host arrays (validated), returned on the host."""
     dev = device or get_device()
     Cd, Ad = _device_pair(dev, C, A, np.dtype(real))
-    return srgb_composite(dev, Cd, Ad, bg, eps).get()
+    return srgb_composite(dev, Cd, Ad, bg, eps, clip).get()
 
 
 def srgb_composite_backward_host(C, A, bg, v_out, *, eps: float = ALPHA_EPS, device: Device | None = None,
-                                 real=np.float32) -> tuple[np.ndarray, np.ndarray]:
+                                 real=np.float32, clip: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """:func:`srgb_composite_backward` of host arrays, returned on the host."""
     dev = device or get_device()
     Cd, Ad = _device_pair(dev, C, A, np.dtype(real))
     v = to_device(dev.queue, check_real("v_out", np.asarray(v_out), Cd.shape, np.dtype(real)))
-    v_C, v_A = srgb_composite_backward(dev, Cd, Ad, bg, v, eps)
+    v_C, v_A = srgb_composite_backward(dev, Cd, Ad, bg, v, eps, clip)
     return v_C.get(), v_A.get()
 
 
 class SRGBComposite(Function):
     """``(C [H, W, 3], A [H, W]) → out [H, W, 3]``: the photo model of the module docstring (device arrays)."""
 
-    def __init__(self, device: Device, background, real=np.float32, eps: float = ALPHA_EPS):
-        self.device, self.bg, self.real, self.eps = device, _bg3(background), np.dtype(real), eps
+    def __init__(self, device: Device, background, real=np.float32, eps: float = ALPHA_EPS, clip: bool = False):
+        self.device, self.bg, self.real, self.eps, self.clip = device, _bg3(background), np.dtype(real), eps, clip
 
     def forward(self, ctx, C, A):
         Cd, Ad = _device_pair(self.device, C, A, self.real)
         ctx.C, ctx.A = Cd, Ad
-        return srgb_composite(self.device, Cd, Ad, self.bg, self.eps)
+        return srgb_composite(self.device, Cd, Ad, self.bg, self.eps, self.clip)
 
     def backward(self, ctx, v_out):
         if not isinstance(v_out, cla.Array):
             v_out = np.broadcast_to(np.asarray(v_out, self.real), ctx.C.shape)
             v_out = cla.to_device(self.device.queue, np.ascontiguousarray(v_out))
-        return srgb_composite_backward(self.device, ctx.C, ctx.A, self.bg, v_out, self.eps)
+        return srgb_composite_backward(self.device, ctx.C, ctx.A, self.bg, v_out, self.eps, self.clip)
 
 
 def srgb_encode(x) -> np.ndarray:
