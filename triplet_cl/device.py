@@ -251,6 +251,8 @@ class Device:
         else:
             raise ValueError(f"real must be float32 or float64, got {real}")
         opts = ["-I", str(kernel_dir() / "common"), f"-DREAL={rdef}"] + (["-DREAL_FP64"] if rdef == "double" else [])
+        if self.info.type == "CPU":
+            opts.append("-DTRIPLET_CPU")  # CPU-only code paths (e.g. raster_lists.h's prefetch builtin)
         for k in sorted(defines or {}):
             d = _format_define(k, defines[k])
             if d:

@@ -151,8 +151,9 @@ inline int max_i16(int16 v)
 }
 
 /* A hint to bring the cache line of p in (a no-op where the compiler has no prefetch builtin;
- * PoCL's OpenCL prefetch() is one). */
-#if defined(__clang__)
+ * PoCL's OpenCL prefetch() is one). __builtin_prefetch only on CPU devices (the host's -DTRIPLET_CPU):
+ * NVIDIA's OpenCL refuses it ("changes address space of pointer": it takes a generic void*). */
+#if defined(__clang__) && defined(TRIPLET_CPU)
 #define PREFETCH_LINE(p) __builtin_prefetch(p)
 #else
 #define PREFETCH_LINE(p) prefetch(p, 1)
