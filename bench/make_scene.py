@@ -51,7 +51,8 @@ def _emitters(mi, lights, envdir: Path):
     for i, lt in enumerate(lights):
         t = lt["type"]
         if t == "point":
-            d = {"type": "point", "position": lt["position"], "intensity": {"type": "rgb", "value": _rgb(lt["intensity"])}}
+            d = {"type": "point", "position": lt["position"],
+                 "intensity": {"type": "rgb", "value": _rgb(lt["intensity"])}}
         elif t == "directional":
             d = {"type": "directional", "direction": lt["direction"],
                  "irradiance": {"type": "rgb", "value": _rgb(lt["irradiance"])}}
@@ -171,7 +172,8 @@ def main(argv=None) -> int:
         (out / f"transforms_{split}.json").write_text(json.dumps({**tj, "frames": frames}, indent=1))
         print(f"{split}: {len(frames)} views at {res}² in {time.time() - t0:.0f} s", flush=True)
     new_gt = dict(gt, roughness=rough, metallic=metal, ambient=0.0, lights=lights,
-                  renderer=f"Mitsuba 3 path tracer (max_depth 4, {args.spp} spp), principled BSDF (bench/make_scene.py)")
+                  renderer=f"Mitsuba 3 path tracer (max_depth 4, {args.spp} spp), principled BSDF "
+                           "(bench/make_scene.py)")
     (out / "ground_truth.json").write_text(json.dumps(new_gt, indent=1))
     for f in ("gt_mesh.ply", "gt_mesh.obj"):
         if not (out / f).exists():

@@ -125,7 +125,7 @@ def test_initial_lights_per_kind():
     assert np.array_equal(out[0].position, init.center + 0.6 * 2.0 * init.up + 0.3 * 2.0 * rng.normal(size=3))
     assert np.array_equal(out[0].intensity, [4.0] * 3)
     assert out[3].coeffs.shape == (3, 9) and out[3].degree == 0
-    assert np.allclose(out[3].coeffs[:, 0] * 0.28209479177387814, 0.5)
+    assert np.allclose(out[3].coeffs[:, 0] * 0.28209479177387814, 0.1)  # the ambient light's (was 0.5)
     with pytest.raises(ValueError, match="light kinds"):
         initial_lights(["spot"], _init())
 
@@ -233,3 +233,25 @@ def test_grey_lights_keeps_each_lights_brightness():
     np.testing.assert_allclose(q[0].intensity, np.full(3, 16.0))
     np.testing.assert_allclose(q[1].color, np.full(3, 0.09))
     np.testing.assert_array_equal(q[0].position, lights[0].position)
+
+
+def test_point_light_distance_keeps_the_irradiance_at_the_centre():
+    """``LightInit.distance`` (``--light-distance``) moves the point lights out along their directions and scales
+    the intensity so that ``I / d²`` at the centre is the same as at the default 0.6 extent."""
+    import dataclasses
+
+    from triplet_cl.lights import irradiance_rgb
+
+    for kinds in (["point"], ["point", "point"]):
+        near = initial_lights(kinds, _init())
+        far = initial_lights(kinds, dataclasses.replace(_init(), distance=1.8))
+        for a, b in zip(near, far, strict=True):
+            c = _init().center
+            da, db = a.position - c, b.position - c
+            assert np.linalg.norm(db) > 2 * np.linalg.norm(da)
+            if len(kinds) == 2:  # ring lights: the same direction (up to the jitter)
+                assert da @ db / np.linalg.norm(da) / np.linalg.norm(db) > 0.99
+            ea = a.intensity / (0.6 * 2.0) ** 2
+            eb = b.intensity / (1.8 * 2.0) ** 2
+            np.testing.assert_allclose(ea, eb, rtol=1e-12)
+            assert irradiance_rgb(b, c) is not None

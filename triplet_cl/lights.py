@@ -319,7 +319,7 @@ class PointLight(Light):
         brighter light and the ambient light and the albedo took the other's share; spread, each found its
         light within 2°."""
         e, k = init.extent, init.distance
-        intensity = (k * e / 0.6) ** 2
+        intensity = e * e * (k / 0.6) ** 2  # exactly extent² at the default 0.6
         if init.count <= 1:
             return cls(init.center + k * e * init.up + 0.3 * e * init.rng.normal(size=3), np.full(3, intensity))
         pos = init.center + k * e * _ring_direction(init) + 0.05 * e * init.rng.normal(size=3)

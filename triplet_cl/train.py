@@ -78,7 +78,7 @@ class TrainConfig:
     seed: int = 0  # seeds the initial points, view order and random backgrounds
     brdf: str = DEFAULT_BRDF  # a name of materials.BRDFS
     lights: tuple = ("point", "ambient")  # any mix of LIGHT_KINDS
-    light_distance: float = 0.6  # point lights start this many scene extents from the centre (lights.PointLight.initial)
+    light_distance: float = 0.6  # point lights start this many scene extents from the centre (PointLight.initial)
     sh_degree: int = 2  # max degree of the vertex-SH / SH-environment light
     sh_band_every: int = 1000  # one more SH band every this many iterations (until sh_degree)
     init_points: int = 20_000  # random initial triangles (when the dataset has no sparse points)

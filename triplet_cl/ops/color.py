@@ -46,7 +46,8 @@ def _defines(clip: bool) -> dict | None:
     return {"SRGB_CLIP": True} if clip else None
 
 
-def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALPHA_EPS, clip: bool = False) -> cla.Array:
+def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALPHA_EPS,
+                   clip: bool = False) -> cla.Array:
     """``out [..., 3]`` (device) of linear premultiplied ``C [..., 3]`` and alpha ``A [...]`` over ``bg``; ``clip``:
     the encoded colour saturates at 1 (a photo's sensor / 8-bit range, ``color.cl``'s ``SRGB_CLIP``)."""
     n = _check_pair(C, A)
