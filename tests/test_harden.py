@@ -83,6 +83,8 @@ BAD_TRAIN = {
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
     "shadow-every 0": (["--shadow-every", "0"], "--shadow-every"),
     "light-phase -1": (["--light-phase", "-1"], "--light-phase"),
+    "light-distance 0": (["--light-distance", "0"], "--light-distance"),
+    "light-distance nan": (["--light-distance", "nan"], "--light-distance"),
     "mesh-light-phase -2": (["--mesh-stage", "--mesh-light-phase", "-2"], "--mesh-light-phase"),
     "lights": (["--lights", "laser"], "--lights"),
     "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
@@ -678,7 +680,7 @@ def test_bad_color_is_refused_by_argparse(tmp_path, capsys):
     assert err.count("\n") == 1 and "usage:" not in err, err  # one line, not argparse's usage block as well
 
 
-@pytest.mark.parametrize("extra", [["--white-light", "blue"], ["--light-phase", "1.5"]])
+@pytest.mark.parametrize("extra", [["--white-light", "blue"], ["--light-phase", "1.5"], ["--sensor-clip", "maybe"]])
 def test_bad_light_rules_are_refused_by_argparse(tmp_path, capsys, extra):
     with pytest.raises(SystemExit) as exc:
         cli_main(["train", str(DEMO), "--out", str(tmp_path / "o"), *extra])
