@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .lights import AmbientLight, DirectionalLight, PointLight
+from .lights import AmbientLight, DirectionalLight, PointLight, nonnegative_lights
 from .materials import get_brdf
 
 #: the TrainConfig fields of the priors' weights (``--priors off`` sets them all to 0)
@@ -252,11 +252,7 @@ class Priors:
         if not self.active or scene.light_params is None:
             return
         lp = scene.light_params.data
-        for lt, off in _slices(scene.lights):
-            name = {AmbientLight: "color", PointLight: "intensity", DirectionalLight: "intensity"}.get(type(lt))
-            if name is not None:
-                o = off + lt.param_offset(name)
-                np.maximum(lp[o:o + 3], 0, out=lp[o:o + 3])
+        lp[...] = nonnegative_lights(scene.lights, lp)  # the rule balanced_lights applies after every step
 
     def apply(self, scene, it: int) -> dict:
         """Add the priors' gradients to ``scene.material.grad`` / ``scene.light_params.grad``;

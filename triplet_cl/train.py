@@ -560,7 +560,8 @@ class Trainer:
 
     @property
     def transfer(self) -> str | None:
-        """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos."""
+        """``RenderSettings.transfer`` of this run: ``"srgb"`` for the linear pipeline on sRGB-encoded photos,
+        ``"srgb-clip"`` with ``sensor_clip`` (the default of new runs)."""
         return color_transfer(self.cfg.color, self.ds.color_space, self.cfg.sensor_clip)
 
     def spatial_sort(self) -> None:
