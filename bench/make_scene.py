@@ -130,7 +130,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--roughness", type=float, help="override the scene's roughness")
-    ap.add_argument("--metallic", type=float, help="override the scene's metallic (the relight/ link is then not made)")
+    ap.add_argument("--metallic", type=float, help="override the scene's metallic (the relight/ references are then "
+                    "re-rendered with the new material under each set, the albedo linked)")
     ap.add_argument("--limit", type=int, help="render only the first N views of each split (fidelity checks)")
     args = ap.parse_args(argv)
 
@@ -178,9 +179,36 @@ def main(argv=None) -> int:
     for f in ("gt_mesh.ply", "gt_mesh.obj"):
         if not (out / f).exists():
             (out / f).symlink_to(scene / f)
-    if metal == gt["metallic"] and rough == gt["roughness"] and not (out / "relight").exists():
-        (out / "relight").symlink_to(scene / "relight")
+    if metal == gt["metallic"] and rough == gt["roughness"]:
+        if not (out / "relight").exists():
+            (out / "relight").symlink_to(scene / "relight")
+    else:  # another material: the relight references change with it (the albedo does not)
+        render_relight(mi, base, scene, data, out, args.spp, args.limit)
+        print(f"relight: re-rendered with roughness {rough}, metallic {metal} in {time.time() - t0:.0f} s", flush=True)
     return 0
+
+
+def render_relight(mi, base: dict, scene: Path, data: Path, out: Path, spp: int, limit) -> None:
+    """``out/relight/``: the scene's relight sets rendered with ``base``'s object and material (the new one),
+    the albedo folder linked, environment file names made absolute."""
+    spec = json.loads((scene / "relight" / "relight.json").read_text())
+    rdir = out / "relight"
+    rdir.mkdir(parents=True, exist_ok=True)
+    tj = json.loads((scene / "transforms_test.json").read_text())
+    frames = tj["frames"][:limit] if limit else tj["frames"]
+    gt = json.loads((scene / "ground_truth.json").read_text())
+    fov = float(np.degrees(tj["camera_angle_x"]))
+    obj = {k: v for k, v in base.items() if not k.startswith("emitter_")}
+    for name, st in spec["sets"].items():
+        for lt in st["lights"]:
+            if lt["type"] == "envmap":
+                lt["filename"] = str(next((data / "envmaps").rglob(Path(lt["filename"]).name)))
+        render_split(mi, {**obj, **_emitters(mi, st["lights"], data / "envmaps")}, frames, int(gt["res"]), fov,
+                     spp, rdir / st["images"])
+    spec["cameras"] = str((out / "transforms_test.json").resolve())
+    (rdir / "relight.json").write_text(json.dumps(spec, indent=1))
+    if not (rdir / spec["albedo"]).exists():
+        (rdir / spec["albedo"]).symlink_to(scene / "relight" / spec["albedo"])
 
 
 if __name__ == "__main__":

@@ -162,6 +162,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
+    if getattr(tr, "background_note", None):
+        print(f"  {tr.background_note}")
     try:
         metrics = tr.train()
     except KeyboardInterrupt:
@@ -501,7 +503,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--error-resplit-ratio", type=float, metavar="R",
                    help="split a face by the error criterion again only once its error is <= R x its error at its "
                    "last error split (default off; README 'Density control')")
-    t.add_argument("--background", choices=["white", "black", "random"], help="background (default white)")
+    t.add_argument("--background", choices=["auto", "white", "black", "random"],
+                   help="background the photos' alpha is composited over in training: white, black, random (a new "
+                        "colour every iteration) or auto (default: white, random when 5 %% or more of the photos' "
+                        "object pixels are white themselves)")
     t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
                    "far sphere for the sky / walls (default 0; see README 'Your own photos')")
     t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")

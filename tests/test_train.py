@@ -421,3 +421,54 @@ def test_lights_stay_nonnegative_in_every_mode():
 def test_white_light_config_is_checked():
     with pytest.raises(ValueError, match="white_light"):
         TrainConfig(white_light="blue").validate()
+
+
+def _views(white_share: float, alpha: bool = True, n: int = 3):
+    from triplet_cl.datasets.base import View
+
+    out = []
+    for k in range(n):
+        rgb = np.full((10, 10, 3), 0.6, np.float32)
+        a = np.zeros((10, 10), np.float32)
+        a[:, :5] = 1.0  # 50 object pixels per view
+        rgb[:, :5][: int(round(white_share * 10))] = 1.0  # that share of them white in every channel
+        rgb[:, 5:] = 1.0  # the background is not counted
+        out.append(View(f"v{k}", None, rgb, a if alpha else None))
+    return out
+
+
+def test_auto_background_follows_the_white_object_pixels():
+    """`--background auto`: white, unless >= 5 % of the photos' object pixels are white themselves (a white
+    background would give their alpha no gradient: spot under a bright environment lost them, README)."""
+    from pathlib import Path
+
+    from triplet_cl.datasets.base import Dataset
+    from triplet_cl.train import AUTO_BACKGROUND_FRACTION, auto_background
+
+    assert AUTO_BACKGROUND_FRACTION == 0.05
+    bg, f = auto_background(Dataset(Path("."), "nerf", {"train": _views(0.0)}))
+    assert bg == "white" and f == 0.0
+    bg, f = auto_background(Dataset(Path("."), "nerf", {"train": _views(0.2)}))
+    assert bg == "random" and f == pytest.approx(0.2)
+    # one view in ten with white pixels, the others none: 2 % of all object pixels, below the threshold
+    views = _views(0.0, n=9) + _views(0.2, n=1)
+    assert auto_background(Dataset(Path("."), "nerf", {"train": views}))[0] == "white"
+    # almost white is not white (a bright grey of 0.98 keeps a white background)
+    v = _views(0.2)
+    for x in v:
+        x.rgb[x.rgb == 1.0] = 0.98
+    assert auto_background(Dataset(Path("."), "nerf", {"train": v}))[0] == "white"
+    # photos without alpha: the background is in the picture, white stays
+    assert auto_background(Dataset(Path("."), "nerf", {"train": _views(0.5, alpha=False)})) == ("white", 0.0)
+
+
+def test_auto_background_is_resolved_and_saved(tmp_path):
+    tr = Trainer(DEMO, tmp_path / "run", small_cfg(iterations=2, init_points=300), quiet=True)
+    assert TrainConfig().background == "auto"
+    assert tr.cfg.background == "white" and tr.ds.background == "white"  # the demo cow: 0.2 % white pixels
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
+    assert saved["background"] == "white"
+    tr2 = Trainer(DEMO, tmp_path / "run2", small_cfg(iterations=2, init_points=300, background="black"), quiet=True)
+    assert tr2.cfg.background == "black"  # an explicit choice is kept
+    with pytest.raises(ValueError, match="background"):
+        small_cfg(background="purple").validate()
