@@ -5,7 +5,7 @@ a command-line option for every field. ``TRIPLET_BENCH_CFG`` holds a JSON object
 ``mesh.`` prefix names a :class:`~triplet_cl.mesh.refine.MeshConfig` field. Every configuration the command
 builds starts from these defaults (its options still apply on top), and the run's ``config.json`` records them.
 
-    TRIPLET_BENCH_CFG='{"prior_metallic": 0.01, "mesh.material_tie": 0}' python bench/cfg_triplet.py train DATA --out RUN
+    TRIPLET_BENCH_CFG='{"prior_metallic": 0.01}' python bench/cfg_triplet.py train DATA --out RUN
 """
 
 from __future__ import annotations

@@ -199,7 +199,7 @@ def render_relight(mi, base: dict, scene: Path, data: Path, out: Path, spp: int,
     gt = json.loads((scene / "ground_truth.json").read_text())
     fov = float(np.degrees(tj["camera_angle_x"]))
     obj = {k: v for k, v in base.items() if not k.startswith("emitter_")}
-    for name, st in spec["sets"].items():
+    for st in spec["sets"].values():
         for lt in st["lights"]:
             if lt["type"] == "envmap":
                 lt["filename"] = str(next((data / "envmaps").rglob(Path(lt["filename"]).name)))
