@@ -162,7 +162,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
-    if getattr(tr, "background_note", None):
+    if tr.background_note:
         print(f"  {tr.background_note}")
     try:
         metrics = tr.train()

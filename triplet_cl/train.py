@@ -318,7 +318,7 @@ def look_at_center(ds: Dataset) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels on
+AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels up
 WHITE_LEVEL = 1.0 - 2.0 / 255.0  # a photo pixel this close to white in every channel is the white background's colour
 
 
@@ -528,8 +528,6 @@ class Trainer:
             saved = read_run_config(self.run_dir)
             saved_cfg = config_from_saved(self.run_dir, saved)
             if cfg is not None:  # options that may change on resume (RESUMABLE_FIELDS); the rest must match
-                from dataclasses import replace
-
                 cfg = replace(saved_cfg, **{k: getattr(cfg, k) for k in RESUMABLE_FIELDS})
             else:
                 cfg = saved_cfg
@@ -543,13 +541,13 @@ class Trainer:
                                background="white" if auto_bg else self.cfg.background)
         bg_note = None
         if auto_bg:
-            from dataclasses import replace
-
             bg, frac = auto_background(self.ds)
             self.cfg = replace(self.cfg, background=bg)
             self.ds.background = bg
-            bg_note = (f"background: {bg} (auto; {100 * frac:.1f} % of the photos' object pixels are white"
-                       + (": a white background would hide their alpha)" if bg == "random" else ")"))
+            why = ("photos without alpha" if not self.ds.has_alpha else
+                   f"{100 * frac:.1f} % of the photos' object pixels are white"
+                   + (": a white background would hide their alpha" if bg == "random" else ""))
+            bg_note = f"background: {bg} (auto; {why})"
         if not self.ds.train:
             raise ValueError(f"dataset {data} has no training views")
         small = min(self.ds.train, key=lambda v: min(v.rgb.shape[:2]))
