@@ -301,6 +301,8 @@ CONFIG_CASES = {
     "train not an object": '{"data": "x", "train": 3}',
     "wrong field type": None,  # iterations as a string
     "unknown field": None,
+    "downscale 0": None,  # was "downscale must be a positive integer, got 0", the file not named
+    "unknown format": None,  # was "format must be 'auto' or one of ...", the file not named
 }
 
 
@@ -313,6 +315,12 @@ def test_bad_config_json_is_named(run, capsys, case):
         text = json.dumps(cfg)
     elif case == "unknown field":
         cfg["train"]["colour"] = 1
+        text = json.dumps(cfg)
+    elif case == "downscale 0":
+        cfg["train"]["downscale"] = 0
+        text = json.dumps(cfg)
+    elif case == "unknown format":
+        cfg["format"] = "blender"
         text = json.dumps(cfg)
     (run / "config.json").write_text(text)
     for argv in (["eval", run], ["render", run], ["extract", run], ["train", "--resume", "--out", run]):
@@ -1118,3 +1126,64 @@ def test_extract_of_an_untrained_soup_says_why(run, capsys):
     rc, err, _ = _run_cli(["extract", run, "--mesh-iterations", "0", "--mesh-resolution", "16"], capsys)
     assert rc == 2 and "no surface" in err and "untrained" in err and "tsdf_fusion" not in err, err
     assert err.count("\n") == 1 and _tree(run) == before
+
+
+# ---- held-out battery (bad datasets, damaged or moved runs) ------------------------------------------
+@pytest.mark.parametrize("sizes", [{"train": (8, 6), "test": (8, 6)}, {"train": (16, 12), "test": (10, 12)}])
+def test_images_smaller_than_the_ssim_window_are_refused_before_any_work(tmp_path, capsys, sizes):
+    """8x6 photos trained to the end, then failed in the test views' SSIM ("pred must have shape [H>=11, ...]")
+    after the run folder was written."""
+    fac.make_nerf(tmp_path / "ds", splits={"train": 3}, w=sizes["train"][0], h=sizes["train"][1])
+    fac.make_nerf(tmp_path / "t", splits={"test": 2}, w=sizes["test"][0], h=sizes["test"][1])
+    shutil.copytree(tmp_path / "t" / "test", tmp_path / "ds" / "test")
+    shutil.copy(tmp_path / "t" / "transforms_test.json", tmp_path / "ds")
+    before = _tree(tmp_path / "ds")
+    rc, err, _ = _run_cli(["train", tmp_path / "ds", "--out", tmp_path / "out", *TINY_RUN], capsys)
+    small = "train" if sizes["train"] == (8, 6) else "test"
+    w, h = sizes[small]
+    assert rc == 2 and f"{w}x{h} pixels" in err and "11x11" in err and f"{small}/r_0.png" in err, err
+    assert err.count("\n") == 1
+    assert not (tmp_path / "out").exists() and _tree(tmp_path / "ds") == before
+
+
+def test_an_unreadable_image_is_one_line(tmp_path):
+    """A truncated PNG: OpenImageIO's error is three lines (the read error, libpng's, "PNG library error")."""
+    fac.make_nerf(tmp_path / "ds", w=64, h=48)
+    p = tmp_path / "ds" / "train" / "r_1.png"
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.raises(DatasetError) as ei:
+        load_dataset(tmp_path / "ds")
+    msg = str(ei.value)
+    assert "r_1.png: cannot read the image" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("content", [b"\xff\xfe\x00garbage", b"ckpt\x00.npz"])
+def test_a_damaged_latest_pointer_counts_as_lost(run, content):
+    """A `latest` of binary garbage was "'utf-8' codec can't decode byte 0xff ...", no file named."""
+    (run / "checkpoints" / "latest").write_bytes(content)
+    assert Trainer(None, run, quiet=True, resume=True).it == 4  # the newest checkpoint, as with `latest` lost
+
+
+def test_a_moved_dataset_is_named_with_the_runs_config(run, tmp_path, capsys):
+    """The dataset of config.json no longer there: "X: dataset folder not found" said neither which run nor
+    what to do."""
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["data"] = str(tmp_path / "moved_away")
+    (run / "config.json").write_text(json.dumps(cfg))
+    before = _tree(run)
+    relight = ["--lights", run / "lights.json"]
+    for argv in (["render", run], ["eval", run], ["extract", run], ["relight", run, *relight]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "config.json" in err and "moved_away does not exist" in err and "move it back" in err, err
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run], capsys)
+    assert rc == 2 and "moved_away does not exist" in err and "DATA" in err, err
+    assert _tree(run) == before
+
+
+def test_config_json_records_the_dataset_as_an_absolute_path(tmp_path, demo_copy, monkeypatch):
+    """A run trained with a relative DATA could not be rendered from any other folder."""
+    monkeypatch.chdir(demo_copy.parent)
+    Trainer(Path(demo_copy.name), tmp_path / "r", _small_cfg(), quiet=True)
+    saved = json.loads((tmp_path / "r" / "config.json").read_text())["data"]
+    assert Path(saved).is_absolute() and Path(saved) == demo_copy.absolute()
+

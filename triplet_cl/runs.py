@@ -68,6 +68,10 @@ def read_run_config(run_dir) -> dict:
                                  f"found {type(d[key]).__name__}")
     if "format" in d and not isinstance(d["format"], str):
         raise RunError(path, f"'format' must be a string, found {type(d['format']).__name__}")
+    from .datasets import FORMATS
+
+    if d.get("format", "auto") not in ("auto", *FORMATS):
+        raise RunError(path, f"'format' must be one of {', '.join(('auto', *FORMATS))}, found {d['format']!r}")
     return d
 
 

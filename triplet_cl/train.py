@@ -284,6 +284,8 @@ class TrainConfig:
             raise ValueError(f"light_distance must be finite and > 0, got {self.light_distance}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
+        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or not 1 <= self.downscale <= 64:
+            raise ValueError(f"downscale must be an integer in [1, 64], got {self.downscale!r}")
         if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
             raise ValueError(f"checkpoint_every and keep_checkpoints must be >= 0, got {self.checkpoint_every} "
                              f"and {self.keep_checkpoints}")
@@ -535,7 +537,8 @@ class Trainer:
             data_format = saved.get("format", data_format)
         self.cfg = cfg or TrainConfig()
         self.cfg.validate()
-        self.data, self.data_format = str(data), data_format
+        # the dataset's absolute path goes into config.json: render / eval / relight find it from any folder
+        self.data, self.data_format = str(Path(data).absolute()), data_format
         auto_bg = self.cfg.background == "auto"
         self.ds = load_dataset(data, format=data_format, downscale=self.cfg.downscale,
                                background="white" if auto_bg else self.cfg.background)
@@ -550,12 +553,9 @@ class Trainer:
             bg_note = f"background: {bg} (auto; {why})"
         if not self.ds.train:
             raise ValueError(f"dataset {data} has no training views")
-        small = min(self.ds.train, key=lambda v: min(v.rgb.shape[:2]))
-        if min(small.rgb.shape[:2]) < 4:
-            h, w = small.rgb.shape[:2]
-            raise ValueError(f"--downscale {self.cfg.downscale} leaves {w}x{h}-pixel training images ({small.name}); "
-                             "the warm-up renders at 1/4 of that: they must stay at least 4 pixels, so lower "
-                             "--downscale")
+        from .validate import check_image_sizes
+
+        check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
         self.rng = np.random.default_rng(self.cfg.seed)
@@ -890,9 +890,13 @@ class Trainer:
         from .runs import list_checkpoints
 
         latest = self.run_dir / "checkpoints" / "latest"
-        named = self.run_dir / "checkpoints" / latest.read_text().strip() if latest.is_file() else None
-        if named is not None and named.is_file():
-            return named
+        try:  # a damaged `latest` (binary garbage, a NUL byte) counts as lost, as a missing one
+            named = self.run_dir / "checkpoints" / latest.read_text(encoding="utf-8").strip() if latest.is_file() \
+                else None
+            if named is not None and named.is_file():
+                return named
+        except (OSError, UnicodeDecodeError, ValueError):
+            pass
         found = list_checkpoints(self.run_dir)  # `latest` lost or pointing at a removed file: the newest one
         if not found:
             raise FileNotFoundError(f"no checkpoint to resume from in {self.run_dir / 'checkpoints'}")

@@ -27,6 +27,9 @@ HOST_BYTES_PER_INIT_POINT = 2048  # measured peak ≈ 510 B/point while initiali
 # up to 70 channels of float32, ×2), rounded up
 DEVICE_BYTES_PER_FRAGMENT = 32
 DEVICE_BYTES_PER_FACE = 2048
+# the smallest image side: the evaluation's SSIM has an 11x11 window with "valid" padding (losses.SSIM_RADIUS 5;
+# not imported: validation must not load the OpenCL layers); it also keeps the warm-up's 1/4 renders >= 2 pixels
+MIN_IMAGE_SIDE = 11
 
 # option -> (args attribute, kind, low, high, what it is); None bound = unbounded
 _INT_OPTIONS = {
@@ -199,6 +202,29 @@ def check_device_budget(info, renders, max_faces: int | None) -> None:
             raise ValueError(f"a {width}x{height} render with K={K} fragments per pixel{faces} needs up to "
                              f"{total / 2**30:.2f} GiB of device memory, {info.device_name!r} has "
                              f"{info.global_mem_bytes / 2**30:.2f} GiB: {fix}")
+
+
+def check_image_sizes(ds, downscale: int = 1) -> None:
+    """Every image of the dataset ``ds`` (after ``downscale``) is at least :data:`MIN_IMAGE_SIDE` pixels on each
+    side: smaller ones used to train to the end and then fail in the evaluation's SSIM, after the run was written.
+    A :class:`~triplet_cl.errors.UsageError` naming ``--downscale`` when it made them so small, else a
+    :class:`~triplet_cl.errors.DatasetError` naming the image."""
+    from .errors import DatasetError
+
+    views = [(split, v) for split, vs in ds.splits.items() for v in vs]
+    if not views:
+        return
+    split, small = min(views, key=lambda sv: min(sv[1].rgb.shape[:2]))
+    h, w = small.rgb.shape[:2]
+    if min(h, w) >= MIN_IMAGE_SIDE:
+        return
+    need = (f"images must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (the {MIN_IMAGE_SIDE}x"
+            f"{MIN_IMAGE_SIDE} window of the SSIM that evaluates the test views)")
+    if downscale > 1:
+        raise UsageError("--downscale", f"{downscale} leaves {w}x{h}-pixel {split} images ({small.name}); {need}: "
+                                        "lower --downscale")
+    raise DatasetError(small.path if small.path is not None else ds.root,
+                       f"the {split} image {small.name} is {w}x{h} pixels; {need}")
 
 
 def available_memory() -> int | None:
@@ -420,7 +446,8 @@ def validate_args(args) -> None:
             if writable:
                 check_writable_dir(args.run, "RUN")
         else:
-            check_run_dir(args.run, "RUN", writable=writable)
+            saved = check_run_dir(args.run, "RUN", writable=writable)
+            check_run_dataset(args.run, saved["data"])  # read by every command but export: moved or deleted?
         if getattr(args, "out", None):
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
@@ -516,6 +543,7 @@ def resume_data(given, saved_data: str, run) -> tuple[str, list[str]]:
     """The dataset of a resumed run: the saved one; DATA given again must be the same folder, or
     replace a saved path that no longer exists (a moved dataset)."""
     if given is None:
+        check_run_dataset(run, saved_data, resume=True)
         return saved_data, []
     if Path(saved_data).exists():
         if Path(given).resolve() != Path(saved_data).resolve():
@@ -523,6 +551,18 @@ def resume_data(given, saved_data: str, run) -> tuple[str, list[str]]:
                                      "leave DATA out to resume, or start a new run for another dataset")
         return saved_data, []
     return str(given), [f"dataset {given} (config.json had {saved_data}, which no longer exists)"]
+
+
+def check_run_dataset(run, data: str, resume: bool = False) -> None:
+    """The dataset a run was trained on (``"data"`` of its config.json) still exists: render, eval, relight,
+    extract and ``train --resume`` read it; a moved or deleted one is named with the run's config.json and
+    what to do, before any work."""
+    if Path(data).exists():
+        return
+    rel = "" if Path(data).is_absolute() else f" (a relative path, looked up from the current folder {Path.cwd()})"
+    fix = ("give its new location as DATA (triplet train DATA --resume --out RUN)" if resume else
+           "move it back, or write its new location into \"data\" of that file")
+    raise RunError(Path(run) / "config.json", f"the run's dataset {data}{rel} does not exist: {fix}")
 
 
 def check_resume_iterations(option: str, iterations: int, at: int) -> None:

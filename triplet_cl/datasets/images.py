@@ -63,7 +63,7 @@ def read_image(path, downscale: int = 1) -> Image:
     config.attribute("oiio:UnassociatedAlpha", 1)
     inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
-        raise DatasetError(path, f"cannot read the image: {oiio.geterror() or 'unknown format'}")
+        raise DatasetError(path, f"cannot read the image: {_one_line(oiio.geterror() or 'unknown format')}")
     try:
         spec = inp.spec()
         px = inp.read_image(0, 0, 0, spec.nchannels, "float")
@@ -71,7 +71,7 @@ def read_image(path, downscale: int = 1) -> Image:
     finally:
         inp.close()
     if px is None or err:  # a truncated JPEG comes back filled in, with an error message
-        raise DatasetError(path, f"cannot read the image: {err or oiio.geterror() or 'read failed'}")
+        raise DatasetError(path, f"cannot read the image: {_one_line(err or oiio.geterror() or 'read failed')}")
     px = np.asarray(px, dtype=np.float32)
     if px.ndim == 2:
         px = px[:, :, None]
@@ -101,6 +101,13 @@ def read_image(path, downscale: int = 1) -> Image:
             raise DatasetError(path, f"image of {width}x{height} is smaller than downscale={downscale}")
         rgb, alpha = downscale_image(rgb, alpha, downscale)
     return Image(rgb, alpha, color_space, width, height)
+
+
+def _one_line(message: str) -> str:
+    """OpenImageIO's error text on one line (a truncated PNG gives three: the read error, libpng's, "PNG library
+    error"), repeats dropped, so that the CLI's error stays one line."""
+    parts = [p.strip() for p in str(message).splitlines() if p.strip()]
+    return "; ".join(dict.fromkeys(parts)) or "read failed"
 
 
 def _block_mean(a: np.ndarray, n: int) -> np.ndarray:
