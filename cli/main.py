@@ -119,6 +119,8 @@ def _config_from_args(args: argparse.Namespace):
         cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
     if getattr(args, "white_light", None):
         cfg = replace(cfg, white_light=args.white_light)
+    if getattr(args, "light_phase_lobes", None):
+        cfg = replace(cfg, light_phase_lobes=args.light_phase_lobes)
     if getattr(args, "light_phase", None) is not None:  # after --iterations: the value given, not scaled
         cfg = replace(cfg, material_tie_until=args.light_phase)
     return cfg
@@ -522,6 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
                    "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
+    t.add_argument("--light-phase-lobes", choices=["held", "tied"], help="roughness and metallic during the light "
+                   "phase: held (default) at their initial values while their per-vertex gradients build Adam's "
+                   "moments, then per vertex; tied: one learning value, as the albedo (runs before 2026-11-26)")
     t.add_argument("--white-light", choices=["each", "total", "off"], help="each (default): every light stays white "
                    "(its brightness learned; the photos' colours go to the albedo); total: the lights together white "
                    "at the scene centre, their colours relative to each other free; off: the lights may take any tint")

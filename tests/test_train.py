@@ -472,3 +472,42 @@ def test_auto_background_is_resolved_and_saved(tmp_path):
     assert tr2.cfg.background == "black"  # an explicit choice is kept
     with pytest.raises(ValueError, match="background"):
         small_cfg(background="purple").validate()
+
+
+def test_light_phase_lobes_held_or_tied(tmp_path):
+    """``TrainConfig.light_phase_lobes``: "held" (the default) keeps roughness and metallic at their initial values
+    through the light phase while the albedo learns (one value for all) and their own Adam moments follow each
+    vertex's gradient; the lobes go per vertex after it. "tied" steps them as one value, as the other channels.
+    A config.json from before the option reads as "tied"."""
+    from triplet_cl.materials import get_brdf
+
+    assert TrainConfig().light_phase_lobes == "held"
+    lobe = get_brdf(TrainConfig().brdf).lobe_columns
+    init = get_brdf(TrainConfig().brdf).initial_raw(1)[0]
+    cfg = small_cfg(iterations=14, material_tie_until=10, density=replace(small_cfg().density, densify_from=100))
+    tr = Trainer(DEMO, tmp_path / "held", cfg, quiet=True)
+    m0 = np.array(tr.scene.material.data)
+    np.testing.assert_allclose(m0, np.broadcast_to(init, m0.shape), rtol=1e-6)
+    for _ in range(10):
+        tr.step()
+    m = np.asarray(tr.scene.material.data)
+    np.testing.assert_array_equal(m[:, lobe], m0[:, lobe])
+    v = tr.opt.group("material").exp_avg_sq[0]
+    assert np.ptp(v[:, lobe], axis=0).min() > 0, "each vertex's own moments"
+    albedo = [c for c in range(m.shape[1]) if c not in lobe][:3]
+    assert np.ptp(m[:, albedo], axis=0).max() < 1e-9 and np.abs(m[0, albedo] - init[albedo]).max() > 1e-3
+    for _ in range(4):
+        tr.step()
+    m = np.asarray(tr.scene.material.data)
+    assert np.ptp(m[:, lobe], axis=0).min() > 0, "per vertex after the phase"
+
+    tr = Trainer(DEMO, tmp_path / "tied", replace(cfg, light_phase_lobes="tied"), quiet=True)
+    for _ in range(10):
+        tr.step()
+    m = np.asarray(tr.scene.material.data)
+    assert np.ptp(m[:, lobe], axis=0).max() < 1e-9 and np.abs(m[0, lobe] - init[lobe]).min() > 1e-3
+    with pytest.raises(ValueError, match="light_phase_lobes"):
+        TrainConfig(light_phase_lobes="loose").validate()
+    old = TrainConfig().to_dict()
+    del old["light_phase_lobes"]
+    assert TrainConfig.from_dict(old).light_phase_lobes == "tied"

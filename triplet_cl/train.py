@@ -64,6 +64,7 @@ from .visibility import SHADOW_MODES, VisibilityCache
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
 REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned for (TrainConfig.with_iterations)
+LIGHT_PHASE_LOBES = ("held", "tied")  # TrainConfig.light_phase_lobes
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")
 LR_LIGHTS_MODES = ("absolute", "relative")
@@ -186,6 +187,19 @@ class TrainConfig:
     # object fix only albedo × irradiance per point: with free per-vertex albedo from the first step, the lights
     # stay wherever the first steps left them (ambient 3x the truth on spot)
     material_tie_until: int = 1200
+    # the specular lobe's channels (roughness, metallic; Blinn-Phong's shininess: materials.BRDF.lobe_columns) in the
+    # light phase: "held" (each vertex's Adam moments follow its own gradient, but the values are put back after
+    # each step: they stay at their initial values, then go per vertex with moments that know their gradients'
+    # size) or "tied" (one learning value, as the other channels; runs before). Tied, one roughness and one metallic
+    # for the whole object followed the sign of the mean of their gradients at Adam's full step, however weak the
+    # evidence: on gadget (black frame and tracks) metallic 0.1 -> 0.64 and roughness 0.5 -> 0.06 in 100 steps, and
+    # the mesh stage took it for one rough metal (metallic 1.00, roughness 0.9; truth 0 / 0.4). "frozen" (no gradient
+    # in the phase, fresh moments after it) sent the per-vertex lobes to extremes once free (bob_env: mesh NVS 35.1 ->
+    # 31.1 dB). Measured at the mesh (the asset), 200², 3000 it., seed 0, tied -> held, relight point_left /
+    # sun_and_sky / env_rotated, albedo scaled (bench/results/lobes_pocl_2026-11-26.txt): spot 29.91/29.49/29.61,
+    # 24.94 -> 30.98/30.64/30.55, 26.59 dB; gadget 26.28/26.13/23.81, 17.34 -> 27.13/27.48/26.17, 17.76 (mesh NVS
+    # 29.76 -> 30.21); bob_env 29.48/28.98/32.02, 24.42 -> 29.43/28.91/31.49, 23.73 (mesh NVS 35.12 -> 34.34)
+    light_phase_lobes: str = "held"
     # "each": after each step every light's colour is made grey (its brightness kept; lights.grey_lights); "total":
     # the lights' colours rescaled per channel so that together they are white at the scene centre
     # (lights.white_balance; each light's colour relative to the others' free, each grey during the light phase);
@@ -246,6 +260,7 @@ class TrainConfig:
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
+        d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         for k, v in Priors.off().items():
@@ -259,6 +274,8 @@ class TrainConfig:
         get_brdf(self.brdf)  # ValueError naming the BRDFs
         if self.white_light not in WHITE_LIGHT_MODES:
             raise ValueError(f"white_light must be one of {WHITE_LIGHT_MODES}, got {self.white_light!r}")
+        if self.light_phase_lobes not in LIGHT_PHASE_LOBES:
+            raise ValueError(f"light_phase_lobes must be one of {LIGHT_PHASE_LOBES}, got {self.light_phase_lobes!r}")
         if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
             raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
@@ -558,6 +575,8 @@ class Trainer:
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
+        self.lobe_columns = get_brdf(self.cfg.brdf).lobe_columns
+        self.tied_columns = [c for c in range(get_brdf(self.cfg.brdf).num_channels) if c not in self.lobe_columns]
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         self.opt = build_optimizer(self.cfg, self.scene, self.extent)
@@ -667,13 +686,20 @@ class Trainer:
                            front=None if err is None else front_faces(fr, face_alpha(self.scene.alpha.data,
                                                                                     self.scene.F),
                                                                       dens.error_min_alpha, device=self.device))
+        held = None
         if it < cfg.material_tie_until:
-            tie_rows(self.scene.material)
+            if cfg.light_phase_lobes == "held":  # the lobes' own per-vertex moments, their values put back below
+                held = np.array(self.scene.material.data[:, self.lobe_columns])
+                tie_rows(self.scene.material, self.tied_columns)
+            else:
+                tie_rows(self.scene.material)
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
             raise NonFiniteError(it + 1, exc.group, exc.what, self._nonfinite_cause(exc)) from None
         self.opt.zero_grad()
+        if held is not None:
+            self.scene.material.data[:, self.lobe_columns] = held
         self.priors.project(self.scene)
         self.balance_lights()
         t4 = time.perf_counter()

@@ -505,7 +505,7 @@ def resume_config(args, saved_cfg, given_cfg):
              "--downscale": "downscale", "--sigma": "sigma", "--renderer": "renderer",
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
              "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
-             "--white-light": "white_light",
+             "--white-light": "white_light", "--light-phase-lobes": "light_phase_lobes",
              "--light-distance": "light_distance", "--sensor-clip": "sensor_clip"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
