@@ -161,6 +161,29 @@ def test_relative_lr_scales_follow_the_radiometric_parameters():
     np.testing.assert_allclose(s[6:9], 0.1)
     np.testing.assert_allclose(s[9:15], [1, 1, 1, 1e-3, 1e-3, 1e-3])
     np.testing.assert_allclose(s[15:], 0.5 * np.sqrt(4 * np.pi))
+    # the point lights' positions by their own factor (TrainConfig.lr_light_position_scale); directions keep 1
+    s10 = relative_lr_scales(lights, position=10.0)
+    np.testing.assert_allclose(s10[:3], 10.0)
+    np.testing.assert_array_equal(s10[3:], s[3:])
+
+
+def test_training_steps_the_light_position_by_its_own_rate(tmp_path):
+    """``TrainConfig.lr_light_position_scale`` reaches the optimizer: the point light's position rows of the light
+    group's learning-rate factors are ``lr_light_position_scale`` (10 by default; 1 in a config from before)."""
+    from triplet_cl.cli.main import demo_data_path
+
+    from triplet_cl.train import TrainConfig, Trainer
+
+    cfg = TrainConfig(iterations=2, init_points=300, checkpoint_every=0, max_test_views=1)
+    assert cfg.lr_light_position_scale == 10.0
+    tr = Trainer(demo_data_path(), tmp_path / "run", cfg, quiet=True)
+    sc = tr.opt.group("lights").lr_scale[0]
+    np.testing.assert_allclose(sc[:3], 10.0)  # PointLight: position, then intensity
+    old = cfg.to_dict()
+    del old["lr_light_position_scale"]
+    assert TrainConfig.from_dict(old).lr_light_position_scale == 1.0
+    with pytest.raises(ValueError, match="lr_light_position_scale"):
+        TrainConfig(lr_light_position_scale=float("nan")).validate()
 
 
 def test_gltf_punctual_form():

@@ -473,21 +473,22 @@ def pack_lights(lights) -> LightTable:
     return LightTable(ints, params, env_deg, has_vsh, inactive, np.asarray(ray_off, np.int64))
 
 
-def relative_lr_scales(lights, floor: float = 1e-3) -> np.ndarray:
+def relative_lr_scales(lights, floor: float = 1e-3, position: float = 1.0) -> np.ndarray:
     """``[T]`` learning-rate factors of the packed parameters: each radiometric parameter (``RADIOMETRIC``: a
     colour, an intensity, SH radiance) gets the largest magnitude of its current value (at least ``floor``),
     every other (positions, directions) 1. With them Adam moves every radiometric parameter by about the same
     fraction of its size per step: with one absolute rate (0.01), an ambient light of 0.1 moved by up to 10 %
     per step and a point light of intensity ~12 (extent²) by 0.08 %, so the ambient light and the albedo
     explained the shading long before the point light's intensity could (spot: ambient 0.39, truth 0.08;
-    intensity 15, truth 30)."""
+    intensity 15, truth 30). ``position``: the factor of the point lights' positions
+    (``TrainConfig.lr_light_position_scale``)."""
     out = []
     for lt in _check_lights(lights):
         for n, shape in lt.param_shapes().items():
             k = int(np.prod(shape))
             v = np.asarray(getattr(lt, n), np.float64)
             out.append(np.full(k, max(float(np.abs(v).max()) if v.size else 0.0, floor) if n in lt.RADIOMETRIC
-                               else 1.0))
+                               else (position if n == "position" else 1.0)))
     return np.concatenate(out) if out else np.zeros(0)
 
 

@@ -136,6 +136,12 @@ class TrainConfig:
     # bob_env at 100² (1500 it.): relight +0.2/+0.1/+0.2 and +0.4/+1.5/+0.2 dB, albedo (scaled) +1.1 / +1.4 dB; at 200²,
     # 3000 it.: spot +1.2/+1.5/+1.9 dB (albedo +1.6), gadget -0.1/0.0/+0.8 (+0.3), bob_env -0.0/+0.2/-1.0 (+0.5)
     lr_lights_mode: str = "relative"
+    # × lr_lights for the point lights' positions (world units per step; "relative" mode). At 1 (0.01 per step, ~0.2°
+    # of arc at spot's light distance) the light was still moving when the light phase ended and the per-vertex albedo
+    # then kept whatever direction it had reached: spot_small's recovered light 0.7° off the truth with seed 0 but
+    # 28.8° / 11.5° with seeds 1 / 2 (the initial light is jittered by 0.3 extent). At 10: 8.2° / 3.0°, soup relight
+    # +1.2 to +5.0 dB on those seeds and level on seed 0 (bench/results/light_position_pocl_2026-11-26.txt)
+    lr_light_position_scale: float = 10.0
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
     betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
@@ -261,6 +267,7 @@ class TrainConfig:
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
+        d.setdefault("lr_light_position_scale", 1.0)  # saved before the light positions' own rate
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         for k, v in Priors.off().items():
@@ -293,6 +300,8 @@ class TrainConfig:
                                                                   and self.shadow_eps >= 0):
             raise ValueError(f"shadow_every must be >= 1, shadow_from >= 0 and shadow_eps >= 0, got "
                              f"{self.shadow_every}, {self.shadow_from} and {self.shadow_eps}")
+        if not (np.isfinite(self.lr_light_position_scale) and self.lr_light_position_scale >= 0):
+            raise ValueError(f"lr_light_position_scale must be finite and >= 0, got {self.lr_light_position_scale}")
         if not (np.isfinite(self.lr_lobe_scale) and self.lr_lobe_scale >= 0):
             raise ValueError(f"lr_lobe_scale must be finite and >= 0, got {self.lr_lobe_scale}")
         if self.color not in COLOR_PIPELINES:
@@ -458,7 +467,8 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),
                       max_grad_norm=cfg.sh_clip, **kw)
     if scene.light_params is not None:
-        scale = [relative_lr_scales(scene.lights)] if cfg.lr_lights_mode == "relative" else None
+        scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale)]
+                 if cfg.lr_lights_mode == "relative" else None)
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
 
