@@ -164,7 +164,11 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
         launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
                **_inputs(inp), **outs, T=T, v_rgb=v_rgb, v_light_part=part,
                scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
-        out.v_light_params = part.get()[:, :T].sum(axis=0, dtype=np.float64)
+        # only the active parameters: the kernel writes no partial for an inactive one (an SH environment's bands
+        # above its active degree), whose column holds whatever the buffer held (a NaN there warned in the sum)
+        active = np.ones(T, bool)
+        active[inp.table.inactive] = False
+        out.v_light_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
     out.v_light_params[inp.table.inactive] = 0.0
     return out
 
