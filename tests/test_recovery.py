@@ -95,8 +95,6 @@ def _fit(scene, targets, cams, iterations, groups, priors=None, tie_until=0, lob
         held = None
         if it < tie_until:  # the light phase of training (TrainConfig.material_tie_until)
             lobe = get_brdf(scene.brdf).lobe_columns
-            if lobes == "frozen":  # no gradient in the phase (measured, not an option)
-                scene.material.grad[:, lobe] = 0.0
             if lobes == "held":  # TrainConfig.light_phase_lobes: values put back, per-vertex Adam moments
                 held = np.array(scene.material.data[:, lobe])
                 tie_rows(scene.material, [c for c in range(scene.material.data.shape[1]) if c not in lobe])

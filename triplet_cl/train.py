@@ -585,8 +585,9 @@ class Trainer:
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
-        self.lobe_columns = get_brdf(self.cfg.brdf).lobe_columns
-        self.tied_columns = [c for c in range(get_brdf(self.cfg.brdf).num_channels) if c not in self.lobe_columns]
+        brdf = get_brdf(self.cfg.brdf)  # the light phase's columns: lobes held, the others tied (Trainer.step)
+        self.lobe_columns = brdf.lobe_columns
+        self.tied_columns = [c for c in range(brdf.num_channels) if c not in self.lobe_columns]
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         self.opt = build_optimizer(self.cfg, self.scene, self.extent)

@@ -166,10 +166,10 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
                scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
         # only the active parameters: the kernel writes no partial for an inactive one (an SH environment's bands
         # above its active degree), whose column holds whatever the buffer held (a NaN there warned in the sum)
+        # (out.v_light_params starts at zero: an inactive parameter's gradient stays 0)
         active = np.ones(T, bool)
         active[inp.table.inactive] = False
         out.v_light_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
-    out.v_light_params[inp.table.inactive] = 0.0
     return out
 
 
