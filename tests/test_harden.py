@@ -86,6 +86,7 @@ BAD_TRAIN = {
     "light-distance 0": (["--light-distance", "0"], "--light-distance"),
     "light-distance nan": (["--light-distance", "nan"], "--light-distance"),
     "mesh-light-phase -2": (["--mesh-stage", "--mesh-light-phase", "-2"], "--mesh-light-phase"),
+    "mesh-metallic-trial -1": (["--mesh-stage", "--mesh-metallic-trial", "-1"], "--mesh-metallic-trial"),
     "lights": (["--lights", "laser"], "--lights"),
     "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
     "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),

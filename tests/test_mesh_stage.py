@@ -95,6 +95,32 @@ def test_mesh_light_phase_ties_all_but_the_albedo_and_keeps_the_lights_white(tra
         MeshConfig(material_tie=-1).validate()
 
 
+def test_mesh_stage_decides_the_metallic_by_a_trial_and_holds_it(trained_run):
+    """``MeshConfig.metallic_trial``: before round 0's light phase the mesh is fitted as a dielectric and as a metal
+    (``metallic_trial``), the winner's metallic is set on every vertex and held through the light phase (the other
+    tied channels step), the trial is reported in metrics.json; 0 ties the metallic with the others as before."""
+    from triplet_cl.mesh.refine import METALLIC_TRIAL_VALUES
+    from triplet_cl.scene import logit
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=6, material_tie=6, remesh_every=0, metallic_trial=4))
+    mesh = stage.extract(tr.scene)
+    scene = stage.refine(mesh, 0)
+    t = stage.metallic_choice
+    assert t is not None and t["metallic"] in METALLIC_TRIAL_VALUES and t["steps"] == 4
+    assert set(t["loss"]) == {str(v) for v in METALLIC_TRIAL_VALUES} and all(len(c) == 4 for c in t["curves"].values())
+    m = np.asarray(scene.material.data)
+    np.testing.assert_allclose(m[:, 4], logit(t["metallic"]), rtol=1e-5)  # held: not a step away from the winner
+    assert np.ptp(m[:, 3]) == 0 and np.ptp(m[:, 5]) == 0  # roughness and AO still tied
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=6, material_tie=6, remesh_every=0, metallic_trial=0))
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    assert stage.metallic_choice is None
+    assert abs(float(np.asarray(scene.material.data)[0, 4]) - logit(0.99)) > 1 and \
+        abs(float(np.asarray(scene.material.data)[0, 4]) - logit(0.01)) > 1  # the old tied metallic, stepped
+    with pytest.raises(ValueError, match="metallic_trial"):
+        MeshConfig(metallic_trial=-1).validate()
+
+
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):
     """A soup trained with the cached shadows gives a mesh shaded with them (per-vertex visibility traced through
     the mesh, ``MeshConfig.shadow_eps``): the shadowed render is nowhere brighter and somewhere darker."""

@@ -50,6 +50,7 @@ _INT_OPTIONS = {
     "--mesh-iterations": ("mesh_iterations", 0, 10_000_000),
     "--remesh-every": ("remesh_every", 0, None),
     "--mesh-light-phase": ("mesh_light_phase", 0, None),
+    "--mesh-metallic-trial": ("mesh_metallic_trial", 0, None),
     "--mesh-supersample": ("mesh_supersample", 1, 4),
     "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
     "--texture-size": ("texture_size", 16, 16384),
@@ -59,7 +60,7 @@ _INT_OPTIONS = {
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
-                 "--mesh-light-phase",
+                 "--mesh-light-phase", "--mesh-metallic-trial",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
                  "--bbox", "--mesh-crop")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
