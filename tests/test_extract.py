@@ -552,3 +552,23 @@ def test_depth_filter_fills_cracks_and_keeps_lines():
     # a plain median erases both rods
     assert (median_filter(acc, 3, mode="nearest")[1:-1, 2] < 0.5).all()
     assert (median_filter(depth, 3, mode="nearest")[1:-1, 8] == 3.0).all()
+
+
+def test_unseen_underside_closes_at_the_seen_extent(device, parts_scene):
+    """``tsdf_fusion(solid_in_seen_hull=True)``: no camera sees the plate's underside (upper hemisphere), so every
+    voxel under it is hidden and the visual hull's cones bound it only far below; solid only inside the convex
+    hull of the surface points the views saw, the mesh closes at the plate's bottom (z −0.56), not below it
+    (gadget: its underside closed 0.09 below the plate before, half of the mesh's distance to gt_mesh)."""
+    parts, rod, soup, cams, masks = parts_scene
+    V, F, (_, _, h) = tsdf_fusion(soup, cams, sigma=None, device=device, masks=masks, return_volume=True)
+    V0, F0 = tsdf_fusion(soup, cams, sigma=None, device=device, masks=masks, solid_in_seen_hull=False)
+    def low_under_the_plate(V):  # away from its edges, where the side faces' truncation band reaches below
+        V = np.asarray(V)
+        return float(V[(np.abs(V[:, 0]) < 0.6) & (np.abs(V[:, 1]) < 0.3), 2].min())
+
+    low, low0 = low_under_the_plate(V), low_under_the_plate(V0)
+    assert abs(low - (-0.56)) < h, f"bottom at {low:.3f}, the plate's at -0.56 (voxel {h:.3f})"
+    assert low0 < low - 2 * h, f"the rule before closed at {low0:.3f} (now {low:.3f})"
+    d = chamfer_distance(V, F, np.asarray(parts.vertices), np.asarray(parts.faces))["chamfer"]
+    d0 = chamfer_distance(V0, F0, np.asarray(parts.vertices), np.asarray(parts.faces))["chamfer"]
+    assert d < d0, (d, d0)

@@ -198,7 +198,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
                 depth_quantile: float = 0.1,
                 min_view_fraction: float = 0.5, hidden_fraction: float = 0.9, carve_margin: int = 1,
                 median_filter_px: int = 3, device: Device | None = None, return_volume: bool = False,
-                masks=None, hull_views: int | None = 1, roi=None, hull_exact_views: int | None = 1):
+                masks=None, hull_views: int | None = 1, roi=None, hull_exact_views: int | None = 1,
+                solid_in_seen_hull: bool = True):
     """Fuse the rendered depth of ``cameras`` into a TSDF and extract its zero level (module docstring).
 
     Args:
@@ -236,6 +237,11 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
             gaps narrower than the erosion that only a few views see through (between a cow's legs, under
             its belly) are carved (None: off; off as well with ``hull_views=None``, which turns every
             visual-hull rule off).
+        solid_in_seen_hull: the hidden-voxel rule makes a voxel solid only inside the convex hull of the surface
+            points the views saw (every depth pixel with alpha ≥ ``alpha_threshold``, back-projected): a volume
+            no view sees into (under a base plate that every camera sees from above) closes at the lowest observed
+            surface, not where the visual hull's cones happen to meet (False: the rule before;
+            gadget's unseen underside then closed 0.09 below its plate, half of the mesh's distance to gt_mesh).
         roi: a :class:`~triplet_cl.mesh.roi.ROI` (oriented box): every voxel outside it is empty, so
             the surface is the object inside it, closed where the box cuts it (photos with a
             background: the object without the table); ``bounds`` default to its bounding box.
@@ -286,6 +292,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     hull_out = np.zeros(len(X), np.int32)
     hull_exact = np.zeros(len(X), np.int32)  # views whose exact projection is on the background
     hull_sdf = np.full(len(X), -np.inf, np.float32)  # the largest signed distance outside a silhouette cone (/τ)
+    seen_pts: list[np.ndarray] = []  # per view, the convex hull's vertices of the surface points it saw
     if hull_views is not None and hull_views < 1:
         raise ValueError(f"hull_views must be None or >= 1, got {hull_views}")
     if hull_exact_views is not None and hull_exact_views < 1:
@@ -310,6 +317,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         free_px = acc < alpha_threshold
         if carve_margin > 0:
             free_px = binary_erosion(free_px, iterations=int(carve_margin), border_value=1)
+        if solid_in_seen_hull:
+            seen_pts.append(_hull_points(_backproject(cam, depth, acc >= alpha_threshold)))
         idx, pix, z, uv = _project_voxels(X, cam, subpixel=True)
         seen[idx] += 1
         if photo_bg is not None:
@@ -330,6 +339,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         num[ii] += w * np.where(surf[use], np.minimum(s[use], np.float32(1.0)), np.float32(1.0))
         wsum[ii] += w
     inside = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
+    if solid_in_seen_hull:  # nothing is solid beyond what was seen: an unseen volume closes at the seen extent
+        inside[inside] = _in_convex_hull(np.concatenate(seen_pts), X[inside], grow=0.0)
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
     tsdf = np.where(inside, -1.0, tsdf)
     if hull_views is not None:
@@ -359,6 +370,46 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     Vm, Fm = _drop_cavities(Vm, Fm)
     out = (Vm, Fm)
     return out + ((tsdf, origin, h),) if return_volume else out
+
+
+def _backproject(cam: Camera, depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """World points ``[Q, 3]`` of the pixels in ``mask [H, W]`` at their camera depth ``depth [H, W]`` (pixel
+    centres, as :func:`_project_voxels` projects)."""
+    i, j = np.nonzero(mask)
+    z = depth[i, j].astype(np.float64)
+    pc = np.stack([(j + 0.5 - cam.cx) / cam.fx * z, (i + 0.5 - cam.cy) / cam.fy * z, z], 1)
+    w2c = np.asarray(cam.w2c, np.float64)
+    return (pc - w2c[:3, 3]) @ w2c[:3, :3]
+
+
+def _hull_points(P: np.ndarray) -> np.ndarray:
+    """The vertices of the convex hull of ``P [Q, 3]`` (all of ``P`` when it is too small or flat for one)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(P) < 5:
+        return P
+    try:
+        return P[ConvexHull(P).vertices]
+    except QhullError:
+        return P
+
+
+def _in_convex_hull(P: np.ndarray, Q: np.ndarray, grow: float) -> np.ndarray:
+    """``[len(Q)]`` bool: the points ``Q`` inside the convex hull of ``P`` grown by ``grow`` (all True when ``P``
+    spans no volume)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(Q) == 0 or len(P) < 5:
+        return np.ones(len(Q), bool)
+    try:
+        eq = ConvexHull(P).equations  # [n·x + d <= 0 inside], n unit
+    except QhullError:
+        return np.ones(len(Q), bool)
+    ok = np.ones(len(Q), bool)
+    for a in range(0, len(Q), 1 << 16):
+        q = Q[a:a + (1 << 16)].astype(np.float64)
+        ok[a:a + len(q)] = (q @ eq[:, :3].T + eq[:, 3] <= grow).all(axis=1)
+    return ok
 
 
 def _project_voxels(X: np.ndarray, cam: Camera, subpixel: bool = False):
