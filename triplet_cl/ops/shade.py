@@ -105,18 +105,27 @@ def _optional(inp: ShadeInputs) -> dict[str, bool]:
             "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None}
 
 
+def _table_defines(table: LightTable) -> dict:
+    """``NUM_LIGHTS`` and ``LIGHT_TABLE`` (the rows of ``table.ints`` flattened): shade.cl compiles the light
+    table's structure in (its loop over the lights unrolls, each light's branches fold); the parameters stay
+    a buffer. One placeholder row without lights (a C array is never empty)."""
+    rows = np.asarray(table.ints, np.int64).reshape(-1, 4)
+    flat = rows.reshape(-1) if len(rows) else np.zeros(4, np.int64)
+    return {"NUM_LIGHTS": len(rows), "LIGHT_TABLE": ",".join(str(int(v)) for v in flat)}
+
+
 def _defines(inp: ShadeInputs) -> dict:
-    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`)."""
+    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`; the light
+    table's structure: :func:`_table_defines`)."""
     return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp),
-            **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
+            **_table_defines(inp.table), **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
 
 
 def _inputs(inp: ShadeInputs) -> dict:
     """The kernels' input arguments by name (the optional ones only when present)."""
     has = _optional(inp)
     args = dict(pos=inp.pos, nrm=inp.nrm, mat=inp.mat, face_id=inp.face_id, P=inp.P, cx=inp.cam[0],
-                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_i=inp.lt_i, lt_f=inp.lt_f,
-                L=len(inp.table.ints))
+                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_f=inp.lt_f)
     if has["HAS_VLIGHT"]:
         args["vlight"] = inp.vlight
     if has["HAS_VIS"]:
