@@ -281,14 +281,16 @@ class VertexAttributes(Function):
         ctx.has_vl = bool(vl)
         cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
         ctx.nconst = 0 if cst is None else cst.shape[1]
-        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real, const=cst)
+        ctx.attr = vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real,
+                                        const=cst)
+        return ctx.attr
 
     def backward(self, ctx, v_attr):
         v, s = self.view, self.view.settings
         d, m, real = v.device, v.mesh, s.real
         if not isinstance(v_attr, cla.Array) or v_attr.dtype != real:
             v_attr = cla.to_device(d.queue, np.ascontiguousarray(to_host(v_attr), real))
-        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.alpha, v_attr,
+        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.attr, v_attr,
                                                                              self.softplus, ctx.has_vl, real,
                                                                              ctx.nconst)
         if ctx.face:
