@@ -488,7 +488,10 @@ def _cl_photometric_fwd(ctx, pred, target, lam, padding):
         dev.queue, gsize, None, pred.data, target.data, tmp.data, window.data, np.int32(h), np.int32(w),
         np.int32(c), real(lam), np.int32(with_ssim), np.int32(border), real(1.0 / count), term.data, d.data)
     ctx.dev, ctx.lam, ctx.with_ssim, ctx.saved_cl = dev, lam, with_ssim, (pred, target, d)
-    return np.asarray(lam + float(cla.sum(term, dtype=np.float64).get()))
+    # the [H, W, C] terms summed in float64 on the host: download + numpy's pairwise sum measured 4x faster than
+    # pyopencl's float64 reduction on PoCL (200²: 0.25 -> 0.06 ms, 800²: 4.2 -> 1.1 ms); the same float64 sum of
+    # the same float32 terms up to the summation order (the value only: the adjoint seeds with v, not with it)
+    return np.asarray(lam + float(term.get().sum(dtype=np.float64)))
 
 
 def _cl_photometric_bwd(ctx, v):
