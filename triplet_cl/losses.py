@@ -444,6 +444,11 @@ def _cl_device(arr):
     raise ValueError("pred must live in the context of a triplet_cl Device (get_device()) for backend='opencl'")
 
 
+def _ch_defines(c: int) -> dict | None:
+    """``CH3`` for three channels: losses.cl takes a pixel's channels as one vector (the same bits)."""
+    return {"CH3": True} if c == 3 else None
+
+
 def _cl_scratch(dev, dtype, shape):
     key = (dev.ctx, np.dtype(dtype), tuple(shape))
     sc = _CL_SCRATCH.get(key)
@@ -481,10 +486,10 @@ def _cl_photometric_fwd(ctx, pred, target, lam, padding):
     d = cla.empty(dev.queue, (4 * pred.size,), pred.dtype) if with_ssim else tmp  # placeholder when unused
     gsize = (w, h)
     if with_ssim:
-        dev.kernel("losses", "photometric_h_fwd", real=pred.dtype)(
+        dev.kernel("losses", "photometric_h_fwd", _ch_defines(c), real=pred.dtype)(
             dev.queue, gsize, None, pred.data, target.data, window.data, np.int32(h), np.int32(w), np.int32(c),
             tmp.data)
-    dev.kernel("losses", "photometric_v_fwd", real=pred.dtype)(
+    dev.kernel("losses", "photometric_v_fwd", _ch_defines(c), real=pred.dtype)(
         dev.queue, gsize, None, pred.data, target.data, tmp.data, window.data, np.int32(h), np.int32(w),
         np.int32(c), real(lam), np.int32(with_ssim), np.int32(border), real(1.0 / count), term.data, d.data)
     ctx.dev, ctx.lam, ctx.with_ssim, ctx.saved_cl = dev, lam, with_ssim, (pred, target, d)
@@ -505,9 +510,9 @@ def _cl_photometric_bwd(ctx, v):
     v_pred = cla.empty_like(pred)
     v_target = cla.empty_like(pred) if want_t else v_pred
     if ctx.with_ssim:
-        dev.kernel("losses", "photometric_h_bwd", real=pred.dtype)(
+        dev.kernel("losses", "photometric_h_bwd", _ch_defines(c), real=pred.dtype)(
             dev.queue, (w, h), None, d.data, window.data, np.int32(h), np.int32(w), np.int32(c), tmp2.data)
-    dev.kernel("losses", "photometric_v_bwd", real=pred.dtype)(
+    dev.kernel("losses", "photometric_v_bwd", _ch_defines(c), real=pred.dtype)(
         dev.queue, (w, h), None, pred.data, target.data, tmp2.data, window.data, np.int32(h), np.int32(w),
         np.int32(c), real(lam), np.int32(ctx.with_ssim), real(float(v)), np.int32(want_t), v_pred.data,
         v_target.data)
