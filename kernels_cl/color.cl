@@ -14,6 +14,11 @@
  *
  * With SRGB_CLIP defined, the camera's saturation: s(u) = 1 and s'(u) = 0 for u >= 1 (s(1) = 1). An 8/16-bit
  * photo clips there, so a clipped photo pixel only says "at least 1": a render above it is not pulled down.
+ *
+ * The root r_c = u_c^(1/2.4) (0 on the linear segment) is the only transcendental of either pass (exp2 and
+ * log2: ~10 ns a channel on PoCL's CPU device, most of both kernels' time). With KEEP_ROOT the forward
+ * writes it out ([H*W, 3]) and with HAS_ROOT the adjoint reads it back instead of computing it again:
+ * the same values, bit for bit (u is computed by the same expression in both passes).
  */
 #include "real.h"
 
@@ -41,6 +46,9 @@ __kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear pr
                                  __global const REAL* A,   // [H*W]    accumulated alpha
                                  const REAL bg0, const REAL bg1, const REAL bg2, const REAL eps,
                                  const int npix,
+#ifdef KEEP_ROOT
+                                 __global REAL* root,      // [H*W, 3] r_c (0 on the linear segment)
+#endif
                                  __global REAL* out)       // [H*W, 3] encoded, over bg
 {
     const int p = get_global_id(0);
@@ -50,7 +58,21 @@ __kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear pr
     const REAL bg[3] = {bg0, bg1, bg2};
     for (int c = 0; c < 3; ++c) {
         const REAL u = C[p * 3 + c] / ad;
-        out[p * 3 + c] = a * srgb_s(u) + ((REAL)1 - a) * bg[c];
+#ifdef KEEP_ROOT
+        /* srgb_s(u) from the root the adjoint reads back (the same expressions: bit for bit) */
+        const int lin = u <= SRGB_KNEE;
+        const REAL r = lin ? (REAL)0 : srgb_root(u);
+#ifdef SRGB_CLIP
+        const int sat = u >= (REAL)1;
+#else
+        const int sat = 0;
+#endif
+        const REAL sv = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
+        root[p * 3 + c] = r;
+#else
+        const REAL sv = srgb_s(u);
+#endif
+        out[p * 3 + c] = a * sv + ((REAL)1 - a) * bg[c];
     }
 }
 
@@ -59,6 +81,9 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
                                  const REAL bg0, const REAL bg1, const REAL bg2, const REAL eps,
                                  const int npix,
                                  __global const REAL* v_out, // [H*W, 3]
+#ifdef HAS_ROOT
+                                 __global const REAL* root,  // [H*W, 3] the forward's roots (KEEP_ROOT)
+#endif
                                  __global REAL* v_C,         // [H*W, 3]
                                  __global REAL* v_A)         // [H*W]
 {
@@ -75,7 +100,11 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
         /* s and s' from one root (the same expressions as srgb_s / srgb_ds: bit for bit, half the
          * exp2/log2 calls) */
         const int lin = u <= SRGB_KNEE;
+#ifdef HAS_ROOT
+        const REAL r = root[p * 3 + c];
+#else
         const REAL r = lin ? (REAL)0 : srgb_root(u);
+#endif
 #ifdef SRGB_CLIP
         const int sat = u >= (REAL)1;
 #else

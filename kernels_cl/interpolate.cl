@@ -28,5 +28,10 @@ __kernel void interpolate_fwd(__global const REAL* attr,       // [N, C]
     __global const REAL* a1 = attr + F[3 * f + 1] * C;
     __global const REAL* a2 = attr + F[3 * f + 2] * C;
     __global REAL* d = out + (long)o * C;
-    for (int c = 0; c < C; ++c) d[c] = l0 * a0[c] + l1 * a1[c] + l2 * a2[c];
+    /* four channels at a time (vload4 / vstore4: PoCL vectorises neither this loop nor across work-items on its
+     * own; measured 2x), the same expression per channel, so the same bits as the scalar loop */
+    int c = 0;
+    for (; c + 4 <= C; c += 4)
+        vstore4(l0 * vload4(0, a0 + c) + l1 * vload4(0, a1 + c) + l2 * vload4(0, a2 + c), 0, d + c);
+    for (; c < C; ++c) d[c] = l0 * a0[c] + l1 * a1[c] + l2 * a2[c];
 }

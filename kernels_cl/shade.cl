@@ -2,7 +2,11 @@
  *
  * Defines: BRDF, BRDF_<NAME>, NMAT (generated from triplet_cl/materials.py), LIGHT_<NAME>,
  * LIGHT_SHADOW_MASK (generated from triplet_cl/lights.py), ENV_MAX_DEG (largest active SH degree of
- * the environment lights, sizes private arrays), RED_W (width of the light-gradient reduction).
+ * the environment lights, sizes private arrays), RED_W (width of the light-gradient reduction),
+ * NUM_LIGHTS and LIGHT_TABLE: the rows (type, offset, a, b) of the light table's ints, flattened
+ * (ops/shade.py). The table's structure is compiled in (the parameters lt_f stay an argument): the
+ * light loop unrolls and each light's branches fold, measured 1.2-1.4x faster on PoCL than reading
+ * the rows at run time; a run compiles one variant per light set (and per SH environment degree).
  * The BRDF maths, formulas and adjoints are in common/shade_brdf.h; each light's incident radiance
  * and its adjoint in common/lights.h.
  *
@@ -35,6 +39,14 @@
  *             v_s_g = v_rgb refl -> env_scales_vjp -> v_N, v_V, v_m.
  *   HAS_EYE:  eye [P, 3] per-fragment viewpoint replacing cam (shading a bounce hit as seen from
  *             the reflecting point); v_eye = safe_normalize_vjp(eye - x, v_V).
+ * Layout of the per-fragment arrays (ops/shade.py): each its own [P, n] array by default, or column blocks
+ * of the packed fragment attributes [P, C] (ShadeFragments: no split into per-block arrays, and the adjoint
+ * written straight into the attributes' adjoint): X_LD / X_OFF (X = POS, NRM, MAT, VL, VIS) give the row
+ * stride and first column of each; the same buffer is then bound to all of pos, nrm, mat (, vlight, vis)
+ * and to all of their adjoints. ALL_VALID: every row is a fragment (no face_id, the packed fragments).
+ *   ALPHA_COPY: the forward also copies the alpha column (ALPHA_LD / ALPHA_OFF of alpha_src) to alpha [P]
+ *   and the adjoint writes v_alpha [P] into that column of the adjoint's rows (what the compositing reads
+ *   and returns), so the packed attributes pass through shading in one read and one write.
  * Per-fragment adjoints are written by the fragment's own work-item. Light-parameter adjoints are
  * sums over fragments: each work-group reduces its items' values in local memory (RED_W columns at
  * a time, one column per item, fixed order: deterministic) and writes one row of v_light_part
@@ -49,6 +61,11 @@
 #ifndef RED_W
 #define RED_W 16
 #endif
+#if !defined(NUM_LIGHTS) || !defined(LIGHT_TABLE)
+#error "shade.cl needs NUM_LIGHTS and LIGHT_TABLE (ops/shade.py: _defines)"
+#endif
+/* the light table's rows (type, offset, a, b), NUM_LIGHTS of them (one placeholder row without lights) */
+__constant int LIGHT_ROWS[] = {LIGHT_TABLE};
 /* The optional inputs a kernel was built without (HAS_* not defined): null pointers, never read
  * (every use is guarded by the matching has_* constant). */
 #define ABSENT ((__global REAL*)0)
@@ -73,16 +90,40 @@
 #define HAVE_EYE 0
 #endif
 
+/* Row layouts (see the header): row stride X_LD and first column X_OFF of each per-fragment array. */
+#ifndef POS_LD
+#define POS_LD 3
+#define POS_OFF 0
+#endif
+#ifndef NRM_LD
+#define NRM_LD 3
+#define NRM_OFF 0
+#endif
+#ifndef MAT_LD
+#define MAT_LD NMAT
+#define MAT_OFF 0
+#endif
+#ifndef VL_LD
+#define VL_LD 6
+#define VL_OFF 0
+#endif
+#ifndef VIS_LD
+#define VIS_LD NV
+#define VIS_OFF 0
+#endif
+#define ROW(a, X, p) ((a) + (size_t)(p) * X##_LD + X##_OFF)
+
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
                          const REAL3 cam, const int two_sided, REAL3* x, REAL3* V, REAL3* N, REAL* sgn, REAL* m)
 {
-    *x = LOAD3(pos, p);
+    *x = vload3(0, ROW(pos, POS, p));
     *V = safe_normalize(cam - *x);
-    *N = safe_normalize(LOAD3(nrm, p));
+    *N = safe_normalize(vload3(0, ROW(nrm, NRM, p)));
     *sgn = (two_sided && dot(*N, *V) < (REAL)0) ? -(REAL)1 : (REAL)1;
     *N *= *sgn;
-    for (int j = 0; j < NMAT; ++j) m[j] = mat[(size_t)p * NMAT + j];
+    __global const REAL* mr = ROW(mat, MAT, p);
+    for (int j = 0; j < NMAT; ++j) m[j] = mr[j];
     return 1;
 }
 
@@ -92,13 +133,13 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
 #ifdef HAS_VLIGHT
                         __global const REAL* vlight,  // [P, 6]
 #endif
+#ifndef ALL_VALID
                         __global const int* face_id,  // [P]
+#endif
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
                         const int two_sided,
-                        __global const int* lt_i,     // [L, 4] (type, offset, a, b)
                         __global const REAL* lt_f,    // [T]
-                        const int L,
 #ifdef HAS_VIS
                         const int NV,                 // shadowed lights (columns of vis)
                         __global const REAL* vis,     // [P, NV]
@@ -108,6 +149,10 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
 #endif
 #ifdef HAS_EYE
                         __global const REAL* eye,     // [P, 3]
+#endif
+#ifdef ALPHA_COPY
+                        __global const REAL* alpha_src,  // the alpha column (ALPHA_LD, ALPHA_OFF)
+                        __global REAL* alpha,            // [P]
 #endif
                         __global REAL* rgb)           // [P, 3]
 {
@@ -127,24 +172,32 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
     const int has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
     if (p >= P) return;
+#ifdef ALPHA_COPY
+    alpha[p] = *ROW(alpha_src, ALPHA, p);
+#endif
+#ifndef ALL_VALID
     if (face_id[p] < 0) {
         STORE3((REAL3)(0), rgb, p);
         return;
     }
+#endif
     REAL3 x, V, N;
     REAL sgn, m[NMAT];
     const REAL3 cam = has_eye ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
     load_fragment(p, pos, nrm, mat, cam, two_sided, &x, &V, &N, &sgn, m);
+    __global const REAL* vl = HAVE_VLIGHT ? ROW(vlight, VL, p) : ABSENT;  /* this fragment's vertex-SH row */
     REAL3 out = (REAL3)(0);
     int jv = 0;
-    for (int li = 0; li < L; ++li) {
-        const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
+#pragma unroll
+    for (int li = 0; li < NUM_LIGHTS; ++li) {
+        const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2],
+                  b = LIGHT_ROWS[4 * li + 3];
         __global const REAL* q = lt_f + off;
         const int shadowed = light_casts_shadows(type);
-        const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
+        const REAL tv = (has_vis && shadowed) ? ROW(vis, VIS, p)[jv] : (REAL)1;
         jv += shadowed;
         REAL3 Lw, Li;
-        const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
+        const int term = light_incident(type, a, q, x, vl, tv, &Lw, &Li);
         if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, Lw, Li, m);
         else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(N, V, Li, m);
         else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
@@ -178,13 +231,13 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
 #ifdef HAS_VLIGHT
                         __global const REAL* vlight,    // [P, 6]
 #endif
+#ifndef ALL_VALID
                         __global const int* face_id,    // [P]
+#endif
                         const int P,
                         const REAL cx, const REAL cy, const REAL cz,
                         const int two_sided,
-                        __global const int* lt_i,       // [L, 4]
                         __global const REAL* lt_f,      // [T]
-                        const int L,
                         const int T,
                         __global const REAL* v_rgb,     // [P, 3]
                         __global REAL* v_pos,           // [P, 3]
@@ -205,6 +258,10 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
 #ifdef HAS_EYE
                         __global const REAL* eye,       // [P, 3]
                         __global REAL* v_eye,           // [P, 3]
+#endif
+#ifdef ALPHA_COPY
+                        __global const REAL* v_alpha,   // [P]
+                        __global REAL* v_alpha_dst,     // its column of the adjoint's rows (ALPHA_LD, ALPHA_OFF)
 #endif
                         __global REAL* v_light_part,    // [num_groups, T]
                         __local REAL* scratch)          // [local_size * RED_W]
@@ -228,11 +285,19 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
 #endif
     const int has_vlight = HAVE_VLIGHT, has_vis = HAVE_VIS, has_refl = HAVE_REFL, has_eye = HAVE_EYE;
     const int p = get_global_id(0);
+#ifdef ALL_VALID
+    const int valid = p < P;
+#else
     const int valid = p < P && face_id[p] >= 0;
+#endif
     const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
     int jv = 0;
     if (has_vis && p < P)
-        for (int j = 0; j < NV; ++j) v_vis[p * NV + j] = (REAL)0;
+        for (int j = 0; j < NV; ++j) ROW(v_vis, VIS, p)[j] = (REAL)0;
+#ifdef ALPHA_COPY
+    if (p < P) *ROW(v_alpha_dst, ALPHA, p) = v_alpha[p];
+#endif
+    __global const REAL* vl = (HAVE_VLIGHT && p < P) ? ROW(vlight, VL, p) : ABSENT;  /* vertex-SH row */
     REAL3 x = (REAL3)(0), V = (REAL3)(0), N = (REAL3)(0), v_o = (REAL3)(0);
     REAL sgn = (REAL)1, m[NMAT], v_m[NMAT];
     for (int j = 0; j < NMAT; ++j) m[j] = v_m[j] = (REAL)0;
@@ -243,8 +308,10 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
     REAL3 v_x = (REAL3)(0), v_V = (REAL3)(0), v_N = (REAL3)(0), v_rad = (REAL3)(0), v_wi = (REAL3)(0);
     __global REAL* part = v_light_part + (size_t)get_group_id(0) * T;
 
-    for (int li = 0; li < L; ++li) {
-        const int type = lt_i[4 * li], off = lt_i[4 * li + 1], a = lt_i[4 * li + 2], b = lt_i[4 * li + 3];
+#pragma unroll
+    for (int li = 0; li < NUM_LIGHTS; ++li) {
+        const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2],
+                  b = LIGHT_ROWS[4 * li + 3];
         __global const REAL* q = lt_f + off;
         const int shadowed = light_casts_shadows(type);
         if (light_term(type) == LIGHT_TERM_SH_ENV) {
@@ -296,18 +363,18 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
         for (int j = 0; j < RED_W; ++j) g[j] = (REAL)0;
         if (valid) {
             REAL3 v_L = (REAL3)(0), v_Li = (REAL3)(0), Lw, Li;
-            const REAL tv = (has_vis && shadowed) ? vis[p * NV + jv] : (REAL)1;
-            const int term = light_incident(type, a, q, x, vlight, p, tv, &Lw, &Li);
+            const REAL tv = (has_vis && shadowed) ? ROW(vis, VIS, p)[jv] : (REAL)1;
+            const int term = light_incident(type, a, q, x, vl, tv, &Lw, &Li);
             if (term == LIGHT_TERM_DIRECT)
                 brdf_direct_vjp(N, V, Lw, Li, m, v_o, &v_N, &v_V, &v_L, &v_Li, v_m);
             else if (term == LIGHT_TERM_AMBIENT)
                 ambient_term_vjp(N, V, Li, m, v_o, &v_N, &v_V, &v_Li, v_m);
             REAL v_tv = (REAL)0;
-            light_incident_vjp(type, a, q, x, vlight, p, tv, has_vis, v_L, v_Li, g, &v_x, &v_rad, &v_wi, &v_tv);
-            if (has_vis && shadowed) v_vis[p * NV + jv] = v_tv;
+            light_incident_vjp(type, a, q, x, vl, tv, has_vis, v_L, v_Li, g, &v_x, &v_rad, &v_wi, &v_tv);
+            if (has_vis && shadowed) ROW(v_vis, VIS, p)[jv] = v_tv;
         }
         jv += shadowed;
-        const int n = (li + 1 < L ? lt_i[4 * (li + 1) + 1] : T) - off;  /* this light's parameter count */
+        const int n = (li + 1 < NUM_LIGHTS ? LIGHT_ROWS[4 * (li + 1) + 1] : T) - off;  /* its parameter count */
         if (n > 0) group_sum_store(g, n, scratch, part + off);
     }
     if (has_refl && p < P) {
@@ -328,18 +395,19 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             const REAL3 v_c = safe_normalize_vjp(cam - x, v_V);
             v_x -= v_c;
             if (has_eye) STORE3(v_c, v_eye, p);
-            const REAL3 v_n = safe_normalize_vjp(LOAD3(nrm, p), sgn * v_N);
-            STORE3(v_x, v_pos, p);
-            STORE3(v_n, v_nrm, p);
+            const REAL3 v_n = safe_normalize_vjp(vload3(0, ROW(nrm, NRM, p)), sgn * v_N);
+            vstore3(v_x, 0, ROW(v_pos, POS, p));
+            vstore3(v_n, 0, ROW(v_nrm, NRM, p));
         } else {
-            STORE3((REAL3)(0), v_pos, p);
-            STORE3((REAL3)(0), v_nrm, p);
+            vstore3((REAL3)(0), 0, ROW(v_pos, POS, p));
+            vstore3((REAL3)(0), 0, ROW(v_nrm, NRM, p));
             if (has_eye) STORE3((REAL3)(0), v_eye, p);
         }
-        for (int j = 0; j < NMAT; ++j) v_mat[(size_t)p * NMAT + j] = v_m[j];
+        __global REAL* vm = ROW(v_mat, MAT, p);
+        for (int j = 0; j < NMAT; ++j) vm[j] = v_m[j];
         if (has_vlight) {
-            STORE3(v_rad, v_vlight, 2 * p);
-            STORE3(v_wi, v_vlight, 2 * p + 1);
+            vstore3(v_rad, 0, ROW(v_vlight, VL, p));
+            vstore3(v_wi, 1, ROW(v_vlight, VL, p));
         }
     }
 }

@@ -13,7 +13,8 @@
  * sigmoid(x) = 1 / (1 + exp(-x)),  softplus(x) = max(x, 0) + log1p(exp(-|x|))  (activations.py)
  * Adjoint (v_attr given): v_pos = v_attr[pos], v_nrm = v_attr[nrm] (to the normals' adjoint, done by
  * normals.cl; FACE_NRM: face_sum3 sums the three corners of a face), v_raw_j = v_mat_j y (1 - y)
- * (sigmoid) or v_mat_j sigmoid(raw_j) (softplus), v_alpha_raw = v_alpha y (1 - y), v_vlight.
+ * (sigmoid) or v_mat_j sigmoid(raw_j) (softplus), v_alpha_raw = v_alpha y (1 - y), v_vlight. The
+ * sigmoids y are read back from the forward's attr (the same values: no exp per channel again).
  * Defines: NMAT, SOFTPLUS_MASK, FACE_NRM, HAS_VLIGHT, HAS_CONST with NCONST (default 0).
  * One work-item per vertex (per face for face_sum3).
  */
@@ -73,8 +74,8 @@ __kernel void vertex_attr_fwd(__global const REAL* V,          // [N, 3]
 #endif
 }
 
-__kernel void vertex_attr_bwd(__global const REAL* mat_raw,    // [N, NMAT]
-                              __global const REAL* alpha_raw,  // [N]
+__kernel void vertex_attr_bwd(__global const REAL* mat_raw,    // [N, NMAT]  (read for softplus channels only)
+                              __global const REAL* attr,       // [N, ATTR_C] the forward's output
                               __global const REAL* v_attr,     // [N, ATTR_C]
                               const int N,
                               __global REAL* v_pos,            // [N, 3]
@@ -88,22 +89,22 @@ __kernel void vertex_attr_bwd(__global const REAL* mat_raw,    // [N, NMAT]
     const int i = get_global_id(0);
     if (i >= N) return;
     __global const REAL* g = v_attr + (long)i * ATTR_C;
+    __global const REAL* y = attr + (long)i * ATTR_C;
     for (int c = 0; c < 3; ++c) {
         v_pos[(long)i * 3 + c] = g[c];
         v_nrm[(long)i * 3 + c] = g[3 + c];
     }
     for (int j = 0; j < NMAT; ++j) {
-        const REAL r = mat_raw[(long)i * NMAT + j];
         REAL d;
         if ((SOFTPLUS_MASK >> j) & 1) {
-            d = va_sigmoid(r);
+            d = va_sigmoid(mat_raw[(long)i * NMAT + j]);
         } else {
-            const REAL y = va_sigmoid(r);
-            d = y * ((REAL)1 - y);
+            const REAL yj = y[6 + j];
+            d = yj * ((REAL)1 - yj);
         }
         v_mat_raw[(long)i * NMAT + j] = g[6 + j] * d;
     }
-    const REAL ya = va_sigmoid(alpha_raw[i]);
+    const REAL ya = y[6 + NMAT];
     v_alpha_raw[i] = g[6 + NMAT] * ya * ((REAL)1 - ya);
 #ifdef HAS_VLIGHT
     for (int c = 0; c < 6; ++c) v_vlight[(long)i * 6 + c] = g[7 + NMAT + c];

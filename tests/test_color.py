@@ -130,3 +130,23 @@ def test_sensor_clip_float64_central_differences(device64, rng):
     A[0, :2] = 0.3
     C[0, :2] = np.array([[0.2, 0.3, 1.5], [1.6, 0.1, 0.5]]) * 0.3  # straight u on both sides of 1
     _check_float64_differences(device64, rng, C, A, clip=True)
+
+
+@pytest.mark.parametrize("clip", [False, True])
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_kept_root_is_bit_for_bit(device, device64, rng, clip, real):
+    """The forward's roots (keep_root, what SRGBComposite keeps for its backward) change neither the image nor the
+    adjoint: the same bits as the pair without them (float32 and float64, with and without the clip)."""
+    dev = device64 if real == np.float64 else device
+    C, A = _clip_inputs(rng) if clip else _inputs(rng)
+    Cd, Ad = color._device_pair(dev, C, A, np.dtype(real))
+    v = color.to_device(dev.queue, rng.standard_normal(C.shape).astype(real))
+    plain = color.srgb_composite(dev, Cd, Ad, BG, clip=clip).get()
+    out, root = color.srgb_composite(dev, Cd, Ad, BG, clip=clip, keep_root=True)
+    assert np.array_equal(out.get(), plain)
+    u = C / np.maximum(A, color.ALPHA_EPS)[..., None]
+    r = root.get()
+    assert np.all(r[u <= 0.0031308] == 0) and np.allclose(r[u > 0.0031308], u[u > 0.0031308] ** (1 / 2.4), rtol=1e-5)
+    for a, b in zip(color.srgb_composite_backward(dev, Cd, Ad, BG, v, clip=clip),
+                    color.srgb_composite_backward(dev, Cd, Ad, BG, v, clip=clip, root=root), strict=True):
+        assert np.array_equal(a.get(), b.get())

@@ -63,6 +63,7 @@ def test_kernel_memo_by_defines(device):
     from triplet_cl.ops.common import kernel_params
 
     base = {"ENV_MAX_DEG": 2, "RED_W": 16, "HAS_VLIGHT": False, "HAS_VIS": False, "HAS_REFL": False,
+            "NUM_LIGHTS": 1, "LIGHT_TABLE": "0,0,0,0",  # one light (type 0 at offset 0): ops/shade.py _table_defines
             **get_brdf("cook_torrance").kernel_defines(), **kernel_defines()}
     a = device.kernel("shade", "shade_fwd", {**base, "HAS_EYE": False})
     b = device.kernel("shade", "shade_fwd", dict(reversed(list({**base, "HAS_EYE": False}.items()))))

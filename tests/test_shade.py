@@ -339,3 +339,48 @@ def test_validation(device):
         shade_backward(pos, nrm, mat, fid, CAM, [], np.zeros((3, 3)), device=device)
     assert shade(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 6)), np.zeros(0, np.int32), CAM, [],
                  device=device).shape == (0, 3)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+@pytest.mark.parametrize("kind", ["point", "mix"])
+@pytest.mark.parametrize("with_vis", [False, True])
+def test_packed_blocks_match_separate_arrays(device, rng, brdf, kind, with_vis):
+    """ShadeFragments' path: the inputs as column blocks of one packed [P, C] array (read in place, the adjoint
+    written into the blocks, the alpha block copied out and its adjoint copied in) give the bits of the separate
+    arrays (forward, every adjoint block, the light gradients), vertex-SH light and cached visibility included."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops import shade as shade_op
+
+    pos, nrm, mat, _, vlight = make_fragments(rng, brdf)
+    P = len(pos)
+    lights = make_lights(kind, rng)
+    table = pack_lights(lights)
+    nv = table.num_shadowed if with_vis else 0
+    vl = vlight if table.has_vertex_sh else None
+    vis = rng.uniform(0, 1, (P, nv))
+    alpha = rng.uniform(0, 1, (P, 1))
+    named = [("POS", pos), ("NRM", nrm), ("MAT", mat), ("ALPHA", alpha)] + ([("VL", vl)] if vl is not None else []) \
+        + ([("VIS", vis)] if nv else [])
+    offs = np.cumsum([0] + [a.shape[1] for _, a in named])
+    blocks = {n: (int(offs[i]), a.shape[1]) for i, (n, a) in enumerate(named)}
+    fa = np.concatenate([a for _, a in named], 1).astype(np.float32)
+    _, inp = shade_op.prepare(pos, nrm, mat, np.zeros(P, np.int32), CAM, lights, brdf=brdf, vlight=vl,
+                              device=device, vis=vis if nv else None)
+    q = device.queue
+    pinp = shade_op.packed_inputs(device, cla.to_device(q, fa), blocks, CAM, table, inp.lt_i, inp.lt_f, brdf, True,
+                                  np.float32)
+    rgb, a = shade_op.forward_packed(device, pinp)
+    assert np.array_equal(rgb.get(), shade_op.forward(device, inp).get())
+    assert np.array_equal(a.get(), fa[:, blocks["ALPHA"][0]])
+    v_rgb = cla.to_device(q, rng.standard_normal((P, 3)).astype(np.float32))
+    v_a = cla.to_device(q, rng.standard_normal(P).astype(np.float32))
+    v_fa, v_par = shade_op.backward_packed(device, pinp, v_rgb, v_a)
+    g = shade_op.backward(device, inp, v_rgb)
+    v_fa = v_fa.get()
+    for n, arr in (("POS", g.v_pos), ("NRM", g.v_nrm), ("MAT", g.v_mat), ("VL", g.v_vlight), ("VIS", g.v_vis)):
+        if n in blocks:
+            c0, w = blocks[n]
+            assert np.array_equal(v_fa[:, c0:c0 + w], arr.get()), n
+    assert np.array_equal(v_fa[:, blocks["ALPHA"][0]], v_a.get())
+    assert np.array_equal(v_par, g.v_light_params) and np.abs(v_par).max() > 0

@@ -444,6 +444,11 @@ def _cl_device(arr):
     raise ValueError("pred must live in the context of a triplet_cl Device (get_device()) for backend='opencl'")
 
 
+def _ch_defines(c: int) -> dict | None:
+    """``CH3`` for three channels: losses.cl takes a pixel's channels as one vector (the same bits)."""
+    return {"CH3": True} if c == 3 else None
+
+
 def _cl_scratch(dev, dtype, shape):
     key = (dev.ctx, np.dtype(dtype), tuple(shape))
     sc = _CL_SCRATCH.get(key)
@@ -481,14 +486,17 @@ def _cl_photometric_fwd(ctx, pred, target, lam, padding):
     d = cla.empty(dev.queue, (4 * pred.size,), pred.dtype) if with_ssim else tmp  # placeholder when unused
     gsize = (w, h)
     if with_ssim:
-        dev.kernel("losses", "photometric_h_fwd", real=pred.dtype)(
+        dev.kernel("losses", "photometric_h_fwd", _ch_defines(c), real=pred.dtype)(
             dev.queue, gsize, None, pred.data, target.data, window.data, np.int32(h), np.int32(w), np.int32(c),
             tmp.data)
-    dev.kernel("losses", "photometric_v_fwd", real=pred.dtype)(
+    dev.kernel("losses", "photometric_v_fwd", _ch_defines(c), real=pred.dtype)(
         dev.queue, gsize, None, pred.data, target.data, tmp.data, window.data, np.int32(h), np.int32(w),
         np.int32(c), real(lam), np.int32(with_ssim), np.int32(border), real(1.0 / count), term.data, d.data)
     ctx.dev, ctx.lam, ctx.with_ssim, ctx.saved_cl = dev, lam, with_ssim, (pred, target, d)
-    return np.asarray(lam + float(cla.sum(term, dtype=np.float64).get()))
+    # the [H, W, C] terms summed in float64 on the host: download + numpy's pairwise sum measured 4x faster than
+    # pyopencl's float64 reduction on PoCL (200²: 0.25 -> 0.06 ms, 800²: 4.2 -> 1.1 ms); the same float64 sum of
+    # the same float32 terms up to the summation order (the value only: the adjoint seeds with v, not with it)
+    return np.asarray(lam + float(term.get().sum(dtype=np.float64)))
 
 
 def _cl_photometric_bwd(ctx, v):
@@ -502,9 +510,9 @@ def _cl_photometric_bwd(ctx, v):
     v_pred = cla.empty_like(pred)
     v_target = cla.empty_like(pred) if want_t else v_pred
     if ctx.with_ssim:
-        dev.kernel("losses", "photometric_h_bwd", real=pred.dtype)(
+        dev.kernel("losses", "photometric_h_bwd", _ch_defines(c), real=pred.dtype)(
             dev.queue, (w, h), None, d.data, window.data, np.int32(h), np.int32(w), np.int32(c), tmp2.data)
-    dev.kernel("losses", "photometric_v_bwd", real=pred.dtype)(
+    dev.kernel("losses", "photometric_v_bwd", _ch_defines(c), real=pred.dtype)(
         dev.queue, (w, h), None, pred.data, target.data, tmp2.data, window.data, np.int32(h), np.int32(w),
         np.int32(c), real(lam), np.int32(ctx.with_ssim), real(float(v)), np.int32(want_t), v_pred.data,
         v_target.data)

@@ -39,6 +39,7 @@ from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
 from .autodiff import Function, Tape, Variable, active_tape, to_host
 from .camera import Camera
 from .device import Device, get_device
+from .lights import pack_lights
 from .materials import get_brdf
 from .ops import columns
 from .ops import normals as normals_op
@@ -281,14 +282,16 @@ class VertexAttributes(Function):
         ctx.has_vl = bool(vl)
         cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
         ctx.nconst = 0 if cst is None else cst.shape[1]
-        return vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real, const=cst)
+        ctx.attr = vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real,
+                                        const=cst)
+        return ctx.attr
 
     def backward(self, ctx, v_attr):
         v, s = self.view, self.view.settings
         d, m, real = v.device, v.mesh, s.real
         if not isinstance(v_attr, cla.Array) or v_attr.dtype != real:
             v_attr = cla.to_device(d.queue, np.ascontiguousarray(to_host(v_attr), real))
-        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.alpha, v_attr,
+        v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.attr, v_attr,
                                                                              self.softplus, ctx.has_vl, real,
                                                                              ctx.nconst)
         if ctx.face:
@@ -353,8 +356,14 @@ class ShadeFragments(Function):
     """``(frag_attr [P, C][, light_params]) → (rgb [P, 3], alpha [P])``.
 
     The fragments are packed (``[P, C]``), so shading and its adjoint cost per fragment; the shading
-    inputs are column blocks of the packed attribute array (``ops.columns.Compaction``).
+    inputs are column blocks of the packed attribute array, read in place by the shading kernels, and the
+    adjoint is written into the blocks of ``v_frag_attr`` by them (``ops.shade.forward_packed`` /
+    ``backward_packed``: no per-block copies; :class:`TracedShadeFragments` splits the blocks out with
+    ``ops.columns``, as this op did before).
     """
+
+    #: the layout's blocks by their names in shade.cl
+    PACKED_BLOCKS = {"pos": "POS", "nrm": "NRM", "mat": "MAT", "vlight": "VL", "vis": "VIS", "alpha": "ALPHA"}
 
     def __init__(self, view: RenderState, lights, brdf: str, layout: dict):
         self.view, self.lights, self.brdf, self.layout = view, list(lights), brdf, layout
@@ -390,28 +399,30 @@ class ShadeFragments(Function):
         return rgb, alpha.reshape(P)
 
     def forward(self, ctx, fa, *rest):
-        d = self.view.device
-        comp = columns.Compaction(d, self.view.frags)
-        face_id = cla.zeros(d.queue, max(comp.P, 1), np.int32, allocator=d.allocator)[: comp.P]
-        blk = self._blocks(comp, fa, ("pos", "nrm", "mat", "vlight", "alpha", "vis"))  # one pass, alpha included
-        inp = self._prepare(blk, face_id, rest[0] if rest else None)
-        return self._outputs(ctx, comp, inp, fa, len(rest), alpha=blk["alpha"])
+        v, s = self.view, self.view.settings
+        d, P = v.device, v.frags.P
+        table = pack_lights(self.lights)
+        lt_i = table.ints if len(table.ints) else np.zeros((1, 4), np.int32)
+        params = rest[0] if rest and len(table.params) else table.params
+        lt_f = np.asarray(params, s.real) if len(table.params) else np.zeros(1, s.real)
+        blocks = {self.PACKED_BLOCKS[k]: self.layout[k] for k in self.PACKED_BLOCKS if k in self.layout}
+        if fa.shape != (P, sum(n for _, n in self.layout.values())) or not fa.flags.c_contiguous:
+            fa = cla.to_device(d.queue, np.ascontiguousarray(to_host(fa), s.real))
+        inp = shade_op.packed_inputs(d, fa, blocks, v.camera.center, table, cla.to_device(d.queue, lt_i),
+                                     cla.to_device(d.queue, np.ascontiguousarray(lt_f)), self.brdf, s.two_sided,
+                                     s.real)
+        rgb, alpha = shade_op.forward_packed(d, inp)
+        ctx.inp, ctx.n_rest = inp, len(rest)
+        return rgb, alpha
 
     def backward(self, ctx, v_rgb, v_alpha):
         d, fr = self.view.device, self.view.frags
         P = fr.P
-        L = self.layout
         v_rgb = _as_device(d, v_rgb, (P, 3), fr.real)
-        g = shade_op.backward(d, ctx.inp, v_rgb)
-        v_vis = g.v_vis
-        v_pos, v_nrm, v_mat, v_vl, v_params = g.v_pos, g.v_nrm, g.v_mat, g.v_vlight, g.v_light_params
-        v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
-        # every column of the layout, in one pass over the fragments; the cached visibility's per-vertex values
+        # every column of the layout in the shading adjoint's one pass; the cached visibility's per-vertex values
         # are constants, but their interpolation moves with the barycentrics (V): its adjoint goes back too
-        parts = [(gk, L[key][0]) for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl),
-                                                 ("alpha", v_alpha.reshape(P, 1)), ("vis", v_vis)) if key in L]
-        columns.merge_columns(d, fr, parts, v_fa)
+        v_fa, v_params = shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha)
         return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
 
 

@@ -11,7 +11,7 @@
  *     directional (d, I):          L = safe_normalize(d),  Li = I T
  *     point (q, I, falloff a):     w = q - x, L = safe_normalize(w), sc = a ? 1 / max(|w|^2, 1e-6) : 1,
  *                                  Li = I (sc T)
- *     vertex SH (vlight[p]):       L = safe_normalize(wi), Li = rad  (per-fragment rad, wi)
+ *     vertex SH (vl = the fragment's row rad | wi):  L = safe_normalize(wi), Li = rad
  *   LIGHT_TERM_AMBIENT  constant radiance Li from every direction -> ambient_term(N, V, Li, m)
  *     ambient (La):                Li = La
  *   LIGHT_TERM_SH_ENV   SH radiance c [3, b], active degree a -> env_term (shade_brdf.h)
@@ -65,10 +65,10 @@ inline int light_term(const int type)
     return LIGHT_TERM_NONE;
 }
 
-/* The light's term at a fragment at x (p: its index, for per-fragment lights); tv: transmittance
- * towards it (1 without shadows). Fills L, Li for LIGHT_TERM_DIRECT, Li for LIGHT_TERM_AMBIENT. */
+/* The light's term at a fragment at x (vl: the fragment's row of a per-fragment light, rad | wi); tv:
+ * transmittance towards it (1 without shadows). Fills L, Li for LIGHT_TERM_DIRECT, Li for LIGHT_TERM_AMBIENT. */
 inline int light_incident(const int type, const int a, __global const REAL* q, const REAL3 x,
-                          __global const REAL* vlight, const int p, const REAL tv, REAL3* L, REAL3* Li)
+                          __global const REAL* vl, const REAL tv, REAL3* L, REAL3* Li)
 {
     if (type == LIGHT_AMBIENT) {
         *Li = LIGHT_RGB(q, 0);
@@ -81,8 +81,8 @@ inline int light_incident(const int type, const int a, __global const REAL* q, c
         *L = safe_normalize(w);
         *Li = LIGHT_RGB(q, 3) * (sc * tv);
     } else if (type == LIGHT_VERTEX_SH) {
-        *L = safe_normalize(LIGHT_RGB(vlight, 6 * p + 3));
-        *Li = LIGHT_RGB(vlight, 6 * p);
+        *L = safe_normalize(LIGHT_RGB(vl, 3));
+        *Li = LIGHT_RGB(vl, 0);
     }
     return light_term(type);
 }
@@ -90,7 +90,7 @@ inline int light_incident(const int type, const int a, __global const REAL* q, c
 /* Adjoint of light_incident for v_L, v_Li: the light's parameter gradients g[0..n),
  * v_x (shaded point), v_rad / v_wi (vlight), and with has_vis the transmittance's v_tv. */
 inline void light_incident_vjp(const int type, const int a, __global const REAL* q, const REAL3 x,
-                               __global const REAL* vlight, const int p, const REAL tv, const int has_vis,
+                               __global const REAL* vl, const REAL tv, const int has_vis,
                                const REAL3 v_L, REAL3 v_Li, REAL* g, REAL3* v_x, REAL3* v_rad, REAL3* v_wi,
                                REAL* v_tv)
 {
@@ -131,7 +131,7 @@ inline void light_incident_vjp(const int type, const int a, __global const REAL*
         g[5] = v_Li.z * sc;
     } else if (type == LIGHT_VERTEX_SH) {
         *v_rad += v_Li;
-        *v_wi += safe_normalize_vjp(LIGHT_RGB(vlight, 6 * p + 3), v_L);
+        *v_wi += safe_normalize_vjp(LIGHT_RGB(vl, 3), v_L);
     }
 }
 

@@ -47,35 +47,46 @@ def _defines(clip: bool) -> dict | None:
 
 
 def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALPHA_EPS,
-                   clip: bool = False) -> cla.Array:
+                   clip: bool = False, keep_root: bool = False):
     """``out [..., 3]`` (device) of linear premultiplied ``C [..., 3]`` and alpha ``A [...]`` over ``bg``; ``clip``:
-    the encoded colour saturates at 1 (a photo's sensor / 8-bit range, ``color.cl``'s ``SRGB_CLIP``)."""
+    the encoded colour saturates at 1 (a photo's sensor / 8-bit range, ``color.cl``'s ``SRGB_CLIP``).
+    ``keep_root``: returns ``(out, root)``, ``root [..., 3]`` the per-channel roots ``u^(1/2.4)`` that
+    :func:`srgb_composite_backward` takes back (``color.cl``'s ``KEEP_ROOT``: no exp2/log2 in the adjoint)."""
     n = _check_pair(C, A)
     real = C.dtype
     out = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator)
+    root = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator) if keep_root else None
     if n:
         t = real.type
         g, loc = grid_1d(n)
-        dev.kernel("color", "srgb_composite_fwd", defines=_defines(clip), real=real)(
-            dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n), out.data)
-    return out
+        defines = {**(_defines(clip) or {}), "KEEP_ROOT": keep_root}
+        dev.kernel("color", "srgb_composite_fwd", defines=defines, real=real)(
+            dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n),
+            *((root.data,) if keep_root else ()), out.data)
+    return (out, root) if keep_root else out
 
 
 def srgb_composite_backward(dev: Device, C: cla.Array, A: cla.Array, bg, v_out: cla.Array,
-                            eps: float = ALPHA_EPS, clip: bool = False) -> tuple[cla.Array, cla.Array]:
-    """``(v_C [..., 3], v_A [...])`` (device) of the cotangent ``v_out [..., 3]``."""
+                            eps: float = ALPHA_EPS, clip: bool = False,
+                            root: cla.Array | None = None) -> tuple[cla.Array, cla.Array]:
+    """``(v_C [..., 3], v_A [...])`` (device) of the cotangent ``v_out [..., 3]``; ``root``: the forward's roots
+    (:func:`srgb_composite` with ``keep_root``), read instead of computed (the same result, bit for bit)."""
     n = _check_pair(C, A)
     if tuple(v_out.shape) != tuple(C.shape):
         raise ValueError(f"v_out must have shape {list(C.shape)}, got {list(v_out.shape)}")
+    if root is not None and (tuple(root.shape) != tuple(C.shape) or root.dtype != C.dtype):
+        raise ValueError(f"root must have shape {list(C.shape)} and dtype {C.dtype}, got {list(root.shape)} "
+                         f"{root.dtype}")
     real = C.dtype
     v_C = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator)
     v_A = cla.empty(dev.queue, A.shape, real, allocator=dev.allocator)
     if n:
         t = real.type
         g, loc = grid_1d(n)
-        dev.kernel("color", "srgb_composite_bwd", defines=_defines(clip), real=real)(
+        defines = {**(_defines(clip) or {}), "HAS_ROOT": root is not None}
+        dev.kernel("color", "srgb_composite_bwd", defines=defines, real=real)(
             dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n),
-            v_out.astype(real).data, v_C.data, v_A.data)
+            v_out.astype(real).data, *((root.data,) if root is not None else ()), v_C.data, v_A.data)
     return v_C, v_A
 
 
@@ -114,13 +125,14 @@ class SRGBComposite(Function):
     def forward(self, ctx, C, A):
         Cd, Ad = _device_pair(self.device, C, A, self.real)
         ctx.C, ctx.A = Cd, Ad
-        return srgb_composite(self.device, Cd, Ad, self.bg, self.eps, self.clip)
+        out, ctx.root = srgb_composite(self.device, Cd, Ad, self.bg, self.eps, self.clip, keep_root=True)
+        return out
 
     def backward(self, ctx, v_out):
         if not isinstance(v_out, cla.Array):
             v_out = np.broadcast_to(np.asarray(v_out, self.real), ctx.C.shape)
             v_out = cla.to_device(self.device.queue, np.ascontiguousarray(v_out))
-        return srgb_composite_backward(self.device, ctx.C, ctx.A, self.bg, v_out, self.eps, self.clip)
+        return srgb_composite_backward(self.device, ctx.C, ctx.A, self.bg, v_out, self.eps, self.clip, root=ctx.root)
 
 
 def srgb_encode(x) -> np.ndarray:

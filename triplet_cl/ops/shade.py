@@ -53,7 +53,7 @@ class ShadeInputs:
     pos: cla.Array  # [P, 3]
     nrm: cla.Array  # [P, 3]
     mat: cla.Array  # [P, C]
-    face_id: cla.Array  # [P] int32
+    face_id: cla.Array | None  # [P] int32 (None: every row is a fragment, the packed path)
     vlight: cla.Array | None  # [P, 6]
     cam: np.ndarray  # [3]
     table: LightTable
@@ -66,10 +66,20 @@ class ShadeInputs:
     vis: cla.Array | None = None  # [P, NV] transmittance towards each point/directional light
     refl: cla.Array | None = None  # [P, 3] radiance along the mirror direction (reflection bounce)
     eye: cla.Array | None = None  # [P, 3] per-fragment viewpoint replacing cam
+    #: the packed path (:func:`packed_inputs`): pos, nrm, mat (, vlight, vis) are the same ``[P, C]`` array of
+    #: packed fragment attributes, ``{"POS" | "NRM" | "MAT" | "VL" | "VIS" | "ALPHA": (first column, width)}``
+    blocks: dict | None = None
 
     @property
     def P(self) -> int:
         return self.pos.shape[0]
+
+    @property
+    def NV(self) -> int:
+        """Columns of vis (shadowed lights)."""
+        if self.vis is None:
+            return 0
+        return self.blocks["VIS"][1] if self.blocks is not None else self.vis.shape[1]
 
 
 @dataclass
@@ -100,27 +110,52 @@ class ShadeAdjoints:
 
 
 def _optional(inp: ShadeInputs) -> dict[str, bool]:
-    """Which optional inputs the call has: the ``HAS_*`` defines of ``shade.cl``."""
-    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.vis.shape[1] > 0,
-            "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None}
+    """Which optional inputs the call has: the ``HAS_*`` defines of ``shade.cl`` (and ``ALL_VALID`` without
+    face ids)."""
+    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.NV > 0,
+            "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None, "ALL_VALID": inp.face_id is None}
+
+
+def _layout_defines(inp: ShadeInputs) -> dict:
+    """The packed path's row layout (shade.cl ``X_LD`` / ``X_OFF``, ``ALPHA_COPY``); nothing otherwise."""
+    if inp.blocks is None:
+        return {}
+    ld = inp.pos.shape[1]
+    out = {}
+    for key, (c0, _) in inp.blocks.items():
+        out[f"{key}_LD"], out[f"{key}_OFF"] = ld, c0
+    out["ALPHA_COPY"] = "ALPHA" in inp.blocks
+    return out
+
+
+def _table_defines(table: LightTable) -> dict:
+    """``NUM_LIGHTS`` and ``LIGHT_TABLE`` (the rows of ``table.ints`` flattened): shade.cl compiles the light
+    table's structure in (its loop over the lights unrolls, each light's branches fold); the parameters stay
+    a buffer. One placeholder row without lights (a C array is never empty)."""
+    rows = np.asarray(table.ints, np.int64).reshape(-1, 4)
+    flat = rows.reshape(-1) if len(rows) else np.zeros(4, np.int64)
+    return {"NUM_LIGHTS": len(rows), "LIGHT_TABLE": ",".join(str(int(v)) for v in flat)}
 
 
 def _defines(inp: ShadeInputs) -> dict:
-    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`)."""
+    """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`; the light
+    table's structure: :func:`_table_defines`)."""
     return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp),
-            **get_brdf(inp.brdf).kernel_defines(), **kernel_defines()}
+            **_layout_defines(inp), **_table_defines(inp.table), **get_brdf(inp.brdf).kernel_defines(),
+            **kernel_defines()}
 
 
 def _inputs(inp: ShadeInputs) -> dict:
     """The kernels' input arguments by name (the optional ones only when present)."""
     has = _optional(inp)
-    args = dict(pos=inp.pos, nrm=inp.nrm, mat=inp.mat, face_id=inp.face_id, P=inp.P, cx=inp.cam[0],
-                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_i=inp.lt_i, lt_f=inp.lt_f,
-                L=len(inp.table.ints))
+    args = dict(pos=inp.pos, nrm=inp.nrm, mat=inp.mat, P=inp.P, cx=inp.cam[0],
+                cy=inp.cam[1], cz=inp.cam[2], two_sided=int(inp.two_sided), lt_f=inp.lt_f)
+    if inp.face_id is not None:
+        args["face_id"] = inp.face_id
     if has["HAS_VLIGHT"]:
         args["vlight"] = inp.vlight
     if has["HAS_VIS"]:
-        args.update(NV=inp.vis.shape[1], vis=inp.vis)
+        args.update(NV=inp.NV, vis=inp.vis)
     if has["HAS_REFL"]:
         args["refl"] = inp.refl
     if has["HAS_EYE"]:
@@ -148,29 +183,101 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
                         empty(q, inp.vis.shape, real) if inp.vis is not None else None,
                         empty(q, (P, 3), real) if inp.refl is not None else None,
                         empty(q, (P, 3), real) if inp.eye is not None else None)
+    outs = dict(v_pos=out.v_pos, v_nrm=out.v_nrm, v_mat=out.v_mat)
+    if has["HAS_VLIGHT"]:
+        outs["v_vlight"] = out.v_vlight
+    if has["HAS_VIS"]:
+        outs["v_vis"] = out.v_vis
+    if has["HAS_REFL"]:
+        outs["v_refl"] = out.v_refl
+    if has["HAS_EYE"]:
+        outs["v_eye"] = out.v_eye
+    out.v_light_params = _launch_backward(dev, inp, v_rgb, outs)
+    return out
+
+
+def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict, extra: dict | None = None):
+    """Run ``shade_bwd`` with the adjoint outputs ``outs`` (and ``extra`` arguments); returns the light
+    parameters' gradient ``[T]`` (float64, the per-work-group partials summed on the host)."""
+    q, P, real = dev.queue, inp.P, inp.real
+    T = len(inp.table.params)
+    v_params = np.zeros(T)
     groups = round_up(P, LOCAL_SIZE) // LOCAL_SIZE
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
-        outs = dict(v_pos=out.v_pos, v_nrm=out.v_nrm, v_mat=out.v_mat)
-        if has["HAS_VLIGHT"]:
-            outs["v_vlight"] = out.v_vlight
-        if has["HAS_VIS"]:
-            outs["v_vis"] = out.v_vis
-        if has["HAS_REFL"]:
-            outs["v_refl"] = out.v_refl
-        if has["HAS_EYE"]:
-            outs["v_eye"] = out.v_eye
         launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
-               **_inputs(inp), **outs, T=T, v_rgb=v_rgb, v_light_part=part,
+               **_inputs(inp), **outs, **(extra or {}), T=T, v_rgb=v_rgb, v_light_part=part,
                scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
         # only the active parameters: the kernel writes no partial for an inactive one (an SH environment's bands
         # above its active degree), whose column holds whatever the buffer held (a NaN there warned in the sum)
-        # (out.v_light_params starts at zero: an inactive parameter's gradient stays 0)
+        # (an inactive parameter's gradient stays 0)
         active = np.ones(T, bool)
         active[inp.table.inactive] = False
-        out.v_light_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
-    return out
+        v_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
+    return v_params
+
+
+# ---- the packed path -------------------------------------------------------------------------
+
+
+def _pooled(dev: Device, shape, real) -> cla.Array:
+    """A device array from the device's pool (a training step's shapes recur); ``P = 0`` rows allowed."""
+    return cla.empty(dev.queue, (max(shape[0], 1),) + tuple(shape[1:]), real, allocator=dev.allocator)[:shape[0]]
+
+
+def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTable, lt_i: cla.Array,
+                  lt_f: cla.Array, brdf: str, two_sided: bool, real) -> ShadeInputs:
+    """Shading inputs that are column blocks of the packed fragment attributes ``fa [P, C]`` (every row a
+    fragment): ``blocks`` maps ``"POS"``, ``"NRM"``, ``"MAT"`` (and ``"VL"``, ``"VIS"``, ``"ALPHA"``) to
+    ``(first column, width)``. :func:`forward_packed` / :func:`backward_packed` read and write the blocks in
+    place (no per-block copies: ``ops.columns.split_columns`` / ``merge_columns`` are what they replace)."""
+    C = get_brdf(brdf).num_channels
+    want = {"POS": 3, "NRM": 3, "MAT": C, "VL": 6, "ALPHA": 1}
+    if fa.ndim != 2 or not fa.flags.c_contiguous or fa.dtype != np.dtype(real):
+        raise ValueError(f"fa must be a C-contiguous [P, C] array of {np.dtype(real)}, got {list(fa.shape)} {fa.dtype}")
+    for key, (c0, n) in blocks.items():
+        if key not in want and key != "VIS":
+            raise ValueError(f"unknown block {key!r}")
+        if (key in want and n != want[key]) or c0 < 0 or c0 + n > fa.shape[1]:
+            raise ValueError(f"block {key} = {(c0, n)} does not fit the {fa.shape[1]} columns (width {want.get(key)})")
+    if any(k not in blocks for k in ("POS", "NRM", "MAT")) or (table.has_vertex_sh != ("VL" in blocks)):
+        raise ValueError(f"blocks must hold POS, NRM, MAT (and VL with a VertexSHLight), got {sorted(blocks)}")
+    if "VIS" in blocks and blocks["VIS"][1] != table.num_shadowed:
+        raise ValueError(f"the VIS block must have {table.num_shadowed} columns (shadowed lights)")
+    return ShadeInputs(fa, fa, fa, None, fa if "VL" in blocks else None, check_cam(cam), table, lt_i, lt_f, brdf,
+                       bool(two_sided), real, vis=fa if "VIS" in blocks else None, blocks=dict(blocks))
+
+
+def forward_packed(dev: Device, inp: ShadeInputs) -> tuple[cla.Array, cla.Array | None]:
+    """``(rgb [P, 3], alpha [P] or None)`` of packed inputs (:func:`packed_inputs`): the shading of
+    :func:`forward`, and the alpha block copied out in the same pass (what the compositing reads)."""
+    P = inp.P
+    rgb = _pooled(dev, (P, 3), inp.real)
+    alpha = _pooled(dev, (P,), inp.real) if "ALPHA" in inp.blocks else None
+    if P:
+        extra = dict(alpha_src=inp.pos, alpha=alpha) if alpha is not None else {}
+        launch(dev, "shade", "shade_fwd", (round_up(P, LOCAL_SIZE),), (LOCAL_SIZE,), defines=_defines(inp),
+               real=inp.real, **_inputs(inp), **extra, rgb=rgb)
+    return rgb, alpha
+
+
+def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cla.Array | None = None):
+    """``(v_fa [P, C], v_light_params [T] numpy)``: the adjoint of :func:`forward_packed`, written straight into
+    the blocks of the attributes' adjoint (``v_alpha [P]`` into the alpha block; a column outside every block is
+    not written)."""
+    v_fa = _pooled(dev, inp.pos.shape, inp.real)
+    extra = {}
+    if "ALPHA" in inp.blocks:
+        if v_alpha is None:
+            raise ValueError("v_alpha [P] is required with an ALPHA block")
+        extra = dict(v_alpha=v_alpha, v_alpha_dst=v_fa)
+    outs = dict(v_pos=v_fa, v_nrm=v_fa, v_mat=v_fa)
+    if inp.vlight is not None:
+        outs["v_vlight"] = v_fa
+    if inp.vis is not None:
+        outs["v_vis"] = v_fa
+    return v_fa, _launch_backward(dev, inp, v_rgb, outs, extra)
 
 
 # ---- validation ------------------------------------------------------------------------------

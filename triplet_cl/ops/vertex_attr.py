@@ -70,25 +70,29 @@ def vertex_attr(dev: Device, V: cla.Array, nrm: cla.Array, mat_raw: cla.Array, a
     return attr
 
 
-def vertex_attr_backward(dev: Device, mat_raw: cla.Array, alpha_raw: cla.Array, v_attr: cla.Array, softplus_cols,
+def vertex_attr_backward(dev: Device, mat_raw: cla.Array, attr: cla.Array, v_attr: cla.Array, softplus_cols,
                          has_vlight: bool, real=np.float32, nconst: int = 0):
     """Adjoint of :func:`vertex_attr` for ``v_attr [N, C]`` (device): ``(v_pos [N, 3], v_nrm [N, 3],
     v_mat_raw [N, Cm], v_alpha_raw [N], v_vlight [N, 6] or None)``, device arrays (``v_nrm`` per
     vertex: :func:`face_sum3` gives the per-face adjoint of a soup's face normals); the ``nconst``
-    constant columns have none."""
+    constant columns have none. ``attr [N, C]`` is the forward's output (:func:`vertex_attr` of the
+    same ``mat_raw``): the sigmoids' derivatives come from its values."""
     N, nmat = mat_raw.shape
     C = num_channels(nmat, has_vlight, nconst)
-    if v_attr.shape != (N, C) or v_attr.dtype != np.dtype(real):
-        raise ValueError(f"v_attr must be [{N}, {C}] {np.dtype(real)}, got {list(v_attr.shape)} {v_attr.dtype}")
+    for name, a in (("v_attr", v_attr), ("attr", attr)):
+        if a.shape != (N, C) or a.dtype != np.dtype(real):
+            raise ValueError(f"{name} must be [{N}, {C}] {np.dtype(real)}, got {list(a.shape)} {a.dtype}")
     if not v_attr.flags.c_contiguous:
         v_attr = v_attr.copy()
+    if not attr.flags.c_contiguous:
+        attr = attr.copy()
     out = dict(v_pos=_empty(dev, (N, 3), real), v_nrm=_empty(dev, (N, 3), real), v_mat_raw=_empty(dev, (N, nmat), real),
                v_alpha_raw=_empty(dev, (N,), real))
     if has_vlight:
         out["v_vlight"] = _empty(dev, (N, 6), real)
     launch(dev, "vertex_attr", "vertex_attr_bwd", *grid_1d(N), defines=attr_defines(nmat, softplus_cols, False,
                                                                                       has_vlight, nconst),
-           real=real, mat_raw=mat_raw, alpha_raw=alpha_raw, v_attr=v_attr, N=N, **out)
+           real=real, mat_raw=mat_raw, attr=attr, v_attr=v_attr, N=N, **out)
     return out["v_pos"], out["v_nrm"], out["v_mat_raw"], out["v_alpha_raw"], out.get("v_vlight")
 
 
