@@ -121,6 +121,8 @@ def _config_from_args(args: argparse.Namespace):
         cfg = replace(cfg, white_light=args.white_light)
     if getattr(args, "light_phase_lobes", None):
         cfg = replace(cfg, light_phase_lobes=args.light_phase_lobes)
+    if getattr(args, "blinn_phong_ka", None):
+        cfg = replace(cfg, blinn_phong_ka=args.blinn_phong_ka)
     if getattr(args, "light_phase", None) is not None:  # after --iterations: the value given, not scaled
         cfg = replace(cfg, material_tie_until=args.light_phase)
     return cfg
@@ -531,6 +533,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--light-phase-lobes", choices=["held", "tied"], help="roughness and metallic during the light "
                    "phase: held (default) at their initial values while their per-vertex gradients build Adam's "
                    "moments, then per vertex; tied: one learning value, as the albedo (runs before 2026-11-26)")
+    t.add_argument("--blinn-phong-ka", choices=["diffuse", "free"], help="with --brdf blinn-phong: diffuse (default) "
+                   "keeps the ambient reflectance ka equal to kd (one reflectance under the point and the ambient "
+                   "light, as Cook-Torrance's albedo); free: ka its own channel (runs before 2026-11-26)")
     t.add_argument("--white-light", choices=["each", "total", "off"], help="each (default): every light stays white "
                    "(its brightness learned; the photos' colours go to the albedo); total: the lights together white "
                    "at the scene centre, their colours relative to each other free; off: the lights may take any tint")

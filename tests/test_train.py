@@ -512,3 +512,45 @@ def test_light_phase_lobes_held_or_tied(tmp_path):
     old = TrainConfig().to_dict()
     del old["light_phase_lobes"]
     assert TrainConfig.from_dict(old).light_phase_lobes == "tied"
+
+
+def test_blinn_phong_ambient_reflectance_is_the_diffuse_one(tmp_path):
+    """``TrainConfig.blinn_phong_ka``: "diffuse" (the default) keeps Blinn-Phong's ka equal to kd (raw values, both
+    sigmoids) from the first step: the ambient columns' gradient goes to kd, whose step both share (what
+    Cook-Torrance's albedo does for its ambient term). "free" leaves ka its own channel (runs before 2026-11-26). The
+    shared step is the gradient of the tied parameterisation: kd's gradient plus ka's."""
+    from autodiff import Param
+    from triplet_cl.materials import ambient_pairs, copy_ambient, tie_ambient_gradient
+
+    assert ambient_pairs("cook_torrance") == ([], [])
+    kd, ka = ambient_pairs("blinn_phong")
+    assert kd == [0, 1, 2] and ka == [7, 8, 9]
+    p = Param(np.zeros((2, 10)), "material")
+    p.grad = np.arange(20, dtype=np.float64).reshape(2, 10)
+    tie_ambient_gradient(p, (kd, ka))
+    np.testing.assert_array_equal(p.grad[:, kd], np.array([[7, 9, 11], [27, 29, 31]]))
+    assert not p.grad[:, ka].any() and p.grad[0, 5] == 5
+    p.data[:, kd] = 0.3
+    copy_ambient(p, (kd, ka))
+    np.testing.assert_array_equal(p.data[:, ka], 0.3)
+
+    cfg = small_cfg(iterations=14, brdf="blinn_phong", density=replace(small_cfg().density, densify_from=100))
+    assert cfg.blinn_phong_ka == "diffuse"
+    tr = Trainer(DEMO, tmp_path / "diffuse", cfg, quiet=True)
+    m = np.asarray(tr.scene.material.data)
+    np.testing.assert_array_equal(m[:, ka], m[:, kd])
+    for _ in range(14):
+        tr.step()
+    m = np.asarray(tr.scene.material.data)
+    np.testing.assert_array_equal(m[:, ka], m[:, kd])
+    assert np.ptp(m[:, kd], axis=0).min() > 0  # per vertex after the light phase, and ka with it
+    tr = Trainer(DEMO, tmp_path / "free", replace(cfg, blinn_phong_ka="free"), quiet=True)
+    for _ in range(14):
+        tr.step()
+    m = np.asarray(tr.scene.material.data)
+    assert np.abs(m[:, ka] - m[:, kd]).max() > 0.1
+    with pytest.raises(ValueError, match="blinn_phong_ka"):
+        TrainConfig(blinn_phong_ka="tied").validate()
+    old = TrainConfig().to_dict()
+    del old["blinn_phong_ka"]
+    assert TrainConfig.from_dict(old).blinn_phong_ka == "free"

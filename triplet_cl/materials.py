@@ -185,6 +185,34 @@ BLINN_PHONG = BRDF(
     gltf_extras={"roughness": "(2 / (shininess + 3))^(1/4)"},
 )
 
+def ambient_pairs(brdf: BRDF | str) -> tuple[list[int], list[int]]:
+    """``(diffuse columns, ambient columns)`` of a BRDF with its own ambient reflectance (Blinn-Phong's ``ka`` beside
+    ``kd``), or two empty lists (Cook-Torrance lights its ambient term with the albedo itself)."""
+    b = get_brdf(brdf) if isinstance(brdf, str) else brdf
+    names = list(b.channel_names)
+    if not all(f"ka_{c}" in names and f"kd_{c}" in names for c in "rgb"):
+        return [], []
+    return [names.index(f"kd_{c}") for c in "rgb"], [names.index(f"ka_{c}") for c in "rgb"]
+
+
+def tie_ambient_gradient(param, pairs) -> None:
+    """``ka ≡ kd`` (same activation, same raw value): the ambient columns' gradient added to the diffuse columns'
+    and zeroed, so the optimizer steps the one shared reflectance (:func:`copy_ambient` after the step)."""
+    kd, ka = pairs
+    g = param.grad
+    if not kd or g is None or not len(g):
+        return
+    g[:, kd] += g[:, ka]
+    g[:, ka] = 0.0
+
+
+def copy_ambient(param, pairs) -> None:
+    """The ambient columns set to the diffuse columns' raw values (``ka ≡ kd``)."""
+    kd, ka = pairs
+    if kd:
+        param.data[:, ka] = param.data[:, kd]
+
+
 #: every BRDF by name
 BRDFS: dict[str, BRDF] = {b.name: b for b in (COOK_TORRANCE, BLINN_PHONG)}
 DEFAULT_BRDF = COOK_TORRANCE.name

@@ -53,7 +53,7 @@ from .lights import (
 )
 from .lights import initial_lights as _initial_lights
 from .losses import loss_backend, photometric_loss_and_grad, ssim
-from .materials import DEFAULT_BRDF, get_brdf
+from .materials import DEFAULT_BRDF, ambient_pairs, copy_ambient, get_brdf, tie_ambient_gradient
 from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
 from .priors import Priors
 from .render import RENDERERS, RenderSettings, render
@@ -206,6 +206,11 @@ class TrainConfig:
     # 24.94 -> 30.98/30.64/30.55, 26.59 dB; gadget 26.28/26.13/23.81, 17.34 -> 27.13/27.48/26.17, 17.76 (mesh NVS
     # 29.76 -> 30.21); bob_env 29.48/28.98/32.02, 24.42 -> 29.43/28.91/31.49, 23.73 (mesh NVS 35.12 -> 34.34)
     light_phase_lobes: str = "held"
+    # Blinn-Phong's ambient reflectance ka: "diffuse" keeps it equal to kd (one reflectance lights the diffuse and
+    # the ambient term, as Cook-Torrance's albedo does; materials.tie_ambient_gradient / copy_ambient); "free": its
+    # own per-vertex channel (runs before 2026-11-26), where shadows and ambient occlusion were painted into ka
+    # while kd, seen only under the point light, drifted where it was dark
+    blinn_phong_ka: str = "diffuse"
     # "each": after each step every light's colour is made grey (its brightness kept; lights.grey_lights); "total":
     # the lights' colours rescaled per channel so that together they are white at the scene centre
     # (lights.white_balance; each light's colour relative to the others' free, each grey during the light phase);
@@ -267,6 +272,7 @@ class TrainConfig:
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
+        d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
         d.setdefault("lr_light_position_scale", 1.0)  # saved before the light positions' own rate
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
@@ -281,6 +287,8 @@ class TrainConfig:
         get_brdf(self.brdf)  # ValueError naming the BRDFs
         if self.white_light not in WHITE_LIGHT_MODES:
             raise ValueError(f"white_light must be one of {WHITE_LIGHT_MODES}, got {self.white_light!r}")
+        if self.blinn_phong_ka not in ("diffuse", "free"):
+            raise ValueError(f"blinn_phong_ka must be 'diffuse' or 'free', got {self.blinn_phong_ka!r}")
         if self.light_phase_lobes not in LIGHT_PHASE_LOBES:
             raise ValueError(f"light_phase_lobes must be one of {LIGHT_PHASE_LOBES}, got {self.light_phase_lobes!r}")
         if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
@@ -588,8 +596,11 @@ class Trainer:
         brdf = get_brdf(self.cfg.brdf)  # the light phase's columns: lobes held, the others tied (Trainer.step)
         self.lobe_columns = brdf.lobe_columns
         self.tied_columns = [c for c in range(brdf.num_channels) if c not in self.lobe_columns]
+        # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): the pairs, empty lists when off or Cook-Torrance
+        self.ambient_pairs = ambient_pairs(brdf) if self.cfg.blinn_phong_ka == "diffuse" else ([], [])
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
+        copy_ambient(self.scene.material, self.ambient_pairs)
         self.opt = build_optimizer(self.cfg, self.scene, self.extent)
         self.split_error = np.full(len(self.scene.F), np.inf)  # per-face error records (error_resplit_ratio)
         self.spatial_sort()
@@ -704,6 +715,8 @@ class Trainer:
                 tie_rows(self.scene.material, self.tied_columns)
             else:
                 tie_rows(self.scene.material)
+        if self.ambient_pairs[0]:
+            tie_ambient_gradient(self.scene.material, self.ambient_pairs)
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
@@ -711,6 +724,8 @@ class Trainer:
         self.opt.zero_grad()
         if held is not None:
             self.scene.material.data[:, self.lobe_columns] = held
+        if self.ambient_pairs[0]:
+            copy_ambient(self.scene.material, self.ambient_pairs)
         self.priors.project(self.scene)
         self.balance_lights()
         t4 = time.perf_counter()

@@ -507,6 +507,7 @@ def resume_config(args, saved_cfg, given_cfg):
              "--background-shell": "background_shell", "--color": "color", "--shadows": "shadows",
              "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
              "--white-light": "white_light", "--light-phase-lobes": "light_phase_lobes",
+             "--blinn-phong-ka": "blinn_phong_ka",
              "--light-distance": "light_distance", "--sensor-clip": "sensor_clip"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:

@@ -32,6 +32,7 @@ from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
+from ..materials import copy_ambient, tie_ambient_gradient
 from ..optim import Adam, ExponentialDecay
 from ..regularizers import FaceNormalConsistency, MaterialGTV, RestLaplacian, UniformLaplacian
 from ..render import RenderSettings, render
@@ -394,7 +395,9 @@ class MeshStage:
         from .remesh import refine_scene
 
         c, tc = self.cfg, self.trainer.cfg
-        tied = tied_channels(scene.brdf) if c.material_tie > 0 else []
+        amb = self.trainer.ambient_pairs  # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): not tied on its own
+        tied = [k for k in tied_channels(scene.brdf) if k not in amb[1]] if c.material_tie > 0 else []
+        copy_ambient(scene.material, amb)
         if tied:  # the light phase starts from one value per tied channel
             m = np.asarray(scene.material.data)
             m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
@@ -433,12 +436,14 @@ class MeshStage:
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
+                tie_ambient_gradient(scene.material, amb)
                 if it < c.material_tie and tied:
                     tie_rows(scene.material, tied)
                     if held is not None and scene.material.grad is not None:
                         scene.material.grad[:, held] = 0.0
                 opt.step()
                 opt.zero_grad()
+                copy_ambient(scene.material, amb)
                 if scene.light_params is not None:  # the soup stage's white-light rule
                     scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
                                                                    scene.light_params.data, self.trainer.priors.center)
