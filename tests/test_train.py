@@ -554,3 +554,26 @@ def test_blinn_phong_ambient_reflectance_is_the_diffuse_one(tmp_path):
     old = TrainConfig().to_dict()
     del old["blinn_phong_ka"]
     assert TrainConfig.from_dict(old).blinn_phong_ka == "free"
+
+
+def test_ao_off_holds_the_occlusion_channel(tmp_path):
+    """``TrainConfig.ao``: "off" holds Cook-Torrance's AO column at its initial value (no step, soup and mesh stage);
+    "learned" (runs before the option) steps it per vertex. Validated; an old config reads "learned"."""
+    from triplet_cl.materials import get_brdf
+
+    col = get_brdf("cook_torrance").channel_names.index("ao")
+    cfg = small_cfg(iterations=14, density=replace(small_cfg().density, densify_from=100))
+    tr = Trainer(DEMO, tmp_path / "off", replace(cfg, ao="off"), quiet=True)
+    a0 = np.array(tr.scene.material.data[:, col])
+    for _ in range(14):
+        tr.step()
+    np.testing.assert_array_equal(tr.scene.material.data[:, col], a0)
+    tr = Trainer(DEMO, tmp_path / "learned", replace(cfg, ao="learned"), quiet=True)
+    for _ in range(14):
+        tr.step()
+    assert np.abs(tr.scene.material.data[:, col] - a0).max() > 1e-3
+    with pytest.raises(ValueError, match="ao must be"):
+        TrainConfig(ao="baked").validate()
+    old = TrainConfig().to_dict()
+    del old["ao"]
+    assert TrainConfig.from_dict(old).ao == "learned"

@@ -211,6 +211,8 @@ class TrainConfig:
     # own per-vertex channel (runs before 2026-11-26), where shadows and ambient occlusion were painted into ka
     # while kd, seen only under the point light, drifted where it was dark
     blinn_phong_ka: str = "diffuse"
+    # Cook-Torrance's ambient occlusion channel: "learned" per vertex, or "off" (held at its initial value, ≈ 1)
+    ao: str = "learned"
     # "each": after each step every light's colour is made grey (its brightness kept; lights.grey_lights); "total":
     # the lights' colours rescaled per channel so that together they are white at the scene centre
     # (lights.white_balance; each light's colour relative to the others' free, each grey during the light phase);
@@ -273,6 +275,7 @@ class TrainConfig:
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
+        d.setdefault("ao", "learned")  # saved before the AO could be held
         d.setdefault("lr_light_position_scale", 1.0)  # saved before the light positions' own rate
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
@@ -287,6 +290,8 @@ class TrainConfig:
         get_brdf(self.brdf)  # ValueError naming the BRDFs
         if self.white_light not in WHITE_LIGHT_MODES:
             raise ValueError(f"white_light must be one of {WHITE_LIGHT_MODES}, got {self.white_light!r}")
+        if self.ao not in ("learned", "off"):
+            raise ValueError(f"ao must be 'learned' or 'off', got {self.ao!r}")
         if self.blinn_phong_ka not in ("diffuse", "free"):
             raise ValueError(f"blinn_phong_ka must be 'diffuse' or 'free', got {self.blinn_phong_ka!r}")
         if self.light_phase_lobes not in LIGHT_PHASE_LOBES:
@@ -598,6 +603,8 @@ class Trainer:
         self.tied_columns = [c for c in range(brdf.num_channels) if c not in self.lobe_columns]
         # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): the pairs, empty lists when off or Cook-Torrance
         self.ambient_pairs = ambient_pairs(brdf) if self.cfg.blinn_phong_ka == "diffuse" else ([], [])
+        # TrainConfig.ao "off": the AO column takes no step (soup and mesh stage)
+        self.held_ao = [brdf.channel_names.index("ao")] if self.cfg.ao == "off" and "ao" in brdf.channel_names else []
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         copy_ambient(self.scene.material, self.ambient_pairs)
@@ -717,6 +724,8 @@ class Trainer:
                 tie_rows(self.scene.material)
         if self.ambient_pairs[0]:
             tie_ambient_gradient(self.scene.material, self.ambient_pairs)
+        if self.held_ao and self.scene.material.grad is not None:
+            self.scene.material.grad[:, self.held_ao] = 0.0
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:

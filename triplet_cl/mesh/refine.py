@@ -368,6 +368,8 @@ class MeshStage:
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
             self.backward_image(r, v_img, supersample=1)
+            if self.trainer.held_ao and scene.material.grad is not None:
+                scene.material.grad[:, self.trainer.held_ao] = 0.0
             return float(loss)
 
         def after_step() -> None:
@@ -437,6 +439,8 @@ class MeshStage:
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
                 tie_ambient_gradient(scene.material, amb)
+                if self.trainer.held_ao and scene.material.grad is not None:
+                    scene.material.grad[:, self.trainer.held_ao] = 0.0
                 if it < c.material_tie and tied:
                     tie_rows(scene.material, tied)
                     if held is not None and scene.material.grad is not None:
