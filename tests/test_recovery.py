@@ -226,6 +226,18 @@ HL_RES = 48
 HL_LIGHT = np.array([1.2, 2.0, 1.5])
 
 
+def _hl_sphere():
+    """A sphere soup (icosphere 3, radius 0.8) and 8 cameras around it at ``HL_RES``²."""
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.8)
+    V = np.asarray(m.vertices)[np.asarray(m.faces)].reshape(-1, 3)
+    cams = []
+    for k in range(8):
+        t = 2 * np.pi * k / 8
+        cams.append(Camera.look_at([3.0 * np.sin(t), 1.0 + 0.8 * np.cos(3 * t), 3.0 * np.cos(t)], [0, 0, 0],
+                                   [0, 1, 0], 45, HL_RES, HL_RES))
+    return V, np.arange(len(V)).reshape(-1, 3), cams
+
+
 def _brdf_fit(albedo, rough, metal, ambient, iterations=1000):
     """Render a sphere soup (icosphere 3, 48², 8 views) with a known material under a known point light + ambient;
     fit the materials alone (lights known) from training's initial values, training's loss, Adam betas and
@@ -234,14 +246,7 @@ def _brdf_fit(albedo, rough, metal, ambient, iterations=1000):
     those in a highlight in at least one view (half vector within ~14° of the normal)."""
     from triplet_cl.optim import ExponentialDecay
 
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.8)
-    V = np.asarray(m.vertices)[np.asarray(m.faces)].reshape(-1, 3)
-    F = np.arange(len(V)).reshape(-1, 3)
-    cams = []
-    for k in range(8):
-        t = 2 * np.pi * k / 8
-        cams.append(Camera.look_at([3.0 * np.sin(t), 1.0 + 0.8 * np.cos(3 * t), 3.0 * np.cos(t)], [0, 0, 0],
-                                   [0, 1, 0], 45, HL_RES, HL_RES))
+    V, F, cams = _hl_sphere()
 
     def lights():
         return [PointLight(HL_LIGHT, np.full(3, 6.0)), AmbientLight(np.full(3, ambient))]
@@ -374,14 +379,7 @@ def _metallic_trial(albedo, rough, metal, steps=120):
     0.5 held, the albedo per vertex, 150 steps), roughness and AO then one value (their mean)."""
     from triplet_cl.mesh.refine import metallic_trial
 
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.8)
-    V = np.asarray(m.vertices)[np.asarray(m.faces)].reshape(-1, 3)
-    F = np.arange(len(V)).reshape(-1, 3)
-    cams = []
-    for k in range(8):
-        t = 2 * np.pi * k / 8
-        cams.append(Camera.look_at([3.0 * np.sin(t), 1.0 + 0.8 * np.cos(3 * t), 3.0 * np.cos(t)], [0, 0, 0],
-                                   [0, 1, 0], 45, HL_RES, HL_RES))
+    V, F, cams = _hl_sphere()
 
     def lights():
         return [PointLight(HL_LIGHT, np.full(3, 6.0)), AmbientLight(np.full(3, 0.05))]
@@ -438,11 +436,8 @@ def test_metallic_trial_tells_a_metal_from_dielectrics():
     assert r_gold < 0.6, f"gold's fitted roughness {r_gold:.2f} (truth 0.35)"
     orange, r_orange = _metallic_trial([0.6, 0.4, 0.25], 0.3, 0.0)
     assert orange["metallic"] == 0.01, f"orange dielectric: {orange['loss']} (metal's roughness {r_orange:.2f})"
-    V, F = _soup()
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.8)
-    V = np.asarray(m.vertices)[np.asarray(m.faces)].reshape(-1, 3)
-    spots, _ = _spotted(V, np.arange(len(V)).reshape(-1, 3), dark_above=-0.3,
-                        colours=((0.03, 0.03, 0.03), (0.8, 0.3, 0.1)))
+    V, F, _ = _hl_sphere()
+    spots, _ = _spotted(V, F, dark_above=-0.3, colours=((0.03, 0.03, 0.03), (0.8, 0.3, 0.1)))
     dark, r_dark = _metallic_trial(spots, 0.4, 0.0)
     assert dark["metallic"] == 0.01, f"dark dielectric: {dark['loss']} (metal's roughness {r_dark:.2f})"
 
