@@ -315,6 +315,8 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-metallic-trial", type=int, metavar="N", help="before the light phase, fit the mesh "
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
                    "through the light phase (default 120; 0 = none: the metallic is tied with the others)")
+    p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the mesh: "
+                   "learned per vertex (default), or computed: traced from the mesh's geometry and held")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
     p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
@@ -344,6 +346,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
                        ("mesh_light_phase", "material_tie"),
                        ("mesh_metallic_trial", "metallic_trial"),
+                       ("mesh_ao", "ao"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

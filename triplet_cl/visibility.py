@@ -84,6 +84,33 @@ def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, r
     return st.vis.get().astype(np.float64).reshape(N, NV)
 
 
+def sphere_directions(n: int) -> np.ndarray:
+    """``[n, 3]`` unit directions spread evenly over the sphere (a Fibonacci lattice; deterministic)."""
+    i = np.arange(n, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    ph = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(ph), r * np.sin(ph), z], axis=1)
+
+
+def vertex_ambient_occlusion(scene: Scene, normals: np.ndarray, device: Device | None = None,
+                             directions: int = 64, ray_eps: float = 1e-2) -> np.ndarray:
+    """``[N]`` ambient occlusion of every vertex of ``scene``: the cosine-weighted share of its hemisphere (around
+    ``normals [N, 3]``) from which a constant environment reaches it, ``Σ_k T_k max(0, n·d_k) / Σ_k max(0, n·d_k)``
+    over ``directions`` evenly spread directions ``d_k``, ``T_k`` the transmittance of a shadow ray along ``d_k``
+    (:func:`vertex_visibility` towards a directional light each: the same trace kernels, constant for the
+    gradient). 1 where nothing occludes (a convex object), lower in concavities."""
+    from .lights import DirectionalLight
+
+    if directions < 1:
+        raise ValueError(f"directions must be >= 1, got {directions}")
+    D = sphere_directions(directions)
+    T = vertex_visibility(scene, device, lights=[DirectionalLight(d, np.ones(3)) for d in D], ray_eps=ray_eps)
+    w = np.maximum(np.asarray(normals, np.float64) @ D.T, 0.0)
+    tot = w.sum(axis=1)
+    return np.where(tot > 0, (T * w).sum(axis=1) / np.maximum(tot, 1e-12), 1.0)
+
+
 def _shadow_rays(scene: Scene) -> np.ndarray:
     """The shadow casters' ray parameters (positions / directions) ``[NV, 3]``, for the move test."""
     table = pack_lights(scene.current_lights())

@@ -32,7 +32,7 @@ from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
-from ..materials import copy_ambient, tie_ambient_gradient
+from ..materials import copy_ambient, get_brdf, tie_ambient_gradient
 from ..optim import Adam, ExponentialDecay
 from ..regularizers import FaceNormalConsistency, MaterialGTV, RestLaplacian, UniformLaplacian
 from ..render import RenderSettings, render
@@ -97,6 +97,11 @@ class MeshConfig:
     # with the others (the rule before: a tied value that Adam steps goes wherever its mean gradient's sign points;
     # measured, the metal capture's mesh ended at 0.98 or 0.11 depending on the lights' path)
     metallic_trial: int = 120
+    # Cook-Torrance's AO on the mesh: "learned" per vertex (tied in the light phase, as the soup's), or "computed":
+    # traced from the mesh's geometry (visibility.vertex_ambient_occlusion, ao_directions rays per vertex, at the
+    # start of each round and after each remesh) and held, so that the albedo alone answers for the colour
+    ao: str = "learned"
+    ao_directions: int = 32
     # cast shadows as the soup stage (``--shadows vertex``): per-vertex visibility towards the point / directional
     # lights, traced through the mesh every ``shadow_every`` steps of the run and after each remesh; the ray start
     # offset × the mesh's bounding-box diagonal (an opaque mesh needs less than the soup's layers: 0.01, as
@@ -130,6 +135,10 @@ class MeshConfig:
             raise ValueError(f"mesh shadow_eps must be a finite number >= 0, got {self.shadow_eps!r}")
         if not isinstance(self.material_tie, int) or self.material_tie < 0:
             raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
+        if self.ao not in ("learned", "computed"):
+            raise ValueError(f"mesh ao must be 'learned' or 'computed', got {self.ao!r}")
+        if not isinstance(self.ao_directions, int) or not 1 <= self.ao_directions <= 1024:
+            raise ValueError(f"mesh ao_directions must be an integer in [1, 1024], got {self.ao_directions!r}")
         if not isinstance(self.metallic_trial, int) or self.metallic_trial < 0:
             raise ValueError(f"mesh metallic_trial must be an integer >= 0, got {self.metallic_trial!r}")
         if not 1 <= self.supersample <= 4:
@@ -354,11 +363,11 @@ class MeshStage:
         column ``col`` of ``scene.material`` and the trial in ``self.metallic_choice`` (metrics.json's
         ``mesh.metallic_trial``)."""
         from ..lights import balanced_lights, relative_lr_scales
-        from ..materials import get_brdf
 
         c, tc = self.cfg, self.trainer.cfg
         rng = np.random.default_rng(tc.seed + 11)
         n = c.metallic_trial
+        ao = self.computed_ao_column(scene)
         views = rng.integers(0, len(self.ds.train), n)
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
@@ -368,8 +377,9 @@ class MeshStage:
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
             self.backward_image(r, v_img, supersample=1)
-            if self.trainer.held_ao and scene.material.grad is not None:
-                scene.material.grad[:, self.trainer.held_ao] = 0.0
+            held = list(self.trainer.held_ao) + ([ao] if ao is not None else [])
+            if held and scene.material.grad is not None:
+                scene.material.grad[:, held] = 0.0
             return float(loss)
 
         def after_step() -> None:
@@ -389,6 +399,28 @@ class MeshStage:
         self.trainer.log.info("mesh metallic trial: " + json.dumps({k: v for k, v in out.items() if k != "curves"}))
         return out
 
+    def computed_ao_column(self, scene: Scene) -> int | None:
+        """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
+        without AO)."""
+        names = list(get_brdf(scene.brdf).channel_names)
+        return names.index("ao") if self.cfg.ao == "computed" and "ao" in names else None
+
+    def set_computed_ao(self, scene: Scene, col: int | None) -> None:
+        """The mesh's traced ambient occlusion (:func:`~triplet_cl.visibility.vertex_ambient_occlusion`) written into
+        the AO column ``col`` (raw: the sigmoid's inverse, clipped to [0.02, 0.999])."""
+        if col is None:
+            return
+        from ..visibility import vertex_ambient_occlusion
+        from .bake import vertex_normals
+
+        t = time.perf_counter()
+        ao = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
+                                      directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
+        a = np.clip(ao, 0.02, 0.999)
+        scene.material.data[:, col] = np.log(a / (1 - a)).astype(scene.material.data.dtype)
+        pct = np.round(np.percentile(ao, [10, 50, 90]), 3).tolist()
+        self.trainer.log.info(f"mesh AO traced: {len(ao)} vertices, p10/50/90 {pct}, {time.perf_counter() - t:.1f} s")
+
     def refine(self, scene: Scene, round_index: int) -> Scene:
         from tqdm import tqdm
 
@@ -398,13 +430,17 @@ class MeshStage:
 
         c, tc = self.cfg, self.trainer.cfg
         amb = self.trainer.ambient_pairs  # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): not tied on its own
-        tied = [k for k in tied_channels(scene.brdf) if k not in amb[1]] if c.material_tie > 0 else []
+        ao_col = self.computed_ao_column(scene)
+        held_cols = list(self.trainer.held_ao) + ([ao_col] if ao_col is not None else [])
+        tied = [k for k in tied_channels(scene.brdf) if k not in amb[1] and k not in held_cols] \
+            if c.material_tie > 0 else []
         copy_ambient(scene.material, amb)
         if tied:  # the light phase starts from one value per tied channel
             m = np.asarray(scene.material.data)
             m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         # the metallic column is decided, not drifted: held through the light phase at the value choose_metallic
         # picked (round 0) or at its mean (later rounds)
+        self.set_computed_ao(scene, ao_col)
         held = metallic_column(scene.brdf) if tied and c.metallic_trial > 0 else None
         if held is not None and round_index == 0:
             self.choose_metallic(scene, tied, held)
@@ -439,8 +475,8 @@ class MeshStage:
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
                 tie_ambient_gradient(scene.material, amb)
-                if self.trainer.held_ao and scene.material.grad is not None:
-                    scene.material.grad[:, self.trainer.held_ao] = 0.0
+                if held_cols and scene.material.grad is not None:
+                    scene.material.grad[:, held_cols] = 0.0
                 if it < c.material_tie and tied:
                     tie_rows(scene.material, tied)
                     if held is not None and scene.material.grad is not None:
@@ -464,6 +500,7 @@ class MeshStage:
                                           f"({rep.subdivided} subdivided, {rep.simplified} simplified)")
                     reg = Regularizers(scene, c)
                     grad_acc = np.zeros(len(scene.F))
+                    self.set_computed_ao(scene, ao_col)
                 if (it + 1) % 100 == 0:
                     self.trainer.log.info(json.dumps(rec))
         finally:
@@ -671,16 +708,12 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
 
 def metallic_column(brdf: str) -> int | None:
     """The material column of the metallic channel (Cook-Torrance), or None (Blinn-Phong has none)."""
-    from ..materials import get_brdf
-
     names = get_brdf(brdf).channel_names
     return names.index("metallic") if "metallic" in names else None
 
 
 def tied_channels(brdf: str) -> list[int]:
     """The material columns the mesh stage's light phase ties (``MeshConfig.material_tie``): all but the albedo."""
-    from ..materials import get_brdf
-
     return [i for i, n in enumerate(get_brdf(brdf).channel_names) if not n.startswith(("albedo_", "kd_"))]
 
 
