@@ -235,3 +235,23 @@ def test_rest_laplacian_keeps_a_thin_rod_and_damps_noise():
     _, dev_uniform = _rod_after("uniform", 0.002)
     assert dev < 0.25 * dev0 and dev < 0.5 * dev_uniform, (dev0, dev, dev_uniform)  # the noise is damped ...
     assert abs(r_noisy - r0) < 0.02 * r0, (r0, r_noisy)  # ... and the rod keeps its thickness
+
+
+def test_mesh_stage_computed_ao_is_traced_and_held(trained_run):
+    """``MeshConfig.ao = "computed"`` (``--mesh-ao computed``): the AO column is the mesh's traced ambient occlusion
+    (``visibility.vertex_ambient_occlusion``), set at the start and held (no step; not tied in the light phase)."""
+    from triplet_cl.mesh.bake import vertex_normals
+    from triplet_cl.visibility import vertex_ambient_occlusion
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    cfg = tiny_mesh_cfg(iterations=6, material_tie=3, remesh_every=0, metallic_trial=0, ao="computed")
+    stage = MeshStage(tr, cfg)
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    ao = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), tr.device,
+                                  directions=cfg.ao_directions, ray_eps=cfg.shadow_eps)
+    got = 1 / (1 + np.exp(-np.asarray(scene.material.data, np.float64)[:, 5]))
+    # traced at the start from the vertices before their 6 steps: close, not equal
+    assert np.median(np.abs(got - np.clip(ao, 0.02, 0.999))) < 0.02
+    assert np.ptp(got) > 0.05  # per vertex (not the tied phase's one value)
+    with pytest.raises(ValueError, match="mesh ao"):
+        MeshConfig(ao="baked").validate()

@@ -219,3 +219,40 @@ def test_recovery_uniform_albedo_under_a_cast_shadow(device):
     assert np.abs(in_s - 0.6).max() < 0.03 and np.abs(out_s - 0.6).max() < 0.03 and spread < 0.03, out
     in_n, out_n, spread_n = out["none"]
     assert (in_n < 0.35).all() and np.abs(out_n - 0.6).max() < 0.03 and spread_n > 0.05, out
+
+
+def test_vertex_ambient_occlusion_open_sky_and_a_corner(device):
+    """``vertex_ambient_occlusion``: a sphere's vertices see their whole hemisphere (AO 1); on a floor beside a wall
+    the vertices at the wall's foot see half of it blocked (about 1/2 for a cosine-weighted hemisphere whose quarter-
+    space is cut: the analytic value at the foot is 1/2), those far from it see the open sky."""
+    import trimesh
+
+    from triplet_cl.mesh.bake import vertex_normals
+    from triplet_cl.visibility import sphere_directions, vertex_ambient_occlusion
+
+    D = sphere_directions(64)
+    np.testing.assert_allclose(np.linalg.norm(D, axis=1), 1.0, rtol=1e-12)
+    assert np.abs(D.mean(axis=0)).max() < 0.02  # evenly spread
+    m = trimesh.creation.icosphere(2, radius=0.8)
+    sphere = Scene.from_arrays(np.asarray(m.vertices), np.asarray(m.faces), alpha=np.full((len(m.vertices), 1),
+                                                                                        logit(0.999)))
+    ao = vertex_ambient_occlusion(sphere, vertex_normals(m.vertices, m.faces), device, directions=64)
+    assert ao.min() > 0.97, ao.min()
+    # a floor (z = 0, x in [0, 2]) and a wall (x = 0, z in [0, 2]) made of quads; the floor's normals point up
+    n = 21
+    g = np.linspace(0.0, 2.0, n)
+    gx, gy = np.meshgrid(g, np.linspace(-1.0, 1.0, n), indexing="ij")
+    floor = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], 1)
+    wall = np.stack([np.zeros(n * n), gy.ravel(), gx.ravel() + 0.05], 1)  # a gap of 0.05 above the floor
+    idx = np.arange(n * n).reshape(n, n)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    V = np.concatenate([floor, wall])
+    F = np.concatenate([tri, tri + n * n]).astype(np.int32)
+    scene = Scene.from_arrays(V, F, alpha=np.full((len(V), 1), logit(0.999)))
+    normals = np.tile([0.0, 0.0, 1.0], (len(V), 1))
+    ao = vertex_ambient_occlusion(scene, normals, device, directions=256, ray_eps=1e-3)[: n * n].reshape(n, n)
+    centre = n // 2  # y = 0, away from the wall's side edges
+    assert 0.35 < ao[1, centre] < 0.65, ao[1, centre]  # x = 0.1, at the wall's foot
+    assert ao[-1, centre] > 0.85 and ao[-1, centre] > ao[1, centre] + 0.3, (ao[-1, centre], ao[1, centre])
+    assert np.all(np.diff(ao[1:, centre]) > -0.05)  # opens up away from the wall
