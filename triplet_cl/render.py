@@ -347,7 +347,7 @@ class RasterInterpolate(Function):
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
-                                             sigma=s.sigma or 0.0)
+                                             sigma=s.sigma or 0.0, want_sigma=False)  # no read-back: not used
         self.view.info["v_vs"] = v_vs  # screen-space vertex adjoint: density control's view-space gradient
         return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
 
