@@ -749,7 +749,8 @@ class Trainer:
             self.last_alpha_reset = it
         t5 = time.perf_counter()
         self.it += 1
-        rec = {"it": self.it, "loss": loss.value() if isinstance(loss, ExactLoss) else float(loss), "psnr": psnr(r.image, target), "faces": len(self.scene.F),
+        loss = loss.value() if isinstance(loss, ExactLoss) else float(loss)  # the exact device loss: summed here
+        rec = {"it": self.it, "loss": loss, "psnr": psnr(r.image, target), "faces": len(self.scene.F),
                "render": t1 - t0, "shadow": tv - t0, "loss_t": t2 - t1, "backward": t3 - t2, "step": t4 - t3,
                "density": t5 - t4}
         if prior_terms:
