@@ -12,10 +12,10 @@
  * (a correctly rounded float division whatever the device's float division). Needs cl_khr_fp64.
  *
  * Pixel (y, x, c) lives at (y·W + x)·C + c; maps are [K, H, W, C] planes of n = H·W·C values.
- *   ssim_x_fwd_v:  tmp[k] = G_rows * {x, y, x², y², xy}[k]                                 (k < 5)
+ *   ssim_x_maps:   src = {x, y, x², y², xy};  ssim_x_rows: tmp[k] = G_rows * src[k]            (k < 5)
  *   ssim_x_fwd_h:  μx, μy, sxx, syy, sxy = G_cols * tmp; the SSIM map m (out) and, for the adjoint seed g,
  *                  d[0] = ∂μx, d[1] = ∂B2, d[2] = 2·∂A2                                   (_ssim_bwd's maps)
- *   ssim_x_bwd_v:  tmp[k] = G_rows * d[k]                                                  (k < 3)
+ *   ssim_x_rows:   tmp[k] = G_rows * d[k]                                                  (k < 3)
  *   ssim_x_bwd_h:  F = G_cols * tmp; v_x = sign(x − y)·l1 + ((F0 + (2x)·F1) + y·F2)
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -37,30 +37,33 @@
 
 static inline float fdiv(const float a, const float b) { return (float)((double)a / (double)b); }
 
-static inline float src_map(__global const float* x, __global const float* y, const int k, const int i)
+__kernel void ssim_x_maps(__global const float* x, __global const float* y,  // [H, W, C] = n values
+                          const int n,
+                          __global float* src)                                // [5, n]: x, y, x², y², xy
 {
+    const int i = get_global_id(0);
+    if (i >= n) return;
     const float a = x[i], b = y[i];
-    switch (k) {
-    case 0: return a;
-    case 1: return b;
-    case 2: return a * a;
-    case 3: return b * b;
-    default: return a * b;
-    }
+    src[i] = a;
+    src[n + i] = b;
+    src[2 * n + i] = a * a;  // float32 products, as numpy's
+    src[3 * n + i] = b * b;
+    src[4 * n + i] = a * b;
 }
 
-__kernel void ssim_x_fwd_v(__global const float* x, __global const float* y,  // [H, W, C]
-                           __constant double* w,                              // [RADIUS + 1] taps w0 … w5
-                           const int H, const int W, const int C,
-                           __global float* tmp)                               // [5, H, W, C]
+/* the rows pass (axis 0) of K maps: tmp[k] = G_rows * src[k] */
+__kernel void ssim_x_rows(__global const float* src,   // [K, H, W, C]
+                          __constant double* w,
+                          const int H, const int W, const int C, const int K,
+                          __global float* tmp)         // [K, H, W, C]
 {
     const int px = get_global_id(0), py = get_global_id(1);
     if (px >= W || py >= H) return;
     const int n = H * W * C, row = W * C;
     for (int c = 0; c < C; ++c) {
         const int base = px * C + c;  // column px, channel c: element of row r at base + r·row
-        for (int k = 0; k < 5; ++k) {
-#define AT(r) src_map(x, y, k, base + (r) * row)
+        for (int k = 0; k < K; ++k) {
+#define AT(r) src[k * n + base + (r) * row]
             float v;
             CORR(AT, py, H, w, v);
 #undef AT
@@ -104,26 +107,6 @@ __kernel void ssim_x_fwd_h(__global const float* tmp,   // [5, H, W, C]
         d[i] = 2.0f * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2));
         d[n + i] = d_b2;
         d[2 * n + i] = 2.0f * d_a2;
-    }
-}
-
-__kernel void ssim_x_bwd_v(__global const float* d,    // [3, H, W, C]
-                           __constant double* w,
-                           const int H, const int W, const int C,
-                           __global float* tmp)        // [3, H, W, C]
-{
-    const int px = get_global_id(0), py = get_global_id(1);
-    if (px >= W || py >= H) return;
-    const int n = H * W * C, row = W * C;
-    for (int c = 0; c < C; ++c) {
-        const int base = px * C + c;
-        for (int k = 0; k < 3; ++k) {
-#define AT(r) d[k * n + base + (r) * row]
-            float v;
-            CORR(AT, py, H, w, v);
-#undef AT
-            tmp[k * n + py * row + base] = v;
-        }
     }
 }
 

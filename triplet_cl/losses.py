@@ -558,7 +558,7 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     host from the SSIM map (:meth:`ExactLoss.value`). Needs :func:`exact_device_loss_available`."""
     import pyopencl as cl
 
-    from .ops.common import const_array
+    from .ops.common import const_array, run_1d
 
     if not exact_device_loss_available(device, pred, lam):
         raise ValueError("the exact device loss needs a C-contiguous float32 [H, W, C] device image, an fp64 device "
@@ -569,29 +569,29 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
         raise ValueError(f"target must have the shape of pred {[h, w, c]}, got {list(target.shape)}")
     n = h * w * c
     q, alloc = device.queue, device.allocator
-    target_d = cla.to_device(q, target, allocator=alloc, async_=True)  # a fresh copy (or the cached target)
+    target_d = cla.to_device(q, target, allocator=alloc)  # the queue is idle here (the render read its image)
     win = gaussian_window_1d().astype(np.float32).astype(np.float64)
     taps = const_array(device, np.ascontiguousarray(win[SSIM_RADIUS::-1]))  # w0 (centre), w1 … w5
+    src = cla.empty(q, (5 * n,), np.float32, allocator=alloc)
     tmp = cla.empty(q, (5 * n,), np.float32, allocator=alloc)
     dmaps = cla.empty(q, (3 * n,), np.float32, allocator=alloc)
     smap = cla.empty(q, (h, w, c), np.float32, allocator=alloc)
     v_pred = cla.empty(q, (h, w, c), np.float32, allocator=alloc)
-    gsize = (w, h)
+    gsize, lsize = (-(-w // 8) * 8, -(-h // 8) * 8), (8, 8)  # fixed work-groups: one build, 2x on PoCL's columns pass
     i32 = np.int32
-    k = device.kernel("ssim_exact", "ssim_x_fwd_v")
-    k(q, gsize, None, pred.data, target_d.data, taps.data, i32(h), i32(w), i32(c), tmp.data)
+    rows = device.kernel("ssim_exact", "ssim_x_rows")
+    run_1d(device, device.kernel("ssim_exact", "ssim_x_maps"), n, pred.data, target_d.data, i32(n), src.data)
+    rows(q, gsize, lsize, src.data, taps.data, i32(h), i32(w), i32(c), i32(5), tmp.data)
     g = np.float32(-lam * 1.0 / n)  # _ssim_bwd's seed: float(v) / count with v = -λ·1, rounded to float32
-    k = device.kernel("ssim_exact", "ssim_x_fwd_h")
-    k(q, gsize, None, tmp.data, taps.data, i32(h), i32(w), i32(c), np.float32(SSIM_C1), np.float32(SSIM_C2), g,
-      smap.data, dmaps.data)
+    device.kernel("ssim_exact", "ssim_x_fwd_h")(q, gsize, lsize, tmp.data, taps.data, i32(h), i32(w), i32(c),
+                                                np.float32(SSIM_C1), np.float32(SSIM_C2), g, smap.data, dmaps.data)
     host_map = np.empty((h, w, c), np.float32)
     ev = cl.enqueue_copy(q, host_map, smap.data, is_blocking=False)
-    k = device.kernel("ssim_exact", "ssim_x_bwd_v")
-    k(q, gsize, None, dmaps.data, taps.data, i32(h), i32(w), i32(c), tmp.data)
-    k = device.kernel("ssim_exact", "ssim_x_bwd_h")
+    rows(q, gsize, lsize, dmaps.data, taps.data, i32(h), i32(w), i32(c), i32(3), tmp.data)
     l1 = np.float32((1.0 - lam) * 1.0 / n)  # _l1_bwd's factor float(v) / size with v = (1 − λ)·1
-    k(q, gsize, None, pred.data, target_d.data, tmp.data, taps.data, i32(h), i32(w), i32(c), l1, v_pred.data)
+    device.kernel("ssim_exact", "ssim_x_bwd_h")(q, gsize, lsize, pred.data, target_d.data, tmp.data, taps.data,
+                                                i32(h), i32(w), i32(c), l1, v_pred.data)
     # the scratch arrays go back to the pool only once their kernels are done: keep them with the value
     loss = ExactLoss(pred_host, target, host_map, ev, float(lam), n)
-    loss._keep = (target_d, tmp, dmaps, smap)
+    loss._keep = (target_d, src, tmp, dmaps, smap)
     return loss, v_pred
