@@ -111,6 +111,15 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
 
+def _upload(device: Device, a: np.ndarray) -> cla.Array:
+    """A host array of the forward pass on the device without waiting: a blocking write waits for every kernel
+    queued before it (the shading's light table waited for the whole rasterization), a non-blocking one is
+    ordered by the in-order queue alone. The host array must not change until the write is done: every caller
+    hands a fresh copy or an array that stays unchanged until :func:`render` returns, and render ends with a
+    blocking read (:class:`Stack`), by which the writes are done."""
+    return cla.to_device(device.queue, a, async_=True)
+
+
 class RenderState:
     """The state one :func:`render` call shares between its ops (device, camera, fragments ...); the
     ops hold it as ``self.view``. Not a dataset view (that is :class:`triplet_cl.datasets.View`).
@@ -136,7 +145,7 @@ class RenderState:
         """``V [N, 3]`` (host) on the device in the settings' REAL: uploaded once per render call and
         shared by the ops that read it (the same host array object)."""
         if self._Vd is None or self._V_src is not V:
-            self._Vd = cla.to_device(self.device.queue, np.ascontiguousarray(V, self.settings.real))
+            self._Vd = _upload(self.device, np.ascontiguousarray(V, self.settings.real))
             self._V_src = V
         return self._Vd
 
@@ -276,11 +285,11 @@ class VertexAttributes(Function):
         else:
             nrm = normals_op.vertex_forward(d, Vd, m.F, m.csr_off, m.csr_corner, real)
         ctx.Vd = Vd
-        ctx.mat = cla.to_device(d.queue, np.ascontiguousarray(material, real))
-        ctx.alpha = cla.to_device(d.queue, np.ascontiguousarray(alpha, real).reshape(-1))
-        vld = cla.to_device(d.queue, np.ascontiguousarray(vl[0], real)) if vl else None
+        ctx.mat = _upload(d, np.ascontiguousarray(material, real))
+        ctx.alpha = _upload(d, np.ascontiguousarray(alpha, real).reshape(-1))
+        vld = _upload(d, np.ascontiguousarray(vl[0], real)) if vl else None
         ctx.has_vl = bool(vl)
-        cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
+        cst = None if self.const is None else _upload(d, np.ascontiguousarray(self.const, real))
         ctx.nconst = 0 if cst is None else cst.shape[1]
         ctx.attr = vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real,
                                         const=cst)
@@ -408,8 +417,8 @@ class ShadeFragments(Function):
         blocks = {self.PACKED_BLOCKS[k]: self.layout[k] for k in self.PACKED_BLOCKS if k in self.layout}
         if fa.shape != (P, sum(n for _, n in self.layout.values())) or not fa.flags.c_contiguous:
             fa = cla.to_device(d.queue, np.ascontiguousarray(to_host(fa), s.real))
-        inp = shade_op.packed_inputs(d, fa, blocks, v.camera.center, table, cla.to_device(d.queue, lt_i),
-                                     cla.to_device(d.queue, np.ascontiguousarray(lt_f)), self.brdf, s.two_sided,
+        inp = shade_op.packed_inputs(d, fa, blocks, v.camera.center, table, _upload(d, lt_i),
+                                     _upload(d, np.ascontiguousarray(lt_f)), self.brdf, s.two_sided,
                                      s.real)
         rgb, alpha = shade_op.forward_packed(d, inp)
         ctx.inp, ctx.n_rest = inp, len(rest)
