@@ -37,6 +37,7 @@ import pyopencl.array as cla
 
 from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
 from .autodiff import Function, Tape, Variable, active_tape, to_host
+from .autodiff.arrays import Deferred
 from .camera import Camera
 from .device import Device, get_device
 from .lights import pack_lights
@@ -431,8 +432,15 @@ class ShadeFragments(Function):
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
         # every column of the layout in the shading adjoint's one pass; the cached visibility's per-vertex values
         # are constants, but their interpolation moves with the barycentrics (V): its adjoint goes back too
-        v_fa, v_params = shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha)
-        return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
+        if not ctx.n_rest:
+            return (shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha)[0],)
+        # the light parameters' gradient (a leaf's: the tape adds it after the pass) without a wait here: the host
+        # goes on queueing the fragment adjoint while the device runs the shading's
+        real = self.view.settings.real
+        v_fa, v_params = shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha, deferred=True)
+        if isinstance(v_params, Deferred):
+            return v_fa, Deferred(v_params.shape, lambda: v_params.resolve().astype(real))
+        return v_fa, v_params.astype(real)
 
 
 class TracedShadeFragments(ShadeFragments):
