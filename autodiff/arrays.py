@@ -22,7 +22,7 @@ def is_device_array(a) -> bool:
 
 def is_array(a) -> bool:
     """True for data that can carry an adjoint: numpy arrays, numpy/python floats, device arrays."""
-    return is_device_array(a) or isinstance(a, np.ndarray | np.floating | float)
+    return is_device_array(a) or isinstance(a, np.ndarray | np.floating | float | Deferred)
 
 
 def shape_of(a) -> tuple[int, ...]:
@@ -31,7 +31,9 @@ def shape_of(a) -> tuple[int, ...]:
 
 
 def to_host(a) -> np.ndarray:
-    """A numpy view/copy of ``a`` (device arrays are downloaded)."""
+    """A numpy view/copy of ``a`` (device arrays are downloaded, :class:`Deferred` values resolved)."""
+    if isinstance(a, Deferred):
+        return a.resolve()
     return a.get() if is_device_array(a) else np.asarray(a)
 
 
@@ -62,3 +64,31 @@ def accumulate(acc, new, reference):
     if acc is None:
         return new
     return acc + new
+
+
+class Deferred:
+    """An adjoint whose host value is not there yet (a non-blocking download, e.g. per-work-group partials still
+    to be summed): ``shape`` is known, :meth:`resolve` waits and returns the numpy value. The tape adds it to a
+    leaf's ``.grad`` at the end of the backward pass (in the order it came), so the host need not wait for the
+    device in the middle of queueing the pass; anywhere else it is resolved on the spot."""
+
+    __slots__ = ("shape", "_fn")
+
+    def __init__(self, shape, fn):
+        self.shape, self._fn = tuple(shape), fn
+
+    def resolve(self) -> np.ndarray:
+        return self._fn()
+
+
+def download_deferred(a) -> Deferred:
+    """A device array's host copy as a :class:`Deferred` (the copy is queued now, not waited for)."""
+    if not a.flags.forc:
+        return Deferred(a.shape, a.get)
+    host, event = a.get_async()
+
+    def done(host=host, event=event, keep=a):
+        event.wait()
+        return host
+
+    return Deferred(a.shape, done)

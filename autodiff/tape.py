@@ -18,7 +18,7 @@ data only when the two differ.
 
 from __future__ import annotations
 
-from .arrays import accumulate, is_array, like, ones_like, shape_of
+from .arrays import Deferred, accumulate, download_deferred, is_array, is_device_array, like, ones_like, shape_of
 from .function import Node
 from .variable import Variable
 
@@ -75,6 +75,10 @@ class Tape:
             raise ValueError("output was not produced by a call recorded on this tape")
 
         adjoints: dict[int, object] = {id(output): seed}
+        # leaves' adjoints, added to their .grad after the pass in the order they came: a device adjoint of a host
+        # leaf is downloaded without waiting (the host goes on queueing the rest of the pass instead of waiting
+        # for the device at each leaf), the same values added in the same order
+        leaf_adjoints: list = []
         for node in reversed(self.nodes):
             v_outs = [adjoints.pop(id(o), None) for o in node.outputs]
             if all(v is None for v in v_outs):
@@ -94,8 +98,14 @@ class Tape:
                         f"expected {list(inp.shape)}"
                     )
                 if inp.creator is None:
-                    inp.accumulate_grad(v)
+                    if is_device_array(v) and not is_device_array(inp.data):
+                        v = download_deferred(v)
+                    leaf_adjoints.append((inp, v))
                 else:
+                    if isinstance(v, Deferred):
+                        v = v.resolve()
                     adjoints[id(inp)] = accumulate(adjoints.get(id(inp)), v, inp.data)
+        for inp, v in leaf_adjoints:
+            inp.accumulate_grad(v.resolve() if isinstance(v, Deferred) else v)
         if not retain:
             self.clear()

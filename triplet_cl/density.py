@@ -243,7 +243,12 @@ def face_alpha(alpha_raw, F) -> np.ndarray:
     ``sigmoid(raw alpha)``. The renderer interpolates activated alpha linearly across the face, so this
     bounds the alpha anywhere on it: a face is pruned only when it is transparent everywhere."""
     a = np.asarray(alpha_raw, np.float64).reshape(-1)
-    return expit(a[np.asarray(F)].max(axis=1))
+    F = np.asarray(F)
+    if F.ndim != 2 or F.shape[1] != 3:
+        return expit(a[F].max(axis=1))
+    # the max of the three corners as two elementwise maxima of column gathers: the same values (max is exact,
+    # NaN propagates alike) as ``a[F].max(axis=1)``, ~4x faster (a reduction over an axis of 3 is slow in numpy)
+    return expit(np.maximum(np.maximum(a[F[:, 0]], a[F[:, 1]]), a[F[:, 2]]))
 
 
 def visible_faces(face_ids, num_faces: int, device=None) -> np.ndarray:

@@ -37,6 +37,7 @@ import pyopencl.array as cla
 
 from .activations import sigmoid, sigmoid_bwd, softplus, softplus_bwd
 from .autodiff import Function, Tape, Variable, active_tape, to_host
+from .autodiff.arrays import Deferred
 from .camera import Camera
 from .device import Device, get_device
 from .lights import pack_lights
@@ -111,6 +112,15 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
 
 
+def _upload(device: Device, a: np.ndarray) -> cla.Array:
+    """A host array of the forward pass on the device without waiting: a blocking write waits for every kernel
+    queued before it (the shading's light table waited for the whole rasterization), a non-blocking one is
+    ordered by the in-order queue alone. The host array must not change until the write is done: every caller
+    hands a fresh copy or an array that stays unchanged until :func:`render` returns, and render ends with a
+    blocking read (:class:`Stack`), by which the writes are done."""
+    return cla.to_device(device.queue, a, async_=True)
+
+
 class RenderState:
     """The state one :func:`render` call shares between its ops (device, camera, fragments ...); the
     ops hold it as ``self.view``. Not a dataset view (that is :class:`triplet_cl.datasets.View`).
@@ -136,7 +146,7 @@ class RenderState:
         """``V [N, 3]`` (host) on the device in the settings' REAL: uploaded once per render call and
         shared by the ops that read it (the same host array object)."""
         if self._Vd is None or self._V_src is not V:
-            self._Vd = cla.to_device(self.device.queue, np.ascontiguousarray(V, self.settings.real))
+            self._Vd = _upload(self.device, np.ascontiguousarray(V, self.settings.real))
             self._V_src = V
         return self._Vd
 
@@ -276,11 +286,11 @@ class VertexAttributes(Function):
         else:
             nrm = normals_op.vertex_forward(d, Vd, m.F, m.csr_off, m.csr_corner, real)
         ctx.Vd = Vd
-        ctx.mat = cla.to_device(d.queue, np.ascontiguousarray(material, real))
-        ctx.alpha = cla.to_device(d.queue, np.ascontiguousarray(alpha, real).reshape(-1))
-        vld = cla.to_device(d.queue, np.ascontiguousarray(vl[0], real)) if vl else None
+        ctx.mat = _upload(d, np.ascontiguousarray(material, real))
+        ctx.alpha = _upload(d, np.ascontiguousarray(alpha, real).reshape(-1))
+        vld = _upload(d, np.ascontiguousarray(vl[0], real)) if vl else None
         ctx.has_vl = bool(vl)
-        cst = None if self.const is None else cla.to_device(d.queue, np.ascontiguousarray(self.const, real))
+        cst = None if self.const is None else _upload(d, np.ascontiguousarray(self.const, real))
         ctx.nconst = 0 if cst is None else cst.shape[1]
         ctx.attr = vattr_op.vertex_attr(d, Vd, nrm, ctx.mat, ctx.alpha, vld, self.softplus, ctx.face, real,
                                         const=cst)
@@ -347,7 +357,7 @@ class RasterInterpolate(Function):
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
-                                             sigma=s.sigma or 0.0)
+                                             sigma=s.sigma or 0.0, want_sigma=False)  # no read-back: not used
         self.view.info["v_vs"] = v_vs  # screen-space vertex adjoint: density control's view-space gradient
         return project_backward(d, ctx.Vd, self.view.camera, v_vs), v_attr
 
@@ -408,8 +418,8 @@ class ShadeFragments(Function):
         blocks = {self.PACKED_BLOCKS[k]: self.layout[k] for k in self.PACKED_BLOCKS if k in self.layout}
         if fa.shape != (P, sum(n for _, n in self.layout.values())) or not fa.flags.c_contiguous:
             fa = cla.to_device(d.queue, np.ascontiguousarray(to_host(fa), s.real))
-        inp = shade_op.packed_inputs(d, fa, blocks, v.camera.center, table, cla.to_device(d.queue, lt_i),
-                                     cla.to_device(d.queue, np.ascontiguousarray(lt_f)), self.brdf, s.two_sided,
+        inp = shade_op.packed_inputs(d, fa, blocks, v.camera.center, table, _upload(d, lt_i),
+                                     _upload(d, np.ascontiguousarray(lt_f)), self.brdf, s.two_sided,
                                      s.real)
         rgb, alpha = shade_op.forward_packed(d, inp)
         ctx.inp, ctx.n_rest = inp, len(rest)
@@ -422,8 +432,15 @@ class ShadeFragments(Function):
         v_alpha = _as_device(d, v_alpha, (P,), fr.real)
         # every column of the layout in the shading adjoint's one pass; the cached visibility's per-vertex values
         # are constants, but their interpolation moves with the barycentrics (V): its adjoint goes back too
-        v_fa, v_params = shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha)
-        return (v_fa,) + ((v_params.astype(self.view.settings.real),) if ctx.n_rest else ())
+        if not ctx.n_rest:
+            return (shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha)[0],)
+        # the light parameters' gradient (a leaf's: the tape adds it after the pass) without a wait here: the host
+        # goes on queueing the fragment adjoint while the device runs the shading's
+        real = self.view.settings.real
+        v_fa, v_params = shade_op.backward_packed(d, ctx.inp, v_rgb, v_alpha, deferred=True)
+        if isinstance(v_params, Deferred):
+            return v_fa, Deferred(v_params.shape, lambda: v_params.resolve().astype(real))
+        return v_fa, v_params.astype(real)
 
 
 class TracedShadeFragments(ShadeFragments):

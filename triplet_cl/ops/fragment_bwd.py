@@ -69,7 +69,8 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
 
 
 def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
-                       v_depth=None, v_win=None, sigma: float = 0.0, geometry: bool = True):
+                       v_depth=None, v_win=None, sigma: float = 0.0, geometry: bool = True,
+                       want_sigma: bool = True):
     """The one backward pass over a view's fragments (``kernels_cl/fragment_bwd.cl``).
 
     Fuses the adjoints of :func:`~triplet_cl.ops.interpolate.interpolate` (one packed attribute
@@ -85,6 +86,8 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         (Numpy inputs may also come in the padded ``[H, W, K, ...]`` view: :meth:`Fragments.from_hwk`.)
         geometry: carry the barycentric/depth/window adjoints on to the projected vertices;
             when False they are returned per fragment instead.
+        want_sigma: sum ``v_sigma`` (a read-back, so the host waits for the whole pass here); False
+            returns 0.0 in its place and the host goes on queueing (the training loop does not use it).
 
     Returns:
         ``geometry=True``: ``(v_attr [N, C] or None, v_vs [N, 3], v_sigma float)``;
@@ -149,7 +152,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     v_attr, v_vs = gather_to_vertices(device, frags, hit, p_attr, C, p_geom, 3 if geometry else 0)
     if not geometry:
         return v_attr, opt["v_bary_out"]
-    v_sigma = float(opt["v_sigma_tile"].get().astype(np.float64).sum()) if vw is not None else 0.0
+    v_sigma = float(opt["v_sigma_tile"].get().astype(np.float64).sum()) if vw is not None and want_sigma else 0.0
     return v_attr, v_vs, v_sigma
 
 

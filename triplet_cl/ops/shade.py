@@ -196,9 +196,11 @@ def backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array) -> ShadeAdjoints:
     return out
 
 
-def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict, extra: dict | None = None):
+def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict, extra: dict | None = None,
+                     deferred: bool = False):
     """Run ``shade_bwd`` with the adjoint outputs ``outs`` (and ``extra`` arguments); returns the light
-    parameters' gradient ``[T]`` (float64, the per-work-group partials summed on the host)."""
+    parameters' gradient ``[T]`` (float64, the per-work-group partials summed on the host); ``deferred``: as an
+    ``autodiff`` ``Deferred`` (the partials' download queued, the sum taken when it is resolved)."""
     q, P, real = dev.queue, inp.P, inp.real
     T = len(inp.table.params)
     v_params = np.zeros(T)
@@ -214,6 +216,16 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
         # (an inactive parameter's gradient stays 0)
         active = np.ones(T, bool)
         active[inp.table.inactive] = False
+        if deferred:
+            from ..autodiff.arrays import Deferred, download_deferred
+
+            dl = download_deferred(part)
+
+            def total(dl=dl, v_params=v_params, active=active):
+                v_params[active] = dl.resolve()[:, :T][:, active].sum(axis=0, dtype=np.float64)
+                return v_params
+
+            return Deferred(v_params.shape, total)
         v_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
     return v_params
 
@@ -262,10 +274,11 @@ def forward_packed(dev: Device, inp: ShadeInputs) -> tuple[cla.Array, cla.Array 
     return rgb, alpha
 
 
-def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cla.Array | None = None):
+def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cla.Array | None = None,
+                    deferred: bool = False):
     """``(v_fa [P, C], v_light_params [T] numpy)``: the adjoint of :func:`forward_packed`, written straight into
     the blocks of the attributes' adjoint (``v_alpha [P]`` into the alpha block; a column outside every block is
-    not written)."""
+    not written). ``deferred``: ``v_light_params`` as an ``autodiff`` ``Deferred`` (no wait here)."""
     v_fa = _pooled(dev, inp.pos.shape, inp.real)
     extra = {}
     if "ALPHA" in inp.blocks:
@@ -277,7 +290,7 @@ def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cl
         outs["v_vlight"] = v_fa
     if inp.vis is not None:
         outs["v_vis"] = v_fa
-    return v_fa, _launch_backward(dev, inp, v_rgb, outs, extra)
+    return v_fa, _launch_backward(dev, inp, v_rgb, outs, extra, deferred=deferred)
 
 
 # ---- validation ------------------------------------------------------------------------------
