@@ -255,3 +255,17 @@ def test_mesh_stage_computed_ao_is_traced_and_held(trained_run):
     assert np.ptp(got) > 0.05  # per vertex (not the tied phase's one value)
     with pytest.raises(ValueError, match="mesh ao"):
         MeshConfig(ao="baked").validate()
+
+
+def test_rank_union_keeps_the_top_of_either_score():
+    """``rank_union`` (``MeshConfig.remesh_albedo``): a face high under either score ranks high; a face ranks low
+    only when low under both; ranks lie in [0, 1]."""
+    from triplet_cl.mesh.refine import rank_union
+
+    pos = np.array([5.0, 1.0, 0.0, 3.0, 2.0])
+    alb = np.array([0.0, 9.0, 0.1, 0.2, 0.3])
+    r = rank_union(pos, alb)
+    assert r.min() >= 0 and r.max() == 1.0
+    assert r[0] == 1.0 and r[1] == 1.0  # the top of each
+    assert r[2] == r.min()  # low under both
+    np.testing.assert_array_equal(rank_union(pos), np.array([1.0, 0.25, 0.0, 0.75, 0.5]))
