@@ -314,9 +314,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "learning; then per vertex (default 300; 0 = none)")
     p.add_argument("--mesh-metallic-trial", type=int, metavar="N", help="before the light phase, fit the mesh "
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
-                   "through the light phase (default 120; 0 = none: the metallic is tied with the others)")
-    p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the mesh: "
-                   "learned per vertex (default), or computed: traced from the mesh's geometry and held")
+                   "through the light phase (default 120; 0 = none: the metallic is tied with the others; "
+                   "Cook-Torrance only, and only with a light phase: --mesh-light-phase > 0)")
+    p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the "
+                   "mesh: learned per vertex (default), or computed: traced from the mesh's geometry and held "
+                   "(no effect with blinn-phong)")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
     p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
@@ -538,7 +540,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "moments, then per vertex; tied: one learning value, as the albedo (runs before 2026-11-26)")
     t.add_argument("--blinn-phong-ka", choices=["diffuse", "free"], help="with --brdf blinn-phong: diffuse (default) "
                    "keeps the ambient reflectance ka equal to kd (one reflectance under the point and the ambient "
-                   "light, as Cook-Torrance's albedo); free: ka its own channel (runs before 2026-11-26)")
+                   "light, as Cook-Torrance's albedo); free: ka its own channel (runs before 2026-11-26); no effect "
+                   "with cook-torrance")
     t.add_argument("--white-light", choices=["each", "total", "off"], help="each (default): every light stays white "
                    "(its brightness learned; the photos' colours go to the albedo); total: the lights together white "
                    "at the scene centre, their colours relative to each other free; off: the lights may take any tint")

@@ -50,7 +50,7 @@ _INT_OPTIONS = {
     "--mesh-iterations": ("mesh_iterations", 0, 10_000_000),
     "--remesh-every": ("remesh_every", 0, None),
     "--mesh-light-phase": ("mesh_light_phase", 0, None),
-    "--mesh-metallic-trial": ("mesh_metallic_trial", 0, None),
+    "--mesh-metallic-trial": ("mesh_metallic_trial", 0, 10_000_000),
     "--mesh-supersample": ("mesh_supersample", 1, 4),
     "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
     "--texture-size": ("texture_size", 16, 16384),

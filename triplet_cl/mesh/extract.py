@@ -340,7 +340,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         wsum[ii] += w
     inside = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
     if solid_in_seen_hull:  # nothing is solid beyond what was seen: an unseen volume closes at the seen extent
-        inside[inside] = _in_convex_hull(np.concatenate(seen_pts), X[inside], grow=0.0)
+        inside[inside] = _in_convex_hull(np.concatenate(seen_pts), X[inside])
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
     tsdf = np.where(inside, -1.0, tsdf)
     if hull_views is not None:
@@ -394,21 +394,21 @@ def _hull_points(P: np.ndarray) -> np.ndarray:
         return P
 
 
-def _in_convex_hull(P: np.ndarray, Q: np.ndarray, grow: float) -> np.ndarray:
-    """``[len(Q)]`` bool: the points ``Q`` inside the convex hull of ``P`` grown by ``grow`` (all True when ``P``
-    spans no volume)."""
-    from scipy.spatial import ConvexHull, QhullError
+def _in_convex_hull(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``[len(Q)]`` bool: the points ``Q`` inside the convex hull of ``P`` (all True when ``P`` spans no volume). A
+    Delaunay tetrahedralisation of the hull's vertices answers each point in about log time and constant memory
+    (testing every point against every facet took 1.3 GB for 4096 points on a smooth object's 19k-facet hull)."""
+    from scipy.spatial import ConvexHull, Delaunay, QhullError
 
     if len(Q) == 0 or len(P) < 5:
         return np.ones(len(Q), bool)
     try:
-        eq = ConvexHull(P).equations  # [n·x + d <= 0 inside], n unit
+        tri = Delaunay(P[ConvexHull(P).vertices])
     except QhullError:
         return np.ones(len(Q), bool)
-    ok = np.ones(len(Q), bool)
-    for a in range(0, len(Q), 1 << 16):
-        q = Q[a:a + (1 << 16)].astype(np.float64)
-        ok[a:a + len(q)] = (q @ eq[:, :3].T + eq[:, 3] <= grow).all(axis=1)
+    ok = np.empty(len(Q), bool)
+    for a in range(0, len(Q), 1 << 18):
+        ok[a:a + (1 << 18)] = tri.find_simplex(Q[a:a + (1 << 18)].astype(np.float64)) >= 0
     return ok
 
 

@@ -92,7 +92,7 @@ class MeshConfig:
     # 24.57 dB, relight +0.5 / +0.5 / +1.4 dB (AO alone set to 1: 23.20 dB)
     material_tie: int = 300
     # metal or dielectric (Cook-Torrance's metallic channel) decided before round 0's light phase by a trial fit of
-    # each hypothesis, this many steps each at one sample per pixel (``MeshRefiner.choose_metallic``); the light
+    # each hypothesis, this many steps each at one sample per pixel (``MeshStage.choose_metallic``); the light
     # phase then holds it, and it goes per vertex with the other channels after. 0: no trial, the metallic is tied
     # with the others (the rule before: a tied value that Adam steps goes wherever its mean gradient's sign points;
     # measured, the metal capture's mesh ended at 0.98 or 0.11 depending on the lights' path)
@@ -108,9 +108,9 @@ class MeshConfig:
     # bench/relight.py --gt-ceiling on the true meshes)
     shadow_eps: float = 0.01
     remesh_every: int = 200  # steps between subdivision / simplification (0: never)
-    # the remesh also subdivides where the albedo's gradient is large (colour edges a vertex colour blurs): a face's
-    # score is the larger of its two ranks, position gradient and albedo gradient (rank_union); False: position only
-    remesh_albedo: bool = False
+    # (measured, not kept: also subdividing where the albedo's gradient is large, a face ranked by the larger of its
+    # position- and albedo-gradient ranks: bob_env and spot even, gadget's mesh NVS -1.4 dB;
+    # bench/results/ao_pocl_2026-11-26.txt)
     # the final repair's first neighbourhood (rings around the crossing faces' vertices that are smoothed; it grows
     # by a ring per round): 0 smooths fewer vertices (gadget, 838 crossing pairs: 1185 moved instead of 2804, the
     # test PSNR lost to the repair 0.50 → 0.20 dB; with issue 18's light phase 29.71 → 29.77 dB; spot −0.02 dB,
@@ -371,13 +371,14 @@ class MeshStage:
         rng = np.random.default_rng(tc.seed + 11)
         n = c.metallic_trial
         ao = self.computed_ao_column(scene)
+        vis = self.visibility(scene)  # the run's cast shadows (the geometry is fixed through the trial)
         views = rng.integers(0, len(self.ds.train), n)
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
 
         def loss_and_backward(k: int) -> float:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
-            r, img, _ = self.render(scene, cam, bgs[k], supersample=1)
+            r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
             self.backward_image(r, v_img, supersample=1)
             held = list(self.trainer.held_ao) + ([ao] if ao is not None else [])
@@ -447,6 +448,10 @@ class MeshStage:
         held = metallic_column(scene.brdf) if tied and c.metallic_trial > 0 else None
         if held is not None and round_index == 0:
             self.choose_metallic(scene, tied, held)
+        # the held metallic: each vertex's own gradient builds its Adam moments through the phase and the value is
+        # put back after each step (as the soup's held lobes); with its gradient zeroed instead, its moments stayed 0
+        # and, Adam's step count shared, it left the phase at up to 3× the rate, undoing the trial's choice
+        phase_tied = [k for k in tied if k != held]
         opt = self.build_optimizer(scene)
         reg = Regularizers(scene, c)
         shadows = None
@@ -455,8 +460,6 @@ class MeshStage:
 
             shadows = VisibilityCache(every=tc.shadow_every, extent=self.trainer.extent, ray_eps=c.shadow_eps)
         grad_acc = np.zeros(len(scene.F))
-        alb_cols = [k for k, nm in enumerate(get_brdf(scene.brdf).channel_names) if nm.startswith(("albedo_", "kd_"))]
-        alb_acc = np.zeros(len(scene.F)) if c.remesh_albedo else None
         targets = self.trainer.targets
         order: list[int] = []
         bar = tqdm(total=c.iterations, desc=f"mesh {round_index + 1}/{c.rounds}", unit="it", disable=self.quiet,
@@ -478,19 +481,19 @@ class MeshStage:
                 self.backward_image(r, v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
-                if alb_acc is not None and scene.material.grad is not None:
-                    gm = np.asarray(scene.material.grad, np.float64)[:, alb_cols]
-                    alb_acc += np.linalg.norm(gm, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg(scene)
                 tie_ambient_gradient(scene.material, amb)
                 if held_cols and scene.material.grad is not None:
                     scene.material.grad[:, held_cols] = 0.0
+                kept = None
                 if it < c.material_tie and tied:
-                    tie_rows(scene.material, tied)
-                    if held is not None and scene.material.grad is not None:
-                        scene.material.grad[:, held] = 0.0
+                    tie_rows(scene.material, phase_tied)
+                    if held is not None:
+                        kept = np.array(scene.material.data[:, held])
                 opt.step()
                 opt.zero_grad()
+                if kept is not None:
+                    scene.material.data[:, held] = kept
                 copy_ambient(scene.material, amb)
                 if scene.light_params is not None:  # the soup stage's white-light rule
                     scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
@@ -503,13 +506,11 @@ class MeshStage:
                 last = it + 1 == c.iterations
                 if c.remesh_every and (it + 1) % c.remesh_every == 0 and not last:
                     hi = c.subdivide_fraction if len(scene.F) < c.max_faces else 0.0
-                    score = grad_acc if alb_acc is None else rank_union(grad_acc, alb_acc)
-                    rep = refine_scene(scene, opt, score, fraction_hi=hi, fraction_lo=c.simplify_fraction)
+                    rep = refine_scene(scene, opt, grad_acc, fraction_hi=hi, fraction_lo=c.simplify_fraction)
                     self.trainer.log.info(f"mesh remesh at {it + 1}: faces {rep.faces_before} -> {rep.faces_after} "
                                           f"({rep.subdivided} subdivided, {rep.simplified} simplified)")
                     reg = Regularizers(scene, c)
                     grad_acc = np.zeros(len(scene.F))
-                    alb_acc = np.zeros(len(scene.F)) if c.remesh_albedo else None
                     self.set_computed_ao(scene, ao_col)
                 if (it + 1) % 100 == 0:
                     self.trainer.log.info(json.dumps(rec))
@@ -639,17 +640,6 @@ class MeshStage:
         self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))
 
 
-def rank_union(*scores: np.ndarray) -> np.ndarray:
-    """``[M]`` the larger of each face's ranks (0 … 1) under several scores: the top faces of either score rank
-    high, a face ranks low only when it is low under all."""
-    out = np.zeros(len(scores[0]))
-    for sc in scores:
-        r = np.empty(len(sc))
-        r[np.argsort(sc, kind="stable")] = np.arange(len(sc)) / max(len(sc) - 1, 1)
-        out = np.maximum(out, r)
-    return out
-
-
 # the two hypotheses of MeshConfig.metallic_trial (a sigmoid's value: 0 and 1 are out of reach)
 METALLIC_TRIAL_VALUES = (0.01, 0.99)
 # a metal hypothesis fitted rougher than this is refused (metallic_trial)
@@ -666,7 +656,8 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     scene's parameters; Adam on the materials, the ``tied`` columns one value, and on the lights when the scene
     has any; the geometry fixed); the value whose fit has the lower mean loss over its second half wins. The
     scene is put back as it was, but for the column set to the winner. Returns ``{"metallic", "loss" (per value),
-    "steps", "curves" (per value, the loss of every step)}``.
+    "steps", "curves" (per value, the loss of every step), "tied" (per value, the tied columns' raw values at the
+    end of its fit), "refused" (the metal value refused by the roughness rule, or None)}``.
 
     Why a trial: a metallic value tied over the mesh and stepped by Adam goes wherever the sign of its mean
     gradient points, at full rate however weak the evidence; measured, the metal capture's mesh ended at metallic
