@@ -85,8 +85,9 @@ class MeshConfig:
     laplacian: str = "uniform"
     gtv_weight: float = 0.002  # graph TV of the raw materials
     # the mesh stage's light phase (issue 18): every material channel but the albedo (roughness, metallic, AO; Blinn-
-    # Phong's ks, shininess, ka) starts each round at its mean over the mesh and stays one value for this many steps
-    # (the mean of the per-vertex gradients), the lights learning, then per vertex again. The soup's per-vertex AO
+    # Phong's ks, shininess; its ka follows kd, TrainConfig.blinn_phong_ka) starts each round at its mean over the
+    # mesh and stays one value for this many steps (the mean of the per-vertex gradients; the metallic is held at
+    # the metallic_trial's choice instead), the lights learning, then per vertex again. The soup's per-vertex AO
     # and roughness hold shading painted in while its normals were noisy; on the mesh, with clean normals, one
     # value each lets the highlights and the lights explain it. spot_small (1500-it. soup): albedo (scaled) 20.75 →
     # 24.57 dB, relight +0.5 / +0.5 / +1.4 dB (AO alone set to 1: 23.20 dB)
