@@ -94,6 +94,11 @@ class BRDF:
     def channel_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.channels)
 
+    def column(self, name: str) -> int | None:
+        """The material column of channel ``name`` (``"metallic"``, ``"ao"``, …), or None when this BRDF has none."""
+        names = self.channel_names
+        return names.index(name) if name in names else None
+
     @property
     def softplus_columns(self) -> list[int]:
         """Columns activated by softplus (the others: sigmoid)."""

@@ -611,7 +611,7 @@ class Trainer:
         # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): the pairs, empty lists when off or Cook-Torrance
         self.ambient_pairs = ambient_pairs(brdf) if self.cfg.blinn_phong_ka == "diffuse" else ([], [])
         # TrainConfig.ao "off": the AO column takes no step (soup and mesh stage)
-        self.held_ao = [brdf.channel_names.index("ao")] if self.cfg.ao == "off" and "ao" in brdf.channel_names else []
+        self.held_ao = [brdf.column("ao")] if self.cfg.ao == "off" and brdf.column("ao") is not None else []
         self.rng = np.random.default_rng(self.cfg.seed)
         self.scene = initial_scene(self.cfg, self.ds, self.rng)
         copy_ambient(self.scene.material, self.ambient_pairs)
@@ -738,8 +738,7 @@ class Trainer:
                 tie_rows(self.scene.material, self.tied_columns)
             else:
                 tie_rows(self.scene.material)
-        if self.ambient_pairs[0]:
-            tie_ambient_gradient(self.scene.material, self.ambient_pairs)
+        tie_ambient_gradient(self.scene.material, self.ambient_pairs)
         if self.held_ao and self.scene.material.grad is not None:
             self.scene.material.grad[:, self.held_ao] = 0.0
         try:
@@ -749,8 +748,7 @@ class Trainer:
         self.opt.zero_grad()
         if held is not None:
             self.scene.material.data[:, self.lobe_columns] = held
-        if self.ambient_pairs[0]:
-            copy_ambient(self.scene.material, self.ambient_pairs)
+        copy_ambient(self.scene.material, self.ambient_pairs)
         self.priors.project(self.scene)
         self.balance_lights()
         t4 = time.perf_counter()

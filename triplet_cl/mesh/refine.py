@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..activations import logit, sigmoid
 from ..autodiff import Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
@@ -371,7 +372,7 @@ class MeshStage:
         c, tc = self.cfg, self.trainer.cfg
         rng = np.random.default_rng(tc.seed + 11)
         n = c.metallic_trial
-        ao = self.computed_ao_column(scene)
+        held = self.held_columns(scene)
         vis = self.visibility(scene)  # the run's cast shadows (the geometry is fixed through the trial)
         views = rng.integers(0, len(self.ds.train), n)
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
@@ -382,7 +383,6 @@ class MeshStage:
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
             self.backward_image(r, v_img, supersample=1)
-            held = list(self.trainer.held_ao) + ([ao] if ao is not None else [])
             if held and scene.material.grad is not None:
                 scene.material.grad[:, held] = 0.0
             return float(loss)
@@ -394,9 +394,8 @@ class MeshStage:
         light_scale = (relative_lr_scales(scene.lights) if scene.light_params is not None
                        and tc.lr_lights_mode == "relative" else None)
         t = time.perf_counter()
-        names = list(get_brdf(scene.brdf).channel_names)
         out = metallic_trial(scene, tied, col, loss_and_backward, n, lr_material=c.lr_material,
-                             rough_col=names.index("roughness") if "roughness" in names else None,
+                             rough_col=get_brdf(scene.brdf).column("roughness"),
                              betas=tuple(tc.betas), lr_lights=c.lr_lights, light_scale=light_scale,
                              after_step=after_step if scene.light_params is not None else None)
         out["seconds"] = time.perf_counter() - t
@@ -407,8 +406,13 @@ class MeshStage:
     def computed_ao_column(self, scene: Scene) -> int | None:
         """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
         without AO)."""
-        names = list(get_brdf(scene.brdf).channel_names)
-        return names.index("ao") if self.cfg.ao == "computed" and "ao" in names else None
+        return get_brdf(scene.brdf).column("ao") if self.cfg.ao == "computed" else None
+
+    def held_columns(self, scene: Scene) -> list[int]:
+        """The material columns that take no step in the mesh stage: the AO held by ``TrainConfig.ao = "off"``
+        or set from the geometry (``MeshConfig.ao = "computed"``)."""
+        ao = self.computed_ao_column(scene)
+        return list(self.trainer.held_ao) + ([ao] if ao is not None else [])
 
     def set_computed_ao(self, scene: Scene, col: int | None) -> None:
         """The mesh's traced ambient occlusion (:func:`~triplet_cl.visibility.vertex_ambient_occlusion`) written into
@@ -421,8 +425,7 @@ class MeshStage:
         t = time.perf_counter()
         ao = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
                                       directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
-        a = np.clip(ao, 0.02, 0.999)
-        scene.material.data[:, col] = np.log(a / (1 - a)).astype(scene.material.data.dtype)
+        scene.material.data[:, col] = logit(np.clip(ao, 0.02, 0.999), eps=None).astype(scene.material.data.dtype)
         pct = np.round(np.percentile(ao, [10, 50, 90]), 3).tolist()
         self.trainer.log.info(f"mesh AO traced: {len(ao)} vertices, p10/50/90 {pct}, {time.perf_counter() - t:.1f} s")
 
@@ -436,7 +439,7 @@ class MeshStage:
         c, tc = self.cfg, self.trainer.cfg
         amb = self.trainer.ambient_pairs  # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): not tied on its own
         ao_col = self.computed_ao_column(scene)
-        held_cols = list(self.trainer.held_ao) + ([ao_col] if ao_col is not None else [])
+        held_cols = self.held_columns(scene)
         tied = [k for k in tied_channels(scene.brdf) if k not in amb[1] and k not in held_cols] \
             if c.material_tie > 0 else []
         copy_ambient(scene.material, amb)
@@ -446,7 +449,7 @@ class MeshStage:
         # the metallic column is decided, not drifted: held through the light phase at the value choose_metallic
         # picked (round 0) or at its mean (later rounds)
         self.set_computed_ao(scene, ao_col)
-        held = metallic_column(scene.brdf) if tied and c.metallic_trial > 0 else None
+        held = get_brdf(scene.brdf).column("metallic") if tied and c.metallic_trial > 0 else None
         if held is not None and round_index == 0:
             self.choose_metallic(scene, tied, held)
         # the held metallic: each vertex's own gradient builds its Adam moments through the phase and the value is
@@ -680,7 +683,7 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     curves, ends = {}, {}
     for value in values:
         scene.material.data[...] = m0
-        scene.material.data[:, col] = np.log(value / (1 - value))
+        scene.material.data[:, col] = logit(value)
         if l0 is not None:
             lp.data[...] = l0
         opt = Adam()
@@ -707,22 +710,16 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     best = min(scores, key=scores.get)
     refused = None
     if best > 0.5 and rough_col is not None and rough_col in tied:
-        r = 1 / (1 + np.exp(-ends[best][tied.index(rough_col)]))
-        if r > max_metal_roughness:  # a near-Lambertian metal: what a dielectric explains as well, the prior wins
+        # a near-Lambertian metal: what a dielectric explains as well, the prior wins
+        if sigmoid(ends[best][tied.index(rough_col)]) > max_metal_roughness:
             refused, best = best, min(values)
     scene.material.data[...] = m0
-    scene.material.data[:, col] = np.log(best / (1 - best))
+    scene.material.data[:, col] = logit(best)
     if l0 is not None:
         lp.data[...] = l0
     return {"metallic": best, "loss": {str(v): x for v, x in scores.items()}, "steps": steps,
             "curves": {str(v): c for v, c in curves.items()}, "tied": {str(v): e for v, e in ends.items()},
             "refused": refused}
-
-
-def metallic_column(brdf: str) -> int | None:
-    """The material column of the metallic channel (Cook-Torrance), or None (Blinn-Phong has none)."""
-    names = get_brdf(brdf).channel_names
-    return names.index("metallic") if "metallic" in names else None
 
 
 def tied_channels(brdf: str) -> list[int]:
