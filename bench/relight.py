@@ -215,16 +215,28 @@ def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> No
             res = []
             for ls in sets:
                 sc = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=ls.lights)
-                vis = None
-                if renderer == "vertex":  # raster with the cached per-vertex shadows (visibility.py)
+                vis = bounce = None
+                if renderer in ("vertex_ao", "bounce"):  # the ambient occlusion traced (the material's AO is 1)
+                    from triplet_cl.mesh.bake import vertex_normals
+                    from triplet_cl.visibility import vertex_ambient_occlusion
+
+                    ao = vertex_ambient_occlusion(sc, vertex_normals(V, F), directions=64, ray_eps=0.01)
+                    sc.material.data[:, 5] = logit(np.clip(ao, 1e-4, 1 - 1e-4))
+                if renderer in ("vertex", "vertex_ao", "bounce"):  # raster, the cached per-vertex shadows
                     from triplet_cl.visibility import vertex_visibility
 
                     vis = vertex_visibility(sc, ray_eps=0.01)
+                if renderer == "bounce":  # ... and one traced interreflection bounce (visibility.vertex_bounce)
+                    from triplet_cl.mesh.bake import vertex_normals
+                    from triplet_cl.visibility import vertex_bounce
+
+                    bounce = vertex_bounce(sc, vertex_normals(V, F), vis=vis, ray_eps=0.01)
                 ps = []
                 for v in test:
                     st = RenderSettings(K=4, sigma=None, normals="vertex", background=(1, 1, 1), transfer="srgb",
-                                        renderer="raster" if renderer == "vertex" else renderer)
-                    r = render(sc, v.camera.scaled(2), st, vis=vis)
+                                        renderer="raster" if renderer in ("vertex", "vertex_ao", "bounce")
+                                        else renderer)
+                    r = render(sc, v.camera.scaled(2), st, vis=vis, bounce=bounce)
                     img = r.image.reshape(v.camera.height, 2, v.camera.width, 2, 3).mean((1, 3))
                     im = read_image(ls.images / f"{Path(v.name).name}.png")
                     ps.append(psnr(img, im.rgb * im.alpha[..., None] + (1 - im.alpha[..., None])))
@@ -244,7 +256,8 @@ def main(argv=None) -> int:
     p.add_argument("--gt-ceiling", help="relight the ground-truth mesh + material of this scene instead")
     p.add_argument("--env-degrees", default="8", help="with --gt-ceiling: comma-separated SH degrees")
     p.add_argument("--renderers", default="raster,hybrid", help="with --gt-ceiling: comma-separated renderers "
-                   "(raster, hybrid, raytrace, or vertex: raster with the cached per-vertex shadows)")
+                   "(raster, hybrid, raytrace, or vertex: raster with the cached per-vertex shadows, vertex_ao: and "
+                   "the AO traced from the mesh, bounce: and one traced interreflection bounce)")
     a = p.parse_args(argv)
     data = Path(a.data)
     if a.gt_ceiling:

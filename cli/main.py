@@ -319,6 +319,9 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the "
                    "mesh: learned per vertex (default), or computed: traced from the mesh's geometry and held "
                    "(no effect with blinn-phong)")
+    p.add_argument("--mesh-bounce", choices=["traced", "off"], help="interreflection on the mesh: traced (one diffuse "
+                   "bounce of the lights off the rest of the mesh, per vertex, re-traced with the cast shadows) "
+                   "or off (default)")
     p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
     p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
@@ -348,7 +351,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
                        ("mesh_light_phase", "material_tie"),
                        ("mesh_metallic_trial", "metallic_trial"),
-                       ("mesh_ao", "ao"),
+                       ("mesh_ao", "ao"), ("mesh_bounce", "bounce"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

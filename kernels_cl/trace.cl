@@ -363,27 +363,12 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
     STORE3(gx, v_x, p);
 }
 
-__kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
-                           __global const int* prim,     // [M]
-                           const int P, const int M,
-                           __global const REAL* V,       // [N, 3]
-                           __global const int* F,        // [M, 3]
-                           __global const REAL* pos,     // [Pf, 3]
-                           __global const REAL* nrm,     // [Pf, 3]
-                           __global const int* face,     // [Pf]
-                           const int Pf,
-                           const REAL cx, const REAL cy, const REAL cz, const int two_sided, const REAL eps,
-                           __global int* hit_face,       // [Pf]  -1: no hit
-                           __global REAL* hit_bary)      // [Pf, 2]  (l0, l1)
+/* The nearest hit of the ray x + t d, t > eps, face own skipped (own < 0: no ray): writes hit_face[p] (-1: none)
+ * and hit_bary[p] = (l0, l1) (zeros without a hit). Ties in t go to the lower face id (deterministic). */
+inline void nearest_hit(__global const REAL* nodes, __global const int* prim, const int P, const int M,
+                        __global const REAL* V, __global const int* F, const REAL3 x, const REAL3 d, const int own,
+                        const REAL eps, const int p, __global int* hit_face, __global REAL* hit_bary)
 {
-    const int p = get_global_id(0);
-    if (p >= Pf) return;
-    const REAL3 x = LOAD3(pos, p);
-    const REAL3 Vd = safe_normalize((REAL3)(cx, cy, cz) - x);
-    REAL3 N = safe_normalize(LOAD3(nrm, p));
-    if (two_sided && dot(N, Vd) < (REAL)0) N = -N;
-    const REAL3 d = (REAL)2 * dot(N, Vd) * N - Vd;
-    const int own = face[p];
     const REAL3 inv = ray_inv_dir(d);
     REAL best = (REAL)1e30, bu = 0, bv = 0;
     int bf = -1;
@@ -409,6 +394,49 @@ __kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
     hit_face[p] = bf;
     hit_bary[2 * p] = bf >= 0 ? (REAL)1 - bu - bv : (REAL)0;
     hit_bary[2 * p + 1] = bf >= 0 ? bu : (REAL)0;
+}
+
+__kernel void trace_bounce(__global const REAL* nodes,   // [2P - 1, 6]
+                           __global const int* prim,     // [M]
+                           const int P, const int M,
+                           __global const REAL* V,       // [N, 3]
+                           __global const int* F,        // [M, 3]
+                           __global const REAL* pos,     // [Pf, 3]
+                           __global const REAL* nrm,     // [Pf, 3]
+                           __global const int* face,     // [Pf]
+                           const int Pf,
+                           const REAL cx, const REAL cy, const REAL cz, const int two_sided, const REAL eps,
+                           __global int* hit_face,       // [Pf]  -1: no hit
+                           __global REAL* hit_bary)      // [Pf, 2]  (l0, l1)
+{
+    const int p = get_global_id(0);
+    if (p >= Pf) return;
+    const REAL3 x = LOAD3(pos, p);
+    const REAL3 Vd = safe_normalize((REAL3)(cx, cy, cz) - x);
+    REAL3 N = safe_normalize(LOAD3(nrm, p));
+    if (two_sided && dot(N, Vd) < (REAL)0) N = -N;
+    const REAL3 d = (REAL)2 * dot(N, Vd) * N - Vd;
+    nearest_hit(nodes, prim, P, M, V, F, x, d, face[p], eps, p, hit_face, hit_bary);
+}
+
+/* trace_rays (one work-item per ray): the nearest hit along origin[p] + t dir[p] (t > eps, the face own[p]
+ * skipped; own[p] < 0: no ray), as trace_bounce's. The one-bounce interreflection (visibility.vertex_bounce)
+ * traces its hemisphere rays with it. Discrete: no adjoint. */
+__kernel void trace_rays(__global const REAL* nodes,   // [2P - 1, 6]
+                         __global const int* prim,     // [M]
+                         const int P, const int M,
+                         __global const REAL* V,       // [N, 3]
+                         __global const int* F,        // [M, 3]
+                         __global const REAL* origin,  // [R, 3]
+                         __global const REAL* dir,     // [R, 3]
+                         __global const int* own,      // [R]
+                         const int R, const REAL eps,
+                         __global int* hit_face,       // [R]  -1: no hit
+                         __global REAL* hit_bary)      // [R, 2]  (l0, l1)
+{
+    const int p = get_global_id(0);
+    if (p >= R) return;
+    nearest_hit(nodes, prim, P, M, V, F, LOAD3(origin, p), LOAD3(dir, p), own[p], eps, p, hit_face, hit_bary);
 }
 
 /* ray/triangle adjoint: (v_u, v_v) of the barycentrics (u, v) of the hit of o + t d -> v_o, v_d, corners */

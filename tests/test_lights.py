@@ -45,15 +45,17 @@ def _mix():
 def test_registry_is_consistent():
     assert set(LIGHT_CLASSES) == {"AmbientLight", "DirectionalLight", "PointLight", "SHEnvironmentLight",
                                   "VertexSHLight"}
-    assert {c.TYPE for c in LIGHT_TYPES.values()} == set(LIGHT_TYPES) == {0, 1, 2, 3, 4}
+    assert {c.TYPE for c in LIGHT_TYPES.values()} == set(LIGHT_TYPES) == {0, 1, 2, 3, 4, 5}
     assert {c.KIND for c in LIGHT_KINDS.values()} == {"point", "directional", "ambient", "sh-env", "vertex-sh"}
+    # the bounce light is the renderer's (traced interreflection): in the kernels' table, no CLI kind, no json type
+    assert LIGHT_TYPES[5] is L.BounceLight and L.BounceLight.INTERNAL and "bounce" not in LIGHT_KINDS
     d = kernel_defines()
     for t, c in LIGHT_TYPES.items():
         assert d[f"LIGHT_{c.DEFINE}"] == t
         assert bool(d["LIGHT_SHADOW_MASK"] >> t & 1) == c.CASTS_SHADOWS
     assert L.shadow_casting_types() == (DirectionalLight.TYPE, PointLight.TYPE)
     # the historical module names of the ids still hold
-    assert (L.AMBIENT, L.DIRECTIONAL, L.POINT, L.SH_ENV, L.VERTEX_SH) == (0, 1, 2, 3, 4)
+    assert (L.AMBIENT, L.DIRECTIONAL, L.POINT, L.SH_ENV, L.VERTEX_SH, L.BOUNCE) == (0, 1, 2, 3, 4, 5)
 
 
 def test_register_refuses_duplicates():

@@ -258,3 +258,32 @@ def test_mesh_stage_computed_ao_is_traced_and_held(trained_run):
     with pytest.raises(ValueError, match="mesh ao"):
         MeshConfig(ao="baked").validate()
 
+
+
+def test_mesh_stage_bounce_lights_the_mesh_and_is_relit_with_it(trained_run):
+    """``MeshConfig.bounce = "traced"`` (``--mesh-bounce traced``): the stage renders with the traced interreflection
+    (``MeshStage.bounce``: non-negative, somewhere lit; the render nowhere darker, somewhere brighter), in training
+    and in its metrics; it is saved with the state, so relighting renders the bounce of the new lights; a state
+    saved before the option reads "off"; a bad value is refused."""
+    from triplet_cl.relight import Relighter, _mesh_config
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    off = MeshStage(tr, tiny_mesh_cfg(iterations=0))
+    mesh = off.extract(tr.scene)
+    assert off.bounce(mesh) is None
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=4, material_tie=2, remesh_every=0, metallic_trial=0,
+                                        bounce="traced"))
+    b = stage.bounce(mesh)
+    assert b.shape == (mesh.V.shape[0], 3) and b.min() >= 0 and b.max() > 1e-3
+    cam = tr.ds.train[0].camera
+    _, plain, _ = stage.render(mesh, cam, np.zeros(3), 1)
+    _, lit, _ = stage.render(mesh, cam, np.zeros(3), 1, bounce=b)
+    assert (lit >= plain - 1e-5).all() and (lit > plain + 1e-3).any()
+    stage.run()
+    assert _mesh_config(trained_run / "mesh_stage.npz").bounce == "traced"
+    rl = Relighter(Trainer(None, trained_run, resume=True, quiet=True), stage="mesh")
+    scene = rl.with_lights(rl.base.current_lights())
+    assert rl.bounce(scene, None) is not None and rl.bounce(rl.albedo_scene(), None) is not None
+    assert MeshConfig.from_dict({}).bounce == "off"
+    with pytest.raises(ValueError, match="mesh bounce"):
+        MeshConfig(bounce="full").validate()

@@ -10,6 +10,7 @@ import pytest
 from tests.reference import shade as ref
 from triplet_cl.lights import (
     AmbientLight,
+    BounceLight,
     DirectionalLight,
     PointLight,
     SHEnvironmentLight,
@@ -37,8 +38,13 @@ def make_lights(kind, rng, env_degree=2):
         return [SHEnvironmentLight(c)]
     if kind == "vertex_sh":
         return [VertexSHLight()]
+    if kind == "bounce":  # the traced interreflection: a per-fragment uniform radiance, lit as the ambient light
+        return [BounceLight()]
     if kind == "mix":
         return [l for k in ("ambient", "directional", "point", "point_nofalloff", "env", "vertex_sh")
+                for l in make_lights(k, rng, env_degree)]
+    if kind == "mix_bounce":  # what the mesh stage shades with (the bounce last, after the learned lights)
+        return [l for k in ("ambient", "directional", "point", "env", "bounce")
                 for l in make_lights(k, rng, env_degree)]
     raise KeyError(kind)
 
@@ -66,7 +72,8 @@ def ref_shade(frag, lights, brdf, **kw):
 
 
 @pytest.mark.parametrize("brdf", BRDFS)
-@pytest.mark.parametrize("kind", ["ambient", "directional", "point", "point_nofalloff", "env", "vertex_sh", "mix"])
+@pytest.mark.parametrize("kind", ["ambient", "directional", "point", "point_nofalloff", "env", "vertex_sh", "bounce",
+                                  "mix", "mix_bounce"])
 def test_forward_float32(device, rng, brdf, kind):
     frag = make_fragments(rng, brdf)
     lights = make_lights(kind, rng)
@@ -87,11 +94,12 @@ def test_forward_env_degree8_and_one_sided(device, rng, brdf):
 
 
 @pytest.mark.parametrize("brdf", BRDFS)
-def test_vjp_float32_vs_reference(device, rng, brdf):
+@pytest.mark.parametrize("mix", ["mix", "mix_bounce"])
+def test_vjp_float32_vs_reference(device, rng, brdf, mix):
     P = 64
     frag = make_fragments(rng, brdf, P=P)
     pos, nrm, mat, face_id, vlight = frag
-    lights = make_lights("mix", rng)
+    lights = make_lights(mix, rng)
     t = pack_lights(lights)
     v_rgb = rng.standard_normal((P, 3))
     got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, brdf=brdf, vlight=vlight, device=device)
@@ -101,7 +109,10 @@ def test_vjp_float32_vs_reference(device, rng, brdf):
         np.testing.assert_allclose(g, w, rtol=2e-3, atol=2e-4 * np.abs(w).max(), err_msg=name)
     w = want["v_params"]
     np.testing.assert_allclose(got.v_light_params, w, rtol=2e-3, atol=2e-4 * np.abs(w).max())
-    assert set(got.v_lights[1]) == {"direction", "intensity"} and got.v_lights[4]["coeffs"].shape == (3, 9)
+    env = 4 if mix == "mix" else 3
+    assert set(got.v_lights[1]) == {"direction", "intensity"} and got.v_lights[env]["coeffs"].shape == (3, 9)
+    if mix == "mix_bounce":  # the bounce's radiance: the only gradient it has (no parameters)
+        assert got.v_lights[4] == {} and np.abs(got.v_vlight[:, :3]).max() > 0 and not got.v_vlight[:, 3:].any()
 
 
 def _fd_columns(f, x, h):
@@ -116,14 +127,15 @@ def _fd_columns(f, x, h):
 
 
 @pytest.mark.parametrize("brdf", BRDFS)
-def test_vjp_float64_finite_differences(device64, rng, brdf):
+@pytest.mark.parametrize("mix", ["mix", "mix_bounce"])
+def test_vjp_float64_finite_differences(device64, rng, brdf, mix):
     """Every parameter family: positions, normals, each material channel, vertex-SH light, and each
     light parameter (ambient, directional, point position/intensity with and without falloff, SH env
     coefficients)."""
     P, h = 40, 1e-6
     frag = make_fragments(rng, brdf, P=P)
     pos, nrm, mat, face_id, vlight = frag
-    lights = make_lights("mix", rng)
+    lights = make_lights(mix, rng)
     v_rgb = rng.standard_normal((P, 3))
     kw = {"brdf": brdf, "device": device64, "real": np.float64}
     got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, vlight=vlight, **kw)

@@ -183,6 +183,28 @@ def test_bounce_matches_reference(device64, rng):
     assert (g * w).sum() == pytest.approx((attr[:, 1:4] * back).sum(), rel=1e-12)
 
 
+def test_trace_rays_matches_reference(device64, rng):
+    """``trace_rays`` (the interreflection's hemisphere rays): any origin and direction, its own face skipped, no ray
+    where ``own < 0``; the same hits as the brute-force reference."""
+    import pyopencl.array as cla
+
+    V, F = soup(rng, M=50)
+    mesh = DeviceMesh(device64, F, len(V))
+    b = build_bvh(device64, V, mesh)
+    R = 80
+    own = rng.integers(0, len(F), R)
+    own[:5] = -1
+    lam = rng.dirichlet([2, 2, 2], R)
+    origin = (V[F[own]] * lam[..., None]).sum(1)
+    direction = rng.standard_normal((R, 3)) * rng.uniform(0.2, 3.0, (R, 1))  # not unit
+    hf, hb = trace_op.trace_rays(device64, b, cla.to_device(device64.queue, V), origin, direction,
+                                 own.astype(np.int32), 1e-6)
+    rf, rb = ref.nearest_ref(V, F, origin, direction, own, 1e-6)
+    assert (rf >= 0).sum() > 20 and (rf < 0).sum() > 5 and np.all(hf.get()[:5] == -1)
+    np.testing.assert_array_equal(hf.get(), rf)
+    np.testing.assert_allclose(hb.get(), rb, atol=1e-12)
+
+
 # ------------------------------------------------------------------------------------------------ shading terms
 
 

@@ -256,3 +256,102 @@ def test_vertex_ambient_occlusion_open_sky_and_a_corner(device):
     assert 0.35 < ao[1, centre] < 0.65, ao[1, centre]  # x = 0.1, at the wall's foot
     assert ao[-1, centre] > 0.85 and ao[-1, centre] > ao[1, centre] + 0.3, (ao[-1, centre], ao[1, centre])
     assert np.all(np.diff(ao[1:, centre]) > -0.05)  # opens up away from the wall
+
+
+def _bounce_reference(scene, normals, lights, directions, eps):
+    """``vertex_bounce`` by brute force: the reference rays (``nearest_ref``) and the reference shading of each hit
+    seen from its vertex (``tests/reference/shade.py``), unshadowed."""
+    from tests.reference import shade as shade_ref
+    from triplet_cl.lights import pack_lights
+    from triplet_cl.visibility import sphere_directions
+
+    V, F = np.asarray(scene.V.data, np.float64), np.asarray(scene.F)
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    D = sphere_directions(directions)
+    mat = 1.0 / (1.0 + np.exp(-np.asarray(scene.material.data, np.float64)))
+    alpha = 1.0 / (1.0 + np.exp(-np.asarray(scene.alpha.data, np.float64)))
+    t = pack_lights(lights)
+    own = owner_faces(F, len(V))
+    out = np.zeros((len(V), 3))
+    for i in range(len(V)):
+        w = n[i] @ D.T
+        k = np.nonzero(w > 0)[0]
+        f, b = ref.nearest_ref(V, F, np.tile(V[i], (len(k), 1)), D[k], np.full(len(k), own[i]), eps)
+        hit = f >= 0
+        if not hit.any():
+            continue
+        lam = np.stack([b[hit, 0], b[hit, 1], 1 - b[hit, 0] - b[hit, 1]], 1)
+        c = F[f[hit]]
+
+        def at(a, lam=lam, c=c):
+            return np.einsum("hc,hcj->hj", lam, a[c])
+
+        rgb = shade_ref.shade(at(V), at(n), at(mat), f[hit], V[i], t.ints, t.params, "cook_torrance")
+        L = np.zeros((len(k), 3))
+        L[hit] = rgb * at(alpha)
+        out[i] = (w[k, None] * L).sum(0) / w[k].sum()
+    return out
+
+
+def test_vertex_bounce_matches_reference_and_lights_what_faces_a_lit_surface(device64):
+    """``vertex_bounce`` (the traced interreflection) against the brute-force reference; physics: the box's
+    underside, facing the lit floor, receives the floor's light, the open floor receives none; the cast shadows
+    given (``vis``) shade the hits (all ones: unchanged; all zeros: the ambient light's bounce alone)."""
+    from triplet_cl.visibility import vertex_bounce
+
+    lights = overhead()
+    scene, nplane = box_over_plane(lights)
+    V, F = np.asarray(scene.V.data), np.asarray(scene.F)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    normals = np.repeat(fn / np.linalg.norm(fn, axis=1, keepdims=True), 3, axis=0)  # a soup: the face's normal
+    eps = 1e-2 * np.linalg.norm(V.max(0) - V.min(0))
+    got = vertex_bounce(scene, normals, device64, directions=16, ray_eps=1e-2, real=np.float64)
+    want = _bounce_reference(scene, normals, lights, 16, eps)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    under = np.nonzero(normals[:, 1] < -0.9)[0]
+    under = under[under >= 3 * nplane]  # the box's underside
+    far = np.nonzero(np.linalg.norm(V[: 3 * nplane, [0, 2]], axis=1) > 1.0)[0]  # the floor away from the box
+    assert got[under].min() > 0.05 and np.all(got[far] == 0), (got[under].min(), got[far].max())
+    ones = vertex_bounce(scene, normals, device64, vis=np.ones((len(V), 1)), directions=16, real=np.float64)
+    np.testing.assert_allclose(ones, got, rtol=1e-12, atol=1e-15)
+    dark = vertex_bounce(scene, normals, device64, vis=np.zeros((len(V), 1)), directions=16, real=np.float64)
+    amb = vertex_bounce(scene, normals, device64, lights=[lights[1]], directions=16, real=np.float64)
+    np.testing.assert_allclose(dark, amb, rtol=1e-12, atol=1e-15)
+    assert dark[under].max() < 0.5 * got[under].min()
+    with pytest.raises(ValueError, match="directions"):
+        vertex_bounce(scene, normals, device64, directions=0)
+
+
+@pytest.mark.parametrize("brdf", ["cook_torrance", "blinn_phong"])
+def test_render_with_bounce_is_an_ambient_light_per_vertex(device64, rng, brdf):
+    """``render(bounce=b)`` lights each vertex as an ambient light of radiance ``b`` would: with a uniform ``b`` the
+    image and every gradient equal those of the scene with an extra ``AmbientLight(b)`` (but the light's own
+    gradient); bad shapes and other renderers are refused."""
+    from triplet_cl.materials import get_brdf
+
+    scene, _ = box_over_plane(overhead())
+    if brdf == "blinn_phong":
+        n = len(scene.V.data)
+        mat = rng.uniform(0.1, 0.9, (n, get_brdf("blinn_phong").num_channels))
+        scene = Scene.from_arrays(scene.V.data, scene.F, material=logit(mat), alpha=scene.alpha.data,
+                                  lights=overhead(), brdf="blinn_phong", dtype=np.float64)
+    c = np.array([0.2, 0.15, 0.1])
+    b = np.tile(c, (len(scene.V.data), 1))
+    st = RenderSettings(K=4, sigma=1.0, background=(1, 1, 1), real=np.float64)
+    cam = cameras()[0]
+    v_img = rng.standard_normal((RES, RES, 3))
+    r = render(scene, cam, st, device64, bounce=b)
+    g = r.backward(v_img)
+    scene2 = Scene.from_arrays(scene.V.data, scene.F, material=scene.material.data, alpha=scene.alpha.data,
+                               lights=overhead() + [AmbientLight(c)], brdf=scene.brdf, dtype=np.float64)
+    r2 = render(scene2, cam, st, device64)
+    g2 = r2.backward(v_img)
+    assert np.abs(r.image - render(scene, cam, st, device64).image).max() > 0.01  # the bounce adds light
+    np.testing.assert_allclose(r.image, r2.image, rtol=1e-12, atol=1e-13)
+    for name in ("V", "material", "alpha"):
+        np.testing.assert_allclose(g[name], g2[name], rtol=1e-9, atol=1e-12, err_msg=name)
+    np.testing.assert_allclose(g["light_params"], g2["light_params"][:-3], rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="bounce must have shape"):
+        render(scene, cam, st, device64, bounce=b[:-1])
+    with pytest.raises(ValueError, match="raster"):
+        render(scene, cam, RenderSettings(K=4, renderer="hybrid", real=np.float64), device64, bounce=b)

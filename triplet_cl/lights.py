@@ -72,8 +72,9 @@ def register_light(cls):
     if any(c.DEFINE == cls.DEFINE for c in LIGHT_TYPES.values()):
         raise ValueError(f"light class {cls.__name__}: DEFINE {cls.DEFINE!r} already registered")
     LIGHT_TYPES[cls.TYPE] = cls
-    LIGHT_CLASSES[cls.__name__] = cls
-    LIGHT_KINDS[cls.KIND] = cls
+    if not cls.INTERNAL:  # an internal light (computed by the renderer) is no CLI kind and no lights.json type
+        LIGHT_CLASSES[cls.__name__] = cls
+        LIGHT_KINDS[cls.KIND] = cls
     _DEFINES.clear()
     return cls
 
@@ -138,6 +139,8 @@ class Light:
     SHADOW_RAY_PARAM: ClassVar[str | None] = None
     PARAMS: ClassVar[tuple[str, ...]] = ()
     NEEDS_VLIGHT: ClassVar[bool] = False
+    #: computed by the renderer, not learned nor written by a user: no CLI kind, no ``lights.json`` type
+    INTERNAL: ClassVar[bool] = False
     #: the radiometric parameters (colours, intensities, SH radiance), whose learning rate may be made relative
     #: to their magnitude (:func:`relative_lr_scales`)
     RADIOMETRIC: ClassVar[tuple[str, ...]] = ()
@@ -413,10 +416,30 @@ class VertexSHLight(Light):
         return cls()
 
 
+@register_light
+@dataclass
+class BounceLight(Light):
+    """Light that reached a point after one diffuse bounce off the rest of the object (interreflection), as a
+    uniform radiance per point: the shading op reads it from ``vlight [P, 6]`` (columns 0-2; 3-5 unused) and
+    lights the point as the ambient light does (``ambient_term``). Internal: the renderer appends it to the
+    lights when given the traced per-vertex radiance (``visibility.vertex_bounce``), a constant for the gradient
+    (as the cached shadows); it has no parameters and is never learned, saved or asked for."""
+
+    TYPE: ClassVar[int] = 5
+    DEFINE: ClassVar[str] = "BOUNCE"
+    KIND: ClassVar[str] = "bounce"
+    NEEDS_VLIGHT: ClassVar[bool] = True
+    INTERNAL: ClassVar[bool] = True
+
+    @classmethod
+    def initial(cls, init: LightInit) -> BounceLight:
+        return cls()
+
+
 _Y00 = 0.28209479177387814  # the constant real SH basis function
 #: the type ids (also ``<Class>.TYPE``), kept as module names
-AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
-                                                  SHEnvironmentLight.TYPE, VertexSHLight.TYPE)
+AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH, BOUNCE = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
+                                                          SHEnvironmentLight.TYPE, VertexSHLight.TYPE, BounceLight.TYPE)
 
 
 @dataclass

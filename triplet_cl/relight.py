@@ -365,17 +365,20 @@ class Relighter:
                                  vertex_sh=s.vertex_sh.data if keep_vsh and s.vertex_sh is not None else None,
                                  brdf=s.brdf, dtype=np.asarray(s.V.data).dtype)
 
-    def render(self, scene, camera, background, renderer: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, scene, camera, background, renderer: str | None = None,
+               bounce: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(image [H, W, 3] over background, in the photos' encoding, alpha [H, W])`` of ``scene`` (with
-        ``renderer``, default the relighter's)."""
+        ``renderer``, default the relighter's). A mesh trained with the traced interreflection
+        (``MeshConfig.bounce``) is relit with it, the bounce of ``scene``'s lights, unless ``bounce`` is False."""
         from .render import RenderSettings, render
 
         renderer = renderer or self.renderer
         if self.mesh_stage is not None:
             self.mesh_stage.renderer = renderer
             vis = self.visibility(scene) if self.shadows == "vertex" and renderer == "raster" else None
+            bnc = self.bounce(scene, vis) if bounce else None
             _, img, alpha = self.mesh_stage.render(scene, camera, background, self.mesh_stage.cfg.eval_supersample,
-                                                   vis=vis)
+                                                   vis=vis, bounce=bnc)
             return np.asarray(img), np.asarray(alpha)
         tc = self.tr.cfg
         sh = scene.vertex_sh is not None
@@ -398,6 +401,17 @@ class Relighter:
             self._vis[key] = (scene, vertex_visibility(scene, self.tr.device, ray_eps=eps))
         return self._vis[key][1]
 
+    def bounce(self, scene, vis):
+        """``[N, 3]`` the traced interreflection of ``scene``'s lights (``MeshStage.bounce``; traced once per scene),
+        or None (the soup, a mesh trained without it, another renderer)."""
+        ms = self.mesh_stage
+        if ms is None:
+            return None
+        key = ("bounce", id(scene))
+        if key not in self._vis or self._vis[key][0] is not scene:
+            self._vis[key] = (scene, ms.bounce(scene, vis))
+        return self._vis[key][1]
+
     @property
     def shadows_used(self) -> str:
         """The cast shadows of the relit images: "vertex" (cached, raster), "traced" (raytrace / hybrid) or "off"."""
@@ -408,7 +422,7 @@ class Relighter:
     def render_albedo(self, camera) -> tuple[np.ndarray, np.ndarray]:
         """``(straight base colour [H, W, 3] sRGB-encoded, alpha [H, W])`` through ``camera`` (rasterized: no
         shadow or reflection bounce may add to it)."""
-        img, alpha = self.render(self.albedo_scene(), camera, np.zeros(3), "raster")
+        img, alpha = self.render(self.albedo_scene(), camera, np.zeros(3), "raster", bounce=False)
         rgb = np.where(alpha[..., None] > 1e-4, img / np.maximum(alpha[..., None], 1e-4), 0.0)
         if self.tr.transfer is None and self.tr.cfg.color == "linear":  # linear dataset: encode for comparison
             from .ops.color import srgb_encode

@@ -40,7 +40,7 @@ from .autodiff import Function, Tape, Variable, active_tape, to_host
 from .autodiff.arrays import Deferred
 from .camera import Camera
 from .device import Device, get_device
-from .lights import pack_lights
+from .lights import BounceLight, pack_lights
 from .materials import get_brdf
 from .ops import columns
 from .ops import normals as normals_op
@@ -696,13 +696,18 @@ def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
 
 
 def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
-           device: Device | None = None, vis: np.ndarray | None = None) -> RenderResult:
+           device: Device | None = None, vis: np.ndarray | None = None,
+           bounce: np.ndarray | None = None) -> RenderResult:
     """Render ``scene`` from ``camera``, recording on the active tape (or a new one).
 
     ``vis`` (optional, ``renderer="raster"`` only): ``[N, NV]`` per-vertex transmittance towards each
     shadow-casting light of ``scene.lights`` in light order (``visibility.vertex_visibility``), interpolated
     per fragment and scaling each light's term: cached cast shadows. The per-vertex values are constants (no
     gradient through the shadow boundary); their interpolation moves with the barycentrics like any attribute.
+
+    ``bounce`` (optional, ``renderer="raster"``, a scene without a vertex-SH light): ``[N, 3]`` per-vertex radiance
+    of one interreflection bounce (``visibility.vertex_bounce``), interpolated per fragment and lit as a
+    :class:`~triplet_cl.lights.BounceLight` appended to the scene's lights; a constant, as ``vis``.
 
     Returns:
         :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
@@ -721,6 +726,14 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             raise ValueError(f"vis (cached visibility) needs renderer='raster', got {s.renderer!r} (its own shadows)")
         if nv == 0:
             vis = None
+    if bounce is not None:
+        bounce = np.asarray(bounce, np.float64)
+        if bounce.shape != (N, 3):
+            raise ValueError(f"bounce must have shape [{N}, 3] (vertices, rgb), got {list(bounce.shape)}")
+        if s.renderer != "raster":
+            raise ValueError(f"bounce (traced interreflection) needs renderer='raster', got {s.renderer!r}")
+        if scene.vertex_sh is not None:
+            raise ValueError("bounce cannot be combined with a vertex-SH light (both are per-vertex light rows)")
     mesh = device_mesh(d, scene.F, N)
     view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
@@ -737,10 +750,17 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         vl = [VertexSH(camera.center, s.sh_degree, d, s.real)(scene.V, scene.vertex_sh)] \
             if scene.vertex_sh is not None else []
         const = None
-        if vis is not None:  # a constant block, last: interpolated with the rest, no adjoint of its own
-            const = np.ascontiguousarray(vis, s.real)
+        blocks = []  # constant blocks, last: interpolated with the rest, no adjoint of their own
+        if bounce is not None:  # the bounce light's rows: radiance | 3 unused columns (vlight's layout)
+            blocks.append(np.concatenate([bounce, np.zeros_like(bounce)], 1))
+            sizes.append(6)
+            names.append("vlight")
+        if vis is not None:
+            blocks.append(vis)
             sizes.append(vis.shape[1])
             names.append("vis")
+        if blocks:
+            const = np.ascontiguousarray(np.concatenate(blocks, 1), s.real)
         if use_device_attributes(s, mesh):
             attr = VertexAttributes(view, scene.brdf, const=const)(scene.V, scene.material, scene.alpha, *vl)
         else:  # the host chain (the reference of VertexAttributes)
@@ -753,8 +773,10 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         layout = {k: (int(offsets[i]), int(sizes[i])) for i, k in enumerate(names)}
         lp = [scene.light_params] if scene.light_params is not None else []
+        # the bounce light last: the packed light parameters (and their gradient) are those of the scene's lights
+        lights = list(scene.lights) + ([BounceLight()] if bounce is not None else [])
         if s.renderer == "raster" or not (s.shadows or s.reflections):
-            rgb, alpha_f = ShadeFragments(view, scene.lights, scene.brdf, layout)(fa, *lp)
+            rgb, alpha_f = ShadeFragments(view, lights, scene.brdf, layout)(fa, *lp)
         else:
             rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
         if s.transfer in ("srgb", "srgb-clip"):  # linear radiance over black, then the photos' encoding and background

@@ -111,6 +111,75 @@ def vertex_ambient_occlusion(scene: Scene, normals: np.ndarray, device: Device |
     return np.where(tot > 0, (T * w).sum(axis=1) / np.maximum(tot, 1e-12), 1.0)
 
 
+def vertex_bounce(scene: Scene, normals: np.ndarray, device: Device | None = None, lights=None,
+                  vis: np.ndarray | None = None, directions: int = 32, ray_eps: float = 1e-2,
+                  real=np.float32) -> np.ndarray:
+    """``[N, 3]`` light that reaches each vertex of ``scene`` after one bounce off the rest of it (interreflection),
+    as the uniform radiance with the same irradiance: the input of :class:`~triplet_cl.lights.BounceLight`.
+
+    From every vertex a ray along each of ``directions`` evenly spread directions ``d_k`` (:func:`sphere_directions`)
+    in the hemisphere of its normal (``normals [N, 3]``) finds its nearest hit (``ops.trace.trace_rays``: own face
+    skipped, start offset ``ray_eps`` × the bounding-box diagonal); the hit point is shaded by the shading kernels
+    with ``lights`` (default the scene's current ones) as seen from the vertex (``eye``), its material, normal,
+    alpha and cast shadows (``vis [N, NV]``, the scene's visibility towards ``lights``) interpolated there. The
+    radiance returned is ``Σ_k w_k L_k / Σ_k w_k``, ``w_k = n · d_k``, misses counting 0: the cosine-weighted mean
+    of what the hemisphere sends (``π`` × it is the irradiance; the sky the misses see is the ambient light's
+    part). One bounce only, a constant for the gradient (re-traced by the caller, as the visibility); 0 where
+    nothing is hit (a convex object), so the rendering of a convex object does not change."""
+    from .activations import softplus
+    from .materials import get_brdf
+    from .ops import shade as shade_op
+
+    if directions < 1:
+        raise ValueError(f"directions must be >= 1, got {directions}")
+    if not (np.isfinite(ray_eps) and ray_eps >= 0):
+        raise ValueError(f"ray_eps must be a finite number >= 0, got {ray_eps}")
+    d = device or get_device()
+    lights = scene.current_lights() if lights is None else list(lights)
+    V = np.asarray(scene.V.data, np.float64)
+    N = V.shape[0]
+    out = np.zeros((N, 3))
+    if N == 0 or len(scene.F) == 0 or not lights:
+        return out
+    F = np.asarray(scene.F)
+    n = np.asarray(normals, np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    D = sphere_directions(directions)
+    w = n @ D.T  # [N, K]
+    vi, ki = np.nonzero(w > 0)
+    wk = w[vi, ki]
+    mesh = device_mesh(d, F, N)
+    bvh = build_bvh(d, np.ascontiguousarray(V, real), mesh)
+    eps = ray_eps * max(float(np.linalg.norm(V.max(0) - V.min(0))), 1e-12)
+    Vd = cla.to_device(d.queue, np.ascontiguousarray(V, real))
+    hf, hb = trace_op.trace_rays(d, bvh, Vd, V[vi], D[ki], owner_faces(F, N)[vi], eps)
+    hf, hb = hf.get(), hb.get().astype(np.float64)
+    hit = np.nonzero(hf >= 0)[0]
+    L = np.zeros((len(vi), 3))
+    if len(hit):
+        f = hf[hit]
+        lam = np.stack([hb[hit, 0], hb[hit, 1], 1.0 - hb[hit, 0] - hb[hit, 1]], 1)  # [H, 3]
+        corners = F[f]
+
+        def at_hits(a):
+            a = np.asarray(a, np.float64).reshape(N, -1)
+            return np.einsum("hc,hcj->hj", lam, a[corners])
+
+        raw = np.asarray(scene.material.data, np.float64)
+        mat = sigmoid(raw)
+        for c in get_brdf(scene.brdf).softplus_columns:
+            mat[:, c] = softplus(raw[:, c])
+        _, inp = shade_op.prepare(at_hits(V), at_hits(n), at_hits(mat), f.astype(np.int32), np.zeros(3), lights,
+                                  brdf=scene.brdf, two_sided=True, device=d, real=real,
+                                  vis=None if vis is None or vis.shape[1] == 0 else at_hits(vis), eye=V[vi[hit]])
+        rgb = shade_op.forward(d, inp).get().astype(np.float64).reshape(-1, 3)
+        L[hit] = rgb * at_hits(sigmoid(np.asarray(scene.alpha.data, np.float64)))
+    tot = np.bincount(vi, weights=wk, minlength=N)
+    for c in range(3):
+        out[:, c] = np.bincount(vi, weights=wk * L[:, c], minlength=N)
+    return out / np.maximum(tot, 1e-12)[:, None]
+
+
 def _shadow_rays(scene: Scene) -> np.ndarray:
     """The shadow casters' ray parameters (positions / directions) ``[NV, 3]``, for the move test."""
     table = pack_lights(scene.current_lights())

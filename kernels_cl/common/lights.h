@@ -14,6 +14,7 @@
  *     vertex SH (vl = the fragment's row rad | wi):  L = safe_normalize(wi), Li = rad
  *   LIGHT_TERM_AMBIENT  constant radiance Li from every direction -> ambient_term(N, V, Li, m)
  *     ambient (La):                Li = La
+ *     bounce (vl = the fragment's row rad | unused):  Li = rad (one diffuse bounce, traced per vertex)
  *   LIGHT_TERM_SH_ENV   SH radiance c [3, b], active degree a -> env_term (shade_brdf.h)
  *   (T: the transmittance vis[p, j] towards the j-th shadow caster, 1 without ray-traced shadows.)
  * Adjoint (light_incident_vjp), from v_L, v_Li (the BRDF's adjoints):
@@ -23,6 +24,7 @@
  *                v_x -= v_w, g = (v_w, v_Li sc)
  *   ambient:     g = v_Li
  *   vertex SH:   v_rad += v_Li, v_wi += safe_normalize_vjp(wi, v_L)
+ *   bounce:      v_rad += v_Li
  *   (g: the gradients of the light's n parameters (its packed size, at most RED_W = 16), summed
  *   over fragments by shade.cl; the SH environment's coefficients have their own reduction.)
  * Shadow rays (light_shadow_ray; every light with CASTS_SHADOWS in lights.py owns one column of
@@ -59,7 +61,7 @@ inline int light_casts_shadows(const int type)
 /* How the shading uses a light (LIGHT_TERM_*). */
 inline int light_term(const int type)
 {
-    if (type == LIGHT_AMBIENT) return LIGHT_TERM_AMBIENT;
+    if (type == LIGHT_AMBIENT || type == LIGHT_BOUNCE) return LIGHT_TERM_AMBIENT;
     if (type == LIGHT_DIRECTIONAL || type == LIGHT_POINT || type == LIGHT_VERTEX_SH) return LIGHT_TERM_DIRECT;
     if (type == LIGHT_SH_ENV) return LIGHT_TERM_SH_ENV;
     return LIGHT_TERM_NONE;
@@ -82,6 +84,8 @@ inline int light_incident(const int type, const int a, __global const REAL* q, c
         *Li = LIGHT_RGB(q, 3) * (sc * tv);
     } else if (type == LIGHT_VERTEX_SH) {
         *L = safe_normalize(LIGHT_RGB(vl, 3));
+        *Li = LIGHT_RGB(vl, 0);
+    } else if (type == LIGHT_BOUNCE) {
         *Li = LIGHT_RGB(vl, 0);
     }
     return light_term(type);
@@ -132,6 +136,8 @@ inline void light_incident_vjp(const int type, const int a, __global const REAL*
     } else if (type == LIGHT_VERTEX_SH) {
         *v_rad += v_Li;
         *v_wi += safe_normalize_vjp(LIGHT_RGB(vl, 3), v_L);
+    } else if (type == LIGHT_BOUNCE) {
+        *v_rad += v_Li;
     }
 }
 

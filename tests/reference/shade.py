@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
+from triplet_cl.lights import AmbientLight, BounceLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 
 from . import sh as shref
 
 # the light-table type ids (a convention of triplet_cl.lights, not maths)
-AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
-                                                  SHEnvironmentLight.TYPE, VertexSHLight.TYPE)
+AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH, BOUNCE = (AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE,
+                                                          SHEnvironmentLight.TYPE, VertexSHLight.TYPE, BounceLight.TYPE)
 EPS2 = 1e-20
 POINT_D2_EPS = 1e-6
 
@@ -131,6 +131,8 @@ def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vligh
             out = out + env(N, V, mat, brdf, q[: 3 * b].reshape(3, b), a)
         elif typ == VERTEX_SH:
             out = out + direct(N, V, normalize(vlight[:, 3:6]), vlight[:, 0:3], mat)
+        elif typ == BOUNCE:
+            out = out + ambient(N, V, vlight[:, 0:3], mat, brdf)
     return np.where((np.asarray(face_id) >= 0)[:, None], out, 0)
 
 

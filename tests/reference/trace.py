@@ -100,21 +100,17 @@ def transmittance_ref(V, F, alpha_v, pos, own, lights, eps):
     return T, n
 
 
-def bounce_ref(V, F, pos, nrm, own, cam, eps, two_sided=True):
-    """Nearest hit along the mirror direction: ``(face [P], bary [P, 2])``."""
+def nearest_ref(V, F, origin, direction, own, eps):
+    """Nearest hit of each ray ``origin + t direction`` (``t > eps``, face ``own`` skipped, ``own < 0``: no ray):
+    ``(face [R], bary [R, 2])``, ties to the lower face id."""
     v0, v1, v2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    P = len(pos)
-    face = -np.ones(P, np.int64)
-    bary = np.zeros((P, 2))
-    for p in range(P):
-        x = pos[p]
-        Vd = cam - x
-        Vd = Vd / np.linalg.norm(Vd)
-        N = nrm[p] / np.linalg.norm(nrm[p])
-        if two_sided and N @ Vd < 0:
-            N = -N
-        d = 2 * (N @ Vd) * N - Vd
-        hit, t, u, v = ray_tri(x, d, v0, v1, v2, eps, np.inf)
+    R = len(origin)
+    face = -np.ones(R, np.int64)
+    bary = np.zeros((R, 2))
+    for p in range(R):
+        if own[p] < 0:
+            continue
+        hit, t, u, v = ray_tri(origin[p], direction[p], v0, v1, v2, eps, np.inf)
         hit[own[p]] = False
         ids = np.nonzero(hit)[0]
         if len(ids):
@@ -122,3 +118,16 @@ def bounce_ref(V, F, pos, nrm, own, cam, eps, two_sided=True):
             face[p] = f
             bary[p] = (1 - u[f] - v[f], u[f])
     return face, bary
+
+
+def bounce_ref(V, F, pos, nrm, own, cam, eps, two_sided=True):
+    """Nearest hit along the mirror direction: ``(face [P], bary [P, 2])``."""
+    dirs = np.zeros_like(pos)
+    for p in range(len(pos)):
+        Vd = cam - pos[p]
+        Vd = Vd / np.linalg.norm(Vd)
+        N = nrm[p] / np.linalg.norm(nrm[p])
+        if two_sided and N @ Vd < 0:
+            N = -N
+        dirs[p] = 2 * (N @ Vd) * N - Vd
+    return nearest_ref(V, F, pos, dirs, own, eps)

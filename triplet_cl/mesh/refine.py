@@ -104,6 +104,11 @@ class MeshConfig:
     # start of each round and after each remesh) and held, so that the albedo alone answers for the colour
     ao: str = "learned"
     ao_directions: int = 32
+    # interreflection: "traced" lights every vertex also with one diffuse bounce of the lights off the rest of the
+    # mesh (visibility.vertex_bounce, bounce_directions rays per vertex, a constant re-traced with the cast shadows
+    # and after each remesh; lights.BounceLight), "off" without. States saved before it read "off"
+    bounce: str = "off"
+    bounce_directions: int = 32
     # cast shadows as the soup stage (``--shadows vertex``): per-vertex visibility towards the point / directional
     # lights, traced through the mesh every ``shadow_every`` steps of the run and after each remesh; the ray start
     # offset × the mesh's bounding-box diagonal (an opaque mesh needs less than the soup's layers: 0.01, as
@@ -142,6 +147,10 @@ class MeshConfig:
             raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
         if self.ao not in ("learned", "computed"):
             raise ValueError(f"mesh ao must be 'learned' or 'computed', got {self.ao!r}")
+        if self.bounce not in ("traced", "off"):
+            raise ValueError(f"mesh bounce must be 'traced' or 'off', got {self.bounce!r}")
+        if not isinstance(self.bounce_directions, int) or not 1 <= self.bounce_directions <= 1024:
+            raise ValueError(f"mesh bounce_directions must be an integer in [1, 1024], got {self.bounce_directions!r}")
         if not isinstance(self.ao_directions, int) or not 1 <= self.ao_directions <= 1024:
             raise ValueError(f"mesh ao_directions must be an integer in [1, 1024], got {self.ao_directions!r}")
         if not isinstance(self.metallic_trial, int) or self.metallic_trial < 0:
@@ -188,6 +197,7 @@ class MeshConfig:
         if unknown:
             raise ValueError(f"unknown mesh config fields: {sorted(unknown)}")
         d = dict(d)
+        d.setdefault("bounce", "off")  # saved before the traced interreflection: trained without it
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
         if d.get("bbox") is not None:
@@ -319,7 +329,24 @@ class MeshStage:
 
         return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps)
 
-    def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None):
+    def bounce_active(self, scene: Scene) -> bool:
+        """The mesh is lit with the traced interreflection (``MeshConfig.bounce``): rasterized, without a vertex-SH
+        light (its per-vertex light absorbs what a bounce would explain)."""
+        return self.cfg.bounce == "traced" and self.renderer == "raster" and scene.vertex_sh is None
+
+    def bounce(self, scene: Scene, vis=None, lights=None):
+        """``[N, 3]`` per-vertex radiance of one bounce of ``lights`` (default the scene's) off the mesh
+        (:func:`~triplet_cl.visibility.vertex_bounce`, shaded with the cast shadows ``vis`` towards them), or None
+        when :meth:`bounce_active` is not."""
+        if not self.bounce_active(scene):
+            return None
+        from ..visibility import vertex_bounce
+        from .bake import vertex_normals
+
+        return vertex_bounce(scene, vertex_normals(scene.V.data, scene.F), self.device, lights=lights, vis=vis,
+                             directions=self.cfg.bounce_directions, ray_eps=self.cfg.shadow_eps)
+
+    def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None, bounce=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
         adjoint back, at the config's ``supersample``). With the run's sRGB transfer, the linear premultiplied
@@ -330,7 +357,7 @@ class MeshStage:
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
         transfer = self.trainer.transfer
         if f == 1 or transfer is None:
-            r = render(scene, big, self.settings(background, transfer), self.device, vis=vis)
+            r = render(scene, big, self.settings(background, transfer), self.device, vis=vis, bounce=bounce)
             if f == 1:
                 return r, r.image, r.alpha
             H, W = cam.height, cam.width
@@ -339,7 +366,8 @@ class MeshStage:
             return r, img, alpha
         from ..ops.color import srgb_composite_host
 
-        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device, vis=vis)  # linear, over black
+        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device, vis=vis,  # linear, over black
+                   bounce=bounce)
         H, W = cam.height, cam.width
         C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
         alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
@@ -374,13 +402,14 @@ class MeshStage:
         n = c.metallic_trial
         held = self.held_columns(scene)
         vis = self.visibility(scene)  # the run's cast shadows (the geometry is fixed through the trial)
+        bounce = self.bounce(scene, vis)
         views = rng.integers(0, len(self.ds.train), n)
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
 
         def loss_and_backward(k: int) -> float:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
-            r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis)
+            r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
             self.backward_image(r, v_img, supersample=1)
             if held and scene.material.grad is not None:
@@ -464,6 +493,9 @@ class MeshStage:
 
             shadows = VisibilityCache(every=tc.shadow_every, extent=self.trainer.extent, ray_eps=c.shadow_eps)
         grad_acc = np.zeros(len(scene.F))
+        # the traced interreflection, re-traced every shadow_every steps (as the cast shadows) and after a remesh
+        bounce, bounce_at = None, 0
+        bounce_every = max(tc.shadow_every, 1) if self.bounce_active(scene) else 0
         targets = self.trainer.targets
         order: list[int] = []
         bar = tqdm(total=c.iterations, desc=f"mesh {round_index + 1}/{c.rounds}", unit="it", disable=self.quiet,
@@ -477,7 +509,9 @@ class MeshStage:
                 cam, target = targets.get(i, 1.0, np.asarray(bg, np.float32))
                 t0 = time.perf_counter()
                 vis = None if shadows is None else shadows.get(scene, it, self.device)
-                r, img, _ = self.render(scene, cam, bg, vis=vis)
+                if bounce_every and (bounce is None or it - bounce_at >= bounce_every):
+                    bounce, bounce_at = self.bounce(scene, vis), it
+                r, img, _ = self.render(scene, cam, bg, vis=vis, bounce=bounce)
                 # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
                 # at 200² about half the numpy SSIM's time); before, every size went through numpy
                 loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
@@ -516,6 +550,7 @@ class MeshStage:
                     reg = Regularizers(scene, c)
                     grad_acc = np.zeros(len(scene.F))
                     self.set_computed_ao(scene, ao_col)
+                    bounce = None  # the topology changed: re-traced at the next step
                 if (it + 1) % 100 == 0:
                     self.trainer.log.info(json.dumps(rec))
         finally:
@@ -607,9 +642,10 @@ class MeshStage:
         bg = np.asarray(resolve_background("white" if tr.cfg.background == "random" else tr.cfg.background),
                         np.float32)
         vis = self.visibility(scene)
+        bounce = self.bounce(scene, vis)
         per = []
         for v in views:
-            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis)
+            _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis, bounce=bounce)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),

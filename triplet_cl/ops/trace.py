@@ -248,6 +248,28 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
     return vp[:P], vn[:P], v_V
 
 
+def trace_rays(device: Device, bvh: BVH, V: cla.Array, origin, direction, own, eps: float):
+    """Nearest hit along each ray ``origin + t direction`` (``t > eps``, the face ``own`` skipped; ``own < 0``: no
+    ray). ``origin``, ``direction``: ``[R, 3]``; ``own``: ``[R]`` int32 (host or device arrays).
+
+    Returns:
+        ``(hit_face [R] int32, hit_bary [R, 2])`` device arrays (−1 / zeros where nothing is hit).
+    """
+    _check_bvh(bvh, V)
+    q, real = device.queue, bvh.real
+    o = to_device(q, check_real("origin", origin, (None, 3), real))
+    R = o.shape[0]
+    dr = to_device(q, check_real("direction", direction, (R, 3), real))
+    ow = own if isinstance(own, cla.Array) else cla.to_device(q, np.ascontiguousarray(own, np.int32))
+    hf = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
+    hb = cla.empty(q, (max(R, 1), 2), real, allocator=device.allocator)
+    if R:
+        _run(device, "trace_rays", real, (round_up(R, LOCAL),), (LOCAL,), nodes=bvh.nodes, prim=bvh.prim,
+             P=bvh.num_leaves, M=bvh.mesh.num_faces, V=V, F=bvh.mesh.F, origin=o, dir=dr, own=ow, R=R, eps=eps,
+             hit_face=hf, hit_bary=hb)
+    return hf[:R], hb[:R]
+
+
 def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, hit_face: cla.Array,
                 hit_bary: cla.Array) -> cla.Array:
     """``attr[:, c0:c0+n]`` interpolated at each hit: ``[P, n]`` device array (zeros without a hit)."""
