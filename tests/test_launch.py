@@ -75,3 +75,32 @@ def test_kernel_memo_by_defines(device):
     defined = frozenset(k for k, v in base.items() if v is not False) | {"HAS_EYE"}
     names = [p.name for p in kernel_params("shade", "shade_fwd", defined)]
     assert names[-2:] == ["eye", "rgb"] and "vis" not in names
+
+
+@pytest.mark.parametrize("shape", [(7,), (5, 3), (4, 0, 2), (0,), (2, 3, 4), 6])
+def test_device_empty_and_head_are_pyopencl_arrays(device, shape):
+    """``device_empty`` / ``device_head`` (pyopencl's fast constructor, no per-call shape checks) build the arrays that
+    ``cla.empty`` and ``a[:n]`` build: shape, dtype, strides, size, nbytes, offset; a head is a view (writes go through
+    to the buffer); a negative dimension or too many rows is refused."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops.common import device_empty, device_head
+
+    q = device.queue
+    for dt in (np.float32, np.int32, np.float64):
+        a, b = device_empty(q, shape, dt, allocator=device.allocator), cla.empty(q, shape, dt)
+        for k in ("shape", "dtype", "strides", "size", "nbytes", "offset"):
+            assert getattr(a, k) == getattr(b, k), k
+        assert a.flags.c_contiguous and a.queue is q and a.allocator is device.allocator
+    base = cla.to_device(q, np.arange(24, dtype=np.float32).reshape(8, 3))
+    for n in (0, 1, 5, 8):
+        h, ref = device_head(base, n), base[:n]
+        for k in ("shape", "dtype", "strides", "size", "nbytes", "offset"):
+            assert getattr(h, k) == getattr(ref, k), (n, k)
+        np.testing.assert_array_equal(h.get(), ref.get())
+    device_head(base, 2).fill(-1.0)
+    assert (base.get()[:2] == -1).all() and (base.get()[2:] >= 6).all()
+    with pytest.raises(ValueError, match="negative"):
+        device_empty(q, (3, -1), np.float32)
+    with pytest.raises(ValueError, match="rows"):
+        device_head(base, 9)

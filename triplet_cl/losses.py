@@ -50,6 +50,7 @@ import pyopencl.array as cla
 import scipy.ndimage
 
 from triplet_cl.autodiff import Function, to_host
+from triplet_cl.ops.common import device_empty
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -456,7 +457,7 @@ def _cl_scratch(dev, dtype, shape):
         n = int(np.prod(shape))
         dev.check_alloc(5 * n * np.dtype(dtype).itemsize, "the SSIM scratch buffer")
         window = cla.to_device(dev.queue, gaussian_window_1d().astype(dtype))
-        sc = (cla.empty(dev.queue, (5 * n,), dtype), cla.empty(dev.queue, (4 * n,), dtype), window)
+        sc = (device_empty(dev.queue, (5 * n,), dtype), device_empty(dev.queue, (4 * n,), dtype), window)
         _CL_SCRATCH.clear()  # keep one size class (the training resolution) alive
         _CL_SCRATCH[key] = sc
     return sc
@@ -483,7 +484,7 @@ def _cl_photometric_fwd(ctx, pred, target, lam, padding):
     tmp, _, window = _cl_scratch(dev, pred.dtype, pred.shape)
     with_ssim = lam > 0.0
     term = cla.empty_like(pred)
-    d = cla.empty(dev.queue, (4 * pred.size,), pred.dtype) if with_ssim else tmp  # placeholder when unused
+    d = device_empty(dev.queue, (4 * pred.size,), pred.dtype) if with_ssim else tmp  # placeholder when unused
     gsize = (w, h)
     if with_ssim:
         dev.kernel("losses", "photometric_h_fwd", _ch_defines(c), real=pred.dtype)(
@@ -572,11 +573,11 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     target_d = cla.to_device(q, target, allocator=alloc)  # the queue is idle here (the render read its image)
     win = gaussian_window_1d().astype(np.float32).astype(np.float64)
     taps = const_array(device, np.ascontiguousarray(win[SSIM_RADIUS::-1]))  # w0 (centre), w1 … w5
-    src = cla.empty(q, (5 * n,), np.float32, allocator=alloc)
-    tmp = cla.empty(q, (5 * n,), np.float32, allocator=alloc)
-    dmaps = cla.empty(q, (3 * n,), np.float32, allocator=alloc)
-    smap = cla.empty(q, (h, w, c), np.float32, allocator=alloc)
-    v_pred = cla.empty(q, (h, w, c), np.float32, allocator=alloc)
+    src = device_empty(q, (5 * n,), np.float32, allocator=alloc)
+    tmp = device_empty(q, (5 * n,), np.float32, allocator=alloc)
+    dmaps = device_empty(q, (3 * n,), np.float32, allocator=alloc)
+    smap = device_empty(q, (h, w, c), np.float32, allocator=alloc)
+    v_pred = device_empty(q, (h, w, c), np.float32, allocator=alloc)
     gsize, lsize = (-(-w // 8) * 8, -(-h // 8) * 8), (8, 8)  # fixed work-groups: one build, 2x on PoCL's columns pass
     i32 = np.int32
     rows = device.kernel("ssim_exact", "ssim_x_rows")

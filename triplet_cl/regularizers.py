@@ -66,6 +66,30 @@ def _scatter_rows(num_rows: int, index: np.ndarray, values: np.ndarray) -> np.nd
     return out
 
 
+class RowScatter:
+    """``out[index[k]] += values[k]`` into ``num_rows`` rows (``_scatter_rows``) for an ``index`` fixed at
+    construction, as a sparse product: the ``[num_rows, K]`` 0/1 matrix (CSR, kept per dtype) times ``values``.
+    Bit for bit ``np.add.at``'s result (each row sums its entries in index order, in the values' dtype, from 0;
+    × 1 is exact) at a fraction of its time: the mesh stage's regularisers scattered 180k rows three times a step
+    with ``np.add.at``, 15 ms of a ~100 ms step."""
+
+    def __init__(self, num_rows: int, index: np.ndarray):
+        self.num_rows = int(num_rows)
+        self.index = np.asarray(index, np.int64)
+        self._mats: dict = {}
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        values = np.asarray(values)
+        if values.ndim != 2 or values.shape[0] != len(self.index):
+            raise ValueError(f"values must have shape [{len(self.index)}, C], got {list(values.shape)}")
+        m = self._mats.get(values.dtype.str)
+        if m is None:
+            k = len(self.index)
+            m = self._mats[values.dtype.str] = sp.csr_matrix(
+                (np.ones(k, values.dtype), (self.index, np.arange(k))), shape=(self.num_rows, k))
+        return np.asarray(m @ values).astype(values.dtype, copy=False)
+
+
 # ---- face-normal consistency --------------------------------------------------------------------
 class FaceNormalConsistency(Function):
     """Tape op ``V [N,3] -> Σ_pairs 1 − n_a·n_b`` for the edge-adjacent face pairs of ``faces``."""
@@ -76,6 +100,8 @@ class FaceNormalConsistency(Function):
         self.faces = check_faces("faces", f, n).astype(np.int64)
         self.pairs = edge_adjacent_faces(self.faces)  # [P, 2]
         self.scale = _scale(reduction, len(self.pairs))
+        self._to_faces = RowScatter(len(self.faces), np.concatenate([self.pairs[:, 0], self.pairs[:, 1]]))
+        self._to_vertices = RowScatter(n, self.faces.reshape(-1))
 
     def forward(self, ctx, vertices):
         v = _check_attr("vertices", vertices, cols=3)
@@ -93,11 +119,13 @@ class FaceNormalConsistency(Function):
         num_v, e1, e2, c, n = ctx.saved
         a, b = self.pairs[:, 0], self.pairs[:, 1]
         s = -float(v_out) * self.scale
-        v_n = _scatter_rows(len(n), np.concatenate([a, b]), s * np.concatenate([n[b], n[a]]))
+        v_n = self._to_faces(s * np.concatenate([n[b], n[a]]))
         v_c = normalize_bwd(c, v_n, FACE_NORMAL_EPS)
         v_e1, v_e2 = np.cross(e2, v_c), np.cross(v_c, e1)  # adjoints of c = e1 × e2
         corner = np.stack([-(v_e1 + v_e2), v_e1, v_e2], axis=1)  # [M, 3, 3]
-        return _scatter_rows(num_v, self.faces.reshape(-1), corner.reshape(-1, 3))
+        if num_v != self._to_vertices.num_rows:
+            return _scatter_rows(num_v, self.faces.reshape(-1), corner.reshape(-1, 3))
+        return self._to_vertices(corner.reshape(-1, 3))
 
 
 def face_normal_consistency(vertices, faces, reduction: str = "mean"):
@@ -203,6 +231,7 @@ class MaterialGTV(Function):
                              f"got shape {list(w.shape)}")
         self.sqrt_w = 2.0 * np.sqrt(w)[:, None]  # both directions of the double sum
         self.reduction = reduction
+        self._scatter = None
 
     def forward(self, ctx, x):
         x = _check_attr("x", x, num_rows=self.num_vertices)
@@ -212,8 +241,9 @@ class MaterialGTV(Function):
 
     def backward(self, ctx, v_out):
         g = self.sqrt_w * np.sign(ctx.diff) * (float(v_out) * ctx.scale)
-        idx = np.concatenate([self.edges[:, 0], self.edges[:, 1]])
-        return _scatter_rows(self.num_vertices, idx, np.concatenate([g, -g]))
+        if self._scatter is None:
+            self._scatter = RowScatter(self.num_vertices, np.concatenate([self.edges[:, 0], self.edges[:, 1]]))
+        return self._scatter(np.concatenate([g, -g]))
 
 
 def material_gtv(x, faces, weights=None, reduction: str = "mean"):

@@ -50,6 +50,7 @@ from .ops import vertex_attr as vattr_op
 from .ops import vertex_sh as vsh_op
 from .ops.bvh import BVH, build_bvh, refit
 from .ops.color import SRGBComposite
+from .ops.common import device_empty
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
@@ -403,7 +404,7 @@ class ShadeFragments(Function):
         P = fr.P
         rgb = shade_op.forward(d, inp).reshape(P, 3)  # the fragments are packed: [P, 3] as they come
         if alpha is None:
-            alpha = cla.empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
+            alpha = device_empty(d.queue, (max(P, 1), 1), fr.real, allocator=d.allocator)[:P]
             columns.copy_columns(d, fr, fa, self.layout["alpha"][0], alpha, 0, 1)
         ctx.comp, ctx.inp, ctx.C, ctx.n_rest = comp, inp, fa.shape[-1], n_rest
         return rgb, alpha.reshape(P)
@@ -531,7 +532,7 @@ class TracedShadeFragments(ShadeFragments):
                                                   v.camera.center, s.two_sided)
             v_pos, v_nrm = v_pos + bp, v_nrm + bn
             v_attr[:, L["pos"][0]:L["pos"][0] + 3] += bV
-        v_fa = cla.empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
+        v_fa = device_empty(d.queue, (max(P, 1), ctx.C), fr.real, allocator=d.allocator)[:P]
         for key, gk in (("pos", v_pos), ("nrm", v_nrm), ("mat", v_mat), ("vlight", v_vl)):
             if key in L:
                 comp.unpack(gk, v_fa, L[key][0])

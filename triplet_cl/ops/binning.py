@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import grid_1d, launch, real_of, to_device
+from .common import device_empty, device_head, grid_1d, launch, real_of, to_device
 from .mesh import DeviceMesh
 from .scan import prefix_offsets
 
@@ -87,8 +87,8 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     M = mesh.num_faces
     defines = {"TILE": TILE}
     tile_count = cla.zeros(q, T, np.int32, allocator=alloc)
-    face_ntiles = cla.empty(q, max(M, 1), np.int32, allocator=alloc)[:M]
-    face_bbox = cla.empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
+    face_ntiles = device_head(device_empty(q, max(M, 1), np.int32, allocator=alloc), M)
+    face_bbox = device_empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
     if M:
         launch(device, "binning", "bin_count", *grid_1d(M), defines=defines, real=real,
                vs=vs, F=mesh.F, m=M, width=width, height=height, tiles_x=tiles_x, near=near, far=far,
@@ -96,12 +96,12 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     tile_off, E = prefix_offsets(device, tile_count)
     face_off, _ = prefix_offsets(device, face_ntiles, total=False)  # the same total E: no second read back
     device.check_alloc(E * SETUP * real.itemsize, f"binned face list ({E} tile-face entries)")
-    entry_face = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_face = device_empty(q, max(E, 1), np.int32, allocator=alloc)
     # one spare row: the 16-lane kernels read each set-up 16 values wide (ops/blend.py)
-    entry_setup = cla.empty(q, (max(E, 1) + 1, SETUP), real, allocator=alloc)
-    face_entries = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    entry_rows = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
-    entry_order = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_setup = device_empty(q, (max(E, 1) + 1, SETUP), real, allocator=alloc)
+    face_entries = device_empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_rows = device_empty(q, max(E, 1), np.int32, allocator=alloc)
+    entry_order = device_empty(q, max(E, 1), np.int32, allocator=alloc)
     soft = check_soft_edges(soft_edges, M)
     if E:
         tile_cursor = cla.zeros(q, T, np.int32, allocator=alloc)

@@ -26,7 +26,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import TILE, Binning, bin_faces
-from .common import c_max, check_real, const_array, fragment_array, grid_1d, launch, real_of, to_device
+from .common import c_max, check_real, const_array, device_empty, fragment_array, grid_1d, launch, real_of, to_device
 from .fragment_bwd import MOMENTS, corners_to_vertices
 from .mesh import DeviceMesh
 from .raster import ROWS16_K_LIMIT, ROWS16_LOCAL, check_raster_args
@@ -192,18 +192,18 @@ def raster_blend(device: Device, vs, mesh: DeviceMesh, attr, width: int, height:
     tiles = -(-width // TILE) * -(-height // TILE)
     device.check_alloc(tiles * TILE * TILE * K * (4 + real.itemsize), f"fragment lists ({width}x{height}, K={K})")
     bn = bin_faces(device, vs, mesh, width, height, near, far, cull_backface, soft_edges, K)
-    image = cla.empty(q, (height, width, C), real, allocator=alloc)
-    trans = cla.empty(q, (height, width), real, allocator=alloc)
-    n_contrib = cla.empty(q, (height, width), np.int32, allocator=alloc)
-    count = cla.empty(q, (height, width), np.int32, allocator=alloc)
-    s_entry = cla.empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
-    s_T = cla.empty(q, (tiles * 4, K, 16), real, allocator=alloc)
-    s_ex = cla.empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
+    image = device_empty(q, (height, width, C), real, allocator=alloc)
+    trans = device_empty(q, (height, width), real, allocator=alloc)
+    n_contrib = device_empty(q, (height, width), np.int32, allocator=alloc)
+    count = device_empty(q, (height, width), np.int32, allocator=alloc)
+    s_entry = device_empty(q, (tiles * 4, K, 16), np.int32, allocator=alloc)
+    s_T = device_empty(q, (tiles * 4, K, 16), real, allocator=alloc)
+    s_ex = device_empty(q, (tiles * 4, K, 16) if sigma else (1,), real, allocator=alloc)
     if variant == "rows16":
         kern, gsize, lsize = "blend_fwd_rows16", (bn.tiles_x, bn.tiles_y * TILE // 2), (1, ROWS16_LOCAL)
         # the faces' corner attributes, read as rows by the 16-lane kernels
         M = mesh.num_faces
-        face_attr = cla.empty(q, (max(M, 1), 16), real, allocator=alloc)
+        face_attr = device_empty(q, (max(M, 1), 16), real, allocator=alloc)
         if M:
             launch(device, "blend", "blend_face_attr", *grid_1d(M), defines={"TILE": TILE}, real=real,
                    F=mesh.F, attr=a, C=C, num_faces=M, face_attr=face_attr)
@@ -256,8 +256,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     if blend.variant == "rows16":
         assert pstride <= 32, "rows16 needs C <= 4"
         pstride = 32
-    partial = cla.empty(q, (max(E, 1), pstride), real, allocator=alloc)
-    v_sig_tile = cla.empty(q, T, real, allocator=alloc)
+    partial = device_empty(q, (max(E, 1), pstride), real, allocator=alloc)
+    v_sig_tile = device_empty(q, T, real, allocator=alloc)
     kern = "blend_bwd_rows16" if blend.variant == "rows16" else "blend_bwd"
     # [M, 16] corner-attribute rows, or F and attr [N, C + 1]
     attr_args = {"face_attr": blend.face_attr} if blend.variant == "rows16" else {"F": blend.mesh.F, "attr": blend.attr}
@@ -274,8 +274,8 @@ def raster_blend_backward(device: Device, blend: Blend, v_image, v_alpha=None, s
     # once, both per face corner; then per vertex
     mesh = blend.mesh
     M = mesh.num_faces
-    v_attr_c = cla.empty(q, (max(M, 1), 3, CA), real, allocator=alloc)[:M]
-    v_vs_c = cla.empty(q, (max(M, 1), 3, 3), real, allocator=alloc)[:M]
+    v_attr_c = device_empty(q, (max(M, 1), 3, CA), real, allocator=alloc)[:M]
+    v_vs_c = device_empty(q, (max(M, 1), 3, 3), real, allocator=alloc)[:M]
     if M:
         launch(device, "blend", "blend_face_grad", *grid_1d(M), defines=defines, real=real,
                face_off=bn.face_off, face_entries=bn.face_entries, partial=partial, pstride=pstride, vs=blend.vs,

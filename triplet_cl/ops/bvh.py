@@ -24,7 +24,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from ..topology import morton_order
-from .common import check_real, grid_1d, real_of, to_device
+from .common import check_real, device_empty, grid_1d, real_of, to_device
 from .mesh import DeviceMesh
 
 LEAF_SIZE = 4
@@ -90,7 +90,7 @@ def build_bvh(device: Device, V, mesh: DeviceMesh, leaf_size: int = LEAF_SIZE) -
     P = _num_leaves(M, int(leaf_size))
     q = device.queue
     prim = cla.to_device(q, order.astype(np.int32) if M else np.zeros(1, np.int32))
-    nodes = cla.empty(q, (2 * P - 1, 6), real, allocator=device.allocator)
+    nodes = device_empty(q, (2 * P - 1, 6), real, allocator=device.allocator)
     bvh = BVH(mesh, prim, nodes, P, int(round(np.log2(P))), np.dtype(real))
     bvh.build_ms = (time.perf_counter() - t0) * 1e3
     refit(device, bvh, V if isinstance(V, cla.Array) else Vh)

@@ -20,7 +20,7 @@ import pyopencl.array as cla
 
 from ..autodiff import Function
 from ..device import Device, get_device
-from .common import check_real, grid_1d, to_device
+from .common import check_real, device_empty, grid_1d, to_device
 
 ALPHA_EPS = 1e-6  # below this accumulated alpha the straight colour is C / eps (no division by ~0)
 
@@ -54,8 +54,8 @@ def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALP
     :func:`srgb_composite_backward` takes back (``color.cl``'s ``KEEP_ROOT``: no exp2/log2 in the adjoint)."""
     n = _check_pair(C, A)
     real = C.dtype
-    out = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator)
-    root = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator) if keep_root else None
+    out = device_empty(dev.queue, C.shape, real, allocator=dev.allocator)
+    root = device_empty(dev.queue, C.shape, real, allocator=dev.allocator) if keep_root else None
     if n:
         t = real.type
         g, loc = grid_1d(n)
@@ -78,8 +78,8 @@ def srgb_composite_backward(dev: Device, C: cla.Array, A: cla.Array, bg, v_out: 
         raise ValueError(f"root must have shape {list(C.shape)} and dtype {C.dtype}, got {list(root.shape)} "
                          f"{root.dtype}")
     real = C.dtype
-    v_C = cla.empty(dev.queue, C.shape, real, allocator=dev.allocator)
-    v_A = cla.empty(dev.queue, A.shape, real, allocator=dev.allocator)
+    v_C = device_empty(dev.queue, C.shape, real, allocator=dev.allocator)
+    v_A = device_empty(dev.queue, A.shape, real, allocator=dev.allocator)
     if n:
         t = real.type
         g, loc = grid_1d(n)

@@ -6,7 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, grid_1d
+from .common import buf, device_empty, grid_1d
 from .fragments import Fragments
 
 
@@ -53,7 +53,7 @@ def split_columns(device: Device, frags: Fragments, src: cla.Array, blocks) -> l
     if src.shape[0] != P or any(c0 < 0 or n < 1 or c0 + n > Cs for c0, n in blocks):
         raise ValueError(f"split_columns: src must be [P = {P}, C] and every block inside its {Cs} channels, "
                          f"got {list(src.shape)} and {blocks}")
-    outs = [cla.empty(device.queue, (max(P, 1), n), real, allocator=device.allocator)[:P] for _, n in blocks]
+    outs = [device_empty(device.queue, (max(P, 1), n), real, allocator=device.allocator)[:P] for _, n in blocks]
     if P and blocks:
         device.kernel("columns", "split_columns", real=real)(
             device.queue, *grid_1d(P), buf(src, device.queue), np.int32(Cs), np.int32(P),
@@ -94,7 +94,7 @@ class Compaction:
     def pack(self, x: cla.Array, c0: int, n: int) -> cla.Array:
         """``x[:, c0:c0+n]`` → a new ``[P, n]`` array."""
         d, fr = self.device, self.frags
-        out = cla.empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)[: self.P]
+        out = device_empty(d.queue, (max(self.P, 1), n), fr.real, allocator=d.allocator)[: self.P]
         copy_columns(d, fr, self._rows(x), c0, out, 0, n)
         return out
 

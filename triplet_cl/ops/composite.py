@@ -8,7 +8,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, c_max, check_real, const_array, fragment_array
+from .common import buf, c_max, check_real, const_array, device_empty, device_head, fragment_array
 from .fragments import Fragments, frag_input
 
 
@@ -31,7 +31,7 @@ def coverage(device: Device, frags: Fragments, sigma: float) -> cla.Array:
                          f"rasterize ({frags.sigma}); got sigma={sigma}")
     H, W, K = frags.shape
     q = device.queue
-    win = cla.empty(q, max(frags.P, 1), frags.real, allocator=device.allocator)[: frags.P]
+    win = device_empty(q, max(frags.P, 1), frags.real, allocator=device.allocator)[: frags.P]
     device.kernel("coverage", "coverage_fwd", real=frags.real)(
         q, (H * W,), None, frags.vs.data, frags.mesh.F.data, buf(frags.face, q), frags.count.data,
         np.int32(W), np.int32(H), frags.off.data, frags.real.type(sigma), buf(win, q))
@@ -71,9 +71,9 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
         raise ValueError(f"t_min must be in [0, 1), got {t_min}")
     q, alloc = device.queue, device.allocator
     npix = H * W
-    out = cla.empty(q, (H, W, C), real, allocator=alloc)
-    trans = cla.empty(q, (H, W), real, allocator=alloc)
-    ncon = cla.empty(q, (H, W), np.int32, allocator=alloc)
+    out = device_empty(q, (H, W, C), real, allocator=alloc)
+    trans = device_empty(q, (H, W), real, allocator=alloc)
+    ncon = device_empty(q, (H, W), np.int32, allocator=alloc)
     device.kernel("composite", "composite_fwd", {"C_MAX": c_max(C)}, real)(
         q, (npix,), None, buf(f, q), buf(a, q), buf(w, q), frags.count.data, bgd.data, np.int32(npix), frags.off.data,
         np.int32(C), np.int32(w is not None), real.type(t_min), out.data, trans.data, ncon.data)
@@ -105,9 +105,9 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     bgd = const_array(device, b.astype(real))
     q, alloc = device.queue, device.allocator
     P = frags.P
-    v_feat = cla.empty(q, (max(P, 1), C), real, allocator=alloc)[:P]
-    v_alpha = cla.empty(q, max(P, 1), real, allocator=alloc)[:P]
-    v_win = cla.empty(q, max(P, 1), real, allocator=alloc)[:P] if w is not None else None
+    v_feat = device_head(device_empty(q, (max(P, 1), C), real, allocator=alloc), P)
+    v_alpha = device_head(device_empty(q, max(P, 1), real, allocator=alloc), P)
+    v_win = device_head(device_empty(q, max(P, 1), real, allocator=alloc), P) if w is not None else None
     device.kernel("composite", "composite_bwd", {"C_MAX": c_max(C)}, real)(
         q, (H * W,), None, buf(f, q), buf(a, q), buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data,
         buf(va, q), np.int32(H * W), frags.off.data, np.int32(C), np.int32(w is not None), np.int32(va is not None),

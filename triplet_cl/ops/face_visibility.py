@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import grid_1d, launch
+from .common import device_empty, grid_1d, launch
 
 
 def visible_mask(dev: Device, face: cla.Array, num_faces: int) -> np.ndarray:
@@ -38,7 +38,7 @@ def front_face_map(dev: Device, frags, face_ok: np.ndarray | None = None) -> np.
     whose ``face_ok`` is set; −1 where none."""
     H, W = int(frags.height), int(frags.width)
     npix = H * W
-    front = cla.empty(dev.queue, max(npix, 1), np.int32, allocator=dev.allocator)
+    front = device_empty(dev.queue, max(npix, 1), np.int32, allocator=dev.allocator)
     if npix:
         face = frags.face if frags.P else cla.zeros(dev.queue, 1, np.int32, allocator=dev.allocator)
         args = dict(count=frags.count, off=frags.off, face=face, npix=npix, front=front)

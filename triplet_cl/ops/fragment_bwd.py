@@ -16,7 +16,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import TILE
-from .common import check_real, grid_1d, launch, to_device
+from .common import check_real, device_empty, device_head, grid_1d, launch, to_device
 from .fragments import Fragments, frag_input
 from .mesh import DeviceMesh
 
@@ -35,8 +35,8 @@ def gather_to_vertices(device: Device, frags: Fragments, entry_hit: cla.Array, p
     mesh = frags.mesh
     n = mesh.num_vertices
     q = device.queue
-    out_a = cla.empty(q, (max(n, 1), max(Ca, 1)), frags.real, allocator=device.allocator)[:n, :Ca] if Ca else None
-    out_b = cla.empty(q, (max(n, 1), max(Cb, 1)), frags.real, allocator=device.allocator)[:n, :Cb] if Cb else None
+    out_a = device_empty(q, (max(n, 1), max(Ca, 1)), frags.real, allocator=device.allocator)[:n, :Ca] if Ca else None
+    out_b = device_empty(q, (max(n, 1), max(Cb, 1)), frags.real, allocator=device.allocator)[:n, :Cb] if Cb else None
     if n and (Ca or Cb):
         (a_stride, a_off), (b_stride, b_off) = a_layout or (3 * Ca, 0), b_layout or (3 * Cb, 0)
         launch(device, "fragment_bwd", "gather_vertex", *grid_1d(n), defines={"TILE": TILE}, real=frags.real,
@@ -55,8 +55,8 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
     if mesh.corners_are_vertices:
         return corner_a.reshape(n, Ca), corner_b.reshape(n, Cb)
     q, real = device.queue, corner_a.dtype
-    out_a = cla.empty(q, (max(n, 1), Ca), real, allocator=device.allocator)[:n]
-    out_b = cla.empty(q, (max(n, 1), Cb), real, allocator=device.allocator)[:n]
+    out_a = device_head(device_empty(q, (max(n, 1), Ca), real, allocator=device.allocator), n)
+    out_b = device_head(device_empty(q, (max(n, 1), Cb), real, allocator=device.allocator), n)
     if n:
         if M == 0:
             out_a.fill(0)
@@ -118,11 +118,11 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     T, E = frags.num_tiles, frags.num_entries
     if geometry and (frags.entry_setup is None or frags.entry_face is None):
         raise ValueError("the fragments carry no entry_setup/entry_face (Binning); the geometric adjoint needs them")
-    hit = cla.empty(q, max(E, 1), np.int32, allocator=alloc)
+    hit = device_empty(q, max(E, 1), np.int32, allocator=alloc)
     # the optional inputs and outputs are compile-time defines; their parameters exist only then
     opt = {}
     if C:
-        opt.update(attr=a, v_out=g, C=C, partial_attr=cla.empty(q, (max(E, 1), 3, C), real, allocator=alloc))
+        opt.update(attr=a, v_out=g, C=C, partial_attr=device_empty(q, (max(E, 1), 3, C), real, allocator=alloc))
     if vb is not None:
         opt["v_bary_in"] = vb
     if vd is not None:
@@ -130,10 +130,10 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     if vw is not None:
         opt["v_win"] = vw
     if geometry:
-        opt.update(partial_mom=cla.empty(q, (max(E, 1), MOMENTS), real, allocator=alloc),
-                   v_sigma_tile=cla.empty(q, T, real, allocator=alloc))
+        opt.update(partial_mom=device_empty(q, (max(E, 1), MOMENTS), real, allocator=alloc),
+                   v_sigma_tile=device_empty(q, T, real, allocator=alloc))
     else:
-        opt["v_bary_out"] = cla.empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
+        opt["v_bary_out"] = device_empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
     defines = {"TILE": TILE, "ATTR": bool(C), "V_BARY_IN": vb is not None, "V_DEPTH": vd is not None,
                "V_WIN": vw is not None, "GEOMETRY": bool(geometry)}
     launch(device, "fragment_bwd", "fragment_bwd", (T,), (1,), defines=defines, real=real,
@@ -144,7 +144,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     p_attr = opt.get("partial_attr")
     p_geom = None
     if geometry:
-        p_geom = cla.empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
+        p_geom = device_empty(q, (max(E, 1), 3, 3), real, allocator=alloc)
         if E:
             launch(device, "fragment_bwd", "entry_geom", *grid_1d(E), defines={"TILE": TILE}, real=real,
                    vs=frags.vs, F=frags.mesh.F, entry_face=frags.entry_face, partial_mom=opt["partial_mom"],

@@ -33,7 +33,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import SETUP, TILE, Binning, bin_faces, check_soft_edges
-from .common import check_real, check_shape, launch, real_of, to_device
+from .common import check_real, check_shape, device_empty, device_head, launch, real_of, to_device
 from .fragment_bwd import MOMENTS, corners_to_vertices, fragments_backward, gather_to_vertices, raster_backward
 from .fragments import Fragments, frag_input, read_fragments, valid_faces
 from .mesh import DeviceMesh
@@ -107,9 +107,9 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
     tiles_x, tiles_y = b.tiles_x, b.tiles_y
 
     # the kernels write each pixel's list (entry, depth) into K-strided scratch; then it is packed
-    s_entry = cla.empty(q, (height, width, K), np.int32, allocator=alloc)
-    s_depth = cla.empty(q, (height, width, K), real, allocator=alloc)
-    count = cla.empty(q, (height, width), np.int32, allocator=alloc)
+    s_entry = device_empty(q, (height, width, K), np.int32, allocator=alloc)
+    s_depth = device_empty(q, (height, width, K), real, allocator=alloc)
+    count = device_empty(q, (height, width), np.int32, allocator=alloc)
     if variant == "rows16":
         kern, gsize, lsize = "raster_fwd_rows16", (tiles_x, tiles_y * TILE // 2), (1, ROWS16_LOCAL)
     elif variant == "rows":
@@ -126,7 +126,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
                real=real, width=width, height=height, K=K, sigma=sigma or 0.0, count=count, off=off,
                s_entry=s_entry, s_depth=s_depth, entry_face=b.entry_face, entry_setup=b.entry_setup,
                **_pack_outputs(out))
-    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
+    face, entry, bary, depth, win = (None if a is None else device_head(a, P) for a in out)
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
                      b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
                      soft_edges is not None, off, P)
@@ -145,7 +145,7 @@ def pack_fragment_lists(device: Device, count: cla.Array, K: int, face, entry, b
             inputs["s_win"] = win
         launch(device, "raster", "pack_fragments", (npix,), None, defines={"TILE": TILE, "WINDOW": win is not None},
                real=real, npix=npix, K=K, count=count, off=off, **inputs, **_pack_outputs(out))
-    face, entry, bary, depth, win = (None if a is None else a[:P] for a in out)
+    face, entry, bary, depth, win = (None if a is None else device_head(a, P) for a in out)
     return off, P, face, entry, bary, depth, win
 
 
@@ -161,9 +161,9 @@ def _packed_arrays(device: Device, count: cla.Array, real, with_win: bool):
     q, alloc = device.queue, device.allocator
     off, P = prefix_offsets(device, count.reshape(-1))
     n = max(P, 1)
-    out = (cla.empty(q, n, np.int32, allocator=alloc), cla.empty(q, n, np.int32, allocator=alloc),
-           cla.empty(q, (n, 2), real, allocator=alloc), cla.empty(q, n, real, allocator=alloc),
-           cla.empty(q, n, real, allocator=alloc) if with_win else None)
+    out = (device_empty(q, n, np.int32, allocator=alloc), device_empty(q, n, np.int32, allocator=alloc),
+           device_empty(q, (n, 2), real, allocator=alloc), device_empty(q, n, real, allocator=alloc),
+           device_empty(q, n, real, allocator=alloc) if with_win else None)
     return off, P, out
 
 

@@ -12,6 +12,7 @@ import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
 from ..device import Device
+from .common import device_empty
 
 SCAN_BLOCK = 4096  # counts per work-item of the CPU scan (kernels_cl/scan.cl) ...
 SCAN_SERIAL = 1 << 18  # ... up to this many counts, one work-item
@@ -30,10 +31,10 @@ def prefix_offsets(device: Device, counts: cla.Array, total: bool = True) -> tup
     if n == 0:
         return cla.zeros(q, 1, np.int32, allocator=alloc), 0 if total else None
     if device.is_cpu:
-        off = cla.empty(q, n + 1, np.int32, allocator=alloc)
+        off = device_empty(q, n + 1, np.int32, allocator=alloc)
         block = n if n <= SCAN_SERIAL else SCAN_BLOCK
         nb = -(-n // block)
-        sums = cla.empty(q, nb, np.int32, allocator=alloc) if nb > 1 else off  # one block reads no sum
+        sums = device_empty(q, nb, np.int32, allocator=alloc) if nb > 1 else off  # one block reads no sum
         args = (np.int32(n), np.int32(block), np.int32(nb))
         if nb > 1:
             device.kernel("scan", "scan_block_sums")(q, (nb,), (1,), counts.data, *args, sums.data)
@@ -41,7 +42,7 @@ def prefix_offsets(device: Device, counts: cla.Array, total: bool = True) -> tup
         device.kernel("scan", "scan_block_write")(q, (nb,), (1,), counts.data, *args, sums.data, off.data)
     else:
         off = cla.zeros(q, n + 1, np.int32, allocator=alloc)
-        incl = cla.empty(q, n, np.int32, allocator=alloc)
+        incl = device_empty(q, n, np.int32, allocator=alloc)
         _scan_kernel(device)(counts, incl, queue=q)
         # off[1:] = incl  (a sliced array's .data would not carry the offset into the scan kernel)
         cl.enqueue_copy(q, off.data, incl.data, dst_offset=4, byte_count=4 * n)

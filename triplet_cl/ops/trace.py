@@ -27,7 +27,7 @@ from ..camera import Camera
 from ..device import Device
 from ..lights import LightTable, kernel_defines
 from .bvh import BVH
-from .common import check_real, launch, round_up, to_device
+from .common import check_real, device_empty, launch, round_up, to_device
 from .raster import TILE, Fragments, bin_faces, camera_params, pack_fragment_lists
 from .scan import prefix_offsets
 
@@ -69,11 +69,11 @@ def trace_primary(device: Device, bvh: BVH, V, vs, camera: Camera, K: int, cull_
     binning = bin_faces(device, vs, mesh, W, H, camera.near, camera.far, cull_backface)
     K = int(K)
     q, alloc, real = device.queue, device.allocator, bvh.real
-    face = cla.empty(q, (H, W, K), np.int32, allocator=alloc)
-    entry = cla.empty(q, (H, W, K), np.int32, allocator=alloc)
-    bary = cla.empty(q, (H, W, K, 2), real, allocator=alloc)
-    depth = cla.empty(q, (H, W, K), real, allocator=alloc)
-    count = cla.empty(q, (H, W), np.int32, allocator=alloc)
+    face = device_empty(q, (H, W, K), np.int32, allocator=alloc)
+    entry = device_empty(q, (H, W, K), np.int32, allocator=alloc)
+    bary = device_empty(q, (H, W, K, 2), real, allocator=alloc)
+    depth = device_empty(q, (H, W, K), real, allocator=alloc)
+    count = device_empty(q, (H, W), np.int32, allocator=alloc)
     c = camera.center
     cam = cla.to_device(q, camera_params(camera, real))
     _run(device, "trace_primary", real, (round_up(W, TILE), round_up(H, TILE)), (TILE, TILE),
@@ -138,7 +138,7 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
     C = attr.shape[1]
     if not 0 <= alpha_col < C:
         raise ValueError(f"alpha_col must be in [0, {C - 1}], got {alpha_col}")
-    vis = cla.empty(q, (max(P, 1), max(NV, 1)), real, allocator=device.allocator)[:P, :NV]
+    vis = device_empty(q, (max(P, 1), max(NV, 1)), real, allocator=device.allocator)[:P, :NV]
     nhit = cla.zeros(q, (max(P, 1) * max(NV, 1),), np.int32, allocator=device.allocator)
     c = np.zeros(3) if cam_center is None else np.asarray(cam_center, np.float64)
     args = dict(nodes=bvh.nodes, prim=bvh.prim, P=bvh.num_leaves, M=bvh.mesh.num_faces, V=V, F=bvh.mesh.F,
@@ -168,9 +168,9 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis) -> ShadowG
         return ShadowGrads(np.zeros(n), np.zeros((n, 3)), v_pos, np.zeros((P, NV, 3)))
     off, R = prefix_offsets(device, st.nhit)
     v_vis = v_vis if isinstance(v_vis, cla.Array) else to_device(q, np.ascontiguousarray(v_vis, real))
-    rec_face = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
-    rec_w = cla.empty(q, (max(R, 1), 12), real, allocator=device.allocator)
-    v_light = cla.empty(q, (P, NV, 3), real, allocator=device.allocator)
+    rec_face = device_empty(q, max(R, 1), np.int32, allocator=device.allocator)
+    rec_w = device_empty(q, (max(R, 1), 12), real, allocator=device.allocator)
+    v_light = device_empty(q, (P, NV, 3), real, allocator=device.allocator)
     _run(device, "trace_shadow_bwd", real, (round_up(P, LOCAL),), (LOCAL,), st.defines, **st.args,
          vis=st.vis.base_data, v_vis=v_vis, rec_off=off, rec_face=rec_face, rec_w=rec_w, v_x=v_pos.base_data,
          v_light=v_light)
@@ -200,8 +200,8 @@ def bounce(device: Device, bvh: BVH, V: cla.Array, pos: cla.Array, nrm: cla.Arra
     _check_bvh(bvh, V)
     q, real = device.queue, bvh.real
     P = pos.shape[0]
-    hf = cla.empty(q, max(P, 1), np.int32, allocator=device.allocator)
-    hb = cla.empty(q, (max(P, 1), 2), real, allocator=device.allocator)
+    hf = device_empty(q, max(P, 1), np.int32, allocator=device.allocator)
+    hb = device_empty(q, (max(P, 1), 2), real, allocator=device.allocator)
     c = np.asarray(cam_center, np.float64)
     if P:
         _run(device, "trace_bounce", real, (round_up(P, LOCAL),), (LOCAL,), nodes=bvh.nodes, prim=bvh.prim,
@@ -230,9 +230,9 @@ def bounce_backward(device: Device, V: cla.Array, attr: cla.Array, pos: cla.Arra
     P = pos.shape[0]
     C = attr.shape[1]
     v_h = v_h if isinstance(v_h, cla.Array) else cla.to_device(q, np.ascontiguousarray(v_h, real))
-    vp = cla.empty(q, (max(P, 1), 3), real, allocator=device.allocator)
-    vn = cla.empty(q, (max(P, 1), 3), real, allocator=device.allocator)
-    rec = cla.empty(q, (max(P, 1), 3, 3), real, allocator=device.allocator)
+    vp = device_empty(q, (max(P, 1), 3), real, allocator=device.allocator)
+    vn = device_empty(q, (max(P, 1), 3), real, allocator=device.allocator)
+    rec = device_empty(q, (max(P, 1), 3, 3), real, allocator=device.allocator)
     c = np.asarray(cam_center, np.float64)
     n = V.shape[0]
     if P == 0:
@@ -261,8 +261,8 @@ def trace_rays(device: Device, bvh: BVH, V: cla.Array, origin, direction, own, e
     R = o.shape[0]
     dr = to_device(q, check_real("direction", direction, (R, 3), real))
     ow = own if isinstance(own, cla.Array) else cla.to_device(q, np.ascontiguousarray(own, np.int32))
-    hf = cla.empty(q, max(R, 1), np.int32, allocator=device.allocator)
-    hb = cla.empty(q, (max(R, 1), 2), real, allocator=device.allocator)
+    hf = device_empty(q, max(R, 1), np.int32, allocator=device.allocator)
+    hb = device_empty(q, (max(R, 1), 2), real, allocator=device.allocator)
     if R:
         _run(device, "trace_rays", real, (round_up(R, LOCAL),), (LOCAL,), nodes=bvh.nodes, prim=bvh.prim,
              P=bvh.num_leaves, M=bvh.mesh.num_faces, V=V, F=bvh.mesh.F, origin=o, dir=dr, own=ow, R=R, eps=eps,
@@ -276,7 +276,7 @@ def gather_hits(device: Device, attr: cla.Array, c0: int, n: int, F: cla.Array, 
     q = device.queue
     P = hit_face.shape[0]
     real = attr.dtype
-    out = cla.empty(q, (max(P, 1), n), real, allocator=device.allocator)
+    out = device_empty(q, (max(P, 1), n), real, allocator=device.allocator)
     if P:
         _run(device, "gather_hits", real, (round_up(P, LOCAL),), (LOCAL,), attr=attr, C=attr.shape[1], c0=c0, n=n,
              F=F, hit_face=hit_face, hit_bary=hit_bary, Pf=P, out=out)
@@ -303,7 +303,7 @@ def ray_mask(device: Device, frags: Fragments, offsets: cla.Array, face: cla.Arr
     shadow or bounce ray). ``alpha``, ``win``: ``[P]`` (or ``[P, 1]``) compacted per-fragment values."""
     H, W, K = frags.shape
     P = face.shape[0]
-    out = cla.empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
+    out = device_empty(device.queue, max(P, 1), np.int32, allocator=device.allocator)
     if P:
         extra = {} if win is None else {"win": win}
         _run(device, "ray_mask", frags.real, (H * W,), None, {"HAS_WIN": win is not None}, face=face,

@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import grid_1d, launch
+from .common import device_empty, device_head, grid_1d, launch
 
 
 def attr_defines(nmat: int, softplus_cols, face_nrm: bool, has_vlight: bool, nconst: int = 0) -> dict:
@@ -39,7 +39,7 @@ def num_channels(nmat: int, has_vlight: bool, nconst: int = 0) -> int:
 
 
 def _empty(dev: Device, shape, real) -> cla.Array:
-    return cla.empty(dev.queue, shape, real, allocator=dev.allocator)
+    return device_empty(dev.queue, shape, real, allocator=dev.allocator)
 
 
 def vertex_attr(dev: Device, V: cla.Array, nrm: cla.Array, mat_raw: cla.Array, alpha_raw: cla.Array,
@@ -101,7 +101,7 @@ def face_sum3(dev: Device, x: cla.Array, real=np.float32) -> cla.Array:
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] % 3:
         raise ValueError(f"face_sum3: x must be [3M, 3], got {list(x.shape)}")
     M = x.shape[0] // 3
-    out = _empty(dev, (max(M, 1), 3), real)[:M]
+    out = device_head(_empty(dev, (max(M, 1), 3), real), M)
     if M:
         launch(dev, "vertex_attr", "face_sum3", *grid_1d(M), defines={"NMAT": 1}, real=real, x=x, M=M, out=out)
     return out
