@@ -94,3 +94,21 @@ def test_bad_input_raises():
         reg.MaterialGTV(OCTA_F, 6, np.ones(5))
     with pytest.raises(ValueError, match="reduction"):
         reg.uniform_laplacian(OCTA_V, OCTA_F, "max")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_row_scatter_is_np_add_at_bit_for_bit(rng, dtype):
+    """``RowScatter`` (the regularisers' adjoint scatter as a cached sparse product) gives ``np.add.at``'s result bit for
+    bit (each row summed in index order in the values' dtype), empty indices included; bad shapes are refused."""
+    from triplet_cl.regularizers import RowScatter, _scatter_rows
+
+    for n, k, c in [(300, 5000, 3), (7, 40, 1), (5, 0, 3)]:
+        idx = rng.integers(0, n, k)
+        v = (rng.standard_normal((k, c)) * 10.0 ** rng.uniform(-4, 4, (k, 1))).astype(dtype)
+        s = RowScatter(n, idx)
+        got = s(v)
+        assert got.dtype == dtype and got.shape == (n, c)
+        np.testing.assert_array_equal(got, _scatter_rows(n, idx, v))
+        np.testing.assert_array_equal(s(2 * v), _scatter_rows(n, idx, 2 * v))  # the cached matrix, again
+    with pytest.raises(ValueError, match="values must have shape"):
+        RowScatter(4, np.arange(3))(np.ones((2, 3)))
