@@ -98,8 +98,8 @@ def test_bad_input_raises():
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_row_scatter_is_np_add_at_bit_for_bit(rng, dtype):
-    """``RowScatter`` (the regularisers' adjoint scatter as a cached sparse product) gives ``np.add.at``'s result bit for
-    bit (each row summed in index order in the values' dtype), empty indices included; bad shapes are refused."""
+    """``RowScatter`` (the regularisers' adjoint scatter as a cached sparse product) gives ``np.add.at``'s result bit
+    for bit (each row summed in index order in the values' dtype), empty indices included; bad shapes are refused."""
     from triplet_cl.regularizers import RowScatter, _scatter_rows
 
     for n, k, c in [(300, 5000, 3), (7, 40, 1), (5, 0, 3)]:
