@@ -61,7 +61,8 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
     r4, img4, a4 = stage.render(stage.scene, cam, np.ones(3), stage.cfg.eval_supersample)
     r3, img3, a3 = stage.render(stage.scene, cam, np.ones(3))
     assert img4.shape == img3.shape == (cam.height, cam.width, 3) and a4.shape == (cam.height, cam.width)
-    assert r4.image.shape[0] == 4 * cam.height and r3.image.shape[0] == 3 * cam.height
+    assert r4.state.camera.height == 4 * cam.height and r3.state.camera.height == 3 * cam.height  # rendered at
+    assert r4.image.shape[:2] == (cam.height, cam.width) and np.array_equal(r4.image, img4)  # filtered on the device
     assert np.abs(a4 - a3).mean() < 0.02
     # `triplet export` writes other formats from the saved state
     out = trained_run / "export_obj"

@@ -337,3 +337,53 @@ def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng,
         r.backward_device(np.ones((H, W, 3), np.float32))
     with pytest.raises(ValueError, match="v_image must be a device array"):
         r.backward_device(cla.zeros(device.queue, (H, W), np.float32))
+
+
+@pytest.mark.parametrize("transfer", [None, "srgb"])
+def test_downsample_is_the_box_filtered_render(device64, rng, transfer):
+    """``RenderSettings.downsample = f`` (the mesh stage's supersampling, on the device) is the full-resolution render
+    box-filtered on the host: with the sRGB transfer, the linear premultiplied radiance and the alpha averaged, then
+    composited over the background in encoded space; the image and every gradient (the host chain's adjoint: the
+    composite's, then each cotangent spread over its block)."""
+    from dataclasses import replace
+
+    from triplet_cl.ops.color import srgb_composite_backward_host, srgb_composite_host
+
+    f, bg = 3, (0.2, 0.5, 0.9)
+    scene = small_scene(rng, "cook_torrance", mesh=True)
+    c = cam()
+    big = c.scaled(f)
+    st = RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", normals="vertex", background=bg, transfer=transfer,
+                        real=np.float64)
+    r = render(scene, big, replace(st, downsample=f), device64)
+    v = rng.standard_normal((H, W, 3))
+    g = r.backward(v)
+    for p in scene.params:  # backward accumulates into Param.grad: the host chain's gradients from zero
+        p.grad = None
+
+    def down(a):
+        return a.reshape((H, f, W, f) + a.shape[2:]).mean(axis=(1, 3))
+
+    def up(a):
+        return np.repeat(np.repeat(a, f, axis=0), f, axis=1) / f ** 2
+
+    if transfer is None:
+        full = render(scene, big, st, device64)
+        want, alpha = down(full.image), down(full.alpha)
+        gw = full.backward(up(v))
+    else:
+        full = render(scene, big, replace(st, transfer=None, background=(0.0, 0.0, 0.0)), device64)
+        C, alpha = down(full.image), down(full.alpha)
+        want = srgb_composite_host(C, alpha, bg, device=device64, real=np.float64)
+        v_C, v_A = srgb_composite_backward_host(C, alpha, bg, v, device=device64, real=np.float64)
+        gw = full.backward(up(v_C), up(v_A))
+    assert r.image.shape == (H, W, 3) and r.alpha.shape == (H, W) and r.out_size == (H, W)
+    assert alpha.min() < 0.5 < alpha.max()  # an outline in view
+    np.testing.assert_allclose(r.image, want, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(r.alpha, alpha, rtol=1e-10, atol=1e-12)
+    for name in ("V", "material", "alpha", "light_params"):
+        np.testing.assert_allclose(g[name], gw[name], rtol=1e-8, atol=1e-10 * np.abs(gw[name]).max(), err_msg=name)
+    with pytest.raises(ValueError, match="downsample"):
+        RenderSettings(downsample=0)
+    with pytest.raises(ValueError, match="divides"):  # 15 x 12 pixels in blocks of 2
+        render(scene, c, replace(st, downsample=2), device64)

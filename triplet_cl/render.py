@@ -43,6 +43,7 @@ from .device import Device, get_device
 from .lights import BounceLight, pack_lights
 from .materials import get_brdf
 from .ops import columns
+from .ops import downsample as downsample_op
 from .ops import normals as normals_op
 from .ops import shade as shade_op
 from .ops import trace as trace_op
@@ -92,6 +93,10 @@ class RenderSettings:
     # "device" (one kernel, ops/vertex_attr.py; the default) or "host" (the numpy chain Normals →
     # MaterialActivation → SigmoidHost → Concat: the reference the device op is tested against)
     attributes: str = "device"
+    # the camera renders ``downsample ×`` the output's resolution and each block is averaged (the linear premultiplied
+    # radiance and the alpha, before the transfer: as a camera integrates a pixel; ops/downsample.py, on the device):
+    # the mesh stage's supersampling. The camera given to render() is the supersampled one
+    downsample: int = 1
 
     def __post_init__(self):
         if self.attributes not in ("device", "host"):
@@ -111,6 +116,8 @@ class RenderSettings:
                              "of every edge); use renderer='hybrid' for soft_edges='silhouette'")
         if self.sigma is not None and not (np.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
+        if not isinstance(self.downsample, (int, np.integer)) or not 1 <= self.downsample <= 16:
+            raise ValueError(f"downsample must be an integer in [1, 16], got {self.downsample!r}")
 
 
 def _upload(device: Device, a: np.ndarray) -> cla.Array:
@@ -587,6 +594,19 @@ class Composite(Function):
 # ---------------------------------------------------------------------------------------------- render
 
 
+class BoxFilter(Function):
+    """``x [H f, W f(, C)] → [H, W(, C)]`` (device arrays): the mean of each ``f × f`` block (``ops/downsample.py``)."""
+
+    def __init__(self, device: Device, f: int):
+        self.device, self.f = device, int(f)
+
+    def forward(self, ctx, x):
+        return downsample_op.box_down(self.device, x, self.f)
+
+    def backward(self, ctx, v):
+        return downsample_op.box_up(self.device, v, self.f)
+
+
 class Stack(Function):
     """``(image [H, W, 3], acc [H, W]) → [H, W, 4]`` on the host: the RGBA the losses see."""
 
@@ -622,6 +642,12 @@ class RenderResult:
         return self.state.info
 
     @property
+    def out_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the image: the camera's, divided by ``RenderSettings.downsample``."""
+        f = self.state.settings.downsample
+        return self.state.camera.height // f, self.state.camera.width // f
+
+    @property
     def image(self) -> np.ndarray:
         """``[H, W, 3]`` rendered colour."""
         return self.rgba.data[..., :3]
@@ -635,7 +661,7 @@ class RenderResult:
         """Propagate ``v_image [H, W, 3]`` (and optionally ``v_alpha [H, W]``) to every scene
         parameter; returns ``{param name: gradient}`` (also accumulated into each ``Param.grad``)."""
         s = self.state.settings
-        H, W = self.state.camera.height, self.state.camera.width
+        H, W = self.out_size
         v = np.zeros((H, W, 4), s.real)
         v_image = np.asarray(v_image)
         if v_image.shape != (H, W, 3):
@@ -660,7 +686,7 @@ class RenderResult:
         (the accumulated alpha gets no cotangent, as ``backward(v_image)``). Gradients land in each
         ``Param.grad``."""
         s = self.state.settings
-        H, W = self.state.camera.height, self.state.camera.width
+        H, W = self.out_size
         if not isinstance(v_image, cla.Array) or v_image.shape != (H, W, 3) or v_image.dtype != s.real:
             raise ValueError(f"v_image must be a device array of shape [{H}, {W}, 3] and dtype "
                              f"{np.dtype(s.real).name}, got {type(v_image).__name__} "
@@ -735,6 +761,9 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             raise ValueError(f"bounce (traced interreflection) needs renderer='raster', got {s.renderer!r}")
         if scene.vertex_sh is not None:
             raise ValueError("bounce cannot be combined with a vertex-SH light (both are per-vertex light rows)")
+    if s.downsample > 1 and (camera.width % s.downsample or camera.height % s.downsample):
+        raise ValueError(f"downsample {s.downsample} needs a camera whose size it divides, got "
+                         f"{camera.width}x{camera.height}")
     mesh = device_mesh(d, scene.F, N)
     view = RenderState(d, mesh, camera, s)
     if s.renderer != "raster":
@@ -780,10 +809,15 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             rgb, alpha_f = ShadeFragments(view, lights, scene.brdf, layout)(fa, *lp)
         else:
             rgb, alpha_f = TracedShadeFragments(view, scene.lights, scene.brdf, layout)(fa, attr, *lp)
+        f = s.downsample
         if s.transfer in ("srgb", "srgb-clip"):  # linear radiance over black, then the photos' encoding and background
             img, acc = Composite(view, np.zeros(3))(rgb, alpha_f, *([win] if win is not None else []))
+            if f > 1:
+                img, acc = BoxFilter(d, f)(img), BoxFilter(d, f)(acc)
             img = SRGBComposite(d, s.background, s.real, clip=s.transfer == "srgb-clip")(img, acc)
         else:
             img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
+            if f > 1:
+                img, acc = BoxFilter(d, f)(img), BoxFilter(d, f)(acc)
         rgba = Stack()(img, acc)
     return RenderResult(rgba, tape, scene, view, image_var=img)

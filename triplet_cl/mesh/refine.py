@@ -348,47 +348,22 @@ class MeshStage:
 
     def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None, bounce=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
-        image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size (``backward_image`` spreads an image
-        adjoint back, at the config's ``supersample``). With the run's sRGB transfer, the linear premultiplied
-        radiance and the alpha are box-filtered (as a camera integrates a pixel) and the transfer follows."""
+        image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size on the device (``RenderSettings.downsample``:
+        the linear premultiplied radiance and the alpha are averaged, as a camera integrates a pixel, then the run's
+        transfer follows); :meth:`backward_image` takes an image adjoint back through it all."""
+        from dataclasses import replace
+
         f = supersample or self.cfg.supersample
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
-        transfer = self.trainer.transfer
-        if f == 1 or transfer is None:
-            r = render(scene, big, self.settings(background, transfer), self.device, vis=vis, bounce=bounce)
-            if f == 1:
-                return r, r.image, r.alpha
-            H, W = cam.height, cam.width
-            img = r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3))
-            alpha = r.alpha.reshape(H, f, W, f).mean(axis=(1, 3))
-            return r, img, alpha
-        from ..ops.color import srgb_composite_host
+        st = replace(self.settings(background, self.trainer.transfer), downsample=f)
+        r = render(scene, big, st, self.device, vis=vis, bounce=bounce)
+        return r, r.image, r.alpha
 
-        r = render(scene, big, self.settings((0.0, 0.0, 0.0)), self.device, vis=vis,  # linear, over black
-                   bounce=bounce)
-        H, W = cam.height, cam.width
-        C = np.ascontiguousarray(r.image.reshape(H, f, W, f, 3).mean(axis=(1, 3)))
-        alpha = np.ascontiguousarray(r.alpha.reshape(H, f, W, f).mean(axis=(1, 3)))
-        r.srgb_post = (C, alpha, tuple(float(x) for x in background))  # what backward_image differentiates
-        return r, srgb_composite_host(C, alpha, background, device=self.device, clip=transfer == "srgb-clip"), alpha
-
-    def backward_image(self, r, v_img, supersample: int | None = None) -> None:
-        f = supersample or self.cfg.supersample
-        post = getattr(r, "srgb_post", None)
-        v_alpha = None
-        if post is not None:
-            from ..ops.color import srgb_composite_backward_host
-
-            C, alpha, bg = post
-            v_img, v_alpha = srgb_composite_backward_host(C, alpha, bg, v_img, device=self.device,
-                                                          clip=self.trainer.transfer == "srgb-clip")
-        if f > 1:
-            v_img = np.repeat(np.repeat(v_img, f, axis=0), f, axis=1) / (f * f)
-            if v_alpha is not None:
-                v_alpha = np.repeat(np.repeat(v_alpha, f, axis=0), f, axis=1) / (f * f)
-        r.backward(v_img, v_alpha)
+    def backward_image(self, r, v_img) -> None:
+        """The adjoint of :meth:`render`'s image ``v_img [H, W, 3]`` into the scene's parameters."""
+        r.backward(v_img)
 
     def choose_metallic(self, scene: Scene, tied: list[int], col: int) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
@@ -411,7 +386,7 @@ class MeshStage:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
-            self.backward_image(r, v_img, supersample=1)
+            self.backward_image(r, v_img)
             if held and scene.material.grad is not None:
                 scene.material.grad[:, held] = 0.0
             return float(loss)

@@ -1,0 +1,54 @@
+"""The box filter of supersampled renders (``ops/downsample.py``): forward against the numpy reference, the
+adjoint against the reference and as the transpose (random cotangents), float64 central differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from tests.reference import downsample as ref
+from triplet_cl.ops.downsample import box_down, box_up
+
+
+@pytest.mark.parametrize("f", [1, 2, 3, 4])
+@pytest.mark.parametrize("tail", [(), (3,), (1,)])
+def test_box_filter_forward_and_adjoint(device, rng, f, tail):
+    H, W = 5, 7
+    x = rng.standard_normal((H * f, W * f) + tail).astype(np.float32)
+    y = box_down(device, cla.to_device(device.queue, x), f).get()
+    assert y.shape == (H, W) + tail
+    np.testing.assert_allclose(y, ref.box_down(x, f), rtol=1e-6, atol=1e-6)
+    v = rng.standard_normal((H, W) + tail).astype(np.float32)
+    vx = box_up(device, cla.to_device(device.queue, v), f).get()
+    np.testing.assert_allclose(vx, ref.box_up(v, f), rtol=1e-6, atol=1e-7)
+    assert float((y * v).sum()) == pytest.approx(float((x * vx).sum()), rel=1e-4, abs=1e-4)  # <Ax, v> = <x, A'v>
+
+
+def test_box_filter_float64_central_differences(device64, rng):
+    f, H, W = 3, 3, 4
+    x = rng.standard_normal((H * f, W * f, 3))
+    v = rng.standard_normal((H, W, 3))
+    g = box_up(device64, cla.to_device(device64.queue, v), f).get()
+
+    def loss(a):
+        return float((box_down(device64, cla.to_device(device64.queue, a), f).get() * v).sum())
+
+    h = 1e-6
+    for idx in [(0, 0, 0), (4, 7, 1), (8, 11, 2), (5, 2, 0)]:
+        xp, xm = x.copy(), x.copy()
+        xp[idx] += h
+        xm[idx] -= h
+        assert (loss(xp) - loss(xm)) / (2 * h) == pytest.approx(g[idx], rel=1e-7, abs=1e-9)
+
+
+def test_box_filter_rejects_bad_input(device):
+    x = cla.zeros(device.queue, (6, 6, 3), np.float32)
+    with pytest.raises(ValueError, match="factor"):
+        box_down(device, x, 0)
+    with pytest.raises(ValueError, match="H\\*f"):
+        box_down(device, x, 4)
+    with pytest.raises(ValueError, match="device array"):
+        box_down(device, np.zeros((6, 6)), 2)
+    with pytest.raises(ValueError, match="float32 or float64"):
+        box_down(device, cla.zeros(device.queue, (6, 6), np.int32), 2)
