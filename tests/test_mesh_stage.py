@@ -288,3 +288,25 @@ def test_mesh_stage_bounce_lights_the_mesh_and_is_relit_with_it(trained_run):
     assert MeshConfig.from_dict({}).bounce == "off"
     with pytest.raises(ValueError, match="mesh bounce"):
         MeshConfig(bounce="full").validate()
+
+
+def test_regularizers_compute_off_the_tape_is_the_tape_bit_for_bit(rng):
+    """``Regularizers.compute`` + ``apply`` (run on a worker thread beside each refinement step's render) give the
+    tape's value and gradients bit for bit, added after the render's gradients as before."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(2)
+    V = np.asarray(m.vertices) * (1 + 0.05 * rng.standard_normal((len(m.vertices), 1)))
+    mat = rng.standard_normal((len(V), 6))
+    cfg = MeshConfig()
+    a = Scene.from_arrays(V, np.asarray(m.faces), material=mat)
+    b = Scene.from_arrays(V, np.asarray(m.faces), material=mat)
+    for s in (a, b):  # gradients already there (the render's): the regularisers' are added after them
+        s.V.grad = np.full(s.V.data.shape, 0.1, np.float32)
+        s.material.grad = np.full(s.material.data.shape, -0.2, np.float32)
+    reg = Regularizers(a, cfg)
+    want = reg(a)
+    got = Regularizers.apply(b, reg.compute(np.asarray(b.V.data), np.asarray(b.material.data)))
+    assert got == want and want > 0
+    np.testing.assert_array_equal(b.V.grad, a.V.grad)
+    np.testing.assert_array_equal(b.material.grad, a.material.grad)
