@@ -100,6 +100,7 @@ BAD_TRAIN = {
     "background-shell -1": (["--background-shell", "-1"], "--background-shell"),
     "background-shell over the face budget": (["--background-shell", "300000"], "--background-shell"),
     "bbox without --mesh-stage": (["--bbox", "0,0,0,1,1,1"], "--bbox"),
+    "mesh-bounce without --mesh-stage": (["--mesh-bounce", "traced"], "--mesh-bounce"),
     "bbox nan": (["--mesh-stage", "--bbox", "0,0,0,1,1,nan"], "--bbox"),
     "bbox inf": (["--mesh-stage", "--bbox", "0,0,0,inf,1,1"], "--bbox"),
     "bbox inverted": (["--mesh-stage", "--bbox", "1,1,1,0,0,0"], "--bbox"),

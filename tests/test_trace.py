@@ -203,6 +203,9 @@ def test_trace_rays_matches_reference(device64, rng):
     assert (rf >= 0).sum() > 20 and (rf < 0).sum() > 5 and np.all(hf.get()[:5] == -1)
     np.testing.assert_array_equal(hf.get(), rf)
     np.testing.assert_allclose(hb.get(), rb, atol=1e-12)
+    with pytest.raises(ValueError, match="own must be"):
+        trace_op.trace_rays(device64, b, cla.to_device(device64.queue, V), origin, direction, own[:-1].astype(np.int32),
+                            1e-6)
 
 
 # ------------------------------------------------------------------------------------------------ shading terms

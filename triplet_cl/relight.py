@@ -405,7 +405,7 @@ class Relighter:
         """``[N, 3]`` the traced interreflection of ``scene``'s lights (``MeshStage.bounce``; traced once per scene),
         or None (the soup, a mesh trained without it, another renderer)."""
         ms = self.mesh_stage
-        if ms is None:
+        if ms is None or not ms.bounce_active(scene):  # depends on the renderer of the call: decided per call
             return None
         key = ("bounce", id(scene))
         if key not in self._vis or self._vis[key][0] is not scene:

@@ -499,7 +499,7 @@ class MeshStage:
             shadows = VisibilityCache(every=tc.shadow_every, extent=self.trainer.extent, ray_eps=c.shadow_eps)
         grad_acc = np.zeros(len(scene.F))
         # the traced interreflection, re-traced every shadow_every steps (as the cast shadows) and after a remesh
-        bounce, bounce_at = None, 0
+        bounce, bounce_at, bounce_traces = None, 0, None
         bounce_every = max(tc.shadow_every, 1) if self.bounce_active(scene) else 0
         targets = self.trainer.targets
         order: list[int] = []
@@ -518,8 +518,11 @@ class MeshStage:
                 t0 = time.perf_counter()
                 reg_job = pool.submit(reg.compute, np.asarray(scene.V.data), np.asarray(scene.material.data))
                 vis = None if shadows is None else shadows.get(scene, it, self.device)
-                if bounce_every and (bounce is None or it - bounce_at >= bounce_every):
-                    bounce, bounce_at = self.bounce(scene, vis), it
+                # re-traced every shadow_every steps, and whenever the cast shadows were (a light moved: the cache
+                # re-traces early) or the topology changed (bounce None)
+                traces = None if shadows is None else shadows.traces
+                if bounce_every and (bounce is None or it - bounce_at >= bounce_every or traces != bounce_traces):
+                    bounce, bounce_at, bounce_traces = self.bounce(scene, vis), it, traces
                 r, img, _ = self.render(scene, cam, bg, vis=vis, bounce=bounce)
                 # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
                 # at 200² about half the numpy SSIM's time); before, every size went through numpy

@@ -261,6 +261,8 @@ def trace_rays(device: Device, bvh: BVH, V: cla.Array, origin, direction, own, e
     R = o.shape[0]
     dr = to_device(q, check_real("direction", direction, (R, 3), real))
     ow = own if isinstance(own, cla.Array) else cla.to_device(q, np.ascontiguousarray(own, np.int32))
+    if ow.shape != (R,) or ow.dtype != np.int32:
+        raise ValueError(f"own must be [{R}] int32 (one face per ray), got {list(ow.shape)} {ow.dtype}")
     hf = device_empty(q, max(R, 1), np.int32, allocator=device.allocator)
     hb = device_empty(q, (max(R, 1), 2), real, allocator=device.allocator)
     if R:
