@@ -121,3 +121,17 @@ def test_random_triangles_match_brute_force(seed):
     got = {tuple(p) for p in self_intersections(V, F)
            if not set(F[p[0]]) & set(F[p[1]])}
     assert got == _brute_force_pairs(V, F)
+
+
+def test_repair_stops_when_smoothing_removes_no_crossing():
+    """Crossings smoothing cannot undo (two closed parts through each other) are left, not chased with ever larger
+    neighbourhoods: after a round that removed none the best state found is returned — here the mesh as it was (every
+    vertex in place; with the rule before, 12 rounds shrank both spheres around their intersection)."""
+    a = trimesh.creation.icosphere(3, radius=0.8)
+    V = np.concatenate([a.vertices, a.vertices + [1.0, 0.0, 0.0]])
+    F = np.concatenate([a.faces, a.faces + len(a.vertices)])
+    Vn, rep = repair_self_intersections(V, F)
+    assert rep.before == rep.after > 20 and rep.rounds == 0 and rep.moved_vertices == 0
+    np.testing.assert_array_equal(Vn, V)
+    _, rep = repair_self_intersections(V, F, patience=100)  # the old rule's growth: a few crossings fewer, much moved
+    assert rep.after < rep.before and rep.moved_vertices > 300

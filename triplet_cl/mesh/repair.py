@@ -23,7 +23,9 @@ Narrow phase, exact up to float64 rounding with orientation determinants (signed
 **Repair** (:func:`repair_self_intersections`): local, the rest of the mesh is left exactly as it is. The
 vertices of the crossing faces and their ``rings``-ring neighbourhood are smoothed (uniform
 Laplacian, ``λ = 0.5``, a few steps), the crossings are detected again, and the neighbourhood grows by
-one ring per round until none is left or ``max_rounds`` is reached. Smoothing pulls a fold or a thin
+one ring per round until none is left, ``max_rounds`` is reached or a round removes none (the state with the fewest
+crossings is kept: the smoothing cannot undo every crossing, and growing around the few it cannot only flattens the
+surface around them). Smoothing pulls a fold or a thin
 crossing membrane flat, which separates the faces; the displacement stays within the neighbourhood
 (measured on the spot mesh stage below).
 """
@@ -236,10 +238,17 @@ def _neighbours(F: np.ndarray, n: int):
 
 
 def repair_self_intersections(V, F, rings: int = 2, steps: int = 5, max_rounds: int = 12,
-                              lam: float = 0.5) -> tuple[np.ndarray, RepairReport]:
+                              lam: float = 0.5, patience: int = 1) -> tuple[np.ndarray, RepairReport]:
     """Remove crossing faces by local smoothing (module docstring). Returns ``(V_new [N, 3] float64,
     report)``; ``F`` is unchanged and vertices far from a crossing keep their exact positions. For
-    float32 ``V`` the result is checked as float32 (exactly representable), as the mesh stage stores it."""
+    float32 ``V`` the result is checked as float32 (exactly representable), as the mesh stage stores it.
+
+    ``patience``: the neighbourhood stops growing after this many rounds in a row that removed no crossing, and
+    the state with the fewest crossings found (the earliest of equals) is returned. Measured on gadget's mesh stage
+    (400 crossing pairs): the crossings fell 400 → 120 → 44 → 3 in three rounds, then stayed at 3–6 while nine
+    more rounds smoothed ever larger neighbourhoods (419 more vertices moved): the mesh's test PSNR 29.67 dB before the
+    repair, 28.66 after 12 rounds, 29.55 stopping at the third (3 pairs left). A few crossings the smoothing cannot
+    undo are left (reported in ``after``) rather than the surface around them flattened."""
     single = np.asarray(V).dtype == np.float32  # check what will be stored: float32 positions
     V0 = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64).reshape(-1, 3)
@@ -251,7 +260,7 @@ def repair_self_intersections(V, F, rings: int = 2, steps: int = 5, max_rounds: 
     A = _neighbours(F, len(Vn))
     deg = np.asarray(A.sum(1)).ravel()
     deg[deg == 0] = 1
-    moved = np.zeros(len(Vn), bool)
+    best_n, best_V, best_r, stalled = before, Vn.copy(), 0, 0
     r = 0
     for r in range(1, max_rounds + 1):
         sel = np.zeros(len(Vn), bool)
@@ -263,9 +272,12 @@ def repair_self_intersections(V, F, rings: int = 2, steps: int = 5, max_rounds: 
             Vn[sel] += lam * (avg[sel] - Vn[sel])
         if single:
             Vn = Vn.astype(np.float32).astype(np.float64)
-        moved |= sel
         pairs = self_intersections(Vn, F)
-        if len(pairs) == 0:
+        if len(pairs) < best_n:
+            best_n, best_V, best_r, stalled = len(pairs), Vn.copy(), r, 0
+        else:
+            stalled += 1
+        if len(pairs) == 0 or stalled >= patience:
             break
-    disp = np.linalg.norm(Vn - V0, axis=1)
-    return Vn, RepairReport(before, int(len(pairs)), r, int((disp > 0).sum()), float(disp.max()))
+    disp = np.linalg.norm(best_V - V0, axis=1)
+    return best_V, RepairReport(before, int(best_n), best_r, int((disp > 0).sum()), float(disp.max()))
