@@ -84,7 +84,7 @@ def test_device_empty_and_head_are_pyopencl_arrays(device, shape):
     to the buffer); a negative dimension or too many rows is refused."""
     import pyopencl.array as cla
 
-    from triplet_cl.ops.common import device_empty, device_head
+    from triplet_cl.ops.common import device_empty, device_head, device_rows
 
     q = device.queue
     for dt in (np.float32, np.int32, np.float64):
@@ -100,6 +100,9 @@ def test_device_empty_and_head_are_pyopencl_arrays(device, shape):
         np.testing.assert_array_equal(h.get(), ref.get())
     device_head(base, 2).fill(-1.0)
     assert (base.get()[:2] == -1).all() and (base.get()[2:] >= 6).all()
+    for shape, want in (((0, 3), (0, 3)), ((4, 2), (4, 2)), (0, (0,)), (5, (5,))):  # pooled, first dim may be 0
+        r = device_rows(device, shape, np.float32)
+        assert r.shape == want and r.base_data is not None and r.allocator is device.allocator
     with pytest.raises(ValueError, match="negative"):
         device_empty(q, (3, -1), np.float32)
     with pytest.raises(ValueError, match="rows"):

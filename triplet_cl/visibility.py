@@ -126,7 +126,6 @@ def vertex_bounce(scene: Scene, normals: np.ndarray, device: Device | None = Non
     of what the hemisphere sends (``π`` × it is the irradiance; the sky the misses see is the ambient light's
     part). One bounce only, a constant for the gradient (re-traced by the caller, as the visibility); 0 where
     nothing is hit (a convex object), so the rendering of a convex object does not change."""
-    from .activations import softplus
     from .materials import get_brdf
     from .ops import shade as shade_op
 
@@ -165,10 +164,7 @@ def vertex_bounce(scene: Scene, normals: np.ndarray, device: Device | None = Non
             a = np.asarray(a, np.float64).reshape(N, -1)
             return np.einsum("hc,hcj->hj", lam, a[corners])
 
-        raw = np.asarray(scene.material.data, np.float64)
-        mat = sigmoid(raw)
-        for c in get_brdf(scene.brdf).softplus_columns:
-            mat[:, c] = softplus(raw[:, c])
+        mat = get_brdf(scene.brdf).activate(scene.material.data)
         _, inp = shade_op.prepare(at_hits(V), at_hits(n), at_hits(mat), f.astype(np.int32), np.zeros(3), lights,
                                   brdf=scene.brdf, two_sided=True, device=d, real=real,
                                   vis=None if vis is None or vis.shape[1] == 0 else at_hits(vis), eye=V[vi[hit]])

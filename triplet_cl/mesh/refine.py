@@ -339,12 +339,13 @@ class MeshStage:
             opt.add_group("lights", [scene.light_params], lr=c.lr_lights, lr_scale=scale, **kw)
         return opt
 
-    def settings(self, background, transfer: str | None = None) -> RenderSettings:
+    def settings(self, background, transfer: str | None = None, downsample: int = 1) -> RenderSettings:
         tc = self.trainer.cfg
         sh = self.trainer.scene.vertex_sh is not None
         return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
                               background=tuple(float(x) for x in background), normals="vertex",
-                              sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer)
+                              sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer,
+                              downsample=downsample)
 
     def shadows_active(self) -> bool:
         """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
@@ -380,20 +381,14 @@ class MeshStage:
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size on the device (``RenderSettings.downsample``:
         the linear premultiplied radiance and the alpha are averaged, as a camera integrates a pixel, then the run's
-        transfer follows); :meth:`backward_image` takes an image adjoint back through it all."""
-        from dataclasses import replace
-
+        transfer follows); ``result.backward(v_image)`` takes an image adjoint back through it all."""
         f = supersample or self.cfg.supersample
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
-        st = replace(self.settings(background, self.trainer.transfer), downsample=f)
-        r = render(scene, big, st, self.device, vis=vis, bounce=bounce)
+        r = render(scene, big, self.settings(background, self.trainer.transfer, f), self.device, vis=vis,
+                   bounce=bounce)
         return r, r.image, r.alpha
-
-    def backward_image(self, r, v_img) -> None:
-        """The adjoint of :meth:`render`'s image ``v_img [H, W, 3]`` into the scene's parameters."""
-        r.backward(v_img)
 
     def choose_metallic(self, scene: Scene, tied: list[int], col: int) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
@@ -416,7 +411,7 @@ class MeshStage:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
-            self.backward_image(r, v_img)
+            r.backward(v_img)
             if held and scene.material.grad is not None:
                 scene.material.grad[:, held] = 0.0
             return float(loss)
@@ -528,7 +523,7 @@ class MeshStage:
                 # at 200² about half the numpy SSIM's time); before, every size went through numpy
                 loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
                                                         backend=loss_backend(target.shape))
-                self.backward_image(r, v_img)
+                r.backward(v_img)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg.apply(scene, reg_job.result())

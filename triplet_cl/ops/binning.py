@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import device_empty, device_head, grid_1d, launch, real_of, to_device
+from .common import device_empty, device_rows, grid_1d, launch, real_of, to_device
 from .mesh import DeviceMesh
 from .scan import prefix_offsets
 
@@ -87,7 +87,7 @@ def bin_faces(device: Device, vs: cla.Array, mesh: DeviceMesh, width: int, heigh
     M = mesh.num_faces
     defines = {"TILE": TILE}
     tile_count = cla.zeros(q, T, np.int32, allocator=alloc)
-    face_ntiles = device_head(device_empty(q, max(M, 1), np.int32, allocator=alloc), M)
+    face_ntiles = device_rows(device, M, np.int32)
     face_bbox = device_empty(q, (max(M, 1), 4), np.int32, allocator=alloc)
     if M:
         launch(device, "binning", "bin_count", *grid_1d(M), defines=defines, real=real,

@@ -119,6 +119,14 @@ def device_head(a: cla.Array, n: int) -> cla.Array:
                      events=a.events, _fast=True, _size=size, _context=a.context, _queue=a.queue)
 
 
+def device_rows(device, shape, dtype) -> cla.Array:
+    """An array of ``shape`` (its first dimension may be 0: an empty view of a one-row buffer, so that kernels always
+    get a valid buffer) from the device's pool (``device.allocator``: a training step's shapes recur)."""
+    shape = (int(shape),) if isinstance(shape, (int, np.integer)) else tuple(int(x) for x in shape)
+    full = device_empty(device.queue, (max(shape[0], 1),) + shape[1:], dtype, allocator=device.allocator)
+    return device_head(full, shape[0])
+
+
 def empty(queue: cl.CommandQueue, shape, dtype) -> cla.Array:
     """A device array; zero-sized shapes still get a valid (1-element) buffer for kernel args."""
     shape = tuple(int(s) for s in shape)

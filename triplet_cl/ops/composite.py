@@ -8,7 +8,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import buf, c_max, check_real, const_array, device_empty, device_head, fragment_array
+from .common import buf, c_max, check_real, const_array, device_empty, device_rows, fragment_array
 from .fragments import Fragments, frag_input
 
 
@@ -103,11 +103,11 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     va = None if v_acc is None else fragment_array(device.queue, "v_acc", v_acc, (H, W), real)
     b = np.broadcast_to(np.asarray(bg, dtype=np.float64), (C,))
     bgd = const_array(device, b.astype(real))
-    q, alloc = device.queue, device.allocator
+    q = device.queue
     P = frags.P
-    v_feat = device_head(device_empty(q, (max(P, 1), C), real, allocator=alloc), P)
-    v_alpha = device_head(device_empty(q, max(P, 1), real, allocator=alloc), P)
-    v_win = device_head(device_empty(q, max(P, 1), real, allocator=alloc), P) if w is not None else None
+    v_feat = device_rows(device, (P, C), real)
+    v_alpha = device_rows(device, P, real)
+    v_win = device_rows(device, P, real) if w is not None else None
     device.kernel("composite", "composite_bwd", {"C_MAX": c_max(C)}, real)(
         q, (H * W,), None, buf(f, q), buf(a, q), buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data,
         buf(va, q), np.int32(H * W), frags.off.data, np.int32(C), np.int32(w is not None), np.int32(va is not None),

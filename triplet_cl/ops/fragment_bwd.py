@@ -16,7 +16,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import TILE
-from .common import check_real, device_empty, device_head, grid_1d, launch, to_device
+from .common import check_real, device_empty, device_rows, grid_1d, launch, to_device
 from .fragments import Fragments, frag_input
 from .mesh import DeviceMesh
 
@@ -54,9 +54,9 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
     Ca, Cb = corner_a.shape[-1], corner_b.shape[-1]
     if mesh.corners_are_vertices:
         return corner_a.reshape(n, Ca), corner_b.reshape(n, Cb)
-    q, real = device.queue, corner_a.dtype
-    out_a = device_head(device_empty(q, (max(n, 1), Ca), real, allocator=device.allocator), n)
-    out_b = device_head(device_empty(q, (max(n, 1), Cb), real, allocator=device.allocator), n)
+    real = corner_a.dtype
+    out_a = device_rows(device, (n, Ca), real)
+    out_b = device_rows(device, (n, Cb), real)
     if n:
         if M == 0:
             out_a.fill(0)

@@ -7,7 +7,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import TILE
-from .common import buf, check_real, device_empty, device_head, grid_1d, to_device
+from .common import buf, check_real, device_rows, grid_1d, to_device
 from .fragment_bwd import fragments_backward
 from .fragments import Fragments
 
@@ -35,7 +35,7 @@ def interpolate(device: Device, attr, frags: Fragments) -> cla.Array:
     """
     a = _attr(device, attr, frags)
     C, P = a.shape[1], frags.P
-    out = device_head(device_empty(device.queue, (max(P, 1), max(C, 1)), frags.real, allocator=device.allocator), P)
+    out = device_rows(device, (P, max(C, 1)), frags.real)
     if C and P:
         device.kernel("interpolate", "interpolate_fwd", {"TILE": TILE}, frags.real)(
             device.queue, *grid_1d(P), a.data, frags.mesh.F.data, buf(frags.face, device.queue),

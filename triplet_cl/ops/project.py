@@ -11,7 +11,7 @@ import pyopencl.array as cla
 
 from ..camera import Camera
 from ..device import Device
-from .common import check_real, check_shape, const_array, device_empty, device_head, grid_1d, real_of, to_device
+from .common import check_real, check_shape, const_array, device_rows, grid_1d, real_of, to_device
 
 
 def camera_params(camera: Camera, real=np.float32) -> np.ndarray:
@@ -38,7 +38,7 @@ def project(device: Device, V, camera: Camera) -> cla.Array:
     V = check_real("V", V, (None, 3), real)
     n = V.shape[0]
     Vd = to_device(device.queue, V)
-    vs = device_head(device_empty(device.queue, (max(n, 1), 3), real, allocator=device.allocator), n)
+    vs = device_rows(device, (n, 3), real)
     if n:
         k = device.kernel("project", "project_fwd", real=real)
         k(device.queue, *grid_1d(n), Vd.data, _cam_buffer(device, camera, real).data, np.int32(n), vs.data)
@@ -63,8 +63,8 @@ def project_backward(device: Device, V, camera: Camera, v_vs, pose_grad: bool = 
     check_shape("v_vs", v_vs, (n, 3))
     q = device.queue
     Vd, gd = to_device(q, V), to_device(q, np.asarray(v_vs, real) if not isinstance(v_vs, cla.Array) else v_vs)
-    v_V = device_head(device_empty(q, (max(n, 1), 3), real, allocator=device.allocator), n)
-    v_pc = device_head(device_empty(q, (max(n, 1), 3), real, allocator=device.allocator), n)
+    v_V = device_rows(device, (n, 3), real)
+    v_pc = device_rows(device, (n, 3), real)
     if n:
         k = device.kernel("project", "project_bwd", real=real)
         k(q, *grid_1d(n), Vd.data, _cam_buffer(device, camera, real).data, gd.data, np.int32(n), v_V.data, v_pc.data)

@@ -29,7 +29,7 @@ import pyopencl.array as cla
 from ..device import Device, get_device
 from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
 from ..materials import DEFAULT_BRDF, get_brdf
-from .common import check_real, check_shape, device_empty, device_head, empty, launch, round_up, to_device, to_host
+from .common import check_real, check_shape, device_rows, empty, launch, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
 LOCAL_SIZE = 64
@@ -235,8 +235,7 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
 
 def _pooled(dev: Device, shape, real) -> cla.Array:
     """A device array from the device's pool (a training step's shapes recur); ``P = 0`` rows allowed."""
-    return device_head(device_empty(dev.queue, (max(shape[0], 1),) + tuple(shape[1:]), real, allocator=dev.allocator),
-                       shape[0])
+    return device_rows(dev, shape, real)
 
 
 def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTable, lt_i: cla.Array,

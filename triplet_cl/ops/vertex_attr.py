@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import device_empty, device_head, grid_1d, launch
+from .common import device_rows, grid_1d, launch
 
 
 def attr_defines(nmat: int, softplus_cols, face_nrm: bool, has_vlight: bool, nconst: int = 0) -> dict:
@@ -38,10 +38,6 @@ def num_channels(nmat: int, has_vlight: bool, nconst: int = 0) -> int:
     return 7 + int(nmat) + (6 if has_vlight else 0) + int(nconst)
 
 
-def _empty(dev: Device, shape, real) -> cla.Array:
-    return device_empty(dev.queue, shape, real, allocator=dev.allocator)
-
-
 def vertex_attr(dev: Device, V: cla.Array, nrm: cla.Array, mat_raw: cla.Array, alpha_raw: cla.Array,
                 vlight: cla.Array | None, softplus_cols, face_nrm: bool, real=np.float32,
                 const: cla.Array | None = None) -> cla.Array:
@@ -58,7 +54,7 @@ def vertex_attr(dev: Device, V: cla.Array, nrm: cla.Array, mat_raw: cla.Array, a
         raise ValueError(f"vertex_attr: inconsistent shapes V {list(V.shape)}, nrm {list(nrm.shape)}, "
                          f"mat_raw {list(mat_raw.shape)}, alpha_raw {list(alpha_raw.shape)}")
     nconst = 0 if const is None else const.shape[1]
-    attr = _empty(dev, (N, num_channels(nmat, vlight is not None, nconst)), real)
+    attr = device_rows(dev, (N, num_channels(nmat, vlight is not None, nconst)), real)
     args = dict(V=V, nrm=nrm, mat_raw=mat_raw, alpha_raw=alpha_raw, N=N, attr=attr)
     if vlight is not None:
         args["vlight"] = vlight
@@ -86,10 +82,10 @@ def vertex_attr_backward(dev: Device, mat_raw: cla.Array, attr: cla.Array, v_att
         v_attr = v_attr.copy()
     if not attr.flags.c_contiguous:
         attr = attr.copy()
-    out = dict(v_pos=_empty(dev, (N, 3), real), v_nrm=_empty(dev, (N, 3), real), v_mat_raw=_empty(dev, (N, nmat), real),
-               v_alpha_raw=_empty(dev, (N,), real))
+    out = dict(v_pos=device_rows(dev, (N, 3), real), v_nrm=device_rows(dev, (N, 3), real),
+               v_mat_raw=device_rows(dev, (N, nmat), real), v_alpha_raw=device_rows(dev, (N,), real))
     if has_vlight:
-        out["v_vlight"] = _empty(dev, (N, 6), real)
+        out["v_vlight"] = device_rows(dev, (N, 6), real)
     launch(dev, "vertex_attr", "vertex_attr_bwd", *grid_1d(N), defines=attr_defines(nmat, softplus_cols, False,
                                                                                       has_vlight, nconst),
            real=real, mat_raw=mat_raw, attr=attr, v_attr=v_attr, N=N, **out)
@@ -101,7 +97,7 @@ def face_sum3(dev: Device, x: cla.Array, real=np.float32) -> cla.Array:
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] % 3:
         raise ValueError(f"face_sum3: x must be [3M, 3], got {list(x.shape)}")
     M = x.shape[0] // 3
-    out = device_head(_empty(dev, (max(M, 1), 3), real), M)
+    out = device_rows(dev, (M, 3), real)
     if M:
         launch(dev, "vertex_attr", "face_sum3", *grid_1d(M), defines={"NMAT": 1}, real=real, x=x, M=M, out=out)
     return out
