@@ -233,11 +233,6 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
 # ---- the packed path -------------------------------------------------------------------------
 
 
-def _pooled(dev: Device, shape, real) -> cla.Array:
-    """A device array from the device's pool (a training step's shapes recur); ``P = 0`` rows allowed."""
-    return device_rows(dev, shape, real)
-
-
 def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTable, lt_i: cla.Array,
                   lt_f: cla.Array, brdf: str, two_sided: bool, real) -> ShadeInputs:
     """Shading inputs that are column blocks of the packed fragment attributes ``fa [P, C]`` (every row a
@@ -265,8 +260,8 @@ def forward_packed(dev: Device, inp: ShadeInputs) -> tuple[cla.Array, cla.Array 
     """``(rgb [P, 3], alpha [P] or None)`` of packed inputs (:func:`packed_inputs`): the shading of
     :func:`forward`, and the alpha block copied out in the same pass (what the compositing reads)."""
     P = inp.P
-    rgb = _pooled(dev, (P, 3), inp.real)
-    alpha = _pooled(dev, (P,), inp.real) if "ALPHA" in inp.blocks else None
+    rgb = device_rows(dev, (P, 3), inp.real)
+    alpha = device_rows(dev, (P,), inp.real) if "ALPHA" in inp.blocks else None
     if P:
         extra = dict(alpha_src=inp.pos, alpha=alpha) if alpha is not None else {}
         launch(dev, "shade", "shade_fwd", (round_up(P, LOCAL_SIZE),), (LOCAL_SIZE,), defines=_defines(inp),
@@ -279,7 +274,7 @@ def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cl
     """``(v_fa [P, C], v_light_params [T] numpy)``: the adjoint of :func:`forward_packed`, written straight into
     the blocks of the attributes' adjoint (``v_alpha [P]`` into the alpha block; a column outside every block is
     not written). ``deferred``: ``v_light_params`` as an ``autodiff`` ``Deferred`` (no wait here)."""
-    v_fa = _pooled(dev, inp.pos.shape, inp.real)
+    v_fa = device_rows(dev, inp.pos.shape, inp.real)
     extra = {}
     if "ALPHA" in inp.blocks:
         if v_alpha is None:
