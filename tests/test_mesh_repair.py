@@ -135,3 +135,73 @@ def test_repair_stops_when_smoothing_removes_no_crossing():
     np.testing.assert_array_equal(Vn, V)
     _, rep = repair_self_intersections(V, F, patience=100)  # the old rule's growth: a few crossings fewer, much moved
     assert rep.after < rep.before and rep.moved_vertices > 300
+
+
+def test_broad_phase_lists_each_overlapping_pair_once_and_subsets_match():
+    """The grid keeps a pair only in the cell of its boxes' larger low corner: every overlapping pair once, sorted, the
+    same set as an all-pairs box test (faces of very different sizes span many cells); ``faces=`` / ``active`` keeps
+    exactly the pairs with a chosen face."""
+    from triplet_cl.mesh.repair import _candidate_pairs
+
+    rng = np.random.default_rng(3)
+    c = rng.uniform(-1, 1, (300, 1, 3))
+    tri = c + rng.normal(size=(300, 3, 3)) * rng.choice([0.02, 0.3], (300, 1, 1))
+    lo, hi = tri.min(1), tri.max(1)
+    ov = ((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None])).all(2)
+    want = np.argwhere(np.triu(ov, 1))
+    got = _candidate_pairs(tri)
+    np.testing.assert_array_equal(got, want)  # np.argwhere's order: sorted by (a, b)
+    active = rng.random(300) < 0.1
+    np.testing.assert_array_equal(_candidate_pairs(tri, active=active), want[active[want[:, 0]] | active[want[:, 1]]])
+    V, F = tri.reshape(-1, 3), np.arange(900).reshape(300, 3)
+    full = self_intersections(V, F)
+    sub = self_intersections(V, F, faces=active)
+    assert len(full) > 5
+    np.testing.assert_array_equal(sub, full[active[full[:, 0]] | active[full[:, 1]]])
+
+
+def _reference_repair(V, F, rings=0, steps=5, max_rounds=12, lam=0.5, patience=1):
+    """The repair with a full self-intersection test every round (the rule before the incremental one)."""
+    from triplet_cl.mesh.repair import _neighbours
+
+    Vn = np.asarray(V, np.float64).copy()
+    pairs = self_intersections(Vn, F)
+    A = _neighbours(F, len(Vn))
+    deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1)
+    best = (len(pairs), Vn.copy())
+    stalled = 0
+    for r in range(1, max_rounds + 1):
+        sel = np.zeros(len(Vn), bool)
+        sel[F[pairs.ravel()].ravel()] = True
+        for _ in range(rings + r - 1):
+            sel |= (A @ sel.astype(np.float64)) > 0
+        for _ in range(steps):
+            avg = (A @ Vn) / deg[:, None]
+            Vn[sel] += lam * (avg[sel] - Vn[sel])
+        pairs = self_intersections(Vn, F)
+        if len(pairs) < best[0]:
+            best, stalled = (len(pairs), Vn.copy()), 0
+        else:
+            stalled += 1
+        if len(pairs) == 0 or stalled >= patience:
+            break
+    return best
+
+
+@pytest.mark.parametrize("shift", [2.0, 3.0])
+def test_repair_retests_only_moved_faces_and_matches_a_full_retest(shift):
+    """Each round re-tests only the pairs with a moved face (the others keep their answer): the same repaired mesh,
+    bit for bit, as a full test every round."""
+    a = trimesh.creation.icosphere(3, radius=1.0)
+    rng = np.random.default_rng(0)
+    V = np.asarray(a.vertices, np.float64).copy()
+    idx = rng.choice(len(V), 40, replace=False)
+    t = rng.normal(size=(40, 3))
+    t -= (t * V[idx]).sum(1, keepdims=True) * V[idx]
+    V[idx] += shift * 0.08 * t / np.linalg.norm(t, axis=1, keepdims=True) + rng.normal(size=(40, 3)) * 0.02  # folds
+    F = np.asarray(a.faces, np.int64)
+    Vn, rep = repair_self_intersections(V, F, rings=0, steps=1, lam=0.1)  # gentle: several rounds
+    n_ref, V_ref = _reference_repair(V, F, steps=1, lam=0.1)
+    assert rep.before > 20 and rep.rounds >= 3
+    assert rep.after == n_ref == len(self_intersections(Vn, F))
+    np.testing.assert_array_equal(Vn, V_ref)

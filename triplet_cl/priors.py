@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from .lights import AmbientLight, DirectionalLight, PointLight, nonnegative_lights
 from .materials import get_brdf
+from .topology import unique_ints
 
 #: the TrainConfig fields of the priors' weights (``--priors off`` sets them all to 0)
 WEIGHT_FIELDS = ("prior_smooth", "prior_metallic", "prior_roughness", "prior_ambient", "prior_chroma")
@@ -68,7 +69,7 @@ def knn_pairs(points: np.ndarray, k: int) -> np.ndarray:
     i = np.repeat(np.arange(n, dtype=np.int64), kk)
     j = idx[:, 1:].reshape(-1).astype(np.int64)
     keep = i != j  # coincident points may list themselves after another
-    key = np.unique(np.minimum(i, j)[keep] * n + np.maximum(i, j)[keep])  # sorted, as lexicographic pairs
+    key = unique_ints(np.minimum(i, j)[keep] * n + np.maximum(i, j)[keep])  # sorted, as lexicographic pairs
     return np.stack([key // n, key % n], axis=1)
 
 

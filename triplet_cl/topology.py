@@ -10,6 +10,14 @@ from __future__ import annotations
 import numpy as np
 
 
+def unique_ints(x) -> np.ndarray:
+    """``np.unique`` of an integer array (flattened), by a sort: the same sorted values. numpy 2's ``np.unique``
+    without ``return_*`` hashes, measured 20–100× slower than a sort here (5M int64: 6 s against 0.08 s; the
+    self-intersection test's pair set took 1.8 s a call)."""
+    y = np.sort(np.asarray(x).reshape(-1))
+    return y[np.r_[True, y[1:] != y[:-1]]] if len(y) else y
+
+
 def vertex_corner_csr(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR table from vertices to the face corners that use them.
 

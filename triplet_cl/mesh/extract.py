@@ -79,6 +79,7 @@ from ..ops.blend import raster_blend
 from ..ops.common import check_faces, check_real
 from ..ops.mesh import DeviceMesh
 from ..ops.project import project
+from ..topology import unique_ints
 from .asset import MeshAsset
 from .transfer import transfer_attributes
 
@@ -154,7 +155,7 @@ def _soup_bounds(scene, alpha_threshold: float, pad: float) -> np.ndarray:
     F = np.asarray(scene.F)
     a = sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(-1)
     opaque = F[a[F].mean(axis=1) >= alpha_threshold] if len(F) else F
-    pts = V[np.unique(opaque)] if len(opaque) else V[np.unique(F)]
+    pts = V[unique_ints(opaque)] if len(opaque) else V[unique_ints(F)]
     lo, hi = pts.min(0), pts.max(0)
     margin = pad * float((hi - lo).max())
     return np.stack([lo - margin, hi + margin])
@@ -478,7 +479,7 @@ def _drop_cavities(V, F):
     if keep.all():
         return V, F
     Fk = F[keep]
-    used = np.unique(Fk)
+    used = unique_ints(Fk)
     remap = np.full(len(V), -1, np.int64)
     remap[used] = np.arange(len(used))
     return V[used], remap[Fk].astype(np.int32)
@@ -548,7 +549,7 @@ def weld_vertices(V, F, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.nd
     Fw = Fw[ok]
     _, first = np.unique(np.sort(Fw, axis=1), axis=0, return_index=True)
     Fw = Fw[np.sort(first)]
-    used = np.unique(Fw)
+    used = unique_ints(Fw)
     new_of_cluster = np.full(len(Vc), -1, np.int64)
     new_of_cluster[used] = np.arange(len(used))
     return (Vc[used].astype(np.float32), new_of_cluster[Fw].astype(np.int32), new_of_cluster[label])
@@ -591,7 +592,7 @@ def remove_small_components(V, F, min_fraction: float = 0.02,
         if k:
             keep_f[c] = True
     Fk = F[keep_f]
-    used = np.unique(Fk)
+    used = unique_ints(Fk)
     vertex_of = np.full(len(V), -1, np.int64)
     vertex_of[used] = np.arange(len(used))
     return V[used].astype(np.float32), vertex_of[Fk].astype(np.int32), vertex_of

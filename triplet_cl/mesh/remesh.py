@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..ops.common import check_faces, check_real
-from ..topology import mesh_edges
+from ..topology import mesh_edges, unique_ints
 
 __all__ = ["RefineReport", "mesh_edges", "refine_scene", "select_by_gradient", "simplify", "simplify_scene",
            "subdivide_scene", "subdivide_selected"]
@@ -211,7 +211,7 @@ def simplify(V, F, target_fraction: float | None = None, target_count: int | Non
     pos_new = V.copy()
     if len(region) and target < len(region):
         Fr = F[region]
-        sub_v = np.unique(Fr)
+        sub_v = unique_ints(Fr)
         sub_of = np.full(n, -1, np.int64)
         sub_of[sub_v] = np.arange(len(sub_v))
         Fs = sub_of[Fr].astype(np.int32)
@@ -236,7 +236,7 @@ def simplify(V, F, target_fraction: float | None = None, target_count: int | Non
     _, inv, cnt = np.unique(np.sort(faces_rep, axis=1), axis=0, return_inverse=True, return_counts=True)
     faces_rep = faces_rep[cnt[inv.reshape(-1)] == 1]
     # compact: every vertex still used by a face (identified by its representative's old index)
-    used = np.unique(faces_rep)
+    used = unique_ints(faces_rep)
     compact = np.full(n, -1, np.int64)
     compact[used] = np.arange(len(used))
     F_out = compact[faces_rep].astype(np.int32)
