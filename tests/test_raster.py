@@ -428,6 +428,42 @@ def test_silhouette_edges_open_no_seams_in_a_closed_mesh(device64):
     assert (silhouette[edge] < 1).any()  # the silhouette keeps its soft window
 
 
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_device_silhouette_bits_match_the_host_reference(device, device64, real):
+    """``ops.silhouette.silhouette_bits`` (the render's path) against ``topology.silhouette_edges`` (double, on the
+    host): the same masks on a bumpy closed mesh with a hole (boundary edges) and a non-manifold fin, from eyes
+    all around; float32 may differ only where a face is seen edge-on (none is here: asserted)."""
+    import pyopencl.array as cla
+    import trimesh
+
+    from triplet_cl.ops.mesh import DeviceMesh
+    from triplet_cl.ops.silhouette import silhouette_bits
+    from triplet_cl.topology import silhouette_edges
+
+    dev = device64 if real == np.float64 else device
+    ico = trimesh.creation.icosphere(3)
+    rng = np.random.default_rng(4)
+    V = np.asarray(ico.vertices) * rng.uniform(0.9, 1.1, (len(ico.vertices), 1))
+    F = np.asarray(ico.faces)[5:]  # a hole: boundary edges
+    F = np.concatenate([F, [[F[0, 0], F[0, 1], len(V)]]])  # a fin on an edge: three faces share it
+    V = np.concatenate([V, [[2.0, 0.1, 0.2]]])
+    mesh = DeviceMesh(dev, F, len(V))
+    Vd = cla.to_device(dev.queue, V.astype(real))
+    for eye in rng.normal(size=(8, 3)) * 4:
+        tri = V.astype(real).astype(np.float64)[F]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        d = np.einsum("md,md->m", n, eye - tri.mean(1)) / np.linalg.norm(n, axis=1) / np.linalg.norm(eye)
+        assert np.abs(d).min() > 1e-5  # no face edge-on: float32 decides as double
+        want = silhouette_edges(V.astype(real), F, eye)
+        got = silhouette_bits(dev, Vd, mesh, eye).get()
+        assert got.dtype == np.int32 and (want > 0).sum() > 20 and (want == 7).sum() < len(F)
+        np.testing.assert_array_equal(got, want)
+    empty = DeviceMesh(dev, np.zeros((0, 3), np.int32), 3)
+    assert silhouette_bits(dev, cla.to_device(dev.queue, np.zeros((3, 3), real)), empty, [0, 0, 1]).shape == (0,)
+    with pytest.raises(ValueError, match="eye"):
+        silhouette_bits(dev, Vd, mesh, [0, 0])
+
+
 # ------------------------------------------------------------------------------------------------ composite
 
 

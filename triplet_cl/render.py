@@ -56,8 +56,8 @@ from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
 from .ops.raster import fragments_backward, project, project_backward, rasterize
+from .ops.silhouette import silhouette_bits
 from .scene import Scene
-from .topology import silhouette_edges
 
 RENDERERS = ("raster", "raytrace", "hybrid")
 TRANSFERS = (None, "srgb", "srgb-clip")
@@ -351,7 +351,7 @@ class RasterInterpolate(Function):
         else:
             soft = None
             if s.sigma is not None and s.soft_edges == "silhouette":
-                soft = silhouette_edges(np.asarray(V), v.mesh.faces, cam.center, v.mesh.edge_neighbors)
+                soft = silhouette_bits(d, ctx.Vd, v.mesh, cam.center)  # topology.silhouette_edges on the device
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
                            sigma=s.sigma, soft_edges=soft)
         v.frags = ctx.frags = fr

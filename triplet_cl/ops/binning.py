@@ -55,10 +55,15 @@ class Binning:
         return self.tiles_x * self.tiles_y
 
 
-def check_soft_edges(soft_edges, num_faces: int) -> np.ndarray | None:
+def check_soft_edges(soft_edges, num_faces: int):
     """Validate a per-face soft-edge bit mask ``[M]`` (bit k: edge k, opposite vertex k, has the window)."""
     if soft_edges is None:
         return None
+    if isinstance(soft_edges, cla.Array):  # made on the device (ops/silhouette.py): 3-bit masks by construction
+        if soft_edges.dtype != np.int32 or soft_edges.shape != (num_faces,):
+            raise ValueError(f"soft_edges must be an int32 device array of shape [{num_faces}], got "
+                             f"{soft_edges.dtype} {list(soft_edges.shape)}")
+        return soft_edges
     m = np.asarray(soft_edges)
     if m.dtype.kind not in "iu" or m.shape != (num_faces,):
         raise ValueError(f"soft_edges must be an integer array of shape [{num_faces}], got {m.dtype} {list(m.shape)}")

@@ -48,5 +48,13 @@ class DeviceMesh:
             self._edge_neighbors = face_edge_neighbors(self.faces)
         return self._edge_neighbors
 
+    @property
+    def device_edge_neighbors(self) -> cla.Array:
+        """:attr:`edge_neighbors` on the device (``[M, 3] int32``; one row for an empty mesh), copied once."""
+        if getattr(self, "_edge_neighbors_dev", None) is None:
+            nb = np.ascontiguousarray(self.edge_neighbors, np.int32)
+            self._edge_neighbors_dev = cla.to_device(self.device.queue, nb if len(nb) else np.zeros((1, 3), np.int32))
+        return self._edge_neighbors_dev
+
     def __repr__(self) -> str:
         return f"DeviceMesh(N={self.num_vertices}, M={self.num_faces})"
