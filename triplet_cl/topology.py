@@ -47,7 +47,10 @@ def mesh_edges(faces) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64)
     e = np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2)
     e.sort(axis=1)
-    E, inv = np.unique(e, axis=0, return_inverse=True)
+    # rows as one key each (np.unique(axis=0) sorts the rows as a structured view: ~10x slower), the same order
+    n = int(e.max()) + 1
+    key, inv = np.unique(e[:, 0] * n + e[:, 1], return_inverse=True)
+    E = np.stack([key // n, key % n], axis=1)
     return E.reshape(-1, 2), inv.reshape(-1, 3)
 
 
