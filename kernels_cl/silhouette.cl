@@ -1,5 +1,5 @@
 /* silhouette.cl — the soft-edge bit masks of a connected mesh seen from an eye, on the device
- * (triplet_cl/ops/silhouette.py; the host reference is triplet_cl.topology.silhouette_edges).
+ * (triplet_cl/ops/silhouette.py; the host reference is tests/reference/silhouette.py).
  *
  * face_front: one work-item per face f: front[f] = 1 where the face's raw normal
  *   c = (v1 − v0) × (v2 − v0) points towards the eye from its centroid: dot(c, eye − (v0 + v1 + v2)/3) > 0.

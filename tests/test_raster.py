@@ -404,7 +404,7 @@ def test_silhouette_edges_open_no_seams_in_a_closed_mesh(device64):
     interior edges; with the window on its silhouette edges only it is opaque inside."""
     import trimesh
 
-    from triplet_cl.topology import silhouette_edges
+    from tests.reference.silhouette import silhouette_edges
 
     ico = trimesh.creation.icosphere(2, radius=0.8)
     V, F = np.asarray(ico.vertices), np.asarray(ico.faces)
@@ -430,15 +430,15 @@ def test_silhouette_edges_open_no_seams_in_a_closed_mesh(device64):
 
 @pytest.mark.parametrize("real", [np.float32, np.float64])
 def test_device_silhouette_bits_match_the_host_reference(device, device64, real):
-    """``ops.silhouette.silhouette_bits`` (the render's path) against ``topology.silhouette_edges`` (double, on the
+    """``ops.silhouette.silhouette_bits`` (the render's path) against ``tests/reference/silhouette.py`` (double, on the
     host): the same masks on a bumpy closed mesh with a hole (boundary edges) and a non-manifold fin, from eyes
     all around; float32 may differ only where a face is seen edge-on (none is here: asserted)."""
     import pyopencl.array as cla
     import trimesh
 
+    from tests.reference.silhouette import silhouette_edges
     from triplet_cl.ops.mesh import DeviceMesh
     from triplet_cl.ops.silhouette import silhouette_bits
-    from triplet_cl.topology import silhouette_edges
 
     dev = device64 if real == np.float64 else device
     ico = trimesh.creation.icosphere(3)

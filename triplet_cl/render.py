@@ -351,7 +351,7 @@ class RasterInterpolate(Function):
         else:
             soft = None
             if s.sigma is not None and s.soft_edges == "silhouette":
-                soft = silhouette_bits(d, ctx.Vd, v.mesh, cam.center)  # topology.silhouette_edges on the device
+                soft = silhouette_bits(d, ctx.Vd, v.mesh, cam.center)
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
                            sigma=s.sigma, soft_edges=soft)
         v.frags = ctx.frags = fr

@@ -290,8 +290,7 @@ def repair_self_intersections(V, F, rings: int = 2, steps: int = 5, max_rounds: 
         # only those with a moved face are tested again (the same pairs as a full test, ~3× less work a round)
         moved = (Vn != prev).any(1)[F].any(1)
         kept = pairs[~(moved[pairs[:, 0]] | moved[pairs[:, 1]])]
-        pairs = np.concatenate([kept, self_intersections(Vn, F, faces=moved)])
-        pairs = pairs[np.argsort(pairs[:, 0] * len(F) + pairs[:, 1], kind="stable")]
+        pairs = np.concatenate([kept, self_intersections(Vn, F, faces=moved)])  # a set: its order does not matter
         if len(pairs) < best_n:
             best_n, best_V, best_r, stalled = len(pairs), Vn.copy(), r, 0
         else:

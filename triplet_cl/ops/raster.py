@@ -91,7 +91,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
         sigma: also compute the soft-coverage window (``frags.win``) for this sharpness, in the
             same pass (see :func:`~triplet_cl.ops.composite.coverage`).
         soft_edges: ``[M]`` int bit masks (bit k: edge k, opposite vertex k): only these edges get
-            the window (``topology.silhouette_edges`` marks the silhouette of a connected mesh, so
+            the window (``ops.silhouette.silhouette_bits`` marks the silhouette of a connected mesh, so
             that its shared interior edges stay hard and open no seams); None: every edge (a soup).
     """
     if variant not in RASTER_VARIANTS:

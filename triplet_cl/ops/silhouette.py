@@ -1,6 +1,6 @@
 """The silhouette edges of a connected mesh seen from an eye, on the device (``kernels_cl/silhouette.cl``).
 
-:func:`silhouette_bits` gives what :func:`triplet_cl.topology.silhouette_edges` (the host reference, in double)
+:func:`silhouette_bits` gives what ``tests/reference/silhouette.py`` (the host reference, in double)
 computes — ``[M] int32`` soft-edge bit masks for :func:`~triplet_cl.ops.raster.rasterize`: bit k where edge k
 (opposite vertex k) separates a face turned towards the eye from one turned away, or has no single face across
 it — from the device positions the render already holds, so that nothing of ``[M]`` size goes through the host
