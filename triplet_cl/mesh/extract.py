@@ -10,7 +10,8 @@ times the soft coverage window when ``sigma`` is set), are composited like the c
 
 ``z`` is the camera-space depth (distance along the optical axis), ``A`` the accumulated alpha.
 
-**TSDF fusion** (:func:`tsdf_fusion`, numpy, vectorised over the voxels of one view at a time):
+**TSDF fusion** (:func:`tsdf_fusion`; each view's maps are prepared on the host, the per-voxel votes are
+``ops.tsdf.TsdfVotes``, one device work-item per voxel over a chunk of views):
 a regular grid over ``bounds`` (default: the opaque soup's bounding box, padded), voxel size
 ``h`` (default: :func:`auto_resolution`, 1.25 pixel footprints), truncation ``τ = truncation·h``.
 Each view's depth (by default where the accumulated alpha reaches 0.1 — the outer surface of the
@@ -79,6 +80,7 @@ from ..ops.blend import raster_blend
 from ..ops.common import check_faces, check_real
 from ..ops.mesh import DeviceMesh
 from ..ops.project import project
+from ..ops.tsdf import FusionView, TsdfVotes
 from ..topology import unique_ints
 from .asset import MeshAsset
 from .transfer import transfer_attributes
@@ -286,13 +288,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     tau = truncation * h
     gx, gy, gz = (origin[i] + h * np.arange(dims[i], dtype=np.float64) for i in range(3))
     X = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
-    num = np.zeros(len(X), np.float32)
-    wsum = np.zeros(len(X), np.float32)
-    seen = np.zeros(len(X), np.int32)
-    hidden = np.zeros(len(X), np.int32)
-    hull_out = np.zeros(len(X), np.int32)
-    hull_exact = np.zeros(len(X), np.int32)  # views whose exact projection is on the background
-    hull_sdf = np.full(len(X), -np.inf, np.float32)  # the largest signed distance outside a silhouette cone (/τ)
+    votes = TsdfVotes(device or get_device(), (gx, gy, gz), alpha_threshold, tau)
     seen_pts: list[np.ndarray] = []  # per view, the convex hull's vertices of the surface points it saw
     if hull_views is not None and hull_views < 1:
         raise ValueError(f"hull_views must be None or >= 1, got {hull_views}")
@@ -307,7 +303,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
                                   quantile=depth_quantile)
         if median_filter_px > 1:  # isolated pixels seen through cracks of the soup
             depth, acc = filter_depth(depth, acc, median_filter_px, alpha_threshold)
-        photo_bg = m = None
+        photo_bg = m = sd = None
         if masks is not None and masks[ci] is not None:
             m = check_real(f"masks[{ci}]", masks[ci], (cam.height, cam.width), np.float32)
             acc = np.where(m < alpha_threshold, np.minimum(acc, m), acc)  # the photo's background is free
@@ -315,30 +311,18 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
                 photo_bg = m < alpha_threshold
                 if carve_margin > 0:
                     photo_bg = binary_erosion(photo_bg, iterations=int(carve_margin), border_value=1)
+                if hull_exact_views is not None:
+                    sd = _silhouette_distance(m < alpha_threshold)
         free_px = acc < alpha_threshold
         if carve_margin > 0:
             free_px = binary_erosion(free_px, iterations=int(carve_margin), border_value=1)
         if solid_in_seen_hull:
             seen_pts.append(_hull_points(_backproject(cam, depth, acc >= alpha_threshold)))
-        idx, pix, z, uv = _project_voxels(X, cam, subpixel=True)
-        seen[idx] += 1
-        if photo_bg is not None:
-            hull_out[idx[photo_bg.reshape(-1)[pix]]] += 1
-        if m is not None and hull_views is not None and hull_exact_views is not None:
-            sd = _bilinear(_silhouette_distance(m < alpha_threshold), uv) * z * np.float32(1.0 / (cam.fx * tau))
-            out = sd > 0
-            hull_exact[idx[out]] += 1
-            hull_sdf[idx[out]] = np.maximum(hull_sdf[idx[out]], np.minimum(sd[out], np.float32(1.0)))
-        a = acc.reshape(-1)[pix]
-        surf = a >= alpha_threshold
-        s = (depth.reshape(-1)[pix] - z) * np.float32(1.0 / tau)
-        behind = surf & (s < -1.0)
-        hidden[idx[behind]] += 1
-        use = free_px.reshape(-1)[pix] | (surf & ~behind)
-        w = np.where(surf, a, np.float32(1.0))[use]
-        ii = idx[use]
-        num[ii] += w * np.where(surf[use], np.minimum(s[use], np.float32(1.0)), np.float32(1.0))
-        wsum[ii] += w
+        # the per-voxel votes of this view (kernels_cl/tsdf.cl; launched a chunk of views at a time)
+        votes.add(FusionView(cam, depth, acc, free_px, photo_bg, sd, float(np.float32(1.0 / (cam.fx * tau)))))
+    sums = votes.get()
+    num, wsum, seen, hidden = sums["num"], sums["wsum"], sums["seen"], sums["hidden"]
+    hull_out, hull_exact, hull_sdf = sums["hull_out"], sums["hull_exact"], sums["hull_sdf"]
     inside = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
     if solid_in_seen_hull:  # nothing is solid beyond what was seen: an unseen volume closes at the seen extent
         inside[inside] = _in_convex_hull(np.concatenate(seen_pts), X[inside])
@@ -375,7 +359,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
 
 def _backproject(cam: Camera, depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """World points ``[Q, 3]`` of the pixels in ``mask [H, W]`` at their camera depth ``depth [H, W]`` (pixel
-    centres, as :func:`_project_voxels` projects)."""
+    centres, as ``kernels_cl/tsdf.cl`` projects)."""
     i, j = np.nonzero(mask)
     z = depth[i, j].astype(np.float64)
     pc = np.stack([(j + 0.5 - cam.cx) / cam.fx * z, (i + 0.5 - cam.cy) / cam.fy * z, z], 1)
@@ -413,26 +397,6 @@ def _in_convex_hull(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return ok
 
 
-def _project_voxels(X: np.ndarray, cam: Camera, subpixel: bool = False):
-    """Voxel centres ``X [P, 3] float32`` seen by ``cam``: ``(idx [Q] voxel ids in front of the
-    camera and inside the image, pix [Q] flat pixel index (nearest pixel), z [Q] camera depth)``, and
-    with ``subpixel`` the continuous image position ``uv [Q, 2]`` (pixel centres at ``j + 0.5``)."""
-    R = cam.w2c[:3, :3].astype(np.float32)
-    t = cam.w2c[:3, 3].astype(np.float32)
-    z = X @ R[2] + t[2]
-    idx = np.flatnonzero(z > cam.near)
-    Xi = X[idx]
-    z = z[idx]
-    uc = (Xi @ R[0] + t[0]) / z * np.float32(cam.fx) + np.float32(cam.cx)
-    vc = (Xi @ R[1] + t[1]) / z * np.float32(cam.fy) + np.float32(cam.cy)
-    u, v = np.floor(uc), np.floor(vc)
-    ok = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    pix = v[ok].astype(np.int64) * cam.width + u[ok].astype(np.int64)
-    if subpixel:
-        return idx[ok], pix, z[ok], np.stack([uc[ok], vc[ok]], 1)
-    return idx[ok], pix, z[ok]
-
-
 def _silhouette_distance(background: np.ndarray) -> np.ndarray:
     """Signed distance in pixels from each pixel centre to the silhouette of a mask (``background [H, W]``
     bool): positive on the background, negative on the object; the silhouette lies half way between a
@@ -446,21 +410,6 @@ def _silhouette_distance(background: np.ndarray) -> np.ndarray:
     out = distance_transform_edt(background) - 0.5
     inside = distance_transform_edt(~background) - 0.5
     return np.where(background, out, -inside).astype(np.float32)
-
-
-def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """``img [H, W]`` bilinearly interpolated at continuous positions ``uv [Q, 2]`` (pixel centres at
-    ``j + 0.5``; clamped at the border)."""
-    H, W = img.shape
-    x = np.clip(uv[:, 0] - 0.5, 0, W - 1)
-    y = np.clip(uv[:, 1] - 0.5, 0, H - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), W - 2 if W > 1 else 0)
-    y0 = np.minimum(np.floor(y).astype(np.int64), H - 2 if H > 1 else 0)
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    fx, fy = x - x0, y - y0
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    return top * (1 - fy) + bot * fy
 
 
 def _drop_cavities(V, F):
