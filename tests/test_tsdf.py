@@ -48,11 +48,15 @@ def test_votes_match_the_reference(device, rng, chunk_bytes):
     got = votes.get()
     ref = fuse_votes(axes, views, THR, TAU)
     assert ref["seen"].max() > 3 and ref["hull_exact"].max() > 0 and ref["hidden"].max() > 0  # every rule votes
-    for name, r in ref.items():
-        if r.dtype.kind == "i":
-            np.testing.assert_array_equal(got[name], r, err_msg=name)
-        else:
-            np.testing.assert_allclose(got[name], r, rtol=1e-6, atol=1e-6, err_msg=name)
+    # On PoCL every sum is equal bit for bit. A GPU's single-precision division may be up to 2.5 ulp off (OpenCL's
+    # default), which can move a voxel that projects within ulps of a pixel edge to the next pixel: such voxels
+    # (where any count differs) may be at most 0.1 %, and the float sums must match everywhere else.
+    moved = np.zeros(len(ref["seen"]), bool)
+    for name in ("seen", "hidden", "hull_out", "hull_exact"):
+        moved |= got[name] != ref[name]
+    assert moved.mean() <= 1e-3, f"{moved.sum()} voxels of {moved.size} counted differently"
+    for name in ("num", "wsum", "hull_sdf"):
+        np.testing.assert_allclose(got[name][~moved], ref[name][~moved], rtol=1e-6, atol=1e-6, err_msg=name)
 
 
 def test_votes_of_no_view_are_the_initial_sums(device):
