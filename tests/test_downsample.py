@@ -8,7 +8,7 @@ import pyopencl.array as cla
 import pytest
 
 from tests.reference import downsample as ref
-from triplet_cl.ops.downsample import box_down, box_up
+from triplet_cl.ops.downsample import box_down, box_up, gauss_down, gauss_up
 
 
 @pytest.mark.parametrize("f", [1, 2, 3, 4])
@@ -52,3 +52,66 @@ def test_box_filter_rejects_bad_input(device):
         box_down(device, np.zeros((6, 6)), 2)
     with pytest.raises(ValueError, match="float32 or float64"):
         box_down(device, cla.zeros(device.queue, (6, 6), np.int32), 2)
+
+
+@pytest.mark.parametrize("f", [1, 2, 3])
+@pytest.mark.parametrize("sigma", [0.5, 0.3, 1.1])
+@pytest.mark.parametrize("tail", [(), (4,)])
+def test_gauss_filter_forward_and_adjoint(device, rng, f, sigma, tail):
+    """The separable device filter equals the dense definition (image borders included: a 5×7 image is mostly
+    border for a 2-pixel radius), and its adjoint is the transpose."""
+    H, W = 5, 7
+    x = rng.standard_normal((H * f, W * f) + tail).astype(np.float32)
+    y = gauss_down(device, cla.to_device(device.queue, x), f, sigma).get()
+    assert y.shape == (H, W) + tail
+    np.testing.assert_allclose(y, ref.gauss_down(x.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    v = rng.standard_normal((H, W) + tail).astype(np.float32)
+    vx = gauss_up(device, cla.to_device(device.queue, v), f, sigma).get()
+    assert vx.shape == x.shape
+    np.testing.assert_allclose(vx, ref.gauss_up(v.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    assert float((y * v).sum()) == pytest.approx(float((x * vx).sum()), rel=1e-4, abs=1e-4)  # <Ax, v> = <x, A'v>
+
+
+def test_gauss_filter_keeps_a_constant_and_spreads_an_edge(device):
+    """Normalised weights: a constant image stays that constant (borders too); a sharp vertical edge at a pixel
+    boundary becomes the Gaussian's integral across it (σ 0.5 px: the pixels beside it at 0.5 ± 0.35)."""
+    f, H, W = 4, 6, 8
+    x = np.full((H * f, W * f), 0.7, np.float32)
+    np.testing.assert_allclose(gauss_down(device, cla.to_device(device.queue, x), f, 0.5).get(), 0.7, rtol=1e-6)
+    x[:, : 4 * f] = 0.0
+    x[:, 4 * f:] = 1.0
+    y = gauss_down(device, cla.to_device(device.queue, x), f, 0.5).get()
+    from scipy.special import erf
+
+    # supersample average of the Gaussian CDF at the pixel centres' distances 0.5 and 1.5 from the edge
+    assert y[2, 3] == pytest.approx(1 - y[2, 4], abs=1e-6)
+    assert 0.1 < y[2, 4] - 0.5 < 0.45 and y[2, 5] > 0.97 and y[2, 2] < 0.03
+    assert y[2, 4] == pytest.approx(ref.gauss_down(x.astype(np.float64), f, 0.5)[2, 4], abs=1e-6)
+    assert 0.5 + 0.5 * erf(0.5 / (0.5 * np.sqrt(2))) == pytest.approx(y[2, 4], abs=0.05)
+
+
+def test_gauss_filter_float64_central_differences(device64, rng):
+    f, H, W, sigma = 3, 3, 4, 0.5
+    x = rng.standard_normal((H * f, W * f, 3))
+    v = rng.standard_normal((H, W, 3))
+    g = gauss_up(device64, cla.to_device(device64.queue, v), f, sigma).get()
+
+    def loss(a):
+        return float((gauss_down(device64, cla.to_device(device64.queue, a), f, sigma).get() * v).sum())
+
+    h = 1e-6
+    for idx in [(0, 0, 0), (4, 7, 1), (8, 11, 2), (5, 2, 0)]:
+        xp, xm = x.copy(), x.copy()
+        xp[idx] += h
+        xm[idx] -= h
+        assert (loss(xp) - loss(xm)) / (2 * h) == pytest.approx(g[idx], rel=1e-7, abs=1e-9)
+
+
+def test_gauss_filter_rejects_bad_input(device):
+    x = cla.zeros(device.queue, (6, 6, 3), np.float32)
+    with pytest.raises(ValueError, match="sigma"):
+        gauss_down(device, x, 2, 0.0)
+    with pytest.raises(ValueError, match="H\\*f"):
+        gauss_down(device, x, 4, 0.5)
+    with pytest.raises(ValueError, match="factor"):
+        gauss_up(device, x, 0, 0.5)

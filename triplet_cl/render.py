@@ -97,6 +97,10 @@ class RenderSettings:
     # radiance and the alpha, before the transfer: as a camera integrates a pixel; ops/downsample.py, on the device):
     # the mesh stage's supersampling. The camera given to render() is the supersampled one
     downsample: int = 1
+    # the capture's pixel filter, in output pixels: 0 averages each downsample block (a box); > 0 weights the samples
+    # by a Gaussian of this standard deviation between their centres and the pixel's, truncated at 4 sigma (a film's
+    # reconstruction filter; ops/downsample.py), also with downsample 1 (it then blurs the render)
+    pixel_sigma: float = 0.0
 
     def __post_init__(self):
         if self.attributes not in ("device", "host"):
@@ -118,6 +122,8 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
         if not isinstance(self.downsample, (int, np.integer)) or not 1 <= self.downsample <= 16:
             raise ValueError(f"downsample must be an integer in [1, 16], got {self.downsample!r}")
+        if not (np.isfinite(self.pixel_sigma) and 0 <= self.pixel_sigma <= 4):
+            raise ValueError(f"pixel_sigma must be a number of pixels in [0, 4], got {self.pixel_sigma!r}")
 
 
 def _upload(device: Device, a: np.ndarray) -> cla.Array:
@@ -594,16 +600,21 @@ class Composite(Function):
 # ---------------------------------------------------------------------------------------------- render
 
 
-class BoxFilter(Function):
-    """``x [H f, W f(, C)] → [H, W(, C)]`` (device arrays): the mean of each ``f × f`` block (``ops/downsample.py``)."""
+class PixelFilter(Function):
+    """``x [H f, W f(, C)] → [H, W(, C)]`` (device arrays, ``ops/downsample.py``): the mean of each ``f × f`` block
+    (``sigma`` 0), or the Gaussian pixel filter of standard deviation ``sigma`` output pixels."""
 
-    def __init__(self, device: Device, f: int):
-        self.device, self.f = device, int(f)
+    def __init__(self, device: Device, f: int, sigma: float = 0.0):
+        self.device, self.f, self.sigma = device, int(f), float(sigma)
 
     def forward(self, ctx, x):
+        if self.sigma > 0:
+            return downsample_op.gauss_down(self.device, x, self.f, self.sigma)
         return downsample_op.box_down(self.device, x, self.f)
 
     def backward(self, ctx, v):
+        if self.sigma > 0:
+            return downsample_op.gauss_up(self.device, v, self.f, self.sigma)
         return downsample_op.box_up(self.device, v, self.f)
 
 
@@ -812,12 +823,12 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         f = s.downsample
         if s.transfer in ("srgb", "srgb-clip"):  # linear radiance over black, then the photos' encoding and background
             img, acc = Composite(view, np.zeros(3))(rgb, alpha_f, *([win] if win is not None else []))
-            if f > 1:
-                img, acc = BoxFilter(d, f)(img), BoxFilter(d, f)(acc)
+            if f > 1 or s.pixel_sigma > 0:
+                img, acc = PixelFilter(d, f, s.pixel_sigma)(img), PixelFilter(d, f, s.pixel_sigma)(acc)
             img = SRGBComposite(d, s.background, s.real, clip=s.transfer == "srgb-clip")(img, acc)
         else:
             img, acc = Composite(view)(rgb, alpha_f, *([win] if win is not None else []))
-            if f > 1:
-                img, acc = BoxFilter(d, f)(img), BoxFilter(d, f)(acc)
+            if f > 1 or s.pixel_sigma > 0:
+                img, acc = PixelFilter(d, f, s.pixel_sigma)(img), PixelFilter(d, f, s.pixel_sigma)(acc)
         rgba = Stack()(img, acc)
     return RenderResult(rgba, tape, scene, view, image_var=img)

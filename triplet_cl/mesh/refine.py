@@ -66,6 +66,8 @@ class MeshConfig:
     # the test renders (metrics, renders/mesh): 4×4 samples approach the pixel-area coverage of the photos' renderer
     # (spot, the same refined mesh trained at 2: evaluated at 2 → 32.31 dB, at 4 → 32.92 dB); None: as ``supersample``
     eval_supersample: int | None = 4
+    # the capture's pixel filter (RenderSettings.pixel_sigma, standard deviation in pixels; 0: a box over each pixel)
+    pixel_sigma: float = 0.0
     sigma: float | None = 1.0  # soft window on the silhouette edges only (1/px of the supersampled render): gradients
     #                             that move the outline; None: hard edges (no silhouette gradients)
     lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
@@ -345,7 +347,7 @@ class MeshStage:
         return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer,
-                              downsample=downsample)
+                              downsample=downsample, pixel_sigma=self.cfg.pixel_sigma)
 
     def shadows_active(self) -> bool:
         """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""

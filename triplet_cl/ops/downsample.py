@@ -1,8 +1,15 @@
-"""The box filter of a supersampled render and its adjoint (``downsample.cl``).
+"""The pixel filters of a supersampled render and their adjoints (``downsample.cl``).
 
-The mesh stage renders at ``f ×`` the camera's resolution and averages each ``f × f`` block (linear premultiplied
-radiance and alpha, before the photos' transfer function: as a camera integrates a pixel). On the device, so that the
-supersampled image never comes to the host (it did, and numpy's mean over it cost ~10 ms of a 100 ms mesh step).
+The mesh stage renders at ``f ×`` the camera's resolution and filters it down to the camera's pixels (linear
+premultiplied radiance and alpha, before the photos' transfer function: as a camera integrates a pixel). On the
+device, so that the supersampled image never comes to the host (it did, and numpy's mean over it cost ~10 ms of a
+100 ms mesh step).
+
+:func:`box_down` averages each ``f × f`` block. :func:`gauss_down` is a camera's reconstruction filter instead: each
+pixel is the mean of the supersamples near its centre weighted by a Gaussian of standard deviation ``sigma`` pixels
+truncated at ``4 sigma`` (Mitsuba 3's film default is ``sigma`` 0.5; Blender Cycles' 1.5-pixel Blackman-Harris is
+close to it), normalised by the weights of the supersamples inside the image, as a film divides by its weights;
+separable, one pass per axis (:func:`filter_weights` gives the weights).
 """
 
 from __future__ import annotations
@@ -58,3 +65,64 @@ def box_up(device: Device, v_y: cla.Array, f: int) -> cla.Array:
         device.kernel("downsample", "box_up", real=real)(device.queue, *grid_1d(H * W * f * f), v_y.data,
                                                         np.int32(H), np.int32(W), np.int32(f), np.int32(C), v_x.data)
     return v_x
+
+
+def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The Gaussian pixel filter along one axis of ``length`` output pixels, each ``f`` supersamples wide:
+    ``(wt [f + 2 R], inv_norm [length], R)``, float64. ``wt[t - l f + R]`` is the weight of supersample ``t`` for output
+    ``l``, ``exp(−d² / 2σ²) − exp(−r² / 2σ²)`` for ``|d| < r = 4σ`` (``d``: the distance between their centres in
+    output pixels), and ``inv_norm[l]`` one over the sum of the weights of ``l``'s supersamples inside
+    ``[0, length f)``; ``R = ceil(r f)`` supersamples on each side of an output's own ``f``."""
+    if not isinstance(f, (int, np.integer)) or f < 1:
+        raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"the pixel filter's sigma must be a positive number of pixels, got {sigma!r}")
+    radius = 4.0 * float(sigma)
+    R = int(np.ceil(radius * f))
+    j = np.arange(f + 2 * R)  # t − l f + R
+    d = (j - R + 0.5) / f - 0.5
+    two_var = 2.0 * sigma * sigma
+    wt = np.where(np.abs(d) < radius, np.exp(-d * d / two_var) - np.exp(-radius * radius / two_var), 0.0)
+    l = np.arange(length)
+    t = l[:, None] * f - R + j[None, :]
+    norm = (wt[None, :] * ((t >= 0) & (t < length * f))).sum(axis=1)
+    return wt, 1.0 / norm, R
+
+
+def _filter_pass(device: Device, x: cla.Array, kernel: str, O: int, L: int, f: int, I: int,  # noqa: E741
+                 sigma: float) -> cla.Array:
+    real = np.dtype(x.dtype)
+    wt, inv_norm, R = filter_weights(f, sigma, L)
+    q = device.queue
+    shape = (O, L if kernel == "filt_down" else L * f, I)
+    y = device_empty(q, shape, real, allocator=device.allocator)
+    n = O * shape[1] * I
+    if n:
+        device.kernel("downsample", kernel, real=real)(
+            q, *grid_1d(n), x.data, np.int32(O), np.int32(L), np.int32(f), np.int32(I), np.int32(R),
+            cla.to_device(q, wt.astype(real)).data, cla.to_device(q, inv_norm.astype(real)).data, y.data)
+    return y
+
+
+def gauss_down(device: Device, x: cla.Array, f: int, sigma: float) -> cla.Array:
+    """``[H f, W f(, C)] → [H, W(, C)]``: the Gaussian pixel filter (module docstring; device arrays, float32 or
+    float64). With ``f = 1`` it blurs the image by the filter."""
+    _real("x", x)
+    H, W, C = _shape(x, f)
+    tmp = _filter_pass(device, x, "filt_down", H * f, W, f, C, sigma)  # along the rows' pixels
+    y = _filter_pass(device, tmp, "filt_down", 1, H, f, W * C, sigma)  # along the columns
+    return y.reshape((H, W) + tuple(x.shape[2:]))
+
+
+def gauss_up(device: Device, v_y: cla.Array, f: int, sigma: float) -> cla.Array:
+    """The adjoint of :func:`gauss_down`: ``[H, W(, C)] → [H f, W f(, C)]``."""
+    _real("v_y", v_y)
+    if not isinstance(f, (int, np.integer)) or f < 1:
+        raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
+    if v_y.ndim not in (2, 3):
+        raise ValueError(f"v_y must be [H, W(, C)], got {list(v_y.shape)}")
+    H, W = v_y.shape[:2]
+    C = v_y.shape[2] if v_y.ndim == 3 else 1
+    v_tmp = _filter_pass(device, v_y, "filt_up", 1, H, f, W * C, sigma)  # [H f, W, C]
+    v_x = _filter_pass(device, v_tmp, "filt_up", H * f, W, f, C, sigma)  # [H f, W f, C]
+    return v_x.reshape((H * f, W * f) + tuple(v_y.shape[2:]))
