@@ -12,8 +12,13 @@
  *   v_A   = sum_c v_out_c ( s(u_c) - bg_c - [A >= eps] s'(u_c) u_c )
  * (below eps the guard a' is the constant eps, so u no longer depends on A). One work-item per pixel.
  *
- * With SRGB_CLIP defined, the camera's saturation: s(u) = 1 and s'(u) = 0 for u >= 1 (s(1) = 1). An 8/16-bit
- * photo clips there, so a clipped photo pixel only says "at least 1": a render above it is not pulled down.
+ * With SRGB_CLIP defined, the camera's saturation: s(u) = 1 for u >= 1 (s(1) = 1). An 8/16-bit photo clips there,
+ * so a clipped photo pixel only says "at least 1": a render above it must not be pulled down. The adjoint is that of
+ * the unclipped curve (a straight-through gradient, not the clip's zero slope): where the photo is clipped too, render
+ * and photo both read 1 and the loss's own cotangent is zero, so nothing pulls the render down; where the photo is not
+ * clipped, the render is pulled down with the unclipped slope. The clip's zero slope left such a pixel with no
+ * gradient at all, a trap: under the mesh stage's Gaussian pixel filter, over-exposed yellow spread into bob_env's
+ * blue spots, whose red channel then stayed saturated (magenta) for good.
  *
  * The root r_c = u_c^(1/2.4) (0 on the linear segment) is the only transcendental of either pass (exp2 and
  * log2: ~10 ns a channel on PoCL's CPU device, most of both kernels' time). With KEEP_ROOT the forward
@@ -105,13 +110,9 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
 #else
         const REAL r = lin ? (REAL)0 : srgb_root(u);
 #endif
-#ifdef SRGB_CLIP
-        const int sat = u >= (REAL)1;
-#else
-        const int sat = 0;
-#endif
-        const REAL ds = sat ? (REAL)0 : (lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u);
-        const REAL s = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
+        /* the unclipped curve's s and s', also with SRGB_CLIP (the straight-through adjoint of the header) */
+        const REAL ds = lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u;
+        const REAL s = lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055;
         v_C[p * 3 + c] = g * a * ds / ad;
         va += g * (s - bg[c] - inside * ds * u);
     }

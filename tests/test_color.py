@@ -57,17 +57,19 @@ def test_vjp_float64_central_differences(device64, rng):
     _check_float64_differences(device64, rng, C, A, clip=False)
 
 
-def _check_float64_differences(device64, rng, C, A, clip):
-    """The float64 kernel VJP of a random cotangent against central differences of the float64 forward."""
+def _check_float64_differences(device64, rng, C, A, clip, adjoint_clip=None):
+    """The float64 kernel VJP of a random cotangent against central differences of the float64 forward (the forward
+    built with ``adjoint_clip``, default ``clip``: the clip's adjoint is the unclipped curve's)."""
     v = rng.standard_normal(C.shape)
     kw = {"device": device64, "real": np.float64, "clip": clip}
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, **kw)
+    kf = {**kw, "clip": clip if adjoint_clip is None else adjoint_clip}
 
     def f_C(x):
-        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v))
+        return float(np.sum(color.srgb_composite_host(x, A, BG, **kf) * v))
 
     def f_A(x):
-        return float(np.sum(color.srgb_composite_host(C, x, BG, **kw) * v))
+        return float(np.sum(color.srgb_composite_host(C, x, BG, **kf) * v))
 
     np.testing.assert_allclose(v_C, fd_grad(f_C, C, 1e-7), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(v_A, fd_grad(f_A, A, 1e-7), rtol=1e-6, atol=1e-7)
@@ -108,8 +110,9 @@ def _clip_inputs(rng, H=6, W=7):
 
 
 def test_sensor_clip_forward_and_vjp(device, rng):
-    """SRGB_CLIP: encoded colour = min(s(u), 1); no gradient through a saturated channel (forward and random-
-    cotangent VJP against the numpy reference)."""
+    """SRGB_CLIP: encoded colour = min(s(u), 1) (forward against the numpy reference); the adjoint is the unclipped
+    curve's (straight-through: a saturated channel still passes its cotangent back with the slope of s), checked as a
+    random-cotangent VJP against complex-step derivatives of the unclipped reference."""
     C, A = _clip_inputs(rng)
     got = color.srgb_composite_host(C, A, BG, device=device, clip=True)
     want = ref.srgb_composite(C, A, BG, clip=True)
@@ -117,19 +120,37 @@ def test_sensor_clip_forward_and_vjp(device, rng):
     assert not np.allclose(got, color.srgb_composite_host(C, A, BG, device=device))  # the clip did something
     v = rng.standard_normal(C.shape)
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device, clip=True)
-    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG, clip=True) * v), C)
-    want_A = cs_grad(lambda x: np.sum(ref.srgb_composite(C, x, BG, clip=True) * v), A)
+    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v), C)
+    want_A = cs_grad(lambda x: np.sum(ref.srgb_composite(C, x, BG) * v), A)
     np.testing.assert_allclose(v_C, want_C, rtol=2e-4, atol=2e-4)
     np.testing.assert_allclose(v_A, want_A, rtol=2e-4, atol=2e-4)
     sat = C / np.maximum(A, 1e-6)[..., None] >= 1
-    assert sat.any() and np.all(v_C[sat] == 0)
+    assert sat.any() and np.all(v_C[sat] != 0)  # no trap: a saturated channel still has a gradient
 
 
 def test_sensor_clip_float64_central_differences(device64, rng):
+    """Below the clip the float64 VJP is the clipped forward's central differences; above it, those of the
+    unclipped forward (the straight-through adjoint)."""
     C, A = _clip_inputs(rng, 4, 5)
     A[0, :2] = 0.3
     C[0, :2] = np.array([[0.2, 0.3, 1.5], [1.6, 0.1, 0.5]]) * 0.3  # straight u on both sides of 1
-    _check_float64_differences(device64, rng, C, A, clip=True)
+    _check_float64_differences(device64, rng, C, A, clip=True, adjoint_clip=False)
+
+
+def test_sensor_clip_pulls_down_only_where_the_photo_is_not_clipped(device64):
+    """The point of the straight-through adjoint, through the photometric L1 term: a render over-exposed (u = 1.5) is
+    not pulled down where the photo is clipped (it reads 1 like the render: zero cotangent), and is pulled down
+    where the photo is not clipped (0.4): with the clip's zero slope it had no gradient there either (a trap)."""
+    C = np.array([[[1.5, 0.2, 0.2], [1.5, 0.2, 0.2]]])
+    A = np.ones((1, 2))
+    out = color.srgb_composite_host(C, A, BG, device=device64, real=np.float64, clip=True)
+    assert out[0, 0, 0] == 1.0 and out[0, 1, 0] == 1.0
+    photo = out.copy()  # encoded photo values: red clipped (1) in the first pixel, 0.4 in the second
+    photo[0, 1, 0] = 0.4
+    v = np.sign(out - photo)  # d|out - photo| / d out
+    v_C, _ = color.srgb_composite_backward_host(C, A, BG, v, device=device64, real=np.float64, clip=True)
+    assert v_C[0, 0, 0] == 0.0  # clipped photo: the render is free above it
+    assert v_C[0, 1, 0] > 0.1  # unclipped photo: descent lowers the over-exposed red
 
 
 @pytest.mark.parametrize("clip", [False, True])

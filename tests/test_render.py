@@ -340,12 +340,16 @@ def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng,
 
 
 @pytest.mark.parametrize("transfer", [None, "srgb"])
-def test_downsample_is_the_box_filtered_render(device64, rng, transfer):
+@pytest.mark.parametrize("pixel_sigma", [0.0, 0.5])
+def test_downsample_is_the_box_filtered_render(device64, rng, transfer, pixel_sigma):
     """``RenderSettings.downsample = f`` (the mesh stage's supersampling, on the device) is the full-resolution render
-    box-filtered on the host: with the sRGB transfer, the linear premultiplied radiance and the alpha averaged, then
-    composited over the background in encoded space; the image and every gradient (the host chain's adjoint: the
-    composite's, then each cotangent spread over its block)."""
+    box-filtered on the host (``pixel_sigma`` 0; > 0: filtered by the Gaussian pixel filter of the numpy reference):
+    with the sRGB transfer, the linear premultiplied radiance and the alpha filtered, then composited over the
+    background in encoded space; the image and every gradient (the host chain's adjoint: the composite's, then each
+    cotangent spread back by the filter's transpose)."""
     from dataclasses import replace
+
+    from tests.reference import downsample as ref_down
 
     from triplet_cl.ops.color import srgb_composite_backward_host, srgb_composite_host
 
@@ -355,16 +359,20 @@ def test_downsample_is_the_box_filtered_render(device64, rng, transfer):
     big = c.scaled(f)
     st = RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", normals="vertex", background=bg, transfer=transfer,
                         real=np.float64)
-    r = render(scene, big, replace(st, downsample=f), device64)
+    r = render(scene, big, replace(st, downsample=f, pixel_sigma=pixel_sigma), device64)
     v = rng.standard_normal((H, W, 3))
     g = r.backward(v)
     for p in scene.params:  # backward accumulates into Param.grad: the host chain's gradients from zero
         p.grad = None
 
     def down(a):
+        if pixel_sigma:
+            return ref_down.gauss_down(a, f, pixel_sigma)
         return a.reshape((H, f, W, f) + a.shape[2:]).mean(axis=(1, 3))
 
     def up(a):
+        if pixel_sigma:
+            return ref_down.gauss_up(a, f, pixel_sigma)
         return np.repeat(np.repeat(a, f, axis=0), f, axis=1) / f ** 2
 
     if transfer is None:

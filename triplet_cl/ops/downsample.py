@@ -92,7 +92,7 @@ def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.nd
 def _filter_pass(device: Device, x: cla.Array, kernel: str, O: int, L: int, f: int, I: int,  # noqa: E741
                  sigma: float) -> cla.Array:
     real = np.dtype(x.dtype)
-    wt, inv_norm, R = filter_weights(f, sigma, L)
+    wt, inv_norm, R = _device_weights(device, f, sigma, L, real)
     q = device.queue
     shape = (O, L if kernel == "filt_down" else L * f, I)
     y = device_empty(q, shape, real, allocator=device.allocator)
@@ -100,8 +100,25 @@ def _filter_pass(device: Device, x: cla.Array, kernel: str, O: int, L: int, f: i
     if n:
         device.kernel("downsample", kernel, real=real)(
             q, *grid_1d(n), x.data, np.int32(O), np.int32(L), np.int32(f), np.int32(I), np.int32(R),
-            cla.to_device(q, wt.astype(real)).data, cla.to_device(q, inv_norm.astype(real)).data, y.data)
+            wt.data, inv_norm.data, y.data)
     return y
+
+
+_WEIGHTS: dict = {}
+
+
+def _device_weights(device: Device, f: int, sigma: float, length: int, real) -> tuple[cla.Array, cla.Array, int]:
+    """:func:`filter_weights` on the device, kept per (device, f, sigma, length, dtype): a mesh stage filters the same
+    sizes every step, and an upload per call is a blocking write that waits for the queue."""
+    key = (id(device), int(f), float(sigma), int(length), np.dtype(real).str)
+    hit = _WEIGHTS.get(key)
+    if hit is None or hit[0] is not device:
+        wt, inv_norm, R = filter_weights(f, sigma, length)
+        if len(_WEIGHTS) > 64:
+            _WEIGHTS.clear()
+        hit = _WEIGHTS[key] = (device, cla.to_device(device.queue, wt.astype(real)),
+                               cla.to_device(device.queue, inv_norm.astype(real)), R)
+    return hit[1], hit[2], hit[3]
 
 
 def gauss_down(device: Device, x: cla.Array, f: int, sigma: float) -> cla.Array:
