@@ -328,6 +328,10 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "and box-filter down (antialiased outlines; default 3, 2 is ~1.5× faster)")
     p.add_argument("--mesh-eval-supersample", type=int, help="samples per pixel side of the mesh's test renders "
                    "(default 4)")
+    p.add_argument("--mesh-pixel-filter", type=_pixel_filter, metavar="auto|box|SIGMA",
+                   help="the photos' pixel filter in the mesh renders: auto (default: a Gaussian whose width is read "
+                   "from the photos' alpha edges; 0.5 px without alpha), box (each pixel's average), or a Gaussian "
+                   "of standard deviation SIGMA pixels in (0, 4]")
     p.add_argument("--mesh-laplacian", choices=["uniform", "rest"], help="the refinement's position Laplacian: "
                    "uniform |L x|² (default), or rest |L x - L x0|², the Laplacian of the displacement from the "
                    "extracted shape (does not round its edges and thin parts)")
@@ -353,7 +357,8 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
-                       ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
+                       ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size"),
+                       ("mesh_pixel_filter", "pixel_sigma")):
         v = getattr(args, opt, None)
         if v is not None:
             over[field] = v
@@ -375,6 +380,22 @@ def _bbox(text: str) -> tuple:
         return parse_bbox(text)
     except ValueError as exc:
         raise ValueError(f"--bbox: {exc}") from None
+
+
+def _pixel_filter(text: str) -> float | None:
+    """``--mesh-pixel-filter``: auto → None (read from the photos), box → 0, else a standard deviation in (0, 4]."""
+    t = text.strip().lower()
+    if t == "auto":
+        return None
+    if t == "box":
+        return 0.0
+    try:
+        v = float(t)
+    except ValueError:
+        v = float("nan")
+    if not 0 < v <= 4:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected auto, box or a standard deviation in (0, 4] pixels, got {text!r}")
+    return v
 
 
 def _formats(text: str) -> tuple:

@@ -350,7 +350,6 @@ def test_downsample_is_the_box_filtered_render(device64, rng, transfer, pixel_si
     from dataclasses import replace
 
     from tests.reference import downsample as ref_down
-
     from triplet_cl.ops.color import srgb_composite_backward_host, srgb_composite_host
 
     f, bg = 3, (0.2, 0.5, 0.9)

@@ -66,8 +66,11 @@ class MeshConfig:
     # the test renders (metrics, renders/mesh): 4×4 samples approach the pixel-area coverage of the photos' renderer
     # (spot, the same refined mesh trained at 2: evaluated at 2 → 32.31 dB, at 4 → 32.92 dB); None: as ``supersample``
     eval_supersample: int | None = 4
-    # the capture's pixel filter (RenderSettings.pixel_sigma, standard deviation in pixels; 0: a box over each pixel)
-    pixel_sigma: float = 0.0
+    # the capture's pixel filter (RenderSettings.pixel_sigma: a Gaussian's standard deviation in pixels; 0: a box over
+    # each pixel; None: read from the photos' alpha edges after the first extraction, mesh/pixel_filter.py, and saved
+    # resolved). Measured (same soups, bench/results/pixel_filter_pocl_2026-11-26.txt): the box → 0.5 mesh NVS spot
+    # 35.83 → 38.63, bob_env 35.37 → 37.26, gadget 29.73 → 30.91 dB; the photos (Mitsuba 3's film) use 0.5
+    pixel_sigma: float | None = None
     sigma: float | None = 1.0  # soft window on the silhouette edges only (1/px of the supersampled render): gradients
     #                             that move the outline; None: hard edges (no silhouette gradients)
     lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
@@ -161,6 +164,10 @@ class MeshConfig:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
         if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
             raise ValueError(f"mesh eval_supersample must be None or in [1, 8], got {self.eval_supersample}")
+        if self.pixel_sigma is not None and not (isinstance(self.pixel_sigma, int | float)
+                                                 and np.isfinite(self.pixel_sigma) and 0 <= self.pixel_sigma <= 4):
+            raise ValueError(f"mesh pixel_sigma (--mesh-pixel-filter) must be None (auto), 0 (box) or a standard "
+                             f"deviation in (0, 4] pixels, got {self.pixel_sigma!r}")
         if not 0 < self.depth_quantile < 1:
             raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
@@ -200,6 +207,7 @@ class MeshConfig:
             raise ValueError(f"unknown mesh config fields: {sorted(unknown)}")
         d = dict(d)
         d.setdefault("bounce", "off")  # saved before the traced interreflection: trained without it
+        d.setdefault("pixel_sigma", 0.0)  # saved before the pixel filter: trained with the box
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
         if d.get("bbox") is not None:
@@ -278,6 +286,7 @@ class MeshStage:
         self.scene: Scene | None = None
         self.history: list[dict] = []
         self.metallic_choice: dict | None = None  # choose_metallic's trial, when it ran
+        self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
 
@@ -583,6 +592,8 @@ class MeshStage:
                 print(msg)
         for k in range(self.cfg.rounds):
             scene = self.extract(source)
+            if self.cfg.pixel_sigma is None:
+                self.resolve_pixel_filter(scene)
             if refine:
                 scene = self.refine(scene, k)
             source = scene
@@ -596,10 +607,29 @@ class MeshStage:
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()
+        if self.pixel_filter is not None:
+            metrics["pixel_filter"] = self.pixel_filter
         self._write_metrics(metrics)  # before the export: a failing export loses no result
         metrics["files"] = [str(p.name) for p in self.export()]
         self._write_metrics(metrics)
         return metrics
+
+    def resolve_pixel_filter(self, scene: Scene) -> None:
+        """``MeshConfig.pixel_sigma`` None (auto): read from the photos' alpha edges against renders of the extracted
+        ``scene`` (:func:`~triplet_cl.mesh.pixel_filter.estimate_pixel_sigma`); the config then holds the value (saved
+        with the state: the test renders and relighting use it)."""
+        from dataclasses import replace
+
+        from .pixel_filter import estimate_pixel_sigma
+
+        t = time.perf_counter()
+        est = estimate_pixel_sigma(self, scene)
+        self.cfg = replace(self.cfg, pixel_sigma=round(float(est["sigma"]), 3))
+        est["seconds"] = time.perf_counter() - t
+        self.pixel_filter = est
+        ratio = "" if est["photo_ratio"] is None else f", photos' edge ratio {est['photo_ratio']:.3f}"
+        self.trainer.log.info(f"pixel filter: Gaussian sigma {self.cfg.pixel_sigma} px ({est['source']}{ratio}, "
+                              f"{est['seconds']:.1f} s)")
 
     def repair(self) -> dict:
         """Remove the final mesh's self-intersections (:func:`~triplet_cl.mesh.repair.repair_self_intersections`:
