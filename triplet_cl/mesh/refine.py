@@ -356,7 +356,8 @@ class MeshStage:
         return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer,
-                              downsample=downsample, pixel_sigma=self.cfg.pixel_sigma)
+                              downsample=downsample,
+                              pixel_sigma=0.0 if self.cfg.pixel_sigma is None else self.cfg.pixel_sigma)
 
     def shadows_active(self) -> bool:
         """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
