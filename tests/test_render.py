@@ -343,7 +343,7 @@ def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng,
 @pytest.mark.parametrize("pixel_sigma", [0.0, 0.5])
 def test_downsample_is_the_box_filtered_render(device64, rng, transfer, pixel_sigma):
     """``RenderSettings.downsample = f`` (the mesh stage's supersampling, on the device) is the full-resolution render
-    box-filtered on the host (then, ``pixel_sigma`` > 0, blurred by the numpy reference's Gaussian):
+    box-filtered on the host (``pixel_sigma`` 0; > 0: filtered by the Gaussian pixel filter of the numpy reference):
     with the sRGB transfer, the linear premultiplied radiance and the alpha filtered, then composited over the
     background in encoded space; the image and every gradient (the host chain's adjoint: the composite's, then each
     cotangent spread back by the filter's transpose)."""
@@ -364,13 +364,14 @@ def test_downsample_is_the_box_filtered_render(device64, rng, transfer, pixel_si
     for p in scene.params:  # backward accumulates into Param.grad: the host chain's gradients from zero
         p.grad = None
 
-    def down(a):  # the pixel's box, then the blur
-        y = a.reshape((H, f, W, f) + a.shape[2:]).mean(axis=(1, 3))
-        return ref_down.gauss_down(y, 1, pixel_sigma) if pixel_sigma else y
+    def down(a):
+        if pixel_sigma:
+            return ref_down.gauss_down(a, f, pixel_sigma)
+        return a.reshape((H, f, W, f) + a.shape[2:]).mean(axis=(1, 3))
 
     def up(a):
         if pixel_sigma:
-            a = ref_down.gauss_up(a, 1, pixel_sigma)
+            return ref_down.gauss_up(a, f, pixel_sigma)
         return np.repeat(np.repeat(a, f, axis=0), f, axis=1) / f ** 2
 
     if transfer is None:

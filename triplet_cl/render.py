@@ -97,9 +97,9 @@ class RenderSettings:
     # radiance and the alpha, before the transfer: as a camera integrates a pixel; ops/downsample.py, on the device):
     # the mesh stage's supersampling. The camera given to render() is the supersampled one
     downsample: int = 1
-    # the capture's pixel filter after the pixel's box (the average of each downsample block): > 0 blurs the image by
-    # a Gaussian of this standard deviation in pixels, truncated at 4 sigma (the optics; ops/downsample.py), also with
-    # downsample 1; the whole filter's standard deviation is sqrt(pixel_sigma² + 1/12)
+    # the capture's pixel filter, in output pixels: 0 averages each downsample block (a box); > 0 weights the samples
+    # by a Gaussian of this standard deviation between their centres and the pixel's, truncated at 4 sigma (a film's
+    # reconstruction filter; ops/downsample.py), also with downsample 1 (it then blurs the render)
     pixel_sigma: float = 0.0
 
     def __post_init__(self):
@@ -602,20 +602,20 @@ class Composite(Function):
 
 class PixelFilter(Function):
     """``x [H f, W f(, C)] → [H, W(, C)]`` (device arrays, ``ops/downsample.py``): the mean of each ``f × f`` block
-    (the pixel's box), then, with ``sigma`` > 0, the Gaussian blur of standard deviation ``sigma`` pixels (the optics';
-    the whole filter's standard deviation is ``sqrt(sigma² + 1/12)``)."""
+    (``sigma`` 0), or the Gaussian pixel filter of standard deviation ``sigma`` output pixels."""
 
     def __init__(self, device: Device, f: int, sigma: float = 0.0):
         self.device, self.f, self.sigma = device, int(f), float(sigma)
 
     def forward(self, ctx, x):
-        y = downsample_op.box_down(self.device, x, self.f) if self.f > 1 else x
-        return downsample_op.gauss_down(self.device, y, 1, self.sigma) if self.sigma > 0 else y
+        if self.sigma > 0:
+            return downsample_op.gauss_down(self.device, x, self.f, self.sigma)
+        return downsample_op.box_down(self.device, x, self.f)
 
     def backward(self, ctx, v):
         if self.sigma > 0:
-            v = downsample_op.gauss_up(self.device, v, 1, self.sigma)
-        return downsample_op.box_up(self.device, v, self.f) if self.f > 1 else v
+            return downsample_op.gauss_up(self.device, v, self.f, self.sigma)
+        return downsample_op.box_up(self.device, v, self.f)
 
 
 class Stack(Function):

@@ -1,19 +1,17 @@
 """The capture's pixel filter, read from the photos' alpha edges (``MeshConfig.pixel_sigma`` ``None``: auto).
 
-A camera integrates each pixel over its area (a box) and its optics blur the image; a renderer's film spreads each
-sample over a reconstruction filter: Mitsuba 3's default is a Gaussian of standard deviation 0.5 pixel, Blender
-Cycles' a 1.5-pixel Blackman-Harris (standard deviation ~0.21), a box over the pixel has 0.29. The mesh stage models
-it as the box of its supersamples followed by a Gaussian blur of standard deviation ``sigma`` pixels
-(``render.PixelFilter``; the whole filter's standard deviation ``sqrt(sigma² + 1/12)``: Mitsuba's film ≈ 0.41).
-The photos' silhouettes show the filter: the wider it is, the more partly covered pixels per pixel of outline.
-:func:`edge_ratio` counts them — pixels with alpha strictly between 0.02 and 0.98 per crossing of the alpha = ½
-outline between neighbouring pixels — and :func:`estimate_pixel_sigma` renders the extracted mesh's alpha from the
-same views once, supersampled, filters it with each candidate and picks the ``sigma`` whose renders show the photos'
-ratio (linear interpolation between the candidates). Measured on the dev scenes' test views (Mitsuba 3, default
-film): photos 1.64–1.69, our box-filtered renders 0.75–0.79, our renders through a 0.5 Gaussian 1.60–1.65.
+A renderer's film (or a camera's optics and demosaicing) spreads each pixel's value over a reconstruction filter:
+Mitsuba 3's default is a Gaussian of standard deviation 0.5 pixel, Blender Cycles' a 1.5-pixel Blackman-Harris
+(standard deviation ~0.21), a box over the pixel has 0.29. The photos' silhouettes show it: the wider the filter,
+the more partly covered pixels per pixel of outline. :func:`edge_ratio` counts them — pixels with alpha strictly
+between 0.02 and 0.98 per crossing of the alpha = ½ outline between neighbouring pixels — and
+:func:`estimate_pixel_sigma` renders the extracted mesh's alpha from the same views once, supersampled, filters it
+with each candidate Gaussian and picks the standard deviation whose renders show the photos' ratio (linear
+interpolation between the candidates). Measured on the dev scenes' test views (Mitsuba 3, default film): photos
+1.64–1.69, our box-filtered renders 0.75–0.79, our renders with the 0.5 Gaussian 1.60–1.65.
 
-Without alpha in the photos (a capture with a background) there is no clean outline: the default (0.4, about
-Mitsuba's film; a camera's optics and demosaicing blur more than the pixel's box) is used.
+Without alpha in the photos (a capture with a background) there is no clean outline: the default, a Gaussian of
+0.5 pixel (a camera's optics and demosaicing blur more than the pixel's box), is used.
 """
 
 from __future__ import annotations
@@ -21,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-CANDIDATES = (0.0, 0.15, 0.25, 0.35, 0.45, 0.55, 0.7, 0.9)  # the blur's standard deviations tried, in pixels
-DEFAULT_SIGMA = 0.4  # without alpha edges to read it from
+CANDIDATES = (0.15, 0.25, 0.35, 0.45, 0.55, 0.65, 0.8)  # Gaussian standard deviations tried, in pixels
+DEFAULT_SIGMA = 0.5  # without alpha edges to read it from
 MIN_CROSSINGS = 200  # fewer outline crossings over the views than this: too little edge to read, the default
 
 
@@ -79,11 +77,9 @@ def estimate_pixel_sigma(stage, scene, max_views: int = 12) -> dict:
         big = v.camera.scaled(f) if f > 1 else v.camera
         r = render(scene, big, st, dev)
         big_alphas.append(np.ascontiguousarray(r.alpha, np.float32))
-    boxed = [down.box_down(dev, cla.to_device(dev.queue, a), f) if f > 1 else cla.to_device(dev.queue, a)
-             for a in big_alphas]
     ratios = []
     for sigma in CANDIDATES:
-        filtered = [(down.gauss_down(dev, b, 1, sigma) if sigma > 0 else b).get() for b in boxed]
+        filtered = [down.gauss_down(dev, cla.to_device(dev.queue, a), f, sigma).get() for a in big_alphas]
         ratios.append(edge_ratio(filtered)[0])
     out.update(sigma=fit_sigma(photo_ratio, ratios), source="photos' alpha", photo_ratio=float(photo_ratio),
                render_ratios=[float(x) for x in ratios])
