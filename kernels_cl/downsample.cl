@@ -40,47 +40,90 @@ __kernel void box_up(__global const REAL* v_y,   // [H, W, C]
 
 /* The capture's pixel filter (a camera's reconstruction filter, e.g. Mitsuba 3's default: a Gaussian of standard
  * deviation 0.5 pixel truncated at 4 sigma; Blender Cycles' 1.5-pixel Blackman-Harris is close): each output pixel is
- * the weighted mean of the supersamples near its centre, separably, one axis per launch (ops/downsample.py).
+ * the weighted mean of the supersamples near its centre, separably: along the rows (the x pass, C <= 4 channels per
+ * work-item) then along the columns (the y pass, one value per work-item). F (a define: the supersampling factor, so
+ * that the divisions by it are by a constant) samples per output pixel; ops/downsample.py.
  *
- * The weights come from the host: wt[j], j = t - l f + R in [0, f + 2 R), the weight of supersample t in the window of
+ * The weights come from the host: wt[j], j = t - l F + R in [0, F + 2 R), the weight of supersample t in the window of
  * output l (it depends on the offset only), and inv_norm[l] = 1 / (sum of the weights of output l's supersamples that
  * lie inside the image), as a film divides by its weights.
- * filt_down (one work-item per output value (o, l, k) of [O, L, I]): along the middle axis of x [O, L f, I],
- *   y[o, l, k] = inv_norm[l] * sum over t in [l f - R, l f + f - 1 + R] ∩ [0, L f) of wt[t - l f + R] x[o, t, k]
- *   The two passes: x [H f, W f, C] as [H f, W, C] (O = H f, I = C), then [H f, W, C] as [1, H, W C] (O = 1, I = W C).
- * filt_up (one work-item per input value (o, t, k)): the adjoint,
- *   v_x[o, t, k] = sum over the outputs l whose window holds t of wt[t - l f + R] inv_norm[l] v_y[o, l, k].
+ *   down: y[l] = inv_norm[l] * sum over t in [l F - R, l F + F - 1 + R] ∩ [0, L F) of wt[t - l F + R] x[t]
+ *   up (the adjoint): v_x[t] = sum over the outputs l whose window holds t of wt[t - l F + R] inv_norm[l] v_y[l],
+ *     l from ceil((t - R - F + 1) / F) = floor((t - R) / F) to floor((t + R) / F)
+ * rows_*: x [O, L F, C] <-> y [O, L, C], one work-item per (o, l) (down) or (o, t) (up);
+ * cols_*: x [L F, K] <-> y [L, K], one work-item per (l, k) (down) or (t, k) (up).
  */
-__kernel void filt_down(__global const REAL* x,        // [O, L f, I]
-                        const int O, const int L, const int f, const int I, const int R,
-                        __global const REAL* wt,       // [f + 2 R]
-                        __global const REAL* inv_norm, // [L]
-                        __global REAL* y)              // [O, L, I]
+#ifndef F
+#define F 1
+#endif
+#define FILT_MAX_C 4
+
+/* floor((t - R) / F) for t >= 0: the numerator shifted to be non-negative before the integer division */
+#define FIRST_OUTPUT(t, R) (((t) - (R) + (R) * F) / F - (R))
+
+__kernel void gauss_rows_down(__global const REAL* src,      // x [O, L F, C]
+                              const int O, const int L, const int C, const int R,
+                              __global const REAL* wt,       // [F + 2 R]
+                              __global const REAL* inv_norm, // [L]
+                              __global REAL* dst)            // y [O, L, C]
 {
     const int p = get_global_id(0);
-    if (p >= O * L * I) return;
-    const int k = p % I, l = (p / I) % L, o = p / (I * L);
-    const int Lf = L * f;
-    const int t0 = max(0, l * f - R), t1 = min(Lf - 1, l * f + f - 1 + R);
-    REAL s = (REAL)0;
-    for (int t = t0; t <= t1; ++t) s += wt[t - l * f + R] * x[((size_t)o * Lf + t) * I + k];
-    y[p] = s * inv_norm[l];
+    if (p >= O * L) return;
+    const int o = p / L, l = p - o * L, LF = L * F;
+    const int t0 = max(0, l * F - R), t1 = min(LF - 1, l * F + F - 1 + R);
+    REAL acc[FILT_MAX_C] = {(REAL)0};
+    __global const REAL* row = src + (size_t)o * LF * C;
+    for (int t = t0; t <= t1; ++t) {
+        const REAL w = wt[t - l * F + R];
+        for (int c = 0; c < C; ++c) acc[c] += w * row[t * C + c];
+    }
+    const REAL n = inv_norm[l];
+    for (int c = 0; c < C; ++c) dst[(size_t)p * C + c] = acc[c] * n;
 }
 
-__kernel void filt_up(__global const REAL* v_y,        // [O, L, I]
-                      const int O, const int L, const int f, const int I, const int R,
-                      __global const REAL* wt,         // [f + 2 R]
-                      __global const REAL* inv_norm,   // [L]
-                      __global REAL* v_x)              // [O, L f, I]
+__kernel void gauss_cols_down(__global const REAL* src,      // x [L F, K]
+                              const int L, const int K, const int R,
+                              __global const REAL* wt, __global const REAL* inv_norm,
+                              __global REAL* dst)            // y [L, K]
 {
-    const int Lf = L * f;
-    const int q = get_global_id(0);
-    if (q >= O * Lf * I) return;
-    const int k = q % I, t = (q / I) % Lf, o = q / (I * Lf);
-    /* the outputs l with l f - R <= t <= l f + f - 1 + R: l from ceil((t - R - f + 1) / f) (the numerator shifted
-     * to be non-negative before the integer division) to floor((t + R) / f) */
-    const int l0 = max(0, (t - R + R * f) / f - R), l1 = min(L - 1, (t + R) / f);
+    const int p = get_global_id(0);
+    if (p >= L * K) return;
+    const int l = p / K, k = p - l * K;
+    const int t0 = max(0, l * F - R), t1 = min(L * F - 1, l * F + F - 1 + R);
     REAL s = (REAL)0;
-    for (int l = l0; l <= l1; ++l) s += wt[t - l * f + R] * inv_norm[l] * v_y[((size_t)o * L + l) * I + k];
-    v_x[q] = s;
+    for (int t = t0; t <= t1; ++t) s += wt[t - l * F + R] * src[(size_t)t * K + k];
+    dst[p] = s * inv_norm[l];
+}
+
+__kernel void gauss_rows_up(__global const REAL* src,        // v_y [O, L, C]
+                            const int O, const int L, const int C, const int R,
+                            __global const REAL* wt, __global const REAL* inv_norm,
+                            __global REAL* dst)              // v_x [O, L F, C]
+{
+    const int LF = L * F;
+    const int p = get_global_id(0);
+    if (p >= O * LF) return;
+    const int o = p / LF, t = p - o * LF;
+    const int l0 = max(0, FIRST_OUTPUT(t, R)), l1 = min(L - 1, (t + R) / F);
+    REAL acc[FILT_MAX_C] = {(REAL)0};
+    __global const REAL* row = src + (size_t)o * L * C;
+    for (int l = l0; l <= l1; ++l) {
+        const REAL w = wt[t - l * F + R] * inv_norm[l];
+        for (int c = 0; c < C; ++c) acc[c] += w * row[l * C + c];
+    }
+    for (int c = 0; c < C; ++c) dst[(size_t)p * C + c] = acc[c];
+}
+
+__kernel void gauss_cols_up(__global const REAL* src,        // v_y [L, K]
+                            const int L, const int K, const int R,
+                            __global const REAL* wt, __global const REAL* inv_norm,
+                            __global REAL* dst)              // v_x [L F, K]
+{
+    const int p = get_global_id(0);
+    if (p >= L * F * K) return;
+    const int t = p / K, k = p - t * K;
+    const int l0 = max(0, FIRST_OUTPUT(t, R)), l1 = min(L - 1, (t + R) / F);
+    REAL s = (REAL)0;
+    for (int l = l0; l <= l1; ++l) s += wt[t - l * F + R] * inv_norm[l] * src[(size_t)l * K + k];
+    dst[p] = s;
 }

@@ -18,7 +18,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..device import Device
-from .common import device_empty, grid_1d
+from .common import device_empty, grid_1d, launch
 
 
 def _real(name: str, a) -> np.dtype:
@@ -89,18 +89,17 @@ def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.nd
     return wt, 1.0 / norm, R
 
 
-def _filter_pass(device: Device, x: cla.Array, kernel: str, O: int, L: int, f: int, I: int,  # noqa: E741
-                 sigma: float) -> cla.Array:
+def _gauss_launch(device: Device, kernel: str, x: cla.Array, out_shape: tuple, f: int, sigma: float, length: int,
+                  **sizes) -> cla.Array:
+    """One pass of the Gaussian filter (``kernels_cl/downsample.cl`` ``kernel``, built for ``F = f``) into a new
+    array of ``out_shape``; ``length`` output pixels along the filtered axis."""
     real = np.dtype(x.dtype)
-    wt, inv_norm, R = _device_weights(device, f, sigma, L, real)
-    q = device.queue
-    shape = (O, L if kernel == "filt_down" else L * f, I)
-    y = device_empty(q, shape, real, allocator=device.allocator)
-    n = O * shape[1] * I
+    wt, inv_norm, R = _device_weights(device, f, sigma, length, real)
+    y = device_empty(device.queue, out_shape, real, allocator=device.allocator)
+    n = int(np.prod(out_shape)) // (sizes.get("C", 1))
     if n:
-        device.kernel("downsample", kernel, real=real)(
-            q, *grid_1d(n), x.data, np.int32(O), np.int32(L), np.int32(f), np.int32(I), np.int32(R),
-            wt.data, inv_norm.data, y.data)
+        launch(device, "downsample", kernel, *grid_1d(n), defines={"F": int(f)}, real=real, src=x, wt=wt,
+               inv_norm=inv_norm, R=R, dst=y, **sizes)
     return y
 
 
@@ -123,11 +122,13 @@ def _device_weights(device: Device, f: int, sigma: float, length: int, real) -> 
 
 def gauss_down(device: Device, x: cla.Array, f: int, sigma: float) -> cla.Array:
     """``[H f, W f(, C)] → [H, W(, C)]``: the Gaussian pixel filter (module docstring; device arrays, float32 or
-    float64). With ``f = 1`` it blurs the image by the filter."""
+    float64, C ≤ 4). With ``f = 1`` it blurs the image by the filter."""
     _real("x", x)
     H, W, C = _shape(x, f)
-    tmp = _filter_pass(device, x, "filt_down", H * f, W, f, C, sigma)  # along the rows' pixels
-    y = _filter_pass(device, tmp, "filt_down", 1, H, f, W * C, sigma)  # along the columns
+    if C > 4:
+        raise ValueError(f"the Gaussian pixel filter takes at most 4 channels, got {C}")
+    tmp = _gauss_launch(device, "gauss_rows_down", x, (H * f, W, C), f, sigma, W, O=H * f, L=W, C=C)
+    y = _gauss_launch(device, "gauss_cols_down", tmp, (H, W * C), f, sigma, H, L=H, K=W * C)
     return y.reshape((H, W) + tuple(x.shape[2:]))
 
 
@@ -140,6 +141,8 @@ def gauss_up(device: Device, v_y: cla.Array, f: int, sigma: float) -> cla.Array:
         raise ValueError(f"v_y must be [H, W(, C)], got {list(v_y.shape)}")
     H, W = v_y.shape[:2]
     C = v_y.shape[2] if v_y.ndim == 3 else 1
-    v_tmp = _filter_pass(device, v_y, "filt_up", 1, H, f, W * C, sigma)  # [H f, W, C]
-    v_x = _filter_pass(device, v_tmp, "filt_up", H * f, W, f, C, sigma)  # [H f, W f, C]
+    if C > 4:
+        raise ValueError(f"the Gaussian pixel filter takes at most 4 channels, got {C}")
+    v_tmp = _gauss_launch(device, "gauss_cols_up", v_y, (H * f, W * C), f, sigma, H, L=H, K=W * C)
+    v_x = _gauss_launch(device, "gauss_rows_up", v_tmp, (H * f, W * f, C), f, sigma, W, O=H * f, L=W, C=C)
     return v_x.reshape((H * f, W * f) + tuple(v_y.shape[2:]))
