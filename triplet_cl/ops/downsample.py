@@ -33,10 +33,19 @@ def _real(name: str, a) -> np.dtype:
 
 def _shape(x: cla.Array, f: int) -> tuple[int, int, int]:
     if not isinstance(f, (int, np.integer)) or f < 1:
-        raise ValueError(f"the box filter's factor must be an integer >= 1, got {f!r}")
+        raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
     if x.ndim not in (2, 3) or x.shape[0] % f or x.shape[1] % f:
         raise ValueError(f"x must be [H*f, W*f(, C)] with f = {f}, got {list(x.shape)}")
     return x.shape[0] // f, x.shape[1] // f, (x.shape[2] if x.ndim == 3 else 1)
+
+
+def _adjoint_shape(v_y: cla.Array, f: int) -> tuple[int, int, int]:
+    """``(H, W, C)`` of an adjoint's ``v_y [H, W(, C)]``, with the factor checked."""
+    if not isinstance(f, (int, np.integer)) or f < 1:
+        raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
+    if v_y.ndim not in (2, 3):
+        raise ValueError(f"v_y must be [H, W(, C)], got {list(v_y.shape)}")
+    return v_y.shape[0], v_y.shape[1], (v_y.shape[2] if v_y.ndim == 3 else 1)
 
 
 def box_down(device: Device, x: cla.Array, f: int) -> cla.Array:
@@ -54,12 +63,7 @@ def box_up(device: Device, v_y: cla.Array, f: int) -> cla.Array:
     """The adjoint of :func:`box_down`: ``[H, W(, C)] → [H f, W f(, C)]``, each pixel's cotangent / f² spread over
     its block."""
     real = _real("v_y", v_y)
-    if not isinstance(f, (int, np.integer)) or f < 1:
-        raise ValueError(f"the box filter's factor must be an integer >= 1, got {f!r}")
-    if v_y.ndim not in (2, 3):
-        raise ValueError(f"v_y must be [H, W(, C)], got {list(v_y.shape)}")
-    H, W = v_y.shape[:2]
-    C = v_y.shape[2] if v_y.ndim == 3 else 1
+    H, W, C = _adjoint_shape(v_y, f)
     v_x = device_empty(device.queue, (H * f, W * f) + tuple(v_y.shape[2:]), real, allocator=device.allocator)
     if H * W * C:
         device.kernel("downsample", "box_up", real=real)(device.queue, *grid_1d(H * W * f * f), v_y.data,
@@ -135,12 +139,7 @@ def gauss_down(device: Device, x: cla.Array, f: int, sigma: float) -> cla.Array:
 def gauss_up(device: Device, v_y: cla.Array, f: int, sigma: float) -> cla.Array:
     """The adjoint of :func:`gauss_down`: ``[H, W(, C)] → [H f, W f(, C)]``."""
     _real("v_y", v_y)
-    if not isinstance(f, (int, np.integer)) or f < 1:
-        raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
-    if v_y.ndim not in (2, 3):
-        raise ValueError(f"v_y must be [H, W(, C)], got {list(v_y.shape)}")
-    H, W = v_y.shape[:2]
-    C = v_y.shape[2] if v_y.ndim == 3 else 1
+    H, W, C = _adjoint_shape(v_y, f)
     if C > 4:
         raise ValueError(f"the Gaussian pixel filter takes at most 4 channels, got {C}")
     v_tmp = _gauss_launch(device, "gauss_cols_up", v_y, (H * f, W * C), f, sigma, H, L=H, K=W * C)
