@@ -328,7 +328,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "and box-filter down (antialiased outlines; default 3, 2 is ~1.5× faster)")
     p.add_argument("--mesh-eval-supersample", type=int, help="samples per pixel side of the mesh's test renders "
                    "(default 4)")
-    p.add_argument("--mesh-pixel-filter", type=_pixel_filter, metavar="auto|box|SIGMA",
+    p.add_argument("--mesh-pixel-filter", metavar="auto|box|SIGMA",
                    help="the photos' pixel filter in the mesh renders: auto (default: a Gaussian whose width is read "
                    "from the photos' alpha edges; 0.5 px without alpha), box (each pixel's average), or a Gaussian "
                    "of standard deviation SIGMA pixels in (0, 4]")
@@ -357,13 +357,14 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
-                       ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size"),
-                       ("mesh_pixel_filter", "pixel_sigma")):
+                       ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)
         if v is not None:
             over[field] = v
     if getattr(args, "formats", None):
         over["formats"] = _formats(args.formats)
+    if getattr(args, "mesh_pixel_filter", None) is not None:
+        over["pixel_sigma"] = _pixel_filter(args.mesh_pixel_filter)
     if getattr(args, "mesh_crop", None):
         over["crop"] = args.mesh_crop
     if getattr(args, "bbox", None):
@@ -382,9 +383,9 @@ def _bbox(text: str) -> tuple:
         raise ValueError(f"--bbox: {exc}") from None
 
 
-def _pixel_filter(text: str) -> float | None:
+def _pixel_filter(text) -> float | None:
     """``--mesh-pixel-filter``: auto → None (read from the photos), box → 0, else a standard deviation in (0, 4]."""
-    t = text.strip().lower()
+    t = str(text).strip().lower()
     if t == "auto":
         return None
     if t == "box":
@@ -394,7 +395,8 @@ def _pixel_filter(text: str) -> float | None:
     except ValueError:
         v = float("nan")
     if not 0 < v <= 4:  # NaN fails too
-        raise argparse.ArgumentTypeError(f"expected auto, box or a standard deviation in (0, 4] pixels, got {text!r}")
+        raise ValueError(f"--mesh-pixel-filter: expected auto, box or a standard deviation in (0, 4] pixels, got "
+                         f"{text!r}")
     return v
 
 

@@ -175,6 +175,16 @@ def test_mesh_options_are_validated(capsys):
                                                     mesh_laplacian="uniform"))
     assert (cfg.supersample, cfg.eval_supersample, cfg.extract_faces) == (2, 3, 1234)
     assert cfg.laplacian == "uniform"
+    assert cfg.pixel_sigma is None  # auto: read from the photos
+    from triplet_cl.cli.main import _pixel_filter
+
+    assert (_pixel_filter("auto"), _pixel_filter("box"), _pixel_filter("0.45")) == (None, 0.0, 0.45)
+    assert _mesh_config_from_args(argparse.Namespace(mesh_pixel_filter="box")).pixel_sigma == 0.0
+    assert _mesh_config_from_args(argparse.Namespace(mesh_pixel_filter="0.3")).pixel_sigma == 0.3
+    assert _mesh_config_from_args(argparse.Namespace(mesh_pixel_filter="auto")).pixel_sigma is None
+    with pytest.raises(ValueError, match="pixel_sigma"):
+        MeshConfig(pixel_sigma=-1.0).validate()
+    assert MeshConfig.from_dict({}).pixel_sigma == 0.0  # a state saved before the filter: the box it trained with
     assert cli_main(["extract", "somewhere", "--mesh-supersample", "9"]) == 2
     assert "supersample" in capsys.readouterr().err
 
