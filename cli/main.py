@@ -331,7 +331,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-pixel-filter", metavar="auto|box|SIGMA",
                    help="the photos' pixel filter in the mesh renders: auto (default: a Gaussian whose width is read "
                    "from the photos' alpha edges; 0.5 px without alpha), box (each pixel's average), or a Gaussian "
-                   "of standard deviation SIGMA pixels in (0, 4]")
+                   "of standard deviation SIGMA pixels in [0.1, 4]")
     p.add_argument("--mesh-laplacian", choices=["uniform", "rest"], help="the refinement's position Laplacian: "
                    "uniform |L x|² (default), or rest |L x - L x0|², the Laplacian of the displacement from the "
                    "extracted shape (does not round its edges and thin parts)")
@@ -384,7 +384,7 @@ def _bbox(text: str) -> tuple:
 
 
 def _pixel_filter(text) -> float | None:
-    """``--mesh-pixel-filter``: auto → None (read from the photos), box → 0, else a standard deviation in (0, 4]."""
+    """``--mesh-pixel-filter``: auto → None (read from the photos), box → 0, else a standard deviation in [0.1, 4]."""
     t = str(text).strip().lower()
     if t == "auto":
         return None
@@ -394,8 +394,8 @@ def _pixel_filter(text) -> float | None:
         v = float(t)
     except ValueError:
         v = float("nan")
-    if not 0 < v <= 4:  # NaN fails too
-        raise ValueError(f"--mesh-pixel-filter: expected auto, box or a standard deviation in (0, 4] pixels, got "
+    if not 0.1 <= v <= 4:  # NaN fails too
+        raise ValueError(f"--mesh-pixel-filter: expected auto, box or a standard deviation in [0.1, 4] pixels, got "
                          f"{text!r}")
     return v
 

@@ -13,10 +13,11 @@
  * (below eps the guard a' is the constant eps, so u no longer depends on A). One work-item per pixel.
  *
  * With SRGB_CLIP defined, the camera's saturation: s(u) = 1 for u >= 1 (s(1) = 1). An 8/16-bit photo clips there,
- * so a clipped photo pixel only says "at least 1": a render above it must not be pulled down. The adjoint is that of
- * the unclipped curve (a straight-through gradient, not the clip's zero slope): where the photo is clipped too, render
- * and photo both read 1 and the loss's own cotangent is zero, so nothing pulls the render down; where the photo is not
- * clipped, the render is pulled down with the unclipped slope. The clip's zero slope left such a pixel with no
+ * so a clipped photo pixel only says "at least 1": a render above it must not be pulled down. The adjoint takes the
+ * unclipped curve's slope s'(u) (a straight-through gradient, not the clip's zero slope) with the forward's clipped
+ * value s = 1 (v_A's s - bg term): where the photo is clipped too, render and photo both read 1 and the L1 term's
+ * cotangent is zero, so it does not pull the render down (the SSIM term's local statistics still can, a little);
+ * where the photo is not clipped, the render is pulled down with the unclipped slope. The clip's zero slope left such a pixel with no
  * gradient at all, a trap: under the mesh stage's Gaussian pixel filter, over-exposed yellow spread into bob_env's
  * blue spots, whose red channel then stayed saturated (magenta) for good.
  *
@@ -110,9 +111,15 @@ __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]
 #else
         const REAL r = lin ? (REAL)0 : srgb_root(u);
 #endif
-        /* the unclipped curve's s and s', also with SRGB_CLIP (the straight-through adjoint of the header) */
+        /* the unclipped curve's slope s' also with SRGB_CLIP (the straight-through adjoint of the header), and the
+         * forward's value s (clipped) */
+#ifdef SRGB_CLIP
+        const int sat = u >= (REAL)1;
+#else
+        const int sat = 0;
+#endif
         const REAL ds = lin ? (REAL)12.92 : (REAL)(1.055 / 2.4) * r / u;
-        const REAL s = lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055;
+        const REAL s = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
         v_C[p * 3 + c] = g * a * ds / ad;
         va += g * (s - bg[c] - inside * ds * u);
     }

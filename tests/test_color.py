@@ -57,13 +57,12 @@ def test_vjp_float64_central_differences(device64, rng):
     _check_float64_differences(device64, rng, C, A, clip=False)
 
 
-def _check_float64_differences(device64, rng, C, A, clip, adjoint_clip=None):
-    """The float64 kernel VJP of a random cotangent against central differences of the float64 forward (the forward
-    built with ``adjoint_clip``, default ``clip``: the clip's adjoint is the unclipped curve's)."""
+def _check_float64_differences(device64, rng, C, A, clip):
+    """The float64 kernel VJP of a random cotangent against central differences of the float64 forward."""
     v = rng.standard_normal(C.shape)
     kw = {"device": device64, "real": np.float64, "clip": clip}
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, **kw)
-    kf = {**kw, "clip": clip if adjoint_clip is None else adjoint_clip}
+    kf = kw
 
     def f_C(x):
         return float(np.sum(color.srgb_composite_host(x, A, BG, **kf) * v))
@@ -110,9 +109,9 @@ def _clip_inputs(rng, H=6, W=7):
 
 
 def test_sensor_clip_forward_and_vjp(device, rng):
-    """SRGB_CLIP: encoded colour = min(s(u), 1) (forward against the numpy reference); the adjoint is the unclipped
-    curve's (straight-through: a saturated channel still passes its cotangent back with the slope of s), checked as a
-    random-cotangent VJP against complex-step derivatives of the unclipped reference."""
+    """SRGB_CLIP: encoded colour = min(s(u), 1) (forward against the numpy reference); the adjoint takes the unclipped
+    curve's slope (straight-through: a saturated channel still passes its cotangent back) with the clipped value in
+    v_A: v_C against complex-step derivatives of the unclipped reference, both against the reference adjoint."""
     C, A = _clip_inputs(rng)
     got = color.srgb_composite_host(C, A, BG, device=device, clip=True)
     want = ref.srgb_composite(C, A, BG, clip=True)
@@ -120,21 +119,32 @@ def test_sensor_clip_forward_and_vjp(device, rng):
     assert not np.allclose(got, color.srgb_composite_host(C, A, BG, device=device))  # the clip did something
     v = rng.standard_normal(C.shape)
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device, clip=True)
-    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v), C)
-    want_A = cs_grad(lambda x: np.sum(ref.srgb_composite(C, x, BG) * v), A)
+    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v), C)  # the unclipped curve's
     np.testing.assert_allclose(v_C, want_C, rtol=2e-4, atol=2e-4)
-    np.testing.assert_allclose(v_A, want_A, rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(v_C, ref.srgb_composite_clip_adjoint(C, A, BG, v)[0], rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(v_A, ref.srgb_composite_clip_adjoint(C, A, BG, v)[1], rtol=2e-4, atol=2e-4)
     sat = C / np.maximum(A, 1e-6)[..., None] >= 1
     assert sat.any() and np.all(v_C[sat] != 0)  # no trap: a saturated channel still has a gradient
 
 
 def test_sensor_clip_float64_central_differences(device64, rng):
-    """Below the clip the float64 VJP is the clipped forward's central differences; above it, those of the
-    unclipped forward (the straight-through adjoint)."""
+    """The float64 v_C is the unclipped forward's central differences (the straight-through slope); v_A equals the
+    reference adjoint to rounding (with the clipped value, it is no function's derivative above the clip); below the
+    clip everywhere, both are the clipped forward's central differences."""
     C, A = _clip_inputs(rng, 4, 5)
     A[0, :2] = 0.3
     C[0, :2] = np.array([[0.2, 0.3, 1.5], [1.6, 0.1, 0.5]]) * 0.3  # straight u on both sides of 1
-    _check_float64_differences(device64, rng, C, A, clip=True, adjoint_clip=False)
+    v = rng.standard_normal(C.shape)
+    kw = {"device": device64, "real": np.float64}
+    v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, clip=True, **kw)
+
+    def f_C(x):
+        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v))
+
+    np.testing.assert_allclose(v_C, fd_grad(f_C, C, 1e-7), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(v_A, ref.srgb_composite_clip_adjoint(C, A, BG, v)[1], rtol=1e-10, atol=1e-12)
+    below = np.where(C / np.maximum(A, 1e-6)[..., None] >= 1, 0.5 * C, C)  # every channel under the clip
+    _check_float64_differences(device64, rng, below, A, clip=True)
 
 
 def test_sensor_clip_pulls_down_only_where_the_photo_is_not_clipped(device64):

@@ -74,3 +74,21 @@ def test_estimate_without_alpha_is_the_default(device):
     est = pf.estimate_pixel_sigma(stage, scene)
     assert est == {"sigma": pf.DEFAULT_SIGMA, "source": "default", "photo_ratio": None, "render_ratios": None,
                    "views": 0}
+
+
+def test_estimate_without_outline_in_the_renders_is_the_default(device):
+    """The photos show an outline but the extracted mesh is out of every view: too little outline in the renders to
+    compare with, the default (not NaN)."""
+    stage, scene = _stage(device, 0.5)
+    scene.V.data[:] += np.float32(50.0)  # far outside every frustum
+    est = pf.estimate_pixel_sigma(stage, scene)
+    assert est["sigma"] == pf.DEFAULT_SIGMA and est["source"] == "default" and est["photo_ratio"] > 1
+
+
+def test_filter_rejects_a_sigma_too_small_to_reach_a_supersample():
+    from triplet_cl.ops.downsample import filter_weights
+
+    with pytest.raises(ValueError, match="sigma"):
+        filter_weights(4, 0.03, 5)
+    wt, inv_norm, _ = filter_weights(16, 0.1, 5)  # the smallest sigma at the largest factor still reaches one
+    assert np.isfinite(inv_norm).all() and wt.max() > 0

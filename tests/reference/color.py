@@ -26,3 +26,25 @@ def srgb_composite(C, A, bg, eps=1e-6, clip=False):
     if clip:
         s = np.where(np.real(u) >= 1.0, 1.0 + 0.0 * u, s)
     return A[..., None] * s + (1 - A[..., None]) * np.asarray(bg, float)
+
+
+def srgb_slope(u):
+    """s'(u) of the unclipped transfer (12.92 up to the knee, 1.055/2.4 · u^(1/2.4 − 1) above)."""
+    u = np.asarray(u, np.float64)
+    lo = u <= KNEE
+    safe = np.where(lo, 1.0, u)
+    return np.where(lo, 12.92, 1.055 / 2.4 * safe ** (1 / 2.4 - 1))
+
+
+def srgb_composite_clip_adjoint(C, A, bg, v, eps=1e-6):
+    """The adjoint of the clipped photo model (``SRGB_CLIP``) as ``color.cl`` defines it (straight-through): the
+    unclipped slope ``s'(u)`` with the forward's clipped value ``min(s(u), 1)``:
+    ``v_C = v A s'(u) / a'``, ``v_A = Σ_c v (min(s(u), 1) − bg − [A ≥ eps] s'(u) u)``."""
+    C, A, v = np.asarray(C, np.float64), np.asarray(A, np.float64), np.asarray(v, np.float64)
+    ad = np.where(A >= eps, A, eps)
+    u = C / ad[..., None]
+    ds = srgb_slope(u)
+    s = np.where(u >= 1.0, 1.0, srgb_encode(u))
+    v_C = v * (A / ad)[..., None] * ds
+    v_A = np.sum(v * (s - np.asarray(bg, float) - (A >= eps)[..., None] * ds * u), axis=-1)
+    return v_C, v_A

@@ -55,7 +55,7 @@ def estimate_pixel_sigma(stage, scene, max_views: int = 12) -> dict:
     """The pixel filter of the capture (module docstring) for the mesh stage ``stage`` (a
     :class:`~triplet_cl.mesh.refine.MeshStage`) from its extracted mesh ``scene``: ``{"sigma", "source",
     "photo_ratio", "render_ratios", "views"}``; ``source`` is ``"photos' alpha"`` or ``"default"`` (no or too little
-    alpha outline)."""
+    alpha outline in the photos or in the renders of the mesh)."""
     from ..ops import downsample as down
     from ..render import render
 
@@ -77,12 +77,19 @@ def estimate_pixel_sigma(stage, scene, max_views: int = 12) -> dict:
         big = v.camera.scaled(f) if f > 1 else v.camera
         r = render(scene, big, st, dev)
         big_alphas.append(np.ascontiguousarray(r.alpha, np.float32))
-    ratios = []
+    big_alphas = [cla.to_device(dev.queue, a) for a in big_alphas]  # uploaded once, filtered by each candidate
+    ratios, usable = [], []
     for sigma in CANDIDATES:
-        filtered = [down.gauss_down(dev, cla.to_device(dev.queue, a), f, sigma).get() for a in big_alphas]
-        ratios.append(edge_ratio(filtered)[0])
-    out.update(sigma=fit_sigma(photo_ratio, ratios), source="photos' alpha", photo_ratio=float(photo_ratio),
-               render_ratios=[float(x) for x in ratios])
+        ratio, n = edge_ratio(down.gauss_down(dev, a, f, sigma).get() for a in big_alphas)
+        ratios.append(float(ratio))
+        usable.append(n >= MIN_CROSSINGS and np.isfinite(ratio))
+    out.update(photo_ratio=float(photo_ratio), render_ratios=ratios)
+    if sum(usable) < 2:  # the extracted mesh shows too little outline in these views (off-frame, filling it, tiny)
+        return out
+    keep = [i for i, u in enumerate(usable) if u]
+    sigma = fit_sigma(photo_ratio, [ratios[i] for i in keep], [CANDIDATES[i] for i in keep])
+    if np.isfinite(sigma):
+        out.update(sigma=sigma, source="photos' alpha")
     return out
 
 

@@ -164,10 +164,10 @@ class MeshConfig:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
         if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
             raise ValueError(f"mesh eval_supersample must be None or in [1, 8], got {self.eval_supersample}")
-        if self.pixel_sigma is not None and not (isinstance(self.pixel_sigma, int | float)
-                                                 and np.isfinite(self.pixel_sigma) and 0 <= self.pixel_sigma <= 4):
+        if self.pixel_sigma is not None and not (isinstance(self.pixel_sigma, int | float) and (
+                self.pixel_sigma == 0 or (np.isfinite(self.pixel_sigma) and 0.1 <= self.pixel_sigma <= 4))):
             raise ValueError(f"mesh pixel_sigma (--mesh-pixel-filter) must be None (auto), 0 (box) or a standard "
-                             f"deviation in (0, 4] pixels, got {self.pixel_sigma!r}")
+                             f"deviation in [0.1, 4] pixels, got {self.pixel_sigma!r}")
         if not 0 < self.depth_quantile < 1:
             raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
@@ -626,6 +626,7 @@ class MeshStage:
         t = time.perf_counter()
         est = estimate_pixel_sigma(self, scene)
         self.cfg = replace(self.cfg, pixel_sigma=round(float(est["sigma"]), 3))
+        self.cfg.validate()
         est["seconds"] = time.perf_counter() - t
         self.pixel_filter = est
         ratio = "" if est["photo_ratio"] is None else f", photos' edge ratio {est['photo_ratio']:.3f}"

@@ -71,6 +71,11 @@ def box_up(device: Device, v_y: cla.Array, f: int) -> cla.Array:
     return v_x
 
 
+#: the Gaussian's standard deviation, in pixels: from MIN_SIGMA every pixel's window holds a supersample at any factor
+#: (4 sigma reaches past the 0.5 / f between a pixel's centre and its nearest supersample for every f >= 1)
+MIN_SIGMA, MAX_SIGMA = 0.1, 4.0
+
+
 def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.ndarray, int]:
     """The Gaussian pixel filter along one axis of ``length`` output pixels, each ``f`` supersamples wide:
     ``(wt [f + 2 R], inv_norm [length], R)``, float64. ``wt[t - l f + R]`` is the weight of supersample ``t`` for output
@@ -79,8 +84,9 @@ def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.nd
     ``[0, length f)``; ``R = ceil(r f)`` supersamples on each side of an output's own ``f``."""
     if not isinstance(f, (int, np.integer)) or f < 1:
         raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
-    if not (np.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"the pixel filter's sigma must be a positive number of pixels, got {sigma!r}")
+    if not (np.isfinite(sigma) and MIN_SIGMA <= sigma <= MAX_SIGMA):
+        raise ValueError(f"the pixel filter's sigma must be a number of pixels in [{MIN_SIGMA}, {MAX_SIGMA}], "
+                         f"got {sigma!r}")
     radius = 4.0 * float(sigma)
     R = int(np.ceil(radius * f))
     j = np.arange(f + 2 * R)  # t − l f + R
@@ -90,6 +96,8 @@ def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.nd
     l = np.arange(length)
     t = l[:, None] * f - R + j[None, :]
     norm = (wt[None, :] * ((t >= 0) & (t < length * f))).sum(axis=1)
+    if not (norm > 0).all():  # no supersample within the radius of some pixel's centre (cannot happen above MIN_SIGMA)
+        raise ValueError(f"the pixel filter of sigma {sigma} reaches no supersample of a pixel at factor {f}")
     return wt, 1.0 / norm, R
 
 
@@ -100,28 +108,22 @@ def _gauss_launch(device: Device, kernel: str, x: cla.Array, out_shape: tuple, f
     real = np.dtype(x.dtype)
     wt, inv_norm, R = _device_weights(device, f, sigma, length, real)
     y = device_empty(device.queue, out_shape, real, allocator=device.allocator)
-    n = int(np.prod(out_shape)) // (sizes.get("C", 1))
-    if n:
+    n = int(np.prod(out_shape)) // max(sizes.get("C", 1), 1)
+    if n and sizes.get("C", 1) and sizes.get("K", 1):
         launch(device, "downsample", kernel, *grid_1d(n), defines={"F": int(f)}, real=real, src=x, wt=wt,
                inv_norm=inv_norm, R=R, dst=y, **sizes)
     return y
 
 
-_WEIGHTS: dict = {}
-
-
 def _device_weights(device: Device, f: int, sigma: float, length: int, real) -> tuple[cla.Array, cla.Array, int]:
-    """:func:`filter_weights` on the device, kept per (device, f, sigma, length, dtype): a mesh stage filters the same
-    sizes every step, and an upload per call is a blocking write that waits for the queue."""
-    key = (id(device), int(f), float(sigma), int(length), np.dtype(real).str)
-    hit = _WEIGHTS.get(key)
-    if hit is None or hit[0] is not device:
+    """:func:`filter_weights` on the device, kept by the device (``Device.cached``) per (f, sigma, length, dtype): a
+    mesh stage filters the same sizes every step, and an upload per call is a blocking write that waits for the
+    queue."""
+    def make():
         wt, inv_norm, R = filter_weights(f, sigma, length)
-        if len(_WEIGHTS) > 64:
-            _WEIGHTS.clear()
-        hit = _WEIGHTS[key] = (device, cla.to_device(device.queue, wt.astype(real)),
-                               cla.to_device(device.queue, inv_norm.astype(real)), R)
-    return hit[1], hit[2], hit[3]
+        return cla.to_device(device.queue, wt.astype(real)), cla.to_device(device.queue, inv_norm.astype(real)), R
+
+    return device.cached(("gauss_weights", int(f), float(sigma), int(length), np.dtype(real).str), make)
 
 
 def gauss_down(device: Device, x: cla.Array, f: int, sigma: float) -> cla.Array:

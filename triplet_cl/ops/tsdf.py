@@ -18,7 +18,7 @@ import pyopencl.array as cla
 
 from ..camera import Camera
 from ..device import Device
-from .common import grid_1d, launch
+from .common import LOCAL_1D, grid_1d, launch
 
 FLAG_FREE = 1      # the pixel carves free space (as kernels_cl/tsdf.cl)
 FLAG_PHOTO_BG = 2  # the pixel is on the photo's (eroded) background: a voxel there is outside the visual hull
@@ -73,7 +73,7 @@ class TsdfVotes:
         if len(axes) != 3 or any(a.size == 0 for a in axes):
             raise ValueError("axes must be three non-empty coordinate arrays")
         n = int(np.prod([a.size for a in axes], dtype=np.int64))
-        if n >= 2**31:
+        if n > 2**31 - LOCAL_1D:  # the launch rounds up to whole work-groups: every id must fit an int
             raise ValueError(f"the TSDF grid has {n} voxels, more than the kernel's int32 index allows")
         if not 0 < alpha_threshold < 1 or not tau > 0:
             raise ValueError(f"alpha_threshold must lie in (0, 1) and tau be > 0, got {alpha_threshold}, {tau}")
