@@ -286,15 +286,9 @@ class Adam:
                     continue
                 gr = gr.astype(p.data.dtype, copy=False)
                 m, v = g.exp_avg[k], g.exp_avg_sq[k]
-                if scale is None:
-                    self._update_numpy(p.data, m, v, gr, coef, b1, b2, lr / bc1, bc2, g.eps)
-                else:
-                    gr = gr * coef
-                    m *= b1
-                    m += (1.0 - b1) * gr
-                    v *= b2
-                    v += (1.0 - b2) * gr * gr
-                    p.data -= (lr / bc1) * scale * m / (np.sqrt(v / bc2) + g.eps)
+                # with lr_scale the step size is the array (lr / bc1) · scale, as ``(lr / bc1) * scale * m`` rounds it
+                step = lr / bc1 if scale is None else (lr / bc1) * scale
+                self._update_numpy(p.data, m, v, gr, coef, b1, b2, step, bc2, g.eps)
                 if bad is None and not np.isfinite(p.data).all():
                     bad = g.name
         if bad is not None:
@@ -314,7 +308,9 @@ class Adam:
         expressions ``g = grad·coef; m = β1 m + (1 − β1) g; v = β2 v + (1 − β2) g g;
         x −= (lr / bc1) m / (sqrt(v / bc2) + eps)`` as numpy evaluates them (python-float scalars
         rounded to the array's dtype, ``g·1`` skipped: it is ``g`` exactly), so bit for bit the same
-        (``tests/test_optim.py``), in about half the memory passes and no temporaries."""
+        (``tests/test_optim.py``), in about half the memory passes and no temporaries. ``step_size``: ``lr / bc1``,
+        or with ``lr_scale`` the array ``(lr / bc1) · scale`` (broadcasting to ``x``; ``step · m`` is the
+        product ``(lr / bc1) * scale * m`` evaluates)."""
         w0, w1 = self._workspace(x)
         if coef != 1.0:
             gr = gr * coef
