@@ -385,19 +385,14 @@ def _bbox(text: str) -> tuple:
 
 def _pixel_filter(text) -> float | None:
     """``--mesh-pixel-filter``: auto → None (read from the photos), box → 0, else a standard deviation in [0.1, 4]."""
+    from triplet_cl.ops.downsample import check_pixel_sigma
+
     t = str(text).strip().lower()
     if t == "auto":
         return None
     if t == "box":
         return 0.0
-    try:
-        v = float(t)
-    except ValueError:
-        v = float("nan")
-    if not 0.1 <= v <= 4:  # NaN fails too
-        raise ValueError(f"--mesh-pixel-filter: expected auto, box or a standard deviation in [0.1, 4] pixels, got "
-                         f"{text!r}")
-    return v
+    return check_pixel_sigma("--mesh-pixel-filter (auto, box or SIGMA)", t, allow_box=False)
 
 
 def _formats(text: str) -> tuple:

@@ -28,8 +28,7 @@ def _views(rng, n=7):
         free = acc < 0.3
         photo_bg = rng.uniform(size=(h, w)) < 0.2 if i % 3 else None
         sd = rng.uniform(-4, 4, (h, w)).astype(np.float32) if i % 3 != 1 else None
-        scale = float(np.float32(1.0 / (cam.fx * TAU)))
-        views.append(FusionView(cam, depth, acc, free, photo_bg, sd, scale if sd is not None else 0.0))
+        views.append(FusionView(cam, depth, acc, free, photo_bg, sd))
     return views
 
 

@@ -122,9 +122,7 @@ class RenderSettings:
             raise ValueError(f"sigma must be positive or None, got {self.sigma}")
         if not isinstance(self.downsample, (int, np.integer)) or not 1 <= self.downsample <= 16:
             raise ValueError(f"downsample must be an integer in [1, 16], got {self.downsample!r}")
-        if not (self.pixel_sigma == 0 or (np.isfinite(self.pixel_sigma) and 0.1 <= self.pixel_sigma <= 4)):
-            raise ValueError(f"pixel_sigma must be 0 (the box) or a number of pixels in [0.1, 4], "
-                             f"got {self.pixel_sigma!r}")
+        downsample_op.check_pixel_sigma("pixel_sigma", self.pixel_sigma)
 
 
 def _upload(device: Device, a: np.ndarray) -> cla.Array:

@@ -50,7 +50,7 @@ def fuse_votes(axes, views: list[FusionView], alpha_threshold: float, tau: float
     thr, inv_tau, one = np.float32(alpha_threshold), np.float32(1.0 / tau), np.float32(1)
     for view in views:
         cam = view.camera
-        row = view.camera_row()
+        row = view.camera_row(tau)
         idx, pix, z, uv = project_voxels(X, row, cam.width, cam.height)
         seen[idx] += 1
         if view.photo_bg is not None:

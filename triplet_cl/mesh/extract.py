@@ -319,7 +319,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
         if solid_in_seen_hull:
             seen_pts.append(_hull_points(_backproject(cam, depth, acc >= alpha_threshold)))
         # the per-voxel votes of this view (kernels_cl/tsdf.cl; launched a chunk of views at a time)
-        votes.add(FusionView(cam, depth, acc, free_px, photo_bg, sd, float(np.float32(1.0 / (cam.fx * tau)))))
+        votes.add(FusionView(cam, depth, acc, free_px, photo_bg, sd))
     sums = votes.get()
     num, wsum, seen, hidden = sums["num"], sums["wsum"], sums["seen"], sums["hidden"]
     hull_out, hull_exact, hull_sdf = sums["hull_out"], sums["hull_exact"], sums["hull_sdf"]

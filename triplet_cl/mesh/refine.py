@@ -164,10 +164,10 @@ class MeshConfig:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
         if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
             raise ValueError(f"mesh eval_supersample must be None or in [1, 8], got {self.eval_supersample}")
-        if self.pixel_sigma is not None and not (isinstance(self.pixel_sigma, int | float) and (
-                self.pixel_sigma == 0 or (np.isfinite(self.pixel_sigma) and 0.1 <= self.pixel_sigma <= 4))):
-            raise ValueError(f"mesh pixel_sigma (--mesh-pixel-filter) must be None (auto), 0 (box) or a standard "
-                             f"deviation in [0.1, 4] pixels, got {self.pixel_sigma!r}")
+        if self.pixel_sigma is not None:
+            from ..ops.downsample import check_pixel_sigma
+
+            check_pixel_sigma("mesh pixel_sigma (--mesh-pixel-filter; None: auto)", self.pixel_sigma)
         if not 0 < self.depth_quantile < 1:
             raise ValueError(f"mesh depth_quantile must lie in (0, 1), got {self.depth_quantile}")
         if not 1 <= self.faces_per_pixel <= 1024:
@@ -391,9 +391,10 @@ class MeshStage:
 
     def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None, bounce=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
-        image [H, W, 3], alpha [H, W])`` box-filtered to the camera's size on the device (``RenderSettings.downsample``:
-        the linear premultiplied radiance and the alpha are averaged, as a camera integrates a pixel, then the run's
-        transfer follows); ``result.backward(v_image)`` takes an image adjoint back through it all."""
+        image [H, W, 3], alpha [H, W])`` filtered down to the camera's size on the device by the capture's pixel filter
+        (``RenderSettings.downsample`` and ``pixel_sigma``: the linear premultiplied radiance and the alpha, as a camera
+        integrates a pixel, then the run's transfer follows); ``result.backward(v_image)`` takes an image adjoint back
+        through it all."""
         f = supersample or self.cfg.supersample
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):

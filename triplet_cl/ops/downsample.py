@@ -76,6 +76,21 @@ def box_up(device: Device, v_y: cla.Array, f: int) -> cla.Array:
 MIN_SIGMA, MAX_SIGMA = 0.1, 4.0
 
 
+def check_pixel_sigma(name: str, sigma, allow_box: bool = True) -> float:
+    """``sigma`` as a float when it is 0 (the box; with ``allow_box``) or a standard deviation in
+    [``MIN_SIGMA``, ``MAX_SIGMA``] pixels; else a ``ValueError`` naming ``name`` (every boundary that takes a pixel
+    filter — the render settings, the mesh config, the command line — checks it here)."""
+    try:
+        v = float(sigma)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not ((allow_box and v == 0) or MIN_SIGMA <= v <= MAX_SIGMA):  # NaN fails too
+        box = "0 (the box) or " if allow_box else ""
+        raise ValueError(f"{name} must be {box}a standard deviation in [{MIN_SIGMA}, {MAX_SIGMA}] pixels, "
+                         f"got {sigma!r}")
+    return v
+
+
 def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.ndarray, int]:
     """The Gaussian pixel filter along one axis of ``length`` output pixels, each ``f`` supersamples wide:
     ``(wt [f + 2 R], inv_norm [length], R)``, float64. ``wt[t - l f + R]`` is the weight of supersample ``t`` for output
@@ -84,10 +99,8 @@ def filter_weights(f: int, sigma: float, length: int) -> tuple[np.ndarray, np.nd
     ``[0, length f)``; ``R = ceil(r f)`` supersamples on each side of an output's own ``f``."""
     if not isinstance(f, (int, np.integer)) or f < 1:
         raise ValueError(f"the pixel filter's factor must be an integer >= 1, got {f!r}")
-    if not (np.isfinite(sigma) and MIN_SIGMA <= sigma <= MAX_SIGMA):
-        raise ValueError(f"the pixel filter's sigma must be a number of pixels in [{MIN_SIGMA}, {MAX_SIGMA}], "
-                         f"got {sigma!r}")
-    radius = 4.0 * float(sigma)
+    sigma = check_pixel_sigma("the pixel filter's sigma", sigma, allow_box=False)
+    radius = 4.0 * sigma
     R = int(np.ceil(radius * f))
     j = np.arange(f + 2 * R)  # t − l f + R
     d = (j - R + 0.5) / f - 0.5

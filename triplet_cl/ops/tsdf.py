@@ -32,8 +32,8 @@ class FusionView:
     """One view's inputs to the votes: ``depth``, ``acc`` ``[H, W]`` float32 (the filtered depth and
     accumulated alpha), ``free`` ``[H, W]`` bool (pixels that carve), ``photo_bg`` ``[H, W]`` bool or None
     (the photo's eroded background: the visual-hull vote), ``sd`` ``[H, W]`` float32 or None (signed pixel
-    distance to the photo's silhouette, positive outside) with ``sd_scale`` (the factor that turns it times the
-    voxel's depth into truncation units: ``1 / (fx·τ)``)."""
+    distance to the photo's silhouette, positive outside; times the voxel's depth and ``1 / (fx·τ)`` it is in
+    truncation units)."""
 
     camera: Camera
     depth: np.ndarray
@@ -41,7 +41,6 @@ class FusionView:
     free: np.ndarray
     photo_bg: np.ndarray | None = None
     sd: np.ndarray | None = None
-    sd_scale: float = 0.0
 
     def flags(self) -> np.ndarray:
         f = np.where(self.free, np.uint8(FLAG_FREE), np.uint8(0))
@@ -49,13 +48,14 @@ class FusionView:
             f |= np.where(self.photo_bg, np.uint8(FLAG_PHOTO_BG), np.uint8(0))
         return f
 
-    def camera_row(self) -> np.ndarray:
-        """The view's ``CAM_STRIDE`` float32 numbers: R (row-major), t, fx, fy, cx, cy, near, sd_scale."""
+    def camera_row(self, tau: float) -> np.ndarray:
+        """The view's ``CAM_STRIDE`` float32 numbers: R (row-major), t, fx, fy, cx, cy, near, and the silhouette
+        distance's scale ``1 / (fx·τ)`` (``tau`` the truncation in world units)."""
         c = self.camera
         row = np.zeros(CAM_STRIDE, np.float32)
         row[:9] = np.asarray(c.w2c[:3, :3], np.float32).reshape(-1)
         row[9:12] = np.asarray(c.w2c[:3, 3], np.float32)
-        row[12:18] = np.float32([c.fx, c.fy, c.cx, c.cy, c.near, self.sd_scale])
+        row[12:18] = np.float32([c.fx, c.fy, c.cx, c.cy, c.near, 1.0 / (c.fx * tau)])
         return row
 
 
@@ -113,7 +113,7 @@ class TsdfVotes:
             raise ValueError("a chunk of views holds more pixels than the kernel's int32 offsets allow")
         meta = np.array([[v.camera.width, v.camera.height, o, v.sd is not None] for v, o in zip(views, offsets,
                                                                                                strict=True)], np.int32)
-        cams = np.stack([v.camera_row() for v in views])
+        cams = np.stack([v.camera_row(self.tau) for v in views])
         q = self.device.queue
         depth = cla.to_device(q, np.concatenate([np.asarray(v.depth, np.float32).reshape(-1) for v in views]))
         acc = cla.to_device(q, np.concatenate([np.asarray(v.acc, np.float32).reshape(-1) for v in views]))
