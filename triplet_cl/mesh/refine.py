@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..activations import logit, sigmoid
-from ..autodiff import Tape
+from ..autodiff import Param, Tape
 from ..datasets.base import resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
@@ -109,6 +109,13 @@ class MeshConfig:
     # start of each round and after each remesh) and held, so that the albedo alone answers for the colour
     ao: str = "learned"
     ao_directions: int = 32
+    # the lights read again from the extracted mesh's shading (mesh/light_fit.py) before round 0's light phase:
+    # "auto" when the lights are point lights and an ambient one and the metallic trial chose a dielectric (a metal
+    # shows no diffuse shading to read); the number of point lights (up to light_fit_max) is then the data's, and
+    # the albedo starts as the photos' radiance over the fitted irradiance. "off": the soup's lights go on.
+    # Measured (bench/results/light_fit_pocl_2026-11-26.txt): ...
+    light_fit: str = "auto"
+    light_fit_max: int = 3
     # interreflection: "traced" lights every vertex also with one diffuse bounce of the lights off the rest of the
     # mesh (visibility.vertex_bounce, bounce_directions rays per vertex, a constant re-traced with the cast shadows
     # and after each remesh; lights.BounceLight), "off" without. States saved before it read "off"
@@ -152,6 +159,11 @@ class MeshConfig:
             raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
         if self.ao not in ("learned", "computed"):
             raise ValueError(f"mesh ao must be 'learned' or 'computed', got {self.ao!r}")
+        if self.light_fit not in ("auto", "off"):
+            raise ValueError(f"mesh light_fit must be 'auto' or 'off', got {self.light_fit!r}")
+        if isinstance(self.light_fit_max, bool) or not isinstance(self.light_fit_max, int) \
+                or not 1 <= self.light_fit_max <= 8:
+            raise ValueError(f"mesh light_fit_max must be an integer in [1, 8], got {self.light_fit_max!r}")
         if self.bounce not in ("traced", "off"):
             raise ValueError(f"mesh bounce must be 'traced' or 'off', got {self.bounce!r}")
         if not isinstance(self.bounce_directions, int) or not 1 <= self.bounce_directions <= 1024:
@@ -286,6 +298,7 @@ class MeshStage:
         self.scene: Scene | None = None
         self.history: list[dict] = []
         self.metallic_choice: dict | None = None  # choose_metallic's trial, when it ran
+        self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
@@ -445,6 +458,79 @@ class MeshStage:
         self.trainer.log.info("mesh metallic trial: " + json.dumps({k: v for k, v in out.items() if k != "curves"}))
         return out
 
+    def fit_lights(self, scene: Scene) -> dict | None:
+        """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
+        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), and the observed vertices' albedo set to the
+        photos' radiance over that irradiance, scaled so that its median is the albedo's before (the photos fix only
+        albedo × light). Skipped (None, the reason logged) when off, when a light is of another kind, when the
+        metallic trial chose a metal, or when the fit explains the shading no better than the lights before (the
+        implied albedo's total variation). The record goes to ``metrics.json``'s ``mesh.light_fit``."""
+        from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
+        from ..ops.color import srgb_decode
+        from ..visibility import vertex_visibility
+        from .bake import vertex_normals
+        from .light_fit import LUMA, fit_lights, vertex_radiance
+
+        c, log = self.cfg, self.trainer.log
+        lights = scene.current_lights()
+        why = None
+        if c.light_fit == "off":
+            return None
+        if not lights or any(type(x) not in (PointLight, AmbientLight) for x in lights):
+            why = "lights other than point and ambient ones"
+        elif self.metallic_choice is not None and self.metallic_choice["metallic"] > 0.5:
+            why = "the metallic trial chose a metal (no diffuse shading to read)"
+        if why is not None:
+            log.info(f"mesh light fit skipped: {why}")
+            self.light_fit = {"applied": False, "reason": why}
+            return None
+        t = time.perf_counter()
+        V = np.asarray(scene.V.data, np.float64)
+        normals = vertex_normals(V, scene.F)
+
+        def visibility(P):
+            return vertex_visibility(scene, self.device, lights=[PointLight(p, np.ones(3)) for p in P],
+                                     ray_eps=c.shadow_eps)
+
+        views = self.ds.train
+        seen = visibility(np.array([v.camera.center for v in views]))
+        linear = self.ds.color_space == "srgb"
+        rad, count = vertex_radiance(V, normals, [(v.camera, srgb_decode(v.rgb) if linear else v.rgb, v.alpha)
+                                                  for v in views], seen)
+        points = [x for x in lights if isinstance(x, PointLight)]
+        amb = sum(float(np.asarray(x.color) @ LUMA) for x in lights if isinstance(x, AmbientLight))
+        current = (np.array([x.position for x in points]).reshape(-1, 3),
+                   np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), np.pi * amb)
+        lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
+        fit = fit_lights(V, scene.F, normals, rad, count, visibility, center=0.5 * (lo + hi),
+                         extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max, current=current)
+        rec = {k: fit[k] for k in ("tv", "tv_current", "atoms_tv", "weights", "vertices")}
+        rec["seconds"] = time.perf_counter() - t
+        if fit["tv_current"] is not None and fit["tv"] >= fit["tv_current"]:
+            log.info(f"mesh light fit not kept: implied-albedo TV {fit['tv']:.4f} >= {fit['tv_current']:.4f} before")
+            self.light_fit = {"applied": False, "reason": "no better than the lights before", **rec}
+            return None
+        good = fit["observed"]
+        irr = fit["irradiance"][good]
+        mat = np.asarray(scene.material.data)
+        old = sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA
+        new = np.pi * (rad[good] @ LUMA) / np.maximum(irr, 1e-12)
+        s = float(np.median(new) / max(np.median(old), 1e-6))  # the albedo's median kept
+        floor = 0.05 * float(np.median(irr))
+        albedo = np.clip(np.pi * rad[good] / (s * np.maximum(irr, floor))[:, None], 0.02, 0.98)
+        mat[good, 0:3] = logit(albedo, eps=None).astype(mat.dtype)
+        ao_col = get_brdf(scene.brdf).column("ao")
+        ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
+        new_lights = [PointLight(p, np.full(3, s * i)) for p, i in zip(fit["positions"], fit["intensities"])]
+        new_lights.append(AmbientLight(np.full(3, s * fit["ambient"] / (np.pi * max(ao, 1e-3)))))
+        scene.lights = new_lights
+        scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
+        rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
+        log.info(f"mesh light fit: {len(new_lights) - 1} point light(s), implied-albedo TV {fit['tv']:.4f} "
+                 f"(lights before {fit['tv_current']:.4f}), {rec['seconds']:.1f} s")
+        self.light_fit = rec
+        return rec
+
     def computed_ao_column(self, scene: Scene) -> int | None:
         """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
         without AO)."""
@@ -494,6 +580,8 @@ class MeshStage:
         held = get_brdf(scene.brdf).column("metallic") if tied and c.metallic_trial > 0 else None
         if held is not None and round_index == 0:
             self.choose_metallic(scene, tied, held)
+        if round_index == 0:
+            self.fit_lights(scene)
         # the held metallic: each vertex's own gradient builds its Adam moments through the phase and the value is
         # put back after each step (as the soup's held lobes); with its gradient zeroed instead, its moments stayed 0
         # and, Adam's step count shared, it left the phase at up to 3× the rate, undoing the trial's choice
@@ -606,6 +694,8 @@ class MeshStage:
         metrics["topology"] = topology
         if self.metallic_choice is not None:
             metrics["metallic_trial"] = self.metallic_choice
+        if self.light_fit is not None:
+            metrics["light_fit"] = self.light_fit
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()

@@ -1,0 +1,220 @@
+"""The lights read from the extracted mesh's shading (issue 18): how many point lights, from where, how bright.
+
+Why: the soup learns its lights by gradient steps from one initial guess, with a per-vertex albedo that can paint
+in whatever the lights miss. On a capture lit by two point lights it kept one light overhead and an ambient 8× the
+truth, and the second light's shading went into the albedo (albedo 14 dB). Once the mesh is extracted, its normals
+are clean and a global fit is cheap, so the lights are fitted again from scratch:
+
+1. **What each vertex shows** (:func:`vertex_radiance`): the median of the linear photo values at the vertex over
+   the training views that see it (facing the camera, not occluded: the shadow-ray visibility towards the camera
+   centre, inside the photo's alpha). The median drops the views where a highlight sits on it.
+2. **Light atoms**: ``atoms`` point lights spread evenly over a sphere around the object (a Fibonacci sphere,
+   ``distance`` extents from the centre), each with its cast shadows (:func:`~triplet_cl.visibility.vertex_visibility`),
+   and one constant ambient term. Vertex ``v``'s irradiance is linear in the atoms' non-negative weights ``w``:
+   ``E_v = sum_k w_k B_vk``, ``B_vk = vis_vk max(0, n_v · l_vk) d² / r_vk²``, ``B_v,ambient = 1``.
+3. **The fit** (:func:`fit_weights`): the albedo that a lighting implies is ``radiance / irradiance``; a surface's
+   albedo is piecewise constant and its shading is not, so the weights minimise the total variation of the implied
+   log albedo over the mesh's edges, ``sum_(u,v) rho(log(c_u / E_u) - log(c_v / E_v))`` (``rho`` the Charbonnier
+   ``sqrt(x² + eps²)``, luminance), by L-BFGS-B with ``w >= 0``. Scale-free: only the weights' ratios matter.
+4. **Lights from atoms** (:func:`cluster_atoms`): the strongest atom and its neighbours within ``cluster_angle``
+   become one point light (their weighted mean direction), repeated while a cluster holds ``min_share`` of the
+   direct weight, at most ``max_lights``; the lights and an ambient term are then fitted again by (3) with their
+   own shadows. What is spread out (an environment, a sky) ends in the ambient term.
+
+Measured on the 96² re-renders of spot_small (``bench/results/light_fit_pocl_2026-11-26.txt``): two point lights
+found within a few degrees of the truth's directions and at their irradiance ratio; one light on spot_small, the
+sun's direction on the sun-and-sky capture. A metal shows no diffuse shading to read (the fit put 73 % of the weight
+in the ambient term), so :class:`~triplet_cl.mesh.refine.MeshStage` fits only when its metallic trial chose a
+dielectric.
+
+This is a diagnostic-free product path: nothing here reads ``ground_truth.json``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """``[n, 3]`` unit directions spread evenly over the sphere (the Fibonacci lattice, +y the pole axis)."""
+    if n < 1:
+        raise ValueError(f"the number of directions must be >= 1, got {n}")
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1.0 - 2.0 * i / n)
+    theta = np.pi * (1.0 + 5.0 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.cos(phi), np.sin(theta) * np.sin(phi)], axis=1)
+
+
+def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
+                    min_alpha: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex median of the photos' linear radiance over the views that see the vertex.
+
+    Args:
+        V, normals: ``[N, 3]`` positions and unit vertex normals.
+        views: ``[(camera, rgb, alpha)]``, ``rgb`` ``[H, W, 3]`` linear radiance, ``alpha`` ``[H, W]`` or None.
+        seen: ``[N, len(views)]`` visibility of each vertex from each camera centre (1: unoccluded).
+        min_cos: the view must face the vertex at least this much (grazing views sample the outline).
+        min_alpha: the photo's coverage at the vertex (outline pixels mix in the background).
+
+    Returns:
+        ``(c [N, 3], count [N])``: the median (NaN where no view sees the vertex) and the number of views used.
+    """
+    V = np.asarray(V, np.float64)
+    obs = np.full((len(V), len(views), 3), np.nan, np.float32)
+    for j, (cam, rgb, alpha) in enumerate(views):
+        h, w = rgb.shape[:2]
+        uv = cam.project_points(V)
+        x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
+        to_cam = np.asarray(cam.center, np.float64) - V
+        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
+        ok = ((seen[:, j] > 0.5) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
+              & ((normals * to_cam).sum(1) > min_cos))
+        idx = np.flatnonzero(ok)
+        xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
+        fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
+
+        def bilinear(img):
+            img = img.reshape(h, w, -1)
+            return (img[yi, xi] * (1 - fx) * (1 - fy) + img[yi, xi + 1] * fx * (1 - fy)
+                    + img[yi + 1, xi] * (1 - fx) * fy + img[yi + 1, xi + 1] * fx * fy)
+
+        val = bilinear(np.asarray(rgb, np.float32))
+        if alpha is not None:
+            val[bilinear(np.asarray(alpha, np.float32))[:, 0] < min_alpha] = np.nan
+        obs[idx, j] = val
+    count = np.isfinite(obs[..., 0]).sum(axis=1)
+    c = np.full((len(V), 3), np.nan)
+    has = count > 0
+    c[has] = np.nanmedian(obs[has], axis=1)
+    return c, count
+
+
+def atom_matrix(V: np.ndarray, normals: np.ndarray, positions: np.ndarray, vis: np.ndarray,
+                distance: float) -> np.ndarray:
+    """``[N, K]`` irradiance at each vertex of a point light of intensity ``distance²`` at each of ``positions``
+    (so about 1 at the object's centre): ``vis max(0, n · l) distance² / r²``."""
+    L = positions[None, :, :] - V[:, None, :]
+    r2 = np.maximum((L * L).sum(axis=2), 1e-12)
+    cos = (normals[:, None, :] * L).sum(axis=2) / np.sqrt(r2)
+    return vis * np.maximum(cos, 0.0) * (distance * distance) / r2
+
+
+def mesh_edges(F: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``[E, 2]`` unique undirected edges of the faces ``F`` whose two vertices are both in ``keep``."""
+    F = np.asarray(F, np.int64)
+    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    E = np.unique(E, axis=0)
+    return E[keep[E[:, 0]] & keep[E[:, 1]]]
+
+
+def implied_albedo_tv(w: np.ndarray, B: np.ndarray, log_c: np.ndarray, edges: np.ndarray,
+                      eps: float = 0.02) -> tuple[float, np.ndarray]:
+    """The Charbonnier total variation of ``log_c - log(B w)`` over ``edges`` (mean per edge) and its gradient in
+    ``w``."""
+    e = B @ w + 1e-9
+    la = log_c - np.log(e)
+    d = la[edges[:, 0]] - la[edges[:, 1]]
+    s = np.sqrt(d * d + eps * eps)
+    g = d / s
+    g_la = np.bincount(edges[:, 0], g, minlength=len(e)) - np.bincount(edges[:, 1], g, minlength=len(e))
+    n = max(len(edges), 1)
+    return float(s.sum() / n), (B.T @ (-g_la / e)) / n
+
+
+def fit_weights(B: np.ndarray, log_c: np.ndarray, edges: np.ndarray, w0: np.ndarray | None = None,
+                max_iter: int = 500) -> tuple[np.ndarray, float]:
+    """Non-negative weights of the columns of ``B`` that minimise :func:`implied_albedo_tv`, normalised to sum 1;
+    returns ``(w, tv)``."""
+    from scipy.optimize import minimize
+
+    k = B.shape[1]
+    w0 = np.full(k, 1.0 / k) if w0 is None else np.maximum(np.asarray(w0, np.float64), 1e-6)
+    res = minimize(implied_albedo_tv, w0, args=(B, log_c, edges), jac=True, method="L-BFGS-B",
+                   bounds=[(0.0, None)] * k, options={"maxiter": max_iter})
+    w = np.maximum(res.x, 0.0)
+    w = w / max(w.sum(), 1e-300)
+    return w, implied_albedo_tv(w, B, log_c, edges)[0]
+
+
+def cluster_atoms(dirs: np.ndarray, w: np.ndarray, angle_deg: float = 40.0, min_share: float = 0.15,
+                  max_lights: int = 3) -> list[tuple[np.ndarray, float]]:
+    """Greedy clusters of the weighted directions: the heaviest atom left and the atoms within ``angle_deg`` of it,
+    while a cluster holds at least ``min_share`` of the total weight (the first one always), at most
+    ``max_lights``. Returns ``[(unit direction (the weighted mean), weight)]``."""
+    left = np.asarray(w, np.float64).copy()
+    total = max(left.sum(), 1e-300)
+    cos_min = np.cos(np.radians(angle_deg))
+    out = []
+    while len(out) < max_lights and left.max() > 0:
+        k = int(np.argmax(left))
+        near = (dirs @ dirs[k] >= cos_min) & (left > 0)
+        weight = float(left[near].sum())
+        if out and weight < min_share * total:
+            break
+        d = (left[near, None] * dirs[near]).sum(axis=0)
+        out.append((d / max(np.linalg.norm(d), 1e-12), weight))
+        left[near] = 0.0
+    return out
+
+
+def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, distance: float = 3.0,
+               atoms: int = 128, min_views: int = 2, max_lights: int = 3, cluster_angle: float = 40.0,
+               min_share: float = 0.15, current=None) -> dict:
+    """Point lights and an ambient term fitted to the mesh's shading (the module's steps 2 to 4).
+
+    Args:
+        V, F, normals: the mesh; c, count: :func:`vertex_radiance`'s output.
+        visibility: ``visibility(positions [K, 3]) -> [N, K]``, each vertex's transmittance towards point lights
+            at ``positions`` (the mesh's cast shadows).
+        center, extent: the object's centre and radius; the atoms sit ``distance × extent`` from the centre.
+        current: ``(positions [P, 3], intensities [P], ambient)`` of the lights before (point lights' luminance and the
+            ambient's irradiance ``π La``): their implied albedo's TV is reported beside the fit's.
+
+    Returns:
+        ``{"positions" [L, 3], "intensities" [L] (light units: irradiance × r²), "ambient" (the irradiance
+        ``π La``), "irradiance" [N] (at every vertex, NaN where unobserved), "tv", "tv_current", "atoms_tv",
+        "weights" (per light, then the ambient), "vertices" (observed), "seconds"}``, all in the scale where the
+        median implied albedo equals the median of ``c``'s luminance × π / median irradiance (the caller rescales).
+    """
+    t = time.perf_counter()
+    V = np.asarray(V, np.float64)
+    center = np.asarray(center, np.float64)
+    good = (count >= min_views) & np.isfinite(c).all(axis=1)
+    lum = np.where(good, np.nan_to_num(c) @ LUMA, 1.0)
+    good &= lum > 1e-4
+    if good.sum() < 16:
+        raise ValueError(f"too few vertices seen by {min_views}+ views to fit lights ({int(good.sum())})")
+    log_c = np.log(np.maximum(lum, 1e-4))
+    edges = mesh_edges(F, good)
+    if len(edges) == 0:
+        raise ValueError("no mesh edge between observed vertices to fit lights")
+    dist = distance * extent
+    dirs = fibonacci_directions(atoms)
+    P = center + dist * dirs
+    B = np.concatenate([atom_matrix(V, normals, P, visibility(P), dist), np.ones((len(V), 1))], axis=1)
+    sub = np.flatnonzero(good)
+    remap = np.full(len(V), -1)
+    remap[sub] = np.arange(len(sub))
+    e_sub = remap[edges]
+    w_atoms, tv_atoms = fit_weights(B[sub], log_c[sub], e_sub)
+    clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
+    PL = center + dist * np.array([d for d, _ in clusters])
+    BL = np.concatenate([atom_matrix(V, normals, PL, visibility(PL), dist), np.ones((len(V), 1))], axis=1)
+    w0 = np.array([wt for _, wt in clusters] + [w_atoms[-1]])
+    w, tv = fit_weights(BL[sub], log_c[sub], e_sub, w0=w0)
+    E = BL @ w
+    tv_current = None
+    if current is not None:
+        cp, ci, ca = current
+        cp = np.asarray(cp, np.float64).reshape(-1, 3)
+        Bc = np.concatenate([atom_matrix(V, normals, cp, visibility(cp), 1.0) * np.asarray(ci)[None, :],
+                             np.full((len(V), 1), float(ca))], axis=1)
+        tv_current = implied_albedo_tv(np.ones(Bc.shape[1]), Bc[sub], log_c[sub], e_sub)[0]
+    irr = np.where(good, E, np.nan)
+    return {"positions": PL, "intensities": w[:-1] * dist * dist, "ambient": float(w[-1]), "irradiance": irr,
+            "observed": good, "tv": tv, "atoms_tv": tv_atoms, "tv_current": tv_current, "weights": w.tolist(),
+            "vertices": int(good.sum()), "seconds": time.perf_counter() - t}
