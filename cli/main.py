@@ -319,6 +319,10 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the "
                    "mesh: learned per vertex (default), or computed: traced from the mesh's geometry and held "
                    "(no effect with blinn-phong)")
+    p.add_argument("--mesh-light-fit", choices=["auto", "off"], help="read the lights again from the extracted "
+                   "mesh's shading before its light phase (auto, default: when the lights are point and ambient "
+                   "ones and the metallic trial chose a dielectric; the number of point lights, up to 3, is then "
+                   "the data's) or keep the soup's (off)")
     p.add_argument("--mesh-bounce", choices=["traced", "off"], help="interreflection on the mesh: traced (one diffuse "
                    "bounce of the lights off the rest of the mesh, per vertex, re-traced with the cast shadows) "
                    "or off (default)")
@@ -355,7 +359,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_iterations", "iterations"), ("remesh_every", "remesh_every"),
                        ("mesh_light_phase", "material_tie"),
                        ("mesh_metallic_trial", "metallic_trial"),
-                       ("mesh_ao", "ao"), ("mesh_bounce", "bounce"),
+                       ("mesh_ao", "ao"), ("mesh_bounce", "bounce"), ("mesh_light_fit", "light_fit"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

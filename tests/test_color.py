@@ -119,16 +119,19 @@ def test_sensor_clip_forward_and_vjp(device, rng):
     assert not np.allclose(got, color.srgb_composite_host(C, A, BG, device=device))  # the clip did something
     v = rng.standard_normal(C.shape)
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, device=device, clip=True)
-    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v), C)  # the unclipped curve's
+    sat = C / np.maximum(A, 1e-6)[..., None] >= 1
+    v_up = np.where(sat, np.maximum(v, 0.0), v)  # above the clip only what lowers the value passes
+    want_C = cs_grad(lambda x: np.sum(ref.srgb_composite(x, A, BG) * v_up), C)  # the unclipped curve's
     np.testing.assert_allclose(v_C, want_C, rtol=2e-4, atol=2e-4)
     np.testing.assert_allclose(v_C, ref.srgb_composite_clip_adjoint(C, A, BG, v)[0], rtol=2e-4, atol=2e-4)
     np.testing.assert_allclose(v_A, ref.srgb_composite_clip_adjoint(C, A, BG, v)[1], rtol=2e-4, atol=2e-4)
-    sat = C / np.maximum(A, 1e-6)[..., None] >= 1
-    assert sat.any() and np.all(v_C[sat] != 0)  # no trap: a saturated channel still has a gradient
+    assert sat.any() and np.all(v_C[sat & (v > 0)] != 0)  # no trap: a saturated channel can still be lowered
+    assert np.all(v_C[sat & (v < 0)] == 0)  # ... and is never pushed further up
 
 
 def test_sensor_clip_float64_central_differences(device64, rng):
-    """The float64 v_C is the unclipped forward's central differences (the straight-through slope); v_A equals the
+    """The float64 v_C is the unclipped forward's central differences (the straight-through slope) of the cotangent
+    with its upward part dropped above the clip (one-sided); v_A equals the
     reference adjoint to rounding (with the clipped value, it is no function's derivative above the clip); below the
     clip everywhere, both are the clipped forward's central differences."""
     C, A = _clip_inputs(rng, 4, 5)
@@ -138,8 +141,10 @@ def test_sensor_clip_float64_central_differences(device64, rng):
     kw = {"device": device64, "real": np.float64}
     v_C, v_A = color.srgb_composite_backward_host(C, A, BG, v, clip=True, **kw)
 
+    v_up = np.where(C / np.maximum(A, 1e-6)[..., None] >= 1, np.maximum(v, 0.0), v)
+
     def f_C(x):
-        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v))
+        return float(np.sum(color.srgb_composite_host(x, A, BG, **kw) * v_up))
 
     np.testing.assert_allclose(v_C, fd_grad(f_C, C, 1e-7), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(v_A, ref.srgb_composite_clip_adjoint(C, A, BG, v)[1], rtol=1e-10, atol=1e-12)

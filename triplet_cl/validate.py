@@ -60,7 +60,7 @@ _INT_OPTIONS = {
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
-                 "--mesh-light-phase", "--mesh-metallic-trial", "--mesh-ao", "--mesh-bounce",
+                 "--mesh-light-phase", "--mesh-metallic-trial", "--mesh-ao", "--mesh-bounce", "--mesh-light-fit",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
                  "--bbox", "--mesh-crop")
 OUTPUT_FORMATS = ("glb", "obj", "ply")

@@ -37,14 +37,16 @@ def srgb_slope(u):
 
 
 def srgb_composite_clip_adjoint(C, A, bg, v, eps=1e-6):
-    """The adjoint of the clipped photo model (``SRGB_CLIP``) as ``color.cl`` defines it (straight-through): the
-    unclipped slope ``s'(u)`` with the forward's clipped value ``min(s(u), 1)``:
-    ``v_C = v A s'(u) / a'``, ``v_A = Σ_c v (min(s(u), 1) − bg − [A ≥ eps] s'(u) u)``."""
+    """The adjoint of the clipped photo model (``SRGB_CLIP``) as ``color.cl`` defines it (one-sided straight-through):
+    the unclipped slope ``s'(u)`` with the forward's clipped value ``min(s(u), 1)``, and above the clip only the
+    cotangent's positive part (what lowers the value) through the slope, ``g = max(v, 0)`` there (else ``g = v``):
+    ``v_C = g A s'(u) / a'``, ``v_A = Σ_c v (min(s(u), 1) − bg) − g [A ≥ eps] s'(u) u``."""
     C, A, v = np.asarray(C, np.float64), np.asarray(A, np.float64), np.asarray(v, np.float64)
     ad = np.where(A >= eps, A, eps)
     u = C / ad[..., None]
     ds = srgb_slope(u)
     s = np.where(u >= 1.0, 1.0, srgb_encode(u))
-    v_C = v * (A / ad)[..., None] * ds
-    v_A = np.sum(v * (s - np.asarray(bg, float) - (A >= eps)[..., None] * ds * u), axis=-1)
+    g = np.where(u >= 1.0, np.maximum(v, 0.0), v)
+    v_C = g * (A / ad)[..., None] * ds
+    v_A = np.sum(v * (s - np.asarray(bg, float)) - g * (A >= eps)[..., None] * ds * u, axis=-1)
     return v_C, v_A

@@ -116,6 +116,7 @@ class MeshConfig:
     # Measured (bench/results/light_fit_pocl_2026-11-26.txt): ...
     light_fit: str = "auto"
     light_fit_max: int = 3
+    light_fit_albedo: bool = True  # TEMP
     # interreflection: "traced" lights every vertex also with one diffuse bounce of the lights off the rest of the
     # mesh (visibility.vertex_bounce, bounce_directions rays per vertex, a constant re-traced with the cast shadows
     # and after each remesh; lights.BounceLight), "off" without. States saved before it read "off"
@@ -504,10 +505,11 @@ class MeshStage:
         lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
         fit = fit_lights(V, scene.F, normals, rad, count, visibility, center=0.5 * (lo + hi),
                          extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max, current=current)
-        rec = {k: fit[k] for k in ("tv", "tv_current", "atoms_tv", "weights", "vertices")}
+        rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "tv", "weights", "vertices")}
         rec["seconds"] = time.perf_counter() - t
-        if fit["tv_current"] is not None and fit["tv"] >= fit["tv_current"]:
-            log.info(f"mesh light fit not kept: implied-albedo TV {fit['tv']:.4f} >= {fit['tv_current']:.4f} before")
+        if fit["objective_current"] is not None and fit["objective"] >= fit["objective_current"]:
+            log.info(f"mesh light fit not kept: robust fit {fit['objective']:.4f} >= {fit['objective_current']:.4f} "
+                     "with the lights before")
             self.light_fit = {"applied": False, "reason": "no better than the lights before", **rec}
             return None
         good = fit["observed"]
@@ -518,7 +520,8 @@ class MeshStage:
         s = float(np.median(new) / max(np.median(old), 1e-6))  # the albedo's median kept
         floor = 0.05 * float(np.median(irr))
         albedo = np.clip(np.pi * rad[good] / (s * np.maximum(irr, floor))[:, None], 0.02, 0.98)
-        mat[good, 0:3] = logit(albedo, eps=None).astype(mat.dtype)
+        if c.light_fit_albedo:
+            mat[good, 0:3] = logit(albedo, eps=None).astype(mat.dtype)
         ao_col = get_brdf(scene.brdf).column("ao")
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
         new_lights = [PointLight(p, np.full(3, s * i)) for p, i in zip(fit["positions"], fit["intensities"])]
@@ -526,8 +529,8 @@ class MeshStage:
         scene.lights = new_lights
         scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
         rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
-        log.info(f"mesh light fit: {len(new_lights) - 1} point light(s), implied-albedo TV {fit['tv']:.4f} "
-                 f"(lights before {fit['tv_current']:.4f}), {rec['seconds']:.1f} s")
+        log.info(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
+                 f"{fit['objective']:.4f} (lights before {fit['objective_current']:.4f}), {rec['seconds']:.1f} s")
         self.light_fit = rec
         return rec
 
