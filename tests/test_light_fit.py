@@ -9,8 +9,15 @@ from triplet_cl.activations import logit
 from triplet_cl.camera import Camera
 from triplet_cl.lights import AmbientLight, PointLight
 from triplet_cl.mesh.bake import vertex_normals
-from triplet_cl.mesh.light_fit import (atom_matrix, cluster_atoms, fit_lights, fit_weights, implied_albedo_tv,
-                                       mesh_edges, vertex_radiance)
+from triplet_cl.mesh.light_fit import (
+    atom_matrix,
+    cluster_atoms,
+    fit_lights,
+    fit_weights,
+    implied_albedo_tv,
+    mesh_edges,
+    vertex_radiance,
+)
 from triplet_cl.render import RenderSettings, render
 from triplet_cl.scene import Scene
 from triplet_cl.visibility import sphere_directions, vertex_visibility
@@ -100,15 +107,17 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     8° of the truth's directions (from the centre), their irradiance ratio within 15 %, the ambient term below
     either light and a better robust fit than one light overhead with a large ambient; the implied albedo (up to
     the global scale) within 0.1 of the truth's, less than half the error of that one light."""
-    lights = [PointLight(p, np.full(3, i)) for p, i in zip(TRUTH, INTENSITY)] + [AmbientLight(np.full(3, AMBIENT))]
+    lights = [PointLight(p, np.full(3, i)) for p, i in zip(TRUTH, INTENSITY, strict=True)]
+    lights.append(AmbientLight(np.full(3, AMBIENT)))
     scene, albedo = _sphere_scene(lights)
     views = []
     for k in range(16):
         t = 2 * np.pi * (k + 0.25) / 16
         h = 1.8 if k % 2 else -0.6
         cam = Camera.look_at([3.2 * np.sin(t), h, 3.2 * np.cos(t)], [0, 0, 0], [0, 1, 0], 50, 64, 64)
-        r = render(scene, cam, RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", real=np.float64, normals="vertex",
-                                              background=(0.0, 0.0, 0.0)), device64)
+        settings = RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", real=np.float64, normals="vertex",
+                                  background=(0.0, 0.0, 0.0))
+        r = render(scene, cam, settings, device64)
         a = np.asarray(r.alpha).reshape(64, 64)
         rgb = np.asarray(r.image).reshape(64, 64, 3) / np.maximum(a, 1e-6)[..., None]
         views.append((cam, rgb, a))
@@ -124,10 +133,10 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     fit = fit_lights(V, F, n, c, count, visibility, center=np.zeros(3), extent=1.0, distance=3.0, atoms=128,
                      current=(np.array([[0.0, 3.0, 0.0]]), np.array([20.0]), np.pi * 0.3))
     assert len(fit["positions"]) == 2, fit["weights"]
-    for p, truth in zip(fit["positions"], TRUTH):
+    for p, truth in zip(fit["positions"], TRUTH, strict=True):
         assert _angle(p, truth) < 8, (p, truth)  # measured 3.4° and 1.0°
-    irr = [i / np.sum(p * p) for i, p in zip(fit["intensities"], fit["positions"])]
-    irr_true = [i / np.sum(p * p) for i, p in zip(INTENSITY, TRUTH)]
+    irr = [i / np.sum(p * p) for i, p in zip(fit["intensities"], fit["positions"], strict=True)]
+    irr_true = [i / np.sum(p * p) for i, p in zip(INTENSITY, TRUTH, strict=True)]
     np.testing.assert_allclose(irr[0] / irr[1], irr_true[0] / irr_true[1], rtol=0.15)  # measured 1.08 for 1.15
     assert fit["ambient"] < min(irr)
     assert fit["objective"] < fit["objective_current"]  # better than one light overhead with a large ambient

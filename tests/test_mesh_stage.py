@@ -124,6 +124,41 @@ def test_mesh_stage_decides_the_metallic_by_a_trial_and_holds_it(trained_run):
         MeshConfig(metallic_trial=-1).validate()
 
 
+def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run):
+    """``MeshConfig.light_fit``: "auto" fits the lights to the extracted mesh before the light phase and records it
+    (metrics.json's ``mesh.light_fit``); applied, the scene has point lights (at most ``light_fit_max``) and one
+    ambient light, all finite, non-negative and grey; with a margin no fit can reach it keeps the soup's lights and
+    says why; "off" records nothing; bad settings are refused."""
+    from triplet_cl.lights import AmbientLight, PointLight
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    soup_lights = tr.scene.current_lights()
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0,
+                                        light_fit_margin=0.0))
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    rec = stage.light_fit
+    assert rec is not None and {"objective", "objective_current", "distance", "vertices"} <= set(rec)
+    if rec["applied"]:
+        lights = scene.current_lights()
+        points = [x for x in lights if isinstance(x, PointLight)]
+        assert 1 <= len(points) <= 3 and sum(isinstance(x, AmbientLight) for x in lights) == 1
+        for x in points:
+            assert np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0) and np.ptp(x.intensity) < 1e-4
+    else:
+        assert rec["objective"] > rec["objective_current"]
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0,
+                                        light_fit_margin=0.999))
+    scene = stage.refine(stage.extract(tr.scene), 0)
+    assert stage.light_fit["applied"] is False and "better than the lights before" in stage.light_fit["reason"]
+    assert len(scene.current_lights()) == len(soup_lights)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, light_fit="off"))
+    stage.refine(stage.extract(tr.scene), 0)
+    assert stage.light_fit is None
+    for bad in ({"light_fit": "on"}, {"light_fit_max": 0}, {"light_fit_margin": 1.0}, {"light_fit_margin": -0.1}):
+        with pytest.raises(ValueError, match="light_fit"):
+            MeshConfig(**bad).validate()
+
+
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):
     """A soup trained with the cached shadows gives a mesh shaded with them (per-vertex visibility traced through
     the mesh, ``MeshConfig.shadow_eps``): the shadowed render is nowhere brighter and somewhere darker."""

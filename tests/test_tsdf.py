@@ -54,8 +54,12 @@ def test_votes_match_the_reference(device, rng, chunk_bytes):
     for name in ("seen", "hidden", "hull_out", "hull_exact"):
         moved |= got[name] != ref[name]
     assert moved.mean() <= 1e-3, f"{moved.sum()} voxels of {moved.size} counted differently"
-    for name in ("num", "wsum", "hull_sdf"):
+    for name in ("num", "wsum"):
         np.testing.assert_allclose(got[name][~moved], ref[name][~moved], rtol=1e-6, atol=1e-6, err_msg=name)
+    # the silhouette distance is interpolated at the projected position, so those few ulps of the division reach it
+    # times the distance map's slope: NVIDIA's OpenCL (H100) differed by up to 1.5e-5 (of the truncation) in 2 % of
+    # the voxels; PoCL is exact
+    np.testing.assert_allclose(got["hull_sdf"][~moved], ref["hull_sdf"][~moved], rtol=0, atol=1e-4, err_msg="hull_sdf")
 
 
 def test_votes_of_no_view_are_the_initial_sums(device):

@@ -41,6 +41,12 @@ from ..visibility import sphere_directions
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
+def _bilinear(img: np.ndarray, xi, yi, fx, fy) -> np.ndarray:
+    """``img [H, W, C]`` at the points with integer corners ``(xi, yi)`` and fractions ``fx, fy [n, 1]``."""
+    return (img[yi, xi] * (1 - fx) * (1 - fy) + img[yi, xi + 1] * fx * (1 - fy)
+            + img[yi + 1, xi] * (1 - fx) * fy + img[yi + 1, xi + 1] * fx * fy)
+
+
 def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
                     min_alpha: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex median of the photos' linear radiance over the views that see the vertex.
@@ -69,14 +75,9 @@ def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray,
         xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
         fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
 
-        def bilinear(img):
-            img = img.reshape(h, w, -1)
-            return (img[yi, xi] * (1 - fx) * (1 - fy) + img[yi, xi + 1] * fx * (1 - fy)
-                    + img[yi + 1, xi] * (1 - fx) * fy + img[yi + 1, xi + 1] * fx * fy)
-
-        val = bilinear(np.asarray(rgb, np.float32))
+        val = _bilinear(np.asarray(rgb, np.float32).reshape(h, w, -1), xi, yi, fx, fy)
         if alpha is not None:
-            val[bilinear(np.asarray(alpha, np.float32))[:, 0] < min_alpha] = np.nan
+            val[_bilinear(np.asarray(alpha, np.float32).reshape(h, w, 1), xi, yi, fx, fy)[:, 0] < min_alpha] = np.nan
         obs[idx, j] = val
     count = np.isfinite(obs[..., 0]).sum(axis=1)
     c = np.full((len(V), 3), np.nan)
@@ -135,8 +136,8 @@ def fit_weights(B: np.ndarray, log_c: np.ndarray, edges: np.ndarray, w0: np.ndar
 def cluster_atoms(dirs: np.ndarray, w: np.ndarray, angle_deg: float = 40.0, min_share: float = 0.15,
                   max_lights: int = 3) -> list[tuple[np.ndarray, float]]:
     """Greedy clusters of the weighted directions: the atoms within ``angle_deg`` of the heaviest atom left (moved
-    to their weighted mean direction, three times), while a cluster holds at least ``min_share`` of the total weight (the first one always), at most
-    ``max_lights``. Returns ``[(unit direction (the weighted mean), weight)]``."""
+    to their weighted mean direction, three times), while a cluster holds at least ``min_share`` of the total
+    weight (the first one always), at most ``max_lights``. Returns ``[(unit direction, weight)]``."""
     left = np.asarray(w, np.float64).copy()
     total = max(left.sum(), 1e-300)
     cos_min = np.cos(np.radians(angle_deg))
@@ -239,7 +240,8 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     # the ambient's share by the robust one-albedo fit: two unknowns, the direct light's scale and the ambient
     direct = BL[:, :-1] @ w[:-1]
     B2 = np.stack([direct, np.ones(len(V))], axis=1)
-    w2, obj = robust_log_fit(B2[sub], lc, np.array([1.0, w[-1]]) * np.exp(np.median(lc - np.log(B2[sub] @ [1.0, w[-1]]))))
+    w0 = np.array([1.0, w[-1]])
+    w2, obj = robust_log_fit(B2[sub], lc, w0 * np.exp(np.median(lc - np.log(B2[sub] @ w0))))
     w = np.append(w[:-1] * w2[0], w2[1])
     E = BL @ w
     obj_current = None
@@ -247,7 +249,9 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
         cp, ci, ca = current
         cp = np.asarray(cp, np.float64).reshape(-1, 3)
         Bc = atom_matrix(V, normals, cp, visibility(cp), 1.0) @ np.asarray(ci, np.float64) + float(ca)
-        _, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
+        obj_current = np.inf  # lights that light no observed vertex explain nothing
+        if np.any(Bc[sub] > 0):
+            _, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
     return {"positions": center + k * extent * L, "intensities": w[:-1] * (k * extent) ** 2, "ambient": float(w[-1]),
             "irradiance": np.where(good, E, np.nan), "observed": good, "objective": obj,
             "objective_current": obj_current, "distance": k, "tv": tv, "weights": w.tolist(),
