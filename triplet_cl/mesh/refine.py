@@ -503,8 +503,10 @@ class MeshStage:
 
         views = self.ds.train
         seen = visibility(np.array([v.camera.center for v in views]))
-        linear = self.ds.color_space == "srgb"
-        rad, count = vertex_radiance(V, normals, [(v.camera, srgb_decode(v.rgb) if linear else v.rgb, v.alpha)
+        # the photos in the renderer's radiance: decoded where the run renders linear radiance and encodes after
+        # (the linear pipeline on sRGB photos); as stored for linear data and for the sRGB-valued pipeline
+        decode = self.trainer.transfer is not None
+        rad, count = vertex_radiance(V, normals, [(v.camera, srgb_decode(v.rgb) if decode else v.rgb, v.alpha)
                                                   for v in views], seen)
         points = [x for x in lights if isinstance(x, PointLight)]
         amb = sum(float(np.asarray(x.color) @ LUMA) for x in lights if isinstance(x, AmbientLight))
