@@ -153,3 +153,29 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
                                  albedo_error(truth + np.pi * AMBIENT))
     # measured: 0.079 (the fit), 0.012 (the true lights: the renderer's Fresnel and highlights), 0.23 (one light)
     assert err_truth < 0.02 and err < 0.1 and err < 0.5 * err_wrong, (err, err_truth, err_wrong)
+
+
+def test_vertex_radiance_is_the_median_of_the_views_that_see_the_vertex():
+    """Three views of four points: the median over the views that see a point, face it and cover it with alpha;
+    a highlight in one of three views is dropped by the median; the passes over vertex chunks change nothing."""
+    V = np.array([[0.0, 0.0, 0.0], [0.2, 0.1, 0.0], [-0.2, 0.0, 0.1], [0.0, -0.2, 0.0]])
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    cams = [Camera.look_at([0.3 * k - 0.3, 0.0, 3.0], [0, 0, 0], [0, 1, 0], 40, 32, 32) for k in range(3)]
+    rgb = [np.full((32, 32, 3), 0.2 * (k + 1), np.float32) for k in range(3)]
+    rgb[2][...] = 5.0  # a highlight, in one view of three
+    alpha = [np.ones((32, 32), np.float32) for _ in range(3)]
+    alpha[1][...] = 0.0  # the second view's photo does not cover the object
+    seen = np.ones((4, 3))
+    seen[3, 0] = 0.0  # the last point is occluded in the first view
+    views = list(zip(cams, rgb, alpha, strict=True))
+    c, count = vertex_radiance(V, normals, views, seen)
+    np.testing.assert_array_equal(count, [2, 2, 2, 1])
+    np.testing.assert_allclose(c[:3], np.full((3, 3), 0.5 * (0.2 + 5.0)), rtol=1e-6)  # median of two: their mean
+    np.testing.assert_allclose(c[3], [5.0, 5.0, 5.0], rtol=1e-6)
+    rgb[1][...] = 0.4
+    alpha[1][...] = 1.0
+    c, count = vertex_radiance(V, normals, list(zip(cams, rgb, alpha, strict=True)), np.ones((4, 3)), chunk=3)
+    np.testing.assert_array_equal(count, [3, 3, 3, 3])
+    np.testing.assert_allclose(c, np.full((4, 3), 0.4), rtol=1e-6)  # the highlight (5.0) dropped
+    away = vertex_radiance(V, -normals, views, seen)[1]
+    np.testing.assert_array_equal(away, 0)  # facing away from every camera: no sample

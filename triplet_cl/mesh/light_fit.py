@@ -48,7 +48,7 @@ def _bilinear(img: np.ndarray, xi, yi, fx, fy) -> np.ndarray:
 
 
 def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
-                    min_alpha: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+                    min_alpha: float = 0.9, chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex median of the photos' linear radiance over the views that see the vertex.
 
     Args:
@@ -57,32 +57,39 @@ def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray,
         seen: ``[N, len(views)]`` visibility of each vertex from each camera centre (1: unoccluded).
         min_cos: the view must face the vertex at least this much (grazing views sample the outline).
         min_alpha: the photo's coverage at the vertex (outline pixels mix in the background).
+        chunk: vertices per pass (the samples of a pass, ``chunk × views × 3`` floats, are held at once).
 
     Returns:
         ``(c [N, 3], count [N])``: the median (NaN where no view sees the vertex) and the number of views used.
     """
     V = np.asarray(V, np.float64)
-    obs = np.full((len(V), len(views), 3), np.nan, np.float32)
-    for j, (cam, rgb, alpha) in enumerate(views):
-        h, w = rgb.shape[:2]
-        uv = cam.project_points(V)
-        x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
-        to_cam = np.asarray(cam.center, np.float64) - V
-        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
-        ok = ((seen[:, j] > 0.5) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
-              & ((normals * to_cam).sum(1) > min_cos))
-        idx = np.flatnonzero(ok)
-        xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
-        fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
-
-        val = _bilinear(np.asarray(rgb, np.float32).reshape(h, w, -1), xi, yi, fx, fy)
-        if alpha is not None:
-            val[_bilinear(np.asarray(alpha, np.float32).reshape(h, w, 1), xi, yi, fx, fy)[:, 0] < min_alpha] = np.nan
-        obs[idx, j] = val
-    count = np.isfinite(obs[..., 0]).sum(axis=1)
     c = np.full((len(V), 3), np.nan)
-    has = count > 0
-    c[has] = np.nanmedian(obs[has], axis=1)
+    count = np.zeros(len(V), np.int64)
+    images = [(cam, np.asarray(rgb, np.float32).reshape(rgb.shape[0], rgb.shape[1], -1),
+               None if alpha is None else np.asarray(alpha, np.float32).reshape(rgb.shape[0], rgb.shape[1], 1))
+              for cam, rgb, alpha in views]
+    for lo in range(0, len(V), chunk):
+        P, n = V[lo:lo + chunk], normals[lo:lo + chunk]
+        obs = np.full((len(P), len(views), 3), np.nan, np.float32)
+        for j, (cam, rgb, alpha) in enumerate(images):
+            h, w = rgb.shape[:2]
+            uv = cam.project_points(P)
+            x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
+            to_cam = np.asarray(cam.center, np.float64) - P
+            to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
+            ok = ((seen[lo:lo + chunk, j] > 0.5) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
+                  & ((n * to_cam).sum(1) > min_cos))
+            idx = np.flatnonzero(ok)
+            xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
+            fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
+            val = _bilinear(rgb, xi, yi, fx, fy)
+            if alpha is not None:
+                val[_bilinear(alpha, xi, yi, fx, fy)[:, 0] < min_alpha] = np.nan
+            obs[idx, j] = val
+        k = np.isfinite(obs[..., 0]).sum(axis=1)
+        has = np.flatnonzero(k > 0)
+        count[lo:lo + chunk] = k
+        c[lo + has] = np.nanmedian(obs[has], axis=1)
     return c, count
 
 
