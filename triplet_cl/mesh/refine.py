@@ -111,8 +111,8 @@ class MeshConfig:
     ao_directions: int = 32
     # the lights read again from the extracted mesh's shading (mesh/light_fit.py) before round 0's light phase:
     # "auto" when the lights are point lights and an ambient one and the metallic trial chose a dielectric (a metal
-    # shows no diffuse shading to read); the number of point lights (up to light_fit_max) is then the data's, and
-    # the albedo starts as the photos' radiance over the fitted irradiance. "off": the soup's lights go on.
+    # shows no diffuse shading to read); the number of point lights (up to light_fit_max) is then the data's, the
+    # light phase refits the albedo under them. "off": the soup's lights go on.
     # Measured from scratch (bench/results/light_fit_pocl_2026-11-26.txt; relight mean, albedo): spot_small under
     # two point lights 22.5 -> 27.6 dB, 14.2 -> 23.8 dB; under sun and sky 27.2 -> 29.5, 19.9 -> 24.4; under an HDR
     # environment 29.8 -> 32.6, 24.4 -> 27.3; the one-light dev scenes keep the soup's lights (margin below)
@@ -469,9 +469,9 @@ class MeshStage:
 
     def fit_lights(self, scene: Scene) -> dict | None:
         """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
-        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), and the observed vertices' albedo set to the
-        photos' radiance over that irradiance, scaled so that its median is the albedo's before (the photos fix only
-        albedo × light). Skipped (None, the reason logged) when off, when a light is of another kind, when the
+        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), scaled so that the albedo they imply has the
+        median of the albedo the mesh keeps (the photos fix only albedo × light); the light phase then refits the
+        albedo under them. Skipped (None, the reason logged) when off, when a light is of another kind, when the
         metallic trial chose a metal, or when the fit's robust one-albedo objective is not ``light_fit_margin``
         better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
@@ -523,15 +523,14 @@ class MeshStage:
             self.light_fit = {"applied": False, "reason": f"not {c.light_fit_margin:.0%} better than the lights before",
                               **rec}
             return None
+        # the lights' scale: the albedo they imply (photos over irradiance) has the median of the albedo the soup
+        # learned, which the mesh keeps (re-initialised from the implied albedo instead, the mesh relit 0.4-1.2 dB
+        # worse on three captures of four, bench/results/light_fit_pocl_2026-11-26.txt)
         good = fit["observed"]
-        irr = fit["irradiance"][good]
         mat = np.asarray(scene.material.data)
         old = sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA
-        new = np.pi * (rad[good] @ LUMA) / np.maximum(irr, 1e-12)
-        s = float(np.median(new) / max(np.median(old), 1e-6))  # the albedo's median kept
-        floor = 0.05 * float(np.median(irr))
-        albedo = np.clip(np.pi * rad[good] / (s * np.maximum(irr, floor))[:, None], 0.02, 0.98)
-        mat[good, 0:3] = logit(albedo, eps=None).astype(mat.dtype)
+        new = np.pi * (rad[good] @ LUMA) / np.maximum(fit["irradiance"][good], 1e-12)
+        s = float(np.median(new) / max(np.median(old), 1e-6))
         ao_col = get_brdf(scene.brdf).column("ao")
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
         new_lights = [PointLight(p, np.full(3, s * i))
