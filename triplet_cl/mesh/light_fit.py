@@ -8,8 +8,8 @@ are clean and a global fit is cheap, so the lights are fitted again from scratch
 1. **What each vertex shows** (:func:`vertex_radiance`): the median of the linear photo values at the vertex over
    the training views that see it (facing the camera, not occluded: the shadow-ray visibility towards the camera
    centre, inside the photo's alpha). The median drops the views where a highlight sits on it.
-2. **Light atoms**: ``atoms`` point lights spread evenly over a sphere around the object (a Fibonacci sphere,
-   ``distance`` extents from the centre), each with its cast shadows (:func:`~triplet_cl.visibility.vertex_visibility`),
+2. **Light atoms**: ``atoms`` point lights spread evenly over a sphere around the object
+   (:func:`~triplet_cl.visibility.sphere_directions`, ``distance`` extents from the centre), each with its cast shadows (:func:`~triplet_cl.visibility.vertex_visibility`),
    and one constant ambient term. Vertex ``v``'s irradiance is linear in the atoms' non-negative weights ``w``:
    ``E_v = sum_k w_k B_vk``, ``B_vk = vis_vk max(0, n_v · l_vk) d² / r_vk²``, ``B_v,ambient = 1``.
 3. **The fit** (:func:`fit_weights`): the albedo that a lighting implies is ``radiance / irradiance``; a surface's
@@ -18,12 +18,15 @@ are clean and a global fit is cheap, so the lights are fitted again from scratch
    ``sqrt(x² + eps²)``, luminance), by L-BFGS-B with ``w >= 0``. Scale-free: only the weights' ratios matter.
 4. **Lights from atoms** (:func:`cluster_atoms`): the strongest atom and its neighbours within ``cluster_angle``
    become one point light (their weighted mean direction), repeated while a cluster holds ``min_share`` of the
-   direct weight, at most ``max_lights``; the lights and an ambient term are then fitted again by (3) with their
-   own shadows. What is spread out (an environment, a sky) ends in the ambient term.
+   direct weight, at most ``max_lights``; the lights' relative weights are fitted again by (3) with their own
+   shadows. What is spread out (an environment, a sky) ends in the ambient term.
+5. **Ambient, scale and distance** (:func:`robust_log_fit`): the TV always wants more ambient (more ambient flattens
+   every shading error the normals and the photos' interreflection leave), so the ambient's share and the overall
+   scale come from a robust one-albedo fit, at the distance (the same for every light) where that fit is best.
 
 Measured on the 96² re-renders of spot_small (``bench/results/light_fit_pocl_2026-11-26.txt``): two point lights
-found within a few degrees of the truth's directions and at their irradiance ratio; one light on spot_small, the
-sun's direction on the sun-and-sky capture. A metal shows no diffuse shading to read (the fit put 73 % of the weight
+found 0.3-0.4 units from the truth's positions (directions 0.7° and 2.0° off), one light on spot_small, the sun's
+direction on the sun-and-sky capture. A metal shows no diffuse shading to read (the fit put 73 % of the weight
 in the ambient term), so :class:`~triplet_cl.mesh.refine.MeshStage` fits only when its metallic trial chose a
 dielectric.
 
@@ -192,10 +195,11 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     11-26.txt): the implied albedo's total variation finds the lights' directions and number (step 3 of the
     module), but its minimum sits at 2.5× the true ambient (more ambient flattens every shading error the mesh's
     normals and the photos' interreflection leave); the robust one-albedo fit (:func:`robust_log_fit`) puts the
-    ambient at the truth's share (0.17 for 0.16 on spot_small, 0.09 for 0.07 with two lights) and splits the
-    lights' irradiance at the truth's ratio (1.22 for 1.15). So: atoms ``distance`` extents away → TV weights →
-    clusters (directions) → for each of ``distances`` (extents from the centre, the same for every light) the
-    robust fit of the lights' and the ambient's weights → the distance whose fit is best.
+    ambient at the truth's share (0.17 for 0.16 on spot_small, 0.09 for 0.07 with two lights), and picks a
+    distance the TV put 1.3-1.6× too far. So: atoms ``distance`` extents away → TV weights → clusters
+    (directions) → for each of ``distances`` (extents from the centre, the same for every light) the TV's relative
+    weights of the lights, then the robust fit of their scale and the ambient's → the distance whose robust fit is
+    best.
 
     Args:
         V, F, normals: the mesh; c, count: :func:`vertex_radiance`'s output.
