@@ -10,7 +10,8 @@ are clean and a global fit is cheap, so the lights are fitted again from scratch
    centre, inside the photo's alpha). The median drops the views where a highlight sits on it.
 2. **Light atoms**: ``atoms`` point lights spread evenly over a sphere around the object
    (:func:`~triplet_cl.visibility.sphere_directions`, ``distance`` extents from the centre), each with its cast
-   shadows (:func:`~triplet_cl.visibility.vertex_visibility`), and one constant ambient term. Vertex ``v``'s irradiance is linear in the atoms' non-negative weights ``w``:
+   shadows (:func:`~triplet_cl.visibility.vertex_visibility`), and one constant ambient term. Vertex ``v``'s
+   irradiance is linear in the atoms' non-negative weights ``w``:
    ``E_v = sum_k w_k B_vk``, ``B_vk = vis_vk max(0, n_v · l_vk) d² / r_vk²``, ``B_v,ambient = 1``.
 3. **The fit** (:func:`fit_weights`): the albedo that a lighting implies is ``radiance / irradiance``; a surface's
    albedo is piecewise constant and its shading is not, so the weights minimise the total variation of the implied
