@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -10,7 +11,7 @@ from triplet_cl.cli.main import demo_data_path
 from triplet_cl.cli.main import main as cli_main
 
 from tests.test_train import small_cfg
-from triplet_cl.mesh.refine import MESH_STATE, MeshConfig, MeshStage, Regularizers, load_mesh_state
+from triplet_cl.mesh.refine import MESH_STATE, MeshConfig, MeshStage, Regularizers, load_mesh_state, save_mesh_state
 from triplet_cl.scene import Scene
 from triplet_cl.train import Trainer
 
@@ -124,35 +125,51 @@ def test_mesh_stage_decides_the_metallic_by_a_trial_and_holds_it(trained_run):
         MeshConfig(metallic_trial=-1).validate()
 
 
-def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run):
+def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, tmp_path):
     """``MeshConfig.light_fit``: "auto" fits the lights to the extracted mesh before the light phase and records it
-    (metrics.json's ``mesh.light_fit``); applied, the scene has point lights (at most ``light_fit_max``) and one
-    ambient light, all finite, non-negative and grey; with a margin no fit can reach it keeps the soup's lights and
-    says why; "off" records nothing; bad settings are refused."""
+    (metrics.json's ``mesh.light_fit``); applied (no margin), the scene has point lights (at most
+    ``light_fit_max``) and one ambient light, finite, non-negative and grey, and a state with them saves and loads;
+    it is skipped, the soup's lights kept and the reason recorded, with a margin no fit reaches, for held lights,
+    for a metal without a trial, and when the photos show too little (one view); "off" records nothing; bad
+    settings are refused."""
+    from triplet_cl.activations import logit
     from triplet_cl.lights import AmbientLight, PointLight
 
     tr = Trainer(None, trained_run, resume=True, quiet=True)
-    soup_lights = tr.scene.current_lights()
-    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0,
-                                        light_fit_margin=0.0))
-    scene = stage.refine(stage.extract(tr.scene), 0)
+    n_soup = len(tr.scene.current_lights())
+
+    def run(**kw):
+        stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0, **kw))
+        return stage, stage.refine(stage.extract(tr.scene), 0)
+
+    stage, scene = run(light_fit_margin=0.0)
     rec = stage.light_fit
-    assert rec is not None and {"objective", "objective_current", "distance", "vertices"} <= set(rec)
-    if rec["applied"]:
-        lights = scene.current_lights()
-        points = [x for x in lights if isinstance(x, PointLight)]
-        assert 1 <= len(points) <= 3 and sum(isinstance(x, AmbientLight) for x in lights) == 1
-        for x in points:
-            assert np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0) and np.ptp(x.intensity) < 1e-4
-    else:
-        assert rec["objective"] > rec["objective_current"]
-    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0,
-                                        light_fit_margin=0.999))
-    scene = stage.refine(stage.extract(tr.scene), 0)
+    assert rec["applied"] is True and {"objective", "objective_current", "distance", "vertices", "scale"} <= set(rec)
+    lights = scene.current_lights()
+    points = [x for x in lights if isinstance(x, PointLight)]
+    assert 1 <= len(points) <= 3 and sum(isinstance(x, AmbientLight) for x in lights) == 1
+    for x in points:
+        assert np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0) and np.ptp(x.intensity) < 1e-4
+    save_mesh_state(tmp_path / "state.npz", scene, stage.cfg)
+    assert len(load_mesh_state(tmp_path / "state.npz").current_lights()) == len(lights)
+
+    stage, scene = run(light_fit_margin=0.999)
     assert stage.light_fit["applied"] is False and "better than the lights before" in stage.light_fit["reason"]
-    assert len(scene.current_lights()) == len(soup_lights)
-    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, light_fit="off"))
-    stage.refine(stage.extract(tr.scene), 0)
+    assert len(scene.current_lights()) == n_soup
+    stage, _ = run(lr_lights=0.0)
+    assert stage.light_fit == {"applied": False, "reason": "the lights are held (lr_lights 0)"}
+    metal = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
+    mesh = metal.extract(tr.scene)
+    mesh.material.data[:, 4] = logit(0.9)  # a metal, and no trial to say otherwise
+    metal.refine(mesh, 0)
+    assert metal.light_fit["applied"] is False and "metal" in metal.light_fit["reason"]
+    one = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
+    mesh = one.extract(tr.scene)
+    one.ds = copy.copy(tr.ds)
+    one.ds.splits = {**tr.ds.splits, "train": tr.ds.train[:1]}
+    one.refine(mesh, 0)  # no crash: the soup's lights go on
+    assert one.light_fit["applied"] is False and "too few vertices" in one.light_fit["reason"]
+    stage, _ = run(light_fit="off")
     assert stage.light_fit is None
     for bad in ({"light_fit": "on"}, {"light_fit_max": 0}, {"light_fit_margin": 1.0}, {"light_fit_margin": -0.1}):
         with pytest.raises(ValueError, match="light_fit"):

@@ -81,7 +81,7 @@ def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray,
             x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
             to_cam = np.asarray(cam.center, np.float64) - P
             to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
-            ok = ((seen[lo:lo + chunk, j] > 0.5) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
+            ok = ((seen[lo:lo + chunk, j] > 0.5) & (uv[:, 2] > 0) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
                   & ((n * to_cam).sum(1) > min_cos))
             idx = np.flatnonzero(ok)
             xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
@@ -207,12 +207,16 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
         visibility: ``visibility(positions [K, 3]) -> [N, K]``, each vertex's transmittance towards point lights
             at ``positions`` (the mesh's cast shadows).
         center, extent: the object's centre and radius.
-        current: ``(positions [P, 3], intensities [P], ambient irradiance)`` of the lights before (luminance): their
-            robust fit (only their overall scale free) is reported as ``objective_current``.
+        current: ``(positions [P, 3], intensities [P], ambient irradiance)`` of the lights before (luminance, in
+            the renderer's units): their robust fit, only their overall scale free, is reported as
+            ``objective_current`` and that scale as ``scale_current`` (None for lights that light no observed
+            vertex): the fitted lights divided by it are in the renderer's units, the BRDF's factors between
+            albedo and radiance (Fresnel, metallic, π) cancelling.
 
     Returns:
         ``{"positions" [L, 3], "intensities" [L], "ambient" (irradiance), "irradiance" [N] (NaN where
-        unobserved), "observed" [N], "objective", "objective_current", "distance" (extents), "tv", "weights"
+        unobserved), "observed" [N], "objective", "objective_current", "scale_current", "distance" (extents),
+        "tv", "weights"
         (the TV fit's, per light then the ambient), "vertices", "seconds"}``; lights and irradiance share one
         arbitrary scale (the photos fix only albedo × light).
     """
@@ -240,6 +244,8 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     B = design(center + distance * extent * dirs, distance * extent)
     w_atoms, tv = fit_weights(B[sub], lc, e_sub)
     clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
+    if not clusters:
+        raise ValueError("the shading shows no direction to place a point light in (every atom's weight is 0)")
     L = np.array([d for d, _ in clusters])
     w_tv = np.array([wt for _, wt in clusters] + [w_atoms[-1]])
     best = None
@@ -255,15 +261,16 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
             best = (obj_k, k, np.append(w[:-1] * w2[0], w2[1]), BL, tv_k)
     obj, k, w, BL, tv = best
     E = BL @ w
-    obj_current = None
+    obj_current = scale_current = None
     if current is not None:
         cp, ci, ca = current
         cp = np.asarray(cp, np.float64).reshape(-1, 3)
         Bc = atom_matrix(V, normals, cp, visibility(cp), 1.0) @ np.asarray(ci, np.float64) + float(ca)
-        obj_current = np.inf  # lights that light no observed vertex explain nothing
-        if np.any(Bc[sub] > 0):
-            _, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
+        if np.any(Bc[sub] > 0):  # else they light no observed vertex and explain nothing (None)
+            wc, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
+            scale_current = float(wc[0])
     return {"positions": center + k * extent * L, "intensities": w[:-1] * (k * extent) ** 2, "ambient": float(w[-1]),
             "irradiance": np.where(good, E, np.nan), "observed": good, "objective": obj,
-            "objective_current": obj_current, "distance": k, "tv": tv, "weights": w.tolist(),
+            "objective_current": obj_current, "scale_current": scale_current, "distance": k, "tv": tv,
+            "weights": w.tolist(),
             "vertices": int(good.sum()), "seconds": time.perf_counter() - t}

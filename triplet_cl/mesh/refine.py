@@ -110,9 +110,9 @@ class MeshConfig:
     ao: str = "learned"
     ao_directions: int = 32
     # the lights read again from the extracted mesh's shading (mesh/light_fit.py) before round 0's light phase:
-    # "auto" when the lights are point lights and an ambient one and the metallic trial chose a dielectric (a metal
-    # shows no diffuse shading to read); the number of point lights (up to light_fit_max) is then the data's, the
-    # light phase refits the albedo under them. "off": the soup's lights go on.
+    # "auto" when the lights are point lights and an ambient one, learning, and the mesh is not a metal (the metallic
+    # trial's choice; a metal shows no diffuse shading to read); the number of point lights (up to light_fit_max)
+    # is then the data's, the light phase refits the albedo under them. "off": the soup's lights go on.
     # Measured from scratch (bench/results/light_fit_pocl_2026-11-26.txt §8; relight mean, albedo): spot_small
     # under two point lights 22.5 -> 28.7 dB, 14.2 -> 25.5 dB; under sun and sky 27.2 -> 30.1, 19.9 -> 25.1; under
     # an HDR environment 29.8 -> 31.6, 24.4 -> 27.6; the one-light dev scenes keep the soup's lights (margin below)
@@ -470,11 +470,14 @@ class MeshStage:
 
     def fit_lights(self, scene: Scene) -> dict | None:
         """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
-        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), scaled so that the albedo they imply has the
-        median of the albedo the mesh keeps (the photos fix only albedo × light); the light phase then refits the
-        albedo under them. Skipped (None, the reason logged) when off, when a light is of another kind, when the
-        metallic trial chose a metal, or when the fit's robust one-albedo objective is not ``light_fit_margin``
-        better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
+        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), brought into the renderer's units by the
+        lights before (the scale of their own robust fit: the BRDF's factors between albedo and radiance cancel),
+        so that the albedo the mesh keeps still fits; the light phase then refits the albedo under them. Skipped
+        (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or are not
+        point lights with falloff and ambient ones, when the mesh is a metal (the metallic trial's choice, or the
+        mean metallic without a trial), when the fit fails (too few observed vertices, no direction), or when
+        its robust one-albedo objective is not ``light_fit_margin`` better than the lights before. The record
+        goes to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
         from ..ops.color import srgb_decode
         from ..visibility import vertex_visibility
@@ -482,14 +485,22 @@ class MeshStage:
         from .light_fit import LUMA, fit_lights, vertex_radiance
 
         c, log = self.cfg, self.trainer.log
-        lights = scene.current_lights()
-        why = None
         if c.light_fit == "off":
             return None
-        if not lights or any(type(x) not in (PointLight, AmbientLight) for x in lights):
-            why = "lights other than point and ambient ones"
-        elif self.metallic_choice is not None and self.metallic_choice["metallic"] > 0.5:
-            why = "the metallic trial chose a metal (no diffuse shading to read)"
+        lights = scene.current_lights()
+        mat = np.asarray(scene.material.data)
+        met_col = get_brdf(scene.brdf).column("metallic")
+        metal = (self.metallic_choice["metallic"] if self.metallic_choice is not None
+                 else float(np.mean(sigmoid(mat[:, met_col].astype(np.float64)))) if met_col is not None else 0.0)
+        why = None
+        if c.lr_lights == 0:
+            why = "the lights are held (lr_lights 0)"
+        elif not any(isinstance(x, PointLight) for x in lights) or any(
+                type(x) not in (PointLight, AmbientLight) or (isinstance(x, PointLight) and not x.falloff)
+                for x in lights):
+            why = "the lights are not point lights (with falloff) and ambient ones"
+        elif metal > 0.5:
+            why = f"a metal (metallic {metal:.2f}): no diffuse shading to read"
         if why is not None:
             log.info(f"mesh light fit skipped: {why}")
             self.light_fit = {"applied": False, "reason": why}
@@ -497,43 +508,52 @@ class MeshStage:
         t = time.perf_counter()
         V = np.asarray(scene.V.data, np.float64)
         normals = vertex_normals(V, scene.F)
+        shadows = self.shadows_active()  # the fit's lights cast shadows where the run's renders have them
 
         def visibility(P):
+            if not shadows:
+                return np.ones((len(V), len(P)))
             return vertex_visibility(scene, self.device, lights=[PointLight(p, np.ones(3)) for p in P],
                                      ray_eps=c.shadow_eps)
 
         views = self.ds.train
-        seen = visibility(np.array([v.camera.center for v in views]))
+        seen = vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3)) for v in views],
+                                 ray_eps=c.shadow_eps)
         # the photos in the renderer's radiance: decoded where the run renders linear radiance and encodes after
         # (the linear pipeline on sRGB photos); as stored for linear data and for the sRGB-valued pipeline
         decode = self.trainer.transfer is not None
         rad, count = vertex_radiance(V, normals, [(v.camera, srgb_decode(v.rgb) if decode else v.rgb, v.alpha)
                                                   for v in views], seen)
+        ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × albedo × La (E = π La)
+        ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
         points = [x for x in lights if isinstance(x, PointLight)]
         amb = sum(float(np.asarray(x.color) @ LUMA) for x in lights if isinstance(x, AmbientLight))
         current = (np.array([x.position for x in points]).reshape(-1, 3),
-                   np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), np.pi * amb)
+                   np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), np.pi * ao * amb)
         lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
-        fit = fit_lights(V, scene.F, normals, rad, count, visibility, center=0.5 * (lo + hi),
-                         extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max, current=current)
+        try:
+            fit = fit_lights(V, scene.F, normals, rad, count, visibility, center=0.5 * (lo + hi),
+                             extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max,
+                             current=current)
+        except ValueError as exc:  # the photos show too little to fit: the soup's lights go on
+            log.info(f"mesh light fit not possible: {exc}")
+            self.light_fit = {"applied": False, "reason": str(exc)}
+            return None
         rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "tv", "weights", "vertices")}
         rec["seconds"] = time.perf_counter() - t
-        if fit["objective"] > (1.0 - c.light_fit_margin) * fit["objective_current"]:
+        if fit["objective_current"] is not None and \
+                fit["objective"] > (1.0 - c.light_fit_margin) * fit["objective_current"]:
             log.info(f"mesh light fit not kept: robust fit {fit['objective']:.4f}, the lights before "
                      f"{fit['objective_current']:.4f} (a gain under {c.light_fit_margin:.0%})")
-            self.light_fit = {"applied": False, "reason": f"not {c.light_fit_margin:.0%} better than the lights before",
-                              **rec}
+            why = f"not {c.light_fit_margin:.0%} better than the lights before"
+            self.light_fit = {"applied": False, "reason": why, **rec}
             return None
-        # the lights' scale: the albedo they imply (photos over irradiance) has the median of the albedo the soup
-        # learned, which the mesh keeps (re-initialised from the implied albedo instead, the mesh relit 0.4-1.2 dB
-        # worse on three captures of four, bench/results/light_fit_pocl_2026-11-26.txt)
-        good = fit["observed"]
-        mat = np.asarray(scene.material.data)
-        old = sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA
-        new = np.pi * (rad[good] @ LUMA) / np.maximum(fit["irradiance"][good], 1e-12)
-        s = float(np.median(new) / max(np.median(old), 1e-6))
-        ao_col = get_brdf(scene.brdf).column("ao")
-        ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
+        if fit["scale_current"]:
+            s = 1.0 / fit["scale_current"]
+        else:  # lights before that light nothing observed: the albedo they imply keeps the soup's median
+            good = fit["observed"]
+            implied = np.pi * (rad[good] @ LUMA) / np.maximum(fit["irradiance"][good], 1e-12)
+            s = float(np.median(implied) / max(np.median(sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA), 1e-6))
         new_lights = [PointLight(p, np.full(3, s * i))
                       for p, i in zip(fit["positions"], fit["intensities"], strict=True)]
         new_lights.append(AmbientLight(np.full(3, s * fit["ambient"] / (np.pi * max(ao, 1e-3)))))
@@ -541,7 +561,7 @@ class MeshStage:
         scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
         rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
         log.info(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
-                 f"{fit['objective']:.4f} (lights before {fit['objective_current']:.4f}), {rec['seconds']:.1f} s")
+                 f"{fit['objective']:.4f} (lights before {fit['objective_current']}), {rec['seconds']:.1f} s")
         self.light_fit = rec
         return rec
 
