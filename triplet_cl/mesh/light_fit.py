@@ -209,14 +209,11 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
         center, extent: the object's centre and radius.
         current: ``(positions [P, 3], intensities [P], ambient irradiance)`` of the lights before (luminance, in
             the renderer's units): their robust fit, only their overall scale free, is reported as
-            ``objective_current`` and that scale as ``scale_current`` (None for lights that light no observed
-            vertex): the fitted lights divided by it are in the renderer's units, the BRDF's factors between
-            albedo and radiance (Fresnel, metallic, π) cancelling.
+            ``objective_current`` (None for lights that light no observed vertex).
 
     Returns:
         ``{"positions" [L, 3], "intensities" [L], "ambient" (irradiance), "irradiance" [N] (NaN where
-        unobserved), "observed" [N], "objective", "objective_current", "scale_current", "distance" (extents),
-        "tv", "weights"
+        unobserved), "observed" [N], "objective", "objective_current", "distance" (extents), "tv", "weights"
         (the TV fit's, per light then the ambient), "vertices", "seconds"}``; lights and irradiance share one
         arbitrary scale (the photos fix only albedo × light).
     """
@@ -261,16 +258,14 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
             best = (obj_k, k, np.append(w[:-1] * w2[0], w2[1]), BL, tv_k)
     obj, k, w, BL, tv = best
     E = BL @ w
-    obj_current = scale_current = None
+    obj_current = None
     if current is not None:
         cp, ci, ca = current
         cp = np.asarray(cp, np.float64).reshape(-1, 3)
         Bc = atom_matrix(V, normals, cp, visibility(cp), 1.0) @ np.asarray(ci, np.float64) + float(ca)
         if np.any(Bc[sub] > 0):  # else they light no observed vertex and explain nothing (None)
-            wc, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
-            scale_current = float(wc[0])
+            _, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
     return {"positions": center + k * extent * L, "intensities": w[:-1] * (k * extent) ** 2, "ambient": float(w[-1]),
             "irradiance": np.where(good, E, np.nan), "observed": good, "objective": obj,
-            "objective_current": obj_current, "scale_current": scale_current, "distance": k, "tv": tv,
-            "weights": w.tolist(),
+            "objective_current": obj_current, "distance": k, "tv": tv, "weights": w.tolist(),
             "vertices": int(good.sum()), "seconds": time.perf_counter() - t}
