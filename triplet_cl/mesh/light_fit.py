@@ -214,7 +214,7 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     Returns:
         ``{"positions" [L, 3], "intensities" [L], "ambient" (irradiance), "irradiance" [N] (NaN where
         unobserved), "observed" [N], "objective", "objective_current", "distance" (extents), "tv", "weights"
-        (the TV fit's, per light then the ambient), "vertices", "seconds"}``; lights and irradiance share one
+        (per light, then the ambient), "vertices", "seconds"}``; lights and irradiance share one
         arbitrary scale (the photos fix only albedo × light).
     """
     t = time.perf_counter()

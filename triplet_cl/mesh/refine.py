@@ -470,14 +470,13 @@ class MeshStage:
 
     def fit_lights(self, scene: Scene) -> dict | None:
         """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
-        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), scaled so that the albedo they imply has the
-        median of the albedo the mesh keeps (its diffuse share; the photos fix only albedo × light); the light
-        phase then refits the albedo under them. Skipped
-        (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or are not
-        point lights with falloff and ambient ones, when the mesh is a metal (the metallic trial's choice, or the
-        mean metallic without a trial), when the fit fails (too few observed vertices, no direction), or when
-        its robust one-albedo objective is not ``light_fit_margin`` better than the lights before. The record
-        goes to ``metrics.json``'s ``mesh.light_fit``."""
+        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), scaled by the median over the vertices of the
+        albedo they imply over the diffuse albedo the mesh keeps (the photos fix only albedo × light); the light
+        phase then refits the albedo under them. Skipped (None, the reason logged and recorded) when off, when the
+        lights are held (``lr_lights`` 0) or are not point lights with falloff and ambient ones, when the mesh is a
+        metal (the metallic trial's choice, or the mean metallic without a trial), when the fit fails (too few
+        observed vertices, no direction), or when its robust one-albedo objective is not ``light_fit_margin``
+        better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
         from ..ops.color import srgb_decode
         from ..visibility import vertex_visibility
@@ -510,15 +509,15 @@ class MeshStage:
         normals = vertex_normals(V, scene.F)
         shadows = self.shadows_active()  # the fit's lights cast shadows where the run's renders have them
 
-        def visibility(P):
-            if not shadows:
-                return np.ones((len(V), len(P)))
+        def toward(P):  # each vertex's transmittance towards the points P: shadow rays through the mesh
             return vertex_visibility(scene, self.device, lights=[PointLight(p, np.ones(3)) for p in P],
                                      ray_eps=c.shadow_eps)
 
+        def visibility(P):
+            return toward(P) if shadows else np.ones((len(V), len(P)))
+
         views = self.ds.train
-        seen = vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3)) for v in views],
-                                 ray_eps=c.shadow_eps)
+        seen = toward(np.array([v.camera.center for v in views]))
         # the photos in the renderer's radiance: decoded where the run renders linear radiance and encodes after
         # (the linear pipeline on sRGB photos); as stored for linear data and for the sRGB-valued pipeline
         decode = self.trainer.transfer is not None
@@ -564,8 +563,9 @@ class MeshStage:
         scene.lights = new_lights
         scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
         rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
+        before = "none" if fit["objective_current"] is None else f"{fit['objective_current']:.4f}"
         log.info(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
-                 f"{fit['objective']:.4f} (lights before {fit['objective_current']}), {rec['seconds']:.1f} s")
+                 f"{fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
         self.light_fit = rec
         return rec
 
