@@ -483,7 +483,13 @@ class MeshStage:
         from .bake import vertex_normals
         from .light_fit import LUMA, fit_lights, vertex_radiance
 
-        c, log = self.cfg, self.trainer.log
+        c = self.cfg
+
+        def log(msg: str) -> None:  # the train log, and the user's terminal (the stage's other decisions print too)
+            self.trainer.log.info(msg)
+            if not self.quiet:
+                print(msg)
+
         if c.light_fit == "off":
             return None
         lights = scene.current_lights()
@@ -501,7 +507,7 @@ class MeshStage:
         elif metal > 0.5:
             why = f"a metal (metallic {metal:.2f}): no diffuse shading to read"
         if why is not None:
-            log.info(f"mesh light fit skipped: {why}")
+            log(f"mesh light fit skipped: {why}")
             self.light_fit = {"applied": False, "reason": why}
             return None
         t = time.perf_counter()
@@ -535,14 +541,14 @@ class MeshStage:
                              extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max,
                              current=current)
         except ValueError as exc:  # the photos show too little to fit: the soup's lights go on
-            log.info(f"mesh light fit not possible: {exc}")
+            log(f"mesh light fit not possible: {exc}")
             self.light_fit = {"applied": False, "reason": str(exc)}
             return None
         rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "tv", "weights", "vertices")}
         rec["seconds"] = time.perf_counter() - t
         if fit["objective_current"] is not None and \
                 fit["objective"] > (1.0 - c.light_fit_margin) * fit["objective_current"]:
-            log.info(f"mesh light fit not kept: robust fit {fit['objective']:.4f}, the lights before "
+            log(f"mesh light fit not kept: robust fit {fit['objective']:.4f}, the lights before "
                      f"{fit['objective_current']:.4f} (a gain under {c.light_fit_margin:.0%})")
             why = f"not {c.light_fit_margin:.0%} better than the lights before"
             self.light_fit = {"applied": False, "reason": why, **rec}
@@ -564,7 +570,7 @@ class MeshStage:
         scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
         rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
         before = "none" if fit["objective_current"] is None else f"{fit['objective_current']:.4f}"
-        log.info(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
+        log(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
                  f"{fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
         self.light_fit = rec
         return rec
