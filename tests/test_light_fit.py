@@ -15,7 +15,7 @@ from triplet_cl.mesh.light_fit import (
     fit_lights,
     fit_weights,
     implied_albedo_tv,
-    mesh_edges,
+    observed_edges,
     vertex_radiance,
 )
 from triplet_cl.render import RenderSettings, render
@@ -68,7 +68,7 @@ def test_cluster_atoms_groups_neighbours_and_stops_at_the_share():
 def test_implied_albedo_tv_gradient_matches_central_differences(rng):
     n = 40
     F = np.array([[i, (i + 1) % n, (i + 7) % n] for i in range(n)])
-    edges = mesh_edges(F, np.ones(n, bool))
+    edges = observed_edges(F, np.ones(n, bool))
     B = rng.uniform(0.05, 1.0, (n, 5))
     log_c = rng.normal(size=n)
     w = rng.uniform(0.1, 1.0, 5)
@@ -94,8 +94,9 @@ def test_fit_weights_finds_the_lighting_of_a_piecewise_constant_albedo():
     true_w[-1] = 0.1
     c = albedo * (B @ true_w)[:, None]
     lum = c @ np.array([0.2126, 0.7152, 0.0722])
-    w, tv = fit_weights(B, np.log(lum), mesh_edges(F, np.ones(len(V), bool)))
-    assert tv < implied_albedo_tv(np.full(65, 1 / 65), B, np.log(lum), mesh_edges(F, np.ones(len(V), bool)))[0]
+    edges = observed_edges(F, np.ones(len(V), bool))
+    w, tv = fit_weights(B, np.log(lum), edges)
+    assert tv < implied_albedo_tv(np.full(65, 1 / 65), B, np.log(lum), edges)[0]
     top = set(np.argsort(-w[:-1])[:2].tolist())
     assert top == {5, 40}, (np.argsort(-w[:-1])[:4], np.sort(w)[::-1][:4])
     np.testing.assert_allclose(w[5] / w[40], 2.0, rtol=0.15)

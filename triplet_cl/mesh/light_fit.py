@@ -107,11 +107,12 @@ def atom_matrix(V: np.ndarray, normals: np.ndarray, positions: np.ndarray, vis: 
     return vis * np.maximum(cos, 0.0) * (distance * distance) / r2
 
 
-def mesh_edges(F: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """``[E, 2]`` unique undirected edges of the faces ``F`` whose two vertices are both in ``keep``."""
-    F = np.asarray(F, np.int64)
-    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    E = np.unique(E, axis=0)
+def observed_edges(F: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``[E, 2]`` unique undirected edges of the faces ``F`` (:func:`~triplet_cl.regularizers.mesh_edges`) whose two
+    vertices are both in ``keep``."""
+    from ..regularizers import mesh_edges
+
+    E = mesh_edges(F)
     return E[keep[E[:, 0]] & keep[E[:, 1]]]
 
 
@@ -226,7 +227,7 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     if good.sum() < 16:
         raise ValueError(f"too few vertices seen by {min_views}+ views to fit lights ({int(good.sum())})")
     log_c = np.log(np.maximum(lum, 1e-4))
-    edges = mesh_edges(F, good)
+    edges = observed_edges(F, good)
     if len(edges) == 0:
         raise ValueError("no mesh edge between observed vertices to fit lights")
     sub = np.flatnonzero(good)

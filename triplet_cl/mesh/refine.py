@@ -513,17 +513,14 @@ class MeshStage:
         t = time.perf_counter()
         V = np.asarray(scene.V.data, np.float64)
         normals = vertex_normals(V, scene.F)
-        shadows = self.shadows_active()  # the fit's lights cast shadows where the run's renders have them
-
-        def toward(P):  # each vertex's transmittance towards the points P: shadow rays through the mesh
-            return vertex_visibility(scene, self.device, lights=[PointLight(p, np.ones(3)) for p in P],
-                                     ray_eps=c.shadow_eps)
-
-        def visibility(P):
-            return toward(P) if shadows else np.ones((len(V), len(P)))
+        def visibility(P):  # the fit's lights cast shadows where the run's renders have them (self.visibility)
+            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P])
+            return np.ones((len(V), len(P))) if vis is None else vis
 
         views = self.ds.train
-        seen = toward(np.array([v.camera.center for v in views]))
+        # which camera sees which vertex: shadow rays towards the camera centres, traced with or without shadows
+        seen = vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3)) for v in views],
+                                 ray_eps=c.shadow_eps)
         # the photos in the renderer's radiance: decoded where the run renders linear radiance and encodes after
         # (the linear pipeline on sRGB photos); as stored for linear data and for the sRGB-valued pipeline
         decode = self.trainer.transfer is not None
