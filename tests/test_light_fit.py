@@ -13,10 +13,14 @@ from triplet_cl.mesh.light_fit import (
     atom_matrix,
     cluster_atoms,
     fit_lights,
+    fit_metal_lights,
     fit_weights,
     implied_albedo_tv,
     observed_edges,
+    specular_atom_matrix,
+    vertex_observations,
     vertex_radiance,
+    view_consistency,
 )
 from triplet_cl.render import RenderSettings, render
 from triplet_cl.scene import Scene
@@ -32,8 +36,9 @@ def _angle(a, b) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
 
 
-def _sphere_scene(lights=(), dtype=np.float64):
-    """An icosphere (radius 1) with a piecewise-constant albedo: three bands and a patch, as a texture would be."""
+def _sphere_scene(lights=(), dtype=np.float64, metal: bool = False):
+    """An icosphere (radius 1) with a piecewise-constant albedo: three bands and a patch, as a texture would be;
+    a rough dielectric, or a metal of roughness 0.35 (the albedo its F0)."""
     import trimesh
 
     m = trimesh.creation.icosphere(4, radius=1.0)
@@ -41,7 +46,8 @@ def _sphere_scene(lights=(), dtype=np.float64):
     albedo = np.where(V[:, 1:2] > 0.35, [0.8, 0.7, 0.6], np.where(V[:, 1:2] < -0.4, [0.3, 0.5, 0.7], [0.6, 0.6, 0.6]))
     albedo = np.where((V[:, 0:1] > 0.5) & (np.abs(V[:, 1:2]) < 0.3), [0.2, 0.2, 0.2], albedo)
     n = len(V)
-    mat = np.concatenate([albedo, np.tile([0.9, 0.001, 0.999], (n, 1))], axis=1)  # rough dielectric, AO 1
+    rmo = [0.35, 0.999, 0.999] if metal else [0.9, 0.001, 0.999]  # roughness, metallic, AO
+    mat = np.concatenate([albedo, np.tile(rmo, (n, 1))], axis=1)
     return Scene.from_arrays(V, F, material=logit(mat), alpha=np.full((n, 1), logit(0.9999)), lights=list(lights),
                              dtype=dtype), albedo
 
@@ -102,6 +108,94 @@ def test_fit_weights_finds_the_lighting_of_a_piecewise_constant_albedo():
     np.testing.assert_allclose(w[5] / w[40], 2.0, rtol=0.15)
 
 
+def _photos(scene, device64, n_views: int = 16):
+    """``[(camera, rgb, alpha)]``: ``scene`` rendered by our renderer from ``n_views`` cameras around it, above and
+    below, 64², the colour un-premultiplied."""
+    views = []
+    for k in range(n_views):
+        t = 2 * np.pi * (k + 0.25) / n_views
+        h = 1.8 if k % 2 else -0.6
+        cam = Camera.look_at([3.2 * np.sin(t), h, 3.2 * np.cos(t)], [0, 0, 0], [0, 1, 0], 50, 64, 64)
+        settings = RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", real=np.float64, normals="vertex",
+                                  background=(0.0, 0.0, 0.0))
+        r = render(scene, cam, settings, device64)
+        a = np.asarray(r.alpha).reshape(64, 64)
+        rgb = np.asarray(r.image).reshape(64, 64, 3) / np.maximum(a, 1e-6)[..., None]
+        views.append((cam, rgb, a))
+    return views
+
+
+def test_specular_atom_matrix_is_the_renderers_metal_lobe(rng):
+    """Against the reference shading (``tests/reference/shade.py``'s Cook-Torrance): a metal of F0 = 1 (albedo 1,
+    metallic 1: Fresnel is 1 exactly, no diffuse) lit by each point light."""
+    from .reference.shade import ct_direct
+
+    m = 50
+    P = rng.normal(size=(m, 3)) * 0.3
+    n = rng.normal(size=(m, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + rng.normal(size=(m, 3)) * 0.5
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    pos = rng.normal(size=(4, 3)) * 3.0
+    vis = rng.uniform(0.0, 1.0, (m, 4))
+    S = specular_atom_matrix(P, n, v, pos, vis, 0.4, 2.0, chunk=7)
+    for k in range(4):
+        L = pos[k] - P
+        r2 = (L * L).sum(1, keepdims=True)
+        L /= np.sqrt(r2)
+        mat = np.tile([1.0, 1.0, 1.0, 0.4, 1.0], (m, 1))
+        ref = ct_direct(n, v, L, np.ones((m, 3)) * 4.0 / r2, mat)[:, 0] * vis[:, k]
+        np.testing.assert_allclose(S[:, k], ref, rtol=1e-9, atol=1e-12)
+
+
+def test_view_consistency_gradient_matches_central_differences(rng):
+    m, k, groups = 60, 5, 12
+    B = rng.uniform(0.05, 1.0, (m, k))
+    log_c = rng.normal(size=m)
+    group = rng.integers(0, groups, m)
+    w = rng.uniform(0.1, 1.0, k)
+    _, g = view_consistency(w, B, log_c, group, groups)
+    h = 1e-6
+    num = np.array([(view_consistency(w + h * e, B, log_c, group, groups)[0]
+                     - view_consistency(w - h * e, B, log_c, group, groups)[0]) / (2 * h) for e in np.eye(k)])
+    np.testing.assert_allclose(g, num, rtol=1e-5, atol=1e-9)
+    # scale-free: each vertex's F0 is free (up to the 1e-9 that keeps the log finite, against B w ~ 0.1-5)
+    assert abs(view_consistency(3 * w, B, log_c, group, groups)[0] - view_consistency(w, B, log_c, group,
+                                                                                       groups)[0]) < 1e-8
+
+
+def test_fit_metal_lights_recovers_two_point_lights_from_our_own_renders(device64):
+    """Physics: the sphere as a metal (roughness 0.35, the banded albedo its F0) rendered by our renderer under two
+    point lights and a dim ambient one from 24 views; the metal fit, given only the photos, the cameras and the mesh,
+    finds two lights within 8° of the truth's directions, the roughness within 0.15, a better view consistency than
+    one light overhead, and each vertex's F0 (up to the global scale) within 15 % of the truth's."""
+    lights = [PointLight(p, np.full(3, i)) for p, i in zip(TRUTH, INTENSITY, strict=True)]
+    lights.append(AmbientLight(np.full(3, AMBIENT)))
+    scene, albedo = _sphere_scene(lights, metal=True)
+    views = _photos(scene, device64, 24)
+    V, F = np.asarray(scene.V.data, np.float64), scene.F
+    n = vertex_normals(V, F)
+
+    def visibility(P):
+        return vertex_visibility(scene, device64, lights=[PointLight(p, np.ones(3)) for p in P], ray_eps=0.01)
+
+    seen = visibility(np.array([c.center for c, _, _ in views]))
+    obs = vertex_observations(V, n, views, seen)
+    fit = fit_metal_lights(V, n, obs, visibility, center=np.zeros(3), extent=1.0, atoms=256,
+                           current=(np.array([[0.0, 3.0, 0.0]]), np.array([20.0]), 0.3))
+    assert len(fit["positions"]) == 2, fit["weights"]
+    for truth in TRUTH:  # the clusters come heaviest first
+        assert min(_angle(p, truth) for p in fit["positions"]) < 8, (fit["positions"], truth)  # measured 0.3°
+    assert abs(fit["roughness"] - 0.35) <= 0.15  # measured 0.35
+    assert fit["objective"] < 0.8 * fit["objective_current"], (fit["objective"], fit["objective_current"])
+    good = np.isfinite(fit["implied"])
+    assert good.mean() > 0.5
+    f0 = albedo[good] @ np.array([0.2126, 0.7152, 0.0722])
+    ratio = fit["implied"][good] / f0
+    # measured 0.015 (the true lights' intensity ratio 1.62, found 1.34: the ambient and the lobe's tail trade)
+    assert np.median(np.abs(ratio / np.median(ratio) - 1)) < 0.15, np.percentile(ratio / np.median(ratio), [10, 50, 90])
+
+
 def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     """Physics: the sphere rendered by our renderer (Cook-Torrance, rough dielectric) under two point lights and a
     dim ambient one from 16 views; the fit, given only the photos, the cameras and the mesh, finds two lights within
@@ -111,17 +205,7 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     lights = [PointLight(p, np.full(3, i)) for p, i in zip(TRUTH, INTENSITY, strict=True)]
     lights.append(AmbientLight(np.full(3, AMBIENT)))
     scene, albedo = _sphere_scene(lights)
-    views = []
-    for k in range(16):
-        t = 2 * np.pi * (k + 0.25) / 16
-        h = 1.8 if k % 2 else -0.6
-        cam = Camera.look_at([3.2 * np.sin(t), h, 3.2 * np.cos(t)], [0, 0, 0], [0, 1, 0], 50, 64, 64)
-        settings = RenderSettings(K=4, sigma=1.0, soft_edges="silhouette", real=np.float64, normals="vertex",
-                                  background=(0.0, 0.0, 0.0))
-        r = render(scene, cam, settings, device64)
-        a = np.asarray(r.alpha).reshape(64, 64)
-        rgb = np.asarray(r.image).reshape(64, 64, 3) / np.maximum(a, 1e-6)[..., None]
-        views.append((cam, rgb, a))
+    views = _photos(scene, device64)
     V, F = np.asarray(scene.V.data, np.float64), scene.F
     n = vertex_normals(V, F)
 

@@ -129,9 +129,10 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     """``MeshConfig.light_fit``: "auto" fits the lights to the extracted mesh before the light phase and records it
     (metrics.json's ``mesh.light_fit``); applied (no margin), the scene has point lights (at most
     ``light_fit_max``) and one ambient light, finite, non-negative and grey, and a state with them saves and loads;
-    it is skipped, the soup's lights kept and the reason recorded, with a margin no fit reaches, for held lights,
-    for a metal without a trial, and when the photos show too little (one view); "off" records nothing; bad
-    settings are refused."""
+    a metal (here without a trial, by its mean metallic) has its lights read from its highlights and its roughness
+    set to the lobe they were fitted with; it is skipped, the soup's lights kept and the reason recorded, with a
+    margin no fit reaches, for held lights, and when the photos show too little (one view); "off" records nothing;
+    bad settings are refused."""
     from triplet_cl.activations import logit
     from triplet_cl.lights import AmbientLight, PointLight
 
@@ -158,11 +159,17 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     assert len(scene.current_lights()) == n_soup
     stage, _ = run(lr_lights=0.0)
     assert stage.light_fit == {"applied": False, "reason": "the lights are held (lr_lights 0)"}
-    metal = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
+    metal = MeshStage(tr, tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
+                                        light_fit_margin=0.0, light_fit_samples=300))
     mesh = metal.extract(tr.scene)
-    mesh.material.data[:, 4] = logit(0.9)  # a metal, and no trial to say otherwise
+    mesh.material.data[:, 4] = logit(0.9)  # a metal, and no trial to say otherwise: its highlights are read
     metal.refine(mesh, 0)
-    assert metal.light_fit["applied"] is False and "metal" in metal.light_fit["reason"]
+    rec = metal.light_fit
+    assert rec["applied"] is True and rec["model"] == "metal (highlights)" and rec["observations"] > rec["vertices"]
+    assert rec["roughness"] in (0.2, 0.35, 0.5, 0.7)
+    np.testing.assert_allclose(mesh.material.data[:, 3], logit(rec["roughness"]), rtol=1e-6)  # the lobe fitted
+    assert all(np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0)
+               for x in mesh.current_lights() if isinstance(x, PointLight))
     one = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
     mesh = one.extract(tr.scene)
     one.ds = copy.copy(tr.ds)
@@ -171,7 +178,8 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     assert one.light_fit["applied"] is False and "too few vertices" in one.light_fit["reason"]
     stage, _ = run(light_fit="off")
     assert stage.light_fit is None
-    for bad in ({"light_fit": "on"}, {"light_fit_max": 0}, {"light_fit_margin": 1.0}, {"light_fit_margin": -0.1}):
+    for bad in ({"light_fit": "on"}, {"light_fit_max": 0}, {"light_fit_margin": 1.0}, {"light_fit_margin": -0.1},
+                {"light_fit_samples": 10}, {"light_fit_samples": 1.5}):
         with pytest.raises(ValueError, match="light_fit"):
             MeshConfig(**bad).validate()
 

@@ -46,17 +46,18 @@ def owner_faces(F: np.ndarray, n: int) -> np.ndarray:
 
 
 def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, ray_eps: float = 1e-2,
-                      real=np.float32) -> np.ndarray:
+                      real=np.float32, vertices: np.ndarray | None = None) -> np.ndarray:
     """``[N, NV]`` transmittance from every vertex of ``scene`` towards each shadow-casting light.
 
     Args:
         scene: the soup (its current ``V``, ``alpha`` and, unless ``lights`` is given, its current lights).
         lights: other lights to trace towards (relighting); default ``scene.current_lights()``.
         ray_eps: ray start offset, × the bounding-box diagonal of ``V`` (``RenderSettings.ray_eps``).
+        vertices: trace from these vertex indices only (default all); the occluders are always the whole soup.
 
     Returns:
-        float64 ``[N, NV]``, NV the number of shadow-casting lights in light order (the columns of
-        ``shade.cl``'s ``vis``); ``[N, 0]`` when no light casts shadows.
+        float64 ``[N, NV]`` (``N`` the number of ``vertices`` when given), NV the number of shadow-casting lights in
+        light order (the columns of ``shade.cl``'s ``vis``); ``[N, 0]`` when no light casts shadows.
     """
     if not (np.isfinite(ray_eps) and ray_eps >= 0):
         raise ValueError(f"ray_eps must be a finite number >= 0, got {ray_eps}")
@@ -65,9 +66,10 @@ def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, r
     table = pack_lights(lights)
     V = np.asarray(scene.V.data, np.float64)
     N = V.shape[0]
+    sel = np.arange(N) if vertices is None else np.asarray(vertices, np.int64).reshape(-1)
     NV = table.num_shadowed
-    if NV == 0 or N == 0 or len(scene.F) == 0:
-        return np.ones((N, NV))
+    if NV == 0 or len(sel) == 0 or len(scene.F) == 0:
+        return np.ones((len(sel), NV))
     mesh = device_mesh(d, scene.F, N)
     # built afresh (not refitted): the hit order, hence T's rounding, depends on the tree, which must depend on V
     # alone for a resumed run to continue bit for bit
@@ -78,10 +80,12 @@ def vertex_visibility(scene: Scene, device: Device | None = None, lights=None, r
     Vd = cla.to_device(q, np.ascontiguousarray(V, real))
     alpha = cla.to_device(q, np.ascontiguousarray(sigmoid(np.asarray(scene.alpha.data, np.float64)).reshape(N, 1),
                                                   real))
-    own = cla.to_device(q, owner_faces(scene.F, N))
-    st = trace_op.shadow_forward(d, bvh, Vd, alpha, 0, Vd, own, cla.to_device(q, table.ints),
+    own = owner_faces(scene.F, N)
+    pos = Vd if vertices is None else cla.to_device(q, np.ascontiguousarray(V[sel], real))
+    st = trace_op.shadow_forward(d, bvh, Vd, alpha, 0, pos, cla.to_device(q, own if vertices is None else own[sel]),
+                                 cla.to_device(q, table.ints),
                                  cla.to_device(q, np.ascontiguousarray(table.params, real)), table, eps)
-    return st.vis.get().astype(np.float64).reshape(N, NV)
+    return st.vis.get().astype(np.float64).reshape(len(sel), NV)
 
 
 def sphere_directions(n: int) -> np.ndarray:

@@ -51,16 +51,53 @@ def _bilinear(img: np.ndarray, xi, yi, fx, fy) -> np.ndarray:
             + img[yi + 1, xi] * (1 - fx) * fy + img[yi + 1, xi + 1] * fx * fy)
 
 
-def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
-                    min_alpha: float = 0.9, chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
-    """Per-vertex median of the photos' linear radiance over the views that see the vertex.
+def vertex_observations(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
+                        min_alpha: float = 0.9) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every view's photo value at every vertex that view sees: facing it (``n · to camera > min_cos``: grazing
+    views sample the outline), not occluded (``seen``), inside the image and the photo's alpha (outline pixels mix
+    in the background).
 
     Args:
         V, normals: ``[N, 3]`` positions and unit vertex normals.
         views: ``[(camera, rgb, alpha)]``, ``rgb`` ``[H, W, 3]`` linear radiance, ``alpha`` ``[H, W]`` or None.
         seen: ``[N, len(views)]`` visibility of each vertex from each camera centre (1: unoccluded).
-        min_cos: the view must face the vertex at least this much (grazing views sample the outline).
-        min_alpha: the photo's coverage at the vertex (outline pixels mix in the background).
+
+    Returns:
+        ``(vertex [M], view [M], radiance [M, 3], to_camera [M, 3])``, view by view, each view's in vertex order.
+    """
+    V = np.asarray(V, np.float64)
+    out = ([], [], [], [])
+    for j, (cam, rgb, alpha) in enumerate(views):
+        h, w = rgb.shape[:2]
+        rgb = np.asarray(rgb, np.float32).reshape(h, w, -1)
+        uv = cam.project_points(V)
+        x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
+        to_cam = np.asarray(cam.center, np.float64) - V
+        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
+        ok = ((seen[:, j] > 0.5) & (uv[:, 2] > 0) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
+              & ((normals * to_cam).sum(1) > min_cos))
+        idx = np.flatnonzero(ok)
+        xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
+        fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
+        val = _bilinear(rgb, xi, yi, fx, fy)
+        if alpha is not None:
+            cover = _bilinear(np.asarray(alpha, np.float32).reshape(h, w, 1), xi, yi, fx, fy)[:, 0]
+            keep = cover >= min_alpha
+            idx, val = idx[keep], val[keep]
+        for lst, a in zip(out, (idx, np.full(len(idx), j), val, to_cam[idx]), strict=True):
+            lst.append(a)
+    if not out[0]:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+    return tuple(np.concatenate(a) for a in out)
+
+
+def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray, min_cos: float = 0.3,
+                    min_alpha: float = 0.9, chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex median of the photos' linear radiance over the views that see the vertex
+    (:func:`vertex_observations`; the median drops the views where a highlight sits on it).
+
+    Args:
+        V, normals, views, seen, min_cos, min_alpha: as :func:`vertex_observations`.
         chunk: vertices per pass (the samples of a pass, ``chunk × views × 3`` floats, are held at once).
 
     Returns:
@@ -69,27 +106,12 @@ def vertex_radiance(V: np.ndarray, normals: np.ndarray, views, seen: np.ndarray,
     V = np.asarray(V, np.float64)
     c = np.full((len(V), 3), np.nan)
     count = np.zeros(len(V), np.int64)
-    images = [(cam, np.asarray(rgb, np.float32).reshape(rgb.shape[0], rgb.shape[1], -1),
-               None if alpha is None else np.asarray(alpha, np.float32).reshape(rgb.shape[0], rgb.shape[1], 1))
-              for cam, rgb, alpha in views]
     for lo in range(0, len(V), chunk):
-        P, n = V[lo:lo + chunk], normals[lo:lo + chunk]
-        obs = np.full((len(P), len(views), 3), np.nan, np.float32)
-        for j, (cam, rgb, alpha) in enumerate(images):
-            h, w = rgb.shape[:2]
-            uv = cam.project_points(P)
-            x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
-            to_cam = np.asarray(cam.center, np.float64) - P
-            to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
-            ok = ((seen[lo:lo + chunk, j] > 0.5) & (uv[:, 2] > 0) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
-                  & ((n * to_cam).sum(1) > min_cos))
-            idx = np.flatnonzero(ok)
-            xi, yi = np.floor(x[idx]).astype(np.int64), np.floor(y[idx]).astype(np.int64)
-            fx, fy = (x[idx] - xi)[:, None], (y[idx] - yi)[:, None]
-            val = _bilinear(rgb, xi, yi, fx, fy)
-            if alpha is not None:
-                val[_bilinear(alpha, xi, yi, fx, fy)[:, 0] < min_alpha] = np.nan
-            obs[idx, j] = val
+        n = len(V[lo:lo + chunk])
+        vi, vj, val, _ = vertex_observations(V[lo:lo + chunk], normals[lo:lo + chunk], views, seen[lo:lo + chunk],
+                                             min_cos, min_alpha)
+        obs = np.full((n, len(views), 3), np.nan, np.float32)
+        obs[vi, vj] = val
         k = np.isfinite(obs[..., 0]).sum(axis=1)
         has = np.flatnonzero(k > 0)
         count[lo:lo + chunk] = k
@@ -270,3 +292,146 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
             "irradiance": np.where(good, E, np.nan), "observed": good, "objective": obj,
             "objective_current": obj_current, "distance": k, "tv": tv, "weights": w.tolist(),
             "vertices": int(good.sum()), "seconds": time.perf_counter() - t}
+
+
+def specular_atom_matrix(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray, positions: np.ndarray,
+                         vis: np.ndarray, roughness: float, distance: float, chunk: int = 2048) -> np.ndarray:
+    """``[M, K]`` radiance over F0 of a metal seen along ``to_cam`` at each observation ``P``, lit by a point light
+    of intensity ``distance²`` at each of ``positions``: the Cook-Torrance specular lobe of ``shade.cl`` (GGX,
+    Smith/Schlick-GGX, ``a = roughness²``) with its Fresnel factor taken as F0, ``vis D G / (4 nv nl) nl d² / r²``
+    (``chunk`` observations at a time: the ``[chunk, K, 3]`` temporaries)."""
+    out = np.empty((len(P), len(positions)))
+    a2 = roughness ** 4
+    k = (roughness + 1.0) ** 2 / 8.0
+    for lo in range(0, len(P), chunk):
+        sl = slice(lo, lo + chunk)
+        n, v = normals[sl], to_cam[sl]
+        L = positions[None, :, :] - P[sl, None, :]
+        r2 = np.maximum((L * L).sum(axis=2), 1e-12)
+        L /= np.sqrt(r2)[..., None]
+        nl = np.maximum((n[:, None, :] * L).sum(axis=2), 0.0)
+        nv = np.maximum((n * v).sum(axis=1), 0.0)[:, None]
+        H = L + v[:, None, :]
+        H /= np.maximum(np.linalg.norm(H, axis=2, keepdims=True), 1e-12)
+        nh = np.clip((n[:, None, :] * H).sum(axis=2), 0.0, 1.0)
+        D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2 + 1e-6)
+        G = nv / (nv * (1.0 - k) + k) * (nl / (nl * (1.0 - k) + k))
+        out[sl] = vis[sl] * D * G / (4.0 * nv * nl + 1e-4) * nl * (distance * distance) / r2
+    return out
+
+
+def view_consistency(w: np.ndarray, B: np.ndarray, log_c: np.ndarray, group: np.ndarray, n_groups: int,
+                     eps: float = 0.05) -> tuple[float, np.ndarray]:
+    """The mean Charbonnier spread of the implied log F0, ``log_c - log(B w)``, around each vertex's own mean over
+    the views that see it (``group`` [M]: the vertex of each observation), and its gradient in ``w``. Scale-free:
+    each vertex's F0 is free, only how the lighting changes from view to view is judged."""
+    e = B @ w + 1e-9
+    r = log_c - np.log(e)
+    size = np.maximum(np.bincount(group, minlength=n_groups), 1)
+    d = r - (np.bincount(group, r, n_groups) / size)[group]
+    s = np.sqrt(d * d + eps * eps)
+    g = d / s
+    g = g - (np.bincount(group, g, n_groups) / size)[group]  # through each vertex's mean
+    return float(s.mean()), (B.T @ (-g / e)) / len(r)
+
+
+def _fit_consistency(B, log_c, group, n_groups, w0=None, max_iter: int = 500):
+    from scipy.optimize import minimize
+
+    k = B.shape[1]
+    w0 = np.full(k, 1.0 / k) if w0 is None else np.maximum(np.asarray(w0, np.float64), 1e-9)
+    res = minimize(view_consistency, w0, args=(B, log_c, group, n_groups), jac=True, method="L-BFGS-B",
+                   bounds=[(0.0, None)] * k, options={"maxiter": max_iter})
+    w = np.maximum(res.x, 0.0)
+    w = w / max(w.sum(), 1e-300)
+    return w, view_consistency(w, B, log_c, group, n_groups)[0]
+
+
+def fit_metal_lights(V, normals, observations, visibility, *, center, extent: float, distance: float = 3.0,
+                     distances=(2.0, 3.0, 4.5, 7.0), roughness=(0.2, 0.35, 0.5, 0.7), atoms: int = 512,
+                     min_views: int = 3, max_lights: int = 3, cluster_angle: float = 40.0, min_share: float = 0.15,
+                     current=None) -> dict:
+    """Point lights and an ambient term fitted to a metal's highlights.
+
+    A metal shows no diffuse shading (:func:`fit_lights` reads nothing from it), but its highlights move with the
+    view: a vertex's photo values over the views that see it, divided by the specular lobe of the right lights,
+    give the same F0 in every view. So the atoms (:func:`specular_atom_matrix`, ``atoms`` directions ``distance``
+    extents away, and an ambient column of ``F0 La``) are weighted by :func:`view_consistency` at each roughness of
+    ``roughness`` (the best one kept), clustered into point lights (:func:`cluster_atoms`), and those lights' weights
+    fitted again at each of ``distances`` (the best kept).
+
+    Args:
+        V, normals: ``[N, 3]`` the vertices observed (a sample of the mesh's).
+        observations: :func:`vertex_observations` of those vertices.
+        visibility: ``visibility(positions [K, 3]) -> [N, K]``, the vertices' transmittance towards point lights.
+        center, extent: the object's centre and radius.
+        current: ``(positions [P, 3], intensities [P], ambient radiance AO × La)`` of the lights before (luminance):
+            their :func:`view_consistency` at the best roughness for them, as ``objective_current``.
+
+    Returns:
+        ``{"positions", "intensities", "ambient" (radiance), "roughness", "objective", "objective_current",
+        "distance", "weights", "vertices", "observations", "implied" [N] (each vertex's median implied F0,
+        luminance, NaN where unobserved), "seconds"}``: lights and F0 share one arbitrary scale.
+    """
+    t = time.perf_counter()
+    V, normals = np.asarray(V, np.float64), np.asarray(normals, np.float64)
+    center = np.asarray(center, np.float64)
+    vi, _, val, to_cam = observations
+    lum = np.asarray(val, np.float64) @ LUMA
+    ok = lum > 1e-4
+    vi, lum, to_cam = vi[ok], lum[ok], to_cam[ok]
+    good = np.bincount(vi, minlength=len(V)) >= min_views
+    ok = good[vi]
+    vi, log_c, to_cam = vi[ok], np.log(lum[ok]), to_cam[ok]
+    if good.sum() < 16:
+        raise ValueError(f"too few vertices seen by {min_views}+ views to fit lights ({int(good.sum())})")
+    remap = np.cumsum(good) - 1
+    group, n_groups = remap[vi], int(good.sum())
+    P, nrm = V[vi], normals[vi]
+
+    def design(pos, d, r, vis=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), then the ambient
+        vis = visibility(pos)[vi] if vis is None else vis
+        return np.concatenate([specular_atom_matrix(P, nrm, to_cam, pos, vis, r, d), np.ones((len(P), 1))], axis=1)
+
+    dirs = sphere_directions(atoms)
+    pos = center + distance * extent * dirs
+    vis_atoms = visibility(pos)[vi]
+    found = None
+    for r in roughness:
+        w, obj = _fit_consistency(design(pos, distance * extent, r, vis_atoms), log_c, group, n_groups)
+        if found is None or obj < found[0]:
+            found = (obj, r, w)
+    _, r, w_atoms = found
+    del vis_atoms
+    clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
+    if not clusters:
+        raise ValueError("the highlights show no direction to place a point light in (every atom's weight is 0)")
+    L = np.array([d for d, _ in clusters])
+    w0 = np.array([wt for _, wt in clusters] + [w_atoms[-1]])
+    best = None
+    for k in distances:
+        BL = design(center + k * extent * L, k * extent, r)
+        w, obj = _fit_consistency(BL, log_c, group, n_groups, w0=w0)
+        if best is None or obj < best[0]:
+            best = (obj, k, w, BL)
+    obj, k, w, BL = best
+    implied = np.full(len(V), np.nan)  # each vertex's F0 under the fit (one scale): the median over its views
+    ratio = np.exp(log_c) / np.maximum(BL @ w, 1e-12)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
+    implied[np.flatnonzero(good)] = [np.median(ratio[order[a:b]]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    obj_current = None
+    if current is not None:
+        cp, ci, ca = current
+        cp = np.asarray(cp, np.float64).reshape(-1, 3)
+        vis_c = visibility(cp)[vi]
+        for rc in roughness:
+            Bc = (specular_atom_matrix(P, nrm, to_cam, cp, vis_c, rc, 1.0) @ np.asarray(ci, np.float64)
+                  + float(ca))[:, None]
+            if np.any(Bc > 0):
+                o = view_consistency(np.ones(1), Bc, log_c, group, n_groups)[0]
+                obj_current = o if obj_current is None else min(obj_current, o)
+    return {"positions": center + k * extent * L, "intensities": w[:-1] * (k * extent) ** 2, "ambient": float(w[-1]),
+            "roughness": float(r), "objective": float(obj), "objective_current": obj_current, "distance": k,
+            "weights": w.tolist(), "vertices": n_groups, "observations": int(len(vi)), "implied": implied,
+            "seconds": time.perf_counter() - t}

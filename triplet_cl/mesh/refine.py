@@ -124,6 +124,9 @@ class MeshConfig:
     # point lights 0.69, environment 0.77-0.83, sun and sky 0.92, spot_small 0.93-0.94, spot 0.95, gadget at 100²
     # 0.96-0.98, bob_env 0.98, gadget 1.0 (with no margin, bob_env's mesh relit 0.2-1.2 dB worse)
     light_fit_margin: float = 0.06
+    # the metal's fit (mesh/light_fit.py fit_metal_lights) reads every view of this many vertices (a fixed random
+    # sample): its matrices hold observations × 512 atoms
+    light_fit_samples: int = 2000
     # interreflection: "traced" lights every vertex also with one diffuse bounce of the lights off the rest of the
     # mesh (visibility.vertex_bounce, bounce_directions rays per vertex, a constant re-traced with the cast shadows
     # and after each remesh; lights.BounceLight), "off" without. States saved before it read "off"
@@ -174,6 +177,10 @@ class MeshConfig:
         if isinstance(self.light_fit_max, bool) or not isinstance(self.light_fit_max, int) \
                 or not 1 <= self.light_fit_max <= 8:
             raise ValueError(f"mesh light_fit_max must be an integer in [1, 8], got {self.light_fit_max!r}")
+        if isinstance(self.light_fit_samples, bool) or not isinstance(self.light_fit_samples, int) \
+                or not 64 <= self.light_fit_samples <= 100000:
+            raise ValueError(f"mesh light_fit_samples must be an integer in [64, 100000], got "
+                             f"{self.light_fit_samples!r}")
         if self.bounce not in ("traced", "off"):
             raise ValueError(f"mesh bounce must be 'traced' or 'off', got {self.bounce!r}")
         if not isinstance(self.bounce_directions, int) or not 1 <= self.bounce_directions <= 1024:
@@ -386,14 +393,14 @@ class MeshStage:
         """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
         return self.trainer.shadows_active() and self.renderer == "raster"
 
-    def visibility(self, scene: Scene, lights=None):
-        """``[N, NV]`` per-vertex visibility of ``scene`` towards ``lights`` (default its own), or None without
-        shadows (:meth:`shadows_active`)."""
+    def visibility(self, scene: Scene, lights=None, vertices=None):
+        """``[N, NV]`` per-vertex visibility of ``scene`` (of its ``vertices`` when given) towards ``lights``
+        (default its own), or None without shadows (:meth:`shadows_active`)."""
         if not self.shadows_active():
             return None
         from ..visibility import vertex_visibility
 
-        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps)
+        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps, vertices=vertices)
 
     def bounce_active(self, scene: Scene) -> bool:
         """The mesh is lit with the traced interreflection (``MeshConfig.bounce``): rasterized, without a vertex-SH
@@ -470,18 +477,15 @@ class MeshStage:
 
     def fit_lights(self, scene: Scene) -> dict | None:
         """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
-        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), scaled by the median over the vertices of the
-        albedo they imply over the diffuse albedo the mesh keeps (the photos fix only albedo × light); the light
-        phase then refits the albedo under them. Skipped (None, the reason logged and recorded) when off, when the
-        lights are held (``lr_lights`` 0) or are not point lights with falloff and ambient ones, when the mesh is a
-        metal (the metallic trial's choice, or the mean metallic without a trial), when the fit fails (too few
-        observed vertices, no direction), or when its robust one-albedo objective is not ``light_fit_margin``
-        better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
+        mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), or for a metal (the metallic trial's choice,
+        or the mean metallic without a trial) to its highlights (:func:`~triplet_cl.mesh.light_fit.fit_metal_lights`,
+        which also sets the tied roughness), scaled by the median over the vertices of the albedo (F0 for a metal)
+        they imply over the mesh's (the photos fix only albedo × light); the light phase then refits the albedo under
+        them. Skipped (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or
+        are not point lights with falloff and ambient ones, when the fit fails (too few observed vertices, no
+        direction), or when its objective is not ``light_fit_margin`` better than the lights before. The record goes
+        to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
-        from ..ops.color import srgb_decode
-        from ..visibility import vertex_visibility
-        from .bake import vertex_normals
-        from .light_fit import LUMA, fit_lights, vertex_radiance
 
         c = self.cfg
 
@@ -504,73 +508,135 @@ class MeshStage:
                 type(x) not in (PointLight, AmbientLight) or (isinstance(x, PointLight) and not x.falloff)
                 for x in lights):
             why = "the lights are not point lights (with falloff) and ambient ones"
-        elif metal > 0.5:
-            why = f"a metal (metallic {metal:.2f}): no diffuse shading to read"
         if why is not None:
             log(f"mesh light fit skipped: {why}")
             self.light_fit = {"applied": False, "reason": why}
             return None
         t = time.perf_counter()
-        V = np.asarray(scene.V.data, np.float64)
-        normals = vertex_normals(V, scene.F)
-        def visibility(P):  # the fit's lights cast shadows where the run's renders have them (self.visibility)
-            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P])
-            return np.ones((len(V), len(P))) if vis is None else vis
-
-        views = self.ds.train
-        # which camera sees which vertex: shadow rays towards the camera centres, traced with or without shadows
-        seen = vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3)) for v in views],
-                                 ray_eps=c.shadow_eps)
-        # the photos in the renderer's radiance: decoded where the run renders linear radiance and encodes after
-        # (the linear pipeline on sRGB photos); as stored for linear data and for the sRGB-valued pipeline
-        decode = self.trainer.transfer is not None
-        rad, count = vertex_radiance(V, normals, [(v.camera, srgb_decode(v.rgb) if decode else v.rgb, v.alpha)
-                                                  for v in views], seen)
-        ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × albedo × La (E = π La)
+        ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × (albedo or F0) × La
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
-        points = [x for x in lights if isinstance(x, PointLight)]
-        amb = sum(float(np.asarray(x.color) @ LUMA) for x in lights if isinstance(x, AmbientLight))
-        current = (np.array([x.position for x in points]).reshape(-1, 3),
-                   np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), np.pi * ao * amb)
-        lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
         try:
-            fit = fit_lights(V, scene.F, normals, rad, count, visibility, center=0.5 * (lo + hi),
-                             extent=0.5 * float(np.linalg.norm(hi - lo)), max_lights=c.light_fit_max,
-                             current=current)
+            fit, scale = (self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights)(scene, lights, ao)
         except ValueError as exc:  # the photos show too little to fit: the soup's lights go on
             log(f"mesh light fit not possible: {exc}")
             self.light_fit = {"applied": False, "reason": str(exc)}
             return None
-        rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "tv", "weights", "vertices")}
+        kind = "metal (highlights)" if metal > 0.5 else "diffuse shading"
+        rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "weights", "vertices")}
+        rec.update({k: fit[k] for k in ("tv", "roughness", "observations") if k in fit}, model=kind)
         rec["seconds"] = time.perf_counter() - t
         if fit["objective_current"] is not None and \
                 fit["objective"] > (1.0 - c.light_fit_margin) * fit["objective_current"]:
-            log(f"mesh light fit not kept: robust fit {fit['objective']:.4f}, the lights before "
-                     f"{fit['objective_current']:.4f} (a gain under {c.light_fit_margin:.0%})")
+            log(f"mesh light fit ({kind}) not kept: {fit['objective']:.4f}, the lights before "
+                f"{fit['objective_current']:.4f} (a gain under {c.light_fit_margin:.0%})")
             why = f"not {c.light_fit_margin:.0%} better than the lights before"
             self.light_fit = {"applied": False, "reason": why, **rec}
             return None
-        # the scale: vertex by vertex, the albedo the new lights imply (π radiance / irradiance) over the diffuse
-        # albedo the mesh keeps (albedo × (1 - metallic)); their median. Measured (results §9-§10): the scale of the
-        # soup's lights' own robust fit relit two point lights 0.7-1.6 dB worse (those lights were fitted wrong);
-        # the ratio of the two medians put gadget's ambient 3x too bright (env_rotated -3.2 dB)
+        new_lights = [PointLight(p, np.full(3, scale * i))
+                      for p, i in zip(fit["positions"], fit["intensities"], strict=True)]
+        new_lights.append(AmbientLight(np.full(3, scale * fit["ambient"] / max(ao, 1e-3))))
+        scene.lights = new_lights
+        scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
+        rough_col = get_brdf(scene.brdf).column("roughness")
+        if "roughness" in fit and rough_col is not None:  # the lobe the lights were fitted with (tied in the phase)
+            mat[:, rough_col] = logit(fit["roughness"])
+        rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=scale)
+        before = "none" if fit["objective_current"] is None else f"{fit['objective_current']:.4f}"
+        log(f"mesh light fit ({kind}): {len(new_lights) - 1} point light(s) at {fit['distance']} extents, "
+            f"objective {fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
+        self.light_fit = rec
+        return rec
+
+    def _photos(self):
+        """The training views as ``(camera, rgb, alpha)`` in the renderer's radiance: decoded where the run renders
+        linear radiance and encodes after (the linear pipeline on sRGB photos); as stored for linear data and for
+        the sRGB-valued pipeline."""
+        from ..ops.color import srgb_decode
+
+        decode = self.trainer.transfer is not None
+        return [(v.camera, srgb_decode(v.rgb) if decode else v.rgb, v.alpha) for v in self.ds.train]
+
+    def _seen(self, scene: Scene, vertices=None) -> np.ndarray:
+        """``[N, views]``: which training camera sees which vertex (shadow rays towards the camera centres)."""
+        from ..lights import PointLight
+        from ..visibility import vertex_visibility
+
+        return vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3))
+                                                             for v in self.ds.train],
+                                 ray_eps=self.cfg.shadow_eps, vertices=vertices)
+
+    def _point_visibility(self, scene: Scene, n: int, vertices=None):
+        """``visibility(P) -> [n, len(P)]``: the transmittance of point lights at ``P``, with the mesh's cast
+        shadows where the run's renders have them (:meth:`visibility`), else 1."""
+        from ..lights import PointLight
+
+        def visibility(P):
+            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P], vertices=vertices)
+            return np.ones((n, len(P))) if vis is None else vis
+        return visibility
+
+    @staticmethod
+    def _current_lights(lights, ambient_factor: float):
+        """``(positions, intensities, ambient)`` of the point and ambient ``lights`` in luminance, the ambient
+        radiance × ``ambient_factor``."""
+        from ..lights import AmbientLight, PointLight
+        from .light_fit import LUMA
+
+        points = [x for x in lights if isinstance(x, PointLight)]
+        amb = sum(float(np.asarray(x.color) @ LUMA) for x in lights if isinstance(x, AmbientLight))
+        return (np.array([x.position for x in points]).reshape(-1, 3),
+                np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), ambient_factor * amb)
+
+    def _fit_diffuse_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float]:
+        """:func:`~triplet_cl.mesh.light_fit.fit_lights` on the mesh's per-vertex median radiance, and the scale: the
+        median over vertices of the albedo the new lights imply over the diffuse albedo the mesh keeps (albedo ×
+        (1 - metallic)). Measured (results §9-§10): the scale of the soup's lights' own robust fit relit two point
+        lights 0.7-1.6 dB worse (those lights were fitted wrong); the ratio of the two medians put gadget's ambient
+        3x too bright (env_rotated -3.2 dB)."""
+        from .bake import vertex_normals
+        from .light_fit import LUMA, fit_lights, vertex_radiance
+
+        V = np.asarray(scene.V.data, np.float64)
+        normals = vertex_normals(V, scene.F)
+        rad, count = vertex_radiance(V, normals, self._photos(), self._seen(scene))
+        lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
+        fit = fit_lights(V, scene.F, normals, rad, count, self._point_visibility(scene, len(V)),
+                         center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
+                         max_lights=self.cfg.light_fit_max,
+                         current=self._current_lights(lights, np.pi * ao))  # E = π AO La
+        mat = np.asarray(scene.material.data)
+        met_col = get_brdf(scene.brdf).column("metallic")
         good = fit["observed"]
         implied = np.pi * (rad[good] @ LUMA) / np.maximum(fit["irradiance"][good], 1e-12)
         diffuse = sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA
         if met_col is not None:
             diffuse = diffuse * (1.0 - sigmoid(mat[good, met_col].astype(np.float64)))
-        s = float(np.median(implied / np.maximum(diffuse, 0.02)))
-        new_lights = [PointLight(p, np.full(3, s * i))
-                      for p, i in zip(fit["positions"], fit["intensities"], strict=True)]
-        new_lights.append(AmbientLight(np.full(3, s * fit["ambient"] / (np.pi * max(ao, 1e-3)))))
-        scene.lights = new_lights
-        scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
-        rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=s)
-        before = "none" if fit["objective_current"] is None else f"{fit['objective_current']:.4f}"
-        log(f"mesh light fit: {len(new_lights) - 1} point light(s) at {fit['distance']} extents, robust fit "
-                 f"{fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
-        self.light_fit = rec
-        return rec
+        return fit, float(np.median(implied / np.maximum(diffuse, 0.02)))
+
+    def _fit_metal_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float]:
+        """:func:`~triplet_cl.mesh.light_fit.fit_metal_lights` on the photo values of ``light_fit_samples`` vertices
+        (a fixed random sample: the fit holds observations × atoms), and the scale: the median over them of the F0
+        the new lights imply over the mesh's (0.04 (1 - metallic) + metallic × albedo)."""
+        from .bake import vertex_normals
+        from .light_fit import LUMA, fit_metal_lights, vertex_observations
+
+        V = np.asarray(scene.V.data, np.float64)
+        normals = vertex_normals(V, scene.F)
+        idx = np.arange(len(V))
+        if len(V) > self.cfg.light_fit_samples:
+            idx = np.sort(np.random.default_rng(0).choice(len(V), self.cfg.light_fit_samples, replace=False))
+        obs = vertex_observations(V[idx], normals[idx], self._photos(), self._seen(scene, idx))
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx),
+                               center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
+                               max_lights=self.cfg.light_fit_max,
+                               current=self._current_lights(lights, ao))  # AO × F0 × La
+        mat = np.asarray(scene.material.data)
+        met_col = get_brdf(scene.brdf).column("metallic")
+        met = sigmoid(mat[idx, met_col].astype(np.float64))[:, None] if met_col is not None else 1.0
+        f0 = (0.04 * (1.0 - met) + met * sigmoid(mat[idx, 0:3].astype(np.float64))) @ LUMA
+        good = np.isfinite(fit["implied"])
+        return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02)))
 
     def computed_ao_column(self, scene: Scene) -> int | None:
         """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
