@@ -320,8 +320,8 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "mesh: learned per vertex (default), or computed: traced from the mesh's geometry and held "
                    "(no effect with blinn-phong)")
     p.add_argument("--mesh-light-fit", choices=["auto", "off"], help="read the lights again from the extracted "
-                   "mesh's shading before its light phase (auto, default: when the lights are point and ambient "
-                   "ones and the mesh is not a metal; kept when clearly better than the soup's, the number of point "
+                   "mesh's shading (a metal's: from its highlights) before its light phase (auto, default: when the "
+                   "lights are point and ambient ones; kept when clearly better than the soup's, the number of point "
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
     p.add_argument("--mesh-bounce", choices=["traced", "off"], help="interreflection on the mesh: traced (one diffuse "
                    "bounce of the lights off the rest of the mesh, per vertex, re-traced with the cast shadows) "

@@ -16,6 +16,7 @@ from triplet_cl.mesh.light_fit import (
     fit_metal_lights,
     fit_weights,
     implied_albedo_tv,
+    lobe_geometry,
     observed_edges,
     specular_atom_matrix,
     vertex_observations,
@@ -138,7 +139,9 @@ def test_specular_atom_matrix_is_the_renderers_metal_lobe(rng):
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     pos = rng.normal(size=(4, 3)) * 3.0
     vis = rng.uniform(0.0, 1.0, (m, 4))
-    S = specular_atom_matrix(P, n, v, pos, vis, 0.4, 2.0, chunk=7)
+    S = specular_atom_matrix(P, n, v, pos, vis, 0.4, 2.0)
+    geometry = lobe_geometry(P, n, v, pos, vis, 2.0, chunk=7)
+    np.testing.assert_array_equal(specular_atom_matrix(P, n, v, pos, None, 0.4, 2.0, geometry), S)
     for k in range(4):
         L = pos[k] - P
         r2 = (L * L).sum(1, keepdims=True)

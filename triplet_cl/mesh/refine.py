@@ -110,9 +110,10 @@ class MeshConfig:
     ao: str = "learned"
     ao_directions: int = 32
     # the lights read again from the extracted mesh's shading (mesh/light_fit.py) before round 0's light phase:
-    # "auto" when the lights are point lights and an ambient one, learning, and the mesh is not a metal (the metallic
-    # trial's choice; a metal shows no diffuse shading to read); the number of point lights (up to light_fit_max)
-    # is then the data's, the light phase refits the albedo under them. "off": the soup's lights go on.
+    # "auto" when the lights are point lights and an ambient one and learning; for a metal (the metallic trial's
+    # choice: it shows no diffuse shading) from its highlights, which also sets the tied roughness; the number of
+    # point lights (up to light_fit_max) is then the data's, the light phase refits the albedo under them. "off":
+    # the soup's lights go on.
     # Measured from scratch (bench/results/light_fit_pocl_2026-11-26.txt §8; relight mean, albedo): spot_small
     # under two point lights 22.5 -> 28.7 dB, 14.2 -> 25.5 dB; under sun and sky 27.2 -> 30.1, 19.9 -> 25.1; under
     # an HDR environment 29.8 -> 31.6, 24.4 -> 27.6; the one-light dev scenes keep the soup's lights (margin below)
