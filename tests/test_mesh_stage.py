@@ -154,6 +154,16 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     save_mesh_state(tmp_path / "state.npz", scene, stage.cfg)
     assert len(load_mesh_state(tmp_path / "state.npz").current_lights()) == len(lights)
 
+    # units: the diffuse fit's ambient term is an irradiance, π AO La (iterations 0: the AO as the fit read it)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
+                                        light_fit_margin=0.0))
+    mesh = stage.extract(tr.scene)
+    ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
+    stage.refine(mesh, 0)
+    rec = stage.light_fit
+    amb = [x for x in mesh.current_lights() if isinstance(x, AmbientLight)][0]
+    np.testing.assert_allclose(amb.color, rec["scale"] * rec["ambient"] / (np.pi * ao), rtol=1e-5)
+
     stage, scene = run(light_fit_margin=0.999)
     assert stage.light_fit["applied"] is False and "better than the lights before" in stage.light_fit["reason"]
     assert len(scene.current_lights()) == n_soup
@@ -166,6 +176,9 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     metal.refine(mesh, 0)
     rec = metal.light_fit
     assert rec["applied"] is True and rec["model"] == "metal (highlights)" and rec["observations"] > rec["vertices"]
+    amb = [x for x in mesh.current_lights() if isinstance(x, AmbientLight)][0]  # AO La over F0 (AO held: no steps)
+    ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
+    np.testing.assert_allclose(amb.color, rec["scale"] * rec["ambient"] / ao, rtol=1e-5)
     assert rec["roughness"] in (0.2, 0.35, 0.5, 0.7)
     np.testing.assert_allclose(mesh.material.data[:, 3], logit(rec["roughness"]), rtol=1e-6)  # the lobe fitted
     assert all(np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0)

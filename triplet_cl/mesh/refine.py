@@ -517,13 +517,14 @@ class MeshStage:
         ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × (albedo or F0) × La
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
         try:
-            fit, scale = (self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights)(scene, lights, ao)
+            fit, scale, radiance = (self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights)(scene, lights,
+                                                                                                         ao)
         except ValueError as exc:  # the photos show too little to fit: the soup's lights go on
             log(f"mesh light fit not possible: {exc}")
             self.light_fit = {"applied": False, "reason": str(exc)}
             return None
         kind = "metal (highlights)" if metal > 0.5 else "diffuse shading"
-        rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "weights", "vertices")}
+        rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "weights", "vertices", "ambient")}
         rec.update({k: fit[k] for k in ("tv", "roughness", "observations") if k in fit}, model=kind)
         rec["seconds"] = time.perf_counter() - t
         if fit["objective_current"] is not None and \
@@ -535,7 +536,7 @@ class MeshStage:
             return None
         new_lights = [PointLight(p, np.full(3, scale * i))
                       for p, i in zip(fit["positions"], fit["intensities"], strict=True)]
-        new_lights.append(AmbientLight(np.full(3, scale * fit["ambient"] / max(ao, 1e-3))))
+        new_lights.append(AmbientLight(np.full(3, scale * radiance)))
         scene.lights = new_lights
         scene.light_params = Param(pack_lights(new_lights).params.astype(mat.dtype), "light_params")
         rough_col = get_brdf(scene.brdf).column("roughness")
@@ -588,12 +589,13 @@ class MeshStage:
         return (np.array([x.position for x in points]).reshape(-1, 3),
                 np.array([float(np.asarray(x.intensity) @ LUMA) for x in points]), ambient_factor * amb)
 
-    def _fit_diffuse_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float]:
-        """:func:`~triplet_cl.mesh.light_fit.fit_lights` on the mesh's per-vertex median radiance, and the scale: the
+    def _fit_diffuse_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float, float]:
+        """:func:`~triplet_cl.mesh.light_fit.fit_lights` on the mesh's per-vertex median radiance; the scale: the
         median over vertices of the albedo the new lights imply over the diffuse albedo the mesh keeps (albedo ×
-        (1 - metallic)). Measured (results §9-§10): the scale of the soup's lights' own robust fit relit two point
-        lights 0.7-1.6 dB worse (those lights were fitted wrong); the ratio of the two medians put gadget's ambient
-        3x too bright (env_rotated -3.2 dB)."""
+        (1 - metallic)); the ambient light's radiance before that scale (the fit's ambient irradiance is π AO La).
+        Measured (results §9-§10): the scale of the soup's lights' own robust fit relit two point lights 0.7-1.6 dB
+        worse (those lights were fitted wrong); the ratio of the two medians put gadget's ambient 3x too bright
+        (env_rotated -3.2 dB)."""
         from .bake import vertex_normals
         from .light_fit import LUMA, fit_lights, vertex_radiance
 
@@ -612,12 +614,13 @@ class MeshStage:
         diffuse = sigmoid(mat[good, 0:3].astype(np.float64)) @ LUMA
         if met_col is not None:
             diffuse = diffuse * (1.0 - sigmoid(mat[good, met_col].astype(np.float64)))
-        return fit, float(np.median(implied / np.maximum(diffuse, 0.02)))
+        return fit, float(np.median(implied / np.maximum(diffuse, 0.02))), fit["ambient"] / (np.pi * max(ao, 1e-3))
 
-    def _fit_metal_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float]:
+    def _fit_metal_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float, float]:
         """:func:`~triplet_cl.mesh.light_fit.fit_metal_lights` on the photo values of ``light_fit_samples`` vertices
-        (a fixed random sample: the fit holds observations × atoms), and the scale: the median over them of the F0
-        the new lights imply over the mesh's (0.04 (1 - metallic) + metallic × albedo)."""
+        (a fixed random sample: the fit holds observations × atoms); the scale: the median over them of the F0 the
+        new lights imply over the mesh's (0.04 (1 - metallic) + metallic × albedo); the ambient light's radiance
+        before that scale (the fit's ambient term is AO La, over F0)."""
         from .bake import vertex_normals
         from .light_fit import LUMA, fit_metal_lights, vertex_observations
 
@@ -637,7 +640,7 @@ class MeshStage:
         met = sigmoid(mat[idx, met_col].astype(np.float64))[:, None] if met_col is not None else 1.0
         f0 = (0.04 * (1.0 - met) + met * sigmoid(mat[idx, 0:3].astype(np.float64))) @ LUMA
         good = np.isfinite(fit["implied"])
-        return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02)))
+        return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02))), fit["ambient"] / max(ao, 1e-3)
 
     def computed_ao_column(self, scene: Scene) -> int | None:
         """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
