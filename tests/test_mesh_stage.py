@@ -170,7 +170,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     stage, _ = run(lr_lights=0.0)
     assert stage.light_fit == {"applied": False, "reason": "the lights are held (lr_lights 0)"}
     metal = MeshStage(tr, tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
-                                        light_fit_margin=0.0, light_fit_samples=300))
+                                        light_fit_margin_metal=0.0, light_fit_samples=300))
     mesh = metal.extract(tr.scene)
     mesh.material.data[:, 4] = logit(0.9)  # a metal, and no trial to say otherwise: its highlights are read
     metal.refine(mesh, 0)
@@ -192,6 +192,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     stage, _ = run(light_fit="off")
     assert stage.light_fit is None
     for bad in ({"light_fit": "on"}, {"light_fit_max": 0}, {"light_fit_margin": 1.0}, {"light_fit_margin": -0.1},
+                {"light_fit_margin_metal": 1.0}, {"light_fit_margin_metal": True},
                 {"light_fit_samples": 10}, {"light_fit_samples": 1.5}):
         with pytest.raises(ValueError, match="light_fit"):
             MeshConfig(**bad).validate()
