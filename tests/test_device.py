@@ -146,3 +146,25 @@ def test_cli_devices(capsys, device):
 def test_alloc_check(device):
     with pytest.raises(MemoryError, match="depth buffer"):
         device.check_alloc(device.info.max_alloc_bytes + 1, "depth buffer")
+
+
+def test_pool_gives_back_held_buffers_past_its_limit(device):
+    """``Device.release_held``: buffers of many sizes freed into the pool (a render's buffers change size with its
+    fragment count) are given back once they exceed the limit; below it the pool keeps them for reuse; buffers in
+    use are never touched."""
+    import pyopencl.array as cla
+
+    pool = device.allocator
+    pool.free_held()
+    live = cla.empty(device.queue, 1000, np.float32, allocator=pool)
+    for n in (3000, 5000, 9000, 17000):  # four size classes, freed
+        cla.empty(device.queue, n, np.float32, allocator=pool).finish()
+    held = int(pool.managed_bytes) - int(pool.active_bytes)
+    active = pool.active_blocks  # the live buffer, and any other test's still referenced
+    assert held >= 4 * 34000 and pool.held_blocks >= 4
+    assert device.release_held(limit_bytes=held) == 0  # at the limit: kept
+    assert int(pool.managed_bytes) - int(pool.active_bytes) == held
+    assert device.release_held(limit_bytes=1000) == held
+    assert pool.held_blocks == 0 and pool.active_blocks == active  # buffers in use stay
+    live.fill(1.0)
+    assert float(live.get().sum()) == 1000.0

@@ -308,6 +308,7 @@ CONFIG_CASES = {
     "unknown field": None,
     "downscale 0": None,  # was "downscale must be a positive integer, got 0", the file not named
     "unknown format": None,  # was "format must be 'auto' or one of ...", the file not named
+    "nested too deeply": '{"data": ' + "[" * 100000 + "]" * 100000 + "}",  # was a RecursionError traceback
 }
 
 
@@ -541,6 +542,89 @@ def test_nerf_pose_and_angle_sanity(tmp_path, case):
     assert "transforms_train.json" in str(ei.value)
 
 
+_DEEP = "[" * 100000 + "]" * 100000  # JSON nested past Python's recursion limit
+BAD_TRANSFORMS = {  # case -> (edit of transforms_train.json as text or as a dict, what the error says)
+    "integer past any float in a matrix": (lambda d: d["frames"][0]["transform_matrix"][0].__setitem__(3, 10**400),
+                                           "frames\\[0\\].*too large"),
+    "integer past any float as the angle": (lambda d: d.__setitem__("camera_angle_x", 10**400), "camera_angle_x"),
+    "5000-digit integer": (lambda t: t.replace('"camera_angle_x": 0.8', '"camera_angle_x": 1' + "0" * 5000),
+                           "unreadable JSON.*4300"),
+    "nested too deeply": (lambda t: t.replace('"camera_angle_x": 0.8', '"camera_angle_x": ' + _DEEP),
+                          "nested too deeply"),
+    "matrix of strings": (lambda d: d["frames"][1].__setitem__("transform_matrix", [[str(x) for x in r] for r in
+                                                                                    d["frames"][1]["transform_matrix"]]),
+                          "frames\\[1\\].*no strings"),
+    "matrix of booleans": (lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(0, True),
+                           "frames\\[1\\].*no strings or booleans"),
+    "field of view 1e-12": (lambda d: d.__setitem__("camera_angle_x", 1e-12), "camera_angle_x.*field of view"),
+    "focal length 1e13 px": (lambda d: (d.pop("camera_angle_x"), d.__setitem__("fl_x", 1e13)), "fl_x.*focal length"),
+    "principal point far outside": (lambda d: d.__setitem__("cx", -1e6), "cx.*principal point"),
+    "the same image twice": (lambda d: d["frames"][2].__setitem__("file_path", d["frames"][0]["file_path"]),
+                             "frames\\[2\\].*same image as frames\\[0\\]"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TRANSFORMS))
+def test_bad_transforms_are_named(tmp_path, case):
+    """Found by a battery of bad inputs (session 35): each was a traceback or trained on without a word."""
+    fac.make_nerf(tmp_path, splits={"train": 3, "test": 2})
+    p = tmp_path / "transforms_train.json"
+    edit, want = BAD_TRANSFORMS[case]
+    if case in ("5000-digit integer", "nested too deeply"):
+        p.write_text(edit(p.read_text().replace('"camera_angle_x": 0.8,', '"camera_angle_x": 0.8,')))
+        assert p.read_text().count(_DEEP[:10]) or "0" * 5000 in p.read_text()
+    else:
+        d = json.loads(p.read_text())
+        edit(d)
+        p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match=want) as ei:
+        load_dataset(tmp_path)
+    assert "transforms_train.json" in str(ei.value)
+
+
+@pytest.mark.parametrize("case", ["one view", "cameras at one place", "every photo transparent"])
+def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, case):
+    from PIL import Image
+
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    p = data / "transforms_train.json"
+    d = json.loads(p.read_text())
+    if case == "one view":
+        d["frames"] = d["frames"][:1]
+        want = "1 training view"
+    elif case == "cameras at one place":
+        for f in d["frames"]:
+            for r, v in enumerate((0.0, 0.0, 4.0)):
+                f["transform_matrix"][r][3] = v
+        want = "same position"
+    else:
+        for img in (data / "train").glob("*.png"):
+            a = np.array(Image.open(img))
+            a[..., 3] = 0
+            Image.fromarray(a).save(img)
+        want = "fully transparent"
+    p.write_text(json.dumps(d))
+    out = tmp_path / "out"
+    rc, err, _ = _run_cli(["train", data, "--out", out, *TINY_RUN], capsys)
+    assert rc == 2 and want in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_negative_linear_images_are_refused_and_ringing_clipped(tmp_path):
+    """A linear (EXR) photo with radiance below 0: a filter's ringing of a few thousandths is clipped to 0, more is
+    an error naming the file."""
+    from triplet_cl.datasets.images import read_image
+
+    px = np.full((12, 12, 4), 0.5, np.float32)
+    px[0, 0, :3] = -0.004  # ringing
+    assert read_image(fac.write_image(tmp_path / "ok.exr", px, "float")).rgb.min() == 0.0
+    px[..., :3] = -5.0
+    with pytest.raises(DatasetError, match="negative radiance") as ei:
+        read_image(fac.write_image(tmp_path / "bad.exr", px, "float"))
+    assert "bad.exr" in str(ei.value)
+
+
 def test_runerror_is_a_triplet_error():
     from triplet_cl.errors import TripletError
 
@@ -761,6 +845,8 @@ BAD_RELIGHT = {  # case -> (light file content or None (a folder), extra argv, w
     "our form, NaN": ({"lights": [{"type": "AmbientLight", "color": [0, float("nan"), 0]}]}, [], "lights[0].color"),
     "our form, text": ({"lights": [{"type": "AmbientLight", "color": "grey"}]}, [], "lights[0].color"),
     "vertex SH light on a run without one": ({"lights": [{"type": "VertexSHLight"}]}, [], "VertexSHLight"),
+    "integer past any float": ({"lights": [{**_POINT, "intensity": [10**400, 1, 1]}]}, [], "lights[0].intensity"),
+    "nested too deeply": ('{"lights": ' + "[" * 100000 + "]" * 100000 + "}", [], "nested too deeply"),
 }
 
 
@@ -772,7 +858,7 @@ def test_bad_relight_inputs_are_one_line_and_write_nothing(run, tmp_path, capsys
     (lf / "sky.exr").write_text("not an image")
     spec = str(lf)
     if doc is not None:
-        (lf / "l.json").write_text(json.dumps(doc))
+        (lf / "l.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
         spec = str(lf / "l.json") + (extra[0] if extra and extra[0].startswith("#") else "")
     argv = ["relight", run, "--lights", spec, "--out", tmp_path / "out", *[a for a in extra if not a.startswith("#")]]
     before = _tree(run)

@@ -394,3 +394,18 @@ def test_regularizers_compute_off_the_tape_is_the_tape_bit_for_bit(rng):
     assert got == want and want > 0
     np.testing.assert_array_equal(b.V.grad, a.V.grad)
     np.testing.assert_array_equal(b.material.grad, a.material.grad)
+
+
+def test_supersampling_is_capped_by_the_render_size():
+    """``MeshConfig.max_render_pixels``: an 800² capture's 3× refinement render (2400², 6-8 GB a step on PoCL) and
+    4× test render (3200², 12 GB) drop to 2× under the default cap; 200²-666² captures keep their factors."""
+    from triplet_cl.mesh.refine import supersample_for
+
+    cap = MeshConfig().max_render_pixels
+    assert supersample_for(200, 200, 3, cap) == 3 and supersample_for(200, 200, 4, cap) == 4
+    assert supersample_for(400, 400, 4, cap) == 4 and supersample_for(666, 666, 3, cap) == 3
+    assert supersample_for(800, 800, 3, cap) == 2 and supersample_for(800, 800, 4, cap) == 2
+    assert supersample_for(4000, 3000, 3, cap) == 1 and supersample_for(10, 10, 0, cap) == 1
+    for bad in (0, 4095, True, 1.5e6):
+        with pytest.raises(ValueError, match="max_render_pixels"):
+            MeshConfig(max_render_pixels=bad).validate()

@@ -55,7 +55,8 @@ def _stage(device, sigma_true, f_photo=4, n=6, px=48, alpha=True):
         views.append(SimpleNamespace(camera=cam, alpha=a))
     from dataclasses import replace
 
-    stage = SimpleNamespace(ds=SimpleNamespace(train=views), cfg=SimpleNamespace(supersample=3), device=device,
+    stage = SimpleNamespace(ds=SimpleNamespace(train=views),
+                            cfg=SimpleNamespace(supersample=3, max_render_pixels=4_000_000), device=device,
                             settings=lambda bg: replace(settings, background=tuple(float(x) for x in bg)))
     return stage, scene
 

@@ -62,6 +62,9 @@ def kernel_dir() -> Path:
 # ----------------------------------------------------------------------------------------------
 
 
+POOL_HELD_LIMIT = 1 << 30  # bytes of freed device buffers the pool may keep for reuse (Device.release_held)
+
+
 @dataclass(frozen=True)
 class DeviceInfo:
     """What ``triplet devices`` prints about one OpenCL device."""
@@ -327,6 +330,21 @@ class Device:
 
             self._allocator = MemoryPool(ImmediateAllocator(self.queue))
         return self._allocator
+
+    def release_held(self, limit_bytes: int = POOL_HELD_LIMIT) -> int:
+        """Give the pool's held buffers (freed, kept for reuse) back to the driver when they exceed
+        ``limit_bytes``; returns the bytes released. Why: the pool keeps one free list per size class, and a
+        render's buffers change size with its fragment count, so at large sizes (an 800² capture's mesh stage
+        renders 2400²) each view left blocks of new classes behind: 24 GB held, the process killed. Below the
+        limit (every 200² run) nothing changes."""
+        pool = self._allocator
+        if pool is None:
+            return 0
+        held = int(pool.managed_bytes) - int(pool.active_bytes)
+        if held <= limit_bytes:
+            return 0
+        pool.free_held()
+        return held
 
     def check_alloc(self, nbytes: int, what: str) -> None:
         """Raise a clear ``MemoryError`` when one buffer would exceed the device's limits."""

@@ -103,6 +103,9 @@ def _read_json(path: Path) -> dict:
         raise LightFileError(path, "", f"cannot read it ({exc})") from None
     except json.JSONDecodeError as exc:
         raise LightFileError(path, "", f"not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})") from None
+    except (RecursionError, ValueError) as exc:  # nested too deep; an integer past Python's 4300 digits
+        raise LightFileError(path, "", "unreadable JSON (" + ("nested too deeply" if isinstance(exc, RecursionError)
+                                                                else str(exc)) + ")") from None
     if not isinstance(doc, dict):
         raise LightFileError(path, "", "expected a JSON object with \"sets\" or \"lights\", found "
                              f"{type(doc).__name__}")
@@ -152,6 +155,8 @@ def _vec(path, where: str, v, n_ok=(3,), positive=False) -> np.ndarray:
         a = np.asarray(v, np.float64)
     except (TypeError, ValueError):
         a = None
+    except OverflowError:  # an integer beyond any float
+        raise LightFileError(path, where, "must be finite, found a number too large for a float") from None
     if a is None or a.ndim > 1 or (a.ndim == 1 and len(a) not in n_ok) or (a.ndim == 0 and 1 not in n_ok):
         want = " or ".join(f"{k} number{'s' if k > 1 else ''}" for k in n_ok)
         raise LightFileError(path, where, f"expected {want}, found {v!r}")

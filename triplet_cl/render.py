@@ -752,6 +752,7 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     """
     s = settings or RenderSettings()
     d = device or get_device()
+    d.release_held()  # the pool's free lists kept bounded: the last render's buffers are back in it by now
     N = scene.V.shape[0]
     if vis is not None:
         nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)

@@ -34,7 +34,7 @@ def is_run_dir(path) -> bool:
         return False
     try:
         d = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return True  # a damaged run is still a run: refuse to overwrite it, read_run_config names the problem
     return isinstance(d, dict) and "train" in d
 
@@ -58,6 +58,9 @@ def read_run_config(run_dir) -> dict:
     except json.JSONDecodeError as exc:
         raise RunError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg} "
                              "(truncated or edited by hand?)") from None
+    except (RecursionError, ValueError) as exc:  # nested too deep; an integer past Python's 4300 digits
+        why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise RunError(path, f"unreadable JSON ({why}; edited by hand?)") from None
     if not isinstance(d, dict):
         raise RunError(path, f"expected a JSON object at the top level, found {type(d).__name__}")
     for key, typ in (("data", str), ("train", dict)):
@@ -143,7 +146,8 @@ def read_metrics(run_dir, command: str = "eval") -> dict:
         return {}
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (ValueError, RecursionError) as exc:  # JSON, UTF-8 and digit-limit errors are ValueErrors
+        exc = "nested too deeply" if isinstance(exc, RecursionError) else exc
         raise RunError(path, f"damaged ({exc}); its other sections (\"mesh\", \"relight\", timings) cannot be "
                              f"kept: delete it to have {command} write a new one") from None
     if not isinstance(d, dict):

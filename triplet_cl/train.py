@@ -600,9 +600,10 @@ class Trainer:
             bg_note = f"background: {bg} (auto; {why})"
         if not self.ds.train:
             raise ValueError(f"dataset {data} has no training views")
-        from .validate import check_image_sizes
+        from .validate import check_image_sizes, check_training_views
 
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
+        check_training_views(self.ds)
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
         brdf = get_brdf(self.cfg.brdf)  # the light phase's columns: lobes held, the others tied (Trainer.step)

@@ -228,6 +228,29 @@ def check_image_sizes(ds, downscale: int = 1) -> None:
                        f"the {split} image {small.name} is {w}x{h} pixels; {need}")
 
 
+def check_training_views(ds) -> None:
+    """The training views can make a reconstruction, else a :class:`~triplet_cl.errors.DatasetError` naming the
+    dataset: at least two views, their cameras not all at one place (no parallax: nothing to triangulate), and not
+    every photo fully transparent (its alpha says there is no object)."""
+    import numpy as np
+
+    from .errors import DatasetError
+
+    views = ds.train
+    if len(views) < 2:
+        raise DatasetError(ds.root, f"{len(views)} training view: a reconstruction needs photos from at least two "
+                                    "places")
+    c = ds.camera_centers("train")
+    spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
+    if spread <= 1e-9 * max(1.0, float(np.abs(c).max())):
+        raise DatasetError(ds.root, f"all {len(views)} training cameras are at the same position "
+                                    f"{np.round(c[0], 6).tolist()}: a reconstruction needs photos from different "
+                                    "places (check the transform matrices' last column)")
+    if all(v.alpha is not None and not (v.alpha > 0).any() for v in views):
+        raise DatasetError(ds.root, f"every one of the {len(views)} training photos is fully transparent (alpha 0 "
+                                    "everywhere): there is no object to reconstruct")
+
+
 def available_memory() -> int | None:
     """Available host memory in bytes (``MemAvailable`` of /proc/meminfo; None where unknown)."""
     try:

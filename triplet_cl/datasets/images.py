@@ -38,6 +38,8 @@ class Image(NamedTuple):
     height: int
 
 
+NEGATIVE_TOLERANCE = 0.01  # linear images: values below -1 % of the brightest are an error, the rest clipped
+
 def _oiio():
     try:
         import OpenImageIO as oiio
@@ -91,6 +93,12 @@ def read_image(path, downscale: int = 1) -> Image:
     if not np.isfinite(rgb).all() or (alpha is not None and not np.isfinite(alpha).all()):
         raise DatasetError(path, "the image holds NaN or Inf values")
     color_space = "linear" if str(spec.format) in _FLOAT_TYPES else "srgb"
+    if color_space == "linear":  # radiance is >= 0: a filter's ringing (a few 1e-3 below 0) is clipped, not more
+        low = float(rgb.min()) if rgb.size else 0.0
+        if low < -NEGATIVE_TOLERANCE * max(1.0, float(np.abs(rgb).max())):
+            raise DatasetError(path, f"the image holds negative radiance (down to {low:.4g}): linear images must be "
+                                     ">= 0 (a reconstruction filter's ringing of a few thousandths is clipped)")
+        rgb = np.maximum(rgb, 0.0)
     if alpha is not None:
         alpha = np.clip(alpha, 0.0, 1.0)
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)

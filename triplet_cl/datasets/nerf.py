@@ -21,6 +21,7 @@ from .base import Dataset, holdout_split, merge_color_spaces, warn_missing
 from .images import find_image, load_views
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
+MIN_FOV = 1e-3  # radians: no lens sees less (a 2000 mm lens on full frame: 0.018)
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _FISHEYE_MODELS = ("OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV",
                    "EQUIRECTANGULAR")
@@ -39,6 +40,9 @@ def read_json(path: Path) -> dict:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise DatasetError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    except (RecursionError, ValueError) as exc:  # nested too deep; an integer past Python's 4300 digits
+        raise DatasetError(path, f"unreadable JSON ({'nested too deeply' if isinstance(exc, RecursionError) else exc})"
+                           ) from None
     if not isinstance(data, dict):
         raise DatasetError(path, f"expected a JSON object at the top level, found {type(data).__name__}")
     return data
@@ -47,7 +51,10 @@ def read_json(path: Path) -> dict:
 def _number(path: Path, where: str, key: str, value, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DatasetError(path, f"{where}{key} must be a number, found {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond any float
+        v = math.inf
     if not math.isfinite(v):
         raise DatasetError(path, f"{where}{key} must be finite, found {v}")
     if positive and v <= 0:
@@ -55,11 +62,23 @@ def _number(path: Path, where: str, key: str, value, positive: bool = False) -> 
     return v
 
 
+def _numbers_only(value) -> bool:
+    """``value`` is a number (not a boolean) or nested lists of them: no strings, which numpy would convert."""
+    if isinstance(value, list):
+        return all(_numbers_only(x) for x in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(path: Path, where: str, value) -> np.ndarray:
+    if not _numbers_only(value):
+        raise DatasetError(path, f"{where}transform_matrix must be a 4x4 matrix of numbers (no strings or booleans), "
+                                 f"found {str(value)[:80]}")
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise DatasetError(path, f"{where}transform_matrix must be a 4x4 matrix of numbers") from None
+    except OverflowError:
+        raise DatasetError(path, f"{where}transform_matrix holds a number too large for a float") from None
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):
@@ -104,6 +123,10 @@ def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
             v = float(intr[k])
             raise DatasetError(path, f"{where}{k} = {v:g} is not a field of view in radians (expected 0 < {k} < π)"
                                      + (f"; if it is in degrees, write {math.radians(v):.6g}" if v < 180 else ""))
+        if k in intr and float(intr[k]) < MIN_FOV:
+            raise DatasetError(path, f"{where}{k} = {float(intr[k]):g} is not a camera's field of view (expected at "
+                                     f"least {MIN_FOV} radians, {math.degrees(MIN_FOV):.2g}°: a 2000 mm lens on a "
+                                     "full-frame camera still sees 1°)")
     _check_distortion(path, where, intr)
 
 
@@ -120,6 +143,14 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
         fl_x = intr.get("fl_x")
         if fl_x is None:
             fl_x = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
+        for k, f, size in (("fl_x", fl_x, width), ("fl_y", intr.get("fl_y"), height)):
+            if f is not None and 2.0 * math.atan(0.5 * size / float(f)) < MIN_FOV:
+                raise DatasetError(path, f"{where}{k} = {float(f):g} pixels on a {size}-pixel side is a field of view "
+                                         f"under {MIN_FOV} radians: not a camera's focal length")
+        for k, size in (("cx", width), ("cy", height)):
+            if k in intr and not -size <= float(intr[k]) <= 2 * size:
+                raise DatasetError(path, f"{where}{k} = {float(intr[k]):g} puts the principal point more than an image "
+                                         f"away from the {width}x{height} image (expected {-size} to {2 * size})")
         fl_y = intr.get("fl_y")
         if fl_y is None and "camera_angle_y" in intr:
             fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
@@ -150,7 +181,7 @@ def transforms_records(json_path: Path, data: dict | None = None):
         raise DatasetError(json_path, "no frames ('frames' is empty)")
     top = {k: v for k, v in data.items() if k != "frames"}
     _check_intrinsics(json_path, "", top)
-    records, missing, names = [], [], set()
+    records, missing, names = [], [], {}
     for i, fr in enumerate(frames):
         where = f"frames[{i}]: "
         if not isinstance(fr, dict):
@@ -175,8 +206,9 @@ def transforms_records(json_path: Path, data: dict | None = None):
         except ValueError:
             name = Path(fp).with_suffix("").as_posix()
         if name in names:
-            name = f"{name}#{i}"
-        names.add(name)
+            raise DatasetError(json_path, f"{where}file_path {fp!r} names the same image as frames[{names[name]}] "
+                                          f"({name}): each frame must be its own photo")
+        names[name] = i
         records.append((name, image, make))
     return records, missing
 

@@ -66,21 +66,24 @@ def estimate_pixel_sigma(stage, scene, max_views: int = 12) -> dict:
     out = {"sigma": DEFAULT_SIGMA, "source": "default", "photo_ratio": None, "render_ratios": None, "views": len(views)}
     if not views or crossings < MIN_CROSSINGS or not np.isfinite(photo_ratio):
         return out
-    f = stage.cfg.supersample
+    from .refine import supersample_for
+
+    fs = [supersample_for(v.camera.width, v.camera.height, stage.cfg.supersample, stage.cfg.max_render_pixels)
+          for v in views]
     dev = stage.device
     st = stage.settings(np.zeros(3, np.float32))
     from dataclasses import replace
 
     st = replace(st, transfer=None, downsample=1, pixel_sigma=0.0)
     big_alphas = []
-    for v in views:
+    for v, f in zip(views, fs, strict=True):
         big = v.camera.scaled(f) if f > 1 else v.camera
         r = render(scene, big, st, dev)
         big_alphas.append(np.ascontiguousarray(r.alpha, np.float32))
     big_alphas = [cla.to_device(dev.queue, a) for a in big_alphas]  # uploaded once, filtered by each candidate
     ratios, usable = [], []
     for sigma in CANDIDATES:
-        ratio, n = edge_ratio(down.gauss_down(dev, a, f, sigma).get() for a in big_alphas)
+        ratio, n = edge_ratio(down.gauss_down(dev, a, f, sigma).get() for a, f in zip(big_alphas, fs, strict=True))
         ratios.append(float(ratio))
         usable.append(n >= MIN_CROSSINGS and np.isfinite(ratio))
     out.update(photo_ratio=float(photo_ratio), render_ratios=ratios)

@@ -43,6 +43,15 @@ from .asset import MeshAsset
 MESH_STATE = "mesh_stage.npz"
 
 
+def supersample_for(width: int, height: int, factor: int, max_pixels: int) -> int:
+    """``factor`` lowered (to 1 at least) until a ``width × height`` render supersampled by it holds at most
+    ``max_pixels`` pixels."""
+    f = max(int(factor), 1)
+    while f > 1 and width * height * f * f > max_pixels:
+        f -= 1
+    return f
+
+
 @dataclass
 class MeshConfig:
     """Settings of the mesh stage (saved in ``config.json`` under ``"mesh"``)."""
@@ -66,6 +75,10 @@ class MeshConfig:
     # the test renders (metrics, renders/mesh): 4×4 samples approach the pixel-area coverage of the photos' renderer
     # (spot, the same refined mesh trained at 2: evaluated at 2 → 32.31 dB, at 4 → 32.92 dB); None: as ``supersample``
     eval_supersample: int | None = 4
+    # the supersampled renders' size cap (pixels): a factor that would pass it is lowered (supersample_for). An
+    # 800² capture's refinement rendered 2400² (6-8 GB a step on PoCL, 2.5 s) and its test views 3200² (12 GB);
+    # every capture up to 666² keeps its factors
+    max_render_pixels: int = 4_000_000
     # the capture's pixel filter (RenderSettings.pixel_sigma: a Gaussian's standard deviation in pixels; 0: a box over
     # each pixel; None: read from the photos' alpha edges after the first extraction, mesh/pixel_filter.py, and saved
     # resolved). Measured (same soups, bench/results/pixel_filter_pocl_2026-11-26.txt): the box → 0.5 mesh NVS spot
@@ -198,6 +211,9 @@ class MeshConfig:
             raise ValueError(f"mesh metallic_trial must be an integer >= 0, got {self.metallic_trial!r}")
         if not 1 <= self.supersample <= 4:
             raise ValueError(f"mesh supersample must be in [1, 4], got {self.supersample}")
+        if isinstance(self.max_render_pixels, bool) or not isinstance(self.max_render_pixels, int) \
+                or self.max_render_pixels < 4096:
+            raise ValueError(f"mesh max_render_pixels must be an integer >= 4096, got {self.max_render_pixels!r}")
         if self.eval_supersample is not None and not 1 <= self.eval_supersample <= 8:
             raise ValueError(f"mesh eval_supersample must be None or in [1, 8], got {self.eval_supersample}")
         if self.pixel_sigma is not None:
@@ -432,7 +448,7 @@ class MeshStage:
         (``RenderSettings.downsample`` and ``pixel_sigma``: the linear premultiplied radiance and the alpha, as a camera
         integrates a pixel, then the run's transfer follows); ``result.backward(v_image)`` takes an image adjoint back
         through it all."""
-        f = supersample or self.cfg.supersample
+        f = supersample_for(cam.width, cam.height, supersample or self.cfg.supersample, self.cfg.max_render_pixels)
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
             raise ValueError(f"supersampling needs an integer-scalable camera, got {cam.width}x{cam.height} × {f}")
@@ -491,8 +507,7 @@ class MeshStage:
         them. Skipped (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or
         are not point lights with falloff and ambient ones, when the fit fails (too few observed vertices, no
         direction), or when its objective is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the
-        lights before. The record goes
-        to ``metrics.json``'s ``mesh.light_fit``."""
+        lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
 
         c = self.cfg
@@ -523,9 +538,9 @@ class MeshStage:
         t = time.perf_counter()
         ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × (albedo or F0) × La
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
+        fitter = self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights
         try:
-            fit, scale, radiance = (self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights)(scene, lights,
-                                                                                                         ao)
+            fit, scale, radiance = fitter(scene, lights, ao)
         except ValueError as exc:  # the photos show too little to fit: the soup's lights go on
             log(f"mesh light fit not possible: {exc}")
             self.light_fit = {"applied": False, "reason": str(exc)}
