@@ -195,6 +195,15 @@ def cluster_atoms(dirs: np.ndarray, w: np.ndarray, angle_deg: float = 40.0, min_
     return out
 
 
+def _clustered(dirs, w_atoms, cluster_angle, min_share, max_lights, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The point lights' directions ``[L, 3]`` from the atoms' weights (the ambient's last) by :func:`cluster_atoms`,
+    and their weights followed by the ambient's, to start their own fit; ValueError when no atom has weight."""
+    clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
+    if not clusters:
+        raise ValueError(f"{what} no direction to place a point light in (every atom's weight is 0)")
+    return np.array([d for d, _ in clusters]), np.array([wt for _, wt in clusters] + [w_atoms[-1]])
+
+
 def robust_log_fit(B: np.ndarray, log_c: np.ndarray, w0: np.ndarray, eps: float = 0.05,
                    max_iter: int = 500) -> tuple[np.ndarray, float]:
     """Non-negative weights ``w`` of the columns of ``B`` that minimise the mean Charbonnier distance between
@@ -267,11 +276,7 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     dirs = sphere_directions(atoms)
     B = design(center + distance * extent * dirs, distance * extent)
     w_atoms, tv = fit_weights(B[sub], lc, e_sub)
-    clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
-    if not clusters:
-        raise ValueError("the shading shows no direction to place a point light in (every atom's weight is 0)")
-    L = np.array([d for d, _ in clusters])
-    w_tv = np.array([wt for _, wt in clusters] + [w_atoms[-1]])
+    L, w_tv = _clustered(dirs, w_atoms, cluster_angle, min_share, max_lights, "the shading shows")
     best = None
     for k in distances:
         BL = design(center + k * extent * L, k * extent)
@@ -429,11 +434,7 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
             found = (obj, r, w)
     _, r, w_atoms = found
     del geometry
-    clusters = cluster_atoms(dirs, w_atoms[:-1], cluster_angle, min_share, max_lights)
-    if not clusters:
-        raise ValueError("the highlights show no direction to place a point light in (every atom's weight is 0)")
-    L = np.array([d for d, _ in clusters])
-    w0 = np.array([wt for _, wt in clusters] + [w_atoms[-1]])
+    L, w0 = _clustered(dirs, w_atoms, cluster_angle, min_share, max_lights, "the highlights show")
     best = None
     for k in distances:
         BL = design(center + k * extent * L, k * extent, r)
