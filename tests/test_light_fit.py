@@ -142,6 +142,8 @@ def test_specular_atom_matrix_is_the_renderers_metal_lobe(rng):
     S = specular_atom_matrix(P, n, v, pos, vis, 0.4, 2.0)
     geometry = lobe_geometry(P, n, v, pos, vis, 2.0, chunk=7)
     np.testing.assert_array_equal(specular_atom_matrix(P, n, v, pos, None, 0.4, 2.0, geometry), S)
+    f0 = rng.uniform(0.1, 0.9, m)  # Schlick's Fresnel over F0: a metal of albedo f0, divided by f0
+    Sf = specular_atom_matrix(P, n, v, pos, vis, 0.4, 2.0, f0=f0)
     for k in range(4):
         L = pos[k] - P
         r2 = (L * L).sum(1, keepdims=True)
@@ -149,6 +151,9 @@ def test_specular_atom_matrix_is_the_renderers_metal_lobe(rng):
         mat = np.tile([1.0, 1.0, 1.0, 0.4, 1.0], (m, 1))
         ref = ct_direct(n, v, L, np.ones((m, 3)) * 4.0 / r2, mat)[:, 0] * vis[:, k]
         np.testing.assert_allclose(S[:, k], ref, rtol=1e-9, atol=1e-12)
+        mat[:, 0:3] = f0[:, None]
+        ref = ct_direct(n, v, L, np.ones((m, 3)) * 4.0 / r2, mat)[:, 0] * vis[:, k] / f0
+        np.testing.assert_allclose(Sf[:, k], ref, rtol=1e-9, atol=1e-12)
 
 
 def test_view_consistency_gradient_matches_central_differences(rng):

@@ -304,10 +304,12 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
 
 
 def lobe_geometry(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray, positions: np.ndarray, vis: np.ndarray,
-                  distance: float, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  distance: float, f0: np.ndarray | None = None,
+                  chunk: int = 2048) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What :func:`specular_atom_matrix` needs of each observation ``P`` (seen along ``to_cam``) and each point light
-    at ``positions`` whatever the roughness: ``(n·l, n·v, n·h, vis d² / r²)``, each ``[M, K]`` (``n·v`` ``[M, 1]``),
-    ``chunk`` observations at a time (the ``[chunk, K, 3]`` temporaries)."""
+    at ``positions`` whatever the roughness: ``(n·l, n·v, n·h, vis d² / r² F / F0)``, each ``[M, K]`` (``n·v``
+    ``[M, 1]``), ``chunk`` observations at a time (the ``[chunk, K, 3]`` temporaries). ``F / F0`` is Schlick's
+    Fresnel over F0, ``1 + (1 / f0 - 1) (1 - h·v)^5``, with each observation's estimate ``f0 [M]`` (1 without)."""
     m, k = len(P), len(positions)
     nl, nh, fall = np.empty((m, k)), np.empty((m, k)), np.empty((m, k))
     nv = np.maximum((normals * to_cam).sum(axis=1), 0.0)[:, None]
@@ -322,16 +324,22 @@ def lobe_geometry(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray, positi
         H /= np.maximum(np.linalg.norm(H, axis=2, keepdims=True), 1e-12)
         nh[sl] = np.clip((n[:, None, :] * H).sum(axis=2), 0.0, 1.0)
         fall[sl] = vis[sl] * (distance * distance) / r2
+        if f0 is not None:  # the brighter reflection at grazing angles, which F = F0 would leave to the ambient term
+            hv = np.clip((H * v[:, None, :]).sum(axis=2), 0.0, 1.0)
+            fall[sl] *= 1.0 + (1.0 / f0[sl, None] - 1.0) * (1.0 - hv) ** 5
     return nl, nv, nh, fall
 
 
 def specular_atom_matrix(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray, positions: np.ndarray,
-                         vis: np.ndarray, roughness: float, distance: float, geometry=None) -> np.ndarray:
+                         vis: np.ndarray, roughness: float, distance: float, geometry=None,
+                         f0: np.ndarray | None = None) -> np.ndarray:
     """``[M, K]`` radiance over F0 of a metal seen along ``to_cam`` at each observation ``P``, lit by a point light
     of intensity ``distance²`` at each of ``positions``: the Cook-Torrance specular lobe of ``shade.cl`` (GGX,
-    Smith/Schlick-GGX, ``a = roughness²``) with its Fresnel factor taken as F0, ``vis D G / (4 nv nl) nl d² / r²``.
-    ``geometry``: :func:`lobe_geometry` of the same arguments, computed once for several roughnesses."""
-    nl, nv, nh, fall = lobe_geometry(P, normals, to_cam, positions, vis, distance) if geometry is None else geometry
+    Smith/Schlick-GGX, ``a = roughness²``) over F0, ``vis D (F / F0) G / (4 nv nl) nl d² / r²`` (``F / F0`` with the
+    estimate ``f0 [M]``, 1 without: :func:`lobe_geometry`). ``geometry``: :func:`lobe_geometry` of the same
+    arguments, computed once for several roughnesses."""
+    nl, nv, nh, fall = (lobe_geometry(P, normals, to_cam, positions, vis, distance, f0) if geometry is None
+                        else geometry)
     a2 = roughness ** 4
     k = (roughness + 1.0) ** 2 / 8.0
     D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2 + 1e-6)
@@ -369,7 +377,8 @@ def _fit_consistency(B, log_c, group, n_groups, w0=None, max_iter: int = 500):
 def fit_metal_lights(V, normals, observations, visibility, *, center, extent: float, distance: float = 3.0,
                      distances=(2.0, 3.0, 4.5, 7.0), roughness=(0.2, 0.35, 0.5, 0.7), atoms: int = 512,
                      min_views: int = 3, max_lights: int = 3, cluster_angle: float = 40.0, min_share: float = 0.15,
-                     max_observations: int = 20000, max_iter: int = 150, current=None) -> dict:
+                     max_observations: int = 20000, max_iter: int = 150, f0: np.ndarray | None = None,
+                     current=None) -> dict:
     """Point lights and an ambient term fitted to a metal's highlights.
 
     A metal shows no diffuse shading (:func:`fit_lights` reads nothing from it), but its highlights move with the
@@ -389,6 +398,8 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
         max_observations: a random subset of the vertices, with all their views, when there are more observations
             (the matrices hold observations × atoms; 18k on a 96² capture of 40 views found two lights within 3°).
         max_iter: L-BFGS-B iterations per fit (150: the same lights as 500 at a third of the time).
+        f0: ``[N]`` each vertex's F0 as the mesh has it (luminance), for Schlick's Fresnel over F0 in the atoms and
+            the ambient column (None: F = F0).
 
     Returns:
         ``{"positions", "intensities", "ambient" (radiance), "roughness", "objective", "objective_current",
@@ -416,16 +427,21 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     remap = np.cumsum(good) - 1
     group, n_groups = remap[vi], int(good.sum())
     P, nrm = V[vi], normals[vi]
+    f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
+    grazing = (1.0 - np.maximum((nrm * to_cam).sum(axis=1), 0.0)) ** 5
+
+    def ambient_column(r):  # the ambient term's Fresnel over F0: 1 + (1 / f0 - 1) (1 - r) (1 - n·v)^5 (shade.cl's Fe)
+        return np.ones(len(P)) if f0_obs is None else 1.0 + (1.0 / f0_obs - 1.0) * (1.0 - r) * grazing
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:
-            geometry = lobe_geometry(P, nrm, to_cam, pos, visibility(pos)[vi], d)
+            geometry = lobe_geometry(P, nrm, to_cam, pos, visibility(pos)[vi], d, f0_obs)
         return np.concatenate([specular_atom_matrix(P, nrm, to_cam, pos, None, r, d, geometry),
-                               np.ones((len(P), 1))], axis=1)
+                               ambient_column(r)[:, None]], axis=1)
 
     dirs = sphere_directions(atoms)
     pos = center + distance * extent * dirs
-    geometry = lobe_geometry(P, nrm, to_cam, pos, visibility(pos)[vi], distance * extent)
+    geometry = lobe_geometry(P, nrm, to_cam, pos, visibility(pos)[vi], distance * extent, f0_obs)
     found = None
     for r in roughness:
         w, obj = _fit_consistency(design(pos, distance * extent, r, geometry), log_c, group, n_groups,
@@ -451,10 +467,10 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     if current is not None:
         cp, ci, ca = current
         cp = np.asarray(cp, np.float64).reshape(-1, 3)
-        geometry = lobe_geometry(P, nrm, to_cam, cp, visibility(cp)[vi], 1.0)
+        geometry = lobe_geometry(P, nrm, to_cam, cp, visibility(cp)[vi], 1.0, f0_obs)
         for rc in roughness:
             Bc = (specular_atom_matrix(P, nrm, to_cam, cp, None, rc, 1.0, geometry) @ np.asarray(ci, np.float64)
-                  + float(ca))[:, None]
+                  + float(ca) * ambient_column(rc))[:, None]
             if np.any(Bc > 0):
                 o = view_consistency(np.ones(1), Bc, log_c, group, n_groups)[0]
                 obj_current = o if obj_current is None else min(obj_current, o)

@@ -640,9 +640,11 @@ class MeshStage:
 
     def _fit_metal_lights(self, scene: Scene, lights, ao: float) -> tuple[dict, float, float]:
         """:func:`~triplet_cl.mesh.light_fit.fit_metal_lights` on the photo values of ``light_fit_samples`` vertices
-        (a fixed random sample: the fit holds observations × atoms); the scale: the median over them of the F0 the
-        new lights imply over the mesh's (0.04 (1 - metallic) + metallic × albedo); the ambient light's radiance
-        before that scale (the fit's ambient term is AO La, over F0)."""
+        (a fixed random sample: the fit holds observations × atoms), with the mesh's F0 (0.04 (1 - metallic) +
+        metallic × albedo) in Schlick's Fresnel (measured against F = F0 on the metal captures, results §7: two
+        point lights relit +0.2 / +0.6 / +1.5 dB, albedo +1.2; the environment and one light the same); the scale:
+        the median over them of the F0 the new lights imply over the mesh's; the ambient light's radiance before that
+        scale (the fit's ambient term is AO La, over F0)."""
         from .bake import vertex_normals
         from .light_fit import LUMA, fit_metal_lights, vertex_observations
 
@@ -652,15 +654,15 @@ class MeshStage:
         if len(V) > self.cfg.light_fit_samples:
             idx = np.sort(np.random.default_rng(0).choice(len(V), self.cfg.light_fit_samples, replace=False))
         obs = vertex_observations(V[idx], normals[idx], self._photos(), self._seen(scene, idx))
-        lo, hi = V.min(axis=0), V.max(axis=0)
-        fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx),
-                               center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
-                               max_lights=self.cfg.light_fit_max,
-                               current=self._current_lights(lights, ao))  # AO × F0 × La
         mat = np.asarray(scene.material.data)
         met_col = get_brdf(scene.brdf).column("metallic")
         met = sigmoid(mat[idx, met_col].astype(np.float64))[:, None] if met_col is not None else 1.0
         f0 = (0.04 * (1.0 - met) + met * sigmoid(mat[idx, 0:3].astype(np.float64))) @ LUMA
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx),
+                               center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
+                               max_lights=self.cfg.light_fit_max, f0=f0,
+                               current=self._current_lights(lights, ao))  # AO × F0 × La
         good = np.isfinite(fit["implied"])
         return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02))), fit["ambient"] / max(ao, 1e-3)
 
