@@ -168,3 +168,18 @@ def test_pool_gives_back_held_buffers_past_its_limit(device):
     assert pool.held_blocks == 0 and pool.active_blocks == active  # buffers in use stay
     live.fill(1.0)
     assert float(live.get().sum()) == 1000.0
+
+
+def test_release_memory_gives_back_every_held_buffer(device):
+    """``Device.release_memory`` (between phases): the pool holds nothing afterwards, buffers in use stay."""
+    import pyopencl.array as cla
+
+    pool = device.allocator
+    live = cla.empty(device.queue, 500, np.float32, allocator=pool)
+    cla.empty(device.queue, 7000, np.float32, allocator=pool).finish()
+    assert pool.held_blocks >= 1
+    active = pool.active_blocks
+    device.release_memory()
+    assert pool.held_blocks == 0 and pool.active_blocks == active
+    live.fill(2.0)
+    assert float(live.get().sum()) == 1000.0

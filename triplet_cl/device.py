@@ -346,6 +346,22 @@ class Device:
         pool.free_held()
         return held
 
+    def release_memory(self) -> None:
+        """Between phases (the soup's training and the mesh stage, each remesh): every held pool buffer given back,
+        Python's garbage collected, and the C heap's free pages returned to the system (glibc's ``malloc_trim``;
+        PoCL's buffers live on that heap). Measured: an 800² capture's ``train --mesh-stage`` was killed at 24 GB in
+        its mesh stage, while ``triplet extract`` of the same soup in a fresh process peaked at 12.8 GB."""
+        import gc
+
+        gc.collect()
+        self.release_held(0)
+        try:
+            import ctypes
+
+            ctypes.CDLL("libc.so.6").malloc_trim(0)
+        except (OSError, AttributeError):  # not glibc: nothing to trim this way
+            pass
+
     def check_alloc(self, nbytes: int, what: str) -> None:
         """Raise a clear ``MemoryError`` when one buffer would exceed the device's limits."""
         if nbytes > self.info.max_alloc_bytes:

@@ -767,6 +767,7 @@ class Trainer:
             self.priors.invalidate()
             self.shadow_cache.invalidate()  # new rows, new order
             self.check_finite(f"after densification at iteration {it + 1}")
+            self.device.release_memory()  # the old sizes' buffers and heap pages (no effect on the numbers)
         if dens.reset_alpha_at(it):
             reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
             self.last_alpha_reset = it

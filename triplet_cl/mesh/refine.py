@@ -794,6 +794,7 @@ class MeshStage:
                     grad_acc = np.zeros(len(scene.F))
                     self.set_computed_ao(scene, ao_col)
                     bounce = None  # the topology changed: re-traced at the next step
+                    self.device.release_memory()  # buffers of the old sizes (RSS grew 6.8 -> 12.8 GB at 800²)
                 if (it + 1) % 100 == 0:
                     self.trainer.log.info(json.dumps(rec))
         finally:
@@ -805,6 +806,11 @@ class MeshStage:
     def run(self) -> dict:
         """Extract → refine (``rounds`` times) → evaluate → export. Returns the ``"mesh"`` metrics."""
         t = time.perf_counter()
+        # what the soup's training no longer needs goes back before the stage allocates (an 800² capture's train
+        # --mesh-stage was killed at 24 GB here): its targets at other scales, the pool's and the C heap's free memory
+        targets = self.trainer.targets
+        targets.cache = {k: v for k, v in targets.cache.items() if k[1] == 1}
+        self.device.release_memory()
         source = self.trainer.scene
         # the refinement compares renders of the mesh alone with the photos: with a background in them (no alpha)
         # and the mesh cropped to the object, it would grow the mesh over the background; extraction only then
