@@ -178,8 +178,7 @@ def test_release_memory_gives_back_every_held_buffer(device):
     live = cla.empty(device.queue, 500, np.float32, allocator=pool)
     cla.empty(device.queue, 7000, np.float32, allocator=pool).finish()
     assert pool.held_blocks >= 1
-    active = pool.active_blocks
-    device.release_memory()
-    assert pool.held_blocks == 0 and pool.active_blocks == active
+    device.release_memory()  # its gc may free other tests' unreferenced arrays too: only the live one must stay
+    assert pool.held_blocks == 0 and pool.active_blocks >= 1
     live.fill(2.0)
     assert float(live.get().sum()) == 1000.0
