@@ -575,3 +575,21 @@ def _check_config_field(field: str, bad, before) -> None:
     old = TrainConfig().to_dict()
     del old[field]
     assert getattr(TrainConfig.from_dict(old), field) == before
+
+
+def test_targets_keep_only_one_scale():
+    """``Targets.keep_only``: the mesh stage trains at full resolution only; the soup's half-resolution copies go."""
+    from types import SimpleNamespace
+
+    from triplet_cl.camera import Camera
+    from triplet_cl.train import Targets
+
+    cam = Camera.look_at([0, 0, 3], [0, 0, 0], [0, 1, 0], 40, 16, 16)
+    view = SimpleNamespace(rgb=np.full((16, 16, 3), 0.5, np.float32), alpha=None, camera=cam)
+    t = Targets(SimpleNamespace(train=[view]))
+    t.get(0, 1.0, np.ones(3, np.float32))
+    t.get(0, 0.5, np.ones(3, np.float32))
+    assert sorted(t.cache) == [(0, 1), (0, 2)]
+    t.keep_only(1.0)
+    assert sorted(t.cache) == [(0, 1)]
+    assert t.get(0, 1.0, np.ones(3, np.float32))[1].shape == (16, 16, 3)

@@ -547,6 +547,11 @@ class Targets:
             return cam, rgb
         return cam, rgb * alpha[..., None] + background[None, None, :] * (1 - alpha[..., None])
 
+    def keep_only(self, scale: float) -> None:
+        """Drop the images cached at every other scale (a phase that trains at ``scale`` only)."""
+        f = max(1, int(round(1 / scale)))
+        self.cache = {k: v for k, v in self.cache.items() if k[1] == f}
+
 
 def _fix_size(cam: Camera, rgb: np.ndarray) -> Camera:
     from dataclasses import replace

@@ -808,8 +808,7 @@ class MeshStage:
         t = time.perf_counter()
         # what the soup's training no longer needs goes back before the stage allocates (an 800² capture's train
         # --mesh-stage was killed at 24 GB here): its targets at other scales, the pool's and the C heap's free memory
-        targets = self.trainer.targets
-        targets.cache = {k: v for k, v in targets.cache.items() if k[1] == 1}
+        self.trainer.targets.keep_only(1.0)
         self.device.release_memory()
         source = self.trainer.scene
         # the refinement compares renders of the mesh alone with the photos: with a background in them (no alpha)
