@@ -414,6 +414,9 @@ def _run_mesh_stage(tr, cfg) -> int:
     print(f"mesh stage: {cfg.method} extraction, {cfg.rounds} round(s) of {cfg.iterations} steps")
     m = stage.run()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
+    if m.get("gt_buried_fraction", 0) > 0:  # a reference of overlapping parts: also against what a camera can see
+        chamfer += (f" (its outer surface {m['chamfer_surface_to_gt']:.4f}; {100 * m['gt_buried_fraction']:.0f} % of "
+                    "gt_mesh's area lies inside its other parts)")
     print(f"mesh: {m['faces']} faces, test PSNR {m['psnr']:.2f} dB (soup {m['soup_psnr']:.2f} dB){chamfer}")
     print(f"wrote {', '.join(m['files'])} in {tr.run_dir}/")
     return 0

@@ -888,7 +888,8 @@ class MeshStage:
         return out
 
     def evaluate(self) -> dict:
-        """Test-view PSNR/SSIM of the mesh (and of the soup, for comparison), Chamfer to ``gt_mesh.ply``."""
+        """Test-view PSNR/SSIM of the mesh (and of the soup, for comparison), Chamfer to ``gt_mesh.ply`` and to its
+        outer surface (``chamfer_surface_to_gt``: :mod:`~triplet_cl.mesh.metrics`)."""
         from .metrics import chamfer_distance, load_reference_mesh
 
         tr = self.trainer
@@ -900,6 +901,7 @@ class MeshStage:
         ref = load_reference_mesh(tr.data) if Path(tr.data).is_dir() else None
         if ref is not None:
             cd = chamfer_distance(self.scene.V.data, self.scene.F, *ref)
+            out["gt_buried_fraction"] = cd.pop("buried_fraction")  # metrics.py: the reference's hidden faces
             out.update({f"{k}_to_gt": v for k, v in cd.items()})
         return out
 
