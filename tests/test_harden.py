@@ -582,7 +582,7 @@ def test_bad_transforms_are_named(tmp_path, case):
     assert "transforms_train.json" in str(ei.value)
 
 
-@pytest.mark.parametrize("case", ["one view", "cameras at one place", "every photo transparent"])
+@pytest.mark.parametrize("case", ["one view", "cameras at one place", "every photo transparent", "every photo black"])
 def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, case):
     from PIL import Image
 
@@ -598,17 +598,66 @@ def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, c
             for r, v in enumerate((0.0, 0.0, 4.0)):
                 f["transform_matrix"][r][3] = v
         want = "same position"
-    else:
+    elif case == "every photo transparent":
         for img in (data / "train").glob("*.png"):
             a = np.array(Image.open(img))
             a[..., 3] = 0
             Image.fromarray(a).save(img)
         want = "fully transparent"
+    else:  # opaque where the object is, and black: no light reached the camera
+        for img in (data / "train").glob("*.png"):
+            a = np.array(Image.open(img))
+            a[..., :3] = 0
+            Image.fromarray(a).save(img)
+        want = "black where it shows anything"
     p.write_text(json.dumps(d))
     out = tmp_path / "out"
     rc, err, _ = _run_cli(["train", data, "--out", out, *TINY_RUN], capsys)
     assert rc == 2 and want in err and err.count("\n") == 1, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("kind", ["folder", "dangling link", "link loop"])
+def test_a_frame_whose_image_is_not_a_file_says_what_is_there(tmp_path, capsys, kind):
+    """A folder named r_3.png, or a symbolic link to nothing or to itself, was reported as a "missing" image (a
+    warning, and the frame dropped)."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    img = data / "train" / "r_3.png"
+    img.unlink()
+    if kind == "folder":
+        img.mkdir()
+    elif kind == "dangling link":
+        img.symlink_to(data / "train" / "nothing.png")
+    else:
+        img.symlink_to(img.name)
+    want = "a folder" if kind == "folder" else "a symbolic link that leads nowhere"
+    out = tmp_path / "out"
+    rc, err, _ = _run_cli(["train", data, "--out", out, *TINY_RUN], capsys)
+    assert rc == 2 and want in err and "r_3.png" in err and "frames[3]" in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--iterations", "20", "--light-phase", "21"], "--light-phase"),
+    (["--light-phase", "3001"], "--light-phase"),
+    (["--mesh-stage", "--mesh-iterations", "50", "--mesh-light-phase", "51"], "--mesh-light-phase"),
+])
+def test_a_light_phase_longer_than_its_run_is_refused(tmp_path, capsys, demo_copy, argv, option):
+    """--light-phase 500 with --iterations 20 trained with one material for the whole object, without a word."""
+    out = tmp_path / "out"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", out, *argv], capsys)
+    assert rc == 2 and option in err and "longer than" in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_a_light_phase_as_long_as_its_run_is_accepted():
+    """Equal: one material for the whole object on purpose (and the mesh stage's the same)."""
+    from triplet_cl.validate import _check_phases
+
+    for argv in (["--iterations", "20", "--light-phase", "20"], ["--light-phase", "3000"],
+                 ["--mesh-stage", "--mesh-iterations", "50", "--mesh-light-phase", "50"]):
+        _check_phases(build_parser().parse_args(["train", str(DEMO), "--out", "/nonexistent/x", *argv]))
 
 
 def test_negative_linear_images_are_refused_and_ringing_clipped(tmp_path):

@@ -231,7 +231,8 @@ def check_image_sizes(ds, downscale: int = 1) -> None:
 def check_training_views(ds) -> None:
     """The training views can make a reconstruction, else a :class:`~triplet_cl.errors.DatasetError` naming the
     dataset: at least two views, their cameras not all at one place (no parallax: nothing to triangulate), and not
-    every photo fully transparent (its alpha says there is no object)."""
+    every photo fully transparent (its alpha says there is no object) nor black wherever it shows something (every
+    value exactly 0: no light reached the camera; a dark linear EXR of small radiances is a capture, not black)."""
     import numpy as np
 
     from .errors import DatasetError
@@ -249,6 +250,10 @@ def check_training_views(ds) -> None:
     if all(v.alpha is not None and not (v.alpha > 0).any() for v in views):
         raise DatasetError(ds.root, f"every one of the {len(views)} training photos is fully transparent (alpha 0 "
                                     "everywhere): there is no object to reconstruct")
+    if all(float((v.rgb if v.alpha is None else v.rgb[v.alpha > 0]).max(initial=0.0)) <= 0.0 for v in views):
+        raise DatasetError(ds.root, f"every one of the {len(views)} training photos is black where it shows anything "
+                                    "(every colour value 0): there is nothing to reconstruct — check the exposure or "
+                                    "the images' encoding")
 
 
 def available_memory() -> int | None:
@@ -440,6 +445,7 @@ def check_export_out(out, formats, option: str) -> None:
 def validate_args(args) -> None:
     """Check every option of ``args`` (an argparse namespace of any command) before any work."""
     _check_options(args)
+    _check_phases(args)
     cmd = getattr(args, "command", None)
     if cmd == "train":
         if not getattr(args, "mesh_stage", False):
@@ -479,6 +485,28 @@ def validate_args(args) -> None:
             check_not_other_run(args.out, args.run, "--out")
     elif cmd == "colmap":
         check_colmap_paths(args.images, args.out)
+
+
+def _check_phases(args) -> None:
+    """A light phase given longer than its run: the materials would never be fitted per vertex (an iteration count
+    meant for a longer run). Equal is allowed: one material for the whole object, on purpose."""
+    from .mesh.refine import MeshConfig
+    from .train import TrainConfig
+
+    if getattr(args, "command", None) == "train" and not getattr(args, "resume", False):
+        n = getattr(args, "light_phase", None)
+        its = getattr(args, "iterations", None)
+        its = its if its is not None else (1500 if getattr(args, "demo", False) else TrainConfig().iterations)
+        if n is not None and n > its:
+            raise UsageError("--light-phase", f"{n} is longer than the run's {its} iterations: the materials would "
+                                              f"never be fitted per vertex (give at most {its}; 0: no light phase)")
+    n = getattr(args, "mesh_light_phase", None)
+    its = getattr(args, "mesh_iterations", None)
+    its = its if its is not None else MeshConfig().iterations
+    if n is not None and n > its:
+        raise UsageError("--mesh-light-phase", f"{n} is longer than a round's {its} refinement steps "
+                                               "(--mesh-iterations): the mesh's materials would never be fitted per "
+                                               f"vertex (give at most {its})")
 
 
 def check_colmap_paths(images, out) -> None:

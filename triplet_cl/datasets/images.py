@@ -165,6 +165,18 @@ def find_image(base: Path) -> Path | None:
     return None
 
 
+def not_a_file(base: Path) -> tuple[Path, str] | None:
+    """What lies at ``base`` (or ``base`` + a known image extension) where :func:`find_image` found no file:
+    ``(path, "a folder")``, ``(path, "a symbolic link that leads nowhere (or to itself)")``, or None when nothing
+    is there."""
+    for p in [base] + [base.with_name(base.name + e) for ext in IMAGE_EXTENSIONS for e in (ext, ext.upper())]:
+        if p.is_dir():
+            return p, "a folder"
+        if p.is_symlink():  # is_file() and is_dir() follow it: a link whose target is missing or a loop
+            return p, "a symbolic link that leads nowhere (or to itself)"
+    return None
+
+
 def read_images(paths: list[Path], downscale: int = 1, workers: int | None = None):
     """:func:`read_image` over many files, in a thread pool (OpenImageIO decodes without the GIL)."""
     if not paths:

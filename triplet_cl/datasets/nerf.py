@@ -18,7 +18,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import DatasetError
 from .base import Dataset, holdout_split, merge_color_spaces, warn_missing
-from .images import find_image, load_views
+from .images import find_image, load_views, not_a_file
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 MIN_FOV = 1e-3  # radians: no lens sees less (a 2000 mm lens on full frame: 0.018)
@@ -199,6 +199,9 @@ def transforms_records(json_path: Path, data: dict | None = None):
         make = _camera_maker(json_path, where, c2w, intr)
         image = find_image(root / fp)
         if image is None:
+            there = not_a_file(root / fp)
+            if there:  # something is there, but no photo: say what, rather than "missing"
+                raise DatasetError(there[0], f"{there[1]}, not an image file ({json_path.name}, {where.rstrip(': ')})")
             missing.append(fp)
             continue
         try:
