@@ -311,7 +311,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
     p.add_argument("--mesh-light-phase", type=int, metavar="N", help="the first N refinement steps of a round keep "
                    "roughness, metallic and AO one value for the whole mesh (started at their mean), the lights "
-                   "learning; then per vertex (default 300; 0 = none)")
+                   "learning; then per vertex (default 300; 0 = none; at most --mesh-iterations)")
     p.add_argument("--mesh-metallic-trial", type=int, metavar="N", help="before the light phase, fit the mesh "
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
                    "through the light phase (default 120; 0 = none: the metallic is tied with the others; "
@@ -562,7 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "density control and when a light moved)")
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
-                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; README 'Light phase')")
+                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; at most --iterations; README 'Light phase')")
     t.add_argument("--light-phase-lobes", choices=["held", "tied"], help="roughness and metallic during the light "
                    "phase: held (default) at their initial values while their per-vertex gradients build Adam's "
                    "moments, then per vertex; tied: one learning value, as the albedo (runs before 2026-11-26)")
