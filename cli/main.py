@@ -562,7 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "density control and when a light moved)")
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
-                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; at most --iterations; README 'Light phase')")
+                   "(default 40 %% of --iterations: 1200 of 3000; 0 = none; at most --iterations; "
+                   "README 'Light phase')")
     t.add_argument("--light-phase-lobes", choices=["held", "tied"], help="roughness and metallic during the light "
                    "phase: held (default) at their initial values while their per-vertex gradients build Adam's "
                    "moments, then per vertex; tied: one learning value, as the albedo (runs before 2026-11-26)")

@@ -356,10 +356,14 @@ class MeshStage:
             masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
         roi = self.roi()
+        # a later round extracts from the previous round's mesh: opaque triangles that tile the surface, whose soft
+        # coverage window (the soup's, 1/px from every edge) would leave each small face half transparent (the demo's
+        # mesh: accumulated alpha at most 0.51, "no surface" found); its depth is rendered with hard coverage
+        sigma = None if source is not self.trainer.scene else 1.0
         scene = extract_scene(source, cams, self.cfg.method, resolution=self.cfg.resolution,
                               max_faces=self.cfg.extract_faces, device=self.device, masks=masks,
                               hull_views=1 if self.cfg.photo_hull else None, depth_quantile=self.cfg.depth_quantile,
-                              roi=roi)
+                              roi=roi, sigma=sigma)
         self.trainer.log.info(f"mesh extraction ({self.cfg.method}): {len(scene.F)} faces, "
                               f"{scene.V.shape[0]} vertices, {time.perf_counter() - t:.1f} s")
         return scene
