@@ -136,7 +136,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         data = demo_data_path()
         out = Path(args.out or "runs/demo")
         if args.iterations is None and not args.resume:
-            args.iterations = 1500
+            from triplet_cl.train import DEMO_ITERATIONS
+
+            args.iterations = DEMO_ITERATIONS
     else:
         if not args.data and not args.resume:
             print("triplet train: error: give a DATA folder (or --demo)", file=sys.stderr)

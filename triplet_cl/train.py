@@ -71,6 +71,7 @@ from .visibility import SHADOW_MODES, VisibilityCache
 LIGHT_KINDS = tuple(_LIGHT_CLASSES_BY_KIND)  # the CLI kinds of the registered lights (lights.py)
 # TrainConfig fields that may change when a run is resumed (the others fix what the checkpoint holds)
 REFERENCE_ITERATIONS = 3000  # the run length the schedules' defaults are tuned for (TrainConfig.with_iterations)
+DEMO_ITERATIONS = 1500  # `triplet train --demo` without --iterations (spot_small 96²: ~20 s here)
 LIGHT_PHASE_LOBES = ("held", "tied")  # TrainConfig.light_phase_lobes
 RESUMABLE_FIELDS = ("iterations", "checkpoint_every", "keep_checkpoints", "max_test_views")
 COLOR_PIPELINES = ("linear", "encoded")

@@ -491,12 +491,13 @@ def _check_phases(args) -> None:
     """A light phase given longer than its run: the materials would never be fitted per vertex (an iteration count
     meant for a longer run). Equal is allowed: one material for the whole object, on purpose."""
     from .mesh.refine import MeshConfig
-    from .train import TrainConfig
+    from .train import DEMO_ITERATIONS, TrainConfig
 
     if getattr(args, "command", None) == "train" and not getattr(args, "resume", False):
         n = getattr(args, "light_phase", None)
         its = getattr(args, "iterations", None)
-        its = its if its is not None else (1500 if getattr(args, "demo", False) else TrainConfig().iterations)
+        if its is None:
+            its = DEMO_ITERATIONS if getattr(args, "demo", False) else TrainConfig().iterations
         if n is not None and n > its:
             raise UsageError("--light-phase", f"{n} is longer than the run's {its} iterations: the materials would "
                                               f"never be fitted per vertex (give at most {its}; 0: no light phase)")

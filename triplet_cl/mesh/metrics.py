@@ -51,9 +51,10 @@ def _sample_with_faces(V: np.ndarray, F: np.ndarray, n: int, seed: int) -> tuple
     return np.einsum("nk,nkd->nd", w, tri[face]), face
 
 
-def winding_number(tri: np.ndarray, X: np.ndarray, chunk_elems: int = 2_000_000) -> np.ndarray:
+def winding_number(tri: np.ndarray, X: np.ndarray, chunk_elems: int = 500_000) -> np.ndarray:
     """The generalised winding number ``[Q]`` of the triangles ``tri [M, 3, 3]`` at the points ``X [Q, 3]``
-    (Van Oosterom–Strackee solid angles / 4π): 1 inside a closed outward-oriented surface, 0 outside."""
+    (Van Oosterom–Strackee solid angles / 4π): 1 inside a closed outward-oriented surface, 0 outside. Points ×
+    triangles go through in chunks of ``chunk_elems`` pairs (~100 MB of temporaries at the default)."""
     tri = np.asarray(tri, np.float64)
     X = np.asarray(X, np.float64)
     out = np.zeros(len(X))
