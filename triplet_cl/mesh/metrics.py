@@ -21,6 +21,11 @@ from scipy.spatial import cKDTree
 
 def sample_surface(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """``n`` points ``[n, 3]`` uniformly distributed over the area of the mesh ``V [N,3]``, ``F [M,3]``."""
+    return _sample_with_faces(V, F, n, seed)[0]
+
+
+def _sample_with_faces(V: np.ndarray, F: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_surface`'s ``n`` points and the face each lies on."""
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64)
     if len(F) == 0:
@@ -29,20 +34,6 @@ def sample_surface(V: np.ndarray, F: np.ndarray, n: int, seed: int = 0) -> np.nd
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if not area.sum() > 0:
         raise ValueError("cannot sample the surface of a mesh whose faces all have zero area")
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(F), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], 1)
-    return np.einsum("nk,nkd->nd", w, tri[face])
-
-
-def _sample_with_faces(V: np.ndarray, F: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`sample_surface`'s ``n`` points and the face each lies on (the same draws, the same points)."""
-    V = np.asarray(V, np.float64)
-    F = np.asarray(F, np.int64)
-    tri = V[F]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     rng = np.random.default_rng(seed)
     face = rng.choice(len(F), size=n, p=area / area.sum())
     r1, r2 = rng.random(n), rng.random(n)
