@@ -160,6 +160,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         notes += moved
         tr = Trainer(data, out, cfg, device=dev, resume=True)
         check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
+        tr.check_resumable()
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
         from triplet_cl.runs import replacing_run
@@ -318,9 +319,10 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
                    "through the light phase (default 120; 0 = none: the metallic is tied with the others; "
                    "Cook-Torrance only, and only with a light phase: --mesh-light-phase > 0)")
-    p.add_argument("--mesh-ao", choices=["learned", "computed"], help="Cook-Torrance's ambient occlusion on the "
-                   "mesh: learned per vertex (default), or computed: traced from the mesh's geometry and held "
-                   "(no effect with blinn-phong)")
+    p.add_argument("--mesh-ao", choices=["auto", "learned", "computed"], help="Cook-Torrance's ambient occlusion on "
+                   "the mesh: learned per vertex, or computed: traced from the mesh's geometry and held, or auto "
+                   "(default): computed where the AO the soup learned follows the traced occlusion (rank correlation "
+                   "at least 0.15), else learned (no effect with blinn-phong)")
     p.add_argument("--mesh-light-fit", choices=["auto", "off"], help="read the lights again from the extracted "
                    "mesh's shading (a metal's: from its highlights) before its light phase (auto, default: when the "
                    "lights are point and ambient ones; kept when clearly better than the soup's, the number of point "

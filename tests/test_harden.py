@@ -660,6 +660,81 @@ def test_a_light_phase_as_long_as_its_run_is_accepted():
         _check_phases(build_parser().parse_args(["train", str(DEMO), "--out", "/nonexistent/x", *argv]))
 
 
+@pytest.mark.parametrize("mode", ["RGBA", "RGB"])
+def test_a_gif_is_read_or_named(tmp_path, mode):
+    """A GIF: OpenImageIO names channel 4 of 4 its alpha (IndexError, a traceback). Read with its alpha where it
+    has one."""
+    from PIL import Image
+
+    from triplet_cl.datasets.images import read_image
+
+    png = read_image(DEMO / "train" / "r_0.png")
+    Image.open(DEMO / "train" / "r_0.png").convert(mode).save(tmp_path / "r_0.gif")
+    img = read_image(tmp_path / "r_0.gif")
+    assert img.rgb.shape == png.rgb.shape
+    if mode == "RGBA":
+        # a GIF's transparency is one palette entry: the PNG's partly covered outline pixels come out opaque
+        assert img.alpha is not None and np.mean((img.alpha > 0.5) == (png.alpha > 0.5)) > 0.95
+        inside = png.alpha > 0.99
+        assert np.abs(img.rgb - png.rgb)[inside].mean() < 0.05  # a 256-colour palette
+    else:
+        assert img.alpha is None or (img.alpha == 1).all()
+
+
+def test_an_exr_whose_pixels_do_not_cover_its_frame_is_refused(tmp_path):
+    """An 86x86 data window at (10, 10) in a 96x96 display window trained as an 86x86 image centred at 43: the
+    cameras were wrong, silently."""
+    import OpenImageIO as oiio
+
+    from triplet_cl.datasets.images import read_image
+
+    spec = oiio.ImageSpec(86, 86, 4, "float")
+    spec.x, spec.y, spec.full_x, spec.full_y, spec.full_width, spec.full_height = 10, 10, 0, 0, 96, 96
+    out = oiio.ImageOutput.create(str(tmp_path / "dw.exr"))
+    out.open(str(tmp_path / "dw.exr"), spec)
+    out.write_image(np.ones((86, 86, 4), np.float32))
+    out.close()
+    with pytest.raises(DatasetError, match="data window") as ei:
+        read_image(tmp_path / "dw.exr")
+    assert "dw.exr" in str(ei.value) and "96x96" in str(ei.value)
+
+
+def test_two_images_of_a_split_with_one_file_name_are_refused(tmp_path, capsys):
+    """test/a/r_0 and test/b/r_0: one test render replaced the other (renders are named by the file name)."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    for sub, src in (("a", "r_0"), ("b", "r_1")):
+        (data / "test" / sub).mkdir()
+        shutil.copy(data / "test" / f"{src}.png", data / "test" / sub / "r_0.png")
+    p = data / "transforms_test.json"
+    d = json.loads(p.read_text())
+    d["frames"][0]["file_path"], d["frames"][1]["file_path"] = "./test/a/r_0", "./test/b/r_0"
+    p.write_text(json.dumps(d))
+    out = tmp_path / "out"
+    rc, err, _ = _run_cli(["train", data, "--out", out, *TINY_RUN], capsys)
+    assert rc == 2 and "share the file name 'r_0'" in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_resuming_after_frames_were_removed_names_the_checkpoint(tmp_path, capsys):
+    """--resume after the dataset lost frames: an IndexError traceback in the view order. Evaluating the run still
+    works (only training needs the views it was made with)."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    out = tmp_path / "run"
+    assert cli_main(["train", str(data), "--out", str(out), *TINY_RUN]) == 0
+    capsys.readouterr()
+    p = data / "transforms_train.json"
+    d = json.loads(p.read_text())
+    d["frames"] = d["frames"][:10]
+    p.write_text(json.dumps(d))
+    before = _tree(out)
+    rc, err, out_text = _run_cli(["train", "--out", out, "--resume", "--iterations", "6"], capsys)
+    assert rc == 2 and "ckpt_0000004.npz" in err and "40 training views" in err and "now has 10" in err, err
+    assert err.count("\n") == 1 and "resuming" not in out_text and _tree(out) == before
+    assert cli_main(["eval", str(out)]) == 0
+
+
 def test_negative_linear_images_are_refused_and_ringing_clipped(tmp_path):
     """A linear (EXR) photo with radiance below 0: a filter's ringing of a few thousandths is clipped to 0, more is
     an error naming the file."""
@@ -896,6 +971,16 @@ BAD_RELIGHT = {  # case -> (light file content or None (a folder), extra argv, w
     "vertex SH light on a run without one": ({"lights": [{"type": "VertexSHLight"}]}, [], "VertexSHLight"),
     "integer past any float": ({"lights": [{**_POINT, "intensity": [10**400, 1, 1]}]}, [], "lights[0].intensity"),
     "nested too deeply": ('{"lights": ' + "[" * 100000 + "]" * 100000 + "}", [], "nested too deeply"),
+    # battery 2 (session 36): a set's name is the folder its renders go to
+    "set name with a path": ({"sets": {"../victim": {"lights": [_POINT]}}}, [], "not a plain folder name"),
+    "absolute set name": ({"sets": {"/tmp/victim": {"lights": [_POINT]}}}, [], "not a plain folder name"),
+    "blank set name": ({"sets": {"": {"lights": [_POINT]}}}, [], "not a plain folder name"),
+    "our form, negative intensity": ({"lights": [{"type": "PointLight", "position": [1, 2, 3],
+                                                  "intensity": [-5, -5, -5]}]}, [], "must be >= 0"),
+    "overflowing intensity": ({"lights": [{**_POINT, "intensity": 1e308}]}, [], "at most 1e+30"),
+    "our form, overflowing": ({"lights": [{"type": "AmbientLight", "color": [1e300, 1, 1]}]}, [], "at most 1e+30"),
+    "falloff as text": ({"lights": [{"type": "PointLight", "position": [1, 2, 3], "intensity": [5, 5, 5],
+                                     "falloff": "no"}]}, [], "lights[0].falloff"),
 }
 
 
@@ -914,6 +999,19 @@ def test_bad_relight_inputs_are_one_line_and_write_nothing(run, tmp_path, capsys
     rc, err, _ = _run_cli(argv, capsys)
     assert rc == 2 and needle in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "out").exists() and _tree(run) == before
+
+
+def test_a_set_named_like_a_path_writes_nothing_outside_out(run, tmp_path, capsys):
+    """A set named "../victim" wrote its renders over the user's victim/r_0.png, beside --out."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "r_0.png").write_text("USER DATA")
+    lf = tmp_path / "l.json"
+    lf.write_text(json.dumps({"sets": {"../victim": {"lights": [_POINT]}, "ok": {"lights": [_POINT]}}}))
+    for spec in (str(lf), str(lf) + "#../victim"):
+        rc, err, _ = _run_cli(["relight", run, "--lights", spec, "--out", tmp_path / "out"], capsys)
+        assert rc == 2 and "not a plain folder name" in err, err
+    assert _tree(victim) == {"r_0.png": b"USER DATA"} and not (tmp_path / "out").exists()
 
 
 def test_eval_relight_missing_references_fail_before_any_work(run, tmp_path, capsys):

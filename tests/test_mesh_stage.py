@@ -363,6 +363,47 @@ def test_mesh_stage_computed_ao_is_traced_and_held(trained_run):
 
 
 
+def test_mesh_stage_auto_ao_follows_the_learned_ao_s_correlation_with_the_traced_one(trained_run):
+    """``MeshConfig.ao = "auto"`` (the default): the AO the soup learned (on the extracted mesh's vertices) is
+    rank-correlated with the traced occlusion; at or above ``ao_auto_correlation`` the stage runs as "computed" (the
+    AO column traced and held), below it as "learned" (the column untouched by the trace); the decision is made once,
+    before the light phase ties the AO, recorded for metrics.json; a soup whose AO was held decides nothing."""
+    from scipy.stats import spearmanr
+
+    from triplet_cl.mesh.bake import vertex_normals
+    from triplet_cl.visibility import vertex_ambient_occlusion
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    mesh = MeshStage(tr, tiny_mesh_cfg()).extract(tr.scene)
+    traced = vertex_ambient_occlusion(mesh, vertex_normals(mesh.V.data, mesh.F), tr.device, directions=32,
+                                      ray_eps=MeshConfig().shadow_eps)
+    learned = 1 / (1 + np.exp(-np.asarray(mesh.material.data, np.float64)[:, 5]))
+    rho = spearmanr(traced, learned)[0]
+    for threshold, want in ((-1.0, "computed"), (1.0, "learned")):
+        cfg = tiny_mesh_cfg(iterations=4, material_tie=2, remesh_every=0, metallic_trial=0, light_fit="off",
+                            ao="auto", ao_auto_correlation=threshold)
+        stage = MeshStage(tr, cfg)
+        assert stage.ao_mode == "learned" and stage.computed_ao_column(mesh) is None  # until decided
+        scene = stage.extract(tr.scene)
+        before = np.array(scene.material.data[:, 5])
+        scene = stage.refine(scene, 0)
+        rec = stage.ao_choice
+        assert rec["choice"] == want and stage.ao_mode == want and rec["threshold"] == threshold
+        assert rec["spearman"] == pytest.approx(rho, abs=1e-9)
+        got = 1 / (1 + np.exp(-np.asarray(scene.material.data, np.float64)[:, 5]))
+        if want == "computed":  # traced at the start and held through the steps
+            assert np.median(np.abs(got - np.clip(traced, 0.02, 0.999))) < 0.02
+        else:  # learned: tied to its mean in the light phase, then per vertex; never the trace
+            assert np.median(np.abs(got - np.clip(traced, 0.02, 0.999))) > 0.02
+            assert not np.allclose(got, 1 / (1 + np.exp(-before)))  # it learned
+    assert MeshStage(tr, tiny_mesh_cfg(ao="learned")).choose_ao(mesh) is None  # only for "auto"
+    tr.held_ao = [5]  # the soup's AO held (TrainConfig.ao = "off"): nothing learned to compare
+    assert MeshStage(tr, tiny_mesh_cfg()).choose_ao(mesh) is None
+    for bad in ({"ao": "sometimes"}, {"ao_auto_correlation": 2.0}, {"ao_auto_correlation": "high"}):
+        with pytest.raises(ValueError, match="mesh ao"):
+            MeshConfig(**bad).validate()
+
+
 def test_mesh_stage_bounce_lights_the_mesh_and_is_relit_with_it(trained_run):
     """``MeshConfig.bounce = "traced"`` (``--mesh-bounce traced``): the stage renders with the traced interreflection
     (``MeshStage.bounce``: non-negative, somewhere lit; the render nowhere darker, somewhere brighter), in training

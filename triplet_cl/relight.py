@@ -129,6 +129,7 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
         names = [name] if name is not None else list(sets)
         out = []
         for n in names:
+            _check_set_name(path, n)
             entry = sets[n]
             where = f"sets.{n}"
             if not isinstance(entry, dict) or "lights" not in entry:
@@ -147,6 +148,22 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
     raise LightFileError(path, "", f"expected a \"sets\" object or a \"lights\" list, found keys {sorted(doc)}")
 
 
+def _check_set_name(path, name: str) -> None:
+    """A set's name is the folder its renders go to (``OUT/NAME``): a plain folder name, else a
+    :class:`LightFileError` (a name with ``/``, ``..`` or an absolute path wrote the renders over the user's files
+    outside ``--out``)."""
+    bad = (not name or name != name.strip() or name.startswith(".") or any(c in name for c in '/\\:*?"<>|\0')
+           or Path(name).is_absolute() or len(name) > 100)
+    if bad:
+        raise LightFileError(path, "sets", f"the set name {name!r} is not a plain folder name (its renders go to a "
+                                           "folder of that name): expected no path separator nor any of :*?\"<>|, "
+                                           "not starting with '.' or a space, at most 100 characters")
+
+
+MAX_LIGHT_VALUE = 1e30  # a light file's numbers: float32 renders overflow past ~1e38 (a 1e308 intensity rendered inf)
+NON_NEGATIVE_PARAMS = ("intensity", "color")  # our lights.json form's powers (lights.py PARAMS)
+
+
 def _vec(path, where: str, v, n_ok=(3,), positive=False) -> np.ndarray:
     if isinstance(v, bool) or (isinstance(v, list) and any(isinstance(x, bool) for x in v)):
         want = " or ".join(f"{k} number{'s' if k > 1 else ''}" for k in n_ok)
@@ -162,6 +179,9 @@ def _vec(path, where: str, v, n_ok=(3,), positive=False) -> np.ndarray:
         raise LightFileError(path, where, f"expected {want}, found {v!r}")
     if not np.isfinite(a).all():
         raise LightFileError(path, where, f"must be finite, found {v!r}")
+    if np.abs(a).max() > MAX_LIGHT_VALUE:
+        raise LightFileError(path, where, f"must be at most {MAX_LIGHT_VALUE:g} in size (the renders overflow), "
+                                          f"found {v!r}")
     if positive and (a < 0).any():
         raise LightFileError(path, where, f"must be >= 0, found {v!r}")
     return np.broadcast_to(a, (3,)).astype(np.float64)
@@ -195,6 +215,13 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
                     a = None
                 if a is None or a.size == 0 or not np.isfinite(a).all() or np.asarray(it[p]).dtype == bool:
                     raise LightFileError(path, f"{w}.{p}", f"expected finite numbers, found {it[p]!r}")
+                if np.abs(a).max() > MAX_LIGHT_VALUE:
+                    raise LightFileError(path, f"{w}.{p}", f"must be at most {MAX_LIGHT_VALUE:g} in size (the renders "
+                                                           f"overflow), found {it[p]!r}")
+                if p in NON_NEGATIVE_PARAMS and (a < 0).any():  # a light's power; SH coefficients may be negative
+                    raise LightFileError(path, f"{w}.{p}", f"must be >= 0, found {it[p]!r}")
+            if "falloff" in it and not isinstance(it["falloff"], bool):
+                raise LightFileError(path, f"{w}.falloff", f"expected true or false, found {it['falloff']!r}")
             ours.append(it)
             continue
         extra = set(it) - {"type", *_FIELDS.get(kind, ())}

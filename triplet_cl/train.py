@@ -633,6 +633,7 @@ class Trainer:
         self.it = 0
         self.last_alpha_reset: int | None = None
         self.order: list[int] = []
+        self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = _file_logger(self.run_dir / "train.log")
@@ -872,6 +873,7 @@ class Trainer:
         for folder in (self.run_dir, self.run_dir / "checkpoints",
                        *(sorted(renders.iterdir()) if renders.is_dir() else [])):
             remove_stale_temp_files(folder)
+        self.check_resumable()
         self.check_finite("before training")
         old = signal.signal(signal.SIGINT, on_sigint)
         old_term = signal.signal(signal.SIGTERM, on_sigint)  # `kill PID`: the same clean stop as Ctrl-C
@@ -1007,6 +1009,7 @@ class Trainer:
             for j, (m, v) in enumerate(zip(st["exp_avg"], st["exp_avg_sq"], strict=True)):
                 arrays[f"opt.{g}.{j}.m"], arrays[f"opt.{g}.{j}.v"] = m, v
         meta = {"it": self.it, "t": opt_state["t"], "order": [int(x) for x in self.order],
+                "train_views": len(self.ds.train),
                 "last_alpha_reset": self.last_alpha_reset,
                 "rng": self.rng.bit_generator.state,
                 "config": {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS},
@@ -1028,6 +1031,14 @@ class Trainer:
 
         a, meta = read_checkpoint(path)
         self._check_checkpoint(path, a, meta)
+        try:
+            self._restore(a, meta)
+        except (ValueError, TypeError, KeyError, IndexError) as exc:  # a hand-edited or damaged state: name the file
+            raise RunError(path, f"damaged: {exc} (resume from an earlier checkpoint: edit checkpoints/latest; or "
+                                 "start again)") from None
+
+    def _restore(self, a: dict, meta: dict) -> None:
+        """The run's state from a checked checkpoint's arrays and metadata."""
         s = self.scene
         s.V.data, s.F = a["V"], a["F"].astype(np.int32)
         s.material.data, s.alpha.data = a["material"], a["alpha"]
@@ -1057,8 +1068,26 @@ class Trainer:
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
 
+    def check_resumable(self) -> None:
+        """Training may go on from the loaded checkpoint: the dataset has the training views it was made with (their
+        number, and every view its order has left), else a :class:`RunError` naming the checkpoint. Only training
+        needs this: evaluating, rendering or extracting a run whose dataset changed is allowed."""
+        if self._resumed_from is None:
+            return
+        path, saved_n = self._resumed_from
+        n = len(self.ds.train)
+        if (saved_n is not None and saved_n != n) or any(i >= n for i in self.order):
+            was = f"{saved_n} training views" if saved_n is not None else "more training views"
+            raise RunError(path, f"was trained on {was}, the dataset now has {n} (frames added or removed since): "
+                                 "resume with the dataset the run was made with, or start a new run")
+
     def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
-        """The checkpoint belongs to this configuration and holds what it needs, finite."""
+        """The checkpoint belongs to this configuration and this dataset's training views, and holds what it needs,
+        finite."""
+        order = meta.get("order")
+        if not isinstance(order, list) or any(not isinstance(i, int) or isinstance(i, bool) or i < 0 for i in order):
+            raise RunError(path, f"damaged: its view order must be a list of integers >= 0, found {str(order)[:60]}")
+        self._resumed_from = (path, meta.get("train_views"))
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}

@@ -93,6 +93,19 @@ class Dataset:
         for s in SPLITS:
             self.splits.setdefault(s, [])
 
+    def check_render_names(self) -> None:
+        """Every split's images have distinct file names, else a :class:`DatasetError`: renders and relight
+        references are named by them (``test/a/r_0`` and ``test/b/r_0`` wrote one render over the other)."""
+        for s, views in self.splits.items():
+            seen: dict[str, View] = {}
+            for v in views:
+                base = Path(v.name).name
+                if base in seen:
+                    raise DatasetError(v.path or self.root, f"the {s} images {seen[base].name!r} and {v.name!r} share "
+                                                            f"the file name {base!r}, which names their renders "
+                                                            "(one would replace the other): rename one")
+                seen[base] = v
+
     # ---- access ---------------------------------------------------------------------------
     @property
     def train(self) -> list[View]:

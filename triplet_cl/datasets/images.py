@@ -74,6 +74,13 @@ def read_image(path, downscale: int = 1) -> Image:
         inp.close()
     if px is None or err:  # a truncated JPEG comes back filled in, with an error message
         raise DatasetError(path, f"cannot read the image: {_one_line(err or oiio.geterror() or 'read failed')}")
+    window = (spec.x, spec.y, spec.width, spec.height)
+    if spec.full_width > 0 and spec.full_height > 0 and window != (spec.full_x, spec.full_y, spec.full_width,
+                                                                    spec.full_height):
+        # an EXR whose pixels cover part of its frame: the camera's intrinsics are the frame's, the pixels are not
+        raise DatasetError(path, f"the image's data window ({spec.width}x{spec.height} at {spec.x},{spec.y}) is not "
+                                 f"its display window ({spec.full_width}x{spec.full_height} at {spec.full_x},"
+                                 f"{spec.full_y}): crop or pad it to the full frame")
     px = np.asarray(px, dtype=np.float32)
     if px.ndim == 2:
         px = px[:, :, None]
@@ -87,7 +94,8 @@ def read_image(path, downscale: int = 1) -> Image:
         rgb, alpha = np.repeat(px[:, :, :1], 3, axis=2), px[:, :, 1]
     else:
         rgb = px[:, :, :3]
-        a_ch = spec.alpha_channel if spec.alpha_channel >= 3 else (3 if nc == 4 else -1)
+        # the header's alpha channel, where it names one the pixels have (a GIF's names channel 4 of 4)
+        a_ch = spec.alpha_channel if 3 <= spec.alpha_channel < nc else (3 if nc == 4 else -1)
         if a_ch >= 0:
             alpha = px[:, :, a_ch]
     if not np.isfinite(rgb).all() or (alpha is not None and not np.isfinite(alpha).all()):

@@ -41,6 +41,7 @@ from ..scene import Scene
 from .asset import MeshAsset
 
 MESH_STATE = "mesh_stage.npz"
+AO_MODES = ("auto", "learned", "computed")  # MeshConfig.ao
 
 
 def supersample_for(width: int, height: int, factor: int, max_pixels: int) -> int:
@@ -119,9 +120,17 @@ class MeshConfig:
     metallic_trial: int = 120
     # Cook-Torrance's AO on the mesh: "learned" per vertex (tied in the light phase, as the soup's), or "computed":
     # traced from the mesh's geometry (visibility.vertex_ambient_occlusion, ao_directions rays per vertex, at the
-    # start of each round and after each remesh) and held, so that the albedo alone answers for the colour
-    ao: str = "learned"
+    # start of each round and after each remesh) and held, so that the albedo alone answers for the colour; or
+    # "auto": computed where the AO the soup learned follows the extracted mesh's traced occlusion (their Spearman
+    # rank correlation over the vertices at least ao_auto_correlation: the photos' dark ambient-lit parts are then
+    # the occlusion, which the trace gives without baking light into the material), learned elsewhere (the learned
+    # AO also carries what point + ambient lights miss: an environment's up/down gradient, interreflection).
+    # Measured (session 36, bench/results/ao_auto_pocl_2026-11-26.txt): the correlation is 0.33 on gadget (200²),
+    # 0.21 at 100², |ρ| ≤ 0.09 on spot, Bob and five spot_small captures, −0.29 on the metal; computed AO on gadget
+    # relights 27.74 / 27.82 / 27.81 instead of 27.42 / 27.55 / 25.87 (albedo −0.45 dB); on bob_env it lost 1.4–3.8
+    ao: str = "auto"
     ao_directions: int = 32
+    ao_auto_correlation: float = 0.15
     # the lights read again from the extracted mesh's shading (mesh/light_fit.py) before round 0's light phase:
     # "auto" when the lights are point lights and an ambient one and learning; for a metal (the metallic trial's
     # choice: it shows no diffuse shading) from its highlights, which also sets the tied roughness; the number of
@@ -186,8 +195,10 @@ class MeshConfig:
             raise ValueError(f"mesh shadow_eps must be a finite number >= 0, got {self.shadow_eps!r}")
         if not isinstance(self.material_tie, int) or self.material_tie < 0:
             raise ValueError(f"mesh material_tie must be an integer >= 0, got {self.material_tie!r}")
-        if self.ao not in ("learned", "computed"):
-            raise ValueError(f"mesh ao must be 'learned' or 'computed', got {self.ao!r}")
+        if self.ao not in AO_MODES:
+            raise ValueError(f"mesh ao must be one of {AO_MODES}, got {self.ao!r}")
+        if not (isinstance(self.ao_auto_correlation, int | float) and -1 <= self.ao_auto_correlation <= 1):
+            raise ValueError(f"mesh ao_auto_correlation must be a number in [-1, 1], got {self.ao_auto_correlation!r}")
         if self.light_fit not in ("auto", "off"):
             raise ValueError(f"mesh light_fit must be 'auto' or 'off', got {self.light_fit!r}")
         for name in ("light_fit_margin", "light_fit_margin_metal"):
@@ -338,6 +349,7 @@ class MeshStage:
         self.scene: Scene | None = None
         self.history: list[dict] = []
         self.metallic_choice: dict | None = None  # choose_metallic's trial, when it ran
+        self.ao_choice: dict | None = None  # choose_ao's decision, when MeshConfig.ao is "auto"
         self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
@@ -670,10 +682,49 @@ class MeshStage:
         good = np.isfinite(fit["implied"])
         return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02))), fit["ambient"] / max(ao, 1e-3)
 
+    @property
+    def ao_mode(self) -> str:
+        """``MeshConfig.ao``, with "auto" as decided by :meth:`choose_ao` ("learned" until then)."""
+        if self.cfg.ao != "auto":
+            return self.cfg.ao
+        return self.ao_choice["choice"] if self.ao_choice is not None else "learned"
+
+    def choose_ao(self, scene: Scene) -> dict | None:
+        """``MeshConfig.ao = "auto"``: trace the extracted mesh's AO and compare it with the AO the soup learned (as
+        transferred to the mesh's vertices, before the light phase ties it): computed when their Spearman rank
+        correlation reaches ``ao_auto_correlation``, else learned. Not decided (None) without a learned per-vertex
+        AO (a BRDF without one, or the soup's held by ``TrainConfig.ao = "off"``). The record goes to
+        ``metrics.json``'s ``mesh.ao_choice``."""
+        from scipy.stats import spearmanr
+
+        from ..visibility import vertex_ambient_occlusion
+        from .bake import vertex_normals
+
+        col = get_brdf(scene.brdf).column("ao")
+        if self.cfg.ao != "auto" or col is None or col in self.trainer.held_ao:
+            return None
+        t = time.perf_counter()
+        learned = sigmoid(np.asarray(scene.material.data[:, col], np.float64))
+        traced = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
+                                          directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
+        rho = float(spearmanr(traced, learned)[0]) if np.ptp(learned) > 0 and np.ptp(traced) > 0 else 0.0
+        rho = rho if np.isfinite(rho) else 0.0
+        choice = "computed" if rho >= self.cfg.ao_auto_correlation else "learned"
+        self.ao_choice = {"choice": choice, "spearman": rho, "threshold": self.cfg.ao_auto_correlation,
+                          "traced_p10_50_90": np.round(np.percentile(traced, [10, 50, 90]), 3).tolist(),
+                          "learned_p10_50_90": np.round(np.percentile(learned, [10, 50, 90]), 3).tolist(),
+                          "seconds": time.perf_counter() - t}
+        msg = (f"mesh AO: {choice} (the soup's learned AO against the traced occlusion: Spearman {rho:.2f}, "
+               f"{'at least' if choice == 'computed' else 'below'} {self.cfg.ao_auto_correlation})")
+        self.trainer.log.info(msg)
+        if not self.quiet:
+            print(msg)
+        return self.ao_choice
+
     def computed_ao_column(self, scene: Scene) -> int | None:
-        """The AO column that ``MeshConfig.ao = "computed"`` sets from the geometry, or None (learned, or a BRDF
-        without AO)."""
-        return get_brdf(scene.brdf).column("ao") if self.cfg.ao == "computed" else None
+        """The AO column that ``MeshConfig.ao = "computed"`` (or "auto" decided so) sets from the geometry, or None
+        (learned, or a BRDF without AO)."""
+        return get_brdf(scene.brdf).column("ao") if self.ao_mode == "computed" else None
 
     def held_columns(self, scene: Scene) -> list[int]:
         """The material columns that take no step in the mesh stage: the AO held by ``TrainConfig.ao = "off"``
@@ -705,6 +756,8 @@ class MeshStage:
 
         c, tc = self.cfg, self.trainer.cfg
         amb = self.trainer.ambient_pairs  # Blinn-Phong's ka ≡ kd (TrainConfig.blinn_phong_ka): not tied on its own
+        if round_index == 0:  # before anything ties the AO the soup learned
+            self.choose_ao(scene)
         ao_col = self.computed_ao_column(scene)
         held_cols = self.held_columns(scene)
         tied = [k for k in tied_channels(scene.brdf) if k not in amb[1] and k not in held_cols] \
@@ -838,6 +891,8 @@ class MeshStage:
         metrics["topology"] = topology
         if self.metallic_choice is not None:
             metrics["metallic_trial"] = self.metallic_choice
+        if self.ao_choice is not None:
+            metrics["ao_choice"] = self.ao_choice
         if self.light_fit is not None:
             metrics["light_fit"] = self.light_fit
         metrics["wall_time_s"] = time.perf_counter() - t
