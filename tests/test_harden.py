@@ -735,6 +735,40 @@ def test_resuming_after_frames_were_removed_names_the_checkpoint(tmp_path, capsy
     assert cli_main(["eval", str(out)]) == 0
 
 
+def _damage(a, meta, case):
+    if case == "faces past the vertices":
+        a["F"] = a["F"] + len(a["V"])
+    elif case == "iteration as text":
+        meta["it"] = "four"
+    elif case == "rng state":
+        meta["rng"] = {"x": 1}
+    elif case == "alpha rows":
+        a["alpha"] = a["alpha"][:10]
+    elif case == "view order":
+        meta["order"] = [999, 1000, -5]
+
+
+@pytest.mark.parametrize("case", ["faces past the vertices", "iteration as text", "rng state", "alpha rows",
+                                  "view order"])
+def test_a_damaged_checkpoint_is_named(run, capsys, case):
+    """Hand-edited or damaged checkpoints were refused with raw internal text ("invalid literal for int()", "state
+    must be for a PCG64 RNG") or an IndexError traceback (the view order), naming no file."""
+    import io
+
+    ck = run / "checkpoints" / (run / "checkpoints" / "latest").read_text()
+    a = dict(np.load(ck))
+    meta = json.loads(bytes(a["meta"]).decode())
+    _damage(a, meta, case)
+    a["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **a)
+    ck.write_bytes(buf.getvalue())
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)
+    assert rc == 2 and ck.name in err and "damaged" in err and err.count("\n") == 1, err
+    assert _tree(run) == before
+
+
 def test_negative_linear_images_are_refused_and_ringing_clipped(tmp_path):
     """A linear (EXR) photo with radiance below 0: a filter's ringing of a few thousandths is clipped to 0, more is
     an error naming the file."""

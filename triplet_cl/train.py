@@ -61,6 +61,7 @@ from .losses import (
     ssim,
 )
 from .materials import DEFAULT_BRDF, ambient_pairs, copy_ambient, get_brdf, tie_ambient_gradient
+from .ops.common import check_faces
 from .optim import Adam, Constant, ExponentialDecay, NonFiniteStep, StepUp
 from .priors import Priors
 from .render import RENDERERS, RenderSettings, render
@@ -1121,6 +1122,10 @@ class Trainer:
                                      f"config.json needs {list(shape)} per row")
         if a["V"].ndim != 2 or a["V"].shape[1] != 3 or a["F"].ndim != 2 or a["F"].shape[1] != 3:
             raise RunError(path, f"damaged: V {list(a['V'].shape)}, F {list(a['F'].shape)} (expected [N, 3], [M, 3])")
+        try:
+            check_faces("its faces", a["F"], len(a["V"]))
+        except ValueError as exc:
+            raise RunError(path, f"damaged: {exc}") from None
         for k in ("V", "material", "alpha", "light_params", "vertex_sh"):
             if k in a and a[k].size and not np.isfinite(a[k]).all():
                 raise RunError(path, f"holds {int((~np.isfinite(a[k])).sum())} NaN/Inf value(s) in {k!r}: resume "
