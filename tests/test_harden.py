@@ -735,6 +735,24 @@ def test_resuming_after_frames_were_removed_names_the_checkpoint(tmp_path, capsy
     assert cli_main(["eval", str(out)]) == 0
 
 
+def test_focal_length_given_twice_must_agree(tmp_path):
+    """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
+    import math
+
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    p = data / "transforms_train.json"
+    d = json.loads(p.read_text())
+    d["fl_x"] = 40
+    p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match="disagree") as ei:
+        load_dataset(data)
+    assert "fl_x = 40" in str(ei.value) and "131.9" in str(ei.value)
+    d["fl_x"] = 0.5 * 96 / math.tan(0.5 * d["camera_angle_x"]) * 1.005  # the same camera, rounded: accepted
+    p.write_text(json.dumps(d))
+    assert load_dataset(data).train[0].camera.fx == pytest.approx(d["fl_x"])
+
+
 def _damage(a, meta, case):
     if case == "faces past the vertices":
         a["F"] = a["F"] + len(a["V"])

@@ -22,6 +22,7 @@ from .images import find_image, load_views, not_a_file
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 MIN_FOV = 1e-3  # radians: no lens sees less (a 2000 mm lens on full frame: 0.018)
+FOCAL_AGREEMENT = 0.01  # fl_x and camera_angle_x both given: the relative difference of their focal lengths allowed
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _FISHEYE_MODELS = ("OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV",
                    "EQUIRECTANGULAR")
@@ -140,6 +141,13 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
         for k, size in (("w", width), ("h", height)):
             if k in intr and int(round(float(intr[k]))) != size:
                 raise DatasetError(path, f"{where}{k}={intr[k]:g} but the image is {width}x{height}")
+        for fk, ak, size in (("fl_x", "camera_angle_x", width), ("fl_y", "camera_angle_y", height)):
+            if fk in intr and ak in intr:  # both given (instant-ngp writes both): they must be one camera
+                f_angle = 0.5 * size / math.tan(0.5 * float(intr[ak]))
+                if abs(float(intr[fk]) - f_angle) > FOCAL_AGREEMENT * f_angle:
+                    raise DatasetError(path, f"{where}{fk} = {float(intr[fk]):g} pixels and {ak} = {float(intr[ak]):g} "
+                                             f"rad (a focal length of {f_angle:.4g} pixels on the {size}-pixel side) "
+                                             "disagree: give one, or both for the same camera")
         fl_x = intr.get("fl_x")
         if fl_x is None:
             fl_x = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
