@@ -617,7 +617,7 @@ def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, c
     assert not out.exists()
 
 
-@pytest.mark.parametrize("kind", ["folder", "dangling link", "link loop"])
+@pytest.mark.parametrize("kind", ["folder", "dangling link", "link loop", "named pipe"])
 def test_a_frame_whose_image_is_not_a_file_says_what_is_there(tmp_path, capsys, kind):
     """A folder named r_3.png, or a symbolic link to nothing or to itself, was reported as a "missing" image (a
     warning, and the frame dropped)."""
@@ -629,9 +629,13 @@ def test_a_frame_whose_image_is_not_a_file_says_what_is_there(tmp_path, capsys, 
         img.mkdir()
     elif kind == "dangling link":
         img.symlink_to(data / "train" / "nothing.png")
-    else:
+    elif kind == "link loop":
         img.symlink_to(img.name)
-    want = "a folder" if kind == "folder" else "a symbolic link that leads nowhere"
+    else:
+        import os
+
+        os.mkfifo(img)
+    want = {"folder": "a folder", "named pipe": "not a regular file"}.get(kind, "a symbolic link that leads nowhere")
     out = tmp_path / "out"
     rc, err, _ = _run_cli(["train", data, "--out", out, *TINY_RUN], capsys)
     assert rc == 2 and want in err and "r_3.png" in err and "frames[3]" in err and err.count("\n") == 1, err
@@ -733,6 +737,19 @@ def test_resuming_after_frames_were_removed_names_the_checkpoint(tmp_path, capsy
     assert rc == 2 and "ckpt_0000004.npz" in err and "40 training views" in err and "now has 10" in err, err
     assert err.count("\n") == 1 and "resuming" not in out_text and _tree(out) == before
     assert cli_main(["eval", str(out)]) == 0
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_a_split_file_that_is_a_folder_is_named(tmp_path, split):
+    """transforms_test.json as a folder was passed over (the hold-out replaced the test split, silently);
+    transforms_train.json as a folder gave "cannot tell the dataset format"."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    (data / f"transforms_{split}.json").unlink()
+    (data / f"transforms_{split}.json").mkdir()
+    with pytest.raises(DatasetError, match="is a folder") as ei:
+        load_dataset(data)
+    assert f"transforms_{split}.json" in str(ei.value)
 
 
 def test_focal_length_given_twice_must_agree(tmp_path):

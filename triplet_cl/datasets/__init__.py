@@ -64,6 +64,9 @@ def detect_format(path) -> str:
         return "ngp"
     if not path.is_dir():
         raise DatasetError(path, "dataset folder not found")
+    for name in ("transforms_train.json", "transforms.json"):
+        if (path / name).exists() and not (path / name).is_file():
+            raise DatasetError(path / name, "is a folder (or not a regular file); expected the JSON file")
     if (path / "transforms_train.json").is_file():
         return "nerf"
     if (path / "transforms.json").is_file():

@@ -175,13 +175,15 @@ def find_image(base: Path) -> Path | None:
 
 def not_a_file(base: Path) -> tuple[Path, str] | None:
     """What lies at ``base`` (or ``base`` + a known image extension) where :func:`find_image` found no file:
-    ``(path, "a folder")``, ``(path, "a symbolic link that leads nowhere (or to itself)")``, or None when nothing
-    is there."""
+    ``(path, "a folder")``, ``(path, "a symbolic link that leads nowhere (or to itself)")``, ``(path, "not a regular
+    file ...")`` (a device or a pipe), or None when nothing is there."""
     for p in [base] + [base.with_name(base.name + e) for ext in IMAGE_EXTENSIONS for e in (ext, ext.upper())]:
         if p.is_dir():
             return p, "a folder"
-        if p.is_symlink():  # is_file() and is_dir() follow it: a link whose target is missing or a loop
+        if p.is_symlink() and not p.exists():  # is_file() and is_dir() follow it: a link to nothing or a loop
             return p, "a symbolic link that leads nowhere (or to itself)"
+        if p.exists():  # /dev/zero, a named pipe, a socket
+            return p, "not a regular file (a device, pipe or socket)"
     return None
 
 
