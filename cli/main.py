@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import os
 import re
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -161,12 +162,21 @@ def cmd_train(args: argparse.Namespace) -> int:
         tr = Trainer(data, out, cfg, device=dev, resume=True)
         check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
         tr.check_resumable()
+        _check_bbox_seen(mesh_cfg, tr)
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
         from triplet_cl.runs import replacing_run
 
         with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
+            existed = out.exists()
             tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
+            try:
+                _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
+            except BaseException:
+                tr.close_log()
+                if not existed:  # the run folder it had just started: nothing of the user's
+                    shutil.rmtree(out, ignore_errors=True)
+                raise
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
     if tr.background_note:
@@ -426,12 +436,27 @@ def _run_mesh_stage(tr, cfg) -> int:
     return 0
 
 
+def _check_bbox_seen(cfg, tr) -> None:
+    """``--bbox`` must hold something the training cameras see (else the mesh stage finds no surface, after the
+    whole training)."""
+    if cfg is None or cfg.bbox is None:
+        return
+    from triplet_cl.errors import UsageError
+    from triplet_cl.mesh.roi import ROI, cameras_seeing
+
+    cams = [v.camera for v in tr.ds.train]
+    if cameras_seeing(ROI.from_bbox(cfg.bbox), cams) == 0:
+        raise UsageError("--bbox", f"{','.join(f'{x:g}' for x in cfg.bbox)}: none of the {len(cams)} training cameras "
+                                   "sees any part of this box (world units of the dataset's cameras)")
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     from triplet_cl.runs import read_metrics
 
     cfg = _mesh_config_from_args(args)
     read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
     tr = _load_run(args)
+    _check_bbox_seen(cfg, tr)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)
 

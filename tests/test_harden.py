@@ -752,6 +752,24 @@ def test_a_split_file_that_is_a_folder_is_named(tmp_path, split):
     assert f"transforms_{split}.json" in str(ei.value)
 
 
+def test_a_bbox_no_camera_sees_is_refused_before_training(tmp_path, capsys, demo_copy, run):
+    """--bbox 100,100,100,101,101,101: the whole training ran, then "the mesh extraction found no surface", naming
+    nothing. Refused before any work, no run folder left; `extract` refuses it too; a box round the object passes."""
+    from triplet_cl.mesh.roi import ROI, cameras_seeing
+
+    out = tmp_path / "out"
+    far = "--bbox=100,100,100,101,101,101"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", out, *TINY_RUN, "--mesh-stage", far], capsys)
+    assert rc == 2 and "--bbox" in err and "none of the 40 training cameras" in err and err.count("\n") == 1, err
+    assert not out.exists()
+    before = _tree(run)
+    rc, err, _ = _run_cli(["extract", run, far], capsys)
+    assert rc == 2 and "--bbox" in err and _tree(run) == before, err
+    cams = [v.camera for v in load_dataset(demo_copy).train]
+    assert cameras_seeing(ROI.from_bbox((-1, -1, -1, 1, 1, 1)), cams) == len(cams)
+    assert cameras_seeing(ROI.from_bbox((100, 100, 100, 101, 101, 101)), cams) == 0
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

@@ -1069,6 +1069,13 @@ class Trainer:
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
 
+    def close_log(self) -> None:
+        """Close ``train.log`` (a run folder about to be removed: its logger, cached by path, must not keep writing to
+        the deleted file)."""
+        for h in list(self.log.handlers):
+            h.close()
+            self.log.removeHandler(h)
+
     def check_resumable(self) -> None:
         """Training may go on from the loaded checkpoint: the dataset has the training views it was made with (their
         number, and every view its order has left), else a :class:`RunError` naming the checkpoint. Only training

@@ -70,6 +70,24 @@ class ROI:
         return d
 
 
+def cameras_seeing(roi: ROI, cameras, samples: int = 9) -> int:
+    """How many of ``cameras`` see some of the box: a ``samples³`` grid of its points (corners included) in front of
+    the camera and inside its image. A ``--bbox`` no training camera sees crops the mesh to nothing, found only
+    after the whole training."""
+    t = np.linspace(-1.0, 1.0, samples)
+    g = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    X = roi.center + (g * roi.half) @ roi.axes
+    n = 0
+    for cam in cameras:
+        Xc = X @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
+        z = Xc[:, 2]
+        front = z > cam.near
+        u = cam.fx * Xc[front, 0] / z[front] + cam.cx
+        v = cam.fy * Xc[front, 1] / z[front] + cam.cy
+        n += bool(((u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)).any())
+    return n
+
+
 def parse_bbox(text: str) -> tuple:
     """``"XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX"`` → 6 floats; :class:`ValueError` saying what is expected."""
     try:
