@@ -126,8 +126,9 @@ class MeshConfig:
     # the occlusion, which the trace gives without baking light into the material), learned elsewhere (the learned
     # AO also carries what point + ambient lights miss: an environment's up/down gradient, interreflection).
     # Measured (session 36, bench/results/ao_auto_pocl_2026-11-26.txt): the correlation is 0.33 on gadget (200²),
-    # 0.21 at 100², |ρ| ≤ 0.09 on spot, Bob and five spot_small captures, −0.29 on the metal; computed AO on gadget
-    # relights 27.74 / 27.82 / 27.81 instead of 27.42 / 27.55 / 25.87 (albedo −0.45 dB); on bob_env it lost 1.4–3.8
+    # 0.21 at 100², 0.27 lit by an environment, |ρ| ≤ 0.07 on spot, Bob and five spot_small captures, −0.29 on the
+    # metal; computed AO relights gadget at 27.74 / 27.82 / 27.81 instead of 27.42 / 27.55 / 25.87 (albedo −0.45 dB)
+    # and its environment capture 0.4-1.1 dB better; on bob_env it relit 1.4–3.8 dB worse, on spot_small 0.2-1.5
     ao: str = "auto"
     ao_directions: int = 32
     ao_auto_correlation: float = 0.15
