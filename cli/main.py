@@ -696,8 +696,29 @@ def main(argv: list[str] | None = None) -> int:
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
     args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
-    with _sigterm_as_interrupt():
+    with _sigterm_as_interrupt(), _one_line_warnings(args.command):
         return _dispatch(args)
+
+
+@contextlib.contextmanager
+def _one_line_warnings(command: str):
+    """Warnings as one line each, ``triplet COMMAND: warning: ...`` (Python's default printed the module's path and
+    line and the source line that warned: two lines of internals for "3 of 40 frames have no image"); pyopencl's
+    "Non-empty compiler output" notice, which PoCL's build logs raise on every first run, is not shown unless
+    ``PYOPENCL_COMPILER_OUTPUT`` asks for the compiler's output."""
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"triplet {command}: warning: {message}", file=sys.stderr if file is None else file)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        if not os.environ.get("PYOPENCL_COMPILER_OUTPUT"):
+            with contextlib.suppress(ImportError):
+                from pyopencl import CompilerWarning
+
+                warnings.simplefilter("ignore", CompilerWarning)
+        yield
 
 
 @contextlib.contextmanager

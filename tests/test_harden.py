@@ -770,6 +770,23 @@ def test_a_bbox_no_camera_sees_is_refused_before_training(tmp_path, capsys, demo
     assert cameras_seeing(ROI.from_bbox((100, 100, 100, 101, 101, 101)), cams) == 0
 
 
+def test_warnings_are_one_line_naming_the_command(tmp_path, capsys):
+    """A dataset warning printed the module's path and line and the source line that warned (two lines of
+    internals); pyopencl's "Non-empty compiler output" notice is not the user's business."""
+    import warnings
+
+    import pyopencl
+    from triplet_cl.cli.main import _one_line_warnings
+
+    from triplet_cl.datasets import DatasetWarning
+
+    with _one_line_warnings("train"):
+        warnings.warn("skipped 1 of 40 frames", DatasetWarning, stacklevel=1)
+        warnings.warn("Non-empty compiler output encountered", pyopencl.CompilerWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert err == "triplet train: warning: skipped 1 of 40 frames\n", err
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math
