@@ -787,6 +787,17 @@ def test_warnings_are_one_line_naming_the_command(tmp_path, capsys):
     assert err == "triplet train: warning: skipped 1 of 40 frames\n", err
 
 
+def test_out_through_a_missing_folder_and_dot_dot_says_so(tmp_path, capsys, demo_copy, monkeypatch):
+    """--out new/../run gave "new/..: File exists" (the OS cannot step out of a folder that is not there)."""
+    monkeypatch.chdir(tmp_path)
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", "new/../run", *TINY_RUN], capsys)
+    assert rc == 2 and "'..' after new, a folder that does not exist" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "new").exists()
+    (tmp_path / "new").mkdir()  # through a folder that exists, '..' is an ordinary path
+    assert cli_main(["train", str(demo_copy), "--out", "new/../run", *TINY_RUN]) == 0
+    assert (tmp_path / "run" / "metrics.json").is_file()
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

@@ -282,6 +282,10 @@ def _nearest_existing(path: Path) -> Path:
 def check_writable_dir(path, option: str) -> None:
     """``path`` is (or can be created as) a writable folder: not a file, not under a file, not read-only."""
     path = Path(path)
+    for i, part in enumerate(path.parts):  # "new/../out": the OS cannot step out of a folder that is not there
+        if part == ".." and not Path(*path.parts[:i]).is_dir():
+            raise UsageError(option, f"{path}: '..' after {Path(*path.parts[:i])}, a folder that does not exist: "
+                                     "give the path without it")
     if path.exists() and not path.is_dir():
         raise UsageError(option, f"{path} is a file, expected a folder")
     base = _nearest_existing(path)
