@@ -798,6 +798,19 @@ def test_out_through_a_missing_folder_and_dot_dot_says_so(tmp_path, capsys, demo
     assert (tmp_path / "run" / "metrics.json").is_file()
 
 
+def test_render_over_a_folder_named_like_a_render_is_refused_first(run, capsys):
+    """RUN/renders/test/r_0.png a folder (holding a user file): refused after rendering, naming the temporary file
+    (.r_0.q2ld2bfr.png)."""
+    target = run / "renders" / "test" / "r_0.png"
+    target.unlink()
+    target.mkdir()
+    (target / "user.txt").write_text("mine")
+    before = _tree(run)
+    rc, err, out = _run_cli(["render", run], capsys)
+    assert rc == 2 and "renders/test/r_0.png is a folder" in err and err.count("\n") == 1, err
+    assert _tree(run) == before and "render" not in out
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

@@ -424,8 +424,11 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
         raise DatasetError(trainer.ds.root, f"the dataset has no {split!r} split (--split {split}); it has "
                                             f"{', '.join(have)}")
     check_not_in_dataset(out, option, trainer.ds.root)
+    names = [f"{Path(v.name).name}.png" for v in views]
+    taken = [n for n in names if (Path(out) / n).is_dir()]
+    if taken:  # the run's own renders too: found only after rendering, under the temporary file's name
+        raise UsageError(option, f"{Path(out) / taken[0]} is a folder where a render goes: move it away")
     if Path(out).resolve() != (trainer.run_dir / "renders" / split).resolve():
-        names = [f"{Path(v.name).name}.png" for v in views]
         check_output_files(out, names, option)
         from .runs import mark_output_dir
 
