@@ -811,6 +811,26 @@ def test_render_over_a_folder_named_like_a_render_is_refused_first(run, capsys):
     assert _tree(run) == before and "render" not in out
 
 
+@pytest.mark.parametrize("cmd", ["render", "relight"])
+def test_images_are_not_written_among_the_run_s_own_files(run, tmp_path, capsys, cmd):
+    """relight RUN --out RUN wrote its PNGs into the run's root folder, beside config.json and the checkpoints."""
+    lf = tmp_path / "l.json"
+    lf.write_text(json.dumps({"lights": [_POINT]}))
+    before = _tree(run)
+    extra = ["--lights", lf] if cmd == "relight" else []
+    rc, err, _ = _run_cli([cmd, run, *extra, "--out", str(run) + "/"], capsys)
+    assert rc == 2 and "is the run folder itself" in err and err.count("\n") == 1, err
+    assert _tree(run) == before
+
+
+def test_out_as_a_dangling_link_says_so(tmp_path, capsys, demo_copy):
+    """A dangling symbolic link as --out: "File exists"."""
+    (tmp_path / "out").symlink_to(tmp_path / "nowhere")
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", tmp_path / "out", *TINY_RUN], capsys)
+    assert rc == 2 and "symbolic link that leads nowhere" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "nowhere").exists()
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

@@ -282,6 +282,9 @@ def _nearest_existing(path: Path) -> Path:
 def check_writable_dir(path, option: str) -> None:
     """``path`` is (or can be created as) a writable folder: not a file, not under a file, not read-only."""
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise UsageError(option, f"{path} is a symbolic link that leads nowhere ({os.readlink(path)}): remove it or "
+                                 "give another folder")
     for i, part in enumerate(path.parts):  # "new/../out": the OS cannot step out of a folder that is not there
         if part == ".." and not Path(*path.parts[:i]).is_dir():
             raise UsageError(option, f"{path}: '..' after {Path(*path.parts[:i])}, a folder that does not exist: "
@@ -486,6 +489,9 @@ def validate_args(args) -> None:
             saved = check_run_dir(args.run, "RUN", writable=writable)
             check_run_dataset(args.run, saved["data"])  # read by every command but export: moved or deleted?
         if getattr(args, "out", None):
+            if cmd in ("render", "eval", "relight") and Path(args.out).resolve() == Path(args.run).resolve():
+                raise UsageError("--out", f"{args.out} is the run folder itself: its images would lie among the run's "
+                                          "own files; give a folder of their own (default: inside the run)")
             check_writable_dir(args.out, "--out")
             check_not_in_dataset(args.out, "--out")
             check_not_run_internal(args.out, "--out")
