@@ -831,6 +831,21 @@ def test_out_as_a_dangling_link_says_so(tmp_path, capsys, demo_copy):
     assert not (tmp_path / "nowhere").exists()
 
 
+def test_a_key_given_twice_in_a_json_object_is_refused(tmp_path, run, capsys):
+    """json keeps the last of two equal keys silently: two camera_angle_x trained on the second."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    p = data / "transforms_train.json"
+    p.write_text(p.read_text().replace('"camera_angle_x":', '"camera_angle_x": 0.5, "camera_angle_x":', 1))
+    with pytest.raises(DatasetError, match="'camera_angle_x' appears twice") as ei:
+        load_dataset(data)
+    assert "transforms_train.json" in str(ei.value)
+    lf = tmp_path / "l.json"
+    lf.write_text('{"lights": [{"type": "point", "position": [0, 0, 3], "position": [0, 0, 4], "intensity": 1}]}')
+    rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 2 and "'position' appears twice" in err and err.count("\n") == 1, err
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

@@ -10,6 +10,17 @@ from pathlib import Path
 import numpy as np
 
 
+def strict_json_object(pairs: list) -> dict:
+    """``json.loads(..., object_pairs_hook=strict_json_object)``: a key given twice in one object is a ValueError
+    (``json`` keeps the last silently: a transforms file with two ``camera_angle_x`` trained on one of them)."""
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise ValueError(f"the key {k!r} appears twice in one object")
+        out[k] = v
+    return out
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and a rename: never a half-written file."""
     path = Path(path)

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import strict_json_object
 from .lights import LIGHT_CLASSES, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, lights_from_json
 from .mesh.envmap import project_envmap, rotation_y  # noqa: F401  (rotation_y: re-exported)
 
@@ -98,7 +99,7 @@ def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise LightFileError(path, "", "the light file does not exist")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_text(), object_pairs_hook=strict_json_object)
     except (OSError, UnicodeDecodeError) as exc:
         raise LightFileError(path, "", f"cannot read it ({exc})") from None
     except json.JSONDecodeError as exc:

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import DatasetError
+from ..io import strict_json_object
 from .base import Dataset, holdout_split, merge_color_spaces, warn_missing
 from .images import find_image, load_views, not_a_file
 
@@ -38,7 +39,7 @@ def read_json(path: Path) -> dict:
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(path, f"cannot read the file: {exc}") from exc
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=strict_json_object)
     except json.JSONDecodeError as exc:
         raise DatasetError(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
     except (RecursionError, ValueError) as exc:  # nested too deep; an integer past Python's 4300 digits
