@@ -72,7 +72,11 @@ def _config_from_args(args: argparse.Namespace):
     if args.brdf:
         over["brdf"] = brdf_from_cli(args.brdf)
     if args.lights:
-        over["lights"] = tuple(x.strip() for x in args.lights.split(",") if x.strip())
+        items = tuple(x.strip() for x in args.lights.split(","))
+        if not all(items):
+            raise ValueError(f"--lights: an empty item in {args.lights!r}: expected a comma-separated mix of "
+                             f"{', '.join(LIGHT_KINDS)}")
+        over["lights"] = items
     if args.sh_degree is not None:
         over["sh_degree"] = args.sh_degree
     if args.light_distance is not None:

@@ -846,6 +846,20 @@ def test_a_key_given_twice_in_a_json_object_is_refused(tmp_path, run, capsys):
     assert rc == 2 and "'position' appears twice" in err and err.count("\n") == 1, err
 
 
+def test_an_empty_light_kind_and_a_non_panorama_envmap_are_refused(tmp_path, run, capsys, demo_copy):
+    """--lights point,,ambient dropped the empty item silently; 1x1 and 8x64 "environment maps" were projected."""
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", tmp_path / "o", "--lights", "point,,ambient", *TINY_RUN],
+                          capsys)
+    assert rc == 2 and "--lights: an empty item" in err and not (tmp_path / "o").exists(), err
+    for w, h in ((1, 1), (8, 64)):
+        env = fac.write_image(tmp_path / f"e{w}x{h}.exr", np.ones((h, w, 4), np.float32), "float")
+        lf = tmp_path / "l.json"
+        lf.write_text(json.dumps({"lights": [{"type": "envmap", "filename": env.name}]}))
+        rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+        assert rc == 2 and f"is {w}x{h}: an equirectangular environment map is twice as wide" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

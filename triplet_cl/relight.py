@@ -296,6 +296,9 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
         if img.color_space != "linear":
             raise LightFileError(path, f"{where}.filename", f"{file} is not a linear HDR/EXR image (found an "
                                  "8/16-bit file, whose values are display-encoded, not radiance)")
+        if abs(img.width / img.height - 2.0) > 0.1 or img.height < 2:  # a cube map, a crop, a thumbnail strip
+            raise LightFileError(path, f"{where}.filename", f"{file} is {img.width}x{img.height}: an "
+                                 "equirectangular environment map is twice as wide as it is high")
         _PROJECTIONS[key] = project_equirect(img.rgb, float(rot), degree)
     return float(scale) * _PROJECTIONS[key]
 
