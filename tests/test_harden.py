@@ -860,6 +860,19 @@ def test_an_empty_light_kind_and_a_non_panorama_envmap_are_refused(tmp_path, run
     assert not (tmp_path / "out").exists()
 
 
+def test_eval_out_inside_the_relight_references_is_refused(run, tmp_path, capsys):
+    """eval --relight REFS --out REFS/x wrote relit images among the user's reference images."""
+    refs = tmp_path / "refs"
+    refs.mkdir()
+    (refs / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
+                                                   "albedo": "albedo"}))
+    before = _tree(refs)
+    for out in (refs, refs / "x"):
+        rc, err, _ = _run_cli(["eval", run, "--relight", refs, "--out", out], capsys)
+        assert rc == 2 and "inside the relight references' folder" in err and err.count("\n") == 1, err
+    assert _tree(refs) == before and not (refs / "x").exists()
+
+
 def test_focal_length_given_twice_must_agree(tmp_path):
     """fl_x = 40 beside camera_angle_x = 0.698 (a focal length of 131.9 pixels at 96²): fl_x was used silently."""
     import math

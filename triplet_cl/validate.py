@@ -489,6 +489,14 @@ def validate_args(args) -> None:
             saved = check_run_dir(args.run, "RUN", writable=writable)
             check_run_dataset(args.run, saved["data"])  # read by every command but export: moved or deleted?
         if getattr(args, "out", None):
+            rel = getattr(args, "relight", None) if cmd == "eval" else None
+            if rel:  # the references are the user's: relit images never go among them
+                refs = Path(str(rel).split("#")[0])
+                refs = (refs.parent if refs.is_file() else refs).resolve()
+                o = Path(args.out).resolve()
+                if o == refs or refs in o.parents:
+                    raise UsageError("--out", f"{args.out} is inside the relight references' folder {refs}: give a "
+                                              "folder outside it")
             if cmd in ("render", "eval", "relight") and Path(args.out).resolve() == Path(args.run).resolve():
                 raise UsageError("--out", f"{args.out} is the run folder itself: its images would lie among the run's "
                                           "own files; give a folder of their own (default: inside the run)")
