@@ -860,12 +860,17 @@ def test_an_empty_light_kind_and_a_non_panorama_envmap_are_refused(tmp_path, run
     assert not (tmp_path / "out").exists()
 
 
+def _relight_refs(folder: Path) -> Path:
+    """A relight references' folder with one set "a" (its images folder "a", absent) and no albedo images."""
+    folder.mkdir()
+    (folder / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
+                                                     "albedo": "albedo"}))
+    return folder
+
+
 def test_eval_out_inside_the_relight_references_is_refused(run, tmp_path, capsys):
     """eval --relight REFS --out REFS/x wrote relit images among the user's reference images."""
-    refs = tmp_path / "refs"
-    refs.mkdir()
-    (refs / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
-                                                   "albedo": "albedo"}))
+    refs = _relight_refs(tmp_path / "refs")
     before = _tree(refs)
     for out in (refs, refs / "x"):
         rc, err, _ = _run_cli(["eval", run, "--relight", refs, "--out", out], capsys)
@@ -1205,10 +1210,7 @@ def test_a_set_named_like_a_path_writes_nothing_outside_out(run, tmp_path, capsy
 
 
 def test_eval_relight_missing_references_fail_before_any_work(run, tmp_path, capsys):
-    rd = tmp_path / "rel"
-    rd.mkdir()
-    (rd / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
-                                                 "albedo": "albedo"}))
+    rd = _relight_refs(tmp_path / "rel")
     before = _tree(run)
     rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
     assert rc == 2 and "sets.a.images" in err and "folder not found" in err, err
