@@ -259,9 +259,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         stages = ["soup"] + (["mesh"] if (run / "mesh_stage.npz").is_file() else [])
         if args.out:
+            from triplet_cl.datasets.base import render_files
             from triplet_cl.relight import load_light_sets as _sets
 
-            names = [f"{Path(v.name).name}.png" for v in tr.ds["test"][: tr.cfg.max_test_views or None]]
+            names = render_files(tr.ds["test"][: tr.cfg.max_test_views or None])
             _check_image_outs([Path(args.out) / st / ls.name for st in stages for ls in _sets(spec, args.env_degree)]
                               + [Path(args.out) / st / "albedo" for st in stages], names, "--out", tr.ds.root)
         rel = dict(merged.get("relight") or {})
@@ -304,7 +305,9 @@ def cmd_relight(args: argparse.Namespace) -> int:
     base = Path(args.out) if args.out else run / "relight"
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
     check_vertex_sh(sets, rl.base.vertex_sh is not None)
-    names = [f"{Path(v.name).name}.png" for v in rl.views(args.split)]
+    from triplet_cl.datasets.base import render_files
+
+    names = render_files(rl.views(args.split))
     _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
     for ls, out in zip(sets, outs, strict=True):
         paths = relight_run(rl, ls, out, args.split)

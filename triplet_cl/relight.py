@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .datasets.base import render_files
 from .io import strict_json_object
 from .lights import LIGHT_CLASSES, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, lights_from_json
 from .mesh.envmap import project_envmap, rotation_y  # noqa: F401  (rotation_y: re-exported)
@@ -502,9 +503,10 @@ def relight_run(relighter: Relighter, light_set: LightSet, out_dir, split: str =
     scene = relighter.with_lights(light_set.lights)
     bg = np.ones(3)
     out = []
-    for v in relighter.views(split):
+    views = relighter.views(split)
+    for v, fname in zip(views, render_files(views), strict=True):
         img, alpha = relighter.render(scene, v.camera, bg)
-        p = Path(out_dir) / f"{Path(v.name).name}.png"
+        p = Path(out_dir) / fname
         write_png(p, np.clip(straight(img, alpha, bg), 0, 1), np.clip(alpha, 0, 1))
         out.append(p)
     return out
@@ -605,7 +607,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
             raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
         scene = relighter.with_lights(ls.lights)
         per = []
-        for v in views:
+        for v, fname in zip(views, render_files(views), strict=True):
             rgb, a = ref(ls.images, v)
             target = rgb * a[..., None] + bg * (1 - a[..., None])
             img, alpha = relighter.render(scene, v.camera, bg)
@@ -613,7 +615,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
             per.append({"name": v.name, "psnr": psnr(img, target),
                         "ssim": float(ssim(img.astype(np.float64), target.astype(np.float64), padding="valid"))})
             if out_dir is not None:
-                write_png(Path(out_dir) / ls.name / f"{Path(v.name).name}.png", np.clip(straight(img, alpha, bg), 0, 1),
+                write_png(Path(out_dir) / ls.name / fname, np.clip(straight(img, alpha, bg), 0, 1),
                           np.clip(alpha, 0, 1))
         out["sets"][ls.name] = {"psnr": float(np.mean([p["psnr"] for p in per])),
                                 "ssim": float(np.mean([p["ssim"] for p in per])), "views": per}
@@ -622,14 +624,14 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
         if not isinstance(alb, str):
             raise LightFileError(spec, "albedo", f"expected a folder name, found {alb!r}")
         preds, gts, masks = [], [], []
-        for v in views:
+        for v, fname in zip(views, render_files(views), strict=True):
             rgb, a = ref(spec.parent / alb, v)
             pred, pa = relighter.render_albedo(v.camera)
             preds.append(pred)
             gts.append(rgb)
             masks.append(a > 0.5)
             if out_dir is not None:
-                write_png(Path(out_dir) / "albedo" / f"{Path(v.name).name}.png", np.clip(pred, 0, 1),
+                write_png(Path(out_dir) / "albedo" / fname, np.clip(pred, 0, 1),
                           np.clip(pa, 0, 1))
         out["albedo"] = albedo_psnr(np.stack(preds), np.stack(gts), np.stack(masks))
     return out

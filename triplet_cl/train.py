@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .datasets import load_dataset
-from .datasets.base import Dataset, resolve_background
+from .datasets.base import Dataset, render_files, resolve_background
 from .density import (
     DensityConfig,
     DensityStats,
@@ -957,7 +957,7 @@ class Trainer:
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
         per = []
         vis = self.final_visibility()
-        for v in views:
+        for v, fname in zip(views, render_files(views), strict=True):
             r = render(self.scene, v.camera, settings, self.device, vis=vis)
             target = v.target(bg)
             img = np.clip(r.image, 0, 1)
@@ -968,7 +968,7 @@ class Trainer:
                 a = np.clip(r.alpha, 0, 1)
                 rgb = np.where(a[..., None] > 1e-4, (img - bg * (1 - a[..., None])) / np.maximum(a[..., None], 1e-4),
                                0.0)
-                write_png(out_dir / f"{Path(v.name).name}.png", rgb, a)
+                write_png(out_dir / fname, rgb, a)
         return {"split": split, "psnr": float(np.mean([p["psnr"] for p in per])) if per else None,
                 "ssim": float(np.mean([p["ssim"] for p in per])) if per else None, "views": per}
 

@@ -427,7 +427,9 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
         raise DatasetError(trainer.ds.root, f"the dataset has no {split!r} split (--split {split}); it has "
                                             f"{', '.join(have)}")
     check_not_in_dataset(out, option, trainer.ds.root)
-    names = [f"{Path(v.name).name}.png" for v in views]
+    from .datasets.base import render_files
+
+    names = render_files(views)
     taken = [n for n in names if (Path(out) / n).is_dir()]
     if taken:  # the run's own renders too: found only after rendering, under the temporary file's name
         raise UsageError(option, f"{Path(out) / taken[0]} is a folder where a render goes: move it away")

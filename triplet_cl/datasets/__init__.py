@@ -122,6 +122,5 @@ def load_dataset(path, format: str = "auto", downscale: int = 1, background="whi
         ds = load_colmap(path, downscale, split_holdout)
     else:
         raise ValueError(f"format must be 'auto' or one of {FORMATS}, got {format!r}")
-    ds.check_render_names()
     ds.background = background
     return ds

@@ -26,6 +26,16 @@ SPLITS = ("train", "val", "test")
 BACKGROUNDS = ("white", "black", "random")
 
 
+def render_files(views) -> list[str]:
+    """The file name of each view's render (and relit image): its image's file name with ``.png``, or, where two of
+    ``views`` share that name (a rig's ``cam0/0001`` and ``cam1/0001``), its path inside the dataset with ``__`` for
+    ``/`` — one render never replaces another."""
+    names = [str(v.name if hasattr(v, "name") else v) for v in views]
+    base = [Path(n).name for n in names]
+    shared = {b for b in base if base.count(b) > 1}
+    return [f"{n.replace('/', '__') if b in shared else b}.png" for n, b in zip(names, base, strict=True)]
+
+
 class DatasetWarning(UserWarning):
     """Something in a dataset was skipped (e.g. frames whose image file is missing)."""
 
@@ -93,18 +103,6 @@ class Dataset:
         for s in SPLITS:
             self.splits.setdefault(s, [])
 
-    def check_render_names(self) -> None:
-        """Every split's images have distinct file names, else a :class:`DatasetError`: renders and relight
-        references are named by them (``test/a/r_0`` and ``test/b/r_0`` wrote one render over the other)."""
-        for s, views in self.splits.items():
-            seen: dict[str, View] = {}
-            for v in views:
-                base = Path(v.name).name
-                if base in seen:
-                    raise DatasetError(v.path or self.root, f"the {s} images {seen[base].name!r} and {v.name!r} share "
-                                                            f"the file name {base!r}, which names their renders "
-                                                            "(one would replace the other): rename one")
-                seen[base] = v
 
     # ---- access ---------------------------------------------------------------------------
     @property

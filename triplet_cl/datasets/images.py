@@ -68,6 +68,7 @@ def read_image(path, downscale: int = 1) -> Image:
         raise DatasetError(path, f"cannot read the image: {_one_line(oiio.geterror() or 'unknown format')}")
     try:
         spec = inp.spec()
+        fmt = inp.format_name()
         px = inp.read_image(0, 0, 0, spec.nchannels, "float")
         err = inp.geterror()
     finally:
@@ -75,8 +76,9 @@ def read_image(path, downscale: int = 1) -> Image:
     if px is None or err:  # a truncated JPEG comes back filled in, with an error message
         raise DatasetError(path, f"cannot read the image: {_one_line(err or oiio.geterror() or 'read failed')}")
     window = (spec.x, spec.y, spec.width, spec.height)
-    if spec.full_width > 0 and spec.full_height > 0 and window != (spec.full_x, spec.full_y, spec.full_width,
-                                                                    spec.full_height):
+    # EXR only: a PNG's oFFs offset (a crop without +repage) shows as a data window too, on a complete image
+    if fmt == "openexr" and spec.full_width > 0 and spec.full_height > 0 and window != (
+            spec.full_x, spec.full_y, spec.full_width, spec.full_height):
         # an EXR whose pixels cover part of its frame: the camera's intrinsics are the frame's, the pixels are not
         raise DatasetError(path, f"the image's data window ({spec.width}x{spec.height} at {spec.x},{spec.y}) is not "
                                  f"its display window ({spec.full_width}x{spec.full_height} at {spec.full_x},"
@@ -175,14 +177,13 @@ def find_image(base: Path) -> Path | None:
 
 def not_a_file(base: Path) -> tuple[Path, str] | None:
     """What lies at ``base`` (or ``base`` + a known image extension) where :func:`find_image` found no file:
-    ``(path, "a folder")``, ``(path, "a symbolic link that leads nowhere (or to itself)")``, ``(path, "not a regular
-    file ...")`` (a device or a pipe), or None when nothing is there."""
+    ``(path, "a folder")``, ``(path, "not a regular file ...")`` (a device or a pipe), or None when nothing is there
+    — a symbolic link that leads nowhere counts as missing (an unfetched file of a git-annex / DVC checkout: the
+    frame is skipped with a warning, as COLMAP's loader does)."""
     for p in [base] + [base.with_name(base.name + e) for ext in IMAGE_EXTENSIONS for e in (ext, ext.upper())]:
         if p.is_dir():
             return p, "a folder"
-        if p.is_symlink() and not p.exists():  # is_file() and is_dir() follow it: a link to nothing or a loop
-            return p, "a symbolic link that leads nowhere (or to itself)"
-        if p.exists():  # /dev/zero, a named pipe, a socket
+        if p.exists():  # neither a file nor a folder: /dev/zero, a pipe, a socket
             return p, "not a regular file (a device, pipe or socket)"
     return None
 

@@ -205,6 +205,9 @@ def transforms_records(json_path: Path, data: dict | None = None):
         own = {k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}
         _check_intrinsics(json_path, where, own)
         intr = {**top, **own}
+        for fk, ak in (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y")):
+            if (fk in own) != (ak in own):  # a frame's own focal length overrides the file's, in either form
+                intr.pop(ak if fk in own else fk, None)
         make = _camera_maker(json_path, where, c2w, intr)
         image = find_image(root / fp)
         if image is None:

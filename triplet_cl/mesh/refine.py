@@ -30,7 +30,7 @@ import numpy as np
 
 from ..activations import logit, sigmoid
 from ..autodiff import Param, Tape
-from ..datasets.base import resolve_background
+from ..datasets.base import render_files, resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
 from ..materials import copy_ambient, get_brdf, tie_ambient_gradient
@@ -979,7 +979,7 @@ class MeshStage:
         vis = self.visibility(scene)
         bounce = self.bounce(scene, vis)
         per = []
-        for v in views:
+        for v, fname in zip(views, render_files(views), strict=True):
             _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis, bounce=bounce)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
@@ -989,7 +989,7 @@ class MeshStage:
                 a = np.clip(alpha, 0, 1)
                 rgb = np.where(a[..., None] > 1e-4, (img - bg * (1 - a[..., None])) / np.maximum(a[..., None], 1e-4),
                                0.0)
-                write_png(self.run_dir / "renders" / "mesh" / f"{Path(v.name).name}.png", rgb, a)
+                write_png(self.run_dir / "renders" / "mesh" / fname, rgb, a)
         return {"psnr": float(np.mean([p["psnr"] for p in per])), "ssim": float(np.mean([p["ssim"] for p in per])),
                 "views": per}
 
