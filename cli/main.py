@@ -172,14 +172,18 @@ def cmd_train(args: argparse.Namespace) -> int:
         from triplet_cl.runs import replacing_run
 
         with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
-            existed = out.exists()
+            made = _first_missing(out)  # what the trainer creates: the folder (and missing parents), or nothing
+            empty = out.is_dir() and not any(out.iterdir())
             tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
             try:
                 _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
             except BaseException:
-                tr.close_log()
-                if not existed:  # the run folder it had just started: nothing of the user's
-                    shutil.rmtree(out, ignore_errors=True)
+                tr.close_log()  # then nothing of the run it had just started stays: nothing there was the user's
+                if made is not None:
+                    shutil.rmtree(made, ignore_errors=True)
+                elif empty:
+                    for p in out.iterdir():
+                        shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink()
                 raise
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
@@ -435,12 +439,20 @@ def _run_mesh_stage(tr, cfg) -> int:
     print(f"mesh stage: {cfg.method} extraction, {cfg.rounds} round(s) of {cfg.iterations} steps")
     m = stage.run()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
-    if m.get("gt_buried_fraction", 0) > 0:  # a reference of overlapping parts: also against what a camera can see
+    if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees
         chamfer += (f" (its outer surface {m['chamfer_surface_to_gt']:.4f}; {100 * m['gt_buried_fraction']:.0f} % of "
                     "gt_mesh's area lies inside its other parts)")
     print(f"mesh: {m['faces']} faces, test PSNR {m['psnr']:.2f} dB (soup {m['soup_psnr']:.2f} dB){chamfer}")
     print(f"wrote {', '.join(m['files'])} in {tr.run_dir}/")
     return 0
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The topmost of ``path`` and its parents that does not exist yet (what ``mkdir(parents=True)`` creates)."""
+    p, first = path.absolute(), None
+    while not p.exists() and p != p.parent:
+        first, p = p, p.parent
+    return first
 
 
 def _check_bbox_seen(cfg, tr) -> None:

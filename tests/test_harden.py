@@ -806,6 +806,14 @@ def test_a_bbox_no_camera_sees_is_refused_before_training(tmp_path, capsys, demo
     cams = [v.camera for v in load_dataset(demo_copy).train]
     assert cameras_seeing(ROI.from_bbox((-1, -1, -1, 1, 1, 1)), cams) == len(cams)
     assert cameras_seeing(ROI.from_bbox((100, 100, 100, 101, 101, 101)), cams) == 0
+    c = cams[0].center  # a box round one camera: seen by it whatever the grid's points
+    assert cameras_seeing(ROI.from_bbox((*(c - 0.01), *(c + 0.01))), cams[:1]) == 1
+    for out in (tmp_path / "empty", tmp_path / "a" / "b" / "c"):  # an empty folder stays empty; new parents go
+        if out.name == "empty":
+            out.mkdir()
+        rc, err, _ = _run_cli(["train", demo_copy, "--out", out, *TINY_RUN, "--mesh-stage", far], capsys)
+        assert rc == 2 and "--bbox" in err, err
+    assert not any((tmp_path / "empty").iterdir()) and not (tmp_path / "a").exists()
 
 
 def test_warnings_are_one_line_naming_the_command(tmp_path, capsys):

@@ -397,6 +397,14 @@ def test_mesh_stage_auto_ao_follows_the_learned_ao_s_correlation_with_the_traced
             assert np.median(np.abs(got - np.clip(traced, 0.02, 0.999))) > 0.02
             assert not np.allclose(got, 1 / (1 + np.exp(-before)))  # it learned
     assert MeshStage(tr, tiny_mesh_cfg(ao="learned")).choose_ao(mesh) is None  # only for "auto"
+    # "auto" that decides learned is "learned", bit for bit (the decision's trace changes nothing)
+    cfg = dict(iterations=4, material_tie=2, remesh_every=0, metallic_trial=0, light_fit="off")
+    runs = []
+    for ao in ("learned", "auto"):
+        stage = MeshStage(tr, tiny_mesh_cfg(**cfg, ao=ao, ao_auto_correlation=1.0))
+        runs.append(stage.refine(stage.extract(tr.scene), 0))
+    for k in ("V", "material"):
+        np.testing.assert_array_equal(getattr(runs[0], k).data, getattr(runs[1], k).data)
     tr.held_ao = [5]  # the soup's AO held (TrainConfig.ao = "off"): nothing learned to compare
     assert MeshStage(tr, tiny_mesh_cfg()).choose_ao(mesh) is None
     for bad in ({"ao": "sometimes"}, {"ao_auto_correlation": 2.0}, {"ao_auto_correlation": "high"}):

@@ -70,7 +70,8 @@ def test_flush_faces_count_by_orientation():
     on_contact = (np.abs(z) < 1e-9) & (((P[:, 0] < 1) & (P[:, 0] > 0) | (P[:, 0] > 1.5) & (P[:, 0] < 2.5))
                                        & (P[:, 1] > 0) & (P[:, 1] < 1))
     assert buried[on_contact].all()
-    assert not buried[~on_contact & (n[:, 2] < 0.99) | (z < -1e-9)].any()  # every other face is on the outside
+    assert not buried[~on_contact].any()  # every other face (the tops, the sides, the slab around) is outside
+    assert n.shape == (len(P), 3)
 
 
 def test_chamfer_surface_drops_the_buried_reference_only():
@@ -96,3 +97,24 @@ def sample_surface_with_faces(V, F, n, seed=0):
     P, face = _sample_with_faces(V, F, n, seed)
     np.testing.assert_array_equal(P, sample_surface(V, F, n, seed))  # the same draws as sample_surface
     return P, face
+
+
+def test_a_part_with_a_flipped_face_is_not_closed():
+    """Every edge used twice but one face flipped: its winding number is ±1 just outside that face, so it would bury
+    samples of the parts around; closed means each edge once in each direction."""
+    a, b = _box([0, 0, 0], [1, 1, 1]), _box([3, 0, 0], [4, 1, 1])
+    V, F = _concat(a, b)
+    F = F.copy()
+    F[0] = F[0, ::-1]
+    _, closed = closed_parts(F, len(V))
+    assert len(closed) == 1
+
+
+def test_a_buried_test_too_large_gives_no_surface_numbers():
+    plate, cab = _box([-1, -1, 0], [1, 1, 0.5]), _box([-0.5, -0.5, 0.25], [0.5, 0.5, 1.25])
+    V, F = _concat(plate, cab)
+    P, face = sample_surface_with_faces(V, F, 1000)
+    with pytest.raises(ValueError, match="point-triangle pairs"):
+        buried_samples(V, F, P, face, max_pairs=10)
+    r = chamfer_distance(V, F, V, F, n=2000, max_buried_pairs=10)
+    assert r["chamfer"] >= 0 and r["chamfer_surface"] is None and r["buried_fraction"] is None

@@ -155,11 +155,11 @@ def _check_set_name(path, name: str) -> None:
     :class:`LightFileError` (a name with ``/``, ``..`` or an absolute path wrote the renders over the user's files
     outside ``--out``)."""
     bad = (not name or name != name.strip() or name.startswith(".") or any(c in name for c in '/\\:*?"<>|\0')
-           or Path(name).is_absolute() or len(name) > 100)
+           or Path(name).is_absolute() or len(name.encode("utf-8")) > 100)
     if bad:
         raise LightFileError(path, "sets", f"the set name {name!r} is not a plain folder name (its renders go to a "
                                            "folder of that name): expected no path separator nor any of :*?\"<>|, "
-                                           "not starting with '.' or a space, at most 100 characters")
+                                           "not starting with '.' or a space, at most 100 bytes")
 
 
 MAX_LIGHT_VALUE = 1e30  # a light file's numbers: float32 renders overflow past ~1e38 (a 1e308 intensity rendered inf)

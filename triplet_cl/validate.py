@@ -493,7 +493,7 @@ def validate_args(args) -> None:
         if getattr(args, "out", None):
             rel = getattr(args, "relight", None) if cmd == "eval" else None
             if rel:  # the references are the user's: relit images never go among them
-                refs = Path(str(rel).split("#")[0])
+                refs = Path(rel)  # eval's --relight: the references' folder or its relight.json (no #set)
                 refs = (refs.parent if refs.is_file() else refs).resolve()
                 o = Path(args.out).resolve()
                 if o == refs or refs in o.parents:

@@ -63,7 +63,8 @@ def winding_number(tri: np.ndarray, X: np.ndarray, chunk_elems: int = 500_000) -
 
 def closed_parts(F: np.ndarray, n_vertices: int) -> tuple[np.ndarray, list[int]]:
     """``(label [M] per face, closed)``: the faces' connected parts (sharing a vertex) and the labels of the parts
-    that are closed (every edge used by exactly two of its faces: it bounds a volume)."""
+    that are closed and consistently oriented (every edge used by exactly two of its faces, once in each direction:
+    it bounds a volume whose winding number is ±1 inside; a flipped face would make it ±1 just outside too)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -73,19 +74,26 @@ def closed_parts(F: np.ndarray, n_vertices: int) -> tuple[np.ndarray, list[int]]
     g = coo_matrix((np.ones(3 * m), (rows, F.reshape(-1) + m)), shape=(m + n_vertices, m + n_vertices))
     _, lab = connected_components(g, directed=False)
     label = np.unique(lab[:m], return_inverse=True)[1]
-    e = np.sort(F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    d = F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)  # directed edges: a closed, consistently oriented part uses each
+    _, dcnt_inv, dcnt = np.unique(d, axis=0, return_inverse=True, return_counts=True)  # once each way
+    e = np.sort(d, axis=1)
     _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
-    edge_ok = (cnt == 2)[inv.reshape(-1)].reshape(m, 3).all(1)
+    edge_ok = ((cnt == 2)[inv.reshape(-1)] & (dcnt == 1)[dcnt_inv.reshape(-1)]).reshape(m, 3).all(1)
     closed = [int(c) for c in range(label.max() + 1) if edge_ok[label == c].all()]
     return label, closed
 
 
-def buried_samples(V: np.ndarray, F: np.ndarray, P: np.ndarray, face: np.ndarray) -> np.ndarray:
+MAX_BURIED_PAIRS = 2e9  # the winding-number test's point-triangle pairs (~8M/s here: about 4 minutes at most)
+
+
+def buried_samples(V: np.ndarray, F: np.ndarray, P: np.ndarray, face: np.ndarray,
+                   max_pairs: float = MAX_BURIED_PAIRS) -> np.ndarray:
     """``[Q]`` bool: the surface samples ``P`` (on the faces ``face`` of ``V``, ``F``) that lie inside another
     closed part of the mesh — faces no camera sees. Each sample is tested a hair (1e-5 of the bounding box's
     diagonal) off its face along the face's normal: a face flush with another part's face and facing the same way
     (two parts' coplanar bottoms) is on the outer surface, one pressed against another part's face (facing it) is
-    buried, where the winding number on the plane itself is ±½ by rounding."""
+    buried, where the winding number on the plane itself is ±½ by rounding. A :class:`ValueError` when the test would
+    take more than ``max_pairs`` point-triangle pairs (large overlapping parts)."""
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64)
     label, closed = closed_parts(F, len(V))
@@ -98,16 +106,25 @@ def buried_samples(V: np.ndarray, F: np.ndarray, P: np.ndarray, face: np.ndarray
     eps = 1e-5 * float(np.linalg.norm(V.max(0) - V.min(0)))
     Pt = np.asarray(P, np.float64) + eps * nrm[face]
     own = label[face]
+    work = []
     for c in closed:
         fc = np.flatnonzero(label == c)
         lo, hi = V[F[fc]].reshape(-1, 3).min(0), V[F[fc]].reshape(-1, 3).max(0)
-        cand = np.flatnonzero((own != c) & ~out & np.all((Pt >= lo) & (Pt <= hi), axis=1))
+        cand = np.flatnonzero((own != c) & np.all((Pt >= lo) & (Pt <= hi), axis=1))
+        work.append((fc, cand))
+    pairs = sum(len(fc) * len(cand) for fc, cand in work)
+    if pairs > max_pairs:
+        raise ValueError(f"the buried-sample test would take {pairs:.3g} point-triangle pairs (at most "
+                         f"{max_pairs:.3g}): a reference of large overlapping parts")
+    for fc, cand in work:
+        cand = cand[~out[cand]]
         if len(cand):
             out[cand[np.abs(winding_number(tri[fc], Pt[cand])) > 0.5]] = True
     return out
 
 
-def chamfer_distance(V1, F1, V2, F2, n: int = 100_000, seed: int = 0) -> dict:
+def chamfer_distance(V1, F1, V2, F2, n: int = 100_000, seed: int = 0,
+                     max_buried_pairs: float = MAX_BURIED_PAIRS) -> dict:
     """Symmetric mean Chamfer distance between two meshes, from ``n`` area-uniform samples of each; mesh 2 is the
     reference.
 
@@ -116,7 +133,8 @@ def chamfer_distance(V1, F1, V2, F2, n: int = 100_000, seed: int = 0) -> dict:
     four against the reference's outer surface (module docstring), ``"chamfer_surface"``, ``"d12_surface"``,
     ``"d21_surface"``, ``"hausdorff90_surface"``, with ``"buried_fraction"``, the share of the reference's area
     inside another of its closed parts (0: the two sets are equal). The outer surface is sampled with about
-    ``n`` points too (``n / (1 − buried_fraction)`` drawn), so that both sets have the same density.
+    ``n`` points too (``n / (1 − buried_fraction)`` drawn, at most 4 n), so that both sets have the same density.
+    All five are None where the test would take more than ``max_buried_pairs`` point-triangle pairs.
     """
     p1 = sample_surface(V1, F1, n, seed)
     p2, f2 = _sample_with_faces(V2, F2, n, seed + 1)
@@ -124,13 +142,19 @@ def chamfer_distance(V1, F1, V2, F2, n: int = 100_000, seed: int = 0) -> dict:
     d21 = cKDTree(p1).query(p2, workers=-1)[0]
     out = {"chamfer": float(0.5 * (d12.mean() + d21.mean())), "d12": float(d12.mean()), "d21": float(d21.mean()),
            "hausdorff90": float(max(np.percentile(d12, 90), np.percentile(d21, 90)))}
-    buried = buried_samples(V2, F2, p2, f2)
-    frac = float(buried.mean())
-    if frac > 0 and frac < 1:
-        p2, f2 = _sample_with_faces(V2, F2, int(np.ceil(n / (1 - frac))), seed + 2)
-        p2 = p2[~buried_samples(V2, F2, p2, f2)]
-        d12 = cKDTree(p2).query(p1, workers=-1)[0]
-        d21 = cKDTree(p1).query(p2, workers=-1)[0]
+    try:
+        buried = buried_samples(V2, F2, p2, f2, max_buried_pairs)
+        frac = float(buried.mean())
+        if 0 < frac < 1:  # the outer surface at about n samples too (at most 4 n drawn)
+            p2, f2 = _sample_with_faces(V2, F2, int(np.ceil(n / max(1 - frac, 0.25))), seed + 2)
+            p2 = p2[~buried_samples(V2, F2, p2, f2, max_buried_pairs)]
+            if len(p2) == 0:
+                raise ValueError("no sample of the reference lies on its outer surface")
+            d12 = cKDTree(p2).query(p1, workers=-1)[0]
+            d21 = cKDTree(p1).query(p2, workers=-1)[0]
+    except ValueError:  # too large to test, or nothing outside: the outer-surface numbers are not given
+        return {**out, "chamfer_surface": None, "d12_surface": None, "d21_surface": None,
+                "hausdorff90_surface": None, "buried_fraction": None}
     out.update({"chamfer_surface": float(0.5 * (d12.mean() + d21.mean())), "d12_surface": float(d12.mean()),
                 "d21_surface": float(d21.mean()),
                 "hausdorff90_surface": float(max(np.percentile(d12, 90), np.percentile(d21, 90))),

@@ -79,6 +79,9 @@ def cameras_seeing(roi: ROI, cameras, samples: int = 9) -> int:
     X = roi.center + (g * roi.half) @ roi.axes
     n = 0
     for cam in cameras:
+        if roi.contains(cam.center[None])[0]:  # a camera inside the box sees into it, whatever the grid
+            n += 1
+            continue
         Xc = X @ cam.w2c[:3, :3].T + cam.w2c[:3, 3]
         z = Xc[:, 2]
         front = z > cam.near
