@@ -181,3 +181,21 @@ def test_release_memory_gives_back_every_held_buffer(device):
     assert pool.held_blocks == 0 and pool.active_blocks >= 1
     live.fill(2.0)
     assert float(live.get().sum()) == 1000.0
+
+
+def test_release_memory_waits_for_a_large_process(device):
+    """``release_memory(min_resident)``: nothing released while the process is smaller (the training loop's
+    densifications at small captures), everything past it."""
+    import pyopencl.array as cla
+
+    from triplet_cl.device import resident_bytes
+
+    assert resident_bytes() > 0
+    pool = device.allocator
+    cla.empty(device.queue, 7000, np.float32, allocator=pool).finish()
+    held = pool.held_blocks
+    assert held >= 1
+    device.release_memory(min_resident=1 << 50)
+    assert pool.held_blocks == held
+    device.release_memory(min_resident=1)
+    assert pool.held_blocks == 0

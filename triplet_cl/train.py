@@ -775,7 +775,8 @@ class Trainer:
             self.priors.invalidate()
             self.shadow_cache.invalidate()  # new rows, new order
             self.check_finite(f"after densification at iteration {it + 1}")
-            self.device.release_memory()  # the old sizes' buffers and heap pages (no effect on the numbers)
+            self.device.release_memory(1 << 30)  # the old sizes' buffers and heap pages, once past 1 GiB (no effect
+            # on the numbers)
         if dens.reset_alpha_at(it):
             reset_alpha(self.scene, self.opt, dens.alpha_reset_value)
             self.last_alpha_reset = it
