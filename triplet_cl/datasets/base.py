@@ -103,7 +103,6 @@ class Dataset:
         for s in SPLITS:
             self.splits.setdefault(s, [])
 
-
     # ---- access ---------------------------------------------------------------------------
     @property
     def train(self) -> list[View]:

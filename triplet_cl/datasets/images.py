@@ -40,6 +40,7 @@ class Image(NamedTuple):
 
 NEGATIVE_TOLERANCE = 0.01  # linear images: values below -1 % of the brightest are an error, the rest clipped
 
+
 def _oiio():
     try:
         import OpenImageIO as oiio

@@ -351,6 +351,7 @@ class MeshStage:
         self.history: list[dict] = []
         self.metallic_choice: dict | None = None  # choose_metallic's trial, when it ran
         self.ao_choice: dict | None = None  # choose_ao's decision, when MeshConfig.ao is "auto"
+        self._ao_traced: tuple | None = None  # (scene, its traced AO) from choose_ao, for set_computed_ao
         self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
@@ -698,16 +699,13 @@ class MeshStage:
         ``metrics.json``'s ``mesh.ao_choice``."""
         from scipy.stats import spearmanr
 
-        from ..visibility import vertex_ambient_occlusion
-        from .bake import vertex_normals
-
         col = get_brdf(scene.brdf).column("ao")
         if self.cfg.ao != "auto" or col is None or col in self.trainer.held_ao:
             return None
         t = time.perf_counter()
         learned = sigmoid(np.asarray(scene.material.data[:, col], np.float64))
-        traced = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
-                                          directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
+        traced = self.trace_ao(scene)
+        self._ao_traced = (scene, traced)  # set_computed_ao at the round's start reuses it: the same vertices
         rho = float(spearmanr(traced, learned)[0]) if np.ptp(learned) > 0 and np.ptp(traced) > 0 else 0.0
         rho = rho if np.isfinite(rho) else 0.0
         choice = "computed" if rho >= self.cfg.ao_auto_correlation else "learned"
@@ -733,17 +731,23 @@ class MeshStage:
         ao = self.computed_ao_column(scene)
         return list(self.trainer.held_ao) + ([ao] if ao is not None else [])
 
+    def trace_ao(self, scene: Scene) -> np.ndarray:
+        """``[N]`` the mesh's traced ambient occlusion (:func:`~triplet_cl.visibility.vertex_ambient_occlusion`,
+        ``ao_directions`` rays per vertex)."""
+        from ..visibility import vertex_ambient_occlusion
+        from .bake import vertex_normals
+
+        return vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
+                                        directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
+
     def set_computed_ao(self, scene: Scene, col: int | None) -> None:
         """The mesh's traced ambient occlusion (:func:`~triplet_cl.visibility.vertex_ambient_occlusion`) written into
         the AO column ``col`` (raw: the sigmoid's inverse, clipped to [0.02, 0.999])."""
         if col is None:
             return
-        from ..visibility import vertex_ambient_occlusion
-        from .bake import vertex_normals
-
         t = time.perf_counter()
-        ao = vertex_ambient_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
-                                      directions=self.cfg.ao_directions, ray_eps=self.cfg.shadow_eps)
+        cached, self._ao_traced = self._ao_traced, None
+        ao = cached[1] if cached is not None and cached[0] is scene else self.trace_ao(scene)
         scene.material.data[:, col] = logit(np.clip(ao, 0.02, 0.999), eps=None).astype(scene.material.data.dtype)
         pct = np.round(np.percentile(ao, [10, 50, 90]), 3).tolist()
         self.trainer.log.info(f"mesh AO traced: {len(ao)} vertices, p10/50/90 {pct}, {time.perf_counter() - t:.1f} s")
