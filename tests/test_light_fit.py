@@ -217,8 +217,9 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     V, F = np.asarray(scene.V.data, np.float64), scene.F
     n = vertex_normals(V, F)
 
-    def visibility(P):
-        return vertex_visibility(scene, device64, lights=[PointLight(p, np.ones(3)) for p in P], ray_eps=0.01)
+    def visibility(P, rows=None):
+        return vertex_visibility(scene, device64, lights=[PointLight(p, np.ones(3)) for p in P], ray_eps=0.01,
+                                 vertices=rows)
 
     seen = visibility(np.array([c.center for c, _, _ in views]))
     c, count = vertex_radiance(V, n, views, seen)

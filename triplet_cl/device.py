@@ -357,6 +357,9 @@ class Device:
 
         if min_resident and resident_bytes() < min_resident:
             return
+        # nothing in flight while buffers (and objects the collector frees) go back: a 200k-face mesh stage died once
+        # in 2 identical runs with a worker thread jumping to a heap address after its last remesh (session 37)
+        self.queue.finish()
         gc.collect()
         self.release_held(0)
         try:

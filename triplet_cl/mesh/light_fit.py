@@ -240,8 +240,9 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
 
     Args:
         V, F, normals: the mesh; c, count: :func:`vertex_radiance`'s output.
-        visibility: ``visibility(positions [K, 3]) -> [N, K]``, each vertex's transmittance towards point lights
-            at ``positions`` (the mesh's cast shadows).
+        visibility: ``visibility(positions [K, 3], rows) -> [len(rows), K]``, the transmittance of the vertices
+            ``rows`` towards point lights at ``positions`` (the mesh's cast shadows); asked only for the observed
+            vertices (only their rows enter the fit: the rays of the others were a third of the stage's light fit).
         center, extent: the object's centre and radius.
         current: ``(positions [P, 3], intensities [P], ambient irradiance)`` of the lights before (luminance, in
             the renderer's units): their robust fit, only their overall scale free, is reported as
@@ -269,36 +270,38 @@ def fit_lights(V, F, normals, c, count, visibility, *, center, extent: float, di
     remap = np.full(len(V), -1)
     remap[sub] = np.arange(len(sub))
     e_sub, lc = remap[edges], log_c[sub]
+    V_sub, n_sub = V[sub], np.asarray(normals, np.float64)[sub]
 
-    def design(P, d):  # [N, L + 1]: the point lights at P (about 1 at the centre) and the ambient column
-        return np.concatenate([atom_matrix(V, normals, P, visibility(P), d), np.ones((len(V), 1))], axis=1)
+    def design(P, d):  # [S, L + 1] over the observed vertices: the point lights at P (about 1 at the centre), ambient
+        return np.concatenate([atom_matrix(V_sub, n_sub, P, visibility(P, sub), d), np.ones((len(sub), 1))], axis=1)
 
     dirs = sphere_directions(atoms)
     B = design(center + distance * extent * dirs, distance * extent)
-    w_atoms, tv = fit_weights(B[sub], lc, e_sub)
+    w_atoms, tv = fit_weights(B, lc, e_sub)
     L, w_tv = _clustered(dirs, w_atoms, cluster_angle, min_share, max_lights, "the shading shows")
     best = None
     for k in distances:
         BL = design(center + k * extent * L, k * extent)
-        w, tv_k = fit_weights(BL[sub], lc, e_sub, w0=w_tv)  # the lights' relative weights by the TV
+        w, tv_k = fit_weights(BL, lc, e_sub, w0=w_tv)  # the lights' relative weights by the TV
         # the ambient's share by the robust one-albedo fit: two unknowns, the direct light's scale and the ambient
         direct = BL[:, :-1] @ w[:-1]
-        B2 = np.stack([direct, np.ones(len(V))], axis=1)
+        B2 = np.stack([direct, np.ones(len(sub))], axis=1)
         w0 = np.array([1.0, w[-1]])
-        w2, obj_k = robust_log_fit(B2[sub], lc, w0 * np.exp(np.median(lc - np.log(B2[sub] @ w0))))
+        w2, obj_k = robust_log_fit(B2, lc, w0 * np.exp(np.median(lc - np.log(B2 @ w0))))
         if best is None or obj_k < best[0]:  # the distance by the robust fit too (the TV's chose 1.3-1.6x too far)
             best = (obj_k, k, np.append(w[:-1] * w2[0], w2[1]), BL, tv_k)
     obj, k, w, BL, tv = best
-    E = BL @ w
+    E = np.full(len(V), np.nan)
+    E[sub] = BL @ w
     obj_current = None
     if current is not None:
         cp, ci, ca = current
         cp = np.asarray(cp, np.float64).reshape(-1, 3)
-        Bc = atom_matrix(V, normals, cp, visibility(cp), 1.0) @ np.asarray(ci, np.float64) + float(ca)
-        if np.any(Bc[sub] > 0):  # else they light no observed vertex and explain nothing (None)
-            _, obj_current = robust_log_fit(Bc[sub, None], lc, np.exp([np.median(lc - np.log(Bc[sub] + 1e-9))]))
+        Bc = atom_matrix(V_sub, n_sub, cp, visibility(cp, sub), 1.0) @ np.asarray(ci, np.float64) + float(ca)
+        if np.any(Bc > 0):  # else they light no observed vertex and explain nothing (None)
+            _, obj_current = robust_log_fit(Bc[:, None], lc, np.exp([np.median(lc - np.log(Bc + 1e-9))]))
     return {"positions": center + k * extent * L, "intensities": w[:-1] * (k * extent) ** 2, "ambient": float(w[-1]),
-            "irradiance": np.where(good, E, np.nan), "observed": good, "objective": obj,
+            "irradiance": E, "observed": good, "objective": obj,
             "objective_current": obj_current, "distance": k, "tv": tv, "weights": w.tolist(),
             "vertices": int(good.sum()), "seconds": time.perf_counter() - t}
 

@@ -608,13 +608,16 @@ class MeshStage:
                                  ray_eps=self.cfg.shadow_eps, vertices=vertices)
 
     def _point_visibility(self, scene: Scene, n: int, vertices=None):
-        """``visibility(P) -> [n, len(P)]``: the transmittance of point lights at ``P``, with the mesh's cast
-        shadows where the run's renders have them (:meth:`visibility`), else 1."""
+        """``visibility(P, rows=None) -> [n, len(P)]``: the transmittance of point lights at ``P`` from the ``n``
+        vertices ``vertices`` (default all), with the mesh's cast shadows where the run's renders have them
+        (:meth:`visibility`), else 1; ``rows`` (indices into those ``n``): only their rows, traced from them alone."""
         from ..lights import PointLight
 
-        def visibility(P):
-            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P], vertices=vertices)
-            return np.ones((n, len(P))) if vis is None else vis
+        def visibility(P, rows=None):
+            sel = vertices if rows is None else (np.asarray(rows) if vertices is None else np.asarray(vertices)[rows])
+            m = n if rows is None else len(rows)
+            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P], vertices=sel)
+            return np.ones((m, len(P))) if vis is None else vis
         return visibility
 
     @staticmethod
