@@ -55,6 +55,7 @@ from .ops.common import device_empty
 from .ops.composite import composite, composite_backward, coverage
 from .ops.interpolate import interpolate
 from .ops.mesh import DeviceMesh
+from .ops.prune import prune_fragments
 from .ops.raster import fragments_backward, project, project_backward, rasterize
 from .ops.silhouette import silhouette_bits
 from .scene import Scene
@@ -101,6 +102,11 @@ class RenderSettings:
     # by a Gaussian of this standard deviation between their centres and the pixel's, truncated at 4 sigma (a film's
     # reconstruction filter; ops/downsample.py), also with downsample 1 (it then blurs the render)
     pixel_sigma: float = 0.0
+    # drop the fragments behind each pixel's t_min cut-off before shading (ops/prune.py; raster only): the image and
+    # every gradient are the full list's, the shading and its adjoints run on fewer fragments. The mesh stage's
+    # renders (an opaque mesh: one fragment per covered pixel instead of its front and back faces); the soup's
+    # training keeps the full list, which its density statistics read
+    prune: bool = False
 
     def __post_init__(self):
         if self.attributes not in ("device", "host"):
@@ -339,10 +345,11 @@ def use_device_attributes(settings: RenderSettings, mesh: DeviceMesh) -> bool:
 
 
 class RasterInterpolate(Function):
-    """``(V [N, 3], attr [N, C]) → (frag_attr [P, C][, win [P]])`` (device arrays, packed fragments)."""
+    """``(V [N, 3], attr [N, C]) → (frag_attr [P, C][, win [P]])`` (device arrays, packed fragments).
+    ``alpha_col``: the opacity's column of ``attr``, for ``RenderSettings.prune`` (None: no pruning)."""
 
-    def __init__(self, view: RenderState):
-        self.view = view
+    def __init__(self, view: RenderState, alpha_col: int | None = None):
+        self.view, self.alpha_col = view, alpha_col
 
     def forward(self, ctx, V, attr):
         v, s = self.view, self.view.settings
@@ -359,13 +366,16 @@ class RasterInterpolate(Function):
                 soft = silhouette_bits(d, ctx.Vd, v.mesh, cam.center)
             fr = rasterize(d, vs, v.mesh, cam.width, cam.height, s.K, cam.near, cam.far, s.cull_backface,
                            sigma=s.sigma, soft_edges=soft)
+        fa = interpolate(d, ctx.attr, fr)
+        win = None if s.sigma is None else coverage(d, fr, s.sigma)
+        if s.prune and self.alpha_col is not None and s.renderer == "raster" and s.t_min > 0:
+            fr, fa, win = prune_fragments(d, fr, fa, self.alpha_col, win, s.t_min)
         v.frags = ctx.frags = fr
         v.info.update(frags=fr, vs=vs)
-        fa = interpolate(d, ctx.attr, fr)
         if s.sigma is None:
             return fa
-        v.win = coverage(d, fr, s.sigma)
-        return fa, v.win
+        v.win = win
+        return fa, win
 
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
@@ -809,7 +819,7 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
             mat = MaterialActivation(scene.brdf)(scene.material)
             alpha = SigmoidHost()(scene.alpha)
             attr = Concat()(scene.V, nrm, mat, alpha, *vl, *([const] if const is not None else []))
-        ri = RasterInterpolate(view)(scene.V, attr)
+        ri = RasterInterpolate(view, alpha_col=6 + cm)(scene.V, attr)  # pos | nrm | mat | alpha
         fa, win = (ri, None) if s.sigma is None else ri
         offsets = np.concatenate([[0], np.cumsum(sizes)])
         layout = {k: (int(offsets[i]), int(sizes[i])) for i, k in enumerate(names)}

@@ -427,7 +427,7 @@ class MeshStage:
         return RenderSettings(K=self.cfg.faces_per_pixel, sigma=self.cfg.sigma, soft_edges="silhouette",
                               background=tuple(float(x) for x in background), normals="vertex",
                               sh_degree=tc.sh_degree if sh else None, transfer=transfer, renderer=self.renderer,
-                              downsample=downsample,
+                              downsample=downsample, prune=True,
                               pixel_sigma=0.0 if self.cfg.pixel_sigma is None else self.cfg.pixel_sigma)
 
     def shadows_active(self) -> bool:
