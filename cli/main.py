@@ -154,6 +154,10 @@ def cmd_train(args: argparse.Namespace) -> int:
             print("triplet train: error: --out RUN is required", file=sys.stderr)
             return 2
     mesh_cfg = _mesh_config_from_args(args) if args.mesh_stage else None  # bad options fail before training
+    if mesh_cfg is not None and out.is_dir():
+        from triplet_cl.validate import check_mesh_outputs
+
+        check_mesh_outputs(out, mesh_cfg.formats)
     dev = get_device(args.device)
     if args.resume:
         from triplet_cl.runs import config_from_saved, read_run_config
@@ -474,7 +478,11 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     cfg = _mesh_config_from_args(args)
     read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
+    from triplet_cl.validate import check_mesh_outputs
+
+    check_mesh_outputs(args.run, cfg.formats)
     tr = _load_run(args)
+    tr.check_resumable("extract")  # the stage refines against the training photos: they must be the run's
     _check_bbox_seen(cfg, tr)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)

@@ -1663,3 +1663,103 @@ def test_config_json_records_the_dataset_as_an_absolute_path(tmp_path, demo_copy
     saved = json.loads((tmp_path / "r" / "config.json").read_text())["data"]
     assert Path(saved).is_absolute() and Path(saved) == demo_copy.absolute()
 
+
+
+# ---- battery 3 (session 37) ---------------------------------------------------------------------------------------
+
+
+def test_a_user_folder_inside_a_run_is_the_user_s(run, capsys):
+    """``render RUN --out RUN/my_stuff`` replaced the user's ``r_0.png`` there: only the run itself and its own output
+    folders (renders/, relight/) are exempt from the foreign-file check."""
+    mine = run / "my_stuff"
+    mine.mkdir()
+    (mine / "r_0.png").write_bytes(b"user image")
+    rc, err, _ = _run_cli(["render", run, "--out", mine], capsys)
+    assert rc == 2 and "not written by triplet" in err and (mine / "r_0.png").read_bytes() == b"user image", err
+    rc, _, _ = _run_cli(["render", run], capsys)  # the run's own renders/test: rendered again
+    assert rc == 0 and (run / "renders" / "test" / "r_0.png").is_file()
+
+
+def _mesh_state(run, far: float | None = None):
+    from triplet_cl.lights import PointLight
+    from triplet_cl.mesh.refine import MeshConfig, save_mesh_state
+    from triplet_cl.scene import Scene
+
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64) * 0.5
+    V = np.concatenate([V + 0.01 * k for k in range(40)])  # 160 vertices, 40 small tetrahedra
+    F = np.concatenate([np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + 4 * k for k in range(40)])
+    if far is not None:
+        V[7] = far
+    scene = Scene.from_arrays(V, F, lights=[PointLight([0, 0, 3], [1, 1, 1])])
+    save_mesh_state(run / "mesh_stage.npz", scene, MeshConfig())
+
+
+def test_a_mesh_state_with_a_vertex_far_out_is_damaged(run, capsys):
+    """A vertex at 1e12 made xatlas's chart packing run for ever (deaf to SIGTERM and Ctrl-C)."""
+    _mesh_state(run, far=1e12)
+    rc, err, _ = _run_cli(["export", run, "--formats", "obj", "--texture-size", "16", "--out", run.parent / "x"],
+                          capsys)
+    assert rc == 2 and "mesh_stage.npz" in err and "vertex 7" in err and not (run.parent / "x").exists(), err
+    _mesh_state(run)
+    rc, err, _ = _run_cli(["export", run, "--formats", "ply", "--out", run.parent / "y"], capsys)
+    assert rc == 0 and (run.parent / "y" / "mesh.ply").is_file(), err
+
+
+@pytest.mark.parametrize("item, where, says", [
+    ({"type": ["point"], "position": [1, 2, 3], "intensity": [1, 1, 1]}, "lights[0].type", "expected one of"),
+    ({"type": {"point": 1}, "position": [1, 2, 3], "intensity": [1, 1, 1]}, "lights[0].type", "expected one of"),
+    ({"type": "DirectionalLight", "direction": [0, 0, 0], "intensity": [1, 1, 1]}, "lights[0].direction",
+     "zero vector"),
+    ({"type": "PointLight", "position": [0, 0, 3], "intensity": [1, 1, 1], "radius": 2}, "lights[0]",
+     "unknown field(s) ['radius']"),
+    ({"type": "envmap", "filename": "e.exr", "scale": 1e308}, "lights[0].scale", "at most 1e+30"),
+])
+def test_bad_light_items_are_named(run, tmp_path, capsys, item, where, says):
+    """A list or an object as a light's type (a TypeError traceback), a zero direction in lights.json's form and an
+    environment map scaled past float32 (black renders, exit 0), an unknown field (a Python signature error)."""
+    fac.write_image(tmp_path / "e.exr", np.full((8, 16, 4), 0.5, np.float32), "float")
+    lf = tmp_path / "l.json"
+    lf.write_text(json.dumps({"lights": [item]}))
+    rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 2 and where in err and says in err and not (tmp_path / "out").exists(), err
+
+
+def test_an_environment_map_past_float32_is_refused(run, tmp_path, capsys):
+    px = np.full((8, 16, 4), 0.5, np.float32)
+    px[3, 5, 0] = 3e38
+    fac.write_image(tmp_path / "e.exr", px, "float")
+    lf = tmp_path / "l.json"
+    lf.write_text(json.dumps({"lights": [{"type": "envmap", "filename": "e.exr"}]}))
+    rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 2 and "e.exr holds a value of 3e+38" in err, err
+
+
+def test_extract_refuses_a_folder_where_its_files_go_before_any_work(run, capsys):
+    """A ``mesh.glb`` folder failed only after the whole mesh stage, naming a temporary file, metrics.json rewritten."""
+    (run / "mesh.glb").mkdir()
+    (run / "mesh.glb" / "user.txt").write_text("mine")
+    before = _tree(run)
+    rc, err, out = _run_cli(["extract", run, "--mesh-iterations", "2"], capsys)
+    assert rc == 2 and "mesh.glb is a folder" in err and "mesh stage:" not in out, err
+    assert _tree(run) == before
+
+
+def test_extract_against_another_dataset_is_refused(run, tmp_path, demo_copy, capsys):
+    """A run whose config.json names another dataset was refined against that one's photos (exit 0)."""
+    other = tmp_path / "other"
+    shutil.copytree(demo_copy, other)
+    doc = json.loads((other / "transforms_train.json").read_text())
+    doc["frames"] = doc["frames"][:10]
+    (other / "transforms_train.json").write_text(json.dumps(doc))
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["data"] = str(other)
+    (run / "config.json").write_text(json.dumps(cfg))
+    rc, err, out = _run_cli(["extract", run, "--mesh-iterations", "2"], capsys)
+    assert rc == 2 and "training views" in err and "now has 10" in err and "mesh stage:" not in out, err
+    assert not (run / "mesh_stage.npz").exists()
+
+
+def test_a_device_from_the_environment_is_named_as_such(run, capsys, monkeypatch):
+    monkeypatch.setenv("TRIPLET_DEVICE", "garbage")
+    rc, err, _ = _run_cli(["render", run], capsys)
+    assert rc == 2 and "'garbage' ($TRIPLET_DEVICE" in err, err

@@ -158,8 +158,10 @@ def resolve_spec(spec: str | None = None):
     Raises :class:`DeviceSelectionError` (listing every device) when the spec matches nothing.
     """
     entries = _enumerate()
+    source = "--device"
     if spec is None or str(spec).strip() == "":
         spec = os.environ.get(ENV_VAR, "").strip() or None
+        source = f"${ENV_VAR}"
     if spec is None:
         for wanted in ("GPU", "CPU"):
             for e in entries:
@@ -175,14 +177,14 @@ def resolve_spec(spec: str | None = None):
             if e[0].platform_index == p and e[0].device_index == d:
                 return e
         raise DeviceSelectionError(
-            f"device index {spec!r} does not exist; expected 'P:D' from this list:\n{_describe(entries)}"
+            f"device index {spec!r} ({source}) does not exist; expected 'P:D' from this list:\n{_describe(entries)}"
         )
     needle = spec.lower()
     for e in entries:
         if needle in e[0].full_name.lower() or needle == e[0].type.lower():
             return e
     raise DeviceSelectionError(
-        f"no OpenCL device matches {spec!r} (a substring of the platform or device name, a type "
+        f"no OpenCL device matches {spec!r} ({source}: a substring of the platform or device name, a type "
         f"'gpu'/'cpu', or 'P:D' indices); available devices:\n{_describe(entries)}"
     )
 

@@ -36,6 +36,7 @@ Equirectangular axes (Mitsuba's envmap emitter, as :mod:`triplet_cl.mesh.envmap`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -206,6 +207,9 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
         if not isinstance(it, dict):
             raise LightFileError(path, w, f"expected an object with a \"type\", found {it!r}")
         kind = it.get("type")
+        if not isinstance(kind, str):  # a list or an object is not a light type (nor hashable: a lookup would raise)
+            raise LightFileError(path, f"{w}.type", f"expected one of {list(MITSUBA_TYPES)} (or a class of "
+                                 f"triplet_cl.lights: {sorted(LIGHT_CLASSES)}), found {kind!r}")
         if kind in LIGHT_CLASSES:  # our lights.json form: every parameter given, finite
             for p in LIGHT_CLASSES[kind].PARAMS:
                 if p not in it:
@@ -224,6 +228,12 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
                     raise LightFileError(path, f"{w}.{p}", f"must be >= 0, found {it[p]!r}")
             if "falloff" in it and not isinstance(it["falloff"], bool):
                 raise LightFileError(path, f"{w}.falloff", f"expected true or false, found {it['falloff']!r}")
+            if "direction" in LIGHT_CLASSES[kind].PARAMS and np.linalg.norm(np.asarray(it["direction"], float)) < 1e-12:
+                raise LightFileError(path, f"{w}.direction", "must not be the zero vector")
+            fields = [f.name for f in dataclasses.fields(LIGHT_CLASSES[kind])]  # lights.json's keys (to_json)
+            unknown = set(it) - {"type", *fields}
+            if unknown:
+                raise LightFileError(path, w, f"unknown field(s) {sorted(unknown)} for a {kind} (expected {fields})")
             ours.append(it)
             continue
         extra = set(it) - {"type", *_FIELDS.get(kind, ())}
@@ -284,6 +294,9 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
             raise LightFileError(path, f"{where}.{k}", f"expected a finite number, found {v!r}")
     if scale < 0:
         raise LightFileError(path, f"{where}.scale", f"must be >= 0, found {scale!r}")
+    if scale > MAX_LIGHT_VALUE:
+        raise LightFileError(path, f"{where}.scale", f"must be at most {MAX_LIGHT_VALUE:g} (the renders overflow), "
+                             f"found {scale!r}")
     file = find_envmap(name, Path(path).parent, path, f"{where}.filename")
     from .datasets.images import read_image
     from .errors import DatasetError
@@ -300,8 +313,16 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
         if abs(img.width / img.height - 2.0) > 0.1 or img.height < 2:  # a cube map, a crop, a thumbnail strip
             raise LightFileError(path, f"{where}.filename", f"{file} is {img.width}x{img.height}: an "
                                  "equirectangular environment map is twice as wide as it is high")
+        peak = float(np.abs(img.rgb).max()) if img.rgb.size else 0.0
+        if peak > MAX_LIGHT_VALUE:
+            raise LightFileError(path, f"{where}.filename", f"{file} holds a value of {peak:.3g}: radiance must be at "
+                                 f"most {MAX_LIGHT_VALUE:g} (the renders overflow)")
         _PROJECTIONS[key] = project_equirect(img.rgb, float(rot), degree)
-    return float(scale) * _PROJECTIONS[key]
+    coeffs = float(scale) * _PROJECTIONS[key]
+    if not np.isfinite(coeffs).all() or np.abs(coeffs).max(initial=0.0) > MAX_LIGHT_VALUE:
+        raise LightFileError(path, f"{where}.scale", f"{scale!r} times the map's radiance overflows (at most "
+                             f"{MAX_LIGHT_VALUE:g})")
+    return coeffs
 
 
 _PROJECTIONS: dict = {}  # (file, mtime, rotation, degree) → SH coefficients: one projection per process

@@ -21,6 +21,7 @@ from .errors import RunError
 
 CONFIG = "config.json"
 CHECKPOINTS = "checkpoints"
+RUN_OUTPUT_FOLDERS = ("renders", "relight")  # a run's own output folders (render, the mesh stage, relight)
 OUTPUT_MARKER = ".triplet-output"  # manifest of the files triplet wrote into a render/export folder
 _CKPT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
 # temp files of io.atomic_write_bytes / write_png (".<name>.<random>.tmp" / ".<stem>.<random>.png")
@@ -256,13 +257,20 @@ def mark_output_dir(folder, names) -> None:
 
 def foreign_files(folder, names) -> list[str]:
     """Of ``names`` (files triplet would write into ``folder``), those that exist and that triplet
-    did not make: not listed in the folder's ``.triplet-output`` manifest, and the folder is not a run
-    directory (or inside one)."""
+    did not make: not listed in the folder's ``.triplet-output`` manifest, and the folder is neither a run
+    directory nor one of a run's own output folders (``RUN/renders/...``, ``RUN/relight/...``). Any other folder
+    inside a run is the user's like any folder (a battery found ``render RUN --out RUN/my_stuff`` replacing the
+    user's ``r_0.png`` there)."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    if any(is_run_dir(p) for p in [folder, *list(folder.resolve().parents)[:3]]):  # a run's own folders
-        return []
+    resolved = folder.resolve()
+    for root in [resolved, *list(resolved.parents)[:3]]:
+        if is_run_dir(root):
+            rel = resolved.relative_to(root).parts
+            if not rel or rel[0] in RUN_OUTPUT_FOLDERS:  # the run itself, or where its commands write by default
+                return []
+            break
     mine = _manifest(folder)
     return [n for n in names if (folder / n).exists() and n not in mine]
 

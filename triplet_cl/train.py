@@ -1077,18 +1077,20 @@ class Trainer:
             h.close()
             self.log.removeHandler(h)
 
-    def check_resumable(self) -> None:
+    def check_resumable(self, action: str = "resume") -> None:
         """Training may go on from the loaded checkpoint: the dataset has the training views it was made with (their
-        number, and every view its order has left), else a :class:`RunError` naming the checkpoint. Only training
-        needs this: evaluating, rendering or extracting a run whose dataset changed is allowed."""
+        number, and every view its order has left), else a :class:`RunError` naming the checkpoint. Training and the
+        mesh stage (``action="extract"``: it refines against the training photos) need this; evaluating or rendering
+        a run whose dataset changed is allowed."""
         if self._resumed_from is None:
             return
         path, saved_n = self._resumed_from
         n = len(self.ds.train)
         if (saved_n is not None and saved_n != n) or any(i >= n for i in self.order):
             was = f"{saved_n} training views" if saved_n is not None else "more training views"
-            raise RunError(path, f"was trained on {was}, the dataset now has {n} (frames added or removed since): "
-                                 "resume with the dataset the run was made with, or start a new run")
+            raise RunError(path, f"was trained on {was}, the dataset {self.data} now has {n} (another dataset, or "
+                                 f"frames added or removed since): {action} with the dataset the run was made with "
+                                 "(config.json's \"data\"), or start a new run")
 
     def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
         """The checkpoint belongs to this configuration and this dataset's training views, and holds what it needs,

@@ -440,12 +440,30 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
         mark_output_dir(out, names)  # the checks passed: these files are triplet's from now on
 
 
-def check_export_out(out, formats, option: str) -> None:
-    """``export --out``: not a dataset folder, and no file there that triplet did not make."""
-    check_not_in_dataset(out, option)
+def mesh_output_names(formats) -> list[str]:
+    """The files the mesh stage and ``export`` write into a folder for ``formats``."""
     names = ["lights.json", "envmap.exr"] + [f"mesh.{f}" for f in formats]
     if "obj" in formats:
         names += ["mesh.mtl", "mesh_basecolor.png", "mesh_roughness.png", "mesh_metallic.png", "mesh_specular.png"]
+    return names
+
+
+def check_mesh_outputs(run_dir, formats) -> None:
+    """The mesh stage (``extract``, ``train --mesh-stage``) writes its result into the run: refuse before any work a
+    folder or a special file where one of its files goes (a battery's ``mesh.glb`` folder failed only after the whole
+    stage, naming a temporary file, with ``metrics.json`` already rewritten)."""
+    run_dir = Path(run_dir)
+    for name in ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats)]:
+        p = run_dir / name
+        if (p.exists() or p.is_symlink()) and not p.is_file():
+            what = "a folder" if p.is_dir() else "not a regular file"
+            raise UsageError("RUN", f"{p} is {what}, where the mesh stage writes its {name}: move it away")
+
+
+def check_export_out(out, formats, option: str) -> None:
+    """``export --out``: not a dataset folder, and no file there that triplet did not make."""
+    check_not_in_dataset(out, option)
+    names = mesh_output_names(formats)
     check_output_files(out, names, option)
     from .runs import is_run_dir, mark_output_dir
 

@@ -1122,6 +1122,24 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+# a mesh-stage result with a vertex this many times farther from the mesh's median than 99 % of its vertices is
+# damaged (a battery's vertex at 1e12 made xatlas's chart packing run for ever, deaf to SIGTERM and Ctrl-C)
+MAX_VERTEX_SPREAD = 1e3
+
+
+def _check_vertex_spread(V: np.ndarray) -> None:
+    if V.ndim != 2 or V.shape[1] != 3 or not len(V):
+        return  # Scene.from_arrays names the shape
+    if not np.isfinite(V).all():
+        raise ValueError("V holds NaN or Inf values")
+    r = np.linalg.norm(V - np.median(V, axis=0), axis=1)
+    bulk = float(np.percentile(r, 99))
+    i = int(np.argmax(r))
+    if r[i] > MAX_VERTEX_SPREAD * max(bulk, 1e-9 * max(float(np.abs(V).max()), 1.0)):
+        raise ValueError(f"vertex {i} lies {r[i]:.3g} from the mesh's centre, more than {MAX_VERTEX_SPREAD:g} times "
+                         f"as far as 99 % of its vertices ({bulk:.3g})")
+
+
 def load_mesh_state(path) -> Scene:
     """The :class:`Scene` saved by :func:`save_mesh_state`."""
     import zipfile
@@ -1136,6 +1154,7 @@ def load_mesh_state(path) -> Scene:
         with np.load(path, allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
         meta = json.loads(bytes(a.pop("meta")).decode())
+        _check_vertex_spread(np.asarray(a["V"], np.float64))
         lights = lights_from_json(meta["lights"])
         return Scene.from_arrays(a["V"], a["F"], material=a["material"], alpha=a["alpha"], lights=lights,
                                  vertex_sh=a.get("vertex_sh"), brdf=meta["brdf"])
