@@ -34,6 +34,10 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=3, help="unmeasured steps first (kernel builds)")
     ap.add_argument("--downscale", type=int, default=1, help="dataset downscale factor")
     ap.add_argument("--top", type=int, default=30, help="rows per table")
+    ap.add_argument("--mesh", default=None, metavar="RUN",
+                    help="profile the mesh stage's refinement step on this trained run instead (SCENE unused): its "
+                         "mesh extracted, --warmup steps, then --steps steps of a later round (no remesh, pixel "
+                         "filter 0.5); per step, the mean over the steps")
     args = ap.parse_args()
     scene = args.scene if Path(args.scene).is_dir() else str(SCENES / args.scene)
     if not Path(scene).is_dir():
@@ -105,6 +109,9 @@ def main() -> None:
     wrap(optim.Adam, "step")
     wrap(density_mod.DensityStats, "add")
 
+    if args.mesh:
+        mesh_profile(args, dev, kern_t, kern_n, total_k, op_wall, op_host)
+        return
     cfg = train_mod.TrainConfig(iterations=10**6, warmup_until=0, half_res_until=0, checkpoint_every=0,
                                 downscale=args.downscale, seed=0)
     rows_k, rows_w, rows_h, steps, kernels = (collections.defaultdict(list), collections.defaultdict(list),
@@ -143,6 +150,48 @@ def main() -> None:
     print(f"\n{'op':<32}{'wall min':>9}{'host min':>9}{'host med':>9}")
     for k in sorted(rows_h, key=lambda k: -min(rows_h[k]))[:args.top]:
         print(f"{k:<32}{ms(min(rows_w[k])):>9.2f}{ms(min(rows_h[k])):>9.2f}{ms(np.median(rows_h[k])):>9.2f}")
+
+
+def mesh_profile(args, dev, kern_t, kern_n, total_k, op_wall, op_host) -> None:
+    """``--mesh RUN``: the same tables for the mesh stage's refinement step (means over ``--steps`` steps)."""
+    import shutil
+    from dataclasses import replace
+
+    from triplet_cl import train as train_mod
+    from triplet_cl.mesh import refine as refine_mod
+
+    if not (Path(args.mesh) / "config.json").is_file():
+        raise SystemExit(f"step_profile.py: error: --mesh {args.mesh} is not a trained run (no config.json)")
+    with tempfile.TemporaryDirectory(prefix="step_profile_mesh_") as d:
+        run = Path(d) / "run"
+        shutil.copytree(args.mesh, run, ignore=shutil.ignore_patterns("renders", "mesh*", "*.tmp"))
+        tr = train_mod.Trainer(None, run, resume=True, quiet=True)
+        dev[0] = tr.device
+        cfg = replace(refine_mod.MeshConfig(), iterations=max(args.warmup, 1), remesh_every=0, pixel_sigma=0.5)
+        st = refine_mod.MeshStage(tr, cfg, quiet=True)
+        scene = st.extract(tr.scene)
+        st.refine(scene, 1)  # warm-up: kernel builds, caches
+        for x in (kern_t, kern_n, op_wall, op_host):
+            x.clear()
+        k0 = total_k[0]
+        st.cfg = replace(cfg, iterations=args.steps)
+        st.history.clear()
+        t0 = time.perf_counter()
+        st.refine(scene, 1)
+        wall = time.perf_counter() - t0
+        cam = tr.ds.train[0].camera
+        n = args.steps
+        when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+        print(f"# bench/step_profile.py --mesh {Path(args.mesh).name}: {cam.width}x{cam.height} photos, supersample "
+              f"{cfg.supersample}, {len(scene.F)} faces, {n} steps, {when}")
+        print(f"step (serialised)  mean {1e3 * wall / n:8.2f} ms")
+        print(f"kernels            mean {1e3 * (total_k[0] - k0) / n:8.2f} ms")
+        print(f"\n{'kernel':<28}{'mean':>9}{'launches':>10}")
+        for k in sorted(kern_t, key=lambda k: -kern_t[k])[:args.top]:
+            print(f"{k:<28}{1e3 * kern_t[k] / n:>9.2f}{kern_n[k] / n:>10.1f}")
+        print(f"\n{'op':<32}{'wall mean':>10}{'host mean':>10}")
+        for k in sorted(op_host, key=lambda k: -op_host[k])[:args.top]:
+            print(f"{k:<32}{1e3 * op_wall[k] / n:>10.2f}{1e3 * op_host[k] / n:>10.2f}")
 
 
 if __name__ == "__main__":
