@@ -19,16 +19,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_step import ROOT, default_baseline, git, import_tree  # noqa: E402  (a sibling script)
+from train_step import (  # noqa: E402  (a sibling script)
+    add_comparison_args,
+    alternate_rounds,
+    compared_commits,
+    import_tree,
+    run_script_worker,
+    worktree,
+    write_table,
+)
 
 
 def worker(args) -> None:
@@ -62,28 +68,15 @@ def worker(args) -> None:
 
 
 def run_worker(tree: Path, run: str, args) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--tree", str(tree), "--run", run,
-           "--steps", str(args.steps), "--warmup", str(args.warmup), "--pixel-sigma", str(args.pixel_sigma)]
-    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
-    for line in p.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    raise RuntimeError(f"worker failed on {tree} / {run} (exit {p.returncode}):\n{p.stderr[-3000:]}")
+    return run_script_worker(__file__, tree, run, ["--run", run, "--steps", str(args.steps), "--warmup",
+                                                   str(args.warmup), "--pixel-sigma", str(args.pixel_sigma)])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", default=None, help="comma-separated trained run folders (required)")
-    ap.add_argument("--baseline", default=None, help="commit to compare with (default: merge-base of HEAD and main)")
-    ap.add_argument("--steps", type=int, default=40, help="measured steps per run")
-    ap.add_argument("--warmup", type=int, default=5, help="unmeasured steps first (kernel builds, caches)")
-    ap.add_argument("--rounds", type=int, default=2, help="alternating baseline/new runs per soup (best kept)")
     ap.add_argument("--pixel-sigma", type=float, default=0.5, help="the capture's pixel filter, for both trees")
-    ap.add_argument("--out", default=None, help="also write the table to this file")
-    ap.add_argument("--note", default="", help="one line saying why this run was made (written to --out)")
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--tree", help=argparse.SUPPRESS)
+    add_comparison_args(ap, steps=40, warmup=5)
     ap.add_argument("--run", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -95,22 +88,11 @@ def main() -> None:
     for r in runs:
         if not (Path(r) / "config.json").is_file():
             raise SystemExit(f"mesh_step.py: error: {r} is not a trained run (no config.json)")
-    base = args.baseline or default_baseline()
-    base_sha = git("rev-parse", "--verify", base + "^{commit}")
-    head = git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--untracked-files=no")
-                                                  else "")
-    tmp = Path(tempfile.mkdtemp(prefix="triplet_base_"))
-    wt = tmp / "tree"
-    git("worktree", "add", "--detach", str(wt), base_sha)
+    base_sha, head = compared_commits(args.baseline)
     lines = []
-    try:
-        res = {}
-        for run in runs:
-            for _ in range(args.rounds):
-                for label, tree in (("old", wt), ("new", ROOT)):
-                    r = run_worker(tree, run, args)
-                    prev = res.get((run, label))
-                    res[(run, label)] = r if prev is None or r["step"] < prev["step"] else prev
+    with worktree(base_sha) as wt:
+        res = alternate_rounds(runs, args.rounds, wt, lambda tree, run: run_worker(tree, run, args),
+                               lambda r, prev: r if r["step"] < prev["step"] else prev)
         lines.append(f"# bench/mesh_step.py  {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}  "
                      f"old = {base_sha[:10]}  new = {head}  steps={args.steps} warmup={args.warmup} "
                      f"rounds={args.rounds} pixel_sigma={args.pixel_sigma}")
@@ -125,20 +107,7 @@ def main() -> None:
                              f"{r['psnr_last10']:>8.2f}")
             lines.append(f"{name:<16}{'':>9}{'':>7} {'o/n':<5}{o['step'] / n['step']:>9.2f}"
                          f"{o['step_min'] / n['step_min']:>9.2f}")
-    finally:
-        git("worktree", "remove", "--force", str(wt))
-        try:
-            tmp.rmdir()
-        except OSError:
-            pass
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp_out = out.with_suffix(out.suffix + ".tmp")
-        tmp_out.write_text(text + "\n")
-        tmp_out.replace(out)
+    write_table("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ this tree is imported the same way, so both sides load alike. Default baseline: 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import json
 import os
@@ -116,6 +117,42 @@ def git(*a, cwd=ROOT) -> str:
     return subprocess.run(["git", *a], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
 
 
+@contextlib.contextmanager
+def worktree(commit_sha: str):
+    """``commit_sha`` checked out (detached) into a temporary ``git worktree``, removed afterwards."""
+    tmp = Path(tempfile.mkdtemp(prefix="triplet_base_"))
+    wt = tmp / "tree"
+    git("worktree", "add", "--detach", str(wt), commit_sha)
+    try:
+        yield wt
+    finally:
+        git("worktree", "remove", "--force", str(wt))
+        try:
+            tmp.rmdir()
+        except OSError:
+            pass
+
+
+def write_table(text: str, out: str | None) -> None:
+    """Print ``text``; with ``out``, also write it there (a temporary file renamed into place)."""
+    print(text)
+    if out:
+        path = Path(out)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp_out = path.with_suffix(path.suffix + ".tmp")
+        tmp_out.write_text(text + "\n")
+        tmp_out.replace(path)
+
+
+def compared_commits(baseline: str | None) -> tuple[str, str]:
+    """``(the baseline's full sha, this tree's short sha, "+dirty" when it has uncommitted changes)``."""
+    base = baseline or default_baseline()
+    base_sha = git("rev-parse", "--verify", base + "^{commit}")
+    head = git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--untracked-files=no")
+                                                  else "")
+    return base_sha, head
+
+
 def default_baseline() -> str:
     try:
         return git("merge-base", "HEAD", "main")
@@ -123,15 +160,33 @@ def default_baseline() -> str:
         return git("rev-parse", "HEAD~1")
 
 
-def run_worker(tree: Path, scene: str, args) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--tree", str(tree), "--scene", scene,
-           "--steps", str(args.steps), "--warmup", str(args.warmup), "--downscale", str(args.downscale)]
+def alternate_rounds(inputs, rounds: int, base_tree: Path, run, keep) -> dict:
+    """``{(input, "old" | "new"): result}``: ``rounds`` alternating calls of ``run(tree, input)`` on the baseline's
+    tree and this one per input, a later round's result merged into the earlier by ``keep(result, previous)``."""
+    res = {}
+    for x in inputs:
+        for _ in range(rounds):
+            for label, tree in (("old", base_tree), ("new", ROOT)):
+                r = run(tree, x)
+                prev = res.get((x, label))
+                res[(x, label)] = r if prev is None else keep(r, prev)
+    return res
+
+
+def run_script_worker(script: str, tree: Path, what: str, extra: list[str]) -> dict:
+    """Run ``script --worker --tree TREE EXTRA...`` in a fresh process; its ``RESULT {json}`` line."""
+    cmd = [sys.executable, str(Path(script).resolve()), "--worker", "--tree", str(tree), *extra]
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
     p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tempfile.gettempdir())
     for line in p.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[7:])
-    raise RuntimeError(f"worker failed on {tree} / {scene} (exit {p.returncode}):\n{p.stderr[-3000:]}")
+    raise RuntimeError(f"worker failed on {tree} / {what} (exit {p.returncode}):\n{p.stderr[-3000:]}")
+
+
+def run_worker(tree: Path, scene: str, args) -> dict:
+    return run_script_worker(__file__, tree, scene, ["--scene", scene, "--steps", str(args.steps), "--warmup",
+                                                     str(args.warmup), "--downscale", str(args.downscale)])
 
 
 def resolve_scene(s: str) -> str:
@@ -143,44 +198,36 @@ def resolve_scene(s: str) -> str:
     raise SystemExit(f"train_step.py: error: scene {s!r} is neither a folder nor a name under {SCENES}")
 
 
+def add_comparison_args(ap: argparse.ArgumentParser, steps: int, warmup: int) -> None:
+    """The options every old-beside-new benchmark takes (this script's and ``mesh_step.py``'s), worker mode included."""
+    ap.add_argument("--baseline", default=None, help="commit to compare with (default: merge-base of HEAD and main)")
+    ap.add_argument("--steps", type=int, default=steps, help="measured steps per run")
+    ap.add_argument("--warmup", type=int, default=warmup, help="unmeasured steps first (kernel builds, caches)")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating baseline/new runs per input (best kept)")
+    ap.add_argument("--out", default=None, help="also write the table to this file")
+    ap.add_argument("--note", default="", help="one line saying why this run was made (written to --out)")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--tree", help=argparse.SUPPRESS)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="spot,gadget", help="comma-separated folders or names under " + str(SCENES))
-    ap.add_argument("--baseline", default=None, help="commit to compare with (default: merge-base of HEAD and main)")
-    ap.add_argument("--steps", type=int, default=20, help="measured steps per run")
-    ap.add_argument("--warmup", type=int, default=3, help="unmeasured steps first (kernel builds, caches)")
-    ap.add_argument("--rounds", type=int, default=2, help="alternating baseline/new runs per scene (best kept)")
     ap.add_argument("--downscale", type=int, default=1, help="dataset downscale factor (1: the images' size)")
-    ap.add_argument("--out", default=None, help="also write the table to this file")
-    ap.add_argument("--note", default="", help="one line saying why this run was made (written to --out)")
-    # worker mode
-    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--tree", help=argparse.SUPPRESS)
+    add_comparison_args(ap, steps=20, warmup=3)
     ap.add_argument("--scene", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         worker(args)
         return
     scenes = [resolve_scene(s) for s in args.scenes.split(",") if s]
-    base = args.baseline or default_baseline()
-    base_sha = git("rev-parse", "--verify", base + "^{commit}")
-    head = git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--untracked-files=no")
-                                                  else "")
-    tmp = Path(tempfile.mkdtemp(prefix="triplet_base_"))
-    wt = tmp / "tree"
-    git("worktree", "add", "--detach", str(wt), base_sha)
+    base_sha, head = compared_commits(args.baseline)
     lines = []
-    try:
-        res = {}
-        for scene in scenes:
-            for _ in range(args.rounds):
-                for label, tree in (("old", wt), ("new", ROOT)):
-                    r = run_worker(tree, scene, args)
-                    prev = res.get((scene, label))
-                    # the machine is shared: load only adds time, so each phase keeps its least
-                    # disturbed round (the minimum over rounds of the per-round medians)
-                    res[(scene, label)] = r if prev is None else {
-                        k: (min(v, prev[k]) if k in PHASES else v) for k, v in r.items()}
+    with worktree(base_sha) as wt:
+        # the machine is shared: load only adds time, so each phase keeps its least disturbed round (the minimum
+        # over rounds of the per-round medians)
+        res = alternate_rounds(scenes, args.rounds, wt, lambda tree, scene: run_worker(tree, scene, args),
+                               lambda r, prev: {k: (min(v, prev[k]) if k in PHASES else v) for k, v in r.items()})
         lines.append(f"# bench/train_step.py  {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}  "
                      f"old = {base_sha[:10]}  new = {head}  steps={args.steps} warmup={args.warmup} "
                      f"rounds={args.rounds} downscale={args.downscale}")
@@ -196,20 +243,7 @@ def main() -> None:
                              + "".join(f"{r[p]:>10.2f}" for p in PHASES) + f"{r['psnr_last']:>8.2f}")
             lines.append(f"{name:<10}{'':>9}{'':>7} {'o/n':<5}"
                          + "".join(f"{(o[p] / n[p] if n[p] > 1e-3 else float('nan')):>10.2f}" for p in PHASES))
-    finally:
-        git("worktree", "remove", "--force", str(wt))
-        try:
-            tmp.rmdir()
-        except OSError:
-            pass
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp_out = out.with_suffix(out.suffix + ".tmp")
-        tmp_out.write_text(text + "\n")
-        tmp_out.replace(out)
+    write_table("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":
