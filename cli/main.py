@@ -154,7 +154,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             print("triplet train: error: --out RUN is required", file=sys.stderr)
             return 2
     mesh_cfg = _mesh_config_from_args(args) if args.mesh_stage else None  # bad options fail before training
-    if mesh_cfg is not None and out.is_dir():
+    if mesh_cfg is not None and out.is_dir() and not args.overwrite:  # --overwrite moves the old run aside
         from triplet_cl.validate import check_mesh_outputs
 
         check_mesh_outputs(out, mesh_cfg.formats)
@@ -483,6 +483,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     check_mesh_outputs(args.run, cfg.formats)
     tr = _load_run(args)
     tr.check_resumable("extract")  # the stage refines against the training photos: they must be the run's
+    check_mesh_outputs(args.run, cfg.formats, tr.ds["test"] or tr.ds.train)
     _check_bbox_seen(cfg, tr)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)
@@ -490,7 +491,14 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
-    from triplet_cl.mesh.refine import MESH_STATE, albedo_space, export_run_mesh, load_mesh_state, run_color
+    from triplet_cl.mesh.refine import (
+        MESH_STATE,
+        albedo_space,
+        check_vertex_spread,
+        export_run_mesh,
+        load_mesh_state,
+        run_color,
+    )
     from triplet_cl.validate import check_export_out, parse_formats
 
     run = Path(args.run)
@@ -500,6 +508,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
         resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
+    check_vertex_spread(scene.V.data, run / MESH_STATE)  # before the UV unwrap, which would not come back
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
     paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size,

@@ -4,7 +4,8 @@
  * T_{i+1} < t_keep (all of them if none). t_keep is half the compositing's t_min: whatever the rounding of
  * this pass against composite.cl's, its n is never below the compositing's (which stops at T < t_min), so the
  * composite, its adjoint and every fragment adjoint of the kept list equal the full list's (the dropped fragments'
- * weights are exactly zero there). An opaque mesh (alpha 1 - 1e-5) keeps one fragment where its front face covers
+ * weights are exactly zero there; both kernels form T the same way, and a compiler contracting 1 - a w into an FMA in
+ * one of them moves T by far less than the factor 2 while t_min is well above float32's resolution). An opaque mesh (alpha 1 - 1e-5) keeps one fragment where its front face covers
  * the pixel, against two (front and back face) before.
  *
  * prune_count: one work-item per pixel -> count2 [H W].

@@ -1734,13 +1734,14 @@ def test_an_environment_map_past_float32_is_refused(run, tmp_path, capsys):
     assert rc == 2 and "e.exr holds a value of 3e+38" in err, err
 
 
-def test_extract_refuses_a_folder_where_its_files_go_before_any_work(run, capsys):
+@pytest.mark.parametrize("name", ["mesh.glb", "renders/mesh/r_0.png"])
+def test_extract_refuses_a_folder_where_its_files_go_before_any_work(run, capsys, name):
     """A ``mesh.glb`` folder failed only after the whole mesh stage, naming a temporary file, metrics.json rewritten."""
-    (run / "mesh.glb").mkdir()
-    (run / "mesh.glb" / "user.txt").write_text("mine")
+    (run / name).mkdir(parents=True)
+    (run / name / "user.txt").write_text("mine")
     before = _tree(run)
     rc, err, out = _run_cli(["extract", run, "--mesh-iterations", "2"], capsys)
-    assert rc == 2 and "mesh.glb is a folder" in err and "mesh stage:" not in out, err
+    assert rc == 2 and f"{name} is a folder" in err and "mesh stage:" not in out, err
     assert _tree(run) == before
 
 

@@ -448,12 +448,16 @@ def mesh_output_names(formats) -> list[str]:
     return names
 
 
-def check_mesh_outputs(run_dir, formats) -> None:
+def check_mesh_outputs(run_dir, formats, test_views=None) -> None:
     """The mesh stage (``extract``, ``train --mesh-stage``) writes its result into the run: refuse before any work a
     folder or a special file where one of its files goes (a battery's ``mesh.glb`` folder failed only after the whole
-    stage, naming a temporary file, with ``metrics.json`` already rewritten)."""
+    stage, naming a temporary file, with ``metrics.json`` already rewritten); with ``test_views`` (the views its test
+    renders are of), also where those go (``renders/mesh/``)."""
+    from .datasets.base import render_files
+
     run_dir = Path(run_dir)
-    for name in ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats)]:
+    renders = [f"renders/mesh/{n}" for n in render_files(test_views)] if test_views else []
+    for name in ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats), *renders]:
         p = run_dir / name
         if (p.exists() or p.is_symlink()) and not p.is_file():
             what = "a folder" if p.is_dir() else "not a regular file"
