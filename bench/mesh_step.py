@@ -27,9 +27,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_step import (  # noqa: E402  (a sibling script)
-    add_comparison_args,
     alternate_rounds,
     compared_commits,
+    comparison_args,
     import_tree,
     run_script_worker,
     worktree,
@@ -76,11 +76,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", default=None, help="comma-separated trained run folders (required)")
     ap.add_argument("--pixel-sigma", type=float, default=0.5, help="the capture's pixel filter, for both trees")
-    add_comparison_args(ap, steps=40, warmup=5)
-    ap.add_argument("--run", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.worker:
-        worker(args)
+    args = comparison_args(ap, worker, steps=40, warmup=5, hidden="--run")
+    if args is None:
         return
     if not args.runs:
         raise SystemExit("mesh_step.py: error: give --runs RUN[,RUN ...] (trained soups)")

@@ -198,6 +198,18 @@ def resolve_scene(s: str) -> str:
     raise SystemExit(f"train_step.py: error: scene {s!r} is neither a folder nor a name under {SCENES}")
 
 
+def comparison_args(ap: argparse.ArgumentParser, worker, steps: int, warmup: int, hidden: str):
+    """Parse the command line with the options of every old-beside-new benchmark (:func:`add_comparison_args`) and
+    the worker's hidden input option ``hidden``; in worker mode run ``worker(args)`` and return None."""
+    add_comparison_args(ap, steps=steps, warmup=warmup)
+    ap.add_argument(hidden, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        worker(args)
+        return None
+    return args
+
+
 def add_comparison_args(ap: argparse.ArgumentParser, steps: int, warmup: int) -> None:
     """The options every old-beside-new benchmark takes (this script's and ``mesh_step.py``'s), worker mode included."""
     ap.add_argument("--baseline", default=None, help="commit to compare with (default: merge-base of HEAD and main)")
@@ -214,11 +226,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="spot,gadget", help="comma-separated folders or names under " + str(SCENES))
     ap.add_argument("--downscale", type=int, default=1, help="dataset downscale factor (1: the images' size)")
-    add_comparison_args(ap, steps=20, warmup=3)
-    ap.add_argument("--scene", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.worker:
-        worker(args)
+    args = comparison_args(ap, worker, steps=20, warmup=3, hidden="--scene")
+    if args is None:
         return
     scenes = [resolve_scene(s) for s in args.scenes.split(",") if s]
     base_sha, head = compared_commits(args.baseline)
