@@ -508,6 +508,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
         resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
+    if len(scene.F) == 0:  # before --out is made
+        from triplet_cl.errors import RunError
+
+        raise RunError(run / MESH_STATE, "the mesh has no faces: nothing to export; run `triplet extract` again")
     check_vertex_spread(scene.V.data, run / MESH_STATE)  # before the UV unwrap, which would not come back
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")

@@ -1764,3 +1764,22 @@ def test_a_device_from_the_environment_is_named_as_such(run, capsys, monkeypatch
     monkeypatch.setenv("TRIPLET_DEVICE", "garbage")
     rc, err, _ = _run_cli(["render", run], capsys)
     assert rc == 2 and "'garbage' ($TRIPLET_DEVICE" in err, err
+
+
+def test_a_mesh_state_without_faces_is_named_and_makes_no_folder(run, capsys):
+    from triplet_cl.lights import PointLight
+    from triplet_cl.mesh.refine import MeshConfig, save_mesh_state
+    from triplet_cl.scene import Scene
+
+    scene = Scene.from_arrays(np.zeros((3, 3)), np.zeros((0, 3), np.int32), lights=[PointLight([0, 0, 3], [1, 1, 1])])
+    save_mesh_state(run / "mesh_stage.npz", scene, MeshConfig())
+    rc, err, _ = _run_cli(["export", run, "--formats", "ply", "--out", run.parent / "x"], capsys)
+    assert rc == 2 and "mesh_stage.npz" in err and "no faces" in err and not (run.parent / "x").exists(), err
+
+
+def test_an_environment_map_one_pixel_high_says_so(run, tmp_path, capsys):
+    fac.write_image(tmp_path / "e.exr", np.full((1, 2, 4), 0.5, np.float32), "float")
+    lf = tmp_path / "l.json"
+    lf.write_text(json.dumps({"lights": [{"type": "envmap", "filename": "e.exr"}]}))
+    rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 2 and "is 2x1: an equirectangular environment map is at least 2 pixels high" in err, err

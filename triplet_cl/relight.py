@@ -311,8 +311,10 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
             raise LightFileError(path, f"{where}.filename", f"{file} is not a linear HDR/EXR image (found an "
                                  "8/16-bit file, whose values are display-encoded, not radiance)")
         if abs(img.width / img.height - 2.0) > 0.1 or img.height < 2:  # a cube map, a crop, a thumbnail strip
+            need = ("twice as wide as it is high" if abs(img.width / img.height - 2.0) > 0.1
+                    else "at least 2 pixels high")
             raise LightFileError(path, f"{where}.filename", f"{file} is {img.width}x{img.height}: an "
-                                 "equirectangular environment map is twice as wide as it is high")
+                                 f"equirectangular environment map is {need}")
         peak = float(np.abs(img.rgb).max()) if img.rgb.size else 0.0
         if peak > MAX_LIGHT_VALUE:
             raise LightFileError(path, f"{where}.filename", f"{file} holds a value of {peak:.3g}: radiance must be at "

@@ -987,7 +987,8 @@ class Trainer:
             pass
         found = list_checkpoints(self.run_dir)  # `latest` lost or pointing at a removed file: the newest one
         if not found:
-            raise FileNotFoundError(f"no checkpoint to resume from in {self.run_dir / 'checkpoints'}")
+            raise FileNotFoundError(f"no checkpoint in {self.run_dir / 'checkpoints'}: the run's trained state (every "
+                                    "command that reads a run loads it; triplets.ply alone is an export of it)")
         return found[-1]
 
     def save_checkpoint(self) -> Path:
