@@ -480,7 +480,6 @@ def cmd_extract(args: argparse.Namespace) -> int:
     read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
     from triplet_cl.validate import check_mesh_outputs
 
-    check_mesh_outputs(args.run, cfg.formats)
     tr = _load_run(args)
     tr.check_resumable("extract")  # the stage refines against the training photos: they must be the run's
     check_mesh_outputs(args.run, cfg.formats, tr.ds["test"] or tr.ds.train)
@@ -491,10 +490,10 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from triplet_cl.mesh.asset import MeshAsset
+    from triplet_cl.mesh.export import check_asset
     from triplet_cl.mesh.refine import (
         MESH_STATE,
         albedo_space,
-        check_vertex_spread,
         export_run_mesh,
         load_mesh_state,
         run_color,
@@ -508,14 +507,16 @@ def cmd_export(args: argparse.Namespace) -> int:
 
         resolve_spec(args.device)
     scene = load_mesh_state(run / MESH_STATE)
-    if len(scene.F) == 0:  # before --out is made
+    asset = MeshAsset.from_scene(scene)
+    try:  # before --out is made (and before the UV unwrap, which a vertex far out kept busy for ever)
+        check_asset(asset, "export")
+    except ValueError as exc:
         from triplet_cl.errors import RunError
 
-        raise RunError(run / MESH_STATE, "the mesh has no faces: nothing to export; run `triplet extract` again")
-    check_vertex_spread(scene.V.data, run / MESH_STATE)  # before the UV unwrap, which would not come back
+        raise RunError(run / MESH_STATE, f"cannot be exported ({exc}): run `triplet extract` again") from None
     out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
-    paths = export_run_mesh(out, MeshAsset.from_scene(scene), formats, args.texture_size,
+    paths = export_run_mesh(out, asset, formats, args.texture_size,
                             albedo_space=albedo_space(run_color(run)))
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0

@@ -576,6 +576,10 @@ def test_clear_errors_and_nothing_written(tmp_path):
         export_glb(empty, out / "mesh.glb")
     with pytest.raises(ValueError, match="no faces"):
         export_ply(empty, out / "mesh.ply")
+    far = good.V.copy()
+    far[3] = 1e12  # xatlas's chart packing ran for ever on such a vertex
+    with pytest.raises(ValueError, match="vertex 3 lies 1.73e\\+12"):
+        export_asset(MeshAsset(far, good.F, good.attributes, lights=good.lights), out)
     with pytest.raises(ValueError, match="has no lights"):
         export_asset(_region_asset(rng, lights=False), out)
     with pytest.raises(ValueError, match="no SHEnvironmentLight"):

@@ -79,6 +79,19 @@ def pbr_channels(asset: MeshAsset, albedo_space: str = "srgb") -> dict[str, np.n
             "ao": np.clip(ao, 0, 1), "alpha": np.clip(alpha, 0, 1)}
 
 
+# an asset with a vertex this many times farther from the vertices' median than half of them is not exported (a
+# battery's mesh_stage.npz with one vertex at 1e12 made xatlas's chart packing run for ever, deaf to SIGTERM and
+# Ctrl-C); the mesh stage moves a vertex by a few extents at most. The median distance, not a high percentile: a
+# small mesh's 99th percentile is its far vertex itself
+MAX_VERTEX_SPREAD = 1e4
+
+
+def check_asset(asset, what: str) -> MeshAsset:
+    """An exportable :class:`MeshAsset` (faces, finite values, every attribute of its BRDF, no vertex far out), or a
+    ``ValueError`` starting with ``what``."""
+    return _check_asset(asset, what)
+
+
 def _check_asset(asset, what: str) -> MeshAsset:
     if not isinstance(asset, MeshAsset):
         raise TypeError(f"{what}: expected a triplet_cl.mesh.MeshAsset, got {type(asset).__name__}")
@@ -88,6 +101,11 @@ def _check_asset(asset, what: str) -> MeshAsset:
     if not np.isfinite(asset.V).all():
         raise ValueError(f"{what}: vertex positions V must be finite, found "
                          f"{int((~np.isfinite(asset.V)).sum())} NaN/Inf value(s)")
+    r = np.linalg.norm(asset.V - np.median(asset.V, axis=0), axis=1)
+    bulk, i = float(np.median(r)), int(np.argmax(r))
+    if r[i] > MAX_VERTEX_SPREAD * max(bulk, 1e-9 * max(float(np.abs(asset.V).max()), 1.0)):
+        raise ValueError(f"{what}: vertex {i} lies {r[i]:.3g} from the mesh's centre, more than {MAX_VERTEX_SPREAD:g} "
+                         f"times as far as half of its vertices ({bulk:.3g})")
     for name in ATTRIBUTES[asset.brdf]:
         if name not in asset.attributes:
             raise ValueError(f"{what}: a {asset.brdf} asset needs the per-vertex attribute {name!r}")

@@ -1122,36 +1122,6 @@ def save_mesh_state(path: Path, scene: Scene, cfg: MeshConfig) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-# a mesh with a vertex this many times farther from the mesh's median than 99 % of its vertices is not exported (a
-# battery's mesh_stage.npz with one vertex at 1e12 made xatlas's chart packing run for ever, deaf to SIGTERM and
-# Ctrl-C); the mesh stage moves a vertex by a few extents at most
-MAX_VERTEX_SPREAD = 1e3
-
-
-def check_vertex_spread(V, path=None) -> None:
-    """Refuse a mesh whose vertices are not finite or one of which lies far out (``MAX_VERTEX_SPREAD``): a
-    ``ValueError``, or with ``path`` (the file it came from) a :class:`~triplet_cl.errors.RunError` naming it."""
-    from ..errors import RunError
-
-    V = np.asarray(V, np.float64)
-    if V.ndim != 2 or V.shape[1] != 3 or not len(V):
-        return  # Scene.from_arrays names the shape
-    why = None
-    if not np.isfinite(V).all():
-        why = "V holds NaN or Inf values"
-    else:
-        r = np.linalg.norm(V - np.median(V, axis=0), axis=1)
-        bulk = float(np.percentile(r, 99))
-        i = int(np.argmax(r))
-        if r[i] > MAX_VERTEX_SPREAD * max(bulk, 1e-9 * max(float(np.abs(V).max()), 1.0)):
-            why = (f"vertex {i} lies {r[i]:.3g} from the mesh's centre, more than {MAX_VERTEX_SPREAD:g} times as far "
-                   f"as 99 % of its vertices ({bulk:.3g})")
-    if why is not None:
-        if path is None:
-            raise ValueError(f"cannot export the mesh: {why}")
-        raise RunError(path, f"damaged mesh-stage result ({why}): run `triplet extract` again")
-
-
 def load_mesh_state(path) -> Scene:
     """The :class:`Scene` saved by :func:`save_mesh_state`."""
     import zipfile
@@ -1193,9 +1163,6 @@ def export_run_mesh(run_dir, asset: MeshAsset, formats=("glb", "obj", "ply"), te
     ``albedo_space``: see :func:`albedo_space`."""
     from .export import export_asset
 
-    if asset.num_faces == 0:
-        raise ValueError("the mesh has no faces: nothing to export")
-    check_vertex_spread(asset.V)
     written = export_asset(asset, run_dir, formats=tuple(formats), texture_size=texture_size,
                            albedo_space=albedo_space)
     paths = []
