@@ -54,6 +54,9 @@ def run(data: Path, out: Path, lights_mode: str, iterations: int, subdivide: int
 
     cfg = TrainConfig(iterations=1)
     tr = Trainer(str(data), out, cfg, quiet=True)
+    # as after a soup's training: the mesh stage shades with the cached shadows only past shadow_from (a fresh
+    # trainer is at iteration 0; until session 38 this diagnostic ran without cast shadows, and read that as the BRDF)
+    tr.it = max(tr.it, tr.cfg.shadow_from)
     V, F, albedo = gt_mesh(data, subdivide)
     mat = default_material_raw(len(V), tr.scene.brdf).astype(np.float64)
     if "albedo" in fix:

@@ -245,8 +245,9 @@ def test_fit_lights_recovers_two_point_lights_from_our_own_renders(device64):
     truth = atom_matrix(V, n, np.array(TRUTH), visibility(np.array(TRUTH)), 1.0) @ np.array(INTENSITY)
     err, err_wrong, err_truth = (albedo_error(fit["irradiance"]), albedo_error(wrong + np.pi * 0.3),
                                  albedo_error(truth + np.pi * AMBIENT))
-    # measured: 0.079 (the fit), 0.012 (the true lights: the renderer's Fresnel and highlights), 0.32 (one light)
-    assert err_truth < 0.02 and err < 0.1 and err < 0.5 * err_wrong, (err, err_truth, err_wrong)
+    # measured: 0.068 (the fit), 0.024 (the true lights: the renderer's Disney diffuse, whose retro-reflection the
+    # atoms' Lambert n·l does not model, its Fresnel and highlights), 0.34 (one light)
+    assert err_truth < 0.035 and err < 0.1 and err < 0.5 * err_wrong, (err, err_truth, err_wrong)
 
 
 def test_vertex_radiance_is_the_median_of_the_views_that_see_the_vertex():

@@ -8,31 +8,41 @@
  *
  * brdf_direct(N, V, L, Li, m): radiance reflected towards V from a light Li arriving along L.
  *   Both BRDFs return 0 (and zero gradients) when N.L <= 0.
- *   Cook-Torrance:  a = r^2, nv = relu(N.V), nl = N.L, H = safe_normalize(L + V), nh = relu(N.H),
- *     hv = clamp(H.V, 0, 1),  D = a^2 / (pi (nh^2 (a^2 - 1) + 1)^2 + 1e-6),
- *     k = (r+1)^2/8, G = G1(nv) G1(nl), G1(x) = x / (x (1 - k) + k),
- *     F0 = 0.04 (1 - m) + m albedo,  F = F0 + (1 - F0)(1 - hv)^5,
- *     out = [D F G / (4 nv nl + 1e-4) nl + relu(1 - F)(1 - m) albedo / pi nl] Li
+ *   Cook-Torrance is Mitsuba 3's principled BSDF (the path tracer of the datasets and of the relit references) at its
+ *   defaults (specular 0.5: a dielectric of index 1.5, F0 = 0.04; no sheen, clearcoat or transmission), checked
+ *   against its eval() in tests/test_shade.py:
+ *     a = r^2, nv = relu(N.V), nl = N.L, H = safe_normalize(L + V), nh = relu(N.H), hv = clamp(H.V, 0, 1),
+ *     D = a^2 / (pi (nh^2 (a^2 - 1) + 1)^2 + 1e-6),
+ *     G / (4 nv nl) = 1 / (qv ql + 1e-6),  q(x) = x + sqrt(a^2 + (1 - a^2) x^2 + 1e-12)  (Smith's exact separable
+ *       masking of GGX: G1(x) = 2 x / q(x)),
+ *     F = (1 - m) Fd(hv) + m (albedo + (1 - albedo)(1 - hv)^5),  Fd the exact dielectric Fresnel (eta CT_ETA),
+ *     s = (1 - Fo/2)(1 - Fi/2) + Rr (Fo + Fi + Fo Fi (Rr - 1)),  Fo = (1 - nl)^5, Fi = (1 - nv)^5, Rr = 2 r hv^2
+ *       (the Disney diffuse with its retro-reflection; no (1 - F) factor, as Mitsuba's),
+ *     out = [D F nl / (qv ql + 1e-6) + (1 - m) albedo s nl / pi] Li
+ *   (until session 38: Schlick-GGX masking k = (r+1)^2/8, 0.36-0.69x the path tracer's lobe away from the normal,
+ *   Schlick's Fresnel for the dielectric, a Lambert diffuse times relu(1 - F))
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd / pi nl] Li
  *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return; the diffuse lobe is
  *     the normalised Lambert kd / pi, as Cook-Torrance's and the environment term's, so that kd is the
  *     base colour the exports write and a Mitsuba light set relights it in its units: the method's
  *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
  * ambient(N, V, La, m):  Cook-Torrance: the environment term below of a constant radiance La (E = pi La,
- *   Gl = La): ao [(1 - Fe)(1 - m) albedo + Fe] La, the Fresnel reflection of the surroundings included (issue 18:
- *   La albedo ao alone, the model before, left the grazing-angle reflection of a lit room to be faked by a rough,
- *   partly metallic lobe);  Blinn-Phong La ka.
+ *   Gl = La): ao [(1 - m) albedo Rd + Fe] La, the BRDF's directional albedo: what the direct term integrates to over
+ *   the hemisphere (tested so), the Fresnel reflection of the surroundings included (issue 18);  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
  *   g_l = exp(-l (l + 1) sigma^2 / 2)   (heat-kernel / Gaussian-lobe band attenuation; sigma^2 is
  *   the lobe variance: Cook-Torrance sigma^2 = a^2 = r^4, Blinn-Phong sigma^2 = 2/(e + 2), the
  *   GGX-equivalent a^2 of a Blinn-Phong exponent e)
- *   Cook-Torrance:  Fe = F0 + (1 - F0)(1 - r)(1 - nv)^5  (roughness-damped Schlick on N.V),
- *                   out = ao [(1 - Fe)(1 - m) albedo / pi E + Fe Gl]
+ *   Cook-Torrance:  (Rd, A1, A5) = brdf_albedo(r, nv), the table of triplet_cl/brdf_albedo.py (brdf_albedo.h,
+ *                   bilinear): the Disney diffuse's directional albedo Rd and the lobe's, A1 (F = 1) and A5 (F =
+ *                   (1 - hv)^5), so that Schlick's Fresnel integrates to Fe = F0 (A1 - A5) + A5 (F0 as above);
+ *                   out = ao [(1 - m) albedo Rd / pi E + Fe Gl]  (the split sum: Gl the lobe-filtered radiance)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
- *   ao [(1 - Fe)(1 - m) albedo + Fe] <= 1 for albedo <= 1.) E and Gl are not clamped.
+ *   ao [(1 - m) albedo Rd + Fe]: less than F0 for a rough metal (masking), up to 1.3 albedo for a rough dielectric
+ *   seen at grazing angles (the retro-reflection), as the path tracer.) E and Gl are not clamped.
  *
  * Adjoints (_vjp) are the hand-derived reverse of the statements above, line by line; relu, clamp
  * and fmax pass the gradient where their argument is inside the active range.
@@ -43,6 +53,7 @@
 #include "real.h"
 #include "shade_math.h"
 #include "sh.h"
+#include "brdf_albedo.h"
 
 /* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
  * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
@@ -51,6 +62,8 @@
 #endif
 
 #define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))
+/* the dielectric's relative index of refraction (F0 = 0.04): Mitsuba's principled BSDF at its default specular 0.5 */
+#define CT_ETA 1.5
 
 inline REAL pow5(const REAL x)
 {
@@ -60,6 +73,19 @@ inline REAL pow5(const REAL x)
 
 #if BRDF == BRDF_COOK_TORRANCE
 /* ------------------------------------------------------------------------------------------ */
+
+/* exact unpolarised Fresnel reflectance of a dielectric of relative index eta (light arriving from outside) at the
+ * cosine c in [0, 1] of its incidence, and its derivative d/dc */
+inline REAL fresnel_dielectric(const REAL c, const REAL eta, REAL* dF_dc)
+{
+    const REAL ct = sqrt(fmax((REAL)1 - ((REAL)1 - c * c) / (eta * eta), (REAL)0));
+    const REAL ps = c + eta * ct, pp = eta * c + ct;
+    const REAL rs = (c - eta * ct) / ps, rp = (eta * c - ct) / pp;
+    /* d ct / dc = c / (eta^2 ct);  d rs / dc = 2 eta (ct - c ct') / ps^2,  d rp / dc = 2 eta (ct - c ct') / pp^2 */
+    const REAL q = (REAL)2 * eta * (ct - c * c / (eta * eta * fmax(ct, (REAL)1e-12)));
+    *dF_dc = rs * q / (ps * ps) + rp * q / (pp * pp);
+    return (REAL)0.5 * (rs * rs + rp * rp);
+}
 
 inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL3 Li, const REAL* m)
 {
@@ -74,12 +100,17 @@ inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL
     const REAL a2 = r * r * r * r;
     const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
     const REAL D = a2 / (R_PI * t * t + (REAL)1e-6);
-    const REAL k = (r + (REAL)1) * (r + (REAL)1) * (REAL)0.125;
-    const REAL G = nv / (nv * ((REAL)1 - k) + k) * (nl / (nl * ((REAL)1 - k) + k));
-    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL3 F = F0 + ((REAL)1 - F0) * pow5((REAL)1 - hv);
-    const REAL S = D * G * nl / ((REAL)4 * nv * nl + (REAL)1e-4);
-    const REAL3 kd = fmax((REAL3)(1) - F, (REAL3)(0)) * ((REAL)1 - met) * alb * (nl / R_PI);
+    const REAL qv = nv + sqrt(a2 + ((REAL)1 - a2) * nv * nv + (REAL)1e-12);
+    const REAL ql = nl + sqrt(a2 + ((REAL)1 - a2) * nl * nl + (REAL)1e-12);
+    const REAL S = D * nl / (qv * ql + (REAL)1e-6);
+    REAL dFd;
+    const REAL Fd = fresnel_dielectric(hv, (REAL)CT_ETA, &dFd);
+    const REAL f5 = pow5((REAL)1 - hv);
+    const REAL3 F = ((REAL)1 - met) * Fd + met * (alb + ((REAL)1 - alb) * f5);
+    const REAL Fo = pow5((REAL)1 - nl), Fi = pow5((REAL)1 - nv);
+    const REAL Rr = (REAL)2 * r * hv * hv;
+    const REAL s = ((REAL)1 - (REAL)0.5 * Fo) * ((REAL)1 - (REAL)0.5 * Fi) + Rr * (Fo + Fi + Fo * Fi * (Rr - (REAL)1));
+    const REAL3 kd = ((REAL)1 - met) * alb * (s * nl / R_PI);
     return (S * F + kd) * Li;
 }
 
@@ -102,49 +133,59 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
     const REAL Dden = R_PI * t * t + (REAL)1e-6;
     const REAL D = a2 / Dden;
-    const REAL k = (r + (REAL)1) * (r + (REAL)1) * (REAL)0.125;
-    const REAL qv = nv * ((REAL)1 - k) + k, ql = nl * ((REAL)1 - k) + k;
-    const REAL g1v = nv / qv, g1l = nl / ql;
-    const REAL G = g1v * g1l;
-    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+    const REAL sv = sqrt(a2 + ((REAL)1 - a2) * nv * nv + (REAL)1e-12);
+    const REAL sl = sqrt(a2 + ((REAL)1 - a2) * nl * nl + (REAL)1e-12);
+    const REAL qv = nv + sv, ql = nl + sl;
+    const REAL den = qv * ql + (REAL)1e-6;
+    const REAL S = D * nl / den;
+    REAL dFd;
+    const REAL Fd = fresnel_dielectric(hv, (REAL)CT_ETA, &dFd);
     const REAL omh = (REAL)1 - hv;
     const REAL f5 = pow5(omh);
-    const REAL3 F = F0 + ((REAL)1 - F0) * f5;
-    const REAL den = (REAL)4 * nv * nl + (REAL)1e-4;
-    const REAL S = D * G * nl / den;
-    const REAL3 omF = fmax((REAL)1 - F, (REAL3)(0));
-    const REAL3 kd = omF * ((REAL)1 - met) * alb * (nl / R_PI);
+    const REAL3 Fm = alb + ((REAL)1 - alb) * f5;
+    const REAL3 F = ((REAL)1 - met) * Fd + met * Fm;
+    const REAL Fo = pow5((REAL)1 - nl), Fi = pow5((REAL)1 - nv);
+    const REAL Rr = (REAL)2 * r * hv * hv;
+    const REAL s = ((REAL)1 - (REAL)0.5 * Fo) * ((REAL)1 - (REAL)0.5 * Fi) + Rr * (Fo + Fi + Fo * Fi * (Rr - (REAL)1));
+    const REAL3 kd = ((REAL)1 - met) * alb * (s * nl / R_PI);
 
     *v_Li += v_out * (S * F + kd);
     const REAL3 g = v_out * Li;
-    /* kd = relu(1 - F)(1 - m) alb nl / pi */
-    const REAL3 dmask = (REAL3)((REAL)(1 - F.x > 0), (REAL)(1 - F.y > 0), (REAL)(1 - F.z > 0));
-    REAL3 v_F = g * S - g * dmask * ((REAL)1 - met) * alb * (nl / R_PI);
-    REAL v_met = -dot(g, omF * alb) * (nl / R_PI);
-    REAL3 v_alb = g * omF * ((REAL)1 - met) * (nl / R_PI);
-    REAL v_nl = dot(g, omF * alb) * ((REAL)1 - met) / R_PI;
+    const REAL3 v_F = g * S;
     const REAL v_S = dot(g, F);
-    /* F = F0 + (1 - F0) f5 */
-    const REAL3 v_F0 = v_F * ((REAL)1 - f5);
-    const REAL v_f5 = dot(v_F, (REAL)1 - F0);
-    v_met += dot(v_F0, alb - (REAL)0.04);
-    v_alb += v_F0 * met;
-    const REAL v_hv = (hvr > (REAL)0 && hvr < (REAL)1) ? -(REAL)5 * omh * omh * omh * omh * v_f5 : (REAL)0;
-    /* S = D G nl / den */
-    const REAL v_D = v_S * G * nl / den;
-    const REAL v_G = v_S * D * nl / den;
-    v_nl += v_S * D * G / den;
+    /* kd = (1 - m) alb s nl / pi */
+    REAL3 v_alb = g * ((REAL)1 - met) * (s * nl / R_PI);
+    const REAL ga = dot(g, alb);
+    REAL v_met = -ga * s * nl / R_PI;
+    const REAL v_s = ga * ((REAL)1 - met) * nl / R_PI;
+    REAL v_nl = ga * ((REAL)1 - met) * s / R_PI;
+    /* s = (1 - Fo/2)(1 - Fi/2) + Rr (Fo + Fi + Fo Fi (Rr - 1)) */
+    const REAL v_Rr = v_s * (Fo + Fi + Fo * Fi * ((REAL)2 * Rr - (REAL)1));
+    const REAL v_Fo = v_s * (-(REAL)0.5 * ((REAL)1 - (REAL)0.5 * Fi) + Rr * ((REAL)1 + Fi * (Rr - (REAL)1)));
+    const REAL v_Fi = v_s * (-(REAL)0.5 * ((REAL)1 - (REAL)0.5 * Fo) + Rr * ((REAL)1 + Fo * (Rr - (REAL)1)));
+    const REAL onl = (REAL)1 - nl, onv = (REAL)1 - nv;
+    v_nl -= (REAL)5 * onl * onl * onl * onl * v_Fo;
+    REAL v_nv = -(REAL)5 * onv * onv * onv * onv * v_Fi;
+    /* Rr = 2 r hv^2 */
+    REAL v_r = v_Rr * (REAL)2 * hv * hv;
+    REAL v_hv = v_Rr * (REAL)4 * r * hv;
+    /* F = (1 - m) Fd + m (alb + (1 - alb) f5) */
+    const REAL sF = v_F.x + v_F.y + v_F.z;
+    v_met += dot(v_F, Fm) - Fd * sF;
+    v_alb += v_F * met * ((REAL)1 - f5);
+    const REAL v_f5 = met * dot(v_F, (REAL)1 - alb);
+    v_hv += ((REAL)1 - met) * sF * dFd - (REAL)5 * omh * omh * omh * omh * v_f5;
+    if (!(hvr > (REAL)0 && hvr < (REAL)1)) v_hv = (REAL)0;
+    /* S = D nl / den,  den = qv ql + eps,  q = n + sqrt(a2 + (1 - a2) n^2 + eps) */
+    const REAL v_D = v_S * nl / den;
+    v_nl += v_S * D / den;
     const REAL v_den = -v_S * S / den;
-    REAL v_nv = v_den * (REAL)4 * nl;
-    v_nl += v_den * (REAL)4 * nv;
-    /* G = G1(nv) G1(nl) */
-    const REAL v_g1v = v_G * g1l, v_g1l = v_G * g1v;
-    v_nv += v_g1v * k / (qv * qv);
-    v_nl += v_g1l * k / (ql * ql);
-    const REAL v_k = -v_g1v * nv * ((REAL)1 - nv) / (qv * qv) - v_g1l * nl * ((REAL)1 - nl) / (ql * ql);
-    REAL v_r = v_k * (r + (REAL)1) * (REAL)0.25;
+    const REAL v_qv = v_den * ql, v_ql = v_den * qv;
+    v_nv += v_qv * ((REAL)1 + ((REAL)1 - a2) * nv / sv);
+    v_nl += v_ql * ((REAL)1 + ((REAL)1 - a2) * nl / sl);
+    REAL v_a2 = v_qv * ((REAL)1 - nv * nv) / ((REAL)2 * sv) + v_ql * ((REAL)1 - nl * nl) / ((REAL)2 * sl);
     /* D = a2 / Dden */
-    REAL v_a2 = v_D / Dden;
+    v_a2 += v_D / Dden;
     const REAL v_t = -v_D * D / Dden * (REAL)2 * R_PI * t;
     const REAL v_nh = v_t * (REAL)2 * nh * (a2 - (REAL)1);
     v_a2 += v_t * nh * nh;
@@ -201,15 +242,39 @@ inline REAL env_sigma2(const REAL* m)
     return r * r * r * r;
 }
 
-/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales */
+/* the directional albedo of the lobes (triplet_cl/brdf_albedo.py: Rd, A1, A5 over roughness r and nv), bilinear
+ * in its table, with the derivatives d/dr and d/dnv of each (r and nv clamped to [0, 1]) */
+inline void brdf_albedo(const REAL r, const REAL nv, REAL* val, REAL* d_r, REAL* d_nv)
+{
+    const int n = BRDF_ALBEDO_N;
+    const REAL x = clamp(r, (REAL)0, (REAL)1) * (REAL)(n - 1);
+    const REAL y = clamp(nv, (REAL)0, (REAL)1) * (REAL)(n - 1);
+    const int i = min((int)floor(x), n - 2), j = min((int)floor(y), n - 2);
+    const REAL fx = x - (REAL)i, fy = y - (REAL)j;
+    const REAL gx = (r > (REAL)0 && r < (REAL)1) ? (REAL)(n - 1) : (REAL)0;
+    const REAL gy = (nv > (REAL)0 && nv < (REAL)1) ? (REAL)(n - 1) : (REAL)0;
+    for (int k = 0; k < 3; ++k) {
+        const int b = k * n * n + i * n + j;
+        const REAL t00 = (REAL)BRDF_ALBEDO[b], t01 = (REAL)BRDF_ALBEDO[b + 1];
+        const REAL t10 = (REAL)BRDF_ALBEDO[b + n], t11 = (REAL)BRDF_ALBEDO[b + n + 1];
+        val[k] = (t00 * ((REAL)1 - fx) + t10 * fx) * ((REAL)1 - fy) + (t01 * ((REAL)1 - fx) + t11 * fx) * fy;
+        d_r[k] = ((t10 - t00) * ((REAL)1 - fy) + (t11 - t01) * fy) * gx;
+        d_nv[k] = ((t01 - t00) * ((REAL)1 - fx) + (t11 - t10) * fx) * gy;
+    }
+}
+
+/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales:
+ * s_d = ao (1 - m) albedo Rd / pi,  s_g = ao Fe,  Fe = F0 (A1 - A5) + A5 (Schlick's Fresnel integrated over the lobe) */
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nv = fmax(dot(N, V), (REAL)0);
+    REAL A[3], dr[3], dv[3];
+    brdf_albedo(r, nv, A, dr, dv);
     const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * pow5((REAL)1 - nv);
-    *s_d = ao * ((REAL)1 - Fe) * ((REAL)1 - met) * alb / R_PI;
+    const REAL3 Fe = F0 * (A[1] - A[2]) + A[2];
+    *s_d = ao * ((REAL)1 - met) * alb * (A[0] / R_PI);
     *s_g = ao * Fe;
 }
 
@@ -221,27 +286,29 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nvr = dot(N, V);
     const REAL nv = fmax(nvr, (REAL)0);
+    REAL A[3], dr[3], dv[3];
+    brdf_albedo(r, nv, A, dr, dv);
     const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL omv = (REAL)1 - nv;
-    const REAL f5 = pow5(omv);
-    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * f5;
-    /* s_d = ao (1 - Fe)(1 - m) alb / pi,  s_g = ao Fe */
-    v_m[5] += dot(v_sd, ((REAL)1 - Fe) * ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
-    const REAL3 v_Fe = ao * (v_sg - v_sd * ((REAL)1 - met) * alb / R_PI);
-    REAL v_met = -ao * dot(v_sd, ((REAL)1 - Fe) * alb) / R_PI;
-    REAL3 v_alb = ao * v_sd * ((REAL)1 - Fe) * ((REAL)1 - met) / R_PI;
-    /* Fe = F0 + (1 - F0)(1 - r) f5 */
-    const REAL3 v_F0 = v_Fe * ((REAL)1 - ((REAL)1 - r) * f5);
-    const REAL w = dot(v_Fe, (REAL)1 - F0);
-    REAL v_r = -w * f5;
-    const REAL v_f5 = w * ((REAL)1 - r);
-    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_f5;
+    const REAL3 Fe = F0 * (A[1] - A[2]) + A[2];
+    /* s_d = ao (1 - m) alb Rd / pi,  s_g = ao Fe */
+    v_m[5] += dot(v_sd, ((REAL)1 - met) * alb) * (A[0] / R_PI) + dot(v_sg, Fe);
+    const REAL3 v_Fe = ao * v_sg;
+    const REAL sa = dot(v_sd, alb);
+    REAL v_met = -ao * sa * (A[0] / R_PI);
+    REAL3 v_alb = ao * v_sd * ((REAL)1 - met) * (A[0] / R_PI);
+    const REAL v_Rd = ao * ((REAL)1 - met) * sa / R_PI;
+    /* Fe = F0 (A1 - A5) + A5 */
+    const REAL3 v_F0 = v_Fe * (A[1] - A[2]);
+    const REAL v_A1 = dot(v_Fe, F0);
+    const REAL v_A5 = dot(v_Fe, (REAL)1 - F0);
+    v_met += dot(v_F0, alb - (REAL)0.04);
+    v_alb += v_F0 * met;
+    REAL v_r = v_Rd * dr[0] + v_A1 * dr[1] + v_A5 * dr[2];
+    const REAL v_nv = v_Rd * dv[0] + v_A1 * dv[1] + v_A5 * dv[2];
     if (nvr > (REAL)0) {
         *v_N += v_nv * V;
         *v_V += v_nv * N;
     }
-    v_met += dot(v_F0, alb - (REAL)0.04);
-    v_alb += v_F0 * met;
     v_r += v_sigma2 * (REAL)4 * r * r * r;
     v_m[0] += v_alb.x;
     v_m[1] += v_alb.y;

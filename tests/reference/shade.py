@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from triplet_cl import brdf_albedo
 from triplet_cl.lights import AmbientLight, BounceLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 
 from . import sh as shref
@@ -44,8 +45,18 @@ def safe_pow(x, e):
     return np.where(xr, np.exp(e * np.log(xs)), 0)
 
 
+def fresnel_dielectric(c, eta=1.5):
+    """Exact unpolarised Fresnel reflectance of a dielectric (index ``eta``) at the incidence cosine ``c`` in [0, 1]."""
+    ct = np.sqrt(1 - (1 - c * c) / (eta * eta))
+    rs = (c - eta * ct) / (c + eta * ct)
+    rp = (eta * c - ct) / (eta * c + ct)
+    return 0.5 * (rs * rs + rp * rp)
+
+
 def ct_direct(N, V, L, Li, m):
-    """Cook-Torrance (GGX, Smith/Schlick-GGX, Fresnel-Schlick) per docs/ARCHITECTURE.md §8."""
+    """Cook-Torrance as Mitsuba 3's principled BSDF (its defaults: specular 0.5, no sheen / clearcoat / transmission):
+    GGX with a = r^2, Smith's exact separable masking, the exact dielectric Fresnel (eta 1.5) blended with Schlick's
+    on the albedo by metallic, and the Disney diffuse (its retro-reflection included)."""
     alb, r, met = m[:, 0:3], m[:, 3:4], m[:, 4:5]
     nl = dot(N, L)
     on = nl.real > 0
@@ -56,12 +67,14 @@ def ct_direct(N, V, L, Li, m):
     hv = np.where(hvr.real < 0, 0, np.where(hvr.real > 1, 1, hvr))
     a2 = r**4
     D = a2 / (np.pi * (nh * nh * (a2 - 1) + 1) ** 2 + 1e-6)
-    k = (r + 1) ** 2 / 8
-    G = nv / (nv * (1 - k) + k) * (nl / (nl * (1 - k) + k))
-    F0 = 0.04 * (1 - met) + met * alb
-    F = F0 + (1 - F0) * (1 - hv) ** 5
-    spec = D * F * G / (4 * nv * nl + 1e-4) * nl
-    diff = relu(1 - F) * (1 - met) * alb / np.pi * nl
+    qv = nv + np.sqrt(a2 + (1 - a2) * nv * nv + 1e-12)
+    ql = nl + np.sqrt(a2 + (1 - a2) * nl * nl + 1e-12)
+    F = (1 - met) * fresnel_dielectric(hv) + met * (alb + (1 - alb) * (1 - hv) ** 5)
+    spec = D * F / (qv * ql + 1e-6) * nl
+    Fo, Fi = (1 - nl) ** 5, (1 - nv) ** 5
+    Rr = 2 * r * hv * hv
+    s = (1 - 0.5 * Fo) * (1 - 0.5 * Fi) + Rr * (Fo + Fi + Fo * Fi * (Rr - 1))
+    diff = (1 - met) * alb / np.pi * s * nl
     return np.where(on, (spec + diff) * Li, 0)
 
 
@@ -75,14 +88,37 @@ def bp_direct(N, V, L, Li, m):
     return np.where(on, (ks * safe_pow(nh, e) + kd / np.pi * nl) * Li, 0)
 
 
+def albedo_table(r, nv):
+    """``(Rd, A1, A5)`` of triplet_cl/brdf_albedo.py's table at ``r``, ``nv`` (``[P, 1]``, complex-step safe):
+    bilinear, the cell chosen on the real parts, the arguments clamped to [0, 1]."""
+    t = brdf_albedo.table()
+    n = t.shape[1]
+
+    def clamp01(x):
+        return np.where(x.real < 0, 0, np.where(x.real > 1, 1, x))
+
+    x, y = clamp01(r) * (n - 1), clamp01(nv) * (n - 1)
+    i = np.minimum(np.floor(x.real).astype(int), n - 2)
+    j = np.minimum(np.floor(y.real).astype(int), n - 2)
+    fx, fy = x - i, y - j
+    return [t[k, i, j] * (1 - fx) * (1 - fy) + t[k, i + 1, j] * fx * (1 - fy) + t[k, i, j + 1] * (1 - fx) * fy
+            + t[k, i + 1, j + 1] * fx * fy for k in range(3)]
+
+
+def env_weights(r, nv, met, alb):
+    """The environment / ambient weights of Cook-Torrance: the diffuse factor Rd and Fe = F0 (A1 - A5) + A5."""
+    Rd, A1, A5 = albedo_table(r, nv)
+    F0 = 0.04 * (1 - met) + met * alb
+    return Rd, F0 * (A1 - A5) + A5
+
+
 def ambient(N, V, La, m, brdf):
     """Cook-Torrance: the SH environment term of a constant radiance La (E = pi La, Gl = La); Blinn-Phong: La ka."""
     if brdf != "cook_torrance":
         return La * m[:, 7:10]
     alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-    F0 = 0.04 * (1 - met) + met * alb
-    Fe = F0 + (1 - F0) * (1 - r) * (1 - relu(dot(N, V))) ** 5
-    return ao * ((1 - Fe) * (1 - met) * alb + Fe) * La
+    Rd, Fe = env_weights(r, relu(dot(N, V)), met, alb)
+    return ao * ((1 - met) * alb * Rd + Fe) * La
 
 
 def env(N, V, m, brdf, c, deg):
@@ -102,10 +138,8 @@ def env(N, V, m, brdf, c, deg):
     Gl = np.einsum("pk,ck->pc", Yr * gl, c)  # band-attenuated radiance along R
     if brdf == "cook_torrance":
         alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-        nv = relu(nv_raw)
-        F0 = 0.04 * (1 - met) + met * alb
-        Fe = F0 + (1 - F0) * (1 - r) * (1 - nv) ** 5
-        return ao * ((1 - Fe) * (1 - met) * alb / np.pi * E + Fe * Gl)
+        Rd, Fe = env_weights(r, relu(nv_raw), met, alb)
+        return ao * ((1 - met) * alb * Rd / np.pi * E + Fe * Gl)
     return m[:, 0:3] / np.pi * E + m[:, 3:6] * Gl
 
 

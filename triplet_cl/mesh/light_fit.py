@@ -44,6 +44,7 @@ import time
 
 import numpy as np
 
+from ..brdf_albedo import lookup
 from ..visibility import sphere_directions
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -338,16 +339,17 @@ def specular_atom_matrix(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray,
                          f0: np.ndarray | None = None) -> np.ndarray:
     """``[M, K]`` radiance over F0 of a metal seen along ``to_cam`` at each observation ``P``, lit by a point light
     of intensity ``distance²`` at each of ``positions``: the Cook-Torrance specular lobe of ``shade.cl`` (GGX,
-    Smith/Schlick-GGX, ``a = roughness²``) over F0, ``vis D (F / F0) G / (4 nv nl) nl d² / r²`` (``F / F0`` with the
+    Smith's exact masking, ``a = roughness²``) over F0, ``vis D (F / F0) G / (4 nv nl) nl d² / r²`` (``F / F0`` with the
     estimate ``f0 [M]``, 1 without: :func:`lobe_geometry`). ``geometry``: :func:`lobe_geometry` of the same
     arguments, computed once for several roughnesses."""
     nl, nv, nh, fall = (lobe_geometry(P, normals, to_cam, positions, vis, distance, f0) if geometry is None
                         else geometry)
     a2 = roughness ** 4
-    k = (roughness + 1.0) ** 2 / 8.0
     D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2 + 1e-6)
-    G = nv / (nv * (1.0 - k) + k) * (nl / (nl * (1.0 - k) + k))
-    return fall * D * G / (4.0 * nv * nl + 1e-4) * nl
+    # Smith's exact masking: G / (4 nv nl) = 1 / ((nv + sqrt(a2 + (1 - a2) nv²)) (nl + sqrt(a2 + (1 - a2) nl²)))
+    qv = nv + np.sqrt(a2 + (1.0 - a2) * nv * nv + 1e-12)
+    ql = nl + np.sqrt(a2 + (1.0 - a2) * nl * nl + 1e-12)
+    return fall * D / (qv * ql + 1e-6) * nl
 
 
 def view_consistency(w: np.ndarray, B: np.ndarray, log_c: np.ndarray, group: np.ndarray, n_groups: int,
@@ -431,10 +433,11 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     group, n_groups = remap[vi], int(good.sum())
     P, nrm = V[vi], normals[vi]
     f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
-    grazing = (1.0 - np.maximum((nrm * to_cam).sum(axis=1), 0.0)) ** 5
+    nv_obs = np.maximum((nrm * to_cam).sum(axis=1), 0.0)
 
-    def ambient_column(r):  # the ambient term's Fresnel over F0: 1 + (1 / f0 - 1) (1 - r) (1 - n·v)^5 (shade.cl's Fe)
-        return np.ones(len(P)) if f0_obs is None else 1.0 + (1.0 / f0_obs - 1.0) * (1.0 - r) * grazing
+    def ambient_column(r):  # the ambient term's reflectance over F0 (shade.cl's Fe = F0 (A1 - A5) + A5, brdf_albedo)
+        _, a1, a5 = lookup(r, nv_obs)
+        return a1 if f0_obs is None else a1 - a5 + a5 / f0_obs
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:
