@@ -126,7 +126,10 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     ini = get_brdf("cook_torrance").channels
     scene = _scene(V, F, [ini[0].init] * 3, ini[3].init, ini[4].init,
                    [PointLight(START_POS, np.full(3, 2.0)), AmbientLight(np.full(3, 0.1))])
-    err = _fit(scene, targets, cams, 600, {"material": 0.05, "light_params": 0.02},
+    # 1200 steps: the ambient wanders on the way (measured every 150 steps: up to 0.12 at step 450 with Mitsuba's
+    # BSDF, session 38, then under 0.02 from step 900 on; the Schlick-masked model before passed at 600 and rose
+    # to 0.15 at 900)
+    err = _fit(scene, targets, cams, 1200, {"material": 0.05, "light_params": 0.02},
                Priors(TrainConfig(prior_from=0, **LIGHT_WEIGHTS), np.zeros(3)))
     assert err < 0.01, f"the fit itself failed (RMSE {err:.4f})"
     pt, amb = scene.current_lights()
@@ -142,7 +145,12 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     lit = np.sum(n * to_light, axis=1) / np.linalg.norm(to_light, axis=1) > 0.3
     albedo = act[lit, :3].mean(axis=0)
     np.testing.assert_allclose(albedo / albedo.sum(), TRUE_ALBEDO / TRUE_ALBEDO.sum(), atol=0.02)
-    np.testing.assert_allclose(albedo, TRUE_ALBEDO, rtol=0.15)
+    # the level the photos fix: the diffuse albedo (1 - metallic) albedo times the light's irradiance at the centre
+    # (its distance and intensity trade, and so do metallic and albedo: the albedo alone wanders, 0.67 -> 0.30 of
+    # the truth's 0.6 between steps 600 and 1050 with the shading before session 38, 0.38 from step 600 on with
+    # Mitsuba's BSDF). Measured with Mitsuba's BSDF: 1.00-1.08 x the truth's from step 750 on (before: 0.5-1.33).
+    level = ((1 - act[lit, 4:5]) * act[lit, :3]).mean(axis=0) * pt.intensity.mean() / (pt.position @ pt.position)
+    np.testing.assert_allclose(level, TRUE_ALBEDO * TRUE_I / (TRUE_POS @ TRUE_POS), rtol=0.15)
 
 
 @pytest.mark.slow
@@ -341,12 +349,17 @@ def test_light_phase_recovers_the_ambient_share_and_the_albedo():
     (cream with near-black patches) lit by a point light and a dim ambient (0.04), fitted from training's initial
     values (ambient 0.1, albedo 0.5, roughness 0.5, metallic 0.1), 900 steps. Measured: materials tied for the
     first 300 steps, roughness and metallic held there (the default ``TrainConfig.light_phase_lobes``): ambient
-    share 1.28 × the truth's, scaled albedo error median 0.064, direction 0.6°; never tied: 1.65 ×, 0.142, 8.0°.
-    (Lobes tied too: 1.31 ×, 0.053, 2.9°, metallic 0.05: on this cream sphere the tied metallic went down; held it
-    ends at 0.12. The dark sphere below is the case the held lobes are for.)"""
+    share 1.55 × the truth's, scaled albedo error median 0.100, direction 0.8°; never tied: 1.71 ×, 0.167, 7.3°
+    (lobes tied too: 1.40 ×, 0.075, 2.1°). With the shading before session 38 (Lambert diffuse, Schlick-GGX
+    masking) the same fits measured 1.28 ×, 0.064, 0.6° (never tied 1.65 ×, 0.142, 8.0°): with the path tracer's
+    Disney diffuse, whose view-dependent (1 - Fi/2) and retro-reflection terms the one tied albedo of the light
+    phase cannot place either, the phase's estimate is less good on this spotted sphere (held at the true
+    roughness 0.4: 1.51 ×) while on the real captures the lights came closer to the truth (spot: irradiance at
+    the centre 1.57 for the truth's 1.56, was 1.72; ambient 0.094 for 0.08, was 0.102).
+    (The dark sphere below is the case the held lobes are for.)"""
     share, alb, ang, _ = _fit_spotted(300)
-    assert 0.7 < share < 1.45, f"ambient share {share:.2f} x the truth's"
-    assert alb < 0.1, f"scaled albedo error median {alb:.3f}"
+    assert 0.7 < share < 1.6, f"ambient share {share:.2f} x the truth's"
+    assert alb < 0.11, f"scaled albedo error median {alb:.3f}"
     assert ang < 5.0, f"light direction {ang:.1f} deg off"
     share0, alb0, ang0, _ = _fit_spotted(0)
     assert alb < 0.75 * alb0 and abs(share - 1) < abs(share0 - 1), (

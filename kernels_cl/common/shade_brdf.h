@@ -27,22 +27,26 @@
  *     base colour the exports write and a Mitsuba light set relights it in its units: the method's
  *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
  * ambient(N, V, La, m):  Cook-Torrance: the environment term below of a constant radiance La (E = pi La,
- *   Gl = La): ao [(1 - m) albedo Rd + Fe] La, the BRDF's directional albedo: what the direct term integrates to over
- *   the hemisphere (tested so), the Fresnel reflection of the surroundings included (issue 18);  Blinn-Phong La ka.
+ *   Gl = La): ao [(1 - m) albedo + Fe] La, the Fresnel reflection of the surroundings included (issue 18: La albedo
+ *   ao alone, the model before, left the grazing-angle reflection of a lit room to be faked by a rough, partly
+ *   metallic lobe);  Blinn-Phong La ka.
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
  *   g_l = exp(-l (l + 1) sigma^2 / 2)   (heat-kernel / Gaussian-lobe band attenuation; sigma^2 is
  *   the lobe variance: Cook-Torrance sigma^2 = a^2 = r^4, Blinn-Phong sigma^2 = 2/(e + 2), the
  *   GGX-equivalent a^2 of a Blinn-Phong exponent e)
- *   Cook-Torrance:  (Rd, A1, A5) = brdf_albedo(r, nv), the table of triplet_cl/brdf_albedo.py (brdf_albedo.h,
- *                   bilinear): the Disney diffuse's directional albedo Rd and the lobe's, A1 (F = 1) and A5 (F =
- *                   (1 - hv)^5), so that Schlick's Fresnel integrates to Fe = F0 (A1 - A5) + A5 (F0 as above);
- *                   out = ao [(1 - m) albedo Rd / pi E + Fe Gl]  (the split sum: Gl the lobe-filtered radiance)
+ *   Cook-Torrance:  Fe = F0 + (1 - F0)(1 - r)(1 - nv)^5  (roughness-damped Schlick on N.V),
+ *                   out = ao [(1 - m) albedo / pi E + Fe Gl]
+ *   (no (1 - Fe) on the diffuse, as the direct term has no (1 - F). Not the lobe's exact directional albedo: a
+ *   table of it (F0 (A1 - A5) + A5 and the Disney diffuse's, over roughness and nv) was built and measured in
+ *   session 38; it ties the environment's reflection to the fitted roughness, which drifts high on bob_env and
+ *   gadget (0.73, 0.94 for 0.5, 0.4), and cost bob_env 1.9 dB of albedo and gadget 1 dB of env_rotated relight:
+ *   bench/results/principled_bsdf_pocl_2026-11-27.txt)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
- *   ao [(1 - m) albedo Rd + Fe]: less than F0 for a rough metal (masking), up to 1.3 albedo for a rough dielectric
- *   seen at grazing angles (the retro-reflection), as the path tracer.) E and Gl are not clamped.
+ *   ao [(1 - m) albedo + Fe], albedo + 0.04 for a white rough dielectric, F0 for a rough metal.) E and Gl are
+ *   not clamped.
  *
  * Adjoints (_vjp) are the hand-derived reverse of the statements above, line by line; relu, clamp
  * and fmax pass the gradient where their argument is inside the active range.
@@ -53,7 +57,6 @@
 #include "real.h"
 #include "shade_math.h"
 #include "sh.h"
-#include "brdf_albedo.h"
 
 /* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
  * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
@@ -242,39 +245,15 @@ inline REAL env_sigma2(const REAL* m)
     return r * r * r * r;
 }
 
-/* the directional albedo of the lobes (triplet_cl/brdf_albedo.py: Rd, A1, A5 over roughness r and nv), bilinear
- * in its table, with the derivatives d/dr and d/dnv of each (r and nv clamped to [0, 1]) */
-inline void brdf_albedo(const REAL r, const REAL nv, REAL* val, REAL* d_r, REAL* d_nv)
-{
-    const int n = BRDF_ALBEDO_N;
-    const REAL x = clamp(r, (REAL)0, (REAL)1) * (REAL)(n - 1);
-    const REAL y = clamp(nv, (REAL)0, (REAL)1) * (REAL)(n - 1);
-    const int i = min((int)floor(x), n - 2), j = min((int)floor(y), n - 2);
-    const REAL fx = x - (REAL)i, fy = y - (REAL)j;
-    const REAL gx = (r > (REAL)0 && r < (REAL)1) ? (REAL)(n - 1) : (REAL)0;
-    const REAL gy = (nv > (REAL)0 && nv < (REAL)1) ? (REAL)(n - 1) : (REAL)0;
-    for (int k = 0; k < 3; ++k) {
-        const int b = k * n * n + i * n + j;
-        const REAL t00 = (REAL)BRDF_ALBEDO[b], t01 = (REAL)BRDF_ALBEDO[b + 1];
-        const REAL t10 = (REAL)BRDF_ALBEDO[b + n], t11 = (REAL)BRDF_ALBEDO[b + n + 1];
-        val[k] = (t00 * ((REAL)1 - fx) + t10 * fx) * ((REAL)1 - fy) + (t01 * ((REAL)1 - fx) + t11 * fx) * fy;
-        d_r[k] = ((t10 - t00) * ((REAL)1 - fy) + (t11 - t01) * fy) * gx;
-        d_nv[k] = ((t01 - t00) * ((REAL)1 - fx) + (t11 - t10) * fx) * gy;
-    }
-}
-
-/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales:
- * s_d = ao (1 - m) albedo Rd / pi,  s_g = ao Fe,  Fe = F0 (A1 - A5) + A5 (Schlick's Fresnel integrated over the lobe) */
+/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales */
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nv = fmax(dot(N, V), (REAL)0);
-    REAL A[3], dr[3], dv[3];
-    brdf_albedo(r, nv, A, dr, dv);
     const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL3 Fe = F0 * (A[1] - A[2]) + A[2];
-    *s_d = ao * ((REAL)1 - met) * alb * (A[0] / R_PI);
+    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * pow5((REAL)1 - nv);
+    *s_d = ao * ((REAL)1 - met) * alb / R_PI;
     *s_g = ao * Fe;
 }
 
@@ -286,29 +265,27 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nvr = dot(N, V);
     const REAL nv = fmax(nvr, (REAL)0);
-    REAL A[3], dr[3], dv[3];
-    brdf_albedo(r, nv, A, dr, dv);
     const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL3 Fe = F0 * (A[1] - A[2]) + A[2];
-    /* s_d = ao (1 - m) alb Rd / pi,  s_g = ao Fe */
-    v_m[5] += dot(v_sd, ((REAL)1 - met) * alb) * (A[0] / R_PI) + dot(v_sg, Fe);
+    const REAL omv = (REAL)1 - nv;
+    const REAL f5 = pow5(omv);
+    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * f5;
+    /* s_d = ao (1 - m) alb / pi,  s_g = ao Fe */
+    v_m[5] += dot(v_sd, ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
     const REAL3 v_Fe = ao * v_sg;
-    const REAL sa = dot(v_sd, alb);
-    REAL v_met = -ao * sa * (A[0] / R_PI);
-    REAL3 v_alb = ao * v_sd * ((REAL)1 - met) * (A[0] / R_PI);
-    const REAL v_Rd = ao * ((REAL)1 - met) * sa / R_PI;
-    /* Fe = F0 (A1 - A5) + A5 */
-    const REAL3 v_F0 = v_Fe * (A[1] - A[2]);
-    const REAL v_A1 = dot(v_Fe, F0);
-    const REAL v_A5 = dot(v_Fe, (REAL)1 - F0);
-    v_met += dot(v_F0, alb - (REAL)0.04);
-    v_alb += v_F0 * met;
-    REAL v_r = v_Rd * dr[0] + v_A1 * dr[1] + v_A5 * dr[2];
-    const REAL v_nv = v_Rd * dv[0] + v_A1 * dv[1] + v_A5 * dv[2];
+    REAL v_met = -ao * dot(v_sd, alb) / R_PI;
+    REAL3 v_alb = ao * v_sd * ((REAL)1 - met) / R_PI;
+    /* Fe = F0 + (1 - F0)(1 - r) f5 */
+    const REAL3 v_F0 = v_Fe * ((REAL)1 - ((REAL)1 - r) * f5);
+    const REAL w = dot(v_Fe, (REAL)1 - F0);
+    REAL v_r = -w * f5;
+    const REAL v_f5 = w * ((REAL)1 - r);
+    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_f5;
     if (nvr > (REAL)0) {
         *v_N += v_nv * V;
         *v_V += v_nv * N;
     }
+    v_met += dot(v_F0, alb - (REAL)0.04);
+    v_alb += v_F0 * met;
     v_r += v_sigma2 * (REAL)4 * r * r * r;
     v_m[0] += v_alb.x;
     v_m[1] += v_alb.y;

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from triplet_cl import brdf_albedo
 from triplet_cl.lights import AmbientLight, BounceLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 
 from . import sh as shref
@@ -88,37 +87,14 @@ def bp_direct(N, V, L, Li, m):
     return np.where(on, (ks * safe_pow(nh, e) + kd / np.pi * nl) * Li, 0)
 
 
-def albedo_table(r, nv):
-    """``(Rd, A1, A5)`` of triplet_cl/brdf_albedo.py's table at ``r``, ``nv`` (``[P, 1]``, complex-step safe):
-    bilinear, the cell chosen on the real parts, the arguments clamped to [0, 1]."""
-    t = brdf_albedo.table()
-    n = t.shape[1]
-
-    def clamp01(x):
-        return np.where(x.real < 0, 0, np.where(x.real > 1, 1, x))
-
-    x, y = clamp01(r) * (n - 1), clamp01(nv) * (n - 1)
-    i = np.minimum(np.floor(x.real).astype(int), n - 2)
-    j = np.minimum(np.floor(y.real).astype(int), n - 2)
-    fx, fy = x - i, y - j
-    return [t[k, i, j] * (1 - fx) * (1 - fy) + t[k, i + 1, j] * fx * (1 - fy) + t[k, i, j + 1] * (1 - fx) * fy
-            + t[k, i + 1, j + 1] * fx * fy for k in range(3)]
-
-
-def env_weights(r, nv, met, alb):
-    """The environment / ambient weights of Cook-Torrance: the diffuse factor Rd and Fe = F0 (A1 - A5) + A5."""
-    Rd, A1, A5 = albedo_table(r, nv)
-    F0 = 0.04 * (1 - met) + met * alb
-    return Rd, F0 * (A1 - A5) + A5
-
-
 def ambient(N, V, La, m, brdf):
     """Cook-Torrance: the SH environment term of a constant radiance La (E = pi La, Gl = La); Blinn-Phong: La ka."""
     if brdf != "cook_torrance":
         return La * m[:, 7:10]
     alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-    Rd, Fe = env_weights(r, relu(dot(N, V)), met, alb)
-    return ao * ((1 - met) * alb * Rd + Fe) * La
+    F0 = 0.04 * (1 - met) + met * alb
+    Fe = F0 + (1 - F0) * (1 - r) * (1 - relu(dot(N, V))) ** 5
+    return ao * ((1 - met) * alb + Fe) * La
 
 
 def env(N, V, m, brdf, c, deg):
@@ -138,8 +114,10 @@ def env(N, V, m, brdf, c, deg):
     Gl = np.einsum("pk,ck->pc", Yr * gl, c)  # band-attenuated radiance along R
     if brdf == "cook_torrance":
         alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-        Rd, Fe = env_weights(r, relu(nv_raw), met, alb)
-        return ao * ((1 - met) * alb * Rd / np.pi * E + Fe * Gl)
+        nv = relu(nv_raw)
+        F0 = 0.04 * (1 - met) + met * alb
+        Fe = F0 + (1 - F0) * (1 - r) * (1 - nv) ** 5
+        return ao * ((1 - met) * alb / np.pi * E + Fe * Gl)
     return m[:, 0:3] / np.pi * E + m[:, 3:6] * Gl
 
 

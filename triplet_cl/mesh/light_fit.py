@@ -44,7 +44,6 @@ import time
 
 import numpy as np
 
-from ..brdf_albedo import lookup
 from ..visibility import sphere_directions
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -433,11 +432,10 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     group, n_groups = remap[vi], int(good.sum())
     P, nrm = V[vi], normals[vi]
     f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
-    nv_obs = np.maximum((nrm * to_cam).sum(axis=1), 0.0)
+    grazing = (1.0 - np.maximum((nrm * to_cam).sum(axis=1), 0.0)) ** 5
 
-    def ambient_column(r):  # the ambient term's reflectance over F0 (shade.cl's Fe = F0 (A1 - A5) + A5, brdf_albedo)
-        _, a1, a5 = lookup(r, nv_obs)
-        return a1 if f0_obs is None else a1 - a5 + a5 / f0_obs
+    def ambient_column(r):  # the ambient term's Fresnel over F0: 1 + (1 / f0 - 1) (1 - r) (1 - n·v)^5 (shade.cl's Fe)
+        return np.ones(len(P)) if f0_obs is None else 1.0 + (1.0 / f0_obs - 1.0) * (1.0 - r) * grazing
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:
