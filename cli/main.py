@@ -342,7 +342,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "learning; then per vertex (default 300; 0 = none; at most --mesh-iterations)")
     p.add_argument("--mesh-metallic-trial", type=int, metavar="N", help="before the light phase, fit the mesh "
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
-                   "through the light phase (default 120; 0 = none: the metallic is tied with the others; "
+                   "through the light phase (default 200; 0 = none: the metallic is tied with the others; "
                    "Cook-Torrance only, and only with a light phase: --mesh-light-phase > 0)")
     p.add_argument("--mesh-ao", choices=["auto", "learned", "computed"], help="Cook-Torrance's ambient occlusion on "
                    "the mesh: learned per vertex, or computed: traced from the mesh's geometry and held, or auto "

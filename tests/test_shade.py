@@ -319,7 +319,8 @@ def test_direct_and_environment_diffuse_agree(device, rng, brdf):
     if brdf == "blinn_phong":
         np.testing.assert_allclose(direct, kd, rtol=1e-5)
         np.testing.assert_allclose(env, kd, rtol=1e-5)
-    else:  # Fresnel takes F0 = 0.04 off the diffuse lobe at normal incidence (and adds a specular part): close
+    else:  # Disney's diffuse is Lambert's at normal incidence; the direct term adds the lobe's peak (~0.01), the
+        # environment term Fe = 0.04: close
         np.testing.assert_allclose(direct, env, rtol=0.1, atol=0.03)
 
 

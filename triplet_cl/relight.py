@@ -410,20 +410,20 @@ class Relighter:
 
         s = self.base
         mat = np.asarray(s.material.data)
-        brdf = s.brdf
         if albedo:
-            # Blinn-Phong's ambient term is La ka: with ka = kd = the albedo (the same sigmoid), no specular (ks raw
-            # -30: sigmoid 1e-13) and a white ambient light, the render shows the albedo exactly (Cook-Torrance's
-            # ambient term is the BRDF's directional albedo, not the albedo itself)
-            alb = mat[:, 0:3]
-            mat = np.concatenate([alb, np.full((len(mat), 3), -30.0, mat.dtype), np.zeros((len(mat), 1), mat.dtype),
-                                  alb], axis=1)
-            brdf = "blinn_phong"
+            if s.brdf != "cook_torrance":
+                mat = mat.copy()
+                mat[:, 7:10] = mat[:, 0:3]  # Blinn-Phong ambient term: La ka; show kd
+            else:
+                mat = mat.copy()
+                # sigmoid → 1: no ambient occlusion; metallic 1 and roughness 1 make the ambient term's Fresnel
+                # reflectance Fe = F0 = albedo and its diffuse share 0, so the ambient light shows the albedo exactly
+                mat[:, 3:6] = 30.0
             lights = [AmbientLight(np.ones(3))]
         keep_vsh = any(isinstance(lt, VertexSHLight) for lt in lights)
         return Scene.from_arrays(s.V.data, s.F, material=mat, alpha=s.alpha.data, lights=lights,
                                  vertex_sh=s.vertex_sh.data if keep_vsh and s.vertex_sh is not None else None,
-                                 brdf=brdf, dtype=np.asarray(s.V.data).dtype)
+                                 brdf=s.brdf, dtype=np.asarray(s.V.data).dtype)
 
     def render(self, scene, camera, background, renderer: str | None = None,
                bounce: bool = True) -> tuple[np.ndarray, np.ndarray]:

@@ -23,8 +23,8 @@
  *   Schlick's Fresnel for the dielectric, a Lambert diffuse times relu(1 - F))
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd / pi nl] Li
  *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return; the diffuse lobe is
- *     the normalised Lambert kd / pi, as Cook-Torrance's and the environment term's, so that kd is the
- *     base colour the exports write and a Mitsuba light set relights it in its units: the method's
+ *     the normalised Lambert kd / pi, as Cook-Torrance's (at normal incidence) and the environment
+ *     term's, so that kd is the base colour the exports write and a Mitsuba light set relights it in its units: the method's
  *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
  * ambient(N, V, La, m):  Cook-Torrance: the environment term below of a constant radiance La (E = pi La,
  *   Gl = La): ao [(1 - m) albedo + Fe] La, the Fresnel reflection of the surroundings included (issue 18: La albedo
@@ -45,8 +45,8 @@
  *   bench/results/principled_bsdf_pocl_2026-11-27.txt)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
- *   ao [(1 - m) albedo + Fe], albedo + 0.04 for a white rough dielectric, F0 for a rough metal.) E and Gl are
- *   not clamped.
+ *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 for a rough metal.)
+ *   E and Gl are not clamped.
  *
  * Adjoints (_vjp) are the hand-derived reverse of the statements above, line by line; relu, clamp
  * and fmax pass the gradient where their argument is inside the active range.
@@ -77,8 +77,8 @@ inline REAL pow5(const REAL x)
 #if BRDF == BRDF_COOK_TORRANCE
 /* ------------------------------------------------------------------------------------------ */
 
-/* exact unpolarised Fresnel reflectance of a dielectric of relative index eta (light arriving from outside) at the
- * cosine c in [0, 1] of its incidence, and its derivative d/dc */
+/* exact unpolarised Fresnel reflectance of a dielectric of relative index eta > 1 (light arriving from outside: no
+ * total internal reflection) at the cosine c in [0, 1] of its incidence, and its derivative d/dc */
 inline REAL fresnel_dielectric(const REAL c, const REAL eta, REAL* dF_dc)
 {
     const REAL ct = sqrt(fmax((REAL)1 - ((REAL)1 - c * c) / (eta * eta), (REAL)0));
@@ -218,7 +218,7 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
 }
 
 /* env_scales is defined below; the ambient term is the environment term of a constant radiance La (E = pi La,
- * Gl = La): ao [(1 - Fe)(1 - m) albedo + Fe] La — the Fresnel reflection of the surroundings as well (issue 18) */
+ * Gl = La): ao [(1 - m) albedo + Fe] La — the Fresnel reflection of the surroundings as well (issue 18) */
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g);
 inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
                            const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m);
