@@ -11,15 +11,14 @@
  *   Cook-Torrance is Mitsuba 3's principled BSDF (the path tracer of the datasets and of the relit references) at its
  *   defaults (specular 0.5: a dielectric of index 1.5, F0 = 0.04; no sheen, clearcoat or transmission), checked
  *   against its eval() in tests/test_shade.py:
- *     a = max(r^2, 1e-3) (Mitsuba's clamp), nv = relu(N.V), nl = N.L, H = safe_normalize(L + V), nh = relu(N.H),
- *     hv = clamp(H.V, 0, 1),  D = a^2 / (pi (nh^2 (a^2 - 1) + 1)^2)  (no guard: the clamp keeps it finite; the
- *       1e-6 guard before took 55 % off the peak of a roughness-0.15 lobe),
- *     G / (4 nv nl) = 1 / (qv ql),  q(x) = x + sqrt(a^2 + (1 - a^2) x^2)  (Smith's exact separable masking of GGX:
- *       G1(x) = 2 x / q(x)),
+ *     a = r^2, nv = relu(N.V), nl = N.L, H = safe_normalize(L + V), nh = relu(N.H), hv = clamp(H.V, 0, 1),
+ *     D = a^2 / (pi (nh^2 (a^2 - 1) + 1)^2 + 1e-6),
+ *     G / (4 nv nl) = 1 / (qv ql + 1e-6),  q(x) = x + sqrt(a^2 + (1 - a^2) x^2 + 1e-12)  (Smith's exact separable
+ *       masking of GGX: G1(x) = 2 x / q(x)),
  *     F = (1 - m) Fd(hv) + m (albedo + (1 - albedo)(1 - hv)^5),  Fd the exact dielectric Fresnel (eta CT_ETA),
  *     s = (1 - Fo/2)(1 - Fi/2) + Rr (Fo + Fi + Fo Fi (Rr - 1)),  Fo = (1 - nl)^5, Fi = (1 - nv)^5, Rr = 2 r hv^2
  *       (the Disney diffuse with its retro-reflection; no (1 - F) factor, as Mitsuba's),
- *     out = [D F nl / (qv ql) + (1 - m) albedo s nl / pi] Li
+ *     out = [D F nl / (qv ql + 1e-6) + (1 - m) albedo s nl / pi] Li
  *   (until session 38: Schlick-GGX masking k = (r+1)^2/8, 0.36-0.69x the path tracer's lobe away from the normal,
  *   Schlick's Fresnel for the dielectric, a Lambert diffuse times relu(1 - F))
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd / pi nl] Li
@@ -68,8 +67,6 @@
 #define LOAD_RGB(m, i) ((REAL3)((m)[(i)], (m)[(i) + 1], (m)[(i) + 2]))
 /* the dielectric's relative index of refraction (F0 = 0.04): Mitsuba's principled BSDF at its default specular 0.5 */
 #define CT_ETA 1.5
-/* the smallest GGX alpha (Mitsuba's clamp): the peak D <= 1 / (pi CT_MIN_ALPHA^2) stays finite without a guard */
-#define CT_MIN_ALPHA 1e-3
 
 inline REAL pow5(const REAL x)
 {
@@ -103,13 +100,12 @@ inline REAL3 brdf_direct(const REAL3 N, const REAL3 V, const REAL3 L, const REAL
     const REAL3 H = safe_normalize(L + V);
     const REAL nh = fmax(dot(N, H), (REAL)0);
     const REAL hv = clamp(dot(H, V), (REAL)0, (REAL)1);
-    const REAL a = fmax(r * r, (REAL)CT_MIN_ALPHA);
-    const REAL a2 = a * a;
+    const REAL a2 = r * r * r * r;
     const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
-    const REAL D = a2 / (R_PI * t * t);
-    const REAL qv = nv + sqrt(a2 + ((REAL)1 - a2) * nv * nv);
-    const REAL ql = nl + sqrt(a2 + ((REAL)1 - a2) * nl * nl);
-    const REAL S = D * nl / (qv * ql);
+    const REAL D = a2 / (R_PI * t * t + (REAL)1e-6);
+    const REAL qv = nv + sqrt(a2 + ((REAL)1 - a2) * nv * nv + (REAL)1e-12);
+    const REAL ql = nl + sqrt(a2 + ((REAL)1 - a2) * nl * nl + (REAL)1e-12);
+    const REAL S = D * nl / (qv * ql + (REAL)1e-6);
     REAL dFd;
     const REAL Fd = fresnel_dielectric(hv, (REAL)CT_ETA, &dFd);
     const REAL f5 = pow5((REAL)1 - hv);
@@ -136,15 +132,14 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     const REAL nh = fmax(nhr, (REAL)0);
     const REAL hvr = dot(H, V);
     const REAL hv = clamp(hvr, (REAL)0, (REAL)1);
-    const REAL a = fmax(r * r, (REAL)CT_MIN_ALPHA);
-    const REAL a2 = a * a;
+    const REAL a2 = r * r * r * r;
     const REAL t = nh * nh * (a2 - (REAL)1) + (REAL)1;
-    const REAL Dden = R_PI * t * t;
+    const REAL Dden = R_PI * t * t + (REAL)1e-6;
     const REAL D = a2 / Dden;
-    const REAL sv = sqrt(a2 + ((REAL)1 - a2) * nv * nv);
-    const REAL sl = sqrt(a2 + ((REAL)1 - a2) * nl * nl);
+    const REAL sv = sqrt(a2 + ((REAL)1 - a2) * nv * nv + (REAL)1e-12);
+    const REAL sl = sqrt(a2 + ((REAL)1 - a2) * nl * nl + (REAL)1e-12);
     const REAL qv = nv + sv, ql = nl + sl;
-    const REAL den = qv * ql;
+    const REAL den = qv * ql + (REAL)1e-6;
     const REAL S = D * nl / den;
     REAL dFd;
     const REAL Fd = fresnel_dielectric(hv, (REAL)CT_ETA, &dFd);
@@ -184,7 +179,7 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     const REAL v_f5 = met * dot(v_F, (REAL)1 - alb);
     v_hv += ((REAL)1 - met) * sF * dFd - (REAL)5 * omh * omh * omh * omh * v_f5;
     if (!(hvr > (REAL)0 && hvr < (REAL)1)) v_hv = (REAL)0;
-    /* S = D nl / den,  den = qv ql,  q = n + sqrt(a2 + (1 - a2) n^2) */
+    /* S = D nl / den,  den = qv ql + eps,  q = n + sqrt(a2 + (1 - a2) n^2 + eps) */
     const REAL v_D = v_S * nl / den;
     v_nl += v_S * D / den;
     const REAL v_den = -v_S * S / den;
@@ -197,8 +192,7 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
     const REAL v_t = -v_D * D / Dden * (REAL)2 * R_PI * t;
     const REAL v_nh = v_t * (REAL)2 * nh * (a2 - (REAL)1);
     v_a2 += v_t * nh * nh;
-    /* a2 = a^2, a = max(r^2, CT_MIN_ALPHA) */
-    if (r * r > (REAL)CT_MIN_ALPHA) v_r += v_a2 * (REAL)4 * r * r * r;
+    v_r += v_a2 * (REAL)4 * r * r * r;
     /* dot products */
     REAL3 v_H = (REAL3)(0);
     if (nhr > (REAL)0) {

@@ -53,9 +53,9 @@ def fresnel_dielectric(c, eta=1.5):
 
 
 def ct_direct(N, V, L, Li, m):
-    """Cook-Torrance as Mitsuba 3's principled BSDF (its defaults: specular 0.5, no sheen, clearcoat or
-    transmission): GGX with a = max(r^2, 1e-3), Smith's exact separable masking, the exact dielectric Fresnel
-    (eta 1.5) blended with Schlick's on the albedo by metallic, and the Disney diffuse (its retro-reflection)."""
+    """Cook-Torrance as Mitsuba 3's principled BSDF (its defaults: specular 0.5, no sheen / clearcoat / transmission):
+    GGX with a = r^2, Smith's exact separable masking, the exact dielectric Fresnel (eta 1.5) blended with Schlick's
+    on the albedo by metallic, and the Disney diffuse (its retro-reflection included)."""
     alb, r, met = m[:, 0:3], m[:, 3:4], m[:, 4:5]
     nl = dot(N, L)
     on = nl.real > 0
@@ -64,13 +64,12 @@ def ct_direct(N, V, L, Li, m):
     nh = relu(dot(N, H))
     hvr = dot(H, V)
     hv = np.where(hvr.real < 0, 0, np.where(hvr.real > 1, 1, hvr))
-    a = np.where((r * r).real > 1e-3, r * r, 1e-3)  # Mitsuba's clamp of alpha
-    a2 = a * a
-    D = a2 / (np.pi * (nh * nh * (a2 - 1) + 1) ** 2)
-    qv = nv + np.sqrt(a2 + (1 - a2) * nv * nv)
-    ql = nl + np.sqrt(a2 + (1 - a2) * nl * nl)
+    a2 = r**4
+    D = a2 / (np.pi * (nh * nh * (a2 - 1) + 1) ** 2 + 1e-6)
+    qv = nv + np.sqrt(a2 + (1 - a2) * nv * nv + 1e-12)
+    ql = nl + np.sqrt(a2 + (1 - a2) * nl * nl + 1e-12)
     F = (1 - met) * fresnel_dielectric(hv) + met * (alb + (1 - alb) * (1 - hv) ** 5)
-    spec = D * F / (qv * ql) * nl
+    spec = D * F / (qv * ql + 1e-6) * nl
     Fo, Fi = (1 - nl) ** 5, (1 - nv) ** 5
     Rr = 2 * r * hv * hv
     s = (1 - 0.5 * Fo) * (1 - 0.5 * Fi) + Rr * (Fo + Fi + Fo * Fi * (Rr - 1))

@@ -343,12 +343,12 @@ def specular_atom_matrix(P: np.ndarray, normals: np.ndarray, to_cam: np.ndarray,
     arguments, computed once for several roughnesses."""
     nl, nv, nh, fall = (lobe_geometry(P, normals, to_cam, positions, vis, distance, f0) if geometry is None
                         else geometry)
-    a2 = max(roughness ** 2, 1e-3) ** 2  # the kernel's (Mitsuba's) clamp of alpha
-    D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+    a2 = roughness ** 4
+    D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2 + 1e-6)
     # Smith's exact masking: G / (4 nv nl) = 1 / ((nv + sqrt(a2 + (1 - a2) nv²)) (nl + sqrt(a2 + (1 - a2) nl²)))
-    qv = nv + np.sqrt(a2 + (1.0 - a2) * nv * nv)
-    ql = nl + np.sqrt(a2 + (1.0 - a2) * nl * nl)
-    return fall * D / (qv * ql) * nl
+    qv = nv + np.sqrt(a2 + (1.0 - a2) * nv * nv + 1e-12)
+    ql = nl + np.sqrt(a2 + (1.0 - a2) * nl * nl + 1e-12)
+    return fall * D / (qv * ql + 1e-6) * nl
 
 
 def view_consistency(w: np.ndarray, B: np.ndarray, log_c: np.ndarray, group: np.ndarray, n_groups: int,
