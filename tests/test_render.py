@@ -394,3 +394,30 @@ def test_downsample_is_the_box_filtered_render(device64, rng, transfer, pixel_si
         RenderSettings(downsample=0)
     with pytest.raises(ValueError, match="divides"):  # 15 x 12 pixels in blocks of 2
         render(scene, c, replace(st, downsample=2), device64)
+
+
+# Mitsuba 3.9.1 (path, max_depth 2: direct light only; principled, base colour 0.5, roughness 0.4, metallic 0; a point
+# light of 10 W/sr at (0, 2, -2.5); perspective 50° look_at from (0, 2, 2.5) to the origin, up +y, 128², 1024 spp)
+# on the plane y = 0, |x|, |z| <= 1: red channel at (row, column) — the camera column through the highlight and one
+# 20 pixels beside it
+MITSUBA_PLANE = {(50, 64): 0.338018, (58, 64): 0.405320, (64, 64): 0.376890, (72, 64): 0.258565, (80, 64): 0.159181,
+                 (50, 84): 0.163899, (58, 84): 0.137819, (64, 84): 0.121916, (72, 84): 0.102704, (80, 84): 0.085601}
+
+
+def test_plane_under_a_point_light_is_the_path_tracers(device):
+    """End to end (camera, rasterizer, the point light's falloff, Cook-Torrance): our render of a plane lit by a
+    point light is Mitsuba's, across the highlight, to 0.5 % (measured at most 0.29 %: its Gaussian pixel filter
+    against our pixel centres)."""
+    n = 40
+    xs = np.linspace(-1, 1, n + 1)
+    X, Z = np.meshgrid(xs, xs)
+    V = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
+    a = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    F = np.concatenate([np.stack([a, a + n + 1, a + 1], 1), np.stack([a + 1, a + n + 1, a + n + 2], 1)])
+    mat = np.tile([0.0, 0.0, 0.0, np.log(0.4 / 0.6), -12.0, 12.0], (len(V), 1))  # sigmoid: 0.5, 0.4, ~0, ~1
+    scene = Scene.from_arrays(V, F, material=mat, alpha=np.full((len(V), 1), 30.0),
+                              lights=[PointLight([0.0, 2.0, -2.5], np.full(3, 10.0))])
+    cam = Camera.look_at([0.0, 2.0, 2.5], [0, 0, 0], [0, 1, 0], 50.0, 128, 128)
+    img = render(scene, cam, RenderSettings(K=4, sigma=None, normals="vertex", background=(0, 0, 0)), device).image
+    for (y, x), want in MITSUBA_PLANE.items():
+        assert img[y, x, 0] == pytest.approx(want, rel=5e-3), (y, x)
