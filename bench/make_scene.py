@@ -133,6 +133,9 @@ def main(argv=None) -> int:
     ap.add_argument("--metallic", type=float, help="override the scene's metallic (the relight/ references are then "
                     "re-rendered with the new material under each set, the albedo linked)")
     ap.add_argument("--limit", type=int, help="render only the first N views of each split (fidelity checks)")
+    ap.add_argument("--face-normals", action="store_true", help="shade with the mesh's face normals (Mitsuba's obj "
+                    "default interpolates vertex normals: a coarse CAD mesh such as gadget's then shades flat faces "
+                    "as curved ones); the relight/ references are re-rendered the same way")
     args = ap.parse_args(argv)
 
     for lib in ("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"):
@@ -156,7 +159,7 @@ def main(argv=None) -> int:
     base = {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 4, "hide_emitters": True},
-        "shape": {"type": "obj", "filename": str(scene / "gt_mesh.obj"),
+        "shape": {"type": "obj", "filename": str(scene / "gt_mesh.obj"), "face_normals": bool(args.face_normals),
                   "bsdf": {"type": "principled", "roughness": rough, "metallic": metal,
                            "base_color": {"type": "bitmap", "filename": str(tex)}}},
     }
@@ -172,19 +175,20 @@ def main(argv=None) -> int:
         render_split(mi, base, frames, res, fov, args.spp, out / split)
         (out / f"transforms_{split}.json").write_text(json.dumps({**tj, "frames": frames}, indent=1))
         print(f"{split}: {len(frames)} views at {res}² in {time.time() - t0:.0f} s", flush=True)
-    new_gt = dict(gt, roughness=rough, metallic=metal, ambient=0.0, lights=lights,
+    new_gt = dict(gt, roughness=rough, metallic=metal, ambient=0.0, lights=lights, face_normals=bool(args.face_normals),
                   renderer=f"Mitsuba 3 path tracer (max_depth 4, {args.spp} spp), principled BSDF "
                            "(bench/make_scene.py)")
     (out / "ground_truth.json").write_text(json.dumps(new_gt, indent=1))
     for f in ("gt_mesh.ply", "gt_mesh.obj"):
         if not (out / f).exists():
             (out / f).symlink_to(scene / f)
-    if metal == gt["metallic"] and rough == gt["roughness"]:
+    if metal == gt["metallic"] and rough == gt["roughness"] and not args.face_normals:
         if not (out / "relight").exists():
             (out / "relight").symlink_to(scene / "relight")
     else:  # another material: the relight references change with it (the albedo does not)
         render_relight(mi, base, scene, data, out, args.spp, args.limit)
-        print(f"relight: re-rendered with roughness {rough}, metallic {metal} in {time.time() - t0:.0f} s", flush=True)
+        print(f"relight: re-rendered with roughness {rough}, metallic {metal}, face normals {args.face_normals} in "
+              f"{time.time() - t0:.0f} s", flush=True)
     return 0
 
 
