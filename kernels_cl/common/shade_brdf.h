@@ -26,8 +26,9 @@
  *   Blinn-Phong:  e = relu(s) + 1,  out = [ks safe_pow(nh, e) + kd / pi nl] Li
  *     (the method's (N.L > 0) gate, docs/ARCHITECTURE.md §8, is the early return; the diffuse lobe is
  *     the normalised Lambert kd / pi, as Cook-Torrance's (at normal incidence) and the environment
- *     term's, so that kd is the base colour the exports write and a Mitsuba light set relights it in its units: the method's
- *     kd nl made kd = albedo / pi under point lights and the environment term pi times too dark)
+ *     term's, so that kd is the base colour the exports write and a Mitsuba light set relights it in its
+ *     units: the method's kd nl made kd = albedo / pi under point lights and the environment term pi times
+ *     too dark)
  * ambient(N, V, La, m):  Cook-Torrance: the environment term below of a constant radiance La (E = pi La,
  *   Gl = La): ao [(1 - m) albedo + Fe] La, the Fresnel reflection of the surroundings included (issue 18: La albedo
  *   ao alone, the model before, left the grazing-angle reflection of a lit room to be faked by a rough, partly
