@@ -205,6 +205,8 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
     np.testing.assert_allclose(amb.color, rec["scale"] * rec["ambient"] / ao, rtol=1e-5)
     assert rec["roughness"] in (0.2, 0.35, 0.5, 0.7)
+    # the lights' brightness from what metals reflect: their median implied F0 is MeshConfig.metal_f0
+    assert rec["f0_median"] == pytest.approx(MeshConfig().metal_f0, rel=1e-9) and MeshConfig().metal_f0 == 0.70
     np.testing.assert_allclose(mesh.material.data[:, 3], logit(rec["roughness"]), rtol=1e-6)  # the lobe fitted
     assert all(np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0)
                for x in mesh.current_lights() if isinstance(x, PointLight))
@@ -221,6 +223,10 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
                 {"light_fit_samples": 10}, {"light_fit_samples": 1.5}):
         with pytest.raises(ValueError, match="light_fit"):
             MeshConfig(**bad).validate()
+    for bad in ({"metal_f0": 1.5}, {"metal_f0": -0.1}, {"metal_f0": True}, {"metal_f0": "0.7"}):
+        with pytest.raises(ValueError, match="metal_f0"):
+            MeshConfig(**bad).validate()
+    assert MeshConfig.from_dict({}).metal_f0 == 0.0  # a mesh stage saved before it: the mesh's own F0
 
 
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):

@@ -155,6 +155,16 @@ class MeshConfig:
     # lights 0.849-0.859, an environment 0.813-0.838 (both relit better), one point light 0.935 (its ambient 1.35x
     # the soup's, the AO darkened to match: env_rotated -2.4 dB; bench/results/metal_light_fit_pocl_2026-11-26.txt §6)
     light_fit_margin_metal: float = 0.10
+    # a metal's lights are scaled so that the median F0 (luminance) they imply over its vertices is this: a metal
+    # shows no diffuse shading, so nothing in its photos fixes the lights' brightness against its F0 but the weak
+    # Fresnel rise at grazing angles, and the soup's lights (fitted to a dielectric in its light phase) left it 2.2x
+    # too dark with the highlights painted in. 0.70 is the median over thirteen common metals' measured F0 (Real-Time
+    # Rendering 4th ed., Table 9.2: titanium 0.50, chromium 0.55, iron 0.57, nickel 0.62, platinum 0.64, copper
+    # 0.70, palladium 0.70, mercury 0.78, gold 0.78, brass 0.79, zinc 0.79, aluminium 0.92, silver 0.96): a physical
+    # prior, not a capture's truth. Measured on the metal capture (spot_small's mesh under two point lights, bench/
+    # results/metal_f0_prior_pocl_2026-11-27.txt): relight +3 to +7 dB, albedo scaled +5 dB. 0: the mesh's own F0
+    # (runs saved before it)
+    metal_f0: float = 0.70
     # the metal's fit (mesh/light_fit.py fit_metal_lights) reads every view of this many vertices (a fixed random
     # sample): its matrices hold observations × 512 atoms
     light_fit_samples: int = 2000
@@ -209,6 +219,8 @@ class MeshConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0.0 <= v < 1.0):
                 raise ValueError(f"mesh {name} must be a number in [0, 1), got {v!r}")
+        if isinstance(self.metal_f0, bool) or not (isinstance(self.metal_f0, int | float) and 0 <= self.metal_f0 <= 1):
+            raise ValueError(f"mesh metal_f0 must be a number in [0, 1] (0: the mesh's own F0), got {self.metal_f0!r}")
         if isinstance(self.light_fit_max, bool) or not isinstance(self.light_fit_max, int) \
                 or not 1 <= self.light_fit_max <= 8:
             raise ValueError(f"mesh light_fit_max must be an integer in [1, 8], got {self.light_fit_max!r}")
@@ -275,6 +287,7 @@ class MeshConfig:
         d = dict(d)
         d.setdefault("bounce", "off")  # saved before the traced interreflection: trained without it
         d.setdefault("pixel_sigma", 0.0)  # saved before the pixel filter: trained with the box
+        d.setdefault("metal_f0", 0.0)  # saved before the metal's F0 prior: scaled to the mesh's own F0
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
         if d.get("bbox") is not None:
@@ -568,7 +581,7 @@ class MeshStage:
             return None
         kind = "metal (highlights)" if metal > 0.5 else "diffuse shading"
         rec = {k: fit[k] for k in ("objective", "objective_current", "distance", "weights", "vertices", "ambient")}
-        rec.update({k: fit[k] for k in ("tv", "roughness", "observations") if k in fit}, model=kind)
+        rec.update({k: fit[k] for k in ("tv", "roughness", "observations", "f0_median") if k in fit}, model=kind)
         rec["seconds"] = time.perf_counter() - t
         margin = c.light_fit_margin_metal if metal > 0.5 else c.light_fit_margin
         if fit["objective_current"] is not None and fit["objective"] > (1.0 - margin) * fit["objective_current"]:
@@ -667,8 +680,9 @@ class MeshStage:
         (a fixed random sample: the fit holds observations × atoms), with the mesh's F0 (0.04 (1 - metallic) +
         metallic × albedo) in Schlick's Fresnel (measured against F = F0 on the metal captures, results §7: two
         point lights relit +0.2 / +0.6 / +1.5 dB, albedo +1.2; the environment and one light the same); the scale:
-        the median over them of the F0 the new lights imply over the mesh's; the ambient light's radiance before that
-        scale (the fit's ambient term is AO La, over F0)."""
+        the median F0 the new lights imply over ``MeshConfig.metal_f0`` (a metal's typical F0; 0: the median over
+        them of the implied F0 over the mesh's); the ambient light's radiance before that scale (the fit's ambient
+        term is AO La, over F0)."""
         from .bake import vertex_normals
         from .light_fit import LUMA, fit_metal_lights, vertex_observations
 
@@ -688,7 +702,12 @@ class MeshStage:
                                max_lights=self.cfg.light_fit_max, f0=f0,
                                current=self._current_lights(lights, ao))  # AO × F0 × La
         good = np.isfinite(fit["implied"])
-        return fit, float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02))), fit["ambient"] / max(ao, 1e-3)
+        if self.cfg.metal_f0 > 0:  # the lights' brightness from what metals reflect (MeshConfig.metal_f0)
+            scale = float(np.median(fit["implied"][good])) / self.cfg.metal_f0
+        else:
+            scale = float(np.median(fit["implied"][good] / np.maximum(f0[good], 0.02)))
+        fit["f0_median"] = float(np.median(fit["implied"][good])) / scale  # what the scaled lights imply
+        return fit, scale, fit["ambient"] / max(ao, 1e-3)
 
     @property
     def ao_mode(self) -> str:
