@@ -203,10 +203,11 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     assert rec["applied"] is True and rec["model"] == "metal (highlights)" and rec["observations"] > rec["vertices"]
     amb = [x for x in mesh.current_lights() if isinstance(x, AmbientLight)][0]  # AO La over F0 (AO held: no steps)
     ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
-    np.testing.assert_allclose(amb.color, rec["scale"] * rec["ambient"] / ao, rtol=1e-5)
+    gauge = metal.metal_gauge_rec[0]["scale"]  # the round's end rescaled the lights again (metal_gauge)
+    np.testing.assert_allclose(amb.color * gauge, rec["scale"] * rec["ambient"] / ao, rtol=1e-5)
     assert rec["roughness"] in (0.2, 0.35, 0.5, 0.7)
     # the lights' brightness from what metals reflect: their median implied F0 is MeshConfig.metal_f0
-    assert rec["f0_median"] == pytest.approx(MeshConfig().metal_f0, rel=1e-9) and MeshConfig().metal_f0 == 0.70
+    assert rec["f0_median"] == pytest.approx(MeshConfig().metal_f0, rel=1e-9) and MeshConfig().metal_f0 == 0.75
     np.testing.assert_allclose(mesh.material.data[:, 3], logit(rec["roughness"]), rtol=1e-6)  # the lobe fitted
     assert all(np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0)
                for x in mesh.current_lights() if isinstance(x, PointLight))
@@ -227,6 +228,62 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
         with pytest.raises(ValueError, match="metal_f0"):
             MeshConfig(**bad).validate()
     assert MeshConfig.from_dict({}).metal_f0 == 0.0  # a mesh stage saved before it: the mesh's own F0
+
+
+def test_metal_gauge_sets_a_metal_s_median_f0_and_keeps_its_renders(trained_run):
+    """``MeshConfig.metal_f0``, a metal's brightness gauge at the end of each round (``MeshStage.metal_gauge``): the
+    albedo × s and every light / s, s = metal_f0 / the median F0 luminance. The median F0 is then metal_f0, the
+    lights keep their places, and the renders keep (F0 × light is what the photos fix; only Schlick's
+    (1 − F0)(1 − h·v)⁵ rise at grazing angles moves). A dielectric, metal_f0 0, or held lights: nothing done."""
+    from triplet_cl.activations import sigmoid
+    from triplet_cl.lights import AmbientLight, PointLight
+    from triplet_cl.mesh.light_fit import LUMA
+    from triplet_cl.scene import logit
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    cam = tr.ds.test[0].camera
+
+    def metal_mesh(cfg, metallic=0.99):
+        stage = MeshStage(tr, cfg)
+        mesh = stage.extract(tr.scene)
+        m = np.asarray(mesh.material.data)
+        rng = np.random.default_rng(0)
+        m[:, 0:3] = logit(rng.uniform(0.2, 0.3, (len(m), 3)))  # a dark metal: none reaches 1 at s ~3
+        m[:, 4] = logit(metallic)
+        return stage, mesh
+
+    stage, mesh = metal_mesh(tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off"))
+    before = mesh.current_lights()
+    _, img0, _ = stage.render(mesh, cam, np.ones(3), 1)
+    rec = stage.metal_gauge(mesh)
+    m = np.asarray(mesh.material.data, np.float64)
+    f0 = (0.04 * (1 - sigmoid(m[:, 4:5])) + sigmoid(m[:, 4:5]) * sigmoid(m[:, 0:3])) @ LUMA
+    assert rec is not None and rec["saturated"] == 0.0 and 2.5 < rec["scale"] < 4.0
+    # to 2e-3: the albedo is scaled, not metallic 0.99's dielectric share of F0 (0.04 × 0.01)
+    assert np.median(f0) == pytest.approx(0.75, rel=2e-3) and rec["f0_median"] == pytest.approx(np.median(f0), rel=1e-5)
+    after = mesh.current_lights()
+    for a, b in zip(before, after, strict=True):
+        if isinstance(a, PointLight):
+            np.testing.assert_allclose(b.position, a.position, rtol=1e-6)
+            np.testing.assert_allclose(b.intensity, a.intensity / rec["scale"], rtol=1e-5)
+        if isinstance(a, AmbientLight):
+            np.testing.assert_allclose(b.color, a.color / rec["scale"], rtol=1e-5)
+    _, img1, _ = stage.render(mesh, cam, np.ones(3), 1)
+    diff = np.abs(np.asarray(img1, np.float64) - np.asarray(img0, np.float64))
+    # the grazing Fresnel rise alone (largest on the outline, where h·v -> 0: up to 0.12 there)
+    assert diff.mean() < 5e-3 and 10 * np.log10(1 / np.mean(diff**2)) > 35
+    assert stage.metal_gauge_rec == [rec]
+    for cfg, metallic in ((tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off"), 0.01),  # a dielectric
+                          (tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", metal_f0=0.0), 0.99),
+                          (tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", lr_lights=0.0), 0.99)):
+        stage, mesh = metal_mesh(cfg, metallic)
+        m0 = np.array(mesh.material.data)
+        assert stage.metal_gauge(mesh) is None and np.array_equal(np.asarray(mesh.material.data), m0)
+    # at the end of every round, recorded in metrics.json's mesh section
+    stage, mesh = metal_mesh(tiny_mesh_cfg(iterations=2, material_tie=0, remesh_every=0, metallic_trial=0,
+                                           light_fit="off"))
+    stage.refine(mesh, 0)
+    assert len(stage.metal_gauge_rec) == 1
 
 
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):

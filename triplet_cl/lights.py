@@ -560,6 +560,12 @@ def _map_radiometric(lights, params: np.ndarray, fn) -> np.ndarray:
     return out.astype(params.dtype)
 
 
+def scale_lights(lights, params: np.ndarray, factor: float) -> np.ndarray:
+    """The packed light ``params [T]`` with every radiometric parameter (colour, intensity, SH radiance) × ``factor``:
+    the same lights ``factor`` times as bright, positions and directions untouched."""
+    return _map_radiometric(lights, params, lambda v: v * float(factor))
+
+
 def grey_lights(lights, params: np.ndarray) -> np.ndarray:
     """The packed light ``params [T]`` with every light's colour made grey (each radiometric parameter's channels
     replaced by their mean; SH radiance band by band): white lights of the same brightness."""

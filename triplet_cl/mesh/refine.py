@@ -155,16 +155,17 @@ class MeshConfig:
     # lights 0.849-0.859, an environment 0.813-0.838 (both relit better), one point light 0.935 (its ambient 1.35x
     # the soup's, the AO darkened to match: env_rotated -2.4 dB; bench/results/metal_light_fit_pocl_2026-11-26.txt §6)
     light_fit_margin_metal: float = 0.10
-    # a metal's lights are scaled so that the median F0 (luminance) they imply over its vertices is this: a metal
-    # shows no diffuse shading, so nothing in its photos fixes the lights' brightness against its F0 but the weak
-    # Fresnel rise at grazing angles, and the soup's lights (fitted to a dielectric in its light phase) left it 2.2x
-    # too dark with the highlights painted in. 0.70 is the median over thirteen common metals' measured F0 (Real-Time
-    # Rendering 4th ed., Table 9.2: titanium 0.50, chromium 0.55, iron 0.57, nickel 0.62, platinum 0.64, copper
-    # 0.70, palladium 0.70, mercury 0.78, gold 0.78, brass 0.79, zinc 0.79, aluminium 0.92, silver 0.96): a physical
-    # prior, not a capture's truth. Measured on the metal capture (spot_small's mesh under two point lights, bench/
-    # results/metal_f0_prior_pocl_2026-11-27.txt): relight +3 to +7 dB, albedo scaled +5 dB. 0: the mesh's own F0
-    # (runs saved before it)
-    metal_f0: float = 0.70
+    # a metal's lights are scaled so that the median F0 (luminance) they imply over its vertices is this, when its
+    # lights are fitted (fit_lights) and again at the end of each round (metal_gauge: albedo x s, the lights / s): a
+    # metal shows no diffuse shading, so nothing in its photos fixes the lights' brightness against its F0 but the
+    # weak Fresnel rise at grazing angles, and the soup's lights (fitted to a dielectric in its light phase) left it
+    # 2.2x too dark with the highlights painted in; the mesh stage's steps drift it darker again (0.70 -> 0.54).
+    # 0.75: what real metals reflect, the median F0 luminance of published tables of measured metals (Filament's
+    # material guide, eight metals from iron 0.51 to silver 0.95: median 0.74; Adobe's Substance metal references,
+    # thirteen from titanium 0.41 to silver 0.98: median 0.78): a physical prior, not a capture's truth. Measured
+    # on three metal captures, bench/results/metal_f0_prior_pocl_2026-11-27.txt. 0: the mesh's own F0 (runs saved
+    # before it)
+    metal_f0: float = 0.75
     # the metal's fit (mesh/light_fit.py fit_metal_lights) reads every view of this many vertices (a fixed random
     # sample): its matrices hold observations × 512 atoms
     light_fit_samples: int = 2000
@@ -369,6 +370,7 @@ class MeshStage:
         self.ao_choice: dict | None = None  # choose_ao's decision, when MeshConfig.ao is "auto"
         self._ao_traced: tuple | None = None  # (scene, its traced AO) from choose_ao, for set_computed_ao
         self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
+        self.metal_gauge_rec: list[dict] = []  # metal_gauge's record per round, for a metal
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
@@ -555,9 +557,7 @@ class MeshStage:
             return None
         lights = scene.current_lights()
         mat = np.asarray(scene.material.data)
-        met_col = get_brdf(scene.brdf).column("metallic")
-        metal = (self.metallic_choice["metallic"] if self.metallic_choice is not None
-                 else float(np.mean(sigmoid(mat[:, met_col].astype(np.float64)))) if met_col is not None else 0.0)
+        metal = self.metallic_value(scene)
         why = None
         if c.lr_lights == 0:
             why = "the lights are held (lr_lights 0)"
@@ -603,6 +603,47 @@ class MeshStage:
         log(f"mesh light fit ({kind}): {len(new_lights) - 1} point light(s) at {fit['distance']} extents, "
             f"objective {fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
         self.light_fit = rec
+        return rec
+
+    def metallic_value(self, scene: Scene) -> float:
+        """The metallic the stage treats the object with: the metallic trial's choice, else the mean metallic (0
+        without a metallic channel); above 0.5 a metal (its lights from its highlights, the F0 gauge)."""
+        if self.metallic_choice is not None:
+            return float(self.metallic_choice["metallic"])
+        met_col = get_brdf(scene.brdf).column("metallic")
+        if met_col is None:
+            return 0.0
+        return float(np.mean(sigmoid(np.asarray(scene.material.data)[:, met_col].astype(np.float64))))
+
+    def metal_gauge(self, scene: Scene) -> dict | None:
+        """A metal's brightness gauge (``MeshConfig.metal_f0``), at the end of each round: the albedo × ``s`` (each
+        channel at most 1 - 1e-4) and every light / ``s``, ``s`` = ``metal_f0`` / the median F0 luminance over the
+        vertices (0.04 (1 - metallic) + metallic × albedo). The photos fix only F0 × light on a metal (up to the
+        Fresnel rise at grazing angles), so the renders keep but for the vertices whose albedo reaches 1. None
+        (nothing done) for a dielectric, without a metallic channel, when ``metal_f0`` is 0 or the lights are held
+        (``lr_lights`` 0: they are the user's). The record goes to ``metrics.json``'s ``mesh.metal_gauge``."""
+        from ..lights import scale_lights
+        from .light_fit import LUMA
+
+        c = self.cfg
+        met_col = get_brdf(scene.brdf).column("metallic")
+        if (c.metal_f0 <= 0 or met_col is None or c.lr_lights == 0 or scene.light_params is None
+                or self.metallic_value(scene) <= 0.5):
+            return None
+        mat = np.asarray(scene.material.data)
+        alb = sigmoid(mat[:, 0:3].astype(np.float64))
+        met = sigmoid(mat[:, met_col].astype(np.float64))[:, None]
+        before = float(np.median((0.04 * (1.0 - met) + met * alb) @ LUMA))
+        s = c.metal_f0 / max(before, 1e-6)
+        new = np.clip(alb * s, 1e-4, 1.0 - 1e-4)
+        mat[:, 0:3] = logit(new).astype(mat.dtype)
+        lp = scene.light_params
+        lp.data[...] = scale_lights(scene.lights, lp.data, 1.0 / s)
+        after = float(np.median((0.04 * (1.0 - met) + met * sigmoid(mat[:, 0:3].astype(np.float64))) @ LUMA))
+        rec = {"scale": s, "f0_median_before": before, "f0_median": after,
+               "saturated": float(np.mean((alb * s).max(axis=1) > 1.0 - 1e-4))}
+        self.trainer.log.info("mesh metal gauge: " + json.dumps(rec))
+        self.metal_gauge_rec.append(rec)
         return rec
 
     def _photos(self):
@@ -887,6 +928,7 @@ class MeshStage:
         finally:
             pool.shutdown(wait=True)
             bar.close()
+        self.metal_gauge(scene)
         return scene
 
     # ---- the whole stage -----------------------------------------------------------------------
@@ -925,6 +967,8 @@ class MeshStage:
             metrics["ao_choice"] = self.ao_choice
         if self.light_fit is not None:
             metrics["light_fit"] = self.light_fit
+        if self.metal_gauge_rec:
+            metrics["metal_gauge"] = self.metal_gauge_rec
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()
