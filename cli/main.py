@@ -352,6 +352,10 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "mesh's shading (a metal's: from its highlights) before its light phase (auto, default: when the "
                    "lights are point and ambient ones; kept when clearly better than the soup's, the number of point "
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
+    p.add_argument("--mesh-metal-f0", type=float, metavar="F", help="a metal's brightness gauge: its lights are "
+                   "scaled so that the median F0 (luminance) they imply is F, when fitted and at the end of each "
+                   "round (default 0.75, the median of measured metals' F0; 0 = the F0 the soup left; only for an "
+                   "object the metallic trial finds metal)")
     p.add_argument("--mesh-bounce", choices=["traced", "off"], help="interreflection on the mesh: traced (one diffuse "
                    "bounce of the lights off the rest of the mesh, per vertex, re-traced with the cast shadows) "
                    "or off (default)")
@@ -389,6 +393,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_light_phase", "material_tie"),
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"), ("mesh_light_fit", "light_fit"),
+                       ("mesh_metal_f0", "metal_f0"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

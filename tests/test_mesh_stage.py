@@ -338,6 +338,9 @@ def test_mesh_options_are_validated(capsys):
     assert (cfg.supersample, cfg.eval_supersample, cfg.extract_faces) == (2, 3, 1234)
     assert cfg.laplacian == "uniform"
     assert cfg.pixel_sigma is None  # auto: read from the photos
+    assert _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=0.6)).metal_f0 == 0.6
+    with pytest.raises(ValueError, match="metal_f0"):
+        _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=1.5))
     from triplet_cl.cli.main import _pixel_filter
 
     assert (_pixel_filter("auto"), _pixel_filter("box"), _pixel_filter("0.45")) == (None, 0.0, 0.45)
