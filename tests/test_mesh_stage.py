@@ -49,6 +49,7 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
     metrics = json.loads((trained_run / "metrics.json").read_text())
     assert metrics["mesh"]["faces"] == len(stage.scene.F) and "soup_psnr" in metrics["mesh"]
     assert metrics["psnr"] == pytest.approx(metrics["mesh"]["soup_psnr"], abs=1e-6)  # soup metrics kept
+    assert metrics["mesh"]["environment"]["degree"] == 2  # the ambient light became an SH environment
     assert len(list((trained_run / "renders" / "mesh").glob("*.png"))) == len(metrics["mesh"]["views"])
     # the saved state restores the refined mesh exactly
     back = load_mesh_state(trained_run / MESH_STATE)
@@ -158,7 +159,9 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     n_soup = len(tr.scene.current_lights())
 
     def run(**kw):
-        stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0, **kw))
+        # env_degree 0 here and below: the fitted ambient light itself, not the SH environment it then becomes
+        stage = MeshStage(tr, tiny_mesh_cfg(env_degree=0, iterations=2, material_tie=2, remesh_every=0,
+                                            metallic_trial=0, **kw))
         return stage, stage.refine(stage.extract(tr.scene), 0)
 
     stage, scene = run(light_fit_margin=0.0)
@@ -173,7 +176,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     assert len(load_mesh_state(tmp_path / "state.npz").current_lights()) == len(lights)
 
     # units: the diffuse fit's ambient term is an irradiance, π AO La (iterations 0: the AO as the fit read it)
-    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
+    stage = MeshStage(tr, tiny_mesh_cfg(env_degree=0, iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
                                         light_fit_margin=0.0))
     mesh = stage.extract(tr.scene)
     ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
@@ -187,7 +190,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     assert len(scene.current_lights()) == n_soup
     stage, _ = run(lr_lights=0.0)
     assert stage.light_fit == {"applied": False, "reason": "the lights are held (lr_lights 0)"}
-    metal = MeshStage(tr, tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
+    metal = MeshStage(tr, tiny_mesh_cfg(env_degree=0, iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
                                         light_fit_margin_metal=0.0, light_fit_samples=300))
     mesh = metal.extract(tr.scene)
     mesh.material.data[:, 4] = logit(0.9)  # a metal, and no trial to say otherwise: its highlights are read
@@ -211,7 +214,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     np.testing.assert_allclose(mesh.material.data[:, 3], logit(rec["roughness"]), rtol=1e-6)  # the lobe fitted
     assert all(np.all(np.isfinite(x.position)) and np.all(x.intensity >= 0)
                for x in mesh.current_lights() if isinstance(x, PointLight))
-    one = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
+    one = MeshStage(tr, tiny_mesh_cfg(env_degree=0, iterations=2, material_tie=2, remesh_every=0, metallic_trial=0))
     mesh = one.extract(tr.scene)
     one.ds = copy.copy(tr.ds)
     one.ds.splits = {**tr.ds.splits, "train": tr.ds.train[:1]}
@@ -284,6 +287,48 @@ def test_metal_gauge_sets_a_metal_s_median_f0_and_keeps_its_renders(trained_run)
                                            light_fit="off"))
     stage.refine(mesh, 0)
     assert len(stage.metal_gauge_rec) == 1
+
+
+def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, tmp_path):
+    """``MeshConfig.env_degree``: after the light fit, the ambient light becomes an SH environment of that degree, its
+    band 0 the ambient radiance and its other bands 0, so the mesh renders the same at the switch; its higher bands
+    then learn with the lights, it is saved and loaded with the mesh and recorded in metrics.json; 0 or held lights
+    keep the ambient light."""
+    from triplet_cl.lights import AmbientLight, SHEnvironmentLight
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    cam = tr.ds.test[0].camera
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2))
+    mesh = stage.extract(tr.scene)
+    la = [x.color for x in mesh.current_lights() if isinstance(x, AmbientLight)][0]
+    _, img0, _ = stage.render(mesh, cam, np.ones(3), 1)
+    rec = stage.ambient_to_environment(mesh)
+    lights = mesh.current_lights()
+    env = [x for x in lights if isinstance(x, SHEnvironmentLight)]
+    assert rec["degree"] == 2 and not any(isinstance(x, AmbientLight) for x in lights) and len(env) == 1
+    assert env[0].degree == 2 and env[0].coeffs.shape == (3, 9) and not env[0].coeffs[:, 1:].any()
+    np.testing.assert_allclose(env[0].coeffs[:, 0] / np.sqrt(4 * np.pi), la, rtol=1e-6)
+    _, img1, _ = stage.render(mesh, cam, np.ones(3), 1)
+    np.testing.assert_allclose(np.asarray(img1), np.asarray(img0), atol=2e-5)
+    # learned: two steps move the higher bands off 0; the state keeps the environment
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=0, remesh_every=0, metallic_trial=0,
+                                        light_fit="off", env_degree=2))
+    mesh = stage.refine(stage.extract(tr.scene), 0)
+    env = [x for x in mesh.current_lights() if isinstance(x, SHEnvironmentLight)][0]
+    assert np.abs(env.coeffs[:, 1:]).max() > 0 and stage.environment["degree"] == 2
+    save_mesh_state(tmp_path / "state.npz", mesh, stage.cfg)
+    back = [x for x in load_mesh_state(tmp_path / "state.npz").current_lights() if isinstance(x, SHEnvironmentLight)]
+    assert len(back) == 1 and back[0].degree == 2
+    np.testing.assert_allclose(back[0].coeffs, env.coeffs, rtol=1e-6)
+    for kw in ({"env_degree": 0}, {"lr_lights": 0.0}):
+        stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", **kw))
+        mesh = stage.extract(tr.scene)
+        assert stage.ambient_to_environment(mesh) is None and stage.environment is None
+        assert any(isinstance(x, AmbientLight) for x in mesh.current_lights())
+    for bad in ({"env_degree": 9}, {"env_degree": -1}, {"env_degree": 1.5}, {"env_degree": True}):
+        with pytest.raises(ValueError, match="env_degree"):
+            MeshConfig(**bad).validate()
+    assert MeshConfig.from_dict({}).env_degree == 0  # a mesh stage saved before it: its ambient light kept
 
 
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):

@@ -145,6 +145,14 @@ class MeshConfig:
     # an HDR environment 29.8 -> 31.6, 24.4 -> 27.6; the one-light dev scenes keep the soup's lights (margin below)
     light_fit: str = "auto"
     light_fit_max: int = 3
+    # Cook-Torrance's ambient light becomes an SH environment of this degree once the lights are fitted (round 0):
+    # the same radiance in band 0 (the renders unchanged at the switch), the higher bands learned from 0 with the
+    # lights: what a sky brighter above than below, or a room, gives a mesh beside its point lights. The soup keeps
+    # its ambient light: as its default the environment took the point light's share on spot (albedo -2.0 / -2.8 dB
+    # over two seeds) and the mesh stage's light fit reads only point and ambient lights. Measured on the mesh stage
+    # of the same soups (session 39, bench/results/mesh_env_pocl_2026-11-27.txt). 0: keep the ambient light (runs
+    # saved before it)
+    env_degree: int = 2
     # kept only when its robust fit is this much better than the soup's lights' (their scale refitted): the fit's
     # model is cruder than the renderer that trained them (no highlights, the photos' median per vertex), so a
     # lighting it finds only a little better is not worth the soup's; measured objective ratios (fit / soup's): two
@@ -220,6 +228,9 @@ class MeshConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0.0 <= v < 1.0):
                 raise ValueError(f"mesh {name} must be a number in [0, 1), got {v!r}")
+        if isinstance(self.env_degree, bool) or not isinstance(self.env_degree, int) or not 0 <= self.env_degree <= 8:
+            raise ValueError(f"mesh env_degree must be an integer in [0, 8] (0: keep the ambient light), got "
+                             f"{self.env_degree!r}")
         if isinstance(self.metal_f0, bool) or not (isinstance(self.metal_f0, int | float) and 0 <= self.metal_f0 <= 1):
             raise ValueError(f"mesh metal_f0 must be a number in [0, 1] (0: the mesh's own F0), got {self.metal_f0!r}")
         if isinstance(self.light_fit_max, bool) or not isinstance(self.light_fit_max, int) \
@@ -289,6 +300,7 @@ class MeshConfig:
         d.setdefault("bounce", "off")  # saved before the traced interreflection: trained without it
         d.setdefault("pixel_sigma", 0.0)  # saved before the pixel filter: trained with the box
         d.setdefault("metal_f0", 0.0)  # saved before the metal's F0 prior: scaled to the mesh's own F0
+        d.setdefault("env_degree", 0)  # saved before the mesh's SH environment: its ambient light kept
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
         if d.get("bbox") is not None:
@@ -371,6 +383,7 @@ class MeshStage:
         self._ao_traced: tuple | None = None  # (scene, its traced AO) from choose_ao, for set_computed_ao
         self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
         self.metal_gauge_rec: list[dict] = []  # metal_gauge's record per round, for a metal
+        self.environment: dict | None = None  # ambient_to_environment's record, when it switched
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
@@ -604,6 +617,29 @@ class MeshStage:
             f"objective {fit['objective']:.4f} (lights before {before}), {rec['seconds']:.1f} s")
         self.light_fit = rec
         return rec
+
+    def ambient_to_environment(self, scene: Scene) -> dict | None:
+        """``MeshConfig.env_degree``: each ambient light of a Cook-Torrance mesh replaced by an SH environment of that
+        degree with the same radiance in band 0 and 0 above (Cook-Torrance's ambient term is the environment term of
+        a constant radiance: the renders are the same at the switch), its higher bands then learned with the lights.
+        None (nothing done) when ``env_degree`` is 0, for Blinn-Phong (its ambient term is ``La ka``, not the
+        environment's), when the lights are held (``lr_lights`` 0) or have no ambient light. Recorded in
+        ``metrics.json``'s ``mesh.environment``."""
+        from ..lights import AmbientLight, SHEnvironmentLight, pack_lights
+
+        c = self.cfg
+        lights = scene.current_lights()
+        if (c.env_degree == 0 or scene.brdf != "cook_torrance" or c.lr_lights == 0 or scene.light_params is None
+                or not any(isinstance(x, AmbientLight) for x in lights)):
+            return None
+        new = [SHEnvironmentLight.constant(x.color, degree=c.env_degree) if isinstance(x, AmbientLight) else x
+               for x in lights]
+        scene.lights = new
+        scene.light_params = Param(pack_lights(new).params.astype(scene.light_params.data.dtype), "light_params")
+        self.environment = {"degree": c.env_degree, "from": "ambient",
+                            "radiance": [float(np.mean(x.color)) for x in lights if isinstance(x, AmbientLight)]}
+        self.trainer.log.info("mesh environment: " + json.dumps(self.environment))
+        return self.environment
 
     def metallic_value(self, scene: Scene) -> float:
         """The metallic the stage treats the object with: the metallic trial's choice, else the mean metallic (0
@@ -845,6 +881,7 @@ class MeshStage:
             self.choose_metallic(scene, tied, held)
         if round_index == 0:
             self.fit_lights(scene)
+            self.ambient_to_environment(scene)
         # the held metallic: each vertex's own gradient builds its Adam moments through the phase and the value is
         # put back after each step (as the soup's held lobes); with its gradient zeroed instead, its moments stayed 0
         # and, Adam's step count shared, it left the phase at up to 3× the rate, undoing the trial's choice
@@ -969,6 +1006,8 @@ class MeshStage:
             metrics["light_fit"] = self.light_fit
         if self.metal_gauge_rec:
             metrics["metal_gauge"] = self.metal_gauge_rec
+        if self.environment is not None:
+            metrics["environment"] = self.environment
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()
