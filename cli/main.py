@@ -352,6 +352,9 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "mesh's shading (a metal's: from its highlights) before its light phase (auto, default: when the "
                    "lights are point and ambient ones; kept when clearly better than the soup's, the number of point "
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
+    p.add_argument("--mesh-env-degree", type=int, metavar="D", help="after the light fit, the ambient light becomes "
+                   "an SH environment of degree D (the same radiance in band 0, the higher bands learned: a sky "
+                   "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only)")
     p.add_argument("--mesh-metal-f0", type=float, metavar="F", help="a metal's brightness gauge: its lights are "
                    "scaled so that the median F0 (luminance) they imply is F, when fitted and at the end of each "
                    "round (default 0.75, the median of measured metals' F0; 0 = the F0 the soup left; only for an "
@@ -393,7 +396,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_light_phase", "material_tie"),
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"), ("mesh_light_fit", "light_fit"),
-                       ("mesh_metal_f0", "metal_f0"),
+                       ("mesh_metal_f0", "metal_f0"), ("mesh_env_degree", "env_degree"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

@@ -384,6 +384,9 @@ def test_mesh_options_are_validated(capsys):
     assert cfg.laplacian == "uniform"
     assert cfg.pixel_sigma is None  # auto: read from the photos
     assert _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=0.6)).metal_f0 == 0.6
+    assert _mesh_config_from_args(argparse.Namespace(mesh_env_degree=4)).env_degree == 4
+    with pytest.raises(ValueError, match="env_degree"):
+        _mesh_config_from_args(argparse.Namespace(mesh_env_degree=9))
     with pytest.raises(ValueError, match="metal_f0"):
         _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=1.5))
     from triplet_cl.cli.main import _pixel_filter
