@@ -260,6 +260,25 @@ def test_grey_lights_keeps_each_lights_brightness():
     np.testing.assert_array_equal(q[0].position, lights[0].position)
 
 
+def test_scale_lights_scales_every_radiometric_parameter_and_nothing_else():
+    """``scale_lights`` (the mesh stage's metal gauge): colours, intensities and every SH band × the factor,
+    positions and directions untouched."""
+    from triplet_cl.lights import SHEnvironmentLight, scale_lights
+
+    rng = np.random.default_rng(3)
+    lights = [PointLight(np.array([1.0, 2.0, 3.0]), np.array([20.0, 17.0, 11.0])),
+              DirectionalLight(np.array([0.0, 1.0, 0.5]), np.array([2.0, 2.5, 3.0])),
+              AmbientLight(np.array([0.05, 0.08, 0.14])), SHEnvironmentLight(rng.normal(size=(3, 9)), 2)]
+    q = unpack_lights(lights, scale_lights(lights, pack_lights(lights).params, 0.25))
+    np.testing.assert_allclose(q[0].intensity, lights[0].intensity * 0.25, rtol=1e-6)
+    np.testing.assert_array_equal(q[0].position, lights[0].position)
+    np.testing.assert_allclose(q[1].intensity, lights[1].intensity * 0.25, rtol=1e-6)
+    np.testing.assert_allclose(q[1].direction, lights[1].direction, rtol=1e-6)
+    np.testing.assert_allclose(q[2].color, lights[2].color * 0.25, rtol=1e-6)
+    np.testing.assert_allclose(q[3].coeffs, lights[3].coeffs * 0.25, rtol=1e-5)
+    assert q[3].degree == 2
+
+
 def test_point_light_distance_keeps_the_irradiance_at_the_centre():
     """``LightInit.distance`` (``--light-distance``) moves the point lights out along their directions and scales
     the intensity so that ``I / d²`` at the centre is the same as at the default 0.6 extent."""

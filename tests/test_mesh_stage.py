@@ -50,6 +50,7 @@ def test_mesh_stage_extracts_refines_and_exports(trained_run):
     assert metrics["mesh"]["faces"] == len(stage.scene.F) and "soup_psnr" in metrics["mesh"]
     assert metrics["psnr"] == pytest.approx(metrics["mesh"]["soup_psnr"], abs=1e-6)  # soup metrics kept
     assert metrics["mesh"]["environment"]["degree"] == 2  # the ambient light became an SH environment
+    assert (trained_run / "envmap.exr").is_file()  # exported with the mesh
     assert len(list((trained_run / "renders" / "mesh").glob("*.png"))) == len(metrics["mesh"]["views"])
     # the saved state restores the refined mesh exactly
     back = load_mesh_state(trained_run / MESH_STATE)
@@ -197,10 +198,12 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     # the soup's ambient light off: its point light's lobe alone, which moves with the view, is what the fit has to
     # beat (the demo is no metal: with its ambient, the soup's lights explain the forced metal's views as well as
     # the atoms once the lobe is Mitsuba's, session 38)
-    from triplet_cl.lights import pack_lights
+    from triplet_cl.lights import lights_from_json, pack_lights
 
     dark = [AmbientLight(np.zeros(3)) if isinstance(x, AmbientLight) else x for x in mesh.current_lights()]
     mesh.light_params.data[...] = pack_lights(dark).params.astype(mesh.light_params.data.dtype)
+    f0_start = MeshStage._f0_median(mesh)
+    alb_start = np.asarray(mesh.material.data[:, 0:3], np.float64).copy()
     metal.refine(mesh, 0)
     rec = metal.light_fit
     assert rec["applied"] is True and rec["model"] == "metal (highlights)" and rec["observations"] > rec["vertices"]
@@ -208,6 +211,20 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     ao = float(np.mean(1.0 / (1.0 + np.exp(-np.asarray(mesh.material.data[:, 5], np.float64)))))
     gauge = metal.metal_gauge_rec[0]["scale"]  # the round's end rescaled the lights again (metal_gauge)
     np.testing.assert_allclose(amb.color * gauge, rec["scale"] * rec["ambient"] / ao, rtol=1e-5)
+    fitted = [x for x in lights_from_json(rec["lights"]) if isinstance(x, PointLight)]  # as the fit installed them
+    now = [x for x in mesh.current_lights() if isinstance(x, PointLight)]
+    assert len(fitted) == len(now) >= 1
+    for a, b in zip(fitted, now, strict=True):
+        np.testing.assert_allclose(b.intensity * gauge, a.intensity, rtol=1e-5)
+        np.testing.assert_allclose(b.position, a.position, rtol=1e-6)
+    # the albedo brought to the F0 the lights were scaled to (× albedo_scale = 0.75 / its median F0, each channel
+    # at most 1): what the round's end found is that albedo (no steps between)
+    a = rec["albedo_scale"]
+    assert a == pytest.approx(min(0.75 / f0_start, 4.0), rel=1e-6) and 1.0 < a  # within METAL_GAUGE_RANGE
+    alb = np.clip(1.0 / (1.0 + np.exp(-alb_start)) * a, 1e-4, 1 - 1e-4)
+    expect = float(np.median((0.04 * 0.1 + 0.9 * alb) @ np.array([0.2126, 0.7152, 0.0722])))
+    assert metal.metal_gauge_rec[0]["f0_median_before"] == pytest.approx(expect, rel=1e-4)
+    assert rec["albedo_saturated"] == pytest.approx(float(np.mean(alb.max(axis=1) >= 1 - 1e-4)), abs=1e-3)
     assert rec["roughness"] in (0.2, 0.35, 0.5, 0.7)
     # the lights' brightness from what metals reflect: their median implied F0 is MeshConfig.metal_f0
     assert rec["f0_median"] == pytest.approx(MeshConfig().metal_f0, rel=1e-9) and MeshConfig().metal_f0 == 0.75
@@ -239,7 +256,7 @@ def test_metal_gauge_sets_a_metal_s_median_f0_and_keeps_its_renders(trained_run)
     lights keep their places, and the renders keep (F0 × light is what the photos fix; only Schlick's
     (1 − F0)(1 − h·v)⁵ rise at grazing angles moves). A dielectric, metal_f0 0, or held lights: nothing done."""
     from triplet_cl.activations import sigmoid
-    from triplet_cl.lights import AmbientLight, PointLight
+    from triplet_cl.lights import AmbientLight, PointLight, SHEnvironmentLight
     from triplet_cl.mesh.light_fit import LUMA
     from triplet_cl.scene import logit
 
@@ -282,11 +299,19 @@ def test_metal_gauge_sets_a_metal_s_median_f0_and_keeps_its_renders(trained_run)
         stage, mesh = metal_mesh(cfg, metallic)
         m0 = np.array(mesh.material.data)
         assert stage.metal_gauge(mesh) is None and np.array_equal(np.asarray(mesh.material.data), m0)
-    # at the end of every round, recorded in metrics.json's mesh section
-    stage, mesh = metal_mesh(tiny_mesh_cfg(iterations=2, material_tie=0, remesh_every=0, metallic_trial=0,
+    # at the end of every round, on every light (the ambient light is an SH environment by then, env_degree 2)
+    stage, mesh = metal_mesh(tiny_mesh_cfg(iterations=0, material_tie=0, remesh_every=0, metallic_trial=0,
                                            light_fit="off"))
+    la = [x.color for x in mesh.current_lights() if isinstance(x, AmbientLight)][0]
     stage.refine(mesh, 0)
     assert len(stage.metal_gauge_rec) == 1
+    s = stage.metal_gauge_rec[0]["scale"]
+    env = [x for x in mesh.current_lights() if isinstance(x, SHEnvironmentLight)][0]
+    np.testing.assert_allclose(env.coeffs[:, 0] * s / np.sqrt(4 * np.pi), la, rtol=1e-5)
+    # the factor stays within METAL_GAUGE_RANGE: a nearly black metal is not sent to 1 everywhere
+    stage, mesh = metal_mesh(tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off"))
+    mesh.material.data[:, 0:3] = logit(1e-3)
+    assert stage.metal_gauge(mesh)["scale"] == 4.0
 
 
 def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, tmp_path):

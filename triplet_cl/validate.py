@@ -58,11 +58,13 @@ _INT_OPTIONS = {
     "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
     "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
+    "--mesh-env-degree": ("mesh_env_degree", 0, 8),  # MeshConfig.env_degree: the mesh's SH environment
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
                  "--mesh-light-phase", "--mesh-metallic-trial", "--mesh-ao", "--mesh-bounce", "--mesh-light-fit",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
-                 "--bbox", "--mesh-crop")
+                 "--bbox", "--mesh-crop", "--mesh-env-degree", "--mesh-metal-f0", "--mesh-pixel-filter",
+                 "--mesh-laplacian")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
 
 
@@ -132,6 +134,10 @@ def _check_options(args) -> None:
         if getattr(args, "mesh_crop", None) == "none":
             raise UsageError("--mesh-crop", f"none (keep everything) contradicts --bbox {args.bbox} (crop to that "
                                             "box): give one of them")
+    f0 = getattr(args, "mesh_metal_f0", None)
+    if f0 is not None and not (math.isfinite(f0) and 0 <= f0 <= 1):
+        raise UsageError("--mesh-metal-f0", f"expected a metal's median F0 in [0, 1] (0: the F0 the soup left), "
+                                            f"found {f0}")
     mr = getattr(args, "min_registered", None)
     if mr is not None and not (math.isfinite(mr) and 0 <= mr <= 1):
         raise UsageError("--min-registered", f"expected a fraction in [0, 1], found {mr}")

@@ -53,6 +53,10 @@ def supersample_for(width: int, height: int, factor: int, max_pixels: int) -> in
     return f
 
 
+# the metal gauge's factor stays within this range (MeshStage.metal_gauge)
+METAL_GAUGE_RANGE = (0.25, 4.0)
+
+
 @dataclass
 class MeshConfig:
     """Settings of the mesh stage (saved in ``config.json`` under ``"mesh"``)."""
@@ -145,7 +149,8 @@ class MeshConfig:
     # an HDR environment 29.8 -> 31.6, 24.4 -> 27.6; the one-light dev scenes keep the soup's lights (margin below)
     light_fit: str = "auto"
     light_fit_max: int = 3
-    # Cook-Torrance's ambient light becomes an SH environment of this degree once the lights are fitted (round 0):
+    # Cook-Torrance's ambient light becomes an SH environment of this degree after the light fit (round 0; whether
+    # the fit was kept, refused or off):
     # the same radiance in band 0 (the renders unchanged at the switch), the higher bands learned from 0 with the
     # lights: what a sky brighter above than below, or a room, gives a mesh beside its point lights. The soup keeps
     # its ambient light: as its default the environment took the point light's share on spot (albedo -2.0 / -2.8 dB
@@ -551,9 +556,10 @@ class MeshStage:
         """``MeshConfig.light_fit``: the scene's lights replaced by point lights and an ambient one fitted to the
         mesh's shading (:func:`~triplet_cl.mesh.light_fit.fit_lights`), or for a metal (the metallic trial's choice,
         or the mean metallic without a trial) to its highlights (:func:`~triplet_cl.mesh.light_fit.fit_metal_lights`,
-        which also sets the tied roughness), scaled by the median over the vertices of the albedo (F0 for a metal)
-        they imply over the mesh's (the photos fix only albedo × light); the light phase then refits the albedo under
-        them. Skipped (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or
+        which also sets the tied roughness), scaled by the median over the vertices of the albedo they imply over the
+        mesh's (the photos fix only albedo × light) or, for a metal with ``MeshConfig.metal_f0``, so that the median
+        F0 they imply is that, the mesh's albedo then brought to it (× ``metal_f0`` / its median F0, within
+        :data:`METAL_GAUGE_RANGE`); the light phase then refits the albedo under them. Skipped (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or
         are not point lights with falloff and ambient ones, when the fit fails (too few observed vertices, no
         direction), or when its objective is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the
         lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
@@ -611,6 +617,10 @@ class MeshStage:
         rough_col = get_brdf(scene.brdf).column("roughness")
         if "roughness" in fit and rough_col is not None:  # the lobe the lights were fitted with (tied in the phase)
             mat[:, rough_col] = logit(fit["roughness"])
+        if metal > 0.5 and c.metal_f0 > 0:  # the albedo brought to the F0 the lights were scaled to: the light phase
+            # starts from renders as bright as the photos (else 0.35x on the demo's forced metal), as the old rule's
+            a = float(np.clip(c.metal_f0 / max(self._f0_median(scene), 1e-6), *METAL_GAUGE_RANGE))
+            rec.update(albedo_scale=a, albedo_saturated=self._scale_albedo(scene, a))
         rec.update(applied=True, lights=lights_to_json(new_lights)["lights"], scale=scale)
         before = "none" if fit["objective_current"] is None else f"{fit['objective_current']:.4f}"
         log(f"mesh light fit ({kind}): {len(new_lights) - 1} point light(s) at {fit['distance']} extents, "
@@ -654,33 +664,44 @@ class MeshStage:
     def metal_gauge(self, scene: Scene) -> dict | None:
         """A metal's brightness gauge (``MeshConfig.metal_f0``), at the end of each round: the albedo × ``s`` (each
         channel at most 1 - 1e-4) and every light / ``s``, ``s`` = ``metal_f0`` / the median F0 luminance over the
-        vertices (0.04 (1 - metallic) + metallic × albedo). The photos fix only F0 × light on a metal (up to the
+        vertices (0.04 (1 - metallic) + metallic × albedo), within [1/4, 4] (:data:`METAL_GAUGE_RANGE`: a nearly
+        black soup would otherwise send every vertex to 1). The photos fix only F0 × light on a metal (up to the
         Fresnel rise at grazing angles), so the renders keep but for the vertices whose albedo reaches 1. None
         (nothing done) for a dielectric, without a metallic channel, when ``metal_f0`` is 0 or the lights are held
         (``lr_lights`` 0: they are the user's). The record goes to ``metrics.json``'s ``mesh.metal_gauge``."""
         from ..lights import scale_lights
-        from .light_fit import LUMA
 
         c = self.cfg
-        met_col = get_brdf(scene.brdf).column("metallic")
-        if (c.metal_f0 <= 0 or met_col is None or c.lr_lights == 0 or scene.light_params is None
-                or self.metallic_value(scene) <= 0.5):
+        if (c.metal_f0 <= 0 or get_brdf(scene.brdf).column("metallic") is None or c.lr_lights == 0
+                or scene.light_params is None or self.metallic_value(scene) <= 0.5):
             return None
-        mat = np.asarray(scene.material.data)
-        alb = sigmoid(mat[:, 0:3].astype(np.float64))
-        met = sigmoid(mat[:, met_col].astype(np.float64))[:, None]
-        before = float(np.median((0.04 * (1.0 - met) + met * alb) @ LUMA))
-        s = c.metal_f0 / max(before, 1e-6)
-        new = np.clip(alb * s, 1e-4, 1.0 - 1e-4)
-        mat[:, 0:3] = logit(new).astype(mat.dtype)
+        before = self._f0_median(scene)
+        s = float(np.clip(c.metal_f0 / max(before, 1e-6), *METAL_GAUGE_RANGE))
+        saturated = self._scale_albedo(scene, s)
         lp = scene.light_params
         lp.data[...] = scale_lights(scene.lights, lp.data, 1.0 / s)
-        after = float(np.median((0.04 * (1.0 - met) + met * sigmoid(mat[:, 0:3].astype(np.float64))) @ LUMA))
-        rec = {"scale": s, "f0_median_before": before, "f0_median": after,
-               "saturated": float(np.mean((alb * s).max(axis=1) > 1.0 - 1e-4))}
+        rec = {"scale": s, "f0_median_before": before, "f0_median": self._f0_median(scene), "saturated": saturated}
         self.trainer.log.info("mesh metal gauge: " + json.dumps(rec))
         self.metal_gauge_rec.append(rec)
         return rec
+
+    @staticmethod
+    def _f0_median(scene: Scene) -> float:
+        """The median over the vertices of the F0 luminance, 0.04 (1 - metallic) + metallic × albedo."""
+        from .light_fit import LUMA
+
+        mat = np.asarray(scene.material.data)
+        met = sigmoid(mat[:, get_brdf(scene.brdf).column("metallic")].astype(np.float64))[:, None]
+        return float(np.median((0.04 * (1.0 - met) + met * sigmoid(mat[:, 0:3].astype(np.float64))) @ LUMA))
+
+    @staticmethod
+    def _scale_albedo(scene: Scene, s: float) -> float:
+        """The albedo × ``s`` in place (each channel within [1e-4, 1 - 1e-4]); returns the share of the vertices
+        that reached the top."""
+        mat = np.asarray(scene.material.data)
+        alb = sigmoid(mat[:, 0:3].astype(np.float64)) * s
+        mat[:, 0:3] = logit(np.clip(alb, 1e-4, 1.0 - 1e-4)).astype(mat.dtype)
+        return float(np.mean(alb.max(axis=1) > 1.0 - 1e-4))
 
     def _photos(self):
         """The training views as ``(camera, rgb, alpha)`` in the renderer's radiance: decoded where the run renders
