@@ -559,10 +559,10 @@ class MeshStage:
         which also sets the tied roughness), scaled by the median over the vertices of the albedo they imply over the
         mesh's (the photos fix only albedo × light) or, for a metal with ``MeshConfig.metal_f0``, so that the median
         F0 they imply is that, the mesh's albedo then brought to it (× ``metal_f0`` / its median F0, within
-        :data:`METAL_GAUGE_RANGE`); the light phase then refits the albedo under them. Skipped (None, the reason logged and recorded) when off, when the lights are held (``lr_lights`` 0) or
-        are not point lights with falloff and ambient ones, when the fit fails (too few observed vertices, no
-        direction), or when its objective is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the
-        lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
+        :data:`METAL_GAUGE_RANGE`); the light phase then refits the albedo under them. Skipped (None, the reason
+        logged and recorded) when off, when the lights are held (``lr_lights`` 0) or are not point lights with
+        falloff and ambient ones, when the fit fails (too few observed vertices, no direction), or when its objective
+        is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
 
         c = self.cfg
