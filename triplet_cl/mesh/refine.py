@@ -562,7 +562,8 @@ class MeshStage:
         :data:`METAL_GAUGE_RANGE`); the light phase then refits the albedo under them. Skipped (None, the reason
         logged and recorded) when off, when the lights are held (``lr_lights`` 0) or are not point lights with
         falloff and ambient ones, when the fit fails (too few observed vertices, no direction), or when its objective
-        is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the lights before. The record goes to ``metrics.json``'s ``mesh.light_fit``."""
+        is not ``light_fit_margin`` (``light_fit_margin_metal``) better than the lights before. The record goes to
+        ``metrics.json``'s ``mesh.light_fit``."""
         from ..lights import AmbientLight, PointLight, lights_to_json, pack_lights
 
         c = self.cfg
