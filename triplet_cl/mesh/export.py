@@ -89,10 +89,6 @@ MAX_VERTEX_SPREAD = 1e4
 def check_asset(asset, what: str) -> MeshAsset:
     """An exportable :class:`MeshAsset` (faces, finite values, every attribute of its BRDF, no vertex far out), or a
     ``ValueError`` starting with ``what``."""
-    return _check_asset(asset, what)
-
-
-def _check_asset(asset, what: str) -> MeshAsset:
     if not isinstance(asset, MeshAsset):
         raise TypeError(f"{what}: expected a triplet_cl.mesh.MeshAsset, got {type(asset).__name__}")
     if asset.num_faces == 0:
@@ -158,7 +154,7 @@ def bake_asset(asset: MeshAsset, texture_size: int = 1024, albedo_space: str = "
             chart (``atlas.face_chart``, :func:`bake.gutter_sources`, the default now) 0 / 0.1 / 7.3 % with
             4. dilate: see :func:`bake.bake`.
     """
-    _check_asset(asset, "bake_asset")
+    check_asset(asset, "bake_asset")
     if int(texture_size) < 16 or int(texture_size) > 16384:
         raise ValueError(f"texture_size must lie in [16, 16384], got {texture_size}")
     s = int(texture_size)
@@ -395,7 +391,7 @@ def export_glb(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
     Returns:
         ``path``.
     """
-    _check_asset(asset, "export_glb")
+    check_asset(asset, "export_glb")
     mode = _alpha(alpha_mode)
     if baked is None:
         baked = bake_asset(asset, texture_size, albedo_space, with_alpha=mode == "BLEND")
@@ -417,7 +413,7 @@ def export_obj(asset: MeshAsset, path, texture_size: int = 1024, *, albedo_space
     ``map_Pm <stem>_metallic.png`` (greyscale, linear); Blinn-Phong also ``Ks``, ``Ns`` and
     ``map_Ks <stem>_specular.png``. Returns the written paths (OBJ first).
     """
-    _check_asset(asset, "export_obj")
+    check_asset(asset, "export_obj")
     path = Path(path)
     if baked is None:
         baked = bake_asset(asset, texture_size, albedo_space)
@@ -473,7 +469,7 @@ def export_ply(asset: MeshAsset, path, albedo_space: str = "srgb") -> Path:
     and ``red green blue`` uchar from the albedo (sRGB-encoded when ``albedo_space="linear"``, as the
     base-colour textures; the float ``albedo_*`` stay as trained); faces ``vertex_indices`` (uchar count, int).
     """
-    _check_asset(asset, "export_ply")
+    check_asset(asset, "export_ply")
     n = vertex_normals(asset.V, asset.F)
     attrs = {"nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], **asset.attributes}
     write_soup_ply(path, asset.V, asset.F, attrs, comment="triplet_cl connected triangle mesh",
@@ -504,7 +500,7 @@ def export_asset(asset: MeshAsset, out_dir, formats=FORMATS, texture_size: int =
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise ValueError(f"formats must be a non-empty subset of {FORMATS}, got {list(formats)}")
-    _check_asset(asset, "export_asset")
+    check_asset(asset, "export_asset")
     mode = _alpha(alpha_mode)
     if require_lights and not asset.lights:
         raise ValueError("export_asset: the asset has no lights (a trained run always has some; pass "

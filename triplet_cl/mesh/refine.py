@@ -687,13 +687,20 @@ class MeshStage:
         return rec
 
     @staticmethod
-    def _f0_median(scene: Scene) -> float:
-        """The median over the vertices of the F0 luminance, 0.04 (1 - metallic) + metallic × albedo."""
+    def _f0_luminance(scene: Scene, idx=slice(None)) -> np.ndarray:
+        """``[n]`` the F0 luminance of the vertices ``idx``, 0.04 (1 - metallic) + metallic × albedo (metallic 1
+        without a metallic channel)."""
         from .light_fit import LUMA
 
         mat = np.asarray(scene.material.data)
-        met = sigmoid(mat[:, get_brdf(scene.brdf).column("metallic")].astype(np.float64))[:, None]
-        return float(np.median((0.04 * (1.0 - met) + met * sigmoid(mat[:, 0:3].astype(np.float64))) @ LUMA))
+        met_col = get_brdf(scene.brdf).column("metallic")
+        met = sigmoid(mat[idx, met_col].astype(np.float64))[:, None] if met_col is not None else 1.0
+        return (0.04 * (1.0 - met) + met * sigmoid(mat[idx, 0:3].astype(np.float64))) @ LUMA
+
+    @classmethod
+    def _f0_median(cls, scene: Scene) -> float:
+        """The median over the vertices of the F0 luminance (:meth:`_f0_luminance`)."""
+        return float(np.median(cls._f0_luminance(scene)))
 
     @staticmethod
     def _scale_albedo(scene: Scene, s: float) -> float:
@@ -783,7 +790,7 @@ class MeshStage:
         them of the implied F0 over the mesh's); the ambient light's radiance before that scale (the fit's ambient
         term is AO La, over F0)."""
         from .bake import vertex_normals
-        from .light_fit import LUMA, fit_metal_lights, vertex_observations
+        from .light_fit import fit_metal_lights, vertex_observations
 
         V = np.asarray(scene.V.data, np.float64)
         normals = vertex_normals(V, scene.F)
@@ -791,10 +798,7 @@ class MeshStage:
         if len(V) > self.cfg.light_fit_samples:
             idx = np.sort(np.random.default_rng(0).choice(len(V), self.cfg.light_fit_samples, replace=False))
         obs = vertex_observations(V[idx], normals[idx], self._photos(), self._seen(scene, idx))
-        mat = np.asarray(scene.material.data)
-        met_col = get_brdf(scene.brdf).column("metallic")
-        met = sigmoid(mat[idx, met_col].astype(np.float64))[:, None] if met_col is not None else 1.0
-        f0 = (0.04 * (1.0 - met) + met * sigmoid(mat[idx, 0:3].astype(np.float64))) @ LUMA
+        f0 = self._f0_luminance(scene, idx)
         lo, hi = V.min(axis=0), V.max(axis=0)
         fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx),
                                center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
