@@ -25,14 +25,17 @@
  *   point:       v_w = safe_normalize_vjp(w, v_L) - 2 w (I . v_Li) / |w|^4 [falloff, |w|^2 > 1e-6],
  *                v_q = v_w, v_x -= v_w, v_I = v_Li / max(|w|^2, 1e-6) (or v_Li)
  *   vertex SH:   v_rad = v_Li, v_wi = safe_normalize_vjp(wi, v_L)
- *   SH env:      v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k  (see env_term_vjp)
+ *   SH env:      v_c[ch, k] = gE_ch (A_l Yn_k - U_k) + gG_ch g_l Yr_k  (see env_term_vjp; U = 0 without ENV_OCC)
  *   v_x -= safe_normalize_vjp(cam - x, v_V),  v_n = safe_normalize_vjp(n, s v_N)
  * Optional inputs are compiled in or out (defined or not; an absent one is not a parameter):
  *   HAS_VLIGHT: vlight [P, 6] and its adjoint v_vlight (a vertex-SH light).
  * Ray-traced terms (ops/trace.py; all off in the default raster path):
- *   HAS_VIS:  vis [P, NV] transmittance towards the j-th point/directional light (in light order)
- *             multiplies that light's intensity: brdf_direct(N, V, L, T I sc, m);
+ *   HAS_VIS:  vis [P, NV + ENV_OCC]: NV columns of transmittance towards the j-th point/directional light (in
+ *             light order), which multiplies that light's intensity: brdf_direct(N, V, L, T I sc, m);
  *             v_T = v_Li_eff . (I sc), and the light's own adjoints see v_Li = T v_Li_eff.
+ *             Then ENV_OCC (a define, 0 by default) columns U_1 .. U_ENV_OCC: the environment's occlusion
+ *             (SH bands 1 and up, shared by every SH environment light; env_eval in shade_brdf.h):
+ *             E = sum_k c_k (A_l Y_k(N) - U_k), v_U_k = -(v_rgb s_d) . c_k summed over the environment lights.
  *   HAS_REFL: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
  *             reflection bounce) adds s_g * refl, s_g the glossy weight of env_scales (the same
  *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
@@ -107,11 +110,25 @@ __constant int LIGHT_ROWS[] = {LIGHT_TABLE};
 #define VL_LD 6
 #define VL_OFF 0
 #endif
+#ifndef ENV_OCC
+#define ENV_OCC 0
+#endif
 #ifndef VIS_LD
-#define VIS_LD NV
+#define VIS_LD (NV + ENV_OCC)
 #define VIS_OFF 0
 #endif
 #define ROW(a, X, p) ((a) + (size_t)(p) * X##_LD + X##_OFF)
+
+/* The environment occlusion U [ENV_NK] of fragment p (U_0 = 0; U_k = vis[p, NV + k - 1] for 1 <= k <= ENV_OCC;
+ * all 0 without vis or ENV_OCC). */
+inline void load_env_occ(const int p, __global const REAL* vis, const int NV, const int has_vis, REAL* U)
+{
+    for (int k = 0; k < ENV_NK; ++k) U[k] = (REAL)0;
+    if (ENV_OCC > 0 && has_vis) {
+        __global const REAL* r = ROW(vis, VIS, p) + NV;
+        for (int k = 1; k < ENV_NK && k <= ENV_OCC; ++k) U[k] = r[k - 1];
+    }
+}
 
 /* Shared per-fragment set-up: x, V, N (and the flip sign) and the material channels. */
 inline int load_fragment(const int p, __global const REAL* pos, __global const REAL* nrm, __global const REAL* mat,
@@ -141,8 +158,8 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
                         const int two_sided,
                         __global const REAL* lt_f,    // [T]
 #ifdef HAS_VIS
-                        const int NV,                 // shadowed lights (columns of vis)
-                        __global const REAL* vis,     // [P, NV]
+                        const int NV,                 // shadowed lights (the first columns of vis)
+                        __global const REAL* vis,     // [P, NV + ENV_OCC]
 #endif
 #ifdef HAS_REFL
                         __global const REAL* refl,    // [P, 3]
@@ -200,7 +217,11 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
         const int term = light_incident(type, a, q, x, vl, tv, &Lw, &Li);
         if (term == LIGHT_TERM_DIRECT) out += brdf_direct(N, V, Lw, Li, m);
         else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(N, V, Li, m);
-        else if (term == LIGHT_TERM_SH_ENV) out += env_term(N, V, m, a, q, b);
+        else if (term == LIGHT_TERM_SH_ENV) {
+            REAL U[ENV_NK];
+            load_env_occ(p, vis, NV, has_vis, U);
+            out += env_term(N, V, m, a, q, b, U);
+        }
     }
     if (has_refl) {
         REAL3 s_d, s_g;
@@ -248,8 +269,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
 #endif
 #ifdef HAS_VIS
                         const int NV,
-                        __global const REAL* vis,       // [P, NV]
-                        __global REAL* v_vis,           // [P, NV]
+                        __global const REAL* vis,       // [P, NV + ENV_OCC]
+                        __global REAL* v_vis,           // [P, NV + ENV_OCC]
 #endif
 #ifdef HAS_REFL
                         __global const REAL* refl,      // [P, 3]
@@ -293,7 +314,7 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
     const REAL3 cam = (has_eye && p < P) ? LOAD3(eye, p) : (REAL3)(cx, cy, cz);
     int jv = 0;
     if (has_vis && p < P)
-        for (int j = 0; j < NV; ++j) ROW(v_vis, VIS, p)[j] = (REAL)0;
+        for (int j = 0; j < NV + ENV_OCC; ++j) ROW(v_vis, VIS, p)[j] = (REAL)0;
 #ifdef ALPHA_COPY
     if (p < P) *ROW(v_alpha_dst, ALPHA, p) = v_alpha[p];
 #endif
@@ -316,9 +337,9 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
         const int shadowed = light_casts_shadows(type);
         if (light_term(type) == LIGHT_TERM_SH_ENV) {
             const int nk = (a + 1) * (a + 1);
-            REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
+            REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1], U[ENV_NK];
             REAL3 gE = (REAL3)(0), gG = (REAL3)(0);
-            for (int k = 0; k < ENV_NK; ++k) Yn[k] = Yr[k] = (REAL)0;
+            for (int k = 0; k < ENV_NK; ++k) Yn[k] = Yr[k] = U[k] = (REAL)0;
             for (int l = 0; l <= ENV_MAX_DEG; ++l) gl[l] = (REAL)0;
             if (valid) {
                 /* Re-load the fragment here instead of using x, V, N, m: Intel's CPU OpenCL
@@ -329,7 +350,15 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 REAL3 xe, Ve, Ne;
                 REAL se, me[NMAT];
                 load_fragment(p, pos, nrm, mat, cam, two_sided, &xe, &Ve, &Ne, &se, me);
-                env_term_vjp(Ne, Ve, me, a, q, b, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+                load_env_occ(p, vis, NV, has_vis, U);
+                env_term_vjp(Ne, Ve, me, a, q, b, U, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+#if ENV_OCC > 0
+                if (has_vis) {  /* v_U_k = -gE . c_k, summed over the environment lights */
+                    __global REAL* vu = ROW(v_vis, VIS, p) + NV;
+                    for (int k = 1; k < nk && k <= ENV_OCC; ++k)
+                        vu[k - 1] -= dot(gE, (REAL3)(q[k], q[b + k], q[2 * b + k]));
+                }
+#endif
             }
             /* coefficient j = ch * nk + k of the active bands, RED_W at a time */
             for (int j0 = 0; j0 < 3 * nk; j0 += RED_W) {
@@ -341,7 +370,7 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         const int l = (int)floor(sqrt((REAL)k + (REAL)0.5));
                         const REAL ge = ch == 0 ? gE.x : (ch == 1 ? gE.y : gE.z);
                         const REAL gg = ch == 0 ? gG.x : (ch == 1 ? gG.y : gG.z);
-                        val = ge * SH_BAND_A[l] * Yn[k] + gg * gl[l] * Yr[k];
+                        val = ge * (SH_BAND_A[l] * Yn[k] - U[k]) + gg * gl[l] * Yr[k];
                     }
                     g[jj] = val;
                 }

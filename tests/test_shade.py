@@ -435,3 +435,106 @@ def test_packed_blocks_match_separate_arrays(device, rng, brdf, kind, with_vis):
             assert np.array_equal(v_fa[:, c0:c0 + w], arr.get()), n
     assert np.array_equal(v_fa[:, blocks["ALPHA"][0]], v_a.get())
     assert np.array_equal(v_par, g.v_light_params) and np.abs(v_par).max() > 0
+
+
+# ---- the environment's occlusion (shade.cl ENV_OCC: vis columns after the shadow casters) ----------------------
+
+
+def _occ_case(rng, brdf, P=48, real=np.float64):
+    """Fragments under a point and a directional light (two shadow columns), an SH environment of degree 2 and one of
+    degree 1 (sharing the occlusion's first 3 columns), ``vis [P, 2 + 8]``: transmittance then U_1 .. U_8."""
+    frag = make_fragments(rng, brdf, P=P)
+    lights = make_lights("point", rng) + make_lights("directional", rng) + make_lights("env", rng, 2) + \
+        make_lights("env", rng, 1)
+    vis = np.concatenate([np.ones((P, 2)), rng.normal(0.0, 0.4, (P, 8))], 1)
+    return frag, lights, vis
+
+
+def _occ_shade(device, frag, lights, vis, brdf, real):
+    from triplet_cl.ops import shade as shade_op
+
+    pos, nrm, mat, face_id, _ = frag
+    return shade_op.prepare(pos, nrm, mat, face_id, CAM, lights, brdf=brdf, device=device, real=real, vis=vis)
+
+
+@pytest.mark.parametrize("brdf", BRDFS)
+def test_environment_occlusion_forward_and_vjp_vs_reference(device, rng, brdf):
+    """The occluded irradiance E = Σ c_k (A_l Y_k(N) − U_k) against the reference, float32, and its adjoint
+    (every input, the occlusion columns' v_U = −gE·c summed over both environment lights, the coefficients) against
+    the reference's complex steps; U = 0 renders exactly as without the columns."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops import shade as shade_op
+
+    frag, lights, vis = _occ_case(rng, brdf)
+    pos, nrm, mat, face_id, _ = frag
+    t = pack_lights(lights)
+    dev, inp = _occ_shade(device, frag, lights, vis, brdf, np.float32)
+    got = shade_op.forward(dev, inp).get()
+    want = ref.shade(pos, nrm, mat, face_id, CAM, t.ints, t.params, brdf, occ=vis[:, 2:])
+    plain = ref.shade(pos, nrm, mat, face_id, CAM, t.ints, t.params, brdf)
+    assert np.abs(want - plain).max() > 0.05  # the occlusion acts (the point light reaches ~8)
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=2e-5 * np.abs(want).max())
+    zero = vis.copy()
+    zero[:, 2:] = 0.0
+    dev, inp0 = _occ_shade(device, frag, lights, zero, brdf, np.float32)
+    np.testing.assert_array_equal(shade_op.forward(dev, inp0).get(),
+                                  shade(pos, nrm, mat, face_id, CAM, lights, brdf=brdf, device=device))
+    v_rgb = rng.standard_normal(got.shape)
+    out = shade_op.backward(dev, inp, cla.to_device(dev.queue, v_rgb.astype(np.float32)))
+    w = ref.vjp(pos, nrm, mat, face_id, CAM, t.ints, t.params, v_rgb, brdf, occ=vis[:, 2:])
+    for name, g in (("v_pos", out.v_pos.get()), ("v_nrm", out.v_nrm.get()), ("v_mat", out.v_mat.get()),
+                    ("v_occ", out.v_vis.get()[:, 2:]), ("v_params", out.v_light_params)):
+        np.testing.assert_allclose(g, w[name], rtol=2e-3, atol=2e-4 * np.abs(w[name]).max(), err_msg=name)
+    assert np.abs(w["v_occ"][:, 3:]).max() > 0 and np.abs(w["v_occ"][:, :3]).max() > 0
+
+
+def test_environment_occlusion_float64_central_differences(device64, rng):
+    """float64 central differences of the kernel itself: the occlusion columns and the coefficients of both
+    environments (the light gradients' reduction through the occluded weights)."""
+    import pyopencl.array as cla
+
+    from triplet_cl.ops import shade as shade_op
+
+    frag, lights, vis = _occ_case(rng, "cook_torrance", P=40)
+    v_rgb = rng.standard_normal((40, 3))
+
+    def f(vis=vis, lights=lights):
+        dev, inp = _occ_shade(device64, frag, lights, vis, "cook_torrance", np.float64)
+        return float((shade_op.forward(dev, inp).get() * v_rgb).sum())
+
+    dev, inp = _occ_shade(device64, frag, lights, vis, "cook_torrance", np.float64)
+    out = shade_op.backward(dev, inp, cla.to_device(dev.queue, v_rgb))
+    g_vis = out.v_vis.get()
+    h = 1e-6
+    for i in rng.choice(40 * 8, 16, replace=False):
+        r, c = divmod(int(i), 8)
+        xp, xm = vis.copy(), vis.copy()
+        xp[r, 2 + c] += h
+        xm[r, 2 + c] -= h
+        assert g_vis[r, 2 + c] == pytest.approx((f(xp) - f(xm)) / (2 * h), rel=1e-6, abs=1e-9), (r, c)
+    from triplet_cl.lights import unpack_gradients
+
+    grads = unpack_gradients(lights, out.v_light_params)
+    for li in (2, 3):
+        base = lights[li].coeffs
+        for idx in np.ndindex(3, min(base.shape[1], 9)):
+            vals = []
+            for s in (1, -1):
+                arr = base.copy()
+                arr[idx] += s * h
+                mod = list(lights)
+                mod[li] = SHEnvironmentLight(arr, lights[li].degree)
+                vals.append(f(lights=mod))
+            assert grads[li]["coeffs"][idx] == pytest.approx((vals[0] - vals[1]) / (2 * h), rel=1e-6, abs=1e-8), \
+                (li, idx)
+
+
+def test_environment_occlusion_columns_are_validated(device, rng):
+    """vis: the shadow columns, then 0 or (d + 1)² − 1 occlusion columns; anything else is refused by name."""
+    frag, lights, vis = _occ_case(rng, "cook_torrance", P=8)
+    for bad in (vis[:, :1], vis[:, :4], vis[:, :7]):
+        with pytest.raises(ValueError, match="environment-occlusion"):
+            _occ_shade(device, frag, lights, bad, "cook_torrance", np.float32)
+    for ok in (vis[:, :2], vis[:, :5], vis):
+        _occ_shade(device, frag, lights, ok, "cook_torrance", np.float32)

@@ -749,8 +749,10 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
 
     ``vis`` (optional, ``renderer="raster"`` only): ``[N, NV]`` per-vertex transmittance towards each
     shadow-casting light of ``scene.lights`` in light order (``visibility.vertex_visibility``), interpolated
-    per fragment and scaling each light's term: cached cast shadows. The per-vertex values are constants (no
-    gradient through the shadow boundary); their interpolation moves with the barycentrics like any attribute.
+    per fragment and scaling each light's term: cached cast shadows. Optionally followed by ``(d + 1)² − 1``
+    columns of the environment's occlusion (``visibility.vertex_occlusion``: SH bands 1 .. d, shared by the SH
+    environment lights). The per-vertex values are constants (no gradient through the shadow boundary); their
+    interpolation moves with the barycentrics like any attribute.
 
     ``bounce`` (optional, ``renderer="raster"``, a scene without a vertex-SH light): ``[N, 3]`` per-vertex radiance
     of one interreflection bounce (``visibility.vertex_bounce``), interpolated per fragment and lit as a
@@ -767,12 +769,13 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     if vis is not None:
         nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)
         vis = np.asarray(vis)
-        if vis.shape != (N, nv):
-            raise ValueError(f"vis must have shape [{N}, {nv}] (vertices, shadow-casting lights), got "
-                             f"{list(vis.shape)}")
+        if vis.ndim != 2 or vis.shape[0] != N or vis.shape[1] < nv:
+            raise ValueError(f"vis must have shape [{N}, {nv} (+ environment occlusion)] (vertices, shadow-casting "
+                             f"lights), got {list(vis.shape)}")
+        shade_op.env_occlusion_columns(pack_lights(scene.lights), vis.shape[1])
         if s.renderer != "raster":
             raise ValueError(f"vis (cached visibility) needs renderer='raster', got {s.renderer!r} (its own shadows)")
-        if nv == 0:
+        if vis.shape[1] == 0:
             vis = None
     if bounce is not None:
         bounce = np.asarray(bounce, np.float64)

@@ -104,15 +104,46 @@ def vertex_ambient_occlusion(scene: Scene, normals: np.ndarray, device: Device |
     over ``directions`` evenly spread directions ``d_k``, ``T_k`` the transmittance of a shadow ray along ``d_k``
     (:func:`vertex_visibility` towards a directional light each: the same trace kernels, constant for the
     gradient). 1 where nothing occludes (a convex object), lower in concavities."""
+    return vertex_occlusion(scene, normals, device, directions, 0, ray_eps)[0]
+
+
+def vertex_occlusion(scene: Scene, normals: np.ndarray, device: Device | None = None, directions: int = 64,
+                     degree: int = 2, ray_eps: float = 1e-2) -> tuple[np.ndarray, np.ndarray]:
+    """``(ao [N], U [N, (degree + 1)² − 1])``: what the geometry hides of an environment, from one trace.
+
+    ``ao`` is :func:`vertex_ambient_occlusion` (the visible share of the cosine-weighted hemisphere). ``U`` is the
+    occlusion of the SH bands 1 .. ``degree`` that an SH environment's irradiance needs besides it (``shade.cl``
+    ``ENV_OCC``): with ``w_k = max(0, n·d_k)`` and ``T_k`` the transmittance along ``d_k``,
+
+        U_j = π [Σ_k w_k Y_j(d_k) / Σ_k w_k − Σ_k T_k w_k Y_j(d_k) / Σ_k T_k w_k]     (j ≥ 1)
+
+    the cosine-weighted SH moments of the whole hemisphere less those of its visible part, each normalised to a
+    cosine integral of π. The shading's irradiance ``ao Σ_j c_j (A_l Y_j(n) − U_j)`` is then the precomputed
+    radiance transfer ``Σ_j c_j ∫ V(ω) max(0, n·ω) Y_j(ω) dω`` (its band 0 carried by ``ao``), with the quadrature
+    error of the two sums cancelling where nothing occludes: ``U = 0`` exactly there (the same sums; a convex object
+    renders as without it). 0 too where nothing is visible (``ao`` = 0 there). A constant for the gradient, as the visibility.
+    """
     from .lights import DirectionalLight
+    from .mesh.envmap import sh_basis
 
     if directions < 1:
         raise ValueError(f"directions must be >= 1, got {directions}")
+    if not (0 <= int(degree) <= 8):
+        raise ValueError(f"degree must be in [0, 8], got {degree}")
     D = sphere_directions(directions)
     T = vertex_visibility(scene, device, lights=[DirectionalLight(d, np.ones(3)) for d in D], ray_eps=ray_eps)
     w = np.maximum(np.asarray(normals, np.float64) @ D.T, 0.0)
     tot = w.sum(axis=1)
-    return np.where(tot > 0, (T * w).sum(axis=1) / np.maximum(tot, 1e-12), 1.0)
+    Tw = T * w
+    seen = Tw.sum(axis=1)
+    ao = np.where(tot > 0, seen / np.maximum(tot, 1e-12), 1.0)
+    nk = (int(degree) + 1) ** 2
+    U = np.zeros((len(w), nk - 1))
+    if nk > 1 and len(w):
+        Y = sh_basis(int(degree), D)[:, 1:]  # [K, nk - 1]
+        ok = (tot > 0) & (seen > 1e-12 * np.maximum(tot, 1e-300))
+        U[ok] = np.pi * ((w[ok] @ Y) / tot[ok, None] - (Tw[ok] @ Y) / seen[ok, None])
+    return ao, U
 
 
 def vertex_bounce(scene: Scene, normals: np.ndarray, device: Device | None = None, lights=None,
@@ -236,4 +267,4 @@ class VisibilityCache:
         return self.vis
 
 
-__all__ = ["SHADOW_MODES", "VisibilityCache", "owner_faces", "vertex_visibility"]
+__all__ = ["SHADOW_MODES", "VisibilityCache", "owner_faces", "vertex_occlusion", "vertex_visibility"]

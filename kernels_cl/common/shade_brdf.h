@@ -50,6 +50,12 @@
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
  *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 for a rough metal.)
  *   E and Gl are not clamped.
+ *   Occluded environment (issue 18 item 2, shade.cl ENV_OCC): U [ENV_NK] (U_0 = 0) per fragment, the part of the
+ *   bands above 0 that the geometry hides (visibility.vertex_occlusion: the cosine-weighted SH moments of the
+ *   directions that reach the sky, normalised to the visible share, subtracted from those of the whole hemisphere):
+ *     E = sum_k c_k (A_l(k) Y_k(N) - U_k)
+ *   U = 0 reproduces the unoccluded E; band 0 stays with ao (the visible share), so ao E is the precomputed radiance
+ *   transfer of the visible directions. Gl (the glossy part) is not occluded beyond ao. v_U_k = -gE . c_k.
  *
  * Adjoints (_vjp) are the hand-derived reverse of the statements above, line by line; relu, clamp
  * and fmax pass the gradient where their argument is inside the active range.
@@ -397,9 +403,10 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
 #endif
 #define ENV_NK ((ENV_MAX_DEG + 1) * (ENV_MAX_DEG + 1))
 
-/* Evaluates Yn = Y(N), Yr = Y(R) [ENV_NK], gl [ENV_MAX_DEG + 1]; returns E (irradiance) and Gl. */
+/* Evaluates Yn = Y(N), Yr = Y(R) [ENV_NK], gl [ENV_MAX_DEG + 1]; returns E (irradiance, less the occluded part
+ * U [ENV_NK], U_0 = 0: all zero without occlusion) and Gl. */
 inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
-                     const int stride, REAL* Yn, REAL* Yr, REAL* gl, REAL3* E, REAL3* Gl)
+                     const int stride, const REAL* U, REAL* Yn, REAL* Yr, REAL* gl, REAL3* E, REAL3* Gl)
 {
     const REAL3 R = (REAL)2 * dot(N, V) * N - V;
     sh_eval(deg, N, Yn);
@@ -410,7 +417,7 @@ inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg,
     for (int l = 0; l <= deg; ++l)
         for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
             const REAL3 ck = (REAL3)(c[k], c[stride + k], c[2 * stride + k]);
-            e += SH_BAND_A[l] * Yn[k] * ck;
+            e += (SH_BAND_A[l] * Yn[k] - U[k]) * ck;
             g += gl[l] * Yr[k] * ck;
         }
     *E = e;
@@ -418,23 +425,24 @@ inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg,
 }
 
 inline REAL3 env_term(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
-                      const int stride)
+                      const int stride, const REAL* U)
 {
     REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
     REAL3 E, Gl, s_d, s_g;
-    env_eval(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_eval(N, V, m, deg, c, stride, U, Yn, Yr, gl, &E, &Gl);
     env_scales(N, V, m, &s_d, &s_g);
     return s_d * E + s_g * Gl;
 }
 
 /* Adjoint of env_term. Leaves Yn, Yr, gl and the coefficient weights gE = v_out s_d,
- * gG = v_out s_g for the coefficient gradients v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k. */
+ * gG = v_out s_g for the coefficient gradients v_c[ch, k] = gE_ch (A_l Yn_k - U_k) + gG_ch g_l Yr_k
+ * (and v_U_k = -gE . c_k, both formed by the caller). */
 inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int deg, __global const REAL* c,
-                         const int stride, const REAL3 v_out, REAL* Yn, REAL* Yr, REAL* gl, REAL3* gE,
-                         REAL3* gG, REAL3* v_N, REAL3* v_V, REAL* v_m)
+                         const int stride, const REAL* U, const REAL3 v_out, REAL* Yn, REAL* Yr, REAL* gl,
+                         REAL3* gE, REAL3* gG, REAL3* v_N, REAL3* v_V, REAL* v_m)
 {
     REAL3 E, Gl, s_d, s_g;
-    env_eval(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_eval(N, V, m, deg, c, stride, U, Yn, Yr, gl, &E, &Gl);
     env_scales(N, V, m, &s_d, &s_g);
     *gE = v_out * s_d;
     *gG = v_out * s_g;

@@ -97,8 +97,9 @@ def ambient(N, V, La, m, brdf):
     return ao * ((1 - met) * alb + Fe) * La
 
 
-def env(N, V, m, brdf, c, deg):
-    """SH environment: c [3, stride] (only the first (deg+1)^2 columns are used)."""
+def env(N, V, m, brdf, c, deg, occ=None):
+    """SH environment: c [3, stride] (only the first (deg+1)^2 columns are used); ``occ [P, NO]`` the occlusion of
+    bands 1.. (U_1 .. U_NO, subtracted from the irradiance's coefficients; shade.cl ENV_OCC)."""
     nk = (deg + 1) ** 2
     c = c[:, :nk]
     band = shref.band_of(nk)
@@ -110,7 +111,12 @@ def env(N, V, m, brdf, c, deg):
     else:
         s2 = 2 / (relu(m[:, 6:7]) + 3)
     gl = np.exp(-0.5 * band * (band + 1) * s2)  # [P, nk]
-    E = np.einsum("pk,ck->pc", Yn * shref.BAND_A[band], c)  # irradiance
+    tn = Yn * shref.BAND_A[band]
+    if occ is not None:
+        n = min(nk - 1, occ.shape[1])
+        tn = tn.astype(np.result_type(tn, occ))
+        tn[:, 1:1 + n] = tn[:, 1:1 + n] - occ[:, :n]
+    E = np.einsum("pk,ck->pc", tn, c)  # irradiance
     Gl = np.einsum("pk,ck->pc", Yr * gl, c)  # band-attenuated radiance along R
     if brdf == "cook_torrance":
         alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
@@ -121,8 +127,9 @@ def env(N, V, m, brdf, c, deg):
     return m[:, 0:3] / np.pi * E + m[:, 3:6] * Gl
 
 
-def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vlight=None, two_sided=True):
-    """Reference implementation of shade: ``rgb [P, 3]`` from the packed light table."""
+def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vlight=None, two_sided=True, occ=None):
+    """Reference implementation of shade: ``rgb [P, 3]`` from the packed light table (``occ``: the environment's
+    occlusion, :func:`env`)."""
     direct = ct_direct if brdf == "cook_torrance" else bp_direct
     V = normalize(cam - pos)
     N = normalize(nrm)
@@ -140,7 +147,7 @@ def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vligh
             sc = 1 / fmax(dot(w, w), POINT_D2_EPS) if a else 1.0
             out = out + direct(N, V, normalize(w), q[3:6] * sc, mat)
         elif typ == SH_ENV:
-            out = out + env(N, V, mat, brdf, q[: 3 * b].reshape(3, b), a)
+            out = out + env(N, V, mat, brdf, q[: 3 * b].reshape(3, b), a, occ)
         elif typ == VERTEX_SH:
             out = out + direct(N, V, normalize(vlight[:, 3:6]), vlight[:, 0:3], mat)
         elif typ == BOUNCE:
@@ -149,20 +156,21 @@ def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vligh
 
 
 def vjp(pos, nrm, mat, face_id, cam, ints, params, v_rgb, brdf="cook_torrance", vlight=None, two_sided=True,
-        h=1e-30):
-    """Reference adjoint by complex steps: ``dict(v_pos, v_nrm, v_mat, v_vlight, v_params)``.
+        h=1e-30, occ=None):
+    """Reference adjoint by complex steps: ``dict(v_pos, v_nrm, v_mat, v_vlight, v_occ, v_params)``.
 
     Fragments are independent, so one complex step on a whole column of a per-fragment input gives
     that column's derivative for every fragment at once; light parameters take one step each.
     """
-    args = {"pos": pos, "nrm": nrm, "mat": mat, "vlight": vlight, "params": params}
+    args = {"pos": pos, "nrm": nrm, "mat": mat, "vlight": vlight, "params": params, "occ": occ}
 
     def run(**kw):
         a = dict(args, **kw)
-        return shade(a["pos"], a["nrm"], a["mat"], face_id, cam, ints, a["params"], brdf, a["vlight"], two_sided)
+        return shade(a["pos"], a["nrm"], a["mat"], face_id, cam, ints, a["params"], brdf, a["vlight"], two_sided,
+                     a["occ"])
 
     out = {}
-    for name in ("pos", "nrm", "mat", "vlight"):
+    for name in ("pos", "nrm", "mat", "vlight", "occ"):
         x = args[name]
         if x is None:
             out["v_" + name] = None

@@ -41,6 +41,19 @@ def num_material_channels(brdf: str) -> int:
     return get_brdf(brdf).num_channels
 
 
+def env_occlusion_columns(table: LightTable, width: int) -> int:
+    """The environment-occlusion columns of a ``vis`` of ``width`` columns: ``width`` less the shadow casters'
+    (``table.num_shadowed``), which must be 0 or ``(d + 1)² − 1`` for a degree ``d`` ≥ 1 (the SH bands 1 .. d of
+    :func:`~triplet_cl.visibility.vertex_occlusion`, shared by every SH environment light; unused without one)."""
+    nv = table.num_shadowed
+    n = int(width) - nv
+    d = int(round(np.sqrt(n + 1))) - 1
+    if n < 0 or (n and (d < 1 or (d + 1) ** 2 - 1 != n)):
+        raise ValueError(f"vis must have {nv} columns (shadowed lights), then 0 or (d + 1)² − 1 environment-occlusion "
+                         f"columns (3, 8, 15, ...), got {width}")
+    return n
+
+
 def _env_bucket(deg: int) -> int:
     """Compiled ENV_MAX_DEG for the largest active degree (-1: no env): few program variants (2, 4, 8)."""
     return 2 if deg <= 2 else (4 if deg <= 4 else 8)
@@ -63,7 +76,8 @@ class ShadeInputs:
     two_sided: bool
     real: type
     # ray-traced terms (ops/trace.py), None in the raster path:
-    vis: cla.Array | None = None  # [P, NV] transmittance towards each point/directional light
+    #: [P, NV + NO] transmittance towards each point/directional light, then the environment's occlusion (NO columns)
+    vis: cla.Array | None = None
     refl: cla.Array | None = None  # [P, 3] radiance along the mirror direction (reflection bounce)
     eye: cla.Array | None = None  # [P, 3] per-fragment viewpoint replacing cam
     #: the packed path (:func:`packed_inputs`): pos, nrm, mat (, vlight, vis) are the same ``[P, C]`` array of
@@ -75,11 +89,21 @@ class ShadeInputs:
         return self.pos.shape[0]
 
     @property
-    def NV(self) -> int:
-        """Columns of vis (shadowed lights)."""
+    def vis_width(self) -> int:
+        """Columns of vis (shadowed lights, then the environment's occlusion)."""
         if self.vis is None:
             return 0
         return self.blocks["VIS"][1] if self.blocks is not None else self.vis.shape[1]
+
+    @property
+    def NV(self) -> int:
+        """Columns of vis that are the shadowed lights' transmittance."""
+        return 0 if self.vis is None else self.table.num_shadowed
+
+    @property
+    def env_occ(self) -> int:
+        """Columns of vis that are the environment's occlusion (``ENV_OCC`` of ``shade.cl``)."""
+        return self.vis_width - self.NV
 
 
 @dataclass
@@ -104,7 +128,7 @@ class ShadeAdjoints:
     v_mat: cla.Array  # [P, C]
     v_vlight: cla.Array | None  # [P, 6]
     v_light_params: np.ndarray  # [T] gradient of the packed light parameters (inactive ones 0)
-    v_vis: cla.Array | None = None  # [P, NV]
+    v_vis: cla.Array | None = None  # [P, NV + NO]
     v_refl: cla.Array | None = None  # [P, 3]
     v_eye: cla.Array | None = None  # [P, 3]
 
@@ -112,7 +136,7 @@ class ShadeAdjoints:
 def _optional(inp: ShadeInputs) -> dict[str, bool]:
     """Which optional inputs the call has: the ``HAS_*`` defines of ``shade.cl`` (and ``ALL_VALID`` without
     face ids)."""
-    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.NV > 0,
+    return {"HAS_VLIGHT": inp.vlight is not None, "HAS_VIS": inp.vis is not None and inp.vis_width > 0,
             "HAS_REFL": inp.refl is not None, "HAS_EYE": inp.eye is not None, "ALL_VALID": inp.face_id is None}
 
 
@@ -140,7 +164,8 @@ def _table_defines(table: LightTable) -> dict:
 def _defines(inp: ShadeInputs) -> dict:
     """The build defines of a shading call (``HAS_*``: defined or not, see :func:`_optional`; the light
     table's structure: :func:`_table_defines`)."""
-    return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp),
+    occ = {"ENV_OCC": inp.env_occ} if inp.vis is not None and inp.env_occ else {}
+    return {"ENV_MAX_DEG": _env_bucket(inp.table.env_degree), "RED_W": RED_W, **_optional(inp), **occ,
             **_layout_defines(inp), **_table_defines(inp.table), **get_brdf(inp.brdf).kernel_defines(),
             **kernel_defines()}
 
@@ -250,8 +275,8 @@ def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTab
             raise ValueError(f"block {key} = {(c0, n)} does not fit the {fa.shape[1]} columns (width {want.get(key)})")
     if any(k not in blocks for k in ("POS", "NRM", "MAT")) or (table.has_vertex_sh != ("VL" in blocks)):
         raise ValueError(f"blocks must hold POS, NRM, MAT (and VL with a VertexSHLight), got {sorted(blocks)}")
-    if "VIS" in blocks and blocks["VIS"][1] != table.num_shadowed:
-        raise ValueError(f"the VIS block must have {table.num_shadowed} columns (shadowed lights)")
+    if "VIS" in blocks:
+        env_occlusion_columns(table, blocks["VIS"][1])
     return ShadeInputs(fa, fa, fa, None, fa if "VL" in blocks else None, check_cam(cam), table, lt_i, lt_f, brdf,
                        bool(two_sided), real, vis=fa if "VIS" in blocks else None, blocks=dict(blocks))
 
@@ -296,8 +321,9 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vl
             eye=None) -> tuple[Device, ShadeInputs]:
     """Validate host (or device) inputs and upload them; returns ``(device, ShadeInputs)``.
 
-    Ray-traced terms (optional): ``vis [P, NV]`` transmittance towards each point/directional
-    light in light order (NV their number), ``refl [P, 3]`` radiance along the mirror direction,
+    Ray-traced terms (optional): ``vis [P, NV (+ NO)]`` transmittance towards each point/directional
+    light in light order (NV their number), then optionally the environment's occlusion (NO = (d + 1)² − 1
+    columns: :func:`env_occlusion_columns`), ``refl [P, 3]`` radiance along the mirror direction,
     ``eye [P, 3]`` per-fragment viewpoint replacing ``cam``.
     """
     dev = device or get_device()
@@ -332,8 +358,9 @@ def prepare(pos, nrm, mat, face_id, cam, lights, *, brdf: str = DEFAULT_BRDF, vl
     inp = ShadeInputs(up(pos), up(nrm), up(mat), up(fid), None if vlight is None else up(vlight), cam, table,
                       to_device(q, lt_i), to_device(q, lt_f), brdf, bool(two_sided), real)
     if vis is not None:
-        nv = table.num_shadowed
-        inp.vis = up(check_real("vis", vis, (P, nv), real))
+        width = vis.shape[1] if getattr(vis, "ndim", 0) == 2 else table.num_shadowed
+        env_occlusion_columns(table, width)
+        inp.vis = up(check_real("vis", vis, (P, width), real))
     if refl is not None:
         inp.refl = up(check_real("refl", refl, (P, 3), real))
     if eye is not None:
