@@ -121,7 +121,8 @@ def vertex_occlusion(scene: Scene, normals: np.ndarray, device: Device | None = 
     cosine integral of π. The shading's irradiance ``ao Σ_j c_j (A_l Y_j(n) − U_j)`` is then the precomputed
     radiance transfer ``Σ_j c_j ∫ V(ω) max(0, n·ω) Y_j(ω) dω`` (its band 0 carried by ``ao``), with the quadrature
     error of the two sums cancelling where nothing occludes: ``U = 0`` exactly there (the same sums; a convex object
-    renders as without it). 0 too where nothing is visible (``ao`` = 0 there). A constant for the gradient, as the visibility.
+    renders as without it). 0 too where nothing is visible (``ao`` = 0 there). A constant for the gradient, as the
+    visibility.
     """
     from .lights import DirectionalLight
     from .mesh.envmap import sh_basis
