@@ -355,6 +355,9 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-env-degree", type=int, metavar="D", help="after the light fit, the ambient light becomes "
                    "an SH environment of degree D (the same radiance in band 0, the higher bands learned: a sky "
                    "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only)")
+    p.add_argument("--mesh-env-occlusion", type=int, metavar="D", help="the SH environment is occluded by the mesh "
+                   "itself: its bands 1..D see only the sky each vertex sees (traced from the geometry when its faces "
+                   "change); default 2, 0 = off, at most 4")
     p.add_argument("--mesh-metal-f0", type=float, metavar="F", help="a metal's brightness gauge: its lights are "
                    "scaled so that the median F0 (luminance) they imply is F, when fitted and at the end of each "
                    "round (default 0.75, the median of measured metals' F0; 0 = the F0 the soup left; only for an "
@@ -397,6 +400,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"), ("mesh_light_fit", "light_fit"),
                        ("mesh_metal_f0", "metal_f0"), ("mesh_env_degree", "env_degree"),
+                       ("mesh_env_occlusion", "env_occlusion"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):
         v = getattr(args, opt, None)

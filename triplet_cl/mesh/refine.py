@@ -158,6 +158,14 @@ class MeshConfig:
     # of the same soups (session 39, bench/results/mesh_env_pocl_2026-11-27.txt). 0: keep the ambient light (runs
     # saved before it)
     env_degree: int = 2
+    # the SH environment's occlusion by the mesh itself (visibility.vertex_occlusion, env_occlusion_directions rays
+    # per vertex, traced when the mesh's faces change: round start, remesh): bands 1 .. this degree of every SH
+    # environment light (the learned one, a relit one) see only the sky each vertex sees; band 0 is the AO's, bands
+    # above it are left unoccluded (their irradiance share is small: A_3 = 0). Without it a learned environment's
+    # directional bands light the inside of a crevice as the open side, which the albedo then darkens. 0: off (runs
+    # saved before it)
+    env_occlusion: int = 2
+    env_occlusion_directions: int = 64
     # kept only when its robust fit is this much better than the soup's lights' (their scale refitted): the fit's
     # model is cruder than the renderer that trained them (no highlights, the photos' median per vertex), so a
     # lighting it finds only a little better is not worth the soup's; measured objective ratios (fit / soup's): two
@@ -236,6 +244,13 @@ class MeshConfig:
         if isinstance(self.env_degree, bool) or not isinstance(self.env_degree, int) or not 0 <= self.env_degree <= 8:
             raise ValueError(f"mesh env_degree must be an integer in [0, 8] (0: keep the ambient light), got "
                              f"{self.env_degree!r}")
+        if isinstance(self.env_occlusion, bool) or not isinstance(self.env_occlusion, int) or \
+                not 0 <= self.env_occlusion <= 4:
+            raise ValueError(f"mesh env_occlusion must be an integer in [0, 4] (the occluded SH bands' degree; 0: "
+                             f"off), got {self.env_occlusion!r}")
+        if not isinstance(self.env_occlusion_directions, int) or not 1 <= self.env_occlusion_directions <= 1024:
+            raise ValueError(f"mesh env_occlusion_directions must be an integer in [1, 1024], got "
+                             f"{self.env_occlusion_directions!r}")
         if isinstance(self.metal_f0, bool) or not (isinstance(self.metal_f0, int | float) and 0 <= self.metal_f0 <= 1):
             raise ValueError(f"mesh metal_f0 must be a number in [0, 1] (0: the mesh's own F0), got {self.metal_f0!r}")
         if isinstance(self.light_fit_max, bool) or not isinstance(self.light_fit_max, int) \
@@ -306,6 +321,7 @@ class MeshConfig:
         d.setdefault("pixel_sigma", 0.0)  # saved before the pixel filter: trained with the box
         d.setdefault("metal_f0", 0.0)  # saved before the metal's F0 prior: scaled to the mesh's own F0
         d.setdefault("env_degree", 0)  # saved before the mesh's SH environment: its ambient light kept
+        d.setdefault("env_occlusion", 0)  # saved before the environment's occlusion: rendered without it
         if "formats" in d:
             d["formats"] = tuple(d["formats"])
         if d.get("bbox") is not None:
@@ -389,6 +405,8 @@ class MeshStage:
         self.light_fit: dict | None = None  # fit_lights's record, when it was asked for
         self.metal_gauge_rec: list[dict] = []  # metal_gauge's record per round, for a metal
         self.environment: dict | None = None  # ambient_to_environment's record, when it switched
+        self._env_occ: tuple | None = None  # (the faces, vertex count, U) of the last environment-occlusion trace
+        self.env_occlusion_traces: list[dict] = []  # each trace's vertices, seconds and U's size (metrics.json)
         self.pixel_filter: dict | None = None  # resolve_pixel_filter's estimate, when it ran
         self._roi = False  # not computed yet
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
@@ -496,12 +514,44 @@ class MeshStage:
         return vertex_bounce(scene, vertex_normals(scene.V.data, scene.F), self.device, lights=lights, vis=vis,
                              directions=self.cfg.bounce_directions, ray_eps=self.cfg.shadow_eps)
 
+    def env_occlusion(self, scene: Scene) -> np.ndarray | None:
+        """``[N, (d + 1)² − 1]`` the environment's occlusion of ``scene``'s mesh (``MeshConfig.env_occlusion``;
+        :func:`~triplet_cl.visibility.vertex_occlusion`), ``d`` the smaller of that degree and the largest SH
+        environment light's, or None (off, no SH environment of degree ≥ 1, another renderer than "raster").
+        Traced when the faces change (a new mesh, a remesh) and held while the vertices move, as the computed AO."""
+        from ..lights import SHEnvironmentLight
+        from ..visibility import vertex_occlusion
+        from .bake import vertex_normals
+
+        c = self.cfg
+        deg = min(c.env_occlusion, max((lt.degree for lt in scene.lights if isinstance(lt, SHEnvironmentLight)),
+                                       default=0))
+        if deg < 1 or self.renderer != "raster" or len(scene.F) == 0:
+            return None
+        n, N = (deg + 1) ** 2 - 1, scene.V.shape[0]
+        held = self._env_occ
+        if held is None or held[0] is not scene.F or held[1] != N:
+            t = time.perf_counter()
+            _, U = vertex_occlusion(scene, vertex_normals(scene.V.data, scene.F), self.device,
+                                    directions=c.env_occlusion_directions, degree=c.env_occlusion, ray_eps=c.shadow_eps)
+            held = self._env_occ = (scene.F, N, U)
+            rec = {"vertices": int(N), "seconds": round(time.perf_counter() - t, 2),
+                   "occluded_share": round(float(np.mean(np.abs(U).max(axis=1) > 1e-6)) if N else 0.0, 4)}
+            self.env_occlusion_traces.append(rec)
+            self.trainer.log.info("mesh environment occlusion traced: " + json.dumps(rec))
+        return held[2][:, :n]
+
     def render(self, scene: Scene, cam, background, supersample: int | None = None, vis=None, bounce=None):
         """Render at ``supersample`` (default: the config's) × the camera's resolution; returns ``(result,
         image [H, W, 3], alpha [H, W])`` filtered down to the camera's size on the device by the capture's pixel filter
         (``RenderSettings.downsample`` and ``pixel_sigma``: the linear premultiplied radiance and the alpha, as a camera
         integrates a pixel, then the run's transfer follows); ``result.backward(v_image)`` takes an image adjoint back
-        through it all."""
+        through it all. An SH environment light is occluded by the mesh (:meth:`env_occlusion`: its columns follow
+        the cast shadows' in ``vis``, transmittance 1 for them without shadows)."""
+        U = self.env_occlusion(scene)
+        if U is not None:
+            nv = sum(1 for lt in scene.lights if lt.CASTS_SHADOWS)
+            vis = np.concatenate([np.ones((len(U), nv)) if vis is None else np.asarray(vis, np.float64), U], 1)
         f = supersample_for(cam.width, cam.height, supersample or self.cfg.supersample, self.cfg.max_render_pixels)
         big = cam.scaled(f) if f > 1 else cam
         if (big.width, big.height) != (cam.width * f, cam.height * f):
@@ -1034,6 +1084,8 @@ class MeshStage:
             metrics["metal_gauge"] = self.metal_gauge_rec
         if self.environment is not None:
             metrics["environment"] = self.environment
+        if self.env_occlusion_traces:
+            metrics["environment_occlusion"] = {"degree": self.cfg.env_occlusion, "traces": self.env_occlusion_traces}
         metrics["wall_time_s"] = time.perf_counter() - t
         if self.roi() is not None:
             metrics["roi"] = self.roi().to_dict()
