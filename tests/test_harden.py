@@ -87,6 +87,8 @@ BAD_TRAIN = {
     "light-distance nan": (["--light-distance", "nan"], "--light-distance"),
     "mesh-light-phase -2": (["--mesh-stage", "--mesh-light-phase", "-2"], "--mesh-light-phase"),
     "mesh-metallic-trial -1": (["--mesh-stage", "--mesh-metallic-trial", "-1"], "--mesh-metallic-trial"),
+    "mesh-env-occlusion 5": (["--mesh-stage", "--mesh-env-occlusion", "5"], "--mesh-env-occlusion"),
+    "mesh-env-occlusion without --mesh-stage": (["--mesh-env-occlusion", "1"], "--mesh-env-occlusion"),
     "lights": (["--lights", "laser"], "--lights"),
     "lights directional twice": (["--lights", "directional,ambient,directional"], "--lights"),
     "lights ambient twice": (["--lights", "point,ambient,ambient"], "--lights"),

@@ -356,6 +356,68 @@ def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, 
     assert MeshConfig.from_dict({}).env_degree == 0  # a mesh stage saved before it: its ambient light kept
 
 
+def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path):
+    """``MeshConfig.env_occlusion``: the mesh's SH environment is occluded by the mesh (``MeshStage.env_occlusion``,
+    ``visibility.vertex_occlusion``): traced once per set of faces and held while the vertices move, its columns
+    appended to each render's ``vis`` (after the cast shadows' when there are some); the renders change where the
+    mesh hides part of the sky only, and only through the bands above 0. Off at 0, without an SH environment of
+    degree ≥ 1 and for the hybrid renderer; recorded in metrics.json; runs saved before it read 0."""
+    from triplet_cl.lights import SHEnvironmentLight
+    from triplet_cl.scene import Param
+
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    cam = tr.ds.test[0].camera
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2))
+    mesh = stage.extract(tr.scene)
+    assert stage.env_occlusion(mesh) is None  # an ambient light: nothing to occlude beyond the AO
+    stage.ambient_to_environment(mesh)
+    U = stage.env_occlusion(mesh)
+    N = mesh.V.shape[0]
+    assert U.shape == (N, 8) and len(stage.env_occlusion_traces) == 1
+    assert 0 < stage.env_occlusion_traces[0]["occluded_share"] < 1  # the cow's legs and belly hide some sky
+    assert (np.abs(U).max(axis=1) == 0).any()  # vertices that see their whole hemisphere: U = 0 exactly
+    _, flat0, _ = stage.render(mesh, cam, np.ones(3), 1)  # bands above 0 still 0: the occlusion changes nothing
+    off = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_occlusion=0))
+    _, flat1, _ = off.render(mesh, cam, np.ones(3), 1)
+    np.testing.assert_allclose(np.asarray(flat0), np.asarray(flat1), atol=1e-6)  # (float32 rounding of E − 0)
+    # a sky bright above: the occluded render differs, and is the render with U in vis (after the point light's
+    # shadow column, transmittance 1 without shadows); its physics is tests/test_visibility.py's (the visible sky's
+    # transfer)
+    env = [x for x in mesh.current_lights() if isinstance(x, SHEnvironmentLight)][0]
+    c = env.coeffs.copy()
+    c[:, 2] = 0.8 * c[:, 0]  # Y_1,0 ∝ y: brighter from +y
+    mesh.lights = [SHEnvironmentLight(c, 2) if isinstance(x, SHEnvironmentLight) else x for x in mesh.current_lights()]
+    from triplet_cl.lights import pack_lights
+
+    mesh.light_params = Param(pack_lights(mesh.lights).params.astype(mesh.light_params.data.dtype), "light_params")
+    _, occ, _ = stage.render(mesh, cam, np.zeros(3), 1)
+    _, free, _ = off.render(mesh, cam, np.zeros(3), 1)
+    occ, free = np.asarray(occ), np.asarray(free)
+    assert np.abs(occ - free).max() > 1e-2
+    U = stage.env_occlusion(mesh)
+    _, explicit, _ = off.render(mesh, cam, np.zeros(3), 1, vis=np.concatenate([np.ones((len(U), 1)), U], 1))
+    np.testing.assert_array_equal(np.asarray(explicit), occ)
+    assert len(stage.env_occlusion_traces) == 1  # held: the same faces
+    mesh.V.data[:] += 1e-3  # the vertices move: still held (re-traced when the faces change, as the computed AO)
+    stage.env_occlusion(mesh)
+    assert len(stage.env_occlusion_traces) == 1
+    mesh.F = np.array(mesh.F)  # new faces (a remesh)
+    stage.env_occlusion(mesh)
+    assert len(stage.env_occlusion_traces) == 2
+    stage.renderer = "hybrid"
+    assert stage.env_occlusion(mesh) is None
+    # through a refinement round: recorded in the metrics
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=2, material_tie=0, remesh_every=0, metallic_trial=0,
+                                        light_fit="off", env_degree=1, env_occlusion=2))
+    refined = stage.refine(stage.extract(tr.scene), 0)
+    assert len(stage.env_occlusion_traces) == 1 and stage.env_occlusion(refined).shape == (refined.V.shape[0], 3)
+    for bad in ({"env_occlusion": 5}, {"env_occlusion": -1}, {"env_occlusion": True},
+                {"env_occlusion_directions": 0}):
+        with pytest.raises(ValueError, match="env_occlusion"):
+            MeshConfig(**bad).validate()
+    assert MeshConfig.from_dict({}).env_occlusion == 0  # a mesh stage saved before it: rendered without
+
+
 def test_mesh_stage_casts_shadows_as_its_soup_did(trained_run):
     """A soup trained with the cached shadows gives a mesh shaded with them (per-vertex visibility traced through
     the mesh, ``MeshConfig.shadow_eps``): the shadowed render is nowhere brighter and somewhere darker."""
@@ -414,6 +476,9 @@ def test_mesh_options_are_validated(capsys):
         _mesh_config_from_args(argparse.Namespace(mesh_env_degree=9))
     with pytest.raises(ValueError, match="metal_f0"):
         _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=1.5))
+    assert _mesh_config_from_args(argparse.Namespace(mesh_env_occlusion=0)).env_occlusion == 0
+    with pytest.raises(ValueError, match="env_occlusion"):
+        _mesh_config_from_args(argparse.Namespace(mesh_env_occlusion=5))
     from triplet_cl.cli.main import _pixel_filter
 
     assert (_pixel_filter("auto"), _pixel_filter("box"), _pixel_filter("0.45")) == (None, 0.0, 0.45)
