@@ -357,7 +357,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only)")
     p.add_argument("--mesh-env-occlusion", type=int, metavar="D", help="the SH environment is occluded by the mesh "
                    "itself: its bands 1..D see only the sky each vertex sees (traced from the geometry when its faces "
-                   "change); default 2, 0 = off, at most 4")
+                   "change); default 0 = off, at most 4")
     p.add_argument("--mesh-metal-f0", type=float, metavar="F", help="a metal's brightness gauge: its lights are "
                    "scaled so that the median F0 (luminance) they imply is F, when fitted and at the end of each "
                    "round (default 0.75, the median of measured metals' F0; 0 = the F0 the soup left; only for an "

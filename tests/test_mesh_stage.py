@@ -367,7 +367,8 @@ def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path):
 
     tr = Trainer(None, trained_run, resume=True, quiet=True)
     cam = tr.ds.test[0].camera
-    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2))
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2,
+                                        env_occlusion=2))
     mesh = stage.extract(tr.scene)
     assert stage.env_occlusion(mesh) is None  # an ambient light: nothing to occlude beyond the AO
     stage.ambient_to_environment(mesh)

@@ -161,10 +161,12 @@ class MeshConfig:
     # the SH environment's occlusion by the mesh itself (visibility.vertex_occlusion, env_occlusion_directions rays
     # per vertex, traced when the mesh's faces change: round start, remesh): bands 1 .. this degree of every SH
     # environment light (the learned one, a relit one) see only the sky each vertex sees; band 0 is the AO's, bands
-    # above it are left unoccluded (their irradiance share is small: A_3 = 0). Without it a learned environment's
-    # directional bands light the inside of a crevice as the open side, which the albedo then darkens. 0: off (runs
-    # saved before it)
-    env_occlusion: int = 2
+    # above it are left unoccluded (their irradiance share is small: A_3 = 0). Off by default: measured on the mesh
+    # stage of the same soups at 2 (session 40, bench/results/env_occlusion_pocl_2026-11-27.txt) it moved relight
+    # and albedo by -0.5 to +0.3 dB (spot +0.3 albedo, bob_env -0.2, gadget under an HDR environment -0.5 dB of
+    # env_rotated, -0.2 of albedo: its photos' crevices also get the light their walls reflect, which the occluded
+    # model without interreflection leaves dark) for 15-22 s of traces. 0: off
+    env_occlusion: int = 0
     env_occlusion_directions: int = 64
     # kept only when its robust fit is this much better than the soup's lights' (their scale refitted): the fit's
     # model is cruder than the renderer that trained them (no highlights, the photos' median per vertex), so a
