@@ -186,15 +186,6 @@ def test_training_steps_the_light_position_by_its_own_rate(tmp_path):
     assert TrainConfig.from_dict(old).lr_light_position_scale == 1.0
     with pytest.raises(ValueError, match="lr_light_position_scale"):
         TrainConfig(lr_light_position_scale=float("nan")).validate()
-    # the lights' rate decays exponentially to lr_lights_final × lr_lights at the last iteration (constant before)
-    lr = tr.opt.group("lights").schedule
-    assert cfg.lr_lights_final == 0.1
-    assert lr(0) == pytest.approx(cfg.lr_lights) and lr(cfg.iterations) == pytest.approx(0.1 * cfg.lr_lights)
-    del old["lr_lights_final"]
-    assert TrainConfig.from_dict(old).lr_lights_final == 1.0
-    for bad in (0.0, 1.5, float("nan")):
-        with pytest.raises(ValueError, match="lr_lights_final"):
-            TrainConfig(lr_lights_final=bad).validate()
 
 
 def test_gltf_punctual_form():

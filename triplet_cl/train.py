@@ -151,11 +151,6 @@ class TrainConfig:
     # 28.8° / 11.5° with seeds 1 / 2 (the initial light is jittered by 0.3 extent). At 10: 8.2° / 3.0°, soup relight
     # +1.2 to +5.0 dB on those seeds and level on seed 0 (bench/results/light_position_pocl_2026-11-26.txt)
     lr_light_position_scale: float = 10.0
-    # the lights' rate decays exponentially to this fraction of lr_lights at the run's last iteration (1: constant,
-    # runs saved before it). With Adam's beta1 0.5 a constant rate keeps the lights stepping by ~lr each iteration to
-    # the end: gadget's point light jumped by more than 0.05 × the extent within 2 to 20 steps all through the run
-    # (122 of its 145 shadow re-traces), and the soup ended on wherever the last steps left it
-    lr_lights_final: float = 0.1
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
     betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
@@ -291,7 +286,6 @@ class TrainConfig:
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
         d.setdefault("ao", "learned")  # saved before the AO could be held
         d.setdefault("lr_light_position_scale", 1.0)  # saved before the light positions' own rate
-        d.setdefault("lr_lights_final", 1.0)  # saved before the lights' rate decayed: constant
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         for k, v in Priors.off().items():
@@ -328,8 +322,6 @@ class TrainConfig:
                                                                   and self.shadow_eps >= 0):
             raise ValueError(f"shadow_every must be >= 1, shadow_from >= 0 and shadow_eps >= 0, got "
                              f"{self.shadow_every}, {self.shadow_from} and {self.shadow_eps}")
-        if not (np.isfinite(self.lr_lights_final) and 0 < self.lr_lights_final <= 1):
-            raise ValueError(f"lr_lights_final must be in (0, 1] (a fraction of lr_lights), got {self.lr_lights_final}")
         if not (np.isfinite(self.lr_light_position_scale) and self.lr_light_position_scale >= 0):
             raise ValueError(f"lr_light_position_scale must be finite and >= 0, got {self.lr_light_position_scale}")
         if not (np.isfinite(self.lr_lobe_scale) and self.lr_lobe_scale >= 0):
@@ -499,9 +491,7 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
     if scene.light_params is not None:
         scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale)]
                  if cfg.lr_lights_mode == "relative" else None)
-        lr = (ExponentialDecay(cfg.lr_lights, cfg.lr_lights * cfg.lr_lights_final, max(cfg.iterations, 1))
-              if cfg.lr_lights_final < 1 and cfg.lr_lights > 0 else cfg.lr_lights)
-        opt.add_group("lights", [scene.light_params], lr=lr, lr_scale=scale, **kw)
+        opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
 
 
