@@ -175,14 +175,23 @@ def test_cache_refresh_rules(device):
     assert cache.get(scene, 14, device) is v and cache.traces == 1  # within the interval: cached
     cache.get(scene, 15, device)
     assert cache.traces == 2  # interval over
-    scene.light_params.data[:3] += np.array([0.5, 0.0, 0.0], np.float32)  # the light turned: early re-trace
+    scene.light_params.data[:3] += np.array([0.5, 0.0, 0.0], np.float32)  # the light turned: early re-trace ...
     cache.get(scene, 16, device)
-    assert cache.traces == 3
+    assert cache.traces == 2  # ... but not within move_every (every // 2 = 5) steps of the last trace
+    cache.get(scene, 20, device)
+    assert cache.traces == 3 and cache.move_every == 5
     cache.invalidate()  # density control
-    cache.get(scene, 17, device)
+    cache.get(scene, 21, device)
     assert cache.traces == 4
+    one = VisibilityCache(every=10, start=5, extent=2.0, move_tol=0.05, move_every=1)
+    one.get(scene, 5, device)
+    scene.light_params.data[:3] += np.array([0.5, 0.0, 0.0], np.float32)
+    one.get(scene, 6, device)
+    assert one.traces == 2
     with pytest.raises(ValueError, match="every"):
         VisibilityCache(every=0)
+    with pytest.raises(ValueError, match="move_every"):
+        VisibilityCache(every=10, move_every=0)
 
 
 def _fit_albedo(device, scene, targets, cams, vis, steps=120):

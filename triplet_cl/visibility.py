@@ -228,14 +228,21 @@ class VisibilityCache:
             half-transparent triangles at first, whose transmittance says nothing yet.
         extent: the scene's size (the unit of ``move_tol``).
         move_tol: re-trace early when a shadow caster's position / direction moved by more than this
-            (× ``extent`` for positions, radians-ish for unit directions).
+            (× ``extent`` for positions, radians-ish for unit directions) ...
+        move_every: ... and at least this many steps have passed since the last trace (default ``every`` // 2).
+            A light that Adam keeps stepping (beta1 0.5: about its learning rate every step, to the end) jitters
+            across the tolerance: gadget's soup re-traced 145 times in 3000 steps, 122 of them for moves 2 to 20
+            steps apart (40 of its 151 s).
     """
 
     def __init__(self, every: int = 100, start: int = 0, extent: float = 1.0, move_tol: float = 0.05,
-                 ray_eps: float = 1e-2):
+                 ray_eps: float = 1e-2, move_every: int | None = None):
         if int(every) < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.every, self.start, self.extent, self.move_tol = int(every), int(start), float(extent), float(move_tol)
+        self.move_every = max(self.every // 2, 1) if move_every is None else int(move_every)
+        if self.move_every < 1:
+            raise ValueError(f"move_every must be >= 1, got {move_every}")
         self.ray_eps = ray_eps
         self.vis: np.ndarray | None = None
         self.at = -1  # iteration of the last trace
@@ -252,6 +259,8 @@ class VisibilityCache:
             return True
         if it - self.at >= self.every:
             return True
+        if it - self.at < self.move_every:
+            return False
         rays = _shadow_rays(scene)
         if self.rays is None or rays.shape != self.rays.shape:
             return True
