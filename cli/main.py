@@ -170,11 +170,20 @@ def cmd_train(args: argparse.Namespace) -> int:
         tr = Trainer(data, out, cfg, device=dev, resume=True)
         check_resume_iterations("--iterations", tr.cfg.iterations, tr.it)
         tr.check_resumable()
+        from triplet_cl.datasets.base import render_files
+        from triplet_cl.validate import check_output_slots
+
+        tests = render_files(tr.ds["test"][: tr.cfg.max_test_views or None])
+        check_output_slots(out, ["config.json", "train.log", "metrics.json", "lights.json", "triplets.ply",
+                                 *[f"renders/test/{n}" for n in tests]], "training")
         _check_bbox_seen(mesh_cfg, tr)
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
         from triplet_cl.runs import replacing_run
 
+        if args.overwrite:  # the paths as they are now: replacing moves the old run (and a cwd inside it) aside
+            out = out.resolve()
+            data = str(Path(data).resolve()) if data else data
         with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
             made = _first_missing(out)  # what the trainer creates: the folder (and missing parents), or nothing
             empty = out.is_dir() and not any(out.iterdir())
@@ -247,6 +256,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from triplet_cl.runs import read_metrics
 
     path = run / "metrics.json"
+    if run.is_dir():
+        from triplet_cl.validate import check_output_slots
+
+        check_output_slots(run, ["metrics.json"], "eval")
     old = read_metrics(run, "eval")  # before any work: a damaged file is named, not met after the evaluation
     tr = _load_run(args)
     if spec is not None:
@@ -256,7 +269,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if (run / MESH_STATE).is_file():
             load_mesh_state(run / MESH_STATE)  # a damaged mesh stage is named before the soup is evaluated
 
-        check_references(spec, [v.name for v in tr.ds["test"][: tr.cfg.max_test_views or None]], args.env_degree)
+        tv = tr.ds["test"][: tr.cfg.max_test_views or None]
+        check_references(spec, [v.name for v in tv], args.env_degree, [(v.camera.width, v.camera.height) for v in tv])
         check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})

@@ -1785,3 +1785,138 @@ def test_an_environment_map_one_pixel_high_says_so(run, tmp_path, capsys):
     lf.write_text(json.dumps({"lights": [{"type": "envmap", "filename": "e.exr"}]}))
     rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
     assert rc == 2 and "is 2x1: an equirectangular environment map is at least 2 pixels high" in err, err
+
+
+# ---- battery 4 (session 40) -------------------------------------------------------------------------------
+
+
+def test_overwrite_refuses_a_run_holding_the_user_s_files_and_keeps_a_folder_beside_it(run, tmp_path, capsys):
+    """--overwrite deleted the user's notes and a dataset copy inside the run with it, and a user folder named
+    ``.RUN.overwritten`` beside it (it was the fixed name of the aside copy)."""
+    (run / "my_notes.txt").write_text("notes")
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], capsys)
+    assert rc == 2 and "my_notes.txt" in err and "not written by triplet" in err and err.count("\n") == 1, err
+    assert _tree(run) == before
+    (run / "my_notes.txt").unlink()
+    mine = tmp_path / ".run.overwritten"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("x")
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], capsys)
+    assert rc == 0, err
+    assert (mine / "thesis.tex").read_text() == "x" and [p.name for p in tmp_path.iterdir() if p.name != "run"] == \
+        [mine.name]
+
+
+def test_overwrite_of_the_current_folder(run, tmp_path, capsys, monkeypatch):
+    """``cd RUN && triplet train DATA --out . --overwrite`` said "PosixPath('.') has an empty name"; the dataset
+    given relative to the run was then looked for inside the folder moved aside."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    monkeypatch.chdir(run)
+    rc, err, _ = _run_cli(["train", "../data", "--out", ".", "--overwrite", *TINY_RUN], capsys)
+    assert rc == 0, err
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 4
+
+
+@pytest.mark.parametrize("value, want", [(1e300, "expected coordinates within"), (1e6, "farther from the others")])
+def test_a_camera_far_from_the_others_is_refused(tmp_path, capsys, value, want):
+    """A translation of 1e300 overflowed the initial soup's range (a traceback); a mistyped 1e12 trained nothing."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    p = data / "transforms_train.json"
+    d = json.loads(p.read_text())
+    d["frames"][0]["transform_matrix"][0][3] = value
+    p.write_text(json.dumps(d))
+    rc, err, _ = _run_cli(["train", data, "--out", tmp_path / "out", *TINY_RUN], capsys)
+    assert rc == 2 and want in err and d["frames"][0]["file_path"].lstrip("./") in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["transforms_test.json", "transforms_train.json"])
+def test_a_split_file_that_is_a_dangling_link_is_named(tmp_path, name):
+    """A dangling transforms_test.json (an unfetched annex file) was passed over: a hold-out became the test split."""
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    (data / name).unlink()
+    (data / name).symlink_to(".git/annex/objects/x")
+    with pytest.raises(DatasetError, match="link to nothing"):
+        load_dataset(data)
+
+
+def test_outputs_that_are_folders_or_files_are_refused_before_the_work(run, capsys):
+    """A metrics.json folder was met after a whole resumed training (the error naming a temporary file) or eval; a
+    renders/mesh file after the whole mesh stage ("File exists")."""
+    (run / "metrics.json").unlink()
+    (run / "metrics.json").mkdir()
+    before = _tree(run)
+    for argv in (["train", "--resume", "--out", run, "--iterations", "6"], ["eval", run]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "metrics.json is a folder" in err and err.count("\n") == 1, err
+        assert _tree(run) == before
+    (run / "metrics.json").rmdir()
+    shutil.rmtree(run / "renders")
+    (run / "renders").write_text("mine")
+    for argv in (["train", "--resume", "--out", run, "--iterations", "6"],
+                 ["extract", run, "--mesh-iterations", "1", "--mesh-resolution", "24"]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "renders is a file" in err, err
+    assert not (run / "mesh_stage.npz").exists() and (run / "renders").read_text() == "mine"
+
+
+def test_resume_accepts_the_background_it_was_started_with(run, capsys):
+    """``--resume --background auto`` on a run started with the default (auto) was refused: the run had 'white'."""
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5", "--background", "auto"], capsys)
+    assert rc == 0, err
+
+
+def test_a_vanishing_sigma_is_refused(tmp_path, capsys):
+    """--sigma 1e-30 left the soup invisible to its gradients: nothing learned, exit 0."""
+    for v in ("1e-30", "5e-324", "0.001"):
+        rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "o", "--sigma", v, *TINY_RUN], capsys)
+        assert rc == 2 and "--sigma" in err and "[0.01, 1000]" in err, err
+
+
+@pytest.mark.parametrize("dup", ["id", "name"])
+def test_colmap_images_given_twice_are_refused(tmp_path, dup):
+    """A duplicate IMAGE_ID dropped one photo; a duplicate NAME trained one photo under two poses."""
+    p = tmp_path / "images.txt"
+    lines = ["1 1 0 0 0 0 0 4 1 a.png", "", "2 1 0 0 0 1 0 4 1 b.png", ""]
+    if dup == "id":
+        lines[2] = lines[2].replace("2 1 0 0 0 1", "1 1 0 0 0 1", 1)
+    else:
+        lines[2] = lines[2].replace("b.png", "a.png")
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match="appears twice"):
+        read_images_text(p)
+
+
+def test_relight_references_are_read_before_the_evaluation(run, tmp_path, capsys):
+    """A set named 'albedo' beside an albedo folder had its relit images replaced by the albedo renders; a reference of
+    another size, an unreadable one or a fully transparent albedo were met after the whole evaluation."""
+    from PIL import Image
+
+    refs = _relight_refs(tmp_path / "refs")
+    names = [Path(f["file_path"]).name for f in json.loads((DEMO / "transforms_test.json").read_text())["frames"]]
+    for folder in ("a", "albedo"):
+        (refs / folder).mkdir()
+        for n in names:
+            Image.fromarray(np.full((96, 96, 4), 200, np.uint8)).save(refs / folder / f"{n}.png")
+    before = _tree(run)
+    doc = json.loads((refs / "relight.json").read_text())
+    (refs / "relight.json").write_text(json.dumps({**doc, "sets": {"albedo": doc["sets"]["a"]}}))
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
+    assert rc == 2 and "may not be named 'albedo'" in err, err
+    (refs / "relight.json").write_text(json.dumps(doc))
+    Image.fromarray(np.full((48, 96, 4), 200, np.uint8)).save(refs / "a" / f"{names[0]}.png")
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
+    assert rc == 2 and "is 96x48, its view 96x96" in err, err
+    (refs / "a" / f"{names[0]}.png").write_bytes(b"not a png")
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
+    assert rc == 2 and f"{names[0]}.png" in err, err
+    Image.fromarray(np.full((96, 96, 4), 200, np.uint8)).save(refs / "a" / f"{names[0]}.png")
+    for n in names:
+        Image.fromarray(np.zeros((96, 96, 4), np.uint8)).save(refs / "albedo" / f"{n}.png")
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
+    assert rc == 2 and "every image is transparent" in err, err
+    assert _tree(run) == before

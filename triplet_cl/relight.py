@@ -567,18 +567,27 @@ def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
                                  "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
-def check_references(relight_dir, view_names, env_degree: int | None = None) -> None:
+def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None) -> None:
     """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
-    ``albedo`` folder, one PNG per test view): checked before any rendering, one error naming the file."""
+    ``albedo`` folder, one PNG per test view) and, with ``sizes`` (``(width, height)`` per view), reads as an image of
+    its view's size; the albedo's covers some pixel; no set is named ``albedo`` beside an albedo folder (their renders
+    would share ``OUT/STAGE/albedo``). Checked before any rendering, one error naming the file."""
+    from .datasets.images import read_image
+    from .errors import DatasetError
+
     rdir = Path(relight_dir)
     spec = rdir / "relight.json" if rdir.is_dir() else rdir
     doc = _read_json(spec)
     folders = []
+    alb = doc.get("albedo")
     for ls in load_light_sets(spec, env_degree):
         if ls.images is None:
             raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
+        if alb is not None and ls.name == "albedo":
+            raise LightFileError(spec, "sets.albedo", "a set may not be named 'albedo' in a file with an albedo "
+                                                      "folder: its relit renders and the albedo renders would share "
+                                                      "one folder; rename the set")
         folders.append((f"sets.{ls.name}.images", ls.images))
-    alb = doc.get("albedo")
     if alb is not None:
         if not isinstance(alb, str):
             raise LightFileError(spec, "albedo", f"expected a folder name, found {alb!r}")
@@ -590,6 +599,21 @@ def check_references(relight_dir, view_names, env_degree: int | None = None) -> 
         if missing:
             raise LightFileError(spec, where, f"{folder}: no image for the test view(s) "
                                               f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
+        if sizes is None:
+            continue
+        covered = False
+        for n, (w, h) in zip(view_names, sizes, strict=True):
+            p = folder / f"{Path(n).name}.png"
+            try:
+                im = read_image(p)
+            except DatasetError as exc:
+                raise LightFileError(spec, where, str(exc)) from None
+            if im.rgb.shape[:2] != (h, w):
+                raise LightFileError(spec, where, f"{p} is {im.rgb.shape[1]}x{im.rgb.shape[0]}, its view {w}x{h}")
+            covered = covered or im.alpha is None or bool((im.alpha > 0.5).any())
+        if where == "albedo" and not covered:
+            raise LightFileError(spec, where, f"{folder}: every image is transparent (alpha 0): the albedo covers no "
+                                              "pixel to compare with")
 
 
 def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None = None, out_dir=None) -> dict:

@@ -275,16 +275,32 @@ def foreign_files(folder, names) -> list[str]:
     return [n for n in names if (folder / n).exists() and n not in mine]
 
 
+# what triplet writes into a run folder (train, extract, export, eval, relight, render): ``--overwrite`` replaces a run
+# only when it holds nothing else (a battery found the user's notes and a dataset copy inside a run deleted with it)
+RUN_ENTRIES = frozenset({CONFIG, CHECKPOINTS, *RUN_OUTPUT_FOLDERS, "train.log", "metrics.json", "lights.json",
+                         "triplets.ply", "mesh_stage.npz", "envmap.exr", OUTPUT_MARKER})
+_RUN_MESH_RE = re.compile(r"^mesh(_[a-z0-9]+)?\.(glb|gltf|obj|mtl|ply|png|bin)$")
+
+
+def foreign_run_entries(run) -> list[str]:
+    """The entries of the run folder ``run`` that triplet does not write there (sorted names)."""
+    return sorted(e.name for e in Path(run).iterdir()
+                  if e.name not in RUN_ENTRIES and not _RUN_MESH_RE.match(e.name) and not _TEMP_RE.match(e.name))
+
+
 @contextlib.contextmanager
 def replacing_run(out, overwrite: bool):
-    """``--overwrite``: move the old run aside, delete it when the block succeeds, put it back if not."""
-    out = Path(out)
+    """``--overwrite``: move the old run aside (into a new hidden folder beside it: never a folder of the user's),
+    delete it when the block succeeds, put it back if not. ``out`` is resolved first (``--out .``, a link to a run:
+    the run itself is replaced)."""
+    out = Path(out).resolve()
     if not (overwrite and out.is_dir()):
         yield
         return
-    aside = out.with_name(f".{out.name}.overwritten")
-    if aside.exists():
-        shutil.rmtree(aside)
+    import tempfile
+
+    holder = Path(tempfile.mkdtemp(prefix=f".{out.name}.overwritten.", dir=out.parent))
+    aside = holder / out.name
     os.replace(out, aside)
     try:
         yield
@@ -292,5 +308,6 @@ def replacing_run(out, overwrite: bool):
         if out.exists():
             shutil.rmtree(out, ignore_errors=True)
         os.replace(aside, out)
+        shutil.rmtree(holder, ignore_errors=True)
         raise
-    shutil.rmtree(aside, ignore_errors=True)
+    shutil.rmtree(holder, ignore_errors=True)

@@ -104,8 +104,9 @@ def _check_options(args) -> None:
     if dist is not None and not (math.isfinite(dist) and 0 < dist <= 1000):
         raise UsageError("--light-distance", f"expected a number of scene extents in (0, 1000], found {dist}")
     sigma = getattr(args, "sigma", None)
-    if sigma is not None and not (math.isfinite(sigma) and 0 <= sigma <= 1000):
-        raise UsageError("--sigma", f"expected a number in [0, 1000] (0 = hard edges), found {sigma}")
+    if sigma is not None and not (math.isfinite(sigma) and (sigma == 0 or 0.01 <= sigma <= 1000)):
+        # (a battery's 1e-30 left the soup invisible to its gradients: nothing learned, exit 0)
+        raise UsageError("--sigma", f"expected 0 (hard edges) or a number in [0.01, 1000] pixels, found {sigma}")
     ratio = getattr(args, "error_resplit_ratio", None)
     if ratio is not None and not (math.isfinite(ratio) and 0 < ratio <= 10):
         raise UsageError("--error-resplit-ratio", f"expected a number in (0, 10] (e.g. 0.9), found {ratio}")
@@ -235,6 +236,10 @@ def check_image_sizes(ds, downscale: int = 1) -> None:
                        f"the {split} image {small.name} is {w}x{h} pixels; {need}")
 
 
+MAX_CAMERA_COORD = 1e12  # a camera centre past this (a mistyped 1e300: the initial soup's range overflowed)
+CAMERA_OUTLIER = 100.0  # a training camera this many times farther from the cameras' median than their median distance
+
+
 def check_training_views(ds) -> None:
     """The training views can make a reconstruction, else a :class:`~triplet_cl.errors.DatasetError` naming the
     dataset: at least two views, their cameras not all at one place (no parallax: nothing to triangulate), and not
@@ -249,6 +254,24 @@ def check_training_views(ds) -> None:
         raise DatasetError(ds.root, f"{len(views)} training view: a reconstruction needs photos from at least two "
                                     "places")
     c = ds.camera_centers("train")
+    far = np.nonzero(~np.isfinite(c).all(axis=1) | (np.abs(c).max(axis=1) > MAX_CAMERA_COORD))[0]
+    if len(far):
+        raise DatasetError(ds.root, f"the training view {views[far[0]].name!r} has its camera at "
+                                    f"{c[far[0]].tolist()}: expected coordinates within ±{MAX_CAMERA_COORD:g} (check "
+                                    "its transform matrix's last column)")
+    med = np.median(c, axis=0)
+    dist = np.linalg.norm(c - med, axis=1)
+    typical = float(np.median(dist))
+    if len(c) >= 4 and typical > 0:
+        out = np.nonzero(dist > CAMERA_OUTLIER * typical)[0]
+        if len(out):
+            names = ", ".join(repr(views[i].name) for i in out[:3]) + (" ..." if len(out) > 3 else "")
+            raise DatasetError(ds.root, f"the training camera(s) {names} stand {dist[out[0]] / typical:.3g}x farther "
+                                        f"from the others than they do from each other (camera at "
+                                        f"{np.round(c[out[0]], 6).tolist()}, the median {np.round(med, 6).tolist()}): "
+                                        f"expected at most {CAMERA_OUTLIER}x, a mistyped or wrongly scaled pose "
+                                        "(the scene's extent and the initial soup follow the cameras); remove the "
+                                        "frame or fix its transform matrix")
     spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
     if spread <= 1e-9 * max(1.0, float(np.abs(c).max())):
         raise DatasetError(ds.root, f"all {len(views)} training cameras are at the same position "
@@ -411,6 +434,16 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
         if not overwrite:
             raise UsageError(option, f"{out} is an existing run: continue it with --resume, or replace it with "
                                      "--overwrite")
+        from .runs import foreign_run_entries
+
+        foreign = foreign_run_entries(out)
+        if foreign:
+            shown = ", ".join(foreign[:4]) + (f" and {len(foreign) - 4} more" if len(foreign) > 4 else "")
+            raise UsageError("--overwrite", f"{out} also holds {shown}, not written by triplet: --overwrite would "
+                                            "delete them with the run; move them out first (nothing was touched)")
+        if dataset is not None and Path(dataset).resolve().is_relative_to(out.resolve()):
+            raise UsageError("--overwrite", f"the dataset {dataset} is inside the run {out} that --overwrite would "
+                                            "delete")
 
 
 def check_output_files(folder, names, option: str) -> None:
@@ -464,11 +497,29 @@ def check_mesh_outputs(run_dir, formats, test_views=None) -> None:
 
     run_dir = Path(run_dir)
     renders = [f"renders/mesh/{n}" for n in render_files(test_views)] if test_views else []
-    for name in ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats), *renders]:
+    check_output_slots(run_dir, ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats), *renders],
+                       "the mesh stage")
+
+
+def check_output_slots(run_dir, names, who: str) -> None:
+    """Before any work: each of ``names`` (paths inside ``run_dir`` that ``who`` writes) is a regular file or
+    absent, and each folder on its way is a folder or absent (a battery's ``metrics.json`` folder was met only after
+    a whole resumed training, the error naming a temporary file; a ``renders/mesh`` file after the whole mesh
+    stage, as "File exists")."""
+    run_dir = Path(run_dir)
+    seen = set()
+    for name in names:
         p = run_dir / name
         if (p.exists() or p.is_symlink()) and not p.is_file():
             what = "a folder" if p.is_dir() else "not a regular file"
-            raise UsageError("RUN", f"{p} is {what}, where the mesh stage writes its {name}: move it away")
+            raise UsageError("RUN", f"{p} is {what}, where {who} writes its {name}: move it away")
+        for q in list(Path(name).parents)[:-1]:
+            d = run_dir / q
+            if d in seen:
+                continue
+            seen.add(d)
+            if (d.exists() or d.is_symlink()) and not d.is_dir():
+                raise UsageError("RUN", f"{d} is a file, where {who} writes the folder {q}/: move it away")
 
 
 def check_export_out(out, formats, option: str) -> None:
@@ -616,6 +667,8 @@ def resume_config(args, saved_cfg, given_cfg):
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue
+        if option == "--background" and given_cfg.background == "auto":
+            continue  # the run saved what "auto" resolved to when it started (white, or random with alpha)
         if getattr(given_cfg, field) != getattr(saved_cfg, field):
             raise UsageError(option, f"cannot change on --resume (the run has {getattr(saved_cfg, field)!r}, "
                                      f"given {getattr(given_cfg, field)!r}); start a new run (another --out, or "

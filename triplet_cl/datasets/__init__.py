@@ -67,6 +67,9 @@ def detect_format(path) -> str:
     for name in ("transforms_train.json", "transforms.json"):
         if (path / name).exists() and not (path / name).is_file():
             raise DatasetError(path / name, "is a folder (or not a regular file); expected the JSON file")
+        if (path / name).is_symlink() and not (path / name).exists():
+            raise DatasetError(path / name, "is a link to nothing (a dangling or looping symbolic link: an unfetched "
+                                            "large file?); expected the JSON file")
     if (path / "transforms_train.json").is_file():
         return "nerf"
     if (path / "transforms.json").is_file():

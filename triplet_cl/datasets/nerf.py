@@ -255,6 +255,9 @@ def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Datase
         p = root / f"transforms_{s}.json"
         if p.exists() and not p.is_file():  # a folder there was passed over: the hold-out replaced the test split
             raise DatasetError(p, "is a folder (or not a regular file); expected the split's JSON file")
+        if p.is_symlink() and not p.exists():  # a dangling link (an unfetched git-annex / LFS file) or a loop
+            raise DatasetError(p, "is a link to nothing (a dangling or looping symbolic link: an unfetched large "
+                                  "file?); expected the split's JSON file")
         if p.is_file():
             splits[s], sp = load_transforms_split(p, s, downscale)
             spaces |= sp
