@@ -280,3 +280,38 @@ def test_shared_spot_ground_is_a_photo_folder(shared_data):
 
     photos = list_photos(folder)
     assert len(photos) == 48 and check_one_size(photo_sizes(photos), folder) == (640, 480)
+
+
+def test_distorted_colmap_keeps_the_photos_alpha(tmp_path, monkeypatch):
+    """RGBA photos under a distorted model: pycolmap's undistorter writes colour only, and a battery's run trained the
+    black under alpha 0 as the object (3.3 dB). The alpha now goes through the same warp and crop."""
+    import OpenImageIO as oiio
+
+    root = tmp_path / "s"
+    fac.make_colmap(root, n=3, model="SIMPLE_RADIAL", params=[7.0, 4.0, 3.0, 0.05])
+    for p in sorted((root / "images").glob("*.png")):
+        inp = oiio.ImageInput.open(str(p))
+        rgb = inp.read_image(format=oiio.FLOAT)[..., :3]
+        inp.close()
+        h, w = rgb.shape[:2]
+        alpha = np.zeros((h, w), np.float32)
+        alpha[h // 4: 3 * h // 4, w // 4: 3 * w // 4] = 1.0  # an object in the middle, transparent around
+        fac.write_image(p, np.concatenate([rgb, alpha[..., None]], -1))
+    monkeypatch.setenv("TRIPLET_CACHE", str(tmp_path / "cache"))
+    ds = load_dataset(root, split_holdout=0)
+    for v in ds.train:
+        assert v.alpha is not None and v.alpha.shape == v.rgb.shape[:2]
+        h, w = v.alpha.shape
+        assert v.alpha[h // 2, w // 2] > 0.9 and v.alpha[0, 0] < 0.1  # the object kept, the surroundings transparent
+    assert not list((tmp_path / "cache").rglob(".alpha_*"))
+
+
+def test_a_cache_inside_the_dataset_is_refused(tmp_path, monkeypatch):
+    """$TRIPLET_CACHE inside a distorted COLMAP dataset wrote the undistorted copies into the dataset."""
+    fac.make_colmap(tmp_path / "s", n=3, model="SIMPLE_RADIAL", params=[7.0, 4.0, 3.0, 0.05])
+    monkeypatch.setenv("TRIPLET_CACHE", str(tmp_path / "s" / "cache"))
+    from triplet_cl.errors import DatasetError
+
+    with pytest.raises(DatasetError, match="inside the dataset folder"):
+        load_dataset(tmp_path / "s", split_holdout=0)
+    assert not (tmp_path / "s" / "cache").exists()

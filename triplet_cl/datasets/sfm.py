@@ -29,6 +29,8 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import DatasetError
 from .images import IMAGE_EXTENSIONS
 
@@ -291,6 +293,42 @@ def undistort_model(pycolmap, model_dir: Path, images_dir: Path, out: Path, imag
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def _undistort_alpha(pycolmap, model_dir: Path, images_dir: Path, out: Path, names) -> None:
+    """The photos' alpha through the same undistortion: pycolmap writes colour only (a battery's RGBA photos came out
+    opaque, the black under alpha 0 trained as part of the object). Each photo with an alpha channel has it written
+    as a grey image of the same name, undistorted with the same model (the same warp and crop), and put back as the
+    fourth channel of its undistorted PNG (saved as PNG, whatever pycolmap's extension)."""
+    from ..io import write_png
+    from .images import read_image
+
+    with_alpha = []
+    for n in names:
+        im = read_image(images_dir / n)
+        if im.alpha is not None:
+            if Path(n).suffix.lower() != ".png":
+                raise DatasetError(images_dir / n, "has an alpha channel and the camera model a distortion: its "
+                                                   "undistorted copy keeps the alpha only as a PNG; convert the "
+                                                   "photos with alpha to PNG (or undistort them yourself)")
+            with_alpha.append((n, im.alpha))
+    if not with_alpha:
+        return
+    src, dst = out / ".alpha_src", out / ".alpha_out"
+    for n, a in with_alpha:
+        write_png(src / n, np.repeat(a[..., None], 3, axis=2))
+    dst.mkdir(parents=True)
+    undistort_model(pycolmap, model_dir, src, dst, [n for n, _ in with_alpha])
+    for n, _ in with_alpha:
+        rgb = read_image(out / "images" / n)
+        alpha = read_image(dst / "images" / n).rgb[..., 0]
+        if alpha.shape != rgb.rgb.shape[:2]:
+            raise DatasetError(images_dir / n, f"its undistorted alpha is {alpha.shape[1]}x{alpha.shape[0]}, its "
+                                               f"colour {rgb.rgb.shape[1]}x{rgb.rgb.shape[0]}")
+        (out / "images" / n).unlink()
+        write_png(out / "images" / n, rgb.rgb, alpha)
+    shutil.rmtree(src, ignore_errors=True)
+    shutil.rmtree(dst, ignore_errors=True)
+
+
 def cache_root(root: Path | None = None) -> Path:
     """Where undistorted copies go: ``$TRIPLET_CACHE``, else the user's cache folder
     ``$XDG_CACHE_HOME/triplet_cl/`` (``~/.cache/triplet_cl/``) — never the dataset folder ``root``
@@ -305,8 +343,11 @@ def cache_root(root: Path | None = None) -> Path:
 LEGACY_CACHE = ".triplet_cache"  # ROOT/.triplet_cache/: where versions before 2026-11-24 put the copies
 
 
+CACHE_VERSION = b"alpha"  # copies made before the photos' alpha was undistorted too are not reused
+
+
 def _model_key(model_dir: Path, images_dir: Path, names) -> str:
-    h = hashlib.sha256()
+    h = hashlib.sha256(CACHE_VERSION)
     for stem in ("cameras", "images", "points3D"):
         for ext in (".bin", ".txt"):
             p = model_dir / (stem + ext)
@@ -338,6 +379,9 @@ def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: di
     if (legacy / "sparse" / "0").is_dir() and (legacy / "images").is_dir():
         return legacy
     base = cache_root(root)
+    if root is not None and base.resolve().is_relative_to(Path(root).resolve()):
+        raise DatasetError(base, f"the undistortion cache ($TRIPLET_CACHE) is inside the dataset folder {root}: "
+                                 "triplet writes nothing into a dataset; point it elsewhere")
     dest = base / f"undistorted-{key}"
     if (dest / "sparse" / "0").is_dir() and (dest / "images").is_dir():
         return dest
@@ -355,6 +399,9 @@ def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: di
             f"{', '.join(sorted({c.model for c in cameras.values()}))}) into {dest} (once) ...")
         try:
             undistort_model(pycolmap, src, images_dir, work, names)
+            _undistort_alpha(pycolmap, src, images_dir, work, names)
+        except DatasetError:
+            raise
         except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError
             raise DatasetError(model_dir, f"pycolmap could not undistort the model: {exc}") from exc
         shutil.rmtree(src, ignore_errors=True)
