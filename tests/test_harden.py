@@ -1920,3 +1920,25 @@ def test_relight_references_are_read_before_the_evaluation(run, tmp_path, capsys
     rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
     assert rc == 2 and "every image is transparent" in err, err
     assert _tree(run) == before
+
+
+def test_a_run_on_read_only_storage_renders_elsewhere(run, tmp_path, capsys, monkeypatch):
+    """A run on read-only storage could not be rendered to a writable --out: loading it opened train.log to append
+    ("read-only file system: choose a writable --out")."""
+    import logging
+
+    real = logging.FileHandler
+
+    def handler(path, *a, **k):
+        if str(path).startswith(str(run)):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(logging, "FileHandler", handler)
+    for name in list(logging.Logger.manager.loggerDict):
+        if name.startswith("triplet_cl.train.") and str(run) in name:
+            logging.getLogger(name).handlers.clear()
+    before = _tree(run)
+    rc, err, out = _run_cli(["render", run, "--out", tmp_path / "elsewhere"], capsys)
+    assert rc == 0, err
+    assert len(list((tmp_path / "elsewhere").glob("*.png"))) > 0 and _tree(run) == before

@@ -17,6 +17,7 @@ import io as _io
 import json
 import logging
 import math
+import os
 import signal
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -1173,7 +1174,18 @@ def _file_logger(path: Path) -> logging.Logger:
     log.setLevel(logging.INFO)
     log.propagate = False
     if not log.handlers:
-        h = logging.FileHandler(path)
+        try:
+            h = logging.FileHandler(path)
+        except OSError:
+            if path.is_file() and os.access(path.parent, os.R_OK):
+                # a run on read-only storage, loaded to be rendered or relit elsewhere (a battery): nothing to log
+                # into; a command that writes the run (train, extract, eval) checks its folder first
+                quiet = logging.getLogger("triplet_cl.train.readonly")
+                quiet.propagate = False
+                if not quiet.handlers:
+                    quiet.addHandler(logging.NullHandler())
+                return quiet
+            raise
         h.setFormatter(logging.Formatter("%(asctime)s %(message)s"))
         log.addHandler(h)
     return log
