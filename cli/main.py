@@ -455,8 +455,8 @@ def _pixel_filter(text) -> float | None:
 
 
 def _formats(text: str) -> tuple:
-    fmts = tuple(x.strip().lower() for x in text.split(",") if x.strip())
-    bad = [f for f in fmts if f not in ("glb", "obj", "ply")]
+    fmts = tuple(x.strip().lower() for x in text.split(","))
+    bad = [f for f in fmts if f not in ("glb", "obj", "ply")]  # an empty item too (glb,,obj), as --lights
     if bad or not fmts:
         raise ValueError(f"formats must be a comma-separated list of glb, obj, ply; got {text!r}")
     return fmts

@@ -554,13 +554,24 @@ def validate_args(args) -> None:
         if out:
             check_new_run_out(out, "--out", args.resume, getattr(args, "overwrite", False),
                               None if getattr(args, "demo", False) else data)
+        # options that cannot act in the run asked for (a battery: each accepted and ignored, exit 0)
+        if getattr(args, "shadows", None) == "off" and getattr(args, "shadow_every", None) is not None:
+            raise UsageError("--shadow-every", "only applies with cast shadows (--shadows vertex)")
+        if getattr(args, "light_phase", None) == 0 and getattr(args, "light_phase_lobes", None) is not None:
+            raise UsageError("--light-phase-lobes", "only applies with a light phase (--light-phase > 0)")
+        brdf = getattr(args, "brdf", None)
+        if getattr(args, "blinn_phong_ka", None) is not None and brdf != "blinn-phong" and \
+                not (brdf is None and getattr(args, "resume", False)):  # on --resume the run's BRDF decides
+            raise UsageError("--blinn-phong-ka", f"only applies with --brdf blinn-phong (the BRDF is "
+                                                 f"{brdf or 'cook-torrance, the default'})")
     elif cmd in ("render", "eval", "extract", "export", "relight"):
         if cmd == "eval" and not getattr(args, "relight", None):  # they only apply to the relit evaluation
-            given = [o for o, a in (("--out", "out"), ("--renderer", "renderer"), ("--env-degree", "env_degree"))
-                     if getattr(args, a, None) is not None]
+            given = [o for o, a in (("--out", "out"), ("--renderer", "renderer"), ("--env-degree", "env_degree"),
+                                    ("--shadows", "shadows")) if getattr(args, a, None) is not None]
             if given:
-                raise UsageError(given[0], "only applies with --relight (the relit images, their renderer and the "
-                                           "environment maps' SH degree); plain `eval` writes only metrics.json")
+                raise UsageError(given[0], "only applies with --relight (the relit images, their renderer, shadows "
+                                           "and the environment maps' SH degree); plain `eval` writes only "
+                                           "metrics.json")
         writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
         if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
             if not (Path(args.run) / "config.json").is_file():
