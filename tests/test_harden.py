@@ -1947,3 +1947,11 @@ def test_a_run_on_read_only_storage_renders_elsewhere(run, tmp_path, capsys, mon
     rc, err, out = _run_cli(["render", run, "--out", tmp_path / "elsewhere"], capsys)
     assert rc == 0, err
     assert len(list((tmp_path / "elsewhere").glob("*.png"))) > 0 and _tree(run) == before
+
+
+def test_a_run_inside_another_run_is_refused(run, capsys):
+    """``train --out RUN/sub`` was accepted, though render, export and relight refuse outputs inside another run."""
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run / "sub", *TINY_RUN], capsys)
+    assert rc == 2 and "is inside the run" in err and err.count("\n") == 1, err
+    assert _tree(run) == before and not (run / "sub").exists()

@@ -423,6 +423,12 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
     check_writable_dir(out, option)
     check_not_in_dataset(out, option, dataset)
     check_not_run_internal(out, option)
+    from .runs import is_run_dir as _is_run
+
+    for folder in Path(out).absolute().resolve().parents:  # a run inside another run (render, relight refuse it)
+        if _is_run(folder):
+            raise UsageError(option, f"{out} is inside the run {folder}: a run goes in a folder of its own, outside "
+                                     "every run (its --overwrite would otherwise delete the new one)")
     if resume and overwrite:
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
