@@ -499,6 +499,31 @@ def _check_bbox_seen(cfg, tr) -> None:
                                    "sees any part of this box (world units of the dataset's cameras)")
 
 
+def _check_bbox_holds_soup(cfg, tr, min_faces: int = 20) -> None:
+    """``extract --bbox``: the soup has opaque triplets inside the box (a battery's box inside the object, or beside
+    it, gave a box-shaped mesh over the run's mesh files, or "found no surface" after the extraction)."""
+    if cfg is None or cfg.bbox is None:
+        return
+    import numpy as np
+
+    from triplet_cl.activations import sigmoid
+    from triplet_cl.errors import UsageError
+
+    V = np.asarray(tr.scene.V.data, np.float64)
+    F = np.asarray(tr.scene.F)
+    if len(F) == 0:
+        return
+    c = V[F].mean(axis=1)
+    lo, hi = np.asarray(cfg.bbox[:3]), np.asarray(cfg.bbox[3:])
+    inside = np.all((c >= lo) & (c <= hi), axis=1)
+    opaque = sigmoid(np.asarray(tr.scene.alpha.data, np.float64).reshape(-1))[F].mean(axis=1) > 0.5
+    n = int(np.count_nonzero(inside & opaque))
+    if n < min_faces:
+        raise UsageError("--bbox", f"{','.join(f'{x:g}' for x in cfg.bbox)}: the soup has {n} opaque triplet(s) in "
+                                   f"this box (at least {min_faces} make a surface): the box holds no part of the "
+                                   "object's surface (world units of the dataset's cameras)")
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     from triplet_cl.runs import read_metrics
 
@@ -510,6 +535,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     tr.check_resumable("extract")  # the stage refines against the training photos: they must be the run's
     check_mesh_outputs(args.run, cfg.formats, tr.ds["test"] or tr.ds.train)
     _check_bbox_seen(cfg, tr)
+    _check_bbox_holds_soup(cfg, tr)
     tr.quiet = False
     return _run_mesh_stage(tr, cfg)
 

@@ -1955,3 +1955,27 @@ def test_a_run_inside_another_run_is_refused(run, capsys):
     rc, err, _ = _run_cli(["train", DEMO, "--out", run / "sub", *TINY_RUN], capsys)
     assert rc == 2 and "is inside the run" in err and err.count("\n") == 1, err
     assert _tree(run) == before and not (run / "sub").exists()
+
+
+def test_a_bbox_holding_no_surface_is_refused_by_extract(run, capsys):
+    """A box the cameras see but where the soup has nothing (inside the object, or beside it) gave a box-shaped mesh
+    over the run's mesh files, or "found no surface" after the extraction."""
+    from types import SimpleNamespace
+
+    from triplet_cl.cli.main import _check_bbox_holds_soup
+    from triplet_cl.errors import UsageError
+    from triplet_cl.mesh.refine import MeshConfig
+    from triplet_cl.scene import Scene, logit
+
+    before = _tree(run)
+    rc, err, _ = _run_cli(["extract", run, "--bbox", "0,0.1,0.2,0.01,0.11,0.21"], capsys)
+    assert rc == 2 and "opaque triplet" in err and _tree(run) == before, err
+    V = np.random.default_rng(0).uniform(-0.5, 0.5, (300, 3))
+    tr = SimpleNamespace(scene=Scene.from_arrays(V, np.arange(300).reshape(100, 3), alpha=np.full((300, 1),
+                                                                                                logit(0.9))))
+    _check_bbox_holds_soup(MeshConfig(bbox=(-1, -1, -1, 1, 1, 1)), tr)  # every face opaque and inside: passes
+    with pytest.raises(UsageError, match="0 opaque"):
+        _check_bbox_holds_soup(MeshConfig(bbox=(2, 2, 2, 3, 3, 3)), tr)
+    tr.scene.alpha.data[:] = logit(0.1)
+    with pytest.raises(UsageError, match="0 opaque"):
+        _check_bbox_holds_soup(MeshConfig(bbox=(-1, -1, -1, 1, 1, 1)), tr)
