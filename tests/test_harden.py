@@ -1963,6 +1963,7 @@ def test_a_bbox_holding_no_surface_is_refused_by_extract(run, capsys):
     from types import SimpleNamespace
 
     from triplet_cl.cli.main import _check_bbox_holds_soup
+
     from triplet_cl.errors import UsageError
     from triplet_cl.mesh.refine import MeshConfig
     from triplet_cl.scene import Scene, logit
