@@ -200,10 +200,10 @@ def test_colmap_distorting_models_undistorted(tmp_path, binary, model, params, m
 def test_colmap_zero_fisheye_is_refused_clearly(tmp_path, monkeypatch):
     """A fisheye with zero coefficients is still a fisheye; pycolmap leaves it as it is: a clear error."""
     pytest.importorskip("pycolmap")
-    monkeypatch.setenv("TRIPLET_CACHE", str(tmp_path / "cache"))
-    fac.make_colmap(tmp_path, n=2, model="OPENCV_FISHEYE", params=[7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+    monkeypatch.setenv("TRIPLET_CACHE", str(tmp_path / "cache"))  # beside the dataset, not inside it
+    fac.make_colmap(tmp_path / "data", n=2, model="OPENCV_FISHEYE", params=[7.0, 7.0, 4.0, 3.0, 0.0, 0.0, 0.0, 0.0])
     with pytest.raises(DatasetError, match="OPENCV_FISHEYE.*not a pinhole camera"):
-        load_dataset(tmp_path)
+        load_dataset(tmp_path / "data")
 
 
 def test_colmap_zero_distortion_is_pinhole(tmp_path):
