@@ -181,13 +181,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     else:
         from triplet_cl.runs import replacing_run
 
+        cwd_inside = None
         if args.overwrite:  # the paths as they are now: replacing moves the old run (and a cwd inside it) aside
-            out = out.resolve()
-            data = str(Path(data).resolve()) if data else data
+            out = out.resolve()  # a link to a run: the run it names is replaced, the link kept
+            data = os.path.abspath(data) if data else data  # ".." folded now: the run it goes through moves
+            here = Path.cwd()
+            cwd_inside = here.relative_to(out) if here.is_relative_to(out) else None
         with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
             made = _first_missing(out)  # what the trainer creates: the folder (and missing parents), or nothing
             empty = out.is_dir() and not any(out.iterdir())
             tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
+            if cwd_inside is not None and (out / cwd_inside).is_dir():
+                os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
             try:
                 _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
             except BaseException:
@@ -270,7 +275,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
             load_mesh_state(run / MESH_STATE)  # a damaged mesh stage is named before the soup is evaluated
 
         tv = tr.ds["test"][: tr.cfg.max_test_views or None]
-        check_references(spec, [v.name for v in tv], args.env_degree, [(v.camera.width, v.camera.height) for v in tv])
+        check_references(spec, [v.name for v in tv], args.env_degree, [(v.camera.width, v.camera.height) for v in tv],
+                         writes_out=args.out is not None)
         check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})
@@ -681,7 +687,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default vertex: per-vertex visibility towards point / directional lights, ray-traced through the "
                    "soup every --shadow-every steps, from iteration 600; off: none; README 'Cached shadows')")
     t.add_argument("--shadow-every", type=int, help="steps between visibility refreshes (default 100; also after "
-                   "density control and when a light moved)")
+                   "density control, and when a light moved, at most every N/2 steps)")
     t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
                    "(default 40 %% of --iterations: 1200 of 3000; 0 = none; at most --iterations; "

@@ -35,7 +35,8 @@
  *             v_T = v_Li_eff . (I sc), and the light's own adjoints see v_Li = T v_Li_eff.
  *             Then ENV_OCC (a define, 0 by default) columns U_1 .. U_ENV_OCC: the environment's occlusion
  *             (SH bands 1 and up, shared by every SH environment light; env_eval in shade_brdf.h):
- *             E = sum_k c_k (A_l Y_k(N) - U_k), v_U_k = -(v_rgb s_d) . c_k summed over the environment lights.
+ *             E = sum_k c_k (A_l Y_k(N) - U_k), v_U_k = -(v_rgb s_d) . c_k summed over the environment lights
+ *             (U = 0 on a back face seen through two_sided: U was traced over the front normal's hemisphere).
  *   HAS_REFL: refl [P, 3] radiance arriving along the mirror direction R = 2 (N.V) N - V (the
  *             reflection bounce) adds s_g * refl, s_g the glossy weight of env_scales (the same
  *             weight the SH environment gives its glossy radiance): v_refl = s_g v_rgb,
@@ -120,11 +121,13 @@ __constant int LIGHT_ROWS[] = {LIGHT_TABLE};
 #define ROW(a, X, p) ((a) + (size_t)(p) * X##_LD + X##_OFF)
 
 /* The environment occlusion U [ENV_NK] of fragment p (U_0 = 0; U_k = vis[p, NV + k - 1] for 1 <= k <= ENV_OCC;
- * all 0 without vis or ENV_OCC). */
-inline void load_env_occ(const int p, __global const REAL* vis, const int NV, const int has_vis, REAL* U)
+ * all 0 without vis or ENV_OCC, and on a back face seen through two_sided (sgn < 0): U was traced over the front
+ * normal's hemisphere). */
+inline void load_env_occ(const int p, __global const REAL* vis, const int NV, const int has_vis, const REAL sgn,
+                         REAL* U)
 {
     for (int k = 0; k < ENV_NK; ++k) U[k] = (REAL)0;
-    if (ENV_OCC > 0 && has_vis) {
+    if (ENV_OCC > 0 && has_vis && sgn > (REAL)0) {
         __global const REAL* r = ROW(vis, VIS, p) + NV;
         for (int k = 1; k < ENV_NK && k <= ENV_OCC; ++k) U[k] = r[k - 1];
     }
@@ -219,7 +222,7 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
         else if (term == LIGHT_TERM_AMBIENT) out += ambient_term(N, V, Li, m);
         else if (term == LIGHT_TERM_SH_ENV) {
             REAL U[ENV_NK];
-            load_env_occ(p, vis, NV, has_vis, U);
+            load_env_occ(p, vis, NV, has_vis, sgn, U);
             out += env_term(N, V, m, a, q, b, U);
         }
     }
@@ -350,10 +353,10 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 REAL3 xe, Ve, Ne;
                 REAL se, me[NMAT];
                 load_fragment(p, pos, nrm, mat, cam, two_sided, &xe, &Ve, &Ne, &se, me);
-                load_env_occ(p, vis, NV, has_vis, U);
+                load_env_occ(p, vis, NV, has_vis, se, U);
                 env_term_vjp(Ne, Ve, me, a, q, b, U, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
 #if ENV_OCC > 0
-                if (has_vis) {  /* v_U_k = -gE . c_k, summed over the environment lights */
+                if (has_vis && se > (REAL)0) {  /* v_U_k = -gE . c_k, summed over the environment lights */
                     __global REAL* vu = ROW(v_vis, VIS, p) + NV;
                     for (int k = 1; k < nk && k <= ENV_OCC; ++k)
                         vu[k - 1] -= dot(gE, (REAL3)(q[k], q[b + k], q[2 * b + k]));

@@ -1404,8 +1404,11 @@ def test_undistortion_cache_is_outside_the_dataset(tmp_path, monkeypatch):
     assert _tree(root) == before
     made = list((tmp_path / "xdg" / "triplet_cl").iterdir())
     assert len(made) == 1
-    # an older version's copy inside the dataset is read, and nothing new is written anywhere
-    shutil.move(str(made[0]), str(root / LEGACY_CACHE / made[0].name))
+    # an older version's copy inside the dataset (its key without the alpha's salt) is read, nothing new written
+    from triplet_cl.datasets.sfm import _model_key
+
+    old_key = _model_key(root / "sparse" / "0", root / "images", [p.name for p in (root / "images").iterdir()], b"")
+    shutil.move(str(made[0]), str(root / LEGACY_CACHE / f"undistorted-{old_key}"))
     before = _tree(root)
     b = load_dataset(root, split_holdout=0)
     assert _tree(root) == before and list((tmp_path / "xdg" / "triplet_cl").iterdir()) == []
@@ -1824,7 +1827,7 @@ def test_overwrite_of_the_current_folder(run, tmp_path, capsys, monkeypatch):
     assert json.loads((run / "metrics.json").read_text())["iterations"] == 4
 
 
-@pytest.mark.parametrize("value, want", [(1e300, "expected coordinates within"), (1e6, "farther from the others")])
+@pytest.mark.parametrize("value, want", [(1e300, "expected coordinates within"), (1e6, "farther from the cameras")])
 def test_a_camera_far_from_the_others_is_refused(tmp_path, capsys, value, want):
     """A translation of 1e300 overflowed the initial soup's range (a traceback); a mistyped 1e12 trained nothing."""
     data = tmp_path / "data"
@@ -1910,8 +1913,8 @@ def test_relight_references_are_read_before_the_evaluation(run, tmp_path, capsys
     before = _tree(run)
     doc = json.loads((refs / "relight.json").read_text())
     (refs / "relight.json").write_text(json.dumps({**doc, "sets": {"albedo": doc["sets"]["a"]}}))
-    rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
-    assert rc == 2 and "may not be named 'albedo'" in err, err
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs, "--out", tmp_path / "ev"], capsys)  # with --out only
+    assert rc == 2 and "may not be named 'albedo'" in err and not (tmp_path / "ev").exists(), err
     (refs / "relight.json").write_text(json.dumps(doc))
     Image.fromarray(np.full((48, 96, 4), 200, np.uint8)).save(refs / "a" / f"{names[0]}.png")
     rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
@@ -1940,6 +1943,12 @@ def test_a_run_on_read_only_storage_renders_elsewhere(run, tmp_path, capsys, mon
         return real(path, *a, **k)
 
     monkeypatch.setattr(logging, "FileHandler", handler)
+    import os
+
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, *a, **k: (False if mode & os.W_OK and
+                                                                str(p).startswith(str(run))
+                                                                else real_access(p, mode, *a, **k)))
     for name in list(logging.Logger.manager.loggerDict):
         if name.startswith("triplet_cl.train.") and str(run) in name:
             logging.getLogger(name).handlers.clear()
@@ -1980,3 +1989,31 @@ def test_a_bbox_holding_no_surface_is_refused_by_extract(run, capsys):
     tr.scene.alpha.data[:] = logit(0.1)
     with pytest.raises(UsageError, match="0 opaque"):
         _check_bbox_holds_soup(MeshConfig(bbox=(-1, -1, -1, 1, 1, 1)), tr)
+
+
+def test_clustered_cameras_are_not_outliers(tmp_path):
+    """The outlier rule is robust: a capture that rests in one place for
+    half its frames (a still start of a video) and a far overview camera at 30x are accepted; a run already trained
+    is never refused on loading (``new_run=False``)."""
+    from triplet_cl.validate import check_training_views
+
+    data = tmp_path / "data"
+    shutil.copytree(DEMO, data)
+    p = data / "transforms_train.json"
+    d = json.loads(p.read_text())
+    rng = np.random.default_rng(0)
+    rest = np.array([f["transform_matrix"][r][3] for r in range(3) for f in d["frames"][:1]])
+    for f in d["frames"][: len(d["frames"]) // 2 + 2]:  # more than half the cameras within 2 mm of one place
+        for r in range(3):
+            f["transform_matrix"][r][3] = float(rest[r] + rng.normal(0, 0.002))
+    M = np.array(d["frames"][-1]["transform_matrix"])
+    M[:3, 3] *= 30.0  # an overview camera 30x farther along its own axis
+    d["frames"][-1]["transform_matrix"] = M.tolist()
+    p.write_text(json.dumps(d))
+    check_training_views(load_dataset(data))
+    M[:3, 3] *= 10.0  # 300x: a mistyped pose
+    d["frames"][-1]["transform_matrix"] = M.tolist()
+    p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match="farther from the cameras"):
+        check_training_views(load_dataset(data))
+    check_training_views(load_dataset(data), new_run=False)

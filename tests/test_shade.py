@@ -440,14 +440,19 @@ def test_packed_blocks_match_separate_arrays(device, rng, brdf, kind, with_vis):
 # ---- the environment's occlusion (shade.cl ENV_OCC: vis columns after the shadow casters) ----------------------
 
 
-def _occ_case(rng, brdf, P=48, real=np.float64):
+def _occ_case(rng, brdf, P=48, real=np.float64, n_occ=8):
     """Fragments under a point and a directional light (two shadow columns), an SH environment of degree 2 and one of
-    degree 1 (sharing the occlusion's first 3 columns), ``vis [P, 2 + 8]``: transmittance then U_1 .. U_8."""
+    degree 1 (sharing the occlusion's first 3 columns), ``vis [P, 2 + n_occ]``: transmittance then U_1 .. U_n_occ
+    (8: the degree-2 bands; 3: fewer, bands 2 unoccluded; 15: more, those past the compiled degree unused)."""
     frag = make_fragments(rng, brdf, P=P)
     lights = make_lights("point", rng) + make_lights("directional", rng) + make_lights("env", rng, 2) + \
         make_lights("env", rng, 1)
-    vis = np.concatenate([np.ones((P, 2)), rng.normal(0.0, 0.4, (P, 8))], 1)
+    vis = np.concatenate([np.ones((P, 2)), rng.normal(0.0, 0.4, (P, n_occ))], 1)
     return frag, lights, vis
+
+
+def normalize_rows(x):
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 def _occ_shade(device, frag, lights, vis, brdf, real):
@@ -457,16 +462,19 @@ def _occ_shade(device, frag, lights, vis, brdf, real):
     return shade_op.prepare(pos, nrm, mat, face_id, CAM, lights, brdf=brdf, device=device, real=real, vis=vis)
 
 
-@pytest.mark.parametrize("brdf", BRDFS)
-def test_environment_occlusion_forward_and_vjp_vs_reference(device, rng, brdf):
+@pytest.mark.parametrize("brdf,n_occ", [("cook_torrance", 8), ("blinn_phong", 8), ("cook_torrance", 3),
+                                        ("cook_torrance", 15)])
+def test_environment_occlusion_forward_and_vjp_vs_reference(device, rng, brdf, n_occ):
     """The occluded irradiance E = Σ c_k (A_l Y_k(N) − U_k) against the reference, float32, and its adjoint
     (every input, the occlusion columns' v_U = −gE·c summed over both environment lights, the coefficients) against
-    the reference's complex steps; U = 0 renders exactly as without the columns."""
+    the reference's complex steps; U = 0 renders exactly as without the columns. Back faces (two-sided) take no
+    occlusion (it was traced over the front hemisphere); fewer columns than bands leave the rest unoccluded, more
+    leave the extra ones unused (their adjoint 0)."""
     import pyopencl.array as cla
 
     from triplet_cl.ops import shade as shade_op
 
-    frag, lights, vis = _occ_case(rng, brdf)
+    frag, lights, vis = _occ_case(rng, brdf, n_occ=n_occ)
     pos, nrm, mat, face_id, _ = frag
     t = pack_lights(lights)
     dev, inp = _occ_shade(device, frag, lights, vis, brdf, np.float32)
@@ -486,7 +494,11 @@ def test_environment_occlusion_forward_and_vjp_vs_reference(device, rng, brdf):
     for name, g in (("v_pos", out.v_pos.get()), ("v_nrm", out.v_nrm.get()), ("v_mat", out.v_mat.get()),
                     ("v_occ", out.v_vis.get()[:, 2:]), ("v_params", out.v_light_params)):
         np.testing.assert_allclose(g, w[name], rtol=2e-3, atol=2e-4 * np.abs(w[name]).max(), err_msg=name)
-    assert np.abs(w["v_occ"][:, 3:]).max() > 0 and np.abs(w["v_occ"][:, :3]).max() > 0
+    assert np.abs(w["v_occ"][:, :3]).max() > 0
+    if n_occ >= 8:
+        assert np.abs(w["v_occ"][:, 3:8]).max() > 0 and not w["v_occ"][:, 8:].any()
+    back = (np.sum(normalize_rows(frag[1]) * (CAM - frag[0]), axis=1) < 0) & (frag[3] >= 0)
+    assert back.any() and not w["v_occ"][back].any() and not out.v_vis.get()[back, 2:].any()
 
 
 def test_environment_occlusion_float64_central_differences(device64, rng):
@@ -533,7 +545,7 @@ def test_environment_occlusion_float64_central_differences(device64, rng):
 def test_environment_occlusion_columns_are_validated(device, rng):
     """vis: the shadow columns, then 0 or (d + 1)² − 1 occlusion columns; anything else is refused by name."""
     frag, lights, vis = _occ_case(rng, "cook_torrance", P=8)
-    for bad in (vis[:, :1], vis[:, :4], vis[:, :7]):
+    for bad in (vis[:, :1], vis[:, :4], vis[:, :7], np.ones((8, 0))):
         with pytest.raises(ValueError, match="environment-occlusion"):
             _occ_shade(device, frag, lights, bad, "cook_torrance", np.float32)
     for ok in (vis[:, :2], vis[:, :5], vis):

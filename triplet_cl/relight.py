@@ -567,11 +567,13 @@ def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
                                  "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
-def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None) -> None:
+def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None,
+                     writes_out: bool = False) -> None:
     """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
     ``albedo`` folder, one PNG per test view) and, with ``sizes`` (``(width, height)`` per view), reads as an image of
-    its view's size; the albedo's covers some pixel; no set is named ``albedo`` beside an albedo folder (their renders
-    would share ``OUT/STAGE/albedo``). Checked before any rendering, one error naming the file."""
+    its view's size; the albedo's covers some pixel; with ``writes_out`` (``eval --out``), no set is named ``albedo``
+    beside an albedo folder (their renders would share ``OUT/STAGE/albedo``). Checked before any rendering, one error
+    naming the file."""
     from .datasets.images import read_image
     from .errors import DatasetError
 
@@ -583,7 +585,7 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
     for ls in load_light_sets(spec, env_degree):
         if ls.images is None:
             raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
-        if alb is not None and ls.name == "albedo":
+        if writes_out and alb is not None and ls.name == "albedo":
             raise LightFileError(spec, "sets.albedo", "a set may not be named 'albedo' in a file with an albedo "
                                                       "folder: its relit renders and the albedo renders would share "
                                                       "one folder; rename the set")

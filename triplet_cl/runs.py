@@ -25,7 +25,7 @@ RUN_OUTPUT_FOLDERS = ("renders", "relight")  # a run's own output folders (rende
 OUTPUT_MARKER = ".triplet-output"  # manifest of the files triplet wrote into a render/export folder
 _CKPT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
 # temp files of io.atomic_write_bytes / write_png (".<name>.<random>.tmp" / ".<stem>.<random>.png")
-_TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.(tmp|png)$")
+_TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.(tmp|png|exr)$")
 
 
 def is_run_dir(path) -> bool:
@@ -278,7 +278,8 @@ def foreign_files(folder, names) -> list[str]:
 # what triplet writes into a run folder (train, extract, export, eval, relight, render): ``--overwrite`` replaces a run
 # only when it holds nothing else (a battery found the user's notes and a dataset copy inside a run deleted with it)
 RUN_ENTRIES = frozenset({CONFIG, CHECKPOINTS, *RUN_OUTPUT_FOLDERS, "train.log", "metrics.json", "lights.json",
-                         "triplets.ply", "mesh_stage.npz", "envmap.exr", OUTPUT_MARKER})
+                         "triplets.ply", "mesh_stage.npz", "envmap.exr", OUTPUT_MARKER,
+                         ".DS_Store", "Thumbs.db", "desktop.ini"})  # (and the file browsers' own)
 _RUN_MESH_RE = re.compile(r"^mesh(_[a-z0-9]+)?\.(glb|gltf|obj|mtl|ply|png|bin)$")
 
 

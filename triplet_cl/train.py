@@ -13,6 +13,7 @@ Run directory: ``config.json``, ``checkpoints/ckpt_<it>.npz`` (+ ``latest``), ``
 
 from __future__ import annotations
 
+import errno
 import io as _io
 import json
 import logging
@@ -611,7 +612,7 @@ class Trainer:
         from .validate import check_image_sizes, check_training_views
 
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
-        check_training_views(self.ds)
+        check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
         brdf = get_brdf(self.cfg.brdf)  # the light phase's columns: lobes held, the others tied (Trainer.step)
@@ -1176,10 +1177,10 @@ def _file_logger(path: Path) -> logging.Logger:
     if not log.handlers:
         try:
             h = logging.FileHandler(path)
-        except OSError:
-            if path.is_file() and os.access(path.parent, os.R_OK):
+        except OSError as exc:
+            if exc.errno in (errno.EROFS, errno.EACCES) and path.is_file() and not os.access(path, os.W_OK):
                 # a run on read-only storage, loaded to be rendered or relit elsewhere (a battery): nothing to log
-                # into; a command that writes the run (train, extract, eval) checks its folder first
+                # into; the commands that write the run (train, extract, eval) check its folder is writable first
                 quiet = logging.getLogger("triplet_cl.train.readonly")
                 quiet.propagate = False
                 if not quiet.handlers:

@@ -106,7 +106,7 @@ def _check_options(args) -> None:
     sigma = getattr(args, "sigma", None)
     if sigma is not None and not (math.isfinite(sigma) and (sigma == 0 or 0.01 <= sigma <= 1000)):
         # (a battery's 1e-30 left the soup invisible to its gradients: nothing learned, exit 0)
-        raise UsageError("--sigma", f"expected 0 (hard edges) or a number in [0.01, 1000] pixels, found {sigma}")
+        raise UsageError("--sigma", f"expected 0 (hard edges) or a sharpness in [0.01, 1000] (1/px), found {sigma}")
     ratio = getattr(args, "error_resplit_ratio", None)
     if ratio is not None and not (math.isfinite(ratio) and 0 < ratio <= 10):
         raise UsageError("--error-resplit-ratio", f"expected a number in (0, 10] (e.g. 0.9), found {ratio}")
@@ -237,10 +237,10 @@ def check_image_sizes(ds, downscale: int = 1) -> None:
 
 
 MAX_CAMERA_COORD = 1e12  # a camera centre past this (a mistyped 1e300: the initial soup's range overflowed)
-CAMERA_OUTLIER = 100.0  # a training camera this many times farther from the cameras' median than their median distance
+CAMERA_OUTLIER = 100.0  # a new run's training camera this many times farther from the cameras than 90 % of them
 
 
-def check_training_views(ds) -> None:
+def check_training_views(ds, new_run: bool = True) -> None:
     """The training views can make a reconstruction, else a :class:`~triplet_cl.errors.DatasetError` naming the
     dataset: at least two views, their cameras not all at one place (no parallax: nothing to triangulate), and not
     every photo fully transparent (its alpha says there is no object) nor black wherever it shows something (every
@@ -259,19 +259,22 @@ def check_training_views(ds) -> None:
         raise DatasetError(ds.root, f"the training view {views[far[0]].name!r} has its camera at "
                                     f"{c[far[0]].tolist()}: expected coordinates within ±{MAX_CAMERA_COORD:g} (check "
                                     "its transform matrix's last column)")
-    med = np.median(c, axis=0)
-    dist = np.linalg.norm(c - med, axis=1)
-    typical = float(np.median(dist))
-    if len(c) >= 4 and typical > 0:
-        out = np.nonzero(dist > CAMERA_OUTLIER * typical)[0]
+    if new_run and len(c) >= 10:
+        # each camera's distance to the cameras' coordinate-wise median, against the 90th percentile of those
+        # distances: robust to a few wild frames (a least-squares look-at centre was pulled 25000 units by one camera
+        # at 1e6) and to cameras that cluster (a video resting in one place: a median distance would be ~0)
+        ref = np.median(c, axis=0)
+        dist = np.linalg.norm(c - ref, axis=1)
+        scale = float(np.percentile(dist, 90))
+        out = np.nonzero(dist > CAMERA_OUTLIER * scale)[0] if scale > 0 else []
         if len(out):
             names = ", ".join(repr(views[i].name) for i in out[:3]) + (" ..." if len(out) > 3 else "")
-            raise DatasetError(ds.root, f"the training camera(s) {names} stand {dist[out[0]] / typical:.3g}x farther "
-                                        f"from the others than they do from each other (camera at "
-                                        f"{np.round(c[out[0]], 6).tolist()}, the median {np.round(med, 6).tolist()}): "
-                                        f"expected at most {CAMERA_OUTLIER}x, a mistyped or wrongly scaled pose "
-                                        "(the scene's extent and the initial soup follow the cameras); remove the "
-                                        "frame or fix its transform matrix")
+            raise DatasetError(ds.root, f"the training camera(s) {names} stand {dist[out[0]] / scale:.3g}x farther "
+                                        f"from the cameras' median position {np.round(ref, 6).tolist()} than 90 % of "
+                                        f"the cameras (camera at {np.round(c[out[0]], 6).tolist()}): expected at most "
+                                        f"{CAMERA_OUTLIER:g}x, a mistyped or wrongly scaled pose (the scene's extent "
+                                        "and the initial soup follow the cameras); remove the frame or fix its "
+                                        "transform matrix")
     spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
     if spread <= 1e-9 * max(1.0, float(np.abs(c).max())):
         raise DatasetError(ds.root, f"all {len(views)} training cameras are at the same position "
@@ -416,17 +419,16 @@ def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
 
 def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=None) -> None:
     """``train --out``: refuse an existing run without --resume/--overwrite, a folder that is not a
-    run, a file, a read-only place, or a dataset folder."""
+    run, a file, a read-only place, a dataset folder, a new run inside another run, and ``--overwrite`` of a run
+    that holds entries triplet did not write there or the dataset itself."""
     from .runs import is_run_dir
 
     out = Path(out)
     check_writable_dir(out, option)
     check_not_in_dataset(out, option, dataset)
     check_not_run_internal(out, option)
-    from .runs import is_run_dir as _is_run
-
-    for folder in Path(out).absolute().resolve().parents:  # a run inside another run (render, relight refuse it)
-        if _is_run(folder):
+    for folder in ([] if resume else Path(out).absolute().resolve().parents):  # a run inside another run
+        if is_run_dir(folder):
             raise UsageError(option, f"{out} is inside the run {folder}: a run goes in a folder of its own, outside "
                                      "every run (its --overwrite would otherwise delete the new one)")
     if resume and overwrite:

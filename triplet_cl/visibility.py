@@ -259,11 +259,11 @@ class VisibilityCache:
             return True
         if it - self.at >= self.every:
             return True
-        if it - self.at < self.move_every:
-            return False
         rays = _shadow_rays(scene)
         if self.rays is None or rays.shape != self.rays.shape:
             return True
+        if it - self.at < self.move_every:
+            return False
         return bool(len(rays)) and float(np.abs(rays - self.rays).max()) > self.move_tol * max(self.extent, 1e-12)
 
     def get(self, scene: Scene, it: int, device: Device | None = None) -> np.ndarray | None:

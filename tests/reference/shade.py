@@ -134,7 +134,10 @@ def shade(pos, nrm, mat, face_id, cam, ints, params, brdf="cook_torrance", vligh
     V = normalize(cam - pos)
     N = normalize(nrm)
     if two_sided:
-        N = np.where(dot(N, V).real < 0, -N, N)
+        back = dot(N, V).real < 0
+        N = np.where(back, -N, N)
+        if occ is not None:  # traced over the front normal's hemisphere: not applied to a back face
+            occ = np.where(back, 0, occ)
     out = np.zeros(pos.shape, dtype=np.result_type(pos, nrm, mat, params, V, 0.0))
     for typ, off, a, b in np.asarray(ints):
         q = params[off:]

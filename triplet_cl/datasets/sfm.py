@@ -261,6 +261,7 @@ def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, ma
     t = time.perf_counter()
     say(f"undistortion: {n_reg} photos to PINHOLE ...")
     undistort_model(pycolmap, models / "0", images_dir, work)
+    _undistort_alpha(pycolmap, models / "0", images_dir, work, sorted(reg_names))  # (photos cut out: their alpha)
     times["undistortion_s"] = time.perf_counter() - t
     db.unlink(missing_ok=True)
     cam = next(iter(best.cameras.values()))
@@ -303,6 +304,8 @@ def _undistort_alpha(pycolmap, model_dir: Path, images_dir: Path, out: Path, nam
 
     with_alpha = []
     for n in names:
+        if Path(n).suffix.lower() in (".jpg", ".jpeg"):  # no alpha channel there: not decoded for nothing
+            continue
         im = read_image(images_dir / n)
         if im.alpha is not None:
             if Path(n).suffix.lower() != ".png":
@@ -346,8 +349,8 @@ LEGACY_CACHE = ".triplet_cache"  # ROOT/.triplet_cache/: where versions before 2
 CACHE_VERSION = b"alpha"  # copies made before the photos' alpha was undistorted too are not reused
 
 
-def _model_key(model_dir: Path, images_dir: Path, names) -> str:
-    h = hashlib.sha256(CACHE_VERSION)
+def _model_key(model_dir: Path, images_dir: Path, names, version: bytes = CACHE_VERSION) -> str:
+    h = hashlib.sha256(version)
     for stem in ("cameras", "images", "points3D"):
         for ext in (".bin", ".txt"):
             p = model_dir / (stem + ext)
@@ -375,13 +378,16 @@ def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: di
     say = progress or (lambda s: None)
     names = [im.name for im in images.values()]
     key = _model_key(model_dir, images_dir, names)
-    legacy = Path(root) / LEGACY_CACHE / f"undistorted-{key}"  # made by an older version: read, never written
+    # made by an older version (before the cache moved out of the dataset, and before the alpha: its key unsalted):
+    # read, never written
+    legacy = Path(root) / LEGACY_CACHE / f"undistorted-{_model_key(model_dir, images_dir, names, b'')}"
     if (legacy / "sparse" / "0").is_dir() and (legacy / "images").is_dir():
         return legacy
     base = cache_root(root)
     if root is not None and base.resolve().is_relative_to(Path(root).resolve()):
-        raise DatasetError(base, f"the undistortion cache ($TRIPLET_CACHE) is inside the dataset folder {root}: "
-                                 "triplet writes nothing into a dataset; point it elsewhere")
+        src = "$TRIPLET_CACHE" if os.environ.get("TRIPLET_CACHE") else "the user's cache folder"
+        raise DatasetError(base, f"the undistortion cache ({src}) is inside the dataset folder {root}: triplet "
+                                 "writes nothing into a dataset; set $TRIPLET_CACHE to a folder outside it")
     dest = base / f"undistorted-{key}"
     if (dest / "sparse" / "0").is_dir() and (dest / "images").is_dir():
         return dest

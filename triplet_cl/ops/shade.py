@@ -20,6 +20,7 @@ Formulas: ``kernels_cl/common/shade_brdf.h`` and ``kernels_cl/shade.cl``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,7 @@ def env_occlusion_columns(table: LightTable, width: int) -> int:
     :func:`~triplet_cl.visibility.vertex_occlusion`, shared by every SH environment light; unused without one)."""
     nv = table.num_shadowed
     n = int(width) - nv
-    d = int(round(np.sqrt(n + 1))) - 1
+    d = math.isqrt(n + 1) - 1 if n >= 0 else -1
     if n < 0 or (n and (d < 1 or (d + 1) ** 2 - 1 != n)):
         raise ValueError(f"vis must have {nv} columns (shadowed lights), then 0 or (d + 1)² − 1 environment-occlusion "
                          f"columns (3, 8, 15, ...), got {width}")
