@@ -237,6 +237,22 @@ def test_recovery_uniform_albedo_under_a_cast_shadow(device):
     assert (in_n < 0.35).all() and np.abs(out_n - 0.6).max() < 0.03 and spread_n > 0.05, out
 
 
+def floor_and_wall(n: int = 21):
+    """A floor (z = 0, x in [0, 2]) and a wall (x = 0, z in [0.05, 2.05]: a gap of 0.05 above the floor) made of
+    quads, every normal +z (the floor's, up): ``(scene, normals, n, idx [n, n] of the floor's vertices)``."""
+    g = np.linspace(0.0, 2.0, n)
+    gx, gy = np.meshgrid(g, np.linspace(-1.0, 1.0, n), indexing="ij")
+    floor = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], 1)
+    wall = np.stack([np.zeros(n * n), gy.ravel(), gx.ravel() + 0.05], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    V = np.concatenate([floor, wall])
+    F = np.concatenate([tri, tri + n * n]).astype(np.int32)
+    scene = Scene.from_arrays(V, F, alpha=np.full((len(V), 1), logit(0.999)))
+    return scene, np.tile([0.0, 0.0, 1.0], (len(V), 1)), n, idx
+
+
 def test_vertex_ambient_occlusion_open_sky_and_a_corner(device):
     """``vertex_ambient_occlusion``: a sphere's vertices see their whole hemisphere (AO 1); on a floor beside a wall
     the vertices at the wall's foot see half of it blocked (about 1/2 for a cosine-weighted hemisphere whose quarter-
@@ -254,19 +270,7 @@ def test_vertex_ambient_occlusion_open_sky_and_a_corner(device):
                                                                                         logit(0.999)))
     ao = vertex_ambient_occlusion(sphere, vertex_normals(m.vertices, m.faces), device, directions=64)
     assert ao.min() > 0.97, ao.min()
-    # a floor (z = 0, x in [0, 2]) and a wall (x = 0, z in [0, 2]) made of quads; the floor's normals point up
-    n = 21
-    g = np.linspace(0.0, 2.0, n)
-    gx, gy = np.meshgrid(g, np.linspace(-1.0, 1.0, n), indexing="ij")
-    floor = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], 1)
-    wall = np.stack([np.zeros(n * n), gy.ravel(), gx.ravel() + 0.05], 1)  # a gap of 0.05 above the floor
-    idx = np.arange(n * n).reshape(n, n)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    V = np.concatenate([floor, wall])
-    F = np.concatenate([tri, tri + n * n]).astype(np.int32)
-    scene = Scene.from_arrays(V, F, alpha=np.full((len(V), 1), logit(0.999)))
-    normals = np.tile([0.0, 0.0, 1.0], (len(V), 1))
+    scene, normals, n, _ = floor_and_wall()
     ao = vertex_ambient_occlusion(scene, normals, device, directions=256, ray_eps=1e-3)[: n * n].reshape(n, n)
     centre = n // 2  # y = 0, away from the wall's side edges
     assert 0.35 < ao[1, centre] < 0.65, ao[1, centre]  # x = 0.1, at the wall's foot
@@ -394,18 +398,7 @@ def test_environment_occlusion_is_the_transfer_of_the_visible_sky(device):
     assert vertex_occlusion(sphere, vertex_normals(m.vertices, m.faces), device, degree=0)[1].shape == (len(ao), 0)
     with pytest.raises(ValueError, match="degree"):
         vertex_occlusion(sphere, vertex_normals(m.vertices, m.faces), device, degree=9)
-    n = 21  # the floor (z = 0) and the wall (x = 0) of test_vertex_ambient_occlusion_open_sky_and_a_corner
-    g = np.linspace(0.0, 2.0, n)
-    gx, gy = np.meshgrid(g, np.linspace(-1.0, 1.0, n), indexing="ij")
-    floor = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], 1)
-    wall = np.stack([np.zeros(n * n), gy.ravel(), gx.ravel() + 0.05], 1)
-    idx = np.arange(n * n).reshape(n, n)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    V = np.concatenate([floor, wall])
-    F = np.concatenate([tri, tri + n * n]).astype(np.int32)
-    scene = Scene.from_arrays(V, F, alpha=np.full((len(V), 1), logit(0.999)))
-    normals = np.tile([0.0, 0.0, 1.0], (len(V), 1))
+    scene, normals, n, idx = floor_and_wall()
     sel = idx[[1, 3, 6, -1], n // 2]  # x = 0.1, 0.3, 0.6, 2.0 on the floor's middle line
     c = np.zeros(9)
     c[0], c[1], c[3], c[2], c[8] = 2.0, 0.3, -1.2, 0.6, 0.4  # bright towards -x (the wall's side), a band-2 part
