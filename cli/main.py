@@ -190,7 +190,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         with replacing_run(out, args.overwrite):  # the old run is deleted only once the new one has started
             made = _first_missing(out)  # what the trainer creates: the folder (and missing parents), or nothing
             empty = out.is_dir() and not any(out.iterdir())
-            tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
+            if made is not None:  # a new folder, claimed at once (two trains started together into one new --out
+                # both ran into it: config.json of one, the checkpoints of the other)
+                out.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    out.mkdir()
+                except FileExistsError:
+                    from triplet_cl.errors import UsageError
+
+                    raise UsageError("--out", f"{out} was created meanwhile (another `triplet train` into the same "
+                                              "folder?): choose another --out") from None
+            try:
+                tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
+            except BaseException:
+                if made is not None:  # the folder claimed above (and its new parents): nothing of the user's
+                    shutil.rmtree(made, ignore_errors=True)
+                raise
             if cwd_inside is not None and (out / cwd_inside).is_dir():
                 os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
             try:
@@ -232,6 +247,7 @@ def _load_run(args):
 
 def cmd_render(args: argparse.Namespace) -> int:
     tr = _load_run(args)
+    tr.warn_if_dataset_changed()
     if args.renderer:
         tr.cfg.renderer = args.renderer
     out = Path(args.out) if args.out else Path(args.run) / "renders" / args.split
@@ -267,6 +283,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         check_output_slots(run, ["metrics.json"], "eval")
     old = read_metrics(run, "eval")  # before any work: a damaged file is named, not met after the evaluation
     tr = _load_run(args)
+    tr.warn_if_dataset_changed()
     if spec is not None:
         from triplet_cl.mesh.refine import MESH_STATE, load_mesh_state
         from triplet_cl.relight import check_references, check_vertex_sh

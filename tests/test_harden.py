@@ -2017,3 +2017,35 @@ def test_clustered_cameras_are_not_outliers(tmp_path):
     with pytest.raises(DatasetError, match="farther from the cameras"):
         check_training_views(load_dataset(data))
     check_training_views(load_dataset(data), new_run=False)
+
+
+def test_eval_after_the_test_split_vanished_warns(tmp_path, demo_copy, capsys):
+    """With transforms_test.json gone, eval and render silently used a hold-out of the training views as the test
+    split (metrics.json rewritten from views the run trained on): they still run, with one warning line."""
+    data = tmp_path / "data"
+    shutil.copytree(demo_copy, data)
+    run = tmp_path / "run"
+    assert cli_main(["train", str(data), "--out", str(run), *TINY_RUN]) == 0
+    capsys.readouterr()
+    (data / "transforms_test.json").unlink()
+    for argv in (["eval", run], ["render", run, "--out", tmp_path / "r"]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 0 and "may hold views the run trained on" in err and err.count("\n") == 1, err
+
+
+def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
+    """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
+    the folder is claimed with an exclusive mkdir; the second is refused."""
+    import triplet_cl.cli.main as cm
+
+    out = tmp_path / "new"
+    real = cm._first_missing
+
+    def racing(path):  # the other train creates the folder between this one's checks and its claim
+        r = real(path)
+        out.mkdir(exist_ok=True)
+        return r
+
+    monkeypatch.setattr(cm, "_first_missing", racing)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", out, *TINY_RUN], capsys)
+    assert rc == 2 and "created meanwhile" in err, err

@@ -1095,6 +1095,23 @@ class Trainer:
                                  f"frames added or removed since): {action} with the dataset the run was made with "
                                  "(config.json's \"data\"), or start a new run")
 
+    def warn_if_dataset_changed(self) -> None:
+        """Evaluating or rendering a run whose dataset's training split changed since it was trained is allowed (new
+        test views), but its test split may then hold views it trained on (a battery: ``transforms_test.json``
+        removed, the hold-out of the training views became the test split and metrics.json was rewritten from it):
+        say so, one warning line."""
+        import warnings
+
+        from .datasets.base import DatasetWarning
+
+        if self._resumed_from is None:
+            return
+        saved_n, n = self._resumed_from[1], len(self.ds.train)
+        if saved_n is not None and saved_n != n:
+            warnings.warn(DatasetWarning(f"the run was trained on {saved_n} training views and the dataset "
+                                         f"{self.data} now has {n}: its test split may hold views the run trained on "
+                                         "(a transforms_test.json removed or added since?)"), stacklevel=2)
+
     def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
         """The checkpoint belongs to this configuration and this dataset's training views, and holds what it needs,
         finite."""
