@@ -471,3 +471,15 @@ def test_spot_small_loads(shared_data):
         assert abs(u - cam.cx) < 1e-6 and abs(w - cam.cy) < 1e-6
         assert v.alpha is not None and v.alpha.max() == 1.0 and v.alpha.min() == 0.0
     assert ds.scene_extent() > 3.2
+
+
+@pytest.mark.parametrize("intr, want", [({"is_fisheye": "false"}, "is_fisheye: expected true or false"),
+                                        ({"camera_model": ["OPENCV"]}, "camera_model: expected a name")])
+def test_camera_fields_of_the_wrong_type_are_named(tmp_path, intr, want):
+    """is_fisheye given as the string "false" was read as true (refused as a fisheye); camera_model as a list was
+    accepted (a battery)."""
+    fac.make_ngp(tmp_path, n=2, intr={"fl_x": 7.0, **intr})
+    with pytest.raises(DatasetError, match=want):
+        load_dataset(tmp_path)
+    fac.make_ngp(tmp_path / "ok", n=2, intr={"fl_x": 7.0, "is_fisheye": False})
+    assert len(load_dataset(tmp_path / "ok", split_holdout=0).train) == 2

@@ -2049,3 +2049,14 @@ def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(cm, "_first_missing", racing)
     rc, err, _ = _run_cli(["train", DEMO, "--out", out, *TINY_RUN], capsys)
     assert rc == 2 and "created meanwhile" in err, err
+
+
+def test_latest_naming_another_run_s_checkpoint_is_not_followed(run, tmp_path, trained):
+    """checkpoints/latest naming ../../other/checkpoints/ckpt_*.npz resumed from another run, silently: only a name in
+    the run's own checkpoints folder is followed (else the newest of its own)."""
+    other = tmp_path / "other"
+    shutil.copytree(trained, other)
+    theirs = sorted((other / "checkpoints").glob("ckpt_*.npz"))[0]
+    (run / "checkpoints" / "latest").write_text(f"../../other/checkpoints/{theirs.name}")
+    tr = Trainer(None, run, resume=True, quiet=True)
+    assert tr.latest_checkpoint().parent == run / "checkpoints"

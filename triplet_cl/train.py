@@ -981,8 +981,10 @@ class Trainer:
 
         latest = self.run_dir / "checkpoints" / "latest"
         try:  # a damaged `latest` (binary garbage, a NUL byte) counts as lost, as a missing one
-            named = self.run_dir / "checkpoints" / latest.read_text(encoding="utf-8").strip() if latest.is_file() \
-                else None
+            text = latest.read_text(encoding="utf-8").strip() if latest.is_file() else None
+            # only a checkpoint of this run's own folder: `../../other/checkpoints/ckpt_*.npz` resumed another run
+            # (a battery); such a name counts as lost too
+            named = self.run_dir / "checkpoints" / text if text and Path(text).name == text else None
             if named is not None and named.is_file():
                 return named
         except (OSError, UnicodeDecodeError, ValueError):

@@ -101,7 +101,12 @@ def _matrix(path: Path, where: str, value) -> np.ndarray:
 
 def _check_distortion(path: Path, where: str, intr: dict) -> None:
     model = intr.get("camera_model")
-    if intr.get("is_fisheye") or (isinstance(model, str) and model.upper() in _FISHEYE_MODELS):
+    fish = intr.get("is_fisheye")
+    if fish is not None and fish not in (True, False, 0, 1):  # a string "false" was read as true (a battery)
+        raise DatasetError(path, f"{where}is_fisheye: expected true or false, found {fish!r}")
+    if model is not None and not isinstance(model, str):
+        raise DatasetError(path, f"{where}camera_model: expected a name such as \"OPENCV\", found {model!r}")
+    if fish or (isinstance(model, str) and model.upper() in _FISHEYE_MODELS):
         raise DatasetError(path, f"{where}fisheye camera ({model or 'is_fisheye'}) is not supported: undistort the "
                                  "images to a pinhole camera first (e.g. `colmap image_undistorter`)")
     bad = []
