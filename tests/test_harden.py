@@ -2060,3 +2060,11 @@ def test_latest_naming_another_run_s_checkpoint_is_not_followed(run, tmp_path, t
     (run / "checkpoints" / "latest").write_text(f"../../other/checkpoints/{theirs.name}")
     tr = Trainer(None, run, resume=True, quiet=True)
     assert tr.latest_checkpoint().parent == run / "checkpoints"
+
+
+def test_a_checkpoints_file_is_named_as_such(run, tmp_path, capsys):
+    """`checkpoints` a file said "no checkpoint in RUN/checkpoints"."""
+    shutil.rmtree(run / "checkpoints")
+    (run / "checkpoints").write_text("x")
+    rc, err, _ = _run_cli(["render", run, "--out", tmp_path / "r"], capsys)
+    assert rc == 2 and "checkpoints is a file" in err and err.count("\n") == 1, err

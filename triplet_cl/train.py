@@ -990,6 +990,10 @@ class Trainer:
         except (OSError, UnicodeDecodeError, ValueError):
             pass
         found = list_checkpoints(self.run_dir)  # `latest` lost or pointing at a removed file: the newest one
+        ck = self.run_dir / "checkpoints"
+        if not found and (ck.exists() or ck.is_symlink()) and not ck.is_dir():
+            raise FileNotFoundError(f"{ck} is a file, not the run's checkpoints folder: the run's trained state is "
+                                    "not there (move the file away, or start again with --overwrite)")
         if not found:
             raise FileNotFoundError(f"no checkpoint in {self.run_dir / 'checkpoints'}: the run's trained state (every "
                                     "command that reads a run loads it; triplets.ply alone is an export of it)")
