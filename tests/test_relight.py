@@ -306,3 +306,16 @@ def test_blinn_phong_run_relights(tmp_path):
     kd_scene = rl.albedo_scene()
     assert np.array_equal(np.asarray(kd_scene.material.data)[:, 7:10], np.asarray(tr2.scene.material.data)[:, 0:3])
     assert rgb.shape[:2] == a.shape and np.isfinite(rgb).all()
+
+
+def test_a_light_set_with_an_unknown_key_is_refused(tmp_path):
+    """A typo ("light" beside "lights") in a set was ignored (a battery); "_" keys are comments."""
+    from triplet_cl.relight import LightFileError, load_light_sets
+
+    p = tmp_path / "sets.json"
+    pt = {"type": "point", "position": [0, 2, 3], "intensity": [5, 5, 5]}
+    p.write_text(json.dumps({"sets": {"a": {"lights": [pt], "light": [pt]}}}))
+    with pytest.raises(LightFileError, match=r"unknown key\(s\) \['light'\]"):
+        load_light_sets(p)
+    p.write_text(json.dumps({"sets": {"a": {"lights": [pt], "_note": "mine", "description": "x"}}}))
+    assert len(load_light_sets(p)) == 1

@@ -115,6 +115,9 @@ def _read_json(path: Path) -> dict:
     return doc
 
 
+SET_KEYS = frozenset({"lights", "images", "description"})  # a light set's keys (those starting with _: comments)
+
+
 def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
     """The light sets of ``spec`` (``FILE`` or ``FILE#name``; see the module docstring), validated;
     environment maps projected onto SH of ``env_degree`` (default :data:`ENV_DEGREE`)."""
@@ -137,6 +140,10 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
             where = f"sets.{n}"
             if not isinstance(entry, dict) or "lights" not in entry:
                 raise LightFileError(path, where, "expected an object with a \"lights\" list")
+            stray = sorted(k for k in entry if k not in SET_KEYS and not str(k).startswith("_"))
+            if stray:  # a typo ("light" beside "lights") was ignored (a battery)
+                raise LightFileError(path, where, f"unknown key(s) {stray}: a set holds {sorted(SET_KEYS)} (keys "
+                                                  "starting with _ are comments)")
             images = entry.get("images")
             if images is not None and not isinstance(images, str):
                 raise LightFileError(path, f"{where}.images", f"expected a folder name, found {images!r}")
