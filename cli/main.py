@@ -200,24 +200,21 @@ def cmd_train(args: argparse.Namespace) -> int:
 
                     raise UsageError("--out", f"{out} was created meanwhile (another `triplet train` into the same "
                                               "folder?): choose another --out") from None
+            tr = None
             try:
                 tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
-            except BaseException:
-                if made is not None:  # the folder claimed above (and its new parents): nothing of the user's
-                    shutil.rmtree(made, ignore_errors=True)
-                raise
-            if cwd_inside is not None and (out / cwd_inside).is_dir():
-                os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
-            try:
                 _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
-            except BaseException:
-                tr.close_log()  # then nothing of the run it had just started stays: nothing there was the user's
-                if made is not None:
+            except BaseException:  # nothing of the run it had started stays: nothing there was the user's
+                if tr is not None:
+                    tr.close_log()
+                if made is not None:  # the folder claimed above (and its new parents)
                     shutil.rmtree(made, ignore_errors=True)
                 elif empty:
                     for p in out.iterdir():
                         shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink()
                 raise
+            if cwd_inside is not None and (out / cwd_inside).is_dir():
+                os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
     if tr.background_note:
@@ -529,7 +526,7 @@ def _check_bbox_holds_soup(cfg, tr, min_faces: int = 20) -> None:
         return
     import numpy as np
 
-    from triplet_cl.activations import sigmoid
+    from triplet_cl.density import face_alpha
     from triplet_cl.errors import UsageError
 
     V = np.asarray(tr.scene.V.data, np.float64)
@@ -539,7 +536,7 @@ def _check_bbox_holds_soup(cfg, tr, min_faces: int = 20) -> None:
     c = V[F].mean(axis=1)
     lo, hi = np.asarray(cfg.bbox[:3]), np.asarray(cfg.bbox[3:])
     inside = np.all((c >= lo) & (c <= hi), axis=1)
-    opaque = sigmoid(np.asarray(tr.scene.alpha.data, np.float64).reshape(-1))[F].mean(axis=1) > 0.5
+    opaque = face_alpha(tr.scene.alpha.data, F) > 0.5  # (the prune criterion's face alpha)
     n = int(np.count_nonzero(inside & opaque))
     if n < min_faces:
         raise UsageError("--bbox", f"{','.join(f'{x:g}' for x in cfg.bbox)}: the soup has {n} opaque triplet(s) in "

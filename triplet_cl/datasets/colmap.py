@@ -110,13 +110,12 @@ def read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
     return cams
 
 
-def _check_unique(path: Path, images: dict, iid: int, name: str, where: str = "") -> None:
-    """An image id or name met twice: one photo dropped, or one photo trained under two poses (a battery). The
-    names seen so far are kept in ``images`` under the key None."""
+def _check_unique(path: Path, images: dict, names: dict, iid: int, name: str, where: str = "") -> None:
+    """An image id or name met twice: one photo dropped, or one photo trained under two poses (a battery).
+    ``names``: the names read so far, with their ids (updated)."""
     if iid in images:
         raise DatasetError(path, f"{where}IMAGE_ID {iid} appears twice ({images[iid].name!r} and {name!r}): expected "
                                  "one entry per image")
-    names = images.setdefault(None, {})
     if name in names:
         raise DatasetError(path, f"{where}the image {name!r} appears twice (IMAGE_ID {names[name]} and {iid}): "
                                  "expected one pose per photo")
@@ -125,7 +124,7 @@ def _check_unique(path: Path, images: dict, iid: int, name: str, where: str = ""
 
 def read_images_text(path: Path) -> dict[int, ColmapImage]:
     """``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` then one line of 2D points (maybe empty)."""
-    images = {}
+    images, names = {}, {}
     lines = _text_lines(path)
     i = 0
     while i < len(lines):
@@ -139,13 +138,12 @@ def read_images_text(path: Path) -> dict[int, ColmapImage]:
                                      f"found {ln!r}")
         iid = _int(path, lineno, el[0], "IMAGE_ID")
         pose = _floats(path, lineno, el[1:8], "QW QX QY QZ TX TY TZ")
-        _check_unique(path, images, iid, el[9].strip(), f"line {lineno}: ")
+        _check_unique(path, images, names, iid, el[9].strip(), f"line {lineno}: ")
         images[iid] = ColmapImage(iid, pose[:4], pose[4:], _int(path, lineno, el[8], "CAMERA_ID"), el[9].strip())
         # the POINTS2D line (possibly empty) — unless the file was written one line per image (some tools
         # omit it): then the next line is already the next image
         if i < len(lines) and not _is_image_line(lines[i][1]):
             i += 1
-    images.pop(None, None)
     return images
 
 
@@ -237,7 +235,7 @@ def read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
 def read_images_binary(path: Path) -> dict[int, ColmapImage]:
     r = _Reader(path)
     (n,) = r.unpack("Q")
-    images = {}
+    images, names = {}, {}
     for _ in range(n):
         v = r.unpack("idddddddi")
         iid, pose, cid = v[0], v[1:8], v[8]
@@ -246,10 +244,9 @@ def read_images_binary(path: Path) -> dict[int, ColmapImage]:
             raise DatasetError(path, f"image {iid} ({name}): pose holds NaN or Inf values")
         (npts,) = r.unpack("Q")
         r.skip(24 * npts)  # x, y (double), point3D_id (int64)
-        _check_unique(path, images, iid, name)
+        _check_unique(path, images, names, iid, name)
         images[iid] = ColmapImage(iid, pose[:4], pose[4:], cid, name)
     r.done()
-    images.pop(None, None)
     return images
 
 
