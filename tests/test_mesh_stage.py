@@ -688,3 +688,28 @@ def test_supersampling_is_capped_by_the_render_size():
     for bad in (0, 4095, True, 1.5e6):
         with pytest.raises(ValueError, match="max_render_pixels"):
             MeshConfig(max_render_pixels=bad).validate()
+
+
+@pytest.mark.parametrize("sigma", [1.0, 6.0])
+def test_silhouette_window_thins_the_outline_by_one_over_sigma(sigma):
+    """The mesh stage's soft window (``MeshConfig.sigma``, ``1 − exp(−σ d)`` at d pixels inside a silhouette edge)
+    only takes coverage away: a square's rendered outline is 1/σ pixels thinner on every side than its geometry. At
+    the stage's 3×3 supersampling σ = 1 is a third of a photo pixel (half a 1.2-pixel rod's width); the refinement
+    then grows the mesh to fill it. Why the default is 6 (README "Latest (session 41)")."""
+    from triplet_cl.camera import Camera
+    from triplet_cl.lights import AmbientLight
+    from triplet_cl.render import RenderSettings, render
+
+    cam = Camera.look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 40, 96, 96)
+    c, s_ = np.cos(0.3), np.sin(0.3)  # turned: the edges cross the pixel grid at every sub-pixel offset
+    V = (np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+         @ np.array([[c, s_, 0], [-s_, c, 0], [0, 0, 1]])).astype(np.float32)
+    sq = Scene.from_arrays(V, np.array([[0, 1, 2], [0, 2, 3]], np.int32), alpha=np.full((4, 1), 30.0),
+                           lights=[AmbientLight()])
+    area = {}
+    for s in (None, sigma):
+        st = RenderSettings(K=4, sigma=s, soft_edges="silhouette", background=(0.0, 0.0, 0.0), normals="vertex")
+        area[s] = float(np.asarray(render(sq, cam, st).alpha, np.float64).sum())
+    side = np.sqrt(area[None])  # pixels
+    thinning = (area[None] - area[sigma]) / (4 * side)  # pixels per side
+    assert abs(thinning - 1 / sigma) < 0.15 / sigma, (thinning, 1 / sigma)

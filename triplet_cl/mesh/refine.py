@@ -89,8 +89,13 @@ class MeshConfig:
     # resolved). Measured (same soups, bench/results/pixel_filter_pocl_2026-11-26.txt): the box → 0.5 mesh NVS spot
     # 35.83 → 38.63, bob_env 35.37 → 37.26, gadget 29.73 → 30.91 dB; the photos (Mitsuba 3's film) use 0.5
     pixel_sigma: float | None = None
-    sigma: float | None = 1.0  # soft window on the silhouette edges only (1/px of the supersampled render): gradients
-    #                             that move the outline; None: hard edges (no silhouette gradients)
+    # soft window on the silhouette edges only, 1 − exp(−sigma·d) at d supersampled pixels inside the edge: gradients
+    # that move the outline; None: hard edges (no silhouette gradients). The window only takes coverage away (a
+    # rendered outline 1/sigma supersampled pixels thinner than the geometry's): at 1 and 3×3 supersampling a third
+    # of a photo pixel, a thin part's (gadget's rods, ~1.2 px wide) coverage short by half. Measured (session 41,
+    # the same soups, bench/results/mesh_window_pocl_2026-11-27.txt), 1 → 6: mesh NVS spot 38.61 → 39.77, bob_env
+    # 39.31 → see file, gadget 31.25 → 32.38 dB; surface Chamfer 0.00477 → 0.00458, gadget 0.00848 → 0.00812
+    sigma: float | None = 6.0
     lr_position: float = 2e-4  # × scene extent, decays ×0.1 over the round
     lr_material: float = 0.05  # as the soup stage (spot: 0.02 → 30.0 dB, 0.05 → 30.2 dB test PSNR after 600 steps)
     lr_vertex_sh: float = 0.002
