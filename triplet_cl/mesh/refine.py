@@ -112,7 +112,11 @@ class MeshConfig:
     # surface within 1 %, spot 34.61 → 34.56 dB; with it, gadget (repair rings 0) 29.77 → 29.82 dB but the cable
     # 0.47 → 0.43: a tie, so the rule before stays the default
     laplacian: str = "uniform"
-    gtv_weight: float = 0.002  # graph TV of the raw materials
+    # graph TV of the raw materials over the mesh's edges. Measured (session 41, the same soups, mesh stage with
+    # sigma 6; bench/results/mesh_window_pocl_2026-11-27.txt), 0.002 → 0.005 → 0.01: albedo bob_env 26.64 → 26.93 →
+    # 27.07, spot 29.90 → 30.29 → 30.58, gadget 18.29 → 18.24 → 18.28; relight mean bob_env +0.33 / +0.60, spot
+    # −0.09 / −0.26 (env_rotated −0.29 / −0.61), gadget −0.08 / −0.18; mesh NVS bob_env −0.15 / −0.76 dB
+    gtv_weight: float = 0.005
     # the mesh stage's light phase (issue 18): every material channel but the albedo (roughness, metallic, AO; Blinn-
     # Phong's ks, shininess; its ka follows kd, TrainConfig.blinn_phong_ka) starts each round at its mean over the
     # mesh and stays one value for this many steps (the mean of the per-vertex gradients; the metallic is held at
