@@ -578,7 +578,7 @@ def test_unseen_underside_lies_on_the_seen_hull(device, parts_scene, monkeypatch
     """Where only the seen surface's convex hull decides (hidden voxels no view votes for), the TSDF is the signed
     distance to that hull (in τ), not ±1: marching cubes then puts the plate's unseen underside on the hull's face
     instead of half way between two voxel centres, anywhere within half a voxel of it (gadget: 0.004 below its plate
-    for a voxel of 0.0146, a tenth of the mesh's surface Chamfer)."""
+    for a voxel of 0.0146, about half the mesh's surface Chamfer of 0.0085)."""
     import triplet_cl.mesh.extract as ex
 
     parts, rod, soup, cams, masks = parts_scene

@@ -693,7 +693,8 @@ def test_supersampling_is_capped_by_the_render_size():
 @pytest.mark.parametrize("sigma", [1.0, 6.0])
 def test_silhouette_window_thins_the_outline_by_one_over_sigma(sigma):
     """The mesh stage's soft window (``MeshConfig.sigma``, ``1 − exp(−σ d)`` at d pixels inside a silhouette edge)
-    only takes coverage away: a square's rendered outline is 1/σ pixels thinner on every side than its geometry. At
+    only takes coverage away: a square's rendered outline is 1/σ pixels thinner on every side than its geometry (on
+    average over the edges' sub-pixel positions: the square is turned so that its edges cross them all). At
     the stage's 3×3 supersampling σ = 1 is a third of a photo pixel (half a 1.2-pixel rod's width); the refinement
     then grows the mesh to fill it. Why the default is 6 (README "Latest (session 41)")."""
     from triplet_cl.camera import Camera

@@ -40,7 +40,10 @@ the object. A real soup has cracks, overlaps and stray faces; the few views that
 them would otherwise carve the inside, and marching cubes returns a second, inner wall (measured
 on spot: a trained soup 0.024 → 0.015, a proxy of independent overlapping triangles 0.014 →
 0.009; 0.8 fills concavities, 0.95 lets the carving through). A voxel never observed is solid by
-the same rule, else empty (+1: a corner of the grid outside most frusta).
+the same rule, else empty (+1: a corner of the grid outside most frusta). The rule makes a voxel solid
+only inside the convex hull of the surface points the views saw (``solid_in_seen_hull``), and on either
+side of where that hull cuts the hidden volume the TSDF is the signed distance to the hull rather than
+±1, so that an unseen underside lies on the hull's face to a fraction of a voxel.
 With the photos' alpha (``masks``), a voxel that projects onto the photo's background (eroded by
 ``carve_margin``) in at least ``hull_views`` views is **outside** (+1) whatever the other votes
 and the rule above say: the photos' visual hull bounds the object, and a soup that filled a
@@ -245,6 +248,8 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
             no view sees into (under a base plate that every camera sees from above) closes at the lowest observed
             surface, not where the visual hull's cones happen to meet (False: the rule before;
             gadget's unseen underside then closed 0.09 below its plate, half of the mesh's distance to gt_mesh).
+            On either side of the hull's cut the TSDF is the signed distance to the hull (in τ) instead of ±1
+            (:func:`_smooth_hull_boundary`): the closed face lies on the hull's face, not within half a voxel of it.
         roi: a :class:`~triplet_cl.mesh.roi.ROI` (oriented box): every voxel outside it is empty, so
             the surface is the object inside it, closed where the box cuts it (photos with a
             background: the object without the table); ``bounds`` default to its bounding box.
@@ -331,7 +336,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
     tsdf = np.where(inside, -1.0, tsdf)
     if solid_in_seen_hull:
-        tsdf = _smooth_hull_boundary(tsdf, solid, inside, wsum == 0, X, dims, hull_pts, tau, h)
+        tsdf = _smooth_hull_boundary(tsdf, solid, inside, wsum == 0, X, dims, hull_pts, tau)
     if hull_views is not None:
         tsdf = np.where(hull_out >= hull_views, 1.0, tsdf)  # outside the photos' visual hull
     if masks is not None and hull_views is not None and hull_exact_views is not None:
@@ -401,10 +406,11 @@ def _in_convex_hull(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return ok
 
 
-def _hull_signed_distance(P: np.ndarray, Q: np.ndarray, chunk: int = 2048) -> np.ndarray | None:
+def _hull_signed_distance(P: np.ndarray, Q: np.ndarray, max_elems: int = 1 << 24) -> np.ndarray | None:
     """``[len(Q)]`` signed distance of the points ``Q`` to the convex hull of ``P`` (negative inside): the largest
     of their distances to the hull's facet planes, exact inside and near a facet outside (a lower bound beyond an
-    edge or corner). None where ``P`` spans no volume."""
+    edge or corner). None where ``P`` spans no volume. Chunked to about ``max_elems`` point-plane pairs (a smooth
+    object's hull has ~20k facets)."""
     from scipy.spatial import ConvexHull, QhullError
 
     if len(P) < 5:
@@ -414,31 +420,47 @@ def _hull_signed_distance(P: np.ndarray, Q: np.ndarray, chunk: int = 2048) -> np
     except QhullError:
         return None
     eq = np.unique(np.round(eq, 9), axis=0)  # a flat side's triangles share one plane
+    n, off = np.ascontiguousarray(eq[:, :3].T), eq[:, 3]
     out = np.empty(len(Q))
+    chunk = max(1, max_elems // len(eq))
     for a in range(0, len(Q), chunk):
-        out[a:a + chunk] = (np.asarray(Q[a:a + chunk], np.float64) @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+        m = np.asarray(Q[a:a + chunk], np.float64) @ n
+        m += off
+        out[a:a + chunk] = m.max(axis=1)
     return out
 
 
-def _smooth_hull_boundary(tsdf, solid, inside, unvoted, X, dims, hull_pts, tau, h):
-    """The TSDF where only the convex hull of the seen surface decides (a hidden voxel that no view votes for, within
-    τ of where the hull cuts the hidden volume): its signed distance to the hull in τ, clipped to [−1, 1], instead of
-    ±1. A ±1 step puts marching cubes' surface half way between two voxel centres, anywhere within half a voxel of
-    the hull's face: gadget's unseen underside, a flat face, came out 0.004 below the plate for a voxel of 0.0146
-    (session 41). Voxels with votes, or farther than τ from that cut, keep their value."""
+def _smooth_hull_boundary(tsdf, solid, inside, unvoted, X, dims, hull_pts, tau):
+    """The TSDF where the convex hull of the seen surface closes the hidden volume: each voxel on either side of the
+    hull's cut (6-neighbours, one inside the hull, one hidden but outside it and voted for by no view) takes its
+    signed distance to the hull in τ, clipped to [−1, 1] and kept on its side of the inside test, instead of ±1. A
+    ±1 step puts marching cubes' surface half way between the two voxel centres, anywhere within half a voxel of the
+    hull's face: gadget's unseen underside, a flat face, came out 0.004 below the plate for a voxel of 0.0146
+    (session 41). Only crossings between 6-neighbours are read by marching cubes, so one voxel each side suffices;
+    every other voxel keeps its value. ``tsdf`` (flat) is changed in place and returned."""
     from scipy.ndimage import binary_dilation
 
-    cut = solid & ~inside  # hidden but outside the hull: the hull's cut through the hidden volume
-    if not cut.any() or not inside.any():
+    cut = (solid & ~inside & unvoted).reshape(dims)  # hidden, outside the hull, no vote: the hull alone says empty
+    ins = inside.reshape(dims)
+    if not cut.any() or not ins.any():
         return tsdf
-    r = int(np.ceil(tau / h))  # τ in voxels
-    near = (binary_dilation(cut.reshape(dims), iterations=r) & binary_dilation(inside.reshape(dims), iterations=r))
-    sel = np.flatnonzero(near.reshape(-1) & solid & unvoted)
+    lo = np.maximum(np.argwhere(cut).min(axis=0) - 1, 0)  # the work within the cut's bounding box ± 1
+    hi = np.minimum(np.argwhere(cut).max(axis=0) + 2, np.asarray(dims))
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    c, i = cut[box], ins[box]
+    near = (c & binary_dilation(i)) | (i & binary_dilation(c))  # a 6-neighbour on the other side
+    sub = np.zeros(dims, bool)
+    sub[box] = near
+    sel = np.flatnonzero(sub)
+    if len(sel) == 0:
+        return tsdf
     d = _hull_signed_distance(hull_pts, X[sel])
-    if d is None or len(sel) == 0:
+    if d is None:
         return tsdf
-    tsdf = tsdf.copy()
-    tsdf[sel] = np.clip(d / tau, -1.0, 1.0)
+    # the sign of the inside test (Delaunay) kept: the topology is that of the ±1 field, the crossing sub-voxel
+    eps = 1e-6
+    d = np.clip(d / tau, -1.0, 1.0)
+    tsdf[sel] = np.where(inside[sel], np.minimum(d, -eps), np.maximum(d, eps))
     return tsdf
 
 
