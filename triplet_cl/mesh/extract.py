@@ -449,9 +449,7 @@ def _smooth_hull_boundary(tsdf, solid, inside, unvoted, X, dims, hull_pts, tau):
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
     c, i = cut[box], ins[box]
     near = (c & binary_dilation(i)) | (i & binary_dilation(c))  # a 6-neighbour on the other side
-    sub = np.zeros(dims, bool)
-    sub[box] = near
-    sel = np.flatnonzero(sub)
+    sel = np.ravel_multi_index(tuple((np.argwhere(near) + lo).T), tuple(int(x) for x in dims))  # flat, sorted
     if len(sel) == 0:
         return tsdf
     d = _hull_signed_distance(hull_pts, X[sel])

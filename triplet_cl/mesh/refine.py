@@ -92,8 +92,8 @@ class MeshConfig:
     # soft window on the silhouette edges only, 1 − exp(−sigma·d) at d supersampled pixels inside the edge: gradients
     # that move the outline; None: hard edges (no silhouette gradients). The window only takes coverage away (a
     # rendered outline 1/sigma supersampled pixels thinner than the geometry's, on average over the edges' positions
-    # in the pixel grid): at 1 and 3×3 supersampling a third
-    # of a photo pixel, a thin part's (gadget's rods, ~1.2 px wide) coverage short by half. Measured (session 41,
+    # in the pixel grid): at 1 and 3×3 supersampling a third of a photo pixel, a thin part's (gadget's rods, ~1.2 px
+    # wide) coverage short by half. Measured (session 41,
     # the same soups, bench/results/mesh_window_pocl_2026-11-27.txt), 1 → 6: mesh NVS spot 38.61 → 39.77, bob_env
     # 39.31 → 40.35, gadget 31.25 → 32.38 dB; surface Chamfer 0.00477 → 0.00458, gadget 0.00848 → 0.00812
     sigma: float | None = 6.0
