@@ -331,7 +331,7 @@ def tsdf_fusion(scene, cameras, resolution: int | None = None, truncation: float
     solid = (seen >= min_view_fraction * len(cameras)) & (hidden >= hidden_fraction * np.maximum(seen, 1))
     inside = solid.copy()
     if solid_in_seen_hull:  # nothing is solid beyond what was seen: an unseen volume closes at the seen extent
-        hull_pts = np.concatenate(seen_pts)
+        hull_pts = _hull_points(np.concatenate(seen_pts))  # its vertices: the inside test and the distance read them
         inside[solid] = _in_convex_hull(hull_pts, X[solid])
     tsdf = np.where(wsum > 0, num / np.maximum(wsum, 1e-12), np.where(inside, -1.0, 1.0))
     tsdf = np.where(inside, -1.0, tsdf)
@@ -444,8 +444,9 @@ def _smooth_hull_boundary(tsdf, solid, inside, unvoted, X, dims, hull_pts, tau):
     ins = inside.reshape(dims)
     if not cut.any() or not ins.any():
         return tsdf
-    lo = np.maximum(np.argwhere(cut).min(axis=0) - 1, 0)  # the work within the cut's bounding box ± 1
-    hi = np.minimum(np.argwhere(cut).max(axis=0) + 2, np.asarray(dims))
+    at = np.argwhere(cut)
+    lo = np.maximum(at.min(axis=0) - 1, 0)  # the work within the cut's bounding box ± 1
+    hi = np.minimum(at.max(axis=0) + 2, np.asarray(dims))
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
     c, i = cut[box], ins[box]
     near = (c & binary_dilation(i)) | (i & binary_dilation(c))  # a 6-neighbour on the other side
