@@ -470,6 +470,8 @@ def test_mesh_options_are_validated(capsys):
                                                     mesh_laplacian="uniform"))
     assert (cfg.supersample, cfg.eval_supersample, cfg.extract_faces) == (2, 3, 1234)
     assert cfg.laplacian == "uniform"
+    assert _mesh_config_from_args(argparse.Namespace(mesh_creases="smooth")).normal_kappa is None
+    assert _mesh_config_from_args(argparse.Namespace(mesh_creases="keep")).normal_kappa == MeshConfig().normal_kappa
     assert cfg.pixel_sigma is None  # auto: read from the photos
     assert _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=0.6)).metal_f0 == 0.6
     assert _mesh_config_from_args(argparse.Namespace(mesh_env_degree=4)).env_degree == 4
@@ -491,6 +493,25 @@ def test_mesh_options_are_validated(capsys):
     assert MeshConfig.from_dict({}).pixel_sigma == 0.0  # a state saved before the filter: the box it trained with
     assert cli_main(["extract", "somewhere", "--mesh-supersample", "9"]) == 2
     assert "supersample" in capsys.readouterr().err
+
+
+def test_normal_kappa_anneals_from_the_plain_term_and_is_validated():
+    from triplet_cl.mesh.refine import NORMAL_KAPPA_START
+
+    cfg = MeshConfig(iterations=600, normal_kappa=0.05, normal_kappa_anneal=0.5)
+    ks = [cfg.normal_kappa_at(it) for it in range(600)]
+    assert ks[0] == pytest.approx(NORMAL_KAPPA_START)
+    assert ks[300] == pytest.approx(0.05) and ks[-1] == pytest.approx(0.05)
+    assert all(a > b for a, b in zip(ks[:300], ks[1:301], strict=True))  # geometric, strictly falling
+    assert ks[150] == pytest.approx(np.sqrt(NORMAL_KAPPA_START * 0.05))
+    assert MeshConfig(normal_kappa_anneal=0.0).normal_kappa_at(0) == pytest.approx(MeshConfig().normal_kappa)
+    assert MeshConfig(normal_kappa=None).normal_kappa_at(0) is None
+    scene = Scene.from_arrays(np.eye(3), [[0, 1, 2]])
+    assert Regularizers(scene, MeshConfig(normal_kappa=None)).normal.kappa is None
+    for bad in ({"normal_kappa": 0.0}, {"normal_kappa": -1.0}, {"normal_kappa": True}, {"normal_kappa": 20.0},
+                {"normal_kappa_anneal": 1.5}, {"normal_kappa_anneal": None}):
+        with pytest.raises(ValueError, match="normal_kappa"):
+            MeshConfig(**bad).validate()
 
 
 def test_regularizers_pull_towards_a_smooth_mesh(rng):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from triplet_cl.autodiff import assert_gradcheck
+from triplet_cl.autodiff import Param, Tape, assert_gradcheck
 
 from triplet_cl import regularizers as reg
 
@@ -33,6 +33,32 @@ def test_normal_consistency_flat_is_zero_and_octahedron_closed_form():
 def test_normal_consistency_gradcheck(rng):
     assert_gradcheck(lambda v: reg.FaceNormalConsistency(OCTA_F, 6)(v), {"vertices": _noisy(rng)},
                      rtol=1e-6, atol=1e-10)
+
+
+def test_robust_normal_consistency_closed_form_gradcheck_and_crease_slope(rng):
+    k = 0.05
+    # the octahedron's 12 pairs bend by x = 2/3 each: ρ(x) = κ·log(1 + x/κ) + x⁵/5
+    assert float(reg.face_normal_consistency(OCTA_V, OCTA_F, "sum", kappa=k)) == pytest.approx(
+        12 * (k * np.log1p((2 / 3) / k) + (2 / 3) ** 5 / 5))
+    assert_gradcheck(lambda v: reg.FaceNormalConsistency(OCTA_F, 6, kappa=k)(v), {"vertices": _noisy(rng)},
+                     rtol=1e-6, atol=1e-10)
+    # two faces whose normals meet at 60° (x = 1/2) and at 120° (x = 3/2, a fold): the plain term's gradient times
+    # ρ'(x) = 1 / (1 + x/κ) + x⁴ — a crease costs a sixth of the plain term's pull, a fold more than the plain term
+    for angle, x in ((np.pi / 3, 0.5), (2 * np.pi / 3, 1.5)):
+        V = np.array([[0, 0, 0], [0, 0, 1], [1, 0, 0.5], [np.cos(np.pi - angle), np.sin(np.pi - angle), 0.5]])
+        F = np.array([[0, 1, 2], [1, 0, 3]])
+        grads = []
+        for kappa in (None, k):
+            v = Param(V.copy(), "V")
+            with Tape() as tape:
+                out = reg.FaceNormalConsistency(F, 4, "sum", kappa=kappa)(v)
+            tape.backward(out, np.ones(()))
+            grads.append(np.asarray(v.grad))
+        assert float(reg.face_normal_consistency(V, F, "sum")) == pytest.approx(x)
+        assert np.abs(grads[0]).max() > 0.1
+        np.testing.assert_allclose(grads[1], grads[0] * (1 / (1 + x / k) + x**4), rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="kappa"):
+        reg.FaceNormalConsistency(F, 4, kappa=0.0)
 
 
 def test_laplacian_closed_form_and_gradcheck(rng):

@@ -65,7 +65,7 @@ _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-r
                  "--mesh-light-phase", "--mesh-metallic-trial", "--mesh-ao", "--mesh-bounce", "--mesh-light-fit",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
                  "--bbox", "--mesh-crop", "--mesh-env-degree", "--mesh-env-occlusion", "--mesh-metal-f0",
-                 "--mesh-pixel-filter", "--mesh-laplacian")
+                 "--mesh-pixel-filter", "--mesh-laplacian", "--mesh-creases")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
 
 
