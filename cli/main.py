@@ -413,9 +413,10 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "uniform |L x|² (default), or rest |L x - L x0|², the Laplacian of the displacement from the "
                    "extracted shape (does not round its edges and thin parts)")
     p.add_argument("--mesh-creases", choices=["keep", "smooth"], help="the refinement's face-normal smoothing: keep "
-                   "(default) lets creases up to a box's edge form where the photos show them (a robust term that "
-                   "still smooths small bends and resists folds), smooth bends every crease towards a round edge "
-                   "(the plain term: for smooth, organic objects with painted detail)")
+                   "(default) lets creases form where the photos show them (a robust term: small bends smoothed, "
+                   "bends of ~25-75 degrees pulled weakly, right angles and folds as by the plain term or harder), "
+                   "smooth pulls every crease towards a round edge (the plain term: for smooth, organic objects with "
+                   "painted detail)")
     p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
     p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "

@@ -91,6 +91,24 @@ def test_a_second_round_extracts_from_the_refined_mesh(trained_run):
     assert cd < 0.05, cd  # the same object again
 
 
+def test_the_refinement_anneals_the_normal_terms_kappa(trained_run, monkeypatch):
+    """Each step's regularisers see ``MeshConfig.normal_kappa_at(step)``: from the plain-like start to the robust κ."""
+    seen = []
+    compute = Regularizers.compute
+
+    def spy(self, V, material):
+        seen.append(self.normal.kappa)
+        return compute(self, V, material)
+
+    monkeypatch.setattr(Regularizers, "compute", spy)
+    tr = Trainer(None, trained_run, resume=True, quiet=True)
+    cfg = tiny_mesh_cfg(iterations=8, remesh_every=4, normal_kappa=0.05, normal_kappa_anneal=0.5)
+    stage = MeshStage(tr, cfg)
+    stage.refine(stage.extract(tr.scene), 0)
+    assert seen == [cfg.normal_kappa_at(it) for it in range(8)]  # across the remesh at step 4 too
+    assert seen[0] == pytest.approx(10.0) and seen[4:] == [pytest.approx(0.05)] * 4
+
+
 def test_mesh_light_phase_ties_all_but_the_albedo_and_keeps_the_lights_white(trained_run):
     """``MeshConfig.material_tie``: each round starts roughness / metallic / AO at their mean and keeps them one value
     for the phase's steps while the albedo goes per vertex; the soup stage's white-light rule holds in the mesh stage
@@ -506,6 +524,10 @@ def test_normal_kappa_anneals_from_the_plain_term_and_is_validated():
     assert ks[150] == pytest.approx(np.sqrt(NORMAL_KAPPA_START * 0.05))
     assert MeshConfig(normal_kappa_anneal=0.0).normal_kappa_at(0) == pytest.approx(MeshConfig().normal_kappa)
     assert MeshConfig(normal_kappa=None).normal_kappa_at(0) is None
+    old = MeshConfig().to_dict()
+    del old["normal_kappa"], old["normal_kappa_anneal"]
+    assert MeshConfig.from_dict(old).normal_kappa is None  # a state saved before the robust term: the plain one
+    assert MeshConfig.from_dict(MeshConfig().to_dict()).normal_kappa == MeshConfig().normal_kappa
     scene = Scene.from_arrays(np.eye(3), [[0, 1, 2]])
     assert Regularizers(scene, MeshConfig(normal_kappa=None)).normal.kappa is None
     for bad in ({"normal_kappa": 0.0}, {"normal_kappa": -1.0}, {"normal_kappa": True}, {"normal_kappa": 20.0},
