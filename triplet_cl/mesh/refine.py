@@ -258,7 +258,8 @@ class MeshConfig:
 
     def validate(self) -> None:
         if self.normal_kappa is not None and (isinstance(self.normal_kappa, bool) or not (
-                isinstance(self.normal_kappa, int | float | np.floating) and 0 < self.normal_kappa <= NORMAL_KAPPA_START)):
+                isinstance(self.normal_kappa, int | float | np.floating)
+                and 0 < self.normal_kappa <= NORMAL_KAPPA_START)):
             raise ValueError(f"mesh normal_kappa must be None (the plain normal term) or a number in (0, "
                              f"{NORMAL_KAPPA_START}], got {self.normal_kappa!r}")
         if isinstance(self.normal_kappa_anneal, bool) or not (
