@@ -38,7 +38,14 @@ def main() -> None:
                     help="profile the mesh stage's refinement step on this trained run instead (SCENE unused): its "
                          "mesh extracted, --warmup steps, then --steps steps of a later round (no remesh, pixel "
                          "filter 0.5); per step, the mean over the steps")
+    ap.add_argument("--resume", default=None, metavar="RUN",
+                    help="profile the soup's step on this trained run's state (SCENE unused) instead of a fresh soup: "
+                         "a late step has the grown, opaque soup that most of a run's time goes to")
+    ap.add_argument("--checkpoint", default=None, metavar="NAME",
+                    help="with --resume: the checkpoint to start from (e.g. ckpt_0002000.npz; default: the latest)")
     args = ap.parse_args()
+    if args.resume is not None:
+        args.scene = "spot"  # unused
     scene = args.scene if Path(args.scene).is_dir() else str(SCENES / args.scene)
     if not Path(scene).is_dir():
         raise SystemExit(f"step_profile.py: error: scene {args.scene!r} is neither a folder nor a name under {SCENES}")
@@ -117,7 +124,10 @@ def main() -> None:
     rows_k, rows_w, rows_h, steps, kernels = (collections.defaultdict(list), collections.defaultdict(list),
                                               collections.defaultdict(list), [], [])
     with tempfile.TemporaryDirectory(prefix="step_profile_") as run_dir:
-        tr = train_mod.Trainer(scene, run_dir, cfg, quiet=True)
+        if args.resume is not None:
+            tr = resumed_trainer(args, Path(run_dir) / "run")
+        else:
+            tr = train_mod.Trainer(scene, run_dir, cfg, quiet=True)
         dev[0] = tr.device
         for i in range(args.warmup + args.steps):
             kern_t.clear()
@@ -136,7 +146,8 @@ def main() -> None:
                 rows_w[k].append(op_wall[k])
                 rows_h[k].append(op_host[k])
         cam = tr.ds.train[0].camera
-        print(f"# bench/step_profile.py {Path(scene).name} {cam.width}x{cam.height}, {len(tr.scene.F)} faces, "
+        name = f"--resume {Path(args.resume).name} at {tr.it}" if args.resume else Path(scene).name
+        print(f"# bench/step_profile.py {name} {cam.width}x{cam.height}, {len(tr.scene.F)} faces, "
               f"{args.steps} steps, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
 
     def ms(x):
@@ -150,6 +161,27 @@ def main() -> None:
     print(f"\n{'op':<32}{'wall min':>9}{'host min':>9}{'host med':>9}")
     for k in sorted(rows_h, key=lambda k: -min(rows_h[k]))[:args.top]:
         print(f"{k:<32}{ms(min(rows_w[k])):>9.2f}{ms(min(rows_h[k])):>9.2f}{ms(np.median(rows_h[k])):>9.2f}")
+
+
+def resumed_trainer(args, run: Path):
+    """A trainer resumed from a copy of ``--resume`` (at ``--checkpoint``), with no checkpoint written while
+    profiling."""
+    import shutil
+    from dataclasses import replace
+
+    from triplet_cl import train as train_mod
+
+    src = Path(args.resume)
+    if not (src / "config.json").is_file():
+        raise SystemExit(f"step_profile.py: error: --resume {src} is not a trained run (no config.json)")
+    shutil.copytree(src, run, ignore=shutil.ignore_patterns("renders", "mesh*", "*.tmp"))
+    if args.checkpoint is not None:
+        if not (run / "checkpoints" / args.checkpoint).is_file():
+            raise SystemExit(f"step_profile.py: error: --checkpoint {args.checkpoint} is not in {src}/checkpoints")
+        (run / "checkpoints" / "latest").write_text(args.checkpoint)
+    tr = train_mod.Trainer(None, run, resume=True, quiet=True)
+    tr.cfg = replace(tr.cfg, iterations=10**6, checkpoint_every=0)
+    return tr
 
 
 def mesh_profile(args, dev, kern_t, kern_n, total_k, op_wall, op_host) -> None:

@@ -127,3 +127,104 @@ __kernel void gauss_cols_up(__global const REAL* src,        // v_y [L, K]
     for (int l = l0; l <= l1; ++l) s += wt[t - l * F + R] * inv_norm[l] * src[(size_t)l * K + k];
     dst[p] = s;
 }
+
+/* The image and its alpha in one pass (gauss4_*): the radiance [.., 3] and the alpha [..] of a render filtered
+ * together as four channels, C = 4 compiled in (float4 per sample), NTAP = F + 2 GR taps compiled in (GR, the radius R of the kernels above, a define: the
+ * tap loop has a fixed count, its out-of-image taps skipped): the same sums in the same order as the per-array
+ * kernels above (t, then l, increasing), one launch per pass instead of two and no channel loop.
+ *   rows_down: rgb [O, L F, 3], a [O, L F] -> tmp [O, L, 4]      (one work-item per (o, l))
+ *   cols_down: tmp [L F, W, 4] -> rgb [L, W, 3], a [L, W]         (one work-item per (l, w))
+ *   cols_up:   v_rgb [L, W, 3], v_a [L, W] -> tmp [L F, W, 4]     (one work-item per (t, w); HAS_VA: v_a given,
+ *              else 0)
+ *   rows_up:   tmp [O, L, 4] -> v_rgb [O, L F, 3], v_a [O, L F]   (one work-item per (o, t))
+ * The intermediate tmp is [rows, columns, 4] in both directions, so a pass reads or writes one float4 per sample. */
+#ifdef NTAP
+inline REAL4 load_rgba(__global const REAL* rgb, __global const REAL* a, const size_t i)
+{
+    const REAL3 c = vload3(i, rgb);
+    return (REAL4)(c.x, c.y, c.z, a[i]);
+}
+
+inline void store_rgba(const REAL4 v, __global REAL* rgb, __global REAL* a, const size_t i)
+{
+    vstore3(v.xyz, i, rgb);
+    a[i] = v.w;
+}
+
+__kernel void gauss4_rows_down(__global const REAL* rgb,      // [O, L F, 3]
+                               __global const REAL* a,        // [O, L F]
+                               const int O, const int L,
+                               __global const REAL* wt,       // [NTAP]
+                               __global const REAL* inv_norm, // [L]
+                               __global REAL* dst)            // [O, L, 4]
+{
+    const int p = get_global_id(0);
+    if (p >= O * L) return;
+    const int o = p / L, l = p - o * L, LF = L * F, t0 = l * F - GR;
+    const size_t row = (size_t)o * LF;
+    REAL4 acc = (REAL4)(0);
+    for (int j = 0; j < NTAP; ++j) {
+        const int t = t0 + j;
+        if (t >= 0 && t < LF) acc += wt[j] * load_rgba(rgb, a, row + t);
+    }
+    vstore4(acc * inv_norm[l], p, dst);
+}
+
+__kernel void gauss4_cols_down(__global const REAL* src,      // [L F, W, 4]
+                               const int L, const int W,
+                               __global const REAL* wt, __global const REAL* inv_norm,
+                               __global REAL* rgb,            // [L, W, 3]
+                               __global REAL* a)              // [L, W]
+{
+    const int p = get_global_id(0);
+    if (p >= L * W) return;
+    const int l = p / W, w = p - l * W, LF = L * F, t0 = l * F - GR;
+    REAL4 acc = (REAL4)(0);
+    for (int j = 0; j < NTAP; ++j) {
+        const int t = t0 + j;
+        if (t >= 0 && t < LF) acc += wt[j] * vload4((size_t)t * W + w, src);
+    }
+    store_rgba(acc * inv_norm[l], rgb, a, p);
+}
+
+__kernel void gauss4_cols_up(__global const REAL* v_rgb,      // [L, W, 3]
+#ifdef HAS_VA
+                             __global const REAL* v_a,        // [L, W]
+#endif
+                             const int L, const int W,
+                             __global const REAL* wt, __global const REAL* inv_norm,
+                             __global REAL* dst)              // [L F, W, 4]
+{
+    const int p = get_global_id(0);
+    if (p >= L * F * W) return;
+    const int t = p / W, w = p - t * W;
+    const int l0 = max(0, FIRST_OUTPUT(t, GR)), l1 = min(L - 1, (t + GR) / F);
+    REAL4 acc = (REAL4)(0);
+    for (int l = l0; l <= l1; ++l) {
+        const size_t i = (size_t)l * W + w;
+#ifdef HAS_VA
+        const REAL4 v = load_rgba(v_rgb, v_a, i);
+#else
+        const REAL4 v = (REAL4)(vload3(i, v_rgb), (REAL)0);
+#endif
+        acc += (wt[t - l * F + GR] * inv_norm[l]) * v;
+    }
+    vstore4(acc, p, dst);
+}
+
+__kernel void gauss4_rows_up(__global const REAL* src,        // [O, L, 4]
+                             const int O, const int L,
+                             __global const REAL* wt, __global const REAL* inv_norm,
+                             __global REAL* v_rgb,            // [O, L F, 3]
+                             __global REAL* v_a)              // [O, L F]
+{
+    const int LF = L * F;
+    const int p = get_global_id(0);
+    if (p >= O * LF) return;
+    const int o = p / LF, t = p - o * LF;
+    const int l0 = max(0, FIRST_OUTPUT(t, GR)), l1 = min(L - 1, (t + GR) / F);
+    REAL4 acc = (REAL4)(0);
+    for (int l = l0; l <= l1; ++l) acc += (wt[t - l * F + GR] * inv_norm[l]) * vload4((size_t)o * L + l, src);
+    store_rgba(acc, v_rgb, v_a, p);
+}
+#endif

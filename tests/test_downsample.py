@@ -1,5 +1,6 @@
-"""The box filter of supersampled renders (``ops/downsample.py``): forward against the numpy reference, the
-adjoint against the reference and as the transpose (random cotangents), float64 central differences."""
+"""The pixel filters of supersampled renders (``ops/downsample.py``): forward against the numpy reference, the
+adjoint against the reference and as the transpose (random cotangents), float64 central differences; the radiance
+and alpha filtered together (``gauss_*_rgba``) against the same reference and the per-array filters."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pyopencl.array as cla
 import pytest
 
 from tests.reference import downsample as ref
-from triplet_cl.ops.downsample import box_down, box_up, gauss_down, gauss_up
+from triplet_cl.ops.downsample import box_down, box_up, gauss_down, gauss_down_rgba, gauss_up, gauss_up_rgba
 
 
 @pytest.mark.parametrize("f", [1, 2, 3, 4])
@@ -103,3 +104,77 @@ def test_gauss_filter_rejects_bad_input(device):
         gauss_down(device, x, 4, 0.5)
     with pytest.raises(ValueError, match="factor"):
         gauss_up(device, x, 0, 0.5)
+
+
+@pytest.mark.parametrize("f", [1, 2, 3, 4])
+@pytest.mark.parametrize("sigma", [0.5, 0.3, 1.1])
+def test_gauss_rgba_forward_and_adjoint(device, rng, f, sigma):
+    """The radiance and its alpha in one four-channel pass: each equals the dense reference (borders included) and,
+    bit for bit, the per-array filter (the same sums in the same order); the adjoint is the transpose, with the
+    alpha's cotangent given or absent (None: zero)."""
+    H, W = 5, 7
+    q = device.queue
+    x = rng.standard_normal((H * f, W * f, 3)).astype(np.float32)
+    a = rng.standard_normal((H * f, W * f)).astype(np.float32)
+    y, ya = (r.get() for r in gauss_down_rgba(device, cla.to_device(q, x), cla.to_device(q, a), f, sigma))
+    assert y.shape == (H, W, 3) and ya.shape == (H, W)
+    np.testing.assert_allclose(y, ref.gauss_down(x.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(ya, ref.gauss_down(a.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(y, gauss_down(device, cla.to_device(q, x), f, sigma).get())
+    np.testing.assert_array_equal(ya, gauss_down(device, cla.to_device(q, a), f, sigma).get())
+    v = rng.standard_normal((H, W, 3)).astype(np.float32)
+    va = rng.standard_normal((H, W)).astype(np.float32)
+    vx, vxa = (r.get() for r in gauss_up_rgba(device, cla.to_device(q, v), cla.to_device(q, va), f, sigma))
+    assert vx.shape == x.shape and vxa.shape == a.shape
+    np.testing.assert_allclose(vx, ref.gauss_up(v.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(vxa, ref.gauss_up(va.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(vx, gauss_up(device, cla.to_device(q, v), f, sigma).get())
+    np.testing.assert_array_equal(vxa, gauss_up(device, cla.to_device(q, va), f, sigma).get())
+    lhs = float((y * v).sum() + (ya * va).sum())
+    assert lhs == pytest.approx(float((x * vx).sum() + (a * vxa).sum()), rel=1e-4, abs=1e-4)  # <Ax, v> = <x, A'v>
+    vx0, vxa0 = (r.get() for r in gauss_up_rgba(device, cla.to_device(q, v), None, f, sigma))
+    np.testing.assert_array_equal(vx0, vx)
+    assert not vxa0.any()
+
+
+def test_gauss_rgba_float64_central_differences(device64, rng):
+    """The four-channel filter's adjoint against central differences of its float64 forward, in the radiance and
+    in the alpha."""
+    f, H, W, sigma = 3, 3, 4, 0.5
+    q = device64.queue
+    x, a = rng.standard_normal((H * f, W * f, 3)), rng.standard_normal((H * f, W * f))
+    v, va = rng.standard_normal((H, W, 3)), rng.standard_normal((H, W))
+    g, ga = (r.get() for r in gauss_up_rgba(device64, cla.to_device(q, v), cla.to_device(q, va), f, sigma))
+
+    def loss(x_, a_):
+        y, ya = gauss_down_rgba(device64, cla.to_device(q, x_), cla.to_device(q, a_), f, sigma)
+        return float((y.get() * v).sum() + (ya.get() * va).sum())
+
+    h = 1e-6
+    for idx in [(0, 0, 0), (4, 7, 1), (8, 11, 2), (5, 2, 0)]:
+        xp, xm = x.copy(), x.copy()
+        xp[idx] += h
+        xm[idx] -= h
+        assert (loss(xp, a) - loss(xm, a)) / (2 * h) == pytest.approx(g[idx], rel=1e-7, abs=1e-9)
+    for idx in [(0, 0), (4, 7), (8, 11), (2, 9)]:
+        ap, am = a.copy(), a.copy()
+        ap[idx] += h
+        am[idx] -= h
+        assert (loss(x, ap) - loss(x, am)) / (2 * h) == pytest.approx(ga[idx], rel=1e-7, abs=1e-9)
+
+
+def test_gauss_rgba_rejects_bad_input(device):
+    q = device.queue
+    x, a = cla.zeros(q, (6, 6, 3), np.float32), cla.zeros(q, (6, 6), np.float32)
+    with pytest.raises(ValueError, match="\\[H, W, 3\\]"):
+        gauss_down_rgba(device, cla.zeros(q, (6, 6, 4), np.float32), a, 2, 0.5)
+    with pytest.raises(ValueError, match="alpha"):
+        gauss_down_rgba(device, x, cla.zeros(q, (6, 5), np.float32), 2, 0.5)
+    with pytest.raises(ValueError, match="alpha"):
+        gauss_down_rgba(device, x, cla.zeros(q, (6, 6), np.float64), 2, 0.5)
+    with pytest.raises(ValueError, match="H\\*f"):
+        gauss_down_rgba(device, x, a, 4, 0.5)
+    with pytest.raises(ValueError, match="sigma"):
+        gauss_down_rgba(device, x, a, 2, 0.0)
+    with pytest.raises(ValueError, match="factor"):
+        gauss_up_rgba(device, x, a, 0, 0.5)

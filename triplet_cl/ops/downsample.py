@@ -160,3 +160,58 @@ def gauss_up(device: Device, v_y: cla.Array, f: int, sigma: float) -> cla.Array:
     v_tmp = _gauss_launch(device, "gauss_cols_up", v_y, (H * f, W * C), f, sigma, H, L=H, K=W * C)
     v_x = _gauss_launch(device, "gauss_rows_up", v_tmp, (H * f, W * f, C), f, sigma, W, O=H * f, L=W, C=C)
     return v_x.reshape((H * f, W * f) + tuple(v_y.shape[2:]))
+
+
+def _rgba_args(name: str, rgb: cla.Array, a: cla.Array | None) -> np.dtype:
+    """The dtype of a radiance ``rgb [h, w, 3]`` and its alpha ``a [h, w]`` (None: no alpha, the adjoint's zero)."""
+    real = _real(name, rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"{name} must be [H, W, 3], got {list(rgb.shape)}")
+    if a is not None:
+        if _real(f"{name}'s alpha", a) != real or a.shape != rgb.shape[:2]:
+            raise ValueError(f"{name}'s alpha must be [{rgb.shape[0]}, {rgb.shape[1]}] {real.name}, got "
+                             f"{list(a.shape)} {a.dtype}")
+    return real
+
+
+def _gauss4(device: Device, kernel: str, n: int, f: int, sigma: float, length: int, real, has_va: bool = False,
+            **args) -> None:
+    """One ``gauss4_*`` pass over ``n`` work-items, the weights of ``length`` outputs along its axis."""
+    wt, inv_norm, R = _device_weights(device, f, sigma, length, real)
+    if n:
+        defines = {"F": int(f), "GR": int(R), "NTAP": int(f + 2 * R)}
+        if has_va:
+            defines["HAS_VA"] = 1
+        launch(device, "downsample", kernel, *grid_1d(n), defines=defines, real=real, wt=wt, inv_norm=inv_norm, **args)
+
+
+def gauss_down_rgba(device: Device, rgb: cla.Array, a: cla.Array, f: int, sigma: float) -> tuple[cla.Array, cla.Array]:
+    """:func:`gauss_down` of a render's radiance ``rgb [H f, W f, 3]`` and alpha ``a [H f, W f]`` together: one
+    four-channel pass per axis (``downsample.cl`` ``gauss4_*``) instead of two filters; ``([H, W, 3], [H, W])``, the
+    same values."""
+    real = _rgba_args("rgb", rgb, a)
+    H, W, _ = _shape(rgb, f)
+    O = H * f
+    tmp = device_empty(device.queue, (O, W, 4), real, allocator=device.allocator)
+    _gauss4(device, "gauss4_rows_down", O * W, f, sigma, W, real, rgb=rgb, a=a, O=O, L=W, dst=tmp)
+    y = device_empty(device.queue, (H, W, 3), real, allocator=device.allocator)
+    ya = device_empty(device.queue, (H, W), real, allocator=device.allocator)
+    _gauss4(device, "gauss4_cols_down", H * W, f, sigma, H, real, src=tmp, L=H, W=W, rgb=y, a=ya)
+    return y, ya
+
+
+def gauss_up_rgba(device: Device, v_rgb: cla.Array, v_a: cla.Array | None, f: int,
+                  sigma: float) -> tuple[cla.Array, cla.Array]:
+    """The adjoint of :func:`gauss_down_rgba`: ``(v_rgb [H, W, 3], v_a [H, W] or None = 0) → ([H f, W f, 3],
+    [H f, W f])``."""
+    real = _rgba_args("v_rgb", v_rgb, v_a)
+    H, W, _ = _adjoint_shape(v_rgb, f)
+    O = H * f
+    tmp = device_empty(device.queue, (O, W, 4), real, allocator=device.allocator)
+    va = {} if v_a is None else {"v_a": v_a}
+    _gauss4(device, "gauss4_cols_up", O * W, f, sigma, H, real, has_va=v_a is not None, v_rgb=v_rgb, L=H, W=W,
+            dst=tmp, **va)
+    vx = device_empty(device.queue, (O, W * f, 3), real, allocator=device.allocator)
+    vxa = device_empty(device.queue, (O, W * f), real, allocator=device.allocator)
+    _gauss4(device, "gauss4_rows_up", O * W * f, f, sigma, W, real, src=tmp, O=O, L=W, v_rgb=vx, v_a=vxa)
+    return vx, vxa
