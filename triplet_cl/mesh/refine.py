@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
 
 from ..activations import logit, sigmoid
 from ..autodiff import Param, Tape
@@ -430,6 +431,24 @@ class Regularizers:
         return total
 
 
+
+def photometric_backward(r, target: np.ndarray, lam: float) -> float:
+    """The photometric loss of the render ``r`` against ``target`` and its backward pass; the loss's value.
+
+    From ``DEVICE_LOSS_RESIDENT_MIN_PIXELS`` on, the losses.cl kernels on the filtered image where it already is (only
+    the target goes up, the adjoint seeds the backward on the device: as the soup's steps); below, numpy on the host
+    image. Either way the loss and its adjoint are those of ``photometric_loss_and_grad`` on the host image (the same
+    kernels on the same values: the device path saves the image's upload and its adjoint's download and upload)."""
+    if loss_backend(target.shape, resident=True) == "opencl":
+        img = r.device_image
+        loss, v_img = photometric_loss_and_grad(img, cla.to_device(img.queue, np.ascontiguousarray(target, img.dtype)),
+                                                lam=lam)
+        r.backward_device(v_img)
+        return float(loss)
+    loss, v_img = photometric_loss_and_grad(r.image, target, lam=lam, backend=loss_backend(target.shape))
+    r.backward(v_img)
+    return float(loss)
+
 class MeshStage:
     """Runs the mesh stage on a trained (or resumed) :class:`~triplet_cl.train.Trainer`."""
 
@@ -625,8 +644,7 @@ class MeshStage:
         def loss_and_backward(k: int) -> float:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
-            loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda, backend=loss_backend(target.shape))
-            r.backward(v_img)
+            loss = photometric_backward(r, target, tc.ssim_lambda)
             if held and scene.material.grad is not None:
                 scene.material.grad[:, held] = 0.0
             return float(loss)
@@ -1043,11 +1061,7 @@ class MeshStage:
                 if bounce_every and (bounce is None or it - bounce_at >= bounce_every or traces != bounce_traces):
                     bounce, bounce_at, bounce_traces = self.bounce(scene, vis), it, traces
                 r, img, _ = self.render(scene, cam, bg, vis=vis, bounce=bounce)
-                # the losses.cl kernels from DEVICE_LOSS_MIN_PIXELS on (the soup phase's choice for a host image:
-                # at 200² about half the numpy SSIM's time); before, every size went through numpy
-                loss, v_img = photometric_loss_and_grad(img, target, lam=tc.ssim_lambda,
-                                                        backend=loss_backend(target.shape))
-                r.backward(v_img)
+                loss = photometric_backward(r, target, tc.ssim_lambda)
                 gV = np.asarray(scene.V.grad, np.float64)
                 grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
                 reg_loss = reg.apply(scene, reg_job.result())
