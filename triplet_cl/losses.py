@@ -574,24 +574,28 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     win = gaussian_window_1d().astype(np.float32).astype(np.float64)
     taps = const_array(device, np.ascontiguousarray(win[SSIM_RADIUS::-1]))  # w0 (centre), w1 … w5
     src = device_empty(q, (5 * n,), np.float32, allocator=alloc)
-    tmp = device_empty(q, (5 * n,), np.float32, allocator=alloc)
+    margin = SSIM_RADIUS * c  # the columns pass reads RADIUS pixels either side of every value, inside the buffer
+    tmp = device_empty(q, (5 * n + 2 * margin,), np.float32, allocator=alloc)
     dmaps = device_empty(q, (3 * n,), np.float32, allocator=alloc)
     smap = device_empty(q, (h, w, c), np.float32, allocator=alloc)
     v_pred = device_empty(q, (h, w, c), np.float32, allocator=alloc)
-    gsize, lsize = (-(-w // 8) * 8, -(-h // 8) * 8), (8, 8)  # fixed work-groups: one build, 2x on PoCL's columns pass
+    # element-wise kernels on a fixed work-group (one build): x the w·c values of a row, y the row
+    gsize, lsize = (-(-(w * c) // 64) * 64, h), (64, 1)
     i32 = np.int32
-    rows = device.kernel("ssim_exact", "ssim_x_rows")
     run_1d(device, device.kernel("ssim_exact", "ssim_x_maps"), n, pred.data, target_d.data, i32(n), src.data)
-    rows(q, gsize, lsize, src.data, taps.data, i32(h), i32(w), i32(c), i32(5), tmp.data)
+    device.kernel("ssim_exact", "ssim_x_rows_e", {"KMAPS": 5})(q, gsize, lsize, src.data, taps.data, i32(h), i32(w),
+                                                                i32(c), i32(margin), tmp.data)
     g = np.float32(-lam * 1.0 / n)  # _ssim_bwd's seed: float(v) / count with v = -λ·1, rounded to float32
-    device.kernel("ssim_exact", "ssim_x_fwd_h")(q, gsize, lsize, tmp.data, taps.data, i32(h), i32(w), i32(c),
-                                                np.float32(SSIM_C1), np.float32(SSIM_C2), g, smap.data, dmaps.data)
+    device.kernel("ssim_exact", "ssim_x_fwd_h_e")(q, gsize, lsize, tmp.data, i32(margin), taps.data, i32(h), i32(w),
+                                                  i32(c), np.float32(SSIM_C1), np.float32(SSIM_C2), g, smap.data,
+                                                  dmaps.data)
     host_map = np.empty((h, w, c), np.float32)
     ev = cl.enqueue_copy(q, host_map, smap.data, is_blocking=False)
-    rows(q, gsize, lsize, dmaps.data, taps.data, i32(h), i32(w), i32(c), i32(3), tmp.data)
+    device.kernel("ssim_exact", "ssim_x_rows_e", {"KMAPS": 3})(q, gsize, lsize, dmaps.data, taps.data, i32(h), i32(w),
+                                                                i32(c), i32(margin), tmp.data)
     l1 = np.float32((1.0 - lam) * 1.0 / n)  # _l1_bwd's factor float(v) / size with v = (1 − λ)·1
-    device.kernel("ssim_exact", "ssim_x_bwd_h")(q, gsize, lsize, pred.data, target_d.data, tmp.data, taps.data,
-                                                i32(h), i32(w), i32(c), l1, v_pred.data)
+    device.kernel("ssim_exact", "ssim_x_bwd_h_e")(q, gsize, lsize, pred.data, target_d.data, tmp.data, i32(margin),
+                                                  taps.data, i32(h), i32(w), i32(c), l1, v_pred.data)
     # the scratch arrays go back to the pool only once their kernels are done: keep them with the value
     loss = ExactLoss(pred_host, target, host_map, ev, float(lam), n)
     loss._keep = (target_d, src, tmp, dmaps, smap)
