@@ -129,6 +129,26 @@ def test_opencl_backend_matches_numpy(lam, padding, device64, rng):
     np.testing.assert_allclose(gy_d.get(), gy_h, rtol=1e-10, atol=1e-15)
 
 
+@pytest.mark.parametrize("shape", [(5, 7, 3), (9, 6, 1), (8, 4, 4), (12, 31, 2), (1, 13, 3)])
+def test_opencl_backend_matches_numpy_at_the_borders(shape, device64, rng):
+    """Images narrower or lower than the 11-tap window, one to four channels: every tap near a border, the
+    horizontal passes reading into the neighbouring row and the scratch maps' margins (losses.cl), all selected
+    away as the zero padding says."""
+    import pyopencl.array as cla
+    from triplet_cl.autodiff import Context
+
+    x, y = rng.random(shape), rng.random(shape)
+    fh, fd = losses.PhotometricLoss(0.2, "zero"), losses.PhotometricLoss(0.2, "zero")
+    ch, cd = Context((True, True)), Context((True, True))
+    q = device64.queue
+    value_h = float(fh.forward(ch, x, y))
+    value_d = float(fd.forward(cd, cla.to_device(q, x), cla.to_device(q, y)))
+    assert value_d == pytest.approx(value_h, rel=1e-12)
+    (gx_h, gy_h), (gx_d, gy_d) = fh.backward(ch, np.asarray(0.7)), fd.backward(cd, np.asarray(0.7))
+    np.testing.assert_allclose(gx_d.get(), gx_h, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(gy_d.get(), gy_h, rtol=1e-10, atol=1e-15)
+
+
 def test_opencl_backend_gradcheck_and_float32(device64, rng):
     import pyopencl.array as cla
 
