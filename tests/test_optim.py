@@ -346,3 +346,28 @@ def test_numpy_update_is_bit_for_bit_the_textbook_expressions(rng, dtype):
             np.testing.assert_array_equal(g.exp_avg[0], m)
             np.testing.assert_array_equal(g.exp_avg_sq[0], v)
     assert opt.group("b").last_grad_norm > 1.0  # clipping was active
+
+
+def test_gradient_norm_guard_tells_nan_and_inf_from_a_float32_overflow():
+    """The finiteness guard's norm (a float32 dot product where the group does not clip): a NaN or an Inf gradient
+    stops the step before any update; a gradient whose float32 square overflows (|g| ~ 1e20) is finite and steps
+    (no NonFiniteStep), its norm taken in float64."""
+    from triplet_cl.optim import NonFiniteStep
+
+    for bad in (np.nan, np.inf):
+        p = Param(np.ones(4, np.float32), "x")
+        opt = Adam()
+        opt.add_group("x", [p], lr=0.1)
+        p.grad = np.array([1.0, bad, 0.0, 0.0], np.float32)
+        with pytest.raises(NonFiniteStep) as ei:
+            opt.step()
+        assert ei.value.what == "gradient"
+        np.testing.assert_array_equal(p.data, 1.0)  # nothing updated
+    p = Param(np.ones(4, np.float32), "x")
+    opt = Adam()
+    opt.add_group("x", [p], lr=0.1)
+    p.grad = np.array([3e20, -4e20, 0.0, 0.0], np.float32)
+    with np.errstate(over="ignore", divide="ignore"):  # Adam's own float32 second moment overflows at this size
+        opt.step()
+    assert opt.group("x").last_grad_norm == pytest.approx(5e20, rel=1e-6)
+    assert np.isfinite(p.data).all()
