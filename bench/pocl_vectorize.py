@@ -6,11 +6,11 @@ Usage::
 
 The same small computations written in different shapes, 1M work-items each (work-groups of 64): normalising a
 3-vector stored interleaved ([n, 3], as the packed fragment and vertex arrays are) or planar ([3, n]), with scalar
-code or a ``float3``; a transcendental (``exp2(log2(x) · k)``, as the sRGB root; ``exp(log(x) · k)``); a 3-channel
-reduction loop of run-time length; and a gather through ``i / 3``. Per row: the best time of ``--repeats`` launches
-and, on PoCL, whether the compiled work-group function uses AVX registers (``ymm``/``zmm``, read from PoCL's kernel
-cache with ``objdump``: ``vector`` yes/no, ``?`` where that cannot be read). The rows are the measurements behind
-``kernels_cl/ssim_exact.cl``'s element-wise kernels (session 43): PoCL 3.1 vectorises a scalar kernel whose
+code or a ``float3``; a transcendental (``exp2(log2(x) · k)``, as the sRGB root; ``exp(log(x) · k)``); a reduction
+loop of run-time length (3 channels); and a gather through ``i / 3``. Per row: the best time of ``--repeats``
+launches and, on PoCL, whether the compiled work-group function uses AVX registers (``ymm``/``zmm``, read from PoCL's
+kernel cache with ``objdump``: ``vector`` yes/no, ``?`` where that cannot be read). The rows are the measurements
+behind ``kernels_cl/ssim_exact.cl``'s element-wise kernels (session 43): PoCL 3.1 vectorises a scalar kernel whose
 consecutive work-items read consecutive values, and nothing that holds a ``float3`` or an interleaved load.
 """
 
@@ -31,51 +31,51 @@ from triplet_cl.device import get_device
 
 KERNELS = {
     "interleaved [n,3], float3": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             const float3 v = vload3(p, a);
             vstore3(v * rsqrt(fmax(dot(v, v), 1e-12f)), p, b);
         }""",
     "interleaved [n,3], scalar": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             const float x = a[3 * p], y = a[3 * p + 1], z = a[3 * p + 2];
             const float r = rsqrt(fmax(x * x + y * y + z * z, 1e-12f));
             b[3 * p] = x * r; b[3 * p + 1] = y * r; b[3 * p + 2] = z * r;
         }""",
     "planar [3,n], float3": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             const float3 v = (float3)(a[p], a[n + p], a[2 * n + p]);
             const float3 o = v * rsqrt(fmax(v.x * v.x + v.y * v.y + v.z * v.z, 1e-12f));
             b[p] = o.x; b[n + p] = o.y; b[2 * n + p] = o.z;
         }""",
     "planar [3,n], scalar": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             const float x = a[p], y = a[n + p], z = a[2 * n + p];
             const float r = rsqrt(fmax(x * x + y * y + z * z, 1e-12f));
             b[p] = x * r; b[n + p] = y * r; b[2 * n + p] = z * r;
         }""",
     "planar, run-time channel loop": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             float s = 0.0f;
-            for (int c = 0; c < (n >> 19) + 1; ++c) s += a[c * n + p] * a[c * n + p];
+            for (int c = 0; c < C; ++c) s += a[c * n + p] * a[c * n + p];
             b[p] = s;
         }""",
     "gather a[i / 3]": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             b[p] = a[p] / fmax(a[p / 3 + n], 1e-4f);
         }""",
     "exp2(log2(x) * k)": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             b[p] = exp2(log2(a[p]) * 0.41666667f);
         }""",
     "exp(log(x) * k)": """
-        __kernel void k(__global const float* a, __global float* b, const int n) {
+        __kernel void k(__global const float* a, __global float* b, const int n, const int C) {
             const int p = get_global_id(0);
             b[p] = exp(log(a[p]) * 0.41666667f);
         }""",
@@ -120,7 +120,7 @@ def main() -> None:
         for _ in range(args.repeats + 1):
             q.finish()
             t0 = time.perf_counter()
-            k(q, (n,), (64,), a, b, np.int32(n))
+            k(q, (n,), (64,), a, b, np.int32(n), np.int32(3))  # C = 3 channels (the loop row)
             q.finish()
             ts.append(time.perf_counter() - t0)
         best = min(ts[1:])

@@ -44,10 +44,13 @@ def main() -> None:
     ap.add_argument("--checkpoint", default=None, metavar="NAME",
                     help="with --resume: the checkpoint to start from (e.g. ckpt_0002000.npz; default: the latest)")
     args = ap.parse_args()
-    if args.resume is not None:
-        args.scene = "spot"  # unused
+    if args.resume is not None and args.mesh is not None:
+        raise SystemExit("step_profile.py: error: give --resume RUN (the soup's step) or --mesh RUN (the mesh "
+                         "stage's), not both")
+    if args.checkpoint is not None and args.resume is None:
+        raise SystemExit("step_profile.py: error: --checkpoint needs --resume RUN")
     scene = args.scene if Path(args.scene).is_dir() else str(SCENES / args.scene)
-    if not Path(scene).is_dir():
+    if args.resume is None and args.mesh is None and not Path(scene).is_dir():
         raise SystemExit(f"step_profile.py: error: scene {args.scene!r} is neither a folder nor a name under {SCENES}")
 
     from triplet_cl.autodiff import Function

@@ -129,9 +129,10 @@ __kernel void gauss_cols_up(__global const REAL* src,        // v_y [L, K]
 }
 
 /* The image and its alpha in one pass (gauss4_*): the radiance [.., 3] and the alpha [..] of a render filtered
- * together as four channels, C = 4 compiled in (float4 per sample), NTAP = F + 2 GR taps compiled in (GR, the radius R of the kernels above, a define: the
- * tap loop has a fixed count, its out-of-image taps skipped): the same sums in the same order as the per-array
- * kernels above (t, then l, increasing), one launch per pass instead of two and no channel loop.
+ * together as four channels, C = 4 compiled in (float4 per sample; one instruction for the four channels, where the
+ * per-array kernels above loop over a run-time channel count), NTAP = F + 2 GR taps compiled in (GR: the radius R of
+ * the kernels above, a define; the tap loop has a fixed count, its out-of-image taps skipped): the same sums in the
+ * same order as the per-array kernels (t, then l, increasing), one launch per pass instead of two.
  *   rows_down: rgb [O, L F, 3], a [O, L F] -> tmp [O, L, 4]      (one work-item per (o, l))
  *   cols_down: tmp [L F, W, 4] -> rgb [L, W, 3], a [L, W]         (one work-item per (l, w))
  *   cols_up:   v_rgb [L, W, 3], v_a [L, W] -> tmp [L F, W, 4]     (one work-item per (t, w); HAS_VA: v_a given,

@@ -19,7 +19,8 @@
  *   ssim_x_bwd_h_e: F = G_cols * tmp; v_x = sign(x − y)·l1 + ((F0 + (2x)·F1) + y·F2)
  * One work-item per value (the _e kernels: 2D, x the W·C values of a row, y the row; scalar, the loops unrolled), so
  * that PoCL vectorises them across work-items: it left the earlier per-pixel kernels (a run-time channel and map loop
- * inside, conditional loads) scalar, 2.3-3.2x slower at 96² and 200² (bench/results/ssim_vectorize_pocl_2026-11-27.txt).
+ * inside, conditional loads) scalar, 2.3-3.2x slower at 96² and 200²
+ * (bench/results/ssim_vectorize_pocl_2026-11-27.txt).
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
@@ -77,11 +78,11 @@ __kernel void ssim_x_maps(__global const float* x, __global const float* y,  // 
         out = (float)acc_;                                                              \
     } while (0)
 
-/* Element-wise forms: the same per-value operations as the kernels above (bit for bit), one work-item per value of
- * [H, W, C] on a 2D range (x: the W·C values of a row, y: the row), scalar, its loops unrolled, so that consecutive
- * work-items read consecutive values: PoCL vectorises them across work-items (the per-pixel forms, with channel and
- * map loops of run-time length inside, ran one work-item at a time). KMAPS (a define, 5 or 3): the maps of the rows
- * pass. */
+/* Element-wise forms: per value the operations of the numpy reference (and of the per-pixel kernels they
+ * replaced), one work-item per value of [H, W, C] on a 2D range (x: the W·C values of a row, y: the row), scalar, its
+ * loops unrolled, so that consecutive work-items read consecutive values: PoCL vectorises them across work-items (the
+ * per-pixel forms, with channel and map loops of run-time length inside, ran one work-item at a time). KMAPS (a
+ * define, 5 or 3): the maps of the rows pass. */
 #ifdef KMAPS
 __kernel void ssim_x_rows_e(__global const float* src,   // [KMAPS, H, W, C]
                             __constant double* w,

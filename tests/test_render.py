@@ -294,12 +294,17 @@ def test_vertex_attributes_with_constant_columns_equal_concat(device64, rng, mes
         np.testing.assert_allclose(np.asarray(g), w, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("transfer,renderer", [(None, "raster"), ("srgb", "raster"), ("srgb", "hybrid")])
-def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng, transfer, renderer):
+@pytest.mark.parametrize("transfer,renderer,down,pixel_sigma", [(None, "raster", 1, 0.0), ("srgb", "raster", 1, 0.0),
+                                                               ("srgb", "hybrid", 1, 0.0), (None, "raster", 2, 0.5),
+                                                               ("srgb", "raster", 2, 0.5), ("srgb", "raster", 2, 0.0)])
+def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng, transfer, renderer, down,
+                                                                    pixel_sigma):
     """The training loop's device loss: ``RenderResult.device_image`` is the host image bit for bit, and the
     device loss's adjoint seeded with ``backward_device`` gives every parameter the gradient, bit for bit,
     that the same adjoint downloaded and handed to ``backward`` gives (no host round trip, same numbers);
-    the device loss against the host (numpy) loss within the existing float32 tolerances; bad input refused."""
+    the device loss against the host (numpy) loss within the existing float32 tolerances; bad input refused.
+    Also through the mesh stage's supersampled render and its pixel filter (``down`` 2: the Gaussian of
+    ``pixel_sigma`` or the box over the radiance and the alpha, ``render.PixelFilterRGBA``)."""
     import pyopencl.array as cla
 
     from triplet_cl.losses import photometric_loss_and_grad
@@ -308,13 +313,16 @@ def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng,
     scene = Scene.from_arrays(np.asarray(base.V.data, np.float32), base.F, material=base.material.data,
                               alpha=base.alpha.data, lights=base.lights, vertex_sh=base.vertex_sh.data,
                               brdf="cook_torrance", dtype=np.float32)
-    settings = RenderSettings(K=8, sigma=1.0, transfer=transfer, renderer=renderer)
+    settings = RenderSettings(K=8, sigma=1.0, transfer=transfer, renderer=renderer, downsample=down,
+                              pixel_sigma=pixel_sigma)
+    camera = cam().scaled(down) if down > 1 else cam()
     target = rng.random((H, W, 3)).astype(np.float32)
     grads = []
     for path in ("host", "device"):
         for p in scene.params:
             p.grad = None
-        r = render(scene, cam(), settings, device)
+        r = render(scene, camera, settings, device)
+        assert r.image.shape == (H, W, 3)
         assert isinstance(r.device_image, cla.Array)
         np.testing.assert_array_equal(r.device_image.get(), r.image)
         loss, v_img = photometric_loss_and_grad(r.device_image, cla.to_device(device.queue, target))
@@ -332,7 +340,7 @@ def test_device_image_and_backward_device_equal_the_host_round_trip(device, rng,
             assert grads[1][k] is None
         else:
             np.testing.assert_array_equal(grads[1][k], g, err_msg=k)
-    r = render(scene, cam(), settings, device)
+    r = render(scene, camera, settings, device)
     with pytest.raises(ValueError, match="v_image must be a device array"):
         r.backward_device(np.ones((H, W, 3), np.float32))
     with pytest.raises(ValueError, match="v_image must be a device array"):

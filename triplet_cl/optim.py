@@ -166,7 +166,6 @@ class NonFiniteStep(ArithmeticError):
         super().__init__(f"non-finite {what} in parameter group {group!r}")
 
 
-
 def _squared_norm(gr: np.ndarray, exact: bool) -> float:
     """``Σ gr²``. ``exact`` (a group that clips by its norm: the value scales the step) in float64; else with one BLAS
     dot product in the gradient's dtype (8x faster on 0.5M float32 values; the value is only the finiteness guard and
@@ -179,6 +178,7 @@ def _squared_norm(gr: np.ndarray, exact: bool) -> float:
         if math.isfinite(v):
             return v
     return float(np.sum(np.square(gr, dtype=np.float64)))
+
 
 class Adam:
     """Adam with named parameter groups (see the module docstring for the exact update).

@@ -642,7 +642,9 @@ class PixelFilterRGBA(Function):
 
     def backward(self, ctx, v_img, v_acc):
         d = self.device
-        if not isinstance(v_acc, cla.Array):  # a zero (the loss reads the image only) or a host array
+        # through the tape v_acc is a device array (the tape hands an unused output a device zero); a direct caller may
+        # pass None or 0 (no alpha cotangent: the filter's alpha channel is then skipped) or a host array
+        if not isinstance(v_acc, cla.Array):
             v_acc = None if _is_zero_scalar(v_acc) or not np.asarray(v_acc).any() else \
                 cla.to_device(d.queue, np.ascontiguousarray(v_acc, v_img.dtype))
         if self.sigma > 0:

@@ -431,7 +431,6 @@ class Regularizers:
         return total
 
 
-
 def photometric_backward(r, target: np.ndarray, lam: float) -> float:
     """The photometric loss of the render ``r`` against ``target`` and its backward pass; the loss's value.
 
@@ -448,6 +447,7 @@ def photometric_backward(r, target: np.ndarray, lam: float) -> float:
     loss, v_img = photometric_loss_and_grad(r.image, target, lam=lam, backend=loss_backend(target.shape))
     r.backward(v_img)
     return float(loss)
+
 
 class MeshStage:
     """Runs the mesh stage on a trained (or resumed) :class:`~triplet_cl.train.Trainer`."""
