@@ -25,22 +25,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_step import (  # noqa: E402  (a sibling script)
-    alternate_rounds,
-    compared_commits,
-    comparison_args,
-    import_tree,
-    run_script_worker,
-    worktree,
-    write_table,
-)
+import train_step as shared  # noqa: E402  (a sibling script: its worktree, worker, rounds and table helpers)
 
 KINDS = ("float32", "exact")
 
 
 def worker(args) -> None:
     tree = Path(args.tree).resolve()
-    import_tree(tree)
+    shared.import_tree(tree)
     import numpy as np
     import pyopencl.array as cla
 
@@ -79,24 +71,24 @@ def worker(args) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="96,200,400", help="comma-separated image sizes S (S x S x 3)")
-    args = comparison_args(ap, worker, steps=20, warmup=3, hidden="--size")
+    args = shared.comparison_args(ap, worker, steps=20, warmup=3, hidden="--size")
     if args is None:
         return
     sizes = [int(v) for v in args.sizes.split(",") if v]
     if not sizes or min(sizes) < 1:
         raise SystemExit(f"loss_step.py: error: --sizes must be positive integers, got {args.sizes!r}")
-    base_sha, head = compared_commits(args.baseline)
+    base_sha, head = shared.compared_commits(args.baseline)
 
     def run(tree, size):
-        return run_script_worker(__file__, tree, str(size), ["--size", str(size), "--steps", str(args.steps),
+        return shared.run_script_worker(__file__, tree, str(size), ["--size", str(size), "--steps", str(args.steps),
                                                              "--warmup", str(args.warmup)])
 
     def keep(r, prev):
         return {k: (min(r[k], prev[k]) if k in KINDS else r[k]) for k in r}
 
     lines = []
-    with worktree(base_sha) as wt:
-        res = alternate_rounds(sizes, args.rounds, wt, run, keep)
+    with shared.worktree(base_sha) as wt:
+        res = shared.alternate_rounds(sizes, args.rounds, wt, run, keep)
     lines.append(f"# bench/loss_step.py  {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}  old = {base_sha[:10]}  "
                  f"new = {head}  steps={args.steps} warmup={args.warmup} rounds={args.rounds}")
     if args.note:
@@ -107,7 +99,7 @@ def main() -> None:
         for k in KINDS:
             same = "yes" if o[k + "_digest"] == n[k + "_digest"] else "no"
             lines.append(f"{f'{s}x{s}':>9}  {k:<8}{o[k]:>9.2f}{n[k]:>9.2f}{o[k] / n[k]:>7.2f}  {same}")
-    write_table("\n".join(lines), args.out)
+    shared.write_table("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":

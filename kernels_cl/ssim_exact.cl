@@ -43,40 +43,31 @@ __kernel void ssim_x_maps(__global const float* x, __global const float* y,  // 
     src[4 * n + i] = a * b;
 }
 
-/* One output of scipy's correlate1d loop along a line (the rows pass): in double, acc = m[i]·w0, then for
- * k = 5, 4, …, 1 acc += (m[i − k] + m[i + k])·wk with 0.0 outside the line, rounded to float32. ``at(d)``: the line's
- * value d steps from the output's own, pos its position on the line of length len. Every load is made (the step
- * clamped into the line; the clamp is the same for a whole row of work-items) and a value outside the line is
- * selected away: no conditional load, which kept PoCL's vectoriser off. */
-#define CORR_OFF(at, pos, len, w, out)                                                  \
+/* One output of scipy's correlate1d loop along a line: in double, acc = m[i]·w0, then for k = 5, 4, …, 1
+ * acc += (m[i − k] + m[i + k])·wk with 0.0 outside the line, rounded to float32. ``at(d)``: the line's value d steps
+ * from the output's own, pos its position on the line of length len. Every load is made and a value outside the line
+ * is selected away: no conditional load, which kept PoCL's vectoriser off. ``left(k, pos, len)`` / ``right(...)``: the
+ * steps loaded for tap k, either clamped into the line (CORR_OFF, the rows pass: the clamp is the same for a whole row
+ * of work-items) or not (CORR_COL, the columns pass: into the neighbouring row, or the margin of RADIUS·C values the
+ * buffer has before and after the maps, never used; addresses that follow the work-item index in every lane). */
+#define CORR_SEL(at, left, right, pos, len, w, out)                                     \
     do {                                                                                \
         double acc_ = (double)(at(0)) * w[0];                                           \
         _Pragma("unroll") for (int k_ = RADIUS; k_ >= 1; --k_) {                         \
-            const double lv_ = (double)(at(-min(k_, (pos))));                           \
-            const double rv_ = (double)(at(min(k_, (len) - 1 - (pos))));                \
+            const double lv_ = (double)(at(left(k_, (pos), (len))));                    \
+            const double rv_ = (double)(at(right(k_, (pos), (len))));                   \
             const double l_ = ((pos) - k_ >= 0) ? lv_ : 0.0;                            \
             const double r_ = ((pos) + k_ < (len)) ? rv_ : 0.0;                         \
             acc_ += (l_ + r_) * w[k_];                                                  \
         }                                                                               \
         out = (float)acc_;                                                              \
     } while (0)
-
-/* CORR along a row (the columns pass) for the element-wise kernels: the loads at d = -RADIUS .. RADIUS steps are
- * made whatever the position (into the neighbouring row, or the margin of RADIUS·C values the buffer has before and
- * after the maps: never used) and the values outside the line are selected away: the same sums, and loads whose
- * addresses follow the work-item index in every lane. */
-#define CORR_COL(at, pos, len, w, out)                                                  \
-    do {                                                                                \
-        double acc_ = (double)(at(0)) * w[0];                                           \
-        _Pragma("unroll") for (int k_ = RADIUS; k_ >= 1; --k_) {                         \
-            const double lv_ = (double)(at(-k_));                                       \
-            const double rv_ = (double)(at(k_));                                        \
-            const double l_ = ((pos) - k_ >= 0) ? lv_ : 0.0;                            \
-            const double r_ = ((pos) + k_ < (len)) ? rv_ : 0.0;                         \
-            acc_ += (l_ + r_) * w[k_];                                                  \
-        }                                                                               \
-        out = (float)acc_;                                                              \
-    } while (0)
+#define STEP_L_CLAMPED(k, pos, len) (-min((k), (pos)))
+#define STEP_R_CLAMPED(k, pos, len) (min((k), (len) - 1 - (pos)))
+#define STEP_L(k, pos, len) (-(k))
+#define STEP_R(k, pos, len) (k)
+#define CORR_OFF(at, pos, len, w, out) CORR_SEL(at, STEP_L_CLAMPED, STEP_R_CLAMPED, pos, len, w, out)
+#define CORR_COL(at, pos, len, w, out) CORR_SEL(at, STEP_L, STEP_R, pos, len, w, out)
 
 /* Element-wise forms: per value the operations of the numpy reference (and of the per-pixel kernels they
  * replaced), one work-item per value of [H, W, C] on a 2D range (x: the W·C values of a row, y: the row), scalar, its
@@ -106,6 +97,20 @@ __kernel void ssim_x_rows_e(__global const float* src,   // [KMAPS, H, W, C]
 }
 #endif
 
+/* The columns pass of an element-wise kernel over the K maps of tmp (a margin before them): the work-item's value i
+ * (row py, column px) and f[k] = G_cols * tmp[k] at i, k < K. Returns from the kernel outside the image. */
+#define COLUMNS_PASS(K)                                                                 \
+    const int j = get_global_id(0), py = get_global_id(1);                              \
+    const int row = W * C, n = H * row;                                                 \
+    if (j >= row || py >= H) return;                                                    \
+    const int i = py * row + j, px = j / C;                                             \
+    tmp += margin;                                                                      \
+    float f[K];                                                                         \
+    _Pragma("unroll") for (int k = 0; k < (K); ++k) {                                   \
+        CORR_COL(AT_COL, px, W, w, f[k]);                                               \
+    }
+#define AT_COL(d) tmp[k * n + i + (d) * C]
+
 __kernel void ssim_x_fwd_h_e(__global const float* tmp,   // margin, [5, H, W, C], margin
                              const int margin,
                              __constant double* w,
@@ -114,18 +119,7 @@ __kernel void ssim_x_fwd_h_e(__global const float* tmp,   // margin, [5, H, W, C
                              __global float* ssim_map,    // [H, W, C]
                              __global float* d)           // [3, H, W, C]
 {
-    const int j = get_global_id(0), py = get_global_id(1);
-    const int row = W * C, n = H * row;
-    if (j >= row || py >= H) return;
-    const int i = py * row + j, px = j / C;
-    tmp += margin;
-    float f[5];
-#pragma unroll
-    for (int k = 0; k < 5; ++k) {
-#define AT(d) tmp[k * n + i + (d) * C]
-        CORR_COL(AT, px, W, w, f[k]);
-#undef AT
-    }
+    COLUMNS_PASS(5);
     const float mu_x = f[0], mu_y = f[1], s_xx = f[2], s_yy = f[3], s_xy = f[4];
     const float mu_xy = mu_x * mu_y;
     const float a1 = 2.0f * mu_xy + c1;
@@ -152,18 +146,7 @@ __kernel void ssim_x_bwd_h_e(__global const float* x, __global const float* y,  
                              const float l1,
                              __global float* v_x)                               // [H, W, C]
 {
-    const int j = get_global_id(0), py = get_global_id(1);
-    const int row = W * C, n = H * row;
-    if (j >= row || py >= H) return;
-    const int i = py * row + j, px = j / C;
-    tmp += margin;
-    float f[3];
-#pragma unroll
-    for (int k = 0; k < 3; ++k) {
-#define AT(d) tmp[k * n + i + (d) * C]
-        CORR_COL(AT, px, W, w, f[k]);
-#undef AT
-    }
+    COLUMNS_PASS(3);
     const float a = x[i], b = y[i];
     const float e = a - b;
     const float s = e > 0.0f ? 1.0f : (e < 0.0f ? -1.0f : (e == 0.0f ? 0.0f : e));
