@@ -166,41 +166,41 @@ def main() -> None:
         print(f"{k:<32}{ms(min(rows_w[k])):>9.2f}{ms(min(rows_h[k])):>9.2f}{ms(np.median(rows_h[k])):>9.2f}")
 
 
-def resumed_trainer(args, run: Path):
-    """A trainer resumed from a copy of ``--resume`` (at ``--checkpoint``), with no checkpoint written while
-    profiling."""
+def copied_trainer(src, run: Path, option: str, checkpoint: str | None = None):
+    """A trainer resumed from a copy of the trained run ``src`` (given as ``option``) in ``run``, at ``checkpoint``
+    (default: its latest)."""
     import shutil
-    from dataclasses import replace
 
     from triplet_cl import train as train_mod
 
-    src = Path(args.resume)
+    src = Path(src)
     if not (src / "config.json").is_file():
-        raise SystemExit(f"step_profile.py: error: --resume {src} is not a trained run (no config.json)")
+        raise SystemExit(f"step_profile.py: error: {option} {src} is not a trained run (no config.json)")
     shutil.copytree(src, run, ignore=shutil.ignore_patterns("renders", "mesh*", "*.tmp"))
-    if args.checkpoint is not None:
-        if not (run / "checkpoints" / args.checkpoint).is_file():
-            raise SystemExit(f"step_profile.py: error: --checkpoint {args.checkpoint} is not in {src}/checkpoints")
-        (run / "checkpoints" / "latest").write_text(args.checkpoint)
-    tr = train_mod.Trainer(None, run, resume=True, quiet=True)
+    if checkpoint is not None:
+        if not (run / "checkpoints" / checkpoint).is_file():
+            raise SystemExit(f"step_profile.py: error: --checkpoint {checkpoint} is not in {src}/checkpoints")
+        (run / "checkpoints" / "latest").write_text(checkpoint)
+    return train_mod.Trainer(None, run, resume=True, quiet=True)
+
+
+def resumed_trainer(args, run: Path):
+    """``--resume``: the trainer at ``--checkpoint``, with no checkpoint written while profiling."""
+    from dataclasses import replace
+
+    tr = copied_trainer(args.resume, run, "--resume", args.checkpoint)
     tr.cfg = replace(tr.cfg, iterations=10**6, checkpoint_every=0)
     return tr
 
 
 def mesh_profile(args, dev, kern_t, kern_n, total_k, op_wall, op_host) -> None:
     """``--mesh RUN``: the same tables for the mesh stage's refinement step (means over ``--steps`` steps)."""
-    import shutil
     from dataclasses import replace
 
-    from triplet_cl import train as train_mod
     from triplet_cl.mesh import refine as refine_mod
 
-    if not (Path(args.mesh) / "config.json").is_file():
-        raise SystemExit(f"step_profile.py: error: --mesh {args.mesh} is not a trained run (no config.json)")
     with tempfile.TemporaryDirectory(prefix="step_profile_mesh_") as d:
-        run = Path(d) / "run"
-        shutil.copytree(args.mesh, run, ignore=shutil.ignore_patterns("renders", "mesh*", "*.tmp"))
-        tr = train_mod.Trainer(None, run, resume=True, quiet=True)
+        tr = copied_trainer(args.mesh, Path(d) / "run", "--mesh")
         dev[0] = tr.device
         cfg = replace(refine_mod.MeshConfig(), iterations=max(args.warmup, 1), remesh_every=0, pixel_sigma=0.5)
         st = refine_mod.MeshStage(tr, cfg, quiet=True)

@@ -609,28 +609,12 @@ class Composite(Function):
 # ---------------------------------------------------------------------------------------------- render
 
 
-class PixelFilter(Function):
-    """``x [H f, W f(, C)] → [H, W(, C)]`` (device arrays, ``ops/downsample.py``): the mean of each ``f × f`` block
-    (``sigma`` 0), or the Gaussian pixel filter of standard deviation ``sigma`` output pixels."""
-
-    def __init__(self, device: Device, f: int, sigma: float = 0.0):
-        self.device, self.f, self.sigma = device, int(f), float(sigma)
-
-    def forward(self, ctx, x):
-        if self.sigma > 0:
-            return downsample_op.gauss_down(self.device, x, self.f, self.sigma)
-        return downsample_op.box_down(self.device, x, self.f)
-
-    def backward(self, ctx, v):
-        if self.sigma > 0:
-            return downsample_op.gauss_up(self.device, v, self.f, self.sigma)
-        return downsample_op.box_up(self.device, v, self.f)
-
-
 class PixelFilterRGBA(Function):
-    """``(image [H f, W f, 3], acc [H f, W f]) → (image [H, W, 3], acc [H, W])``: :class:`PixelFilter` of a render's
-    radiance and alpha together (the Gaussian: one four-channel pass per axis, ``downsample.gauss_down_rgba``, the
-    same values as two filters in a third of their time; the box: two :func:`~triplet_cl.ops.downsample.box_down`)."""
+    """``(image [H f, W f, 3], acc [H f, W f]) → (image [H, W, 3], acc [H, W])`` (device arrays, ``ops/downsample.py``):
+    a render's radiance and alpha filtered down together, by the Gaussian pixel filter of standard deviation ``sigma``
+    output pixels (one four-channel pass per axis, ``downsample.gauss_down_rgba``) or, ``sigma`` 0, the mean of each
+    ``f × f`` block (``downsample.box_down``). The tape hands the adjoint device arrays for both outputs (a device
+    zero for one the loss does not read)."""
 
     def __init__(self, device: Device, f: int, sigma: float = 0.0):
         self.device, self.f, self.sigma = device, int(f), float(sigma)
@@ -641,17 +625,9 @@ class PixelFilterRGBA(Function):
         return downsample_op.box_down(self.device, img, self.f), downsample_op.box_down(self.device, acc, self.f)
 
     def backward(self, ctx, v_img, v_acc):
-        d = self.device
-        # through the tape v_acc is a device array (the tape hands an unused output a device zero); a direct caller may
-        # pass None or 0 (no alpha cotangent: the filter's alpha channel is then skipped) or a host array
-        if not isinstance(v_acc, cla.Array):
-            v_acc = None if _is_zero_scalar(v_acc) or not np.asarray(v_acc).any() else \
-                cla.to_device(d.queue, np.ascontiguousarray(v_acc, v_img.dtype))
         if self.sigma > 0:
-            return downsample_op.gauss_up_rgba(d, v_img, v_acc, self.f, self.sigma)
-        v_acc_x = (downsample_op.box_up(d, v_acc, self.f) if v_acc is not None else
-                   cla.zeros(d.queue, (v_img.shape[0] * self.f, v_img.shape[1] * self.f), v_img.dtype))
-        return downsample_op.box_up(d, v_img, self.f), v_acc_x
+            return downsample_op.gauss_up_rgba(self.device, v_img, v_acc, self.f, self.sigma)
+        return downsample_op.box_up(self.device, v_img, self.f), downsample_op.box_up(self.device, v_acc, self.f)
 
 
 class Stack(Function):
