@@ -290,7 +290,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         tv = tr.ds["test"][: tr.cfg.max_test_views or None]
         check_references(spec, [v.name for v in tv], args.env_degree, [(v.camera.width, v.camera.height) for v in tv],
-                         writes_out=args.out is not None)
+                         writes_out=args.out is not None, cameras=[v.camera for v in tv])
         check_vertex_sh(load_light_sets(spec, args.env_degree), tr.scene.vertex_sh is not None)
     m = tr.evaluate("test")
     m.update({"iterations": tr.it, "faces": len(tr.scene.F)})

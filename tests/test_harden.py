@@ -2068,3 +2068,109 @@ def test_a_checkpoints_file_is_named_as_such(run, tmp_path, capsys):
     (run / "checkpoints").write_text("x")
     rc, err, _ = _run_cli(["render", run, "--out", tmp_path / "r"], capsys)
     assert rc == 2 and "checkpoints is a file" in err and err.count("\n") == 1, err
+
+
+# ---- battery 5 (session 44) -------------------------------------------------------------------------------
+
+
+def test_overwrite_refuses_the_user_s_files_inside_the_run_s_own_folders(run, capsys):
+    """--overwrite looked only at the run's top level: the user's notes in renders/test/, a photo in a folder of their
+    own under renders/, a backup in checkpoints/, a file in relight/ and a mesh.obj of their own went with the run."""
+    (run / "renders" / "test" / "notes.txt").write_text("notes")
+    (run / "renders" / "mine").mkdir()
+    (run / "renders" / "mine" / "photo.jpg").write_bytes(b"x")
+    (run / "checkpoints" / "my_backup.txt").write_text("keep")
+    (run / "relight").mkdir()
+    (run / "relight" / "a.txt").write_text("mine")
+    (run / "mesh.obj").write_text("v 0 0 0\n")
+    before = _tree(run)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], capsys)
+    assert rc == 2 and "not written by triplet" in err and err.count("\n") == 1, err
+    for name in ("checkpoints/my_backup.txt", "mesh.obj", "relight/a.txt", "renders/mine/photo.jpg"):
+        assert name in err, (name, err)
+    assert _tree(run) == before
+    # what triplet writes there does not stop it: its renders, manifests, checkpoints and signed mesh files
+    for p in ("renders/test/notes.txt", "renders/mine/photo.jpg", "checkpoints/my_backup.txt", "relight/a.txt"):
+        (run / p).unlink()
+    (run / "relight" / "point").mkdir()
+    (run / "relight" / "point" / "r_0.png").write_bytes(b"png")
+    (run / "relight" / "point" / ".triplet-output").write_text('{"files": ["r_0.png"]}')
+    (run / "mesh.obj").write_text("# triplet_cl mesh: 1 vertices, 0 faces\n")
+    rc, err, _ = _run_cli(["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], capsys)
+    assert rc == 0, err
+    assert not (run / "mesh.obj").exists()
+
+
+@pytest.mark.parametrize("name", ["mesh.obj", "mesh.ply", "mesh.glb"])
+def test_extract_and_export_refuse_the_user_s_mesh_files_in_the_run(run, capsys, name):
+    """`extract RUN` and `export RUN` (into the run) replaced a mesh.obj / mesh.ply the user had put there."""
+    from triplet_cl.mesh.refine import MeshConfig, save_mesh_state
+    from triplet_cl.scene import Scene
+
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    from triplet_cl.lights import PointLight
+
+    save_mesh_state(run / "mesh_stage.npz", Scene.from_arrays(V, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+                                                              lights=[PointLight([0, 0, 3], [1, 1, 1])]),
+                    MeshConfig())
+    (run / name).write_bytes(b"USER MESH\n")
+    before = _tree(run)
+    fmt = name.split(".")[1]
+    for argv in (["extract", run, "--formats", fmt], ["export", run, "--formats", fmt]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and name in err and "not written by triplet" in err and err.count("\n") == 1, (argv, err)
+        assert _tree(run) == before
+    # triplet's own file of that name is replaced as before
+    (run / name).unlink()
+    rc, err, _ = _run_cli(["export", run, "--formats", fmt], capsys)
+    assert rc == 0, err
+    rc, err, _ = _run_cli(["export", run, "--formats", fmt], capsys)
+    assert rc == 0, err
+
+
+def test_eval_relight_checks_the_references_cameras(run, tmp_path, capsys):
+    """relight.json's "cameras" (the transforms its references were rendered from) was never read: a missing file or
+    other cameras than the run's test views went unnoticed. Checked before any work; the run's own cameras pass."""
+    rd = _relight_refs(tmp_path / "rel")
+    doc = json.loads((rd / "relight.json").read_text())
+    before = _tree(run)
+    data = Path(json.loads((run / "config.json").read_text())["data"])
+    for cams, needle in (("../nope.json", "file not found"), (7, "expected the name of a transforms JSON"),
+                         (str(data / "transforms_train.json"), "is not the run's test camera")):
+        (rd / "relight.json").write_text(json.dumps({**doc, "cameras": cams}))
+        rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
+        assert rc == 2 and "cameras" in err and needle in err and err.count("\n") == 1, (cams, err)
+        assert "PSNR" not in out and _tree(run) == before
+    (rd / "relight.json").write_text(json.dumps({**doc, "cameras": str(data / "transforms_test.json")}))
+    rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "cameras" not in err and "sets.a.images" in err, err  # past the cameras: the next check
+
+
+def test_a_file_given_as_the_dataset_folder_is_named_as_such(tmp_path):
+    """`train FILE` said "dataset folder not found" for a file that exists."""
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.errors import DatasetError
+
+    f = tmp_path / "afile"
+    f.write_text("x")
+    with pytest.raises(DatasetError, match="is a file, not a dataset folder"):
+        load_dataset(f)
+    with pytest.raises(DatasetError, match="dataset folder not found"):
+        load_dataset(tmp_path / "nothing")
+
+
+def test_json_files_with_a_byte_order_mark_are_read(demo_copy, tmp_path):
+    """A transforms file or relight.json saved with a UTF-8 BOM (Windows editors) was refused with "Unexpected UTF-8
+    BOM (decode using utf-8-sig)"."""
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.relight import load_light_sets
+
+    d = tmp_path / "bom"
+    shutil.copytree(demo_copy, d)
+    for name in ("transforms_train.json", "transforms_test.json"):
+        p = d / name
+        p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
+    assert len(load_dataset(d).train) == len(load_dataset(demo_copy).train)
+    lf = tmp_path / "l.json"
+    lf.write_bytes(b"\xef\xbb\xbf" + json.dumps({"sets": {"a": {"lights": [_POINT]}}}).encode())
+    assert [s.name for s in load_light_sets(lf, 2)] == ["a"]

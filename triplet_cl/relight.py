@@ -101,7 +101,7 @@ def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise LightFileError(path, "", "the light file does not exist")
     try:
-        doc = json.loads(path.read_text(), object_pairs_hook=strict_json_object)
+        doc = json.loads(path.read_text(encoding="utf-8-sig"), object_pairs_hook=strict_json_object)
     except (OSError, UnicodeDecodeError) as exc:
         raise LightFileError(path, "", f"cannot read it ({exc})") from None
     except json.JSONDecodeError as exc:
@@ -574,12 +574,54 @@ def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
                                  "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
+def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: float = 1e-4) -> None:
+    """``"cameras"`` of a relight.json (a transforms JSON beside it, the cameras its references were rendered from):
+    it names a file that has a frame for each test view (by the image's name), whose pose is the view's camera in
+    the run (within ``tol`` × the camera's distance from the origin). A battery found the key ignored: references of
+    other cameras were scored against the run's test views without a word."""
+    from .datasets.nerf import _matrix, read_json
+    from .errors import DatasetError
+
+    ref = doc.get("cameras")
+    if ref is None:
+        return
+    if not isinstance(ref, str) or not ref:
+        raise LightFileError(spec, "cameras", f"expected the name of a transforms JSON file, found {ref!r}")
+    path = spec.parent / ref
+    if not path.is_file():
+        raise LightFileError(spec, "cameras", f"{path}: file not found")
+    try:
+        data = read_json(path)
+        frames = data.get("frames") if isinstance(data, dict) else None
+        if not isinstance(frames, list):
+            raise DatasetError(path, "expected an object with a list 'frames'")
+        poses = {}
+        for i, fr in enumerate(frames):
+            if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str) or "transform_matrix" not in fr:
+                raise DatasetError(path, f"frames[{i}]: expected an object with file_path and transform_matrix")
+            poses[Path(fr["file_path"]).stem] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
+    except DatasetError as exc:
+        raise LightFileError(spec, "cameras", str(exc)) from None
+    gl_to_cv = np.diag([1.0, -1.0, -1.0, 1.0])
+    for name, cam in zip(view_names, cameras, strict=True):
+        key = Path(name).stem
+        if key not in poses:
+            raise LightFileError(spec, "cameras", f"{path} has no frame for the test view {name}")
+        mine = (cam.c2w @ gl_to_cv)[:3]
+        scale = max(1.0, float(np.linalg.norm(cam.center)))
+        if not np.allclose(poses[key][:3], mine, rtol=0, atol=tol * scale):
+            raise LightFileError(spec, "cameras", f"{path}: the pose of {key} is not the run's test camera {name} "
+                                                  "(the references were rendered from other cameras than the run's "
+                                                  "test views)")
+
+
 def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None,
-                     writes_out: bool = False) -> None:
+                     writes_out: bool = False, cameras=None) -> None:
     """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
     ``albedo`` folder, one PNG per test view) and, with ``sizes`` (``(width, height)`` per view), reads as an image of
     its view's size; the albedo's covers some pixel; with ``writes_out`` (``eval --out``), no set is named ``albedo``
-    beside an albedo folder (their renders would share ``OUT/STAGE/albedo``). Checked before any rendering, one error
+    beside an albedo folder (their renders would share ``OUT/STAGE/albedo``); with ``cameras`` (the views'), the
+    file's ``"cameras"`` agree with them (:func:`check_reference_cameras`). Checked before any rendering, one error
     naming the file."""
     from .datasets.images import read_image
     from .errors import DatasetError
@@ -587,6 +629,8 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
     rdir = Path(relight_dir)
     spec = rdir / "relight.json" if rdir.is_dir() else rdir
     doc = _read_json(spec)
+    if cameras is not None:
+        check_reference_cameras(spec, doc, view_names, cameras)
     folders = []
     alb = doc.get("albedo")
     for ls in load_light_sets(spec, env_degree):
@@ -641,6 +685,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
     env_degree = ENV_DEGREE if env_degree is None else int(env_degree)
     sets = load_light_sets(spec, env_degree)
     views = relighter.views("test")
+    check_reference_cameras(spec, doc, [v.name for v in views], [v.camera for v in views])
     bg = np.ones(3, np.float32)
 
     def ref(folder: Path, v):

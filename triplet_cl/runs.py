@@ -258,7 +258,9 @@ def mark_output_dir(folder, names) -> None:
 def foreign_files(folder, names) -> list[str]:
     """Of ``names`` (files triplet would write into ``folder``), those that exist and that triplet
     did not make: not listed in the folder's ``.triplet-output`` manifest, and the folder is neither a run
-    directory nor one of a run's own output folders (``RUN/renders/...``, ``RUN/relight/...``). Any other folder
+    directory nor one of a run's own output folders (``RUN/renders/...``, ``RUN/relight/...``); in the run directory
+    itself, the mesh files without triplet's signature (:func:`made_by_triplet`: a battery found ``extract`` and
+    ``export`` replacing the user's ``mesh.obj`` there). Any other folder
     inside a run is the user's like any folder (a battery found ``render RUN --out RUN/my_stuff`` replacing the
     user's ``r_0.png`` there)."""
     folder = Path(folder)
@@ -268,11 +270,33 @@ def foreign_files(folder, names) -> list[str]:
     for root in [resolved, *list(resolved.parents)[:3]]:
         if is_run_dir(root):
             rel = resolved.relative_to(root).parts
-            if not rel or rel[0] in RUN_OUTPUT_FOLDERS:  # the run itself, or where its commands write by default
+            if not rel:  # the run itself: its files may be replaced, unless they are mesh files the user made
+                return [n for n in names if made_by_triplet(resolved / n) is False]
+            if rel[0] in RUN_OUTPUT_FOLDERS:  # where the run's commands write by default
                 return []
             break
     mine = _manifest(folder)
     return [n for n in names if (folder / n).exists() and n not in mine]
+
+
+# the mesh files whose writers sign them (the OBJ's / MTL's first comment, the PLY header's comment, the glTF's
+# asset.generator all say "triplet_cl"): a file of that name without the signature is the user's
+_SIGNED_SUFFIXES = frozenset({".obj", ".mtl", ".ply", ".glb", ".gltf"})
+_SIGNATURE = b"triplet_cl"
+
+
+def made_by_triplet(path) -> bool | None:
+    """Whether the existing file ``path`` is one triplet wrote: for a signed kind (OBJ, MTL, PLY, glTF / GLB) its
+    first 64 kB hold the signature; None for a file of another kind (no way to tell) or no regular file."""
+    p = Path(path)
+    if p.suffix.lower() not in _SIGNED_SUFFIXES or not p.is_file():
+        return None
+    try:
+        with open(p, "rb") as f:
+            head = f.read(65536)
+    except OSError:
+        return False
+    return _SIGNATURE in head
 
 
 # what triplet writes into a run folder (train, extract, export, eval, relight, render): ``--overwrite`` replaces a run
@@ -283,10 +307,44 @@ RUN_ENTRIES = frozenset({CONFIG, CHECKPOINTS, *RUN_OUTPUT_FOLDERS, "train.log", 
 _RUN_MESH_RE = re.compile(r"^mesh(_[a-z0-9]+)?\.(glb|gltf|obj|mtl|ply|png|bin)$")
 
 
+_JUNK = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
+_IMAGE_SUFFIXES = frozenset({".png", ".exr"})  # what triplet writes into renders/ and relight/
+
+
+def _foreign_in_outputs(folder: Path, rel: str) -> list[str]:
+    """Files under a run's own output folder (``renders/``, ``relight/``) that triplet did not write: not an image of
+    the kinds it writes, not listed in their folder's manifest, not its temp files (paths relative to the run)."""
+    out = []
+    mine = _manifest(folder)
+    for e in sorted(folder.iterdir(), key=lambda e: e.name):
+        name = f"{rel}/{e.name}"
+        if e.is_dir() and not e.is_symlink():
+            out += _foreign_in_outputs(e, name)
+        elif not (e.name in mine or e.name in _JUNK or e.name == OUTPUT_MARKER or _TEMP_RE.match(e.name)
+                  or (e.is_file() and e.suffix.lower() in _IMAGE_SUFFIXES)):
+            out.append(name)
+    return out
+
+
 def foreign_run_entries(run) -> list[str]:
-    """The entries of the run folder ``run`` that triplet does not write there (sorted names)."""
-    return sorted(e.name for e in Path(run).iterdir()
-                  if e.name not in RUN_ENTRIES and not _RUN_MESH_RE.match(e.name) and not _TEMP_RE.match(e.name))
+    """The entries of the run folder ``run`` that triplet does not write there (sorted paths relative to the run):
+    other names at its top level, mesh files without triplet's signature (:func:`made_by_triplet`), and inside its
+    own folders other files than its checkpoints (``checkpoints/``) and images (``renders/``, ``relight/``): a
+    battery found ``--overwrite`` deleting the user's notes kept in ``renders/test/`` and ``checkpoints/``."""
+    run = Path(run)
+    out = []
+    for e in sorted(run.iterdir(), key=lambda e: e.name):
+        if e.name not in RUN_ENTRIES and not _RUN_MESH_RE.match(e.name) and not _TEMP_RE.match(e.name):
+            out.append(e.name)
+        elif _RUN_MESH_RE.match(e.name) and made_by_triplet(e) is False:
+            out.append(e.name)
+        elif e.name == CHECKPOINTS and e.is_dir() and not e.is_symlink():
+            out += [f"{CHECKPOINTS}/{c.name}" for c in sorted(e.iterdir(), key=lambda c: c.name)
+                    if not (c.is_file() and (_CKPT_RE.match(c.name) or c.name == "latest"))
+                    and c.name not in _JUNK and not _TEMP_RE.match(c.name)]
+        elif e.name in RUN_OUTPUT_FOLDERS and e.is_dir() and not e.is_symlink():
+            out += _foreign_in_outputs(e, e.name)
+    return out
 
 
 @contextlib.contextmanager

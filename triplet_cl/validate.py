@@ -507,6 +507,12 @@ def check_mesh_outputs(run_dir, formats, test_views=None) -> None:
     renders = [f"renders/mesh/{n}" for n in render_files(test_views)] if test_views else []
     check_output_slots(run_dir, ["mesh_stage.npz", "metrics.json", *mesh_output_names(formats), *renders],
                        "the mesh stage")
+    from .runs import foreign_files
+
+    found = foreign_files(run_dir, mesh_output_names(formats))
+    if found:
+        raise UsageError("RUN", f"{run_dir} holds {', '.join(found)}, not written by triplet: the mesh stage would "
+                                "replace it; move it away first (nothing was touched)")
 
 
 def check_output_slots(run_dir, names, who: str) -> None:

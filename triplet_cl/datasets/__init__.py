@@ -63,7 +63,7 @@ def detect_format(path) -> str:
     if path.is_file() and path.suffix.lower() == ".json":
         return "ngp"
     if not path.is_dir():
-        raise DatasetError(path, "dataset folder not found")
+        raise DatasetError(path, "is a file, not a dataset folder" if path.exists() else "dataset folder not found")
     for name in ("transforms_train.json", "transforms.json"):
         if (path / name).exists() and not (path / name).is_file():
             raise DatasetError(path / name, "is a folder (or not a regular file); expected the JSON file")

@@ -357,7 +357,7 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
     """
     root = Path(root)
     if not root.is_dir():
-        raise DatasetError(root, "dataset folder not found")
+        raise DatasetError(root, "is a file, not a dataset folder" if root.exists() else "dataset folder not found")
     model = find_model(root)
     if model is None:
         raise DatasetError(root, "no COLMAP model found (looked for cameras/images .bin or .txt in sparse/0/, "

@@ -35,7 +35,7 @@ def read_json(path: Path) -> dict:
     if not path.is_file():
         raise DatasetError(path, "file not found")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a BOM (Windows editors) is no error
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(path, f"cannot read the file: {exc}") from exc
     try:
