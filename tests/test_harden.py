@@ -2174,3 +2174,16 @@ def test_json_files_with_a_byte_order_mark_are_read(demo_copy, tmp_path):
     lf = tmp_path / "l.json"
     lf.write_bytes(b"\xef\xbb\xbf" + json.dumps({"sets": {"a": {"lights": [_POINT]}}}).encode())
     assert [s.name for s in load_light_sets(lf, 2)] == ["a"]
+
+
+def test_a_non_finite_number_in_config_json_is_named(run, capsys):
+    """config.json with "sigma": NaN was reported as "checkpoint belongs to another configuration (sigma: checkpoint
+    2.0, config.json nan)"."""
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["train"]["sigma"] = float("nan")
+    (run / "config.json").write_text(json.dumps(cfg))
+    before = _tree(run)
+    for argv in (["eval", run], ["train", DEMO, "--out", run, "--resume", "--iterations", "6"]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "sigma must be a finite number, got nan" in err and err.count("\n") == 1, (argv, err)
+    assert _tree(run) == before

@@ -295,6 +295,10 @@ class TrainConfig:
         return cls(**d)
 
     def validate(self) -> None:
+        for f in fields(self):  # a NaN / Inf number (an edited config.json) is named first, whatever the field
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{f.name} must be a finite number, got {v}")
         bad = [x for x in self.lights if x not in LIGHT_KINDS]
         if bad or not self.lights:
             raise ValueError(f"lights must be a non-empty mix of {LIGHT_KINDS}, got {list(self.lights)}")
