@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import os
 import re
+import shlex
 import shutil
 import sys
 import time
@@ -158,6 +159,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         from triplet_cl.validate import check_mesh_outputs
 
         check_mesh_outputs(out, mesh_cfg.formats)
+    if (out / "config.json").is_file():  # an existing run: not while another process writes it
+        from triplet_cl.runs import lock_run
+
+        lock_run(out)
     dev = get_device(args.device)
     if args.resume:
         from triplet_cl.runs import config_from_saved, read_run_config
@@ -202,6 +207,10 @@ def cmd_train(args: argparse.Namespace) -> int:
                                               "folder?): choose another --out") from None
             tr = None
             try:
+                if made is not None or empty:  # the new run's own lock (an --overwrite's old one stays held, aside)
+                    from triplet_cl.runs import lock_run
+
+                    lock_run(out)
                 tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
                 _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
             except BaseException:  # nothing of the run it had started stays: nothing there was the user's
@@ -223,8 +232,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         metrics = tr.train()
     except KeyboardInterrupt:
         print(f"\ninterrupted at iteration {tr.it}: checkpoint saved in {out / 'checkpoints'}; "
-              f"continue with: triplet train --resume --out {out}", file=sys.stderr)
-        return 130
+              f"continue with: triplet train --resume --out {shlex.quote(str(out))}", file=sys.stderr)
+        return _interrupted_status()
     if args.save_train_renders:
         tr.evaluate("train", write_renders=True)
     print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
@@ -494,7 +503,12 @@ def _run_mesh_stage(tr, cfg) -> int:
 
     stage = MeshStage(tr, cfg)
     print(f"mesh stage: {cfg.method} extraction, {cfg.rounds} round(s) of {cfg.iterations} steps")
-    m = stage.run()
+    try:
+        m = stage.run()
+    except KeyboardInterrupt:  # the soup is complete and saved; the stage's files are written at its end only
+        print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: triplet extract "
+              f"{shlex.quote(str(tr.run_dir))}", file=sys.stderr)
+        return _interrupted_status()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
     if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees
         chamfer += (f" (its outer surface {m['chamfer_surface_to_gt']:.4f}; {100 * m['gt_buried_fraction']:.0f} % of "
@@ -556,6 +570,9 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     cfg = _mesh_config_from_args(args)
     read_metrics(args.run, "extract")  # the stage merges its "mesh" section: a damaged file fails now, not at the end
+    from triplet_cl.runs import lock_run
+
+    lock_run(args.run, "RUN")
     from triplet_cl.validate import check_mesh_outputs
 
     tr = _load_run(args)
@@ -816,8 +833,14 @@ def main(argv: list[str] | None = None) -> int:
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False
     args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv)))
-    with _sigterm_as_interrupt(), _one_line_warnings(args.command):
-        return _dispatch(args)
+    _TERMINATED[0] = False
+    from triplet_cl.runs import release_run_locks
+
+    try:
+        with _sigterm_as_interrupt(), _one_line_warnings(args.command):
+            return _dispatch(args)
+    finally:
+        release_run_locks()  # (the process ends next; in one process running several commands, the next may lock)
 
 
 @contextlib.contextmanager
@@ -841,6 +864,13 @@ def _one_line_warnings(command: str):
         yield
 
 
+_TERMINATED = [False]  # set by SIGTERM: the exit status is then 143 (128 + 15), Ctrl-C's 130
+
+
+def _interrupted_status() -> int:
+    return 143 if _TERMINATED[0] else 130
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
     """SIGTERM (``kill PID``, a scheduler's stop) raises KeyboardInterrupt like Ctrl-C, so that every
@@ -849,6 +879,7 @@ def _sigterm_as_interrupt():
     import signal
 
     def on_term(signum, frame):
+        _TERMINATED[0] = True
         raise KeyboardInterrupt
 
     try:
@@ -888,7 +919,7 @@ def _dispatch(args) -> int:
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return _interrupted_status()
 
 
 if __name__ == "__main__":  # pragma: no cover

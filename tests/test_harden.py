@@ -1441,7 +1441,7 @@ def test_sigterm_during_colmap_removes_its_work_folder(tmp_path, capsys, monkeyp
     photos = _photos(tmp_path / "photos")
     old = signal.getsignal(signal.SIGTERM)
     rc, err, _ = _run_cli(["colmap", photos, "--out", tmp_path / "data"], capsys)
-    assert rc == 130 and "interrupted" in err
+    assert rc == 143 and "interrupted" in err  # 128 + SIGTERM (Ctrl-C: 130)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no .data.tmp-* left, no data/
     assert signal.getsignal(signal.SIGTERM) == old  # the CLI restored the handler
 
@@ -2187,3 +2187,49 @@ def test_a_non_finite_number_in_config_json_is_named(run, capsys):
         rc, err, _ = _run_cli(argv, capsys)
         assert rc == 2 and "sigma must be a finite number, got nan" in err and err.count("\n") == 1, (argv, err)
     assert _tree(run) == before
+
+
+def test_a_run_killed_while_it_was_created_can_be_started_again(tmp_path, capsys):
+    """SIGKILL while `train` created its run left train.log and config.json's temporary file: every command refused the
+    folder ("not a triplet run", also with --overwrite). Those leftovers are triplet's: the new run clears them; a
+    folder holding anything else is still refused, untouched."""
+    out = tmp_path / "pk"
+    out.mkdir()
+    (out / "train.log").write_text("2026-11-27 started\n")
+    (out / ".config.json.x1y2z3ab.tmp").write_text("{")
+    (out / "checkpoints").mkdir()
+    rc, err, _ = _run_cli(["train", DEMO, "--out", out, *TINY_RUN], capsys)
+    assert rc == 0, err
+    assert (out / "config.json").is_file() and not list(out.glob(".config.json.*.tmp"))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "train.log").write_text("x")
+    (other / "notes.txt").write_text("mine")
+    before = _tree(other)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", other, *TINY_RUN], capsys)
+    assert rc == 2 and "is not a triplet run" in err, err
+    assert _tree(other) == before
+
+
+def test_a_run_being_written_by_another_process_is_refused(run, capsys):
+    """`train --resume` / `--overwrite` and `extract` were accepted on a run that another process was training: both
+    wrote the folder. The run folder's lock (flock, dropped when its holder ends) refuses them; afterwards they run."""
+    import subprocess
+    import sys as _sys
+
+    holder = subprocess.Popen([_sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], "
+                               "os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX); print('held', flush=True); "
+                               "time.sleep(60)", str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = _tree(run)
+        for argv in (["train", DEMO, "--out", run, "--resume", "--iterations", "6"],
+                     ["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], ["extract", run]):
+            rc, err, _ = _run_cli(argv, capsys)
+            assert rc == 2 and "being written by another triplet process" in err and err.count("\n") == 1, (argv, err)
+            assert _tree(run) == before
+    finally:
+        holder.kill()
+        holder.wait()
+    rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)
+    assert rc == 0, err

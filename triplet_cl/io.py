@@ -73,8 +73,8 @@ def write_png(path, rgb: np.ndarray, alpha: np.ndarray | None = None) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
+    try:  # from the file's creation on (a signal in between left it behind)
+        os.close(fd)
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise OSError(f"OpenImageIO cannot write PNG files: {oiio.geterror()}")

@@ -326,6 +326,27 @@ def _foreign_in_outputs(folder: Path, rel: str) -> list[str]:
     return out
 
 
+def stillborn_run_leftovers(folder) -> list[Path] | None:
+    """The files a ``train`` killed while creating its run left in ``folder`` (its ``train.log``, the temporary file
+    of its ``config.json``, an empty ``checkpoints/``), when the folder holds nothing else and no ``config.json``;
+    else None. A battery's SIGKILL there left a folder that no command would take: "not a triplet run" for a new
+    run and for ``--overwrite``, "no config.json" for ``--resume``."""
+    folder = Path(folder)
+    if not folder.is_dir() or (folder / CONFIG).exists():
+        return None
+    found = []
+    for e in folder.iterdir():
+        if e.name == "train.log" and e.is_file() and not e.is_symlink():
+            found.append(e)
+        elif _TEMP_RE.match(e.name) and e.is_file() and not e.is_symlink():
+            found.append(e)
+        elif e.name == CHECKPOINTS and e.is_dir() and not e.is_symlink() and not any(e.iterdir()):
+            found.append(e)
+        else:
+            return None
+    return found or None
+
+
 def foreign_run_entries(run) -> list[str]:
     """The entries of the run folder ``run`` that triplet does not write there (sorted paths relative to the run):
     other names at its top level, mesh files without triplet's signature (:func:`made_by_triplet`), and inside its
@@ -370,3 +391,39 @@ def replacing_run(out, overwrite: bool):
         shutil.rmtree(holder, ignore_errors=True)
         raise
     shutil.rmtree(holder, ignore_errors=True)
+
+
+_HELD_LOCKS: list = []  # this process's run locks (folder descriptors), held until its command ends
+
+
+def lock_run(run, option: str = "--out") -> None:
+    """Take the run's lock (an exclusive ``flock`` on the run folder itself: no file is written; kept until the
+    process ends, and the kernel drops it when the process dies, so a killed run leaves no stale lock), or refuse
+    with a :class:`UsageError` when another process holds it. A battery found ``train --resume`` and ``train
+    --overwrite`` accepted on a run that another process was still training: both wrote the folder, and the first
+    one's results were silently replaced. Taken by ``train`` (every mode) and ``extract``; no-op where ``fcntl`` is
+    missing or the folder cannot be opened."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return
+    from .errors import UsageError
+
+    try:
+        fd = os.open(run, os.O_RDONLY)
+    except OSError:  # (the commands' own checks name a missing or unreadable run)
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise UsageError(option, f"{run} is being written by another triplet process (training or its mesh stage): "
+                                 "wait for it to finish, or stop it first (nothing was touched)") from None
+    _HELD_LOCKS.append(fd)
+
+
+def release_run_locks() -> None:
+    """Drop this process's run locks (the end of a command; the CLI's ``main`` in one process runs several)."""
+    while _HELD_LOCKS:
+        with contextlib.suppress(OSError):
+            os.close(_HELD_LOCKS.pop())

@@ -1000,7 +1000,8 @@ class Trainer:
                                     "not there (move the file away, or start again with --overwrite)")
         if not found:
             raise FileNotFoundError(f"no checkpoint in {self.run_dir / 'checkpoints'}: the run's trained state (every "
-                                    "command that reads a run loads it; triplets.ply alone is an export of it)")
+                                    "command that reads a run loads it; triplets.ply alone is an export of it); a run "
+                                    "stopped before its first checkpoint starts again with --overwrite")
         return found[-1]
 
     def save_checkpoint(self) -> Path:

@@ -435,6 +435,15 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
         return
+    from .runs import stillborn_run_leftovers
+
+    left = stillborn_run_leftovers(out)
+    if left:  # a train killed while it created the run: what it left is triplet's, cleared for the new run
+        for p in left:
+            if p.is_dir():
+                p.rmdir()
+            else:
+                p.unlink()
     if out.is_dir() and any(out.iterdir()):
         if not is_run_dir(out):
             raise UsageError(option, f"{out} exists, is not empty and is not a triplet run: choose a new or empty "

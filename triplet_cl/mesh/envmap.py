@@ -196,11 +196,11 @@ def write_exr(path, img: np.ndarray, dtype: str = "half") -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".exr", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make the result private
-    try:
+    try:  # from the file's creation on: a signal between it and the write took the temporary file with it (a battery)
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make the result private
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise OSError(f"OpenImageIO cannot write EXR files: {oiio.geterror()}")
