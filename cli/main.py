@@ -205,12 +205,16 @@ def cmd_train(args: argparse.Namespace) -> int:
 
                     raise UsageError("--out", f"{out} was created meanwhile (another `triplet train` into the same "
                                               "folder?): choose another --out") from None
+            from triplet_cl.runs import lock_run
+
+            lock_run(out)  # the new run's own lock (an --overwrite's old one stays held, aside); refused: nothing done
+            if made is None and not (empty and not any(out.iterdir())):  # filled meanwhile by another process
+                from triplet_cl.errors import UsageError
+
+                raise UsageError("--out", f"{out} was filled meanwhile (another `triplet train` into the same "
+                                          "folder?): choose another --out (nothing was touched)")
             tr = None
             try:
-                if made is not None or empty:  # the new run's own lock (an --overwrite's old one stays held, aside)
-                    from triplet_cl.runs import lock_run
-
-                    lock_run(out)
                 tr = Trainer(data, out, _config_from_args(args), device=dev, data_format=args.data_format)
                 _check_bbox_seen(mesh_cfg, tr)  # needs the dataset's cameras, which the trainer has just read
             except BaseException:  # nothing of the run it had started stays: nothing there was the user's

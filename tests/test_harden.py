@@ -2088,6 +2088,7 @@ def test_overwrite_refuses_the_user_s_files_inside_the_run_s_own_folders(run, ca
     assert rc == 2 and "not written by triplet" in err and err.count("\n") == 1, err
     for name in ("checkpoints/my_backup.txt", "mesh.obj", "relight/a.txt", "renders/mine/photo.jpg"):
         assert name in err, (name, err)
+    assert "and 1 more" in err  # renders/test/notes.txt, the fifth
     assert _tree(run) == before
     # what triplet writes there does not stop it: its renders, manifests, checkpoints and signed mesh files
     for p in ("renders/test/notes.txt", "renders/mine/photo.jpg", "checkpoints/my_backup.txt", "relight/a.txt"):
@@ -2195,20 +2196,22 @@ def test_a_run_killed_while_it_was_created_can_be_started_again(tmp_path, capsys
     folder holding anything else is still refused, untouched."""
     out = tmp_path / "pk"
     out.mkdir()
-    (out / "train.log").write_text("2026-11-27 started\n")
+    (out / "train.log").write_text("2026-11-27 11:59:58,123 INFO dataset ...\n")
     (out / ".config.json.x1y2z3ab.tmp").write_text("{")
     (out / "checkpoints").mkdir()
     rc, err, _ = _run_cli(["train", DEMO, "--out", out, *TINY_RUN], capsys)
     assert rc == 0, err
     assert (out / "config.json").is_file() and not list(out.glob(".config.json.*.tmp"))
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "train.log").write_text("x")
-    (other / "notes.txt").write_text("mine")
-    before = _tree(other)
-    rc, err, _ = _run_cli(["train", DEMO, "--out", other, *TINY_RUN], capsys)
-    assert rc == 2 and "is not a triplet run" in err, err
-    assert _tree(other) == before
+    for extra in ({"notes.txt": "mine"}, {}):  # a file of the user's beside it; a train.log of the user's alone
+        other = tmp_path / f"other{len(extra)}"
+        other.mkdir()
+        (other / "train.log").write_text("my own training notes\n")
+        for k, v in extra.items():
+            (other / k).write_text(v)
+        before = _tree(other)
+        rc, err, _ = _run_cli(["train", DEMO, "--out", other, *TINY_RUN], capsys)
+        assert rc == 2 and "is not a triplet run" in err, err
+        assert _tree(other) == before
 
 
 def test_a_run_being_written_by_another_process_is_refused(run, capsys):
@@ -2233,3 +2236,15 @@ def test_a_run_being_written_by_another_process_is_refused(run, capsys):
         holder.wait()
     rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)
     assert rc == 0, err
+
+
+def test_reference_frames_are_keyed_as_the_views_are_named():
+    """The cameras check matched frames by ``Path.stem``: ``test/frame.0001`` and ``test/frame.0002`` were one key
+    (every view but the last refused as "not the run's test camera"); a repeated name is refused, not overwritten."""
+    from triplet_cl.relight import LightFileError, _frame_key, check_reference_cameras
+
+    assert [_frame_key(p) for p in ("./test/r_0", "test/r_0.png", "test/frame.0001", "x/frame.0002.PNG")] == \
+        ["r_0", "r_0", "frame.0001", "frame.0002"]
+    spec = Path("/nonexistent/relight.json")
+    with pytest.raises(LightFileError, match="file not found"):
+        check_reference_cameras(spec, {"cameras": "t.json"}, [], [])

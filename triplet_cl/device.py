@@ -180,9 +180,12 @@ def resolve_spec(spec: str | None = None):
             f"device index {spec!r} ({source}) does not exist; expected 'P:D' from this list:\n{_describe(entries)}"
         )
     needle = spec.lower()
-    for e in entries:  # the OpenCL C version too: PoCL's platform is "Portable Computing Language", its "OpenCL C
+    for e in entries:
+        if needle in e[0].full_name.lower() or needle == e[0].type.lower():
+            return e
+    for e in entries:  # then the OpenCL C version: PoCL's platform is "Portable Computing Language", its "OpenCL C
         # 1.2 PoCL" (the README's `TRIPLET_DEVICE=pocl` matched nothing, a battery found)
-        if needle in f"{e[0].full_name} {e[0].opencl_c_version}".lower() or needle == e[0].type.lower():
+        if needle in e[0].opencl_c_version.lower():
             return e
     raise DeviceSelectionError(
         f"no OpenCL device matches {spec!r} ({source}: a substring of the platform or device name or of its OpenCL C "

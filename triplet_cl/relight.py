@@ -574,6 +574,15 @@ def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
                                  "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".webp", ".bmp", ".gif")
+
+
+def _frame_key(file_path: str) -> str:
+    """A transforms frame's image name as the views are named (a known image extension dropped, dots kept)."""
+    p = Path(file_path)
+    return p.stem if p.suffix.lower() in _IMAGE_SUFFIXES else p.name
+
+
 def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: float = 1e-4) -> None:
     """``"cameras"`` of a relight.json (a transforms JSON beside it, the cameras its references were rendered from):
     it names a file that has a frame for each test view (by the image's name), whose pose is the view's camera in
@@ -599,12 +608,16 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
         for i, fr in enumerate(frames):
             if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str) or "transform_matrix" not in fr:
                 raise DatasetError(path, f"frames[{i}]: expected an object with file_path and transform_matrix")
-            poses[Path(fr["file_path"]).stem] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
+            key = _frame_key(fr["file_path"])
+            if key in poses:
+                raise DatasetError(path, f"frames[{i}]: a second frame named {key!r} (the references are matched to "
+                                         "the test views by their images' names)")
+            poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None
     gl_to_cv = np.diag([1.0, -1.0, -1.0, 1.0])
     for name, cam in zip(view_names, cameras, strict=True):
-        key = Path(name).stem
+        key = Path(name).name  # the reference images' own key (check_references: NAME.png)
         if key not in poses:
             raise LightFileError(spec, "cameras", f"{path} has no frame for the test view {name}")
         mine = (cam.c2w @ gl_to_cv)[:3]

@@ -326,6 +326,19 @@ def _foreign_in_outputs(folder: Path, rel: str) -> list[str]:
     return out
 
 
+_LOG_LINE_RE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} ")  # train.log's format (asctime first)
+
+
+def _is_triplet_log(path: Path) -> bool:
+    """Whether ``path`` reads as triplet's ``train.log``: every line in its ``asctime`` format (an empty one too)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            lines = [ln for ln in f.read(1 << 20).splitlines() if ln.strip()]
+    except OSError:
+        return False
+    return all(_LOG_LINE_RE.match(ln) for ln in lines)
+
+
 def stillborn_run_leftovers(folder) -> list[Path] | None:
     """The files a ``train`` killed while creating its run left in ``folder`` (its ``train.log``, the temporary file
     of its ``config.json``, an empty ``checkpoints/``), when the folder holds nothing else and no ``config.json``;
@@ -337,6 +350,8 @@ def stillborn_run_leftovers(folder) -> list[Path] | None:
     found = []
     for e in folder.iterdir():
         if e.name == "train.log" and e.is_file() and not e.is_symlink():
+            if not _is_triplet_log(e):  # a train.log of the user's: the folder is theirs
+                return None
             found.append(e)
         elif _TEMP_RE.match(e.name) and e.is_file() and not e.is_symlink():
             found.append(e)
@@ -393,7 +408,7 @@ def replacing_run(out, overwrite: bool):
     shutil.rmtree(holder, ignore_errors=True)
 
 
-_HELD_LOCKS: list = []  # this process's run locks (folder descriptors), held until its command ends
+_HELD_LOCKS: list = []  # this process's run locks ((st_dev, st_ino), folder descriptor), held until its command ends
 
 
 def lock_run(run, option: str = "--out") -> None:
@@ -413,17 +428,24 @@ def lock_run(run, option: str = "--out") -> None:
         fd = os.open(run, os.O_RDONLY)
     except OSError:  # (the commands' own checks name a missing or unreadable run)
         return
+    st = os.fstat(fd)
+    if any(k == (st.st_dev, st.st_ino) for k, _ in _HELD_LOCKS):  # this process holds it already
+        os.close(fd)
+        return
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:
         os.close(fd)
         raise UsageError(option, f"{run} is being written by another triplet process (training or its mesh stage): "
                                  "wait for it to finish, or stop it first (nothing was touched)") from None
-    _HELD_LOCKS.append(fd)
+    except OSError:  # a file system without flock (some FUSE mounts): no lock rather than no run
+        os.close(fd)
+        return
+    _HELD_LOCKS.append(((st.st_dev, st.st_ino), fd))
 
 
 def release_run_locks() -> None:
     """Drop this process's run locks (the end of a command; the CLI's ``main`` in one process runs several)."""
     while _HELD_LOCKS:
         with contextlib.suppress(OSError):
-            os.close(_HELD_LOCKS.pop())
+            os.close(_HELD_LOCKS.pop()[1])

@@ -435,10 +435,11 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
         return
-    from .runs import stillborn_run_leftovers
+    from .runs import lock_run, stillborn_run_leftovers
 
     left = stillborn_run_leftovers(out)
     if left:  # a train killed while it created the run: what it left is triplet's, cleared for the new run
+        lock_run(out, option)  # (not one that another train is creating right now)
         for p in left:
             if p.is_dir():
                 p.rmdir()
