@@ -233,6 +233,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if tr.background_note:
         print(f"  {tr.background_note}")
     try:
+        _raise_if_terminated()
         metrics = tr.train()
     except KeyboardInterrupt:
         print(f"\ninterrupted at iteration {tr.it}: checkpoint saved in {out / 'checkpoints'}; "
@@ -508,6 +509,7 @@ def _run_mesh_stage(tr, cfg) -> int:
     stage = MeshStage(tr, cfg)
     print(f"mesh stage: {cfg.method} extraction, {cfg.rounds} round(s) of {cfg.iterations} steps")
     try:
+        _raise_if_terminated()
         m = stage.run()
     except KeyboardInterrupt:  # the soup is complete and saved; the stage's files are written at its end only
         print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: triplet extract "
@@ -873,6 +875,14 @@ _TERMINATED = [False]  # set by SIGTERM: the exit status is then 143 (128 + 15),
 
 def _interrupted_status() -> int:
     return 143 if _TERMINATED[0] else 130
+
+
+def _raise_if_terminated() -> None:
+    """A SIGTERM whose KeyboardInterrupt was swallowed (raised inside an import lock's callback while the modules
+    loaded: Python prints "Exception ignored" and goes on; a battery saw a killed `train` then train to the end) stops
+    the command here, before its long work."""
+    if _TERMINATED[0]:
+        raise KeyboardInterrupt
 
 
 @contextlib.contextmanager

@@ -2248,3 +2248,20 @@ def test_reference_frames_are_keyed_as_the_views_are_named():
     spec = Path("/nonexistent/relight.json")
     with pytest.raises(LightFileError, match="file not found"):
         check_reference_cameras(spec, {"cameras": "t.json"}, [], [])
+
+
+def test_a_sigterm_swallowed_while_starting_still_stops_training(tmp_path, capsys, monkeypatch):
+    """A SIGTERM during the imports raised its KeyboardInterrupt inside an import lock's callback, which Python ignores:
+    the killed `train` trained to the end. The flag the handler sets stops it before the training."""
+    import triplet_cl.cli.main as cm
+
+    real = cm._raise_if_terminated
+
+    def swallowed():  # the signal arrived and its exception was lost on the way
+        cm._TERMINATED[0] = True
+        real()
+
+    monkeypatch.setattr(cm, "_raise_if_terminated", swallowed)
+    rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "run", *TINY_RUN], capsys)
+    assert rc == 143 and "interrupted" in err, err
+    assert not (tmp_path / "run" / "metrics.json").exists()
