@@ -608,6 +608,11 @@ def cmd_export(args: argparse.Namespace) -> int:
         from triplet_cl.device import resolve_spec
 
         resolve_spec(args.device)
+    out = Path(args.out) if args.out else run
+    if out.resolve() == run.resolve():  # into the run: not while its mesh stage writes the same files
+        from triplet_cl.runs import lock_run
+
+        lock_run(run, "RUN")
     scene = load_mesh_state(run / MESH_STATE)
     asset = MeshAsset.from_scene(scene)
     try:  # before --out is made (and before the UV unwrap, which a vertex far out kept busy for ever)
@@ -616,7 +621,6 @@ def cmd_export(args: argparse.Namespace) -> int:
         from triplet_cl.errors import RunError
 
         raise RunError(run / MESH_STATE, f"cannot be exported ({exc}): run `triplet extract` again") from None
-    out = Path(args.out) if args.out else run
     check_export_out(out, formats, "--out")
     paths = export_run_mesh(out, asset, formats, args.texture_size,
                             albedo_space=albedo_space(run_color(run)))

@@ -2227,7 +2227,7 @@ def test_a_run_being_written_by_another_process_is_refused(run, capsys):
         assert holder.stdout.readline().strip() == "held"
         before = _tree(run)
         for argv in (["train", DEMO, "--out", run, "--resume", "--iterations", "6"],
-                     ["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], ["extract", run]):
+                     ["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], ["extract", run], ["export", run]):
             rc, err, _ = _run_cli(argv, capsys)
             assert rc == 2 and "being written by another triplet process" in err and err.count("\n") == 1, (argv, err)
             assert _tree(run) == before
