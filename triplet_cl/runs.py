@@ -416,8 +416,9 @@ def lock_run(run, option: str = "--out") -> None:
     process ends, and the kernel drops it when the process dies, so a killed run leaves no stale lock), or refuse
     with a :class:`UsageError` when another process holds it. A battery found ``train --resume`` and ``train
     --overwrite`` accepted on a run that another process was still training: both wrote the folder, and the first
-    one's results were silently replaced. Taken by ``train`` (every mode) and ``extract``; no-op where ``fcntl`` is
-    missing or the folder cannot be opened."""
+    one's results were silently replaced. Taken by ``train`` (every mode), ``extract`` and ``export`` into the run;
+    idempotent in one process; no-op where ``fcntl`` is missing, the folder cannot be opened or the file system has no
+    ``flock``."""
     try:
         import fcntl
     except ImportError:  # not POSIX
