@@ -513,7 +513,7 @@ def _run_mesh_stage(tr, cfg) -> int:
         m = stage.run()
     except KeyboardInterrupt:  # the soup is complete and saved; the stage's files are written at its end only
         print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: triplet extract "
-              f"{shlex.quote(str(tr.run_dir))}", file=sys.stderr)
+              f"{shlex.quote(str(tr.run_dir))} (with the same mesh options, if any)", file=sys.stderr)
         return _interrupted_status()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
     if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees
