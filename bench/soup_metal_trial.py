@@ -5,7 +5,7 @@ as a dielectric puts a metal's surface where its highlights are (Chamfer 0.026; 
 mesh stage's rule (lower loss, a metal rougher than 0.8 refused) refused the metal on the metal capture's soup.
 This collects what a soup-stage rule would have to separate, on metals and dielectrics alike; it decides nothing.
 
-    python bench/soup_metal_trial.py DATA [DATA ...] [--at 0.9] [--steps 200] [--iterations N]
+    python bench/soup_metal_trial.py DATA [DATA ...] [--at 0.9] [--steps 200] [--iterations N] [--probe soup|mesh]
 
 ``--at``: the trial's iteration as a fraction of the light phase (``TrainConfig.material_tie_until``).
 """
@@ -69,12 +69,41 @@ def dry_trial(tr, steps: int) -> dict:
             "rule": out["metallic"], "refused": out["refused"], "seconds": time.perf_counter() - t}
 
 
+def mesh_probe(tr) -> dict:
+    """The mesh stage's own decision on a mesh extracted from the soup at ``tr.it``: extraction, the pixel filter, the
+    light phase's tied channels at their means, then ``MeshStage.choose_metallic`` (its rule, roughness refusal
+    included); the soup is not touched."""
+    from triplet_cl.activations import sigmoid
+    from triplet_cl.materials import get_brdf
+    from triplet_cl.mesh.refine import MeshConfig, MeshStage, tied_channels
+
+    t = time.perf_counter()
+    stage = MeshStage(tr, MeshConfig(), quiet=True)
+    mesh = stage.extract(tr.scene)
+    if stage.cfg.pixel_sigma is None:
+        stage.resolve_pixel_filter(mesh)
+    brdf = get_brdf(mesh.brdf)
+    held = stage.held_columns(mesh)
+    tied = [k for k in tied_channels(mesh.brdf) if k not in tr.ambient_pairs[1] and k not in held]
+    m = np.asarray(mesh.material.data)
+    m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
+    out = stage.choose_metallic(mesh, tied, brdf.column("metallic"))
+    lo, hi = out["loss"]["0.01"], out["loss"]["0.99"]
+    rough = brdf.column("roughness")
+    return {"it": tr.it, "loss_dielectric": lo, "loss_metal": hi, "metal_margin_pct": 100 * (lo - hi) / lo,
+            "roughness_dielectric": float(sigmoid(out["tied"]["0.01"][tied.index(rough)])),
+            "roughness_metal": float(sigmoid(out["tied"]["0.99"][tied.index(rough)])),
+            "rule": out["metallic"], "refused": out["refused"], "seconds": time.perf_counter() - t}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("data", nargs="+", type=Path)
     p.add_argument("--at", type=float, default=0.9)
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--iterations", type=int, help="the run's length (default: the trainer's default)")
+    p.add_argument("--probe", choices=("soup", "mesh"), default="soup",
+                   help="the trial on the soup itself, or the mesh stage's on a mesh extracted from it")
     a = p.parse_args(argv)
     from triplet_cl.train import TrainConfig, Trainer
 
@@ -87,7 +116,7 @@ def main(argv=None) -> int:
             at = int(a.at * tr.cfg.material_tie_until)
             while tr.it < at:
                 tr.step()
-            r = dry_trial(tr, a.steps)
+            r = dry_trial(tr, a.steps) if a.probe == "soup" else mesh_probe(tr)
             tr.close_log()
         print(f"| {d.name} | {r['it']} | {r['loss_dielectric']:.5f} | {r['loss_metal']:.5f} | "
               f"{r['metal_margin_pct']:+.2f} | {r['roughness_dielectric']:.2f} / {r['roughness_metal']:.2f} | "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -308,6 +309,7 @@ def test_with_iterations_scales_every_schedule():
     assert (short.warmup_until, short.half_res_until, short.sh_band_every) == (67, 200, 333)
     assert (d.densify_from, d.densify_until, d.interval) == (100, 833, 100)
     assert short.lr_position_steps == 10_000 and d.alpha_reset_interval == 1000
+    assert (short.material_tie_until, short.metallic_probe_at) == (400, 120)  # the probe in the light phase too
     assert d.grad_threshold == ref.density.grad_threshold and d.max_faces == ref.density.max_faces
     long = ref.with_iterations(18_000)
     assert (long.density.densify_from, long.density.densify_until, long.density.interval) == (1800, 15_000, 100)
@@ -593,3 +595,36 @@ def test_targets_keep_only_one_scale():
     t.keep_only(1.0)
     assert sorted(t.cache) == [(0, 1)]
     assert t.get(0, 1.0, np.ones(3, np.float32))[1].shape == (16, 16, 3)
+
+
+def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monkeypatch):
+    """``TrainConfig.metallic_probe_at``: at that step, the mesh stage's trial on a mesh extracted from the soup; a
+    metal verdict sets the soup's metallic column to 0.99 (the light phase then holds it), a dielectric leaves it;
+    recorded in metrics.json. A soup with no surface yet is skipped, not an error; 0 turns the probe off."""
+    from triplet_cl.activations import sigmoid
+    from triplet_cl.mesh import refine
+    from triplet_cl.train import Trainer
+
+    calls = []
+
+    def fake_choose(self, scene, tied, col):  # the verdict under test; the stage's real trial is tested elsewhere
+        calls.append((len(scene.F), col))
+        return {"metallic": 0.99, "loss": {"0.01": 0.2, "0.99": 0.1}, "steps": 1, "tied": {}, "refused": None}
+
+    monkeypatch.setattr(refine.MeshStage, "choose_metallic", fake_choose)
+    data = Path(__file__).resolve().parents[1] / "triplet_cl" / "data" / "spot_small"
+    tiny = TrainConfig(iterations=40, init_points=400, checkpoint_every=0).with_iterations(40)
+    m = Trainer(str(data), tmp_path / "tiny", tiny, quiet=True).train()
+    assert "no surface" in m["metallic_probe"]["skipped"] and calls == []  # a few steps in: no surface yet
+    cfg = replace(TrainConfig(iterations=150, init_points=2000, checkpoint_every=0).with_iterations(150),
+                  metallic_probe_at=54)  # a soup with a surface by then
+    assert 0 < cfg.metallic_probe_at < cfg.material_tie_until
+    tr = Trainer(str(data), tmp_path / "run", cfg, quiet=True)
+    rec = tr.train()["metallic_probe"]
+    assert len(calls) == 1 and rec["metallic"] == 0.99 and rec["it"] == cfg.metallic_probe_at and rec["faces"] > 0
+    col = 4  # Cook-Torrance's metallic, held through the light phase, then per vertex: still a metal at the end
+    assert np.median(sigmoid(np.asarray(tr.scene.material.data[:, col], np.float64))) > 0.5
+    off = Trainer(str(data), tmp_path / "off", replace(tiny, metallic_probe_at=0), quiet=True)
+    assert "metallic_probe" not in off.train()
+    with pytest.raises(ValueError, match="metallic_probe_at must be an integer >= 0"):
+        replace(cfg, metallic_probe_at=-1).validate()

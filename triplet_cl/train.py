@@ -217,6 +217,15 @@ class TrainConfig:
     # 24.94 -> 30.98/30.64/30.55, 26.59 dB; gadget 26.28/26.13/23.81, 17.34 -> 27.13/27.48/26.17, 17.76 (mesh NVS
     # 29.76 -> 30.21); bob_env 29.48/28.98/32.02, 24.42 -> 29.43/28.91/31.49, 23.73 (mesh NVS 35.12 -> 34.34)
     light_phase_lobes: str = "held"
+    # metal or dielectric, decided in the soup (issue 18): at iteration metallic_probe_at (in the light phase, scaled
+    # with the run) a mesh is extracted from the soup and the mesh stage's own trial decides on it
+    # (MeshStage.choose_metallic: a fit of each hypothesis, the lower loss wins, a metal rougher than 0.8 refused);
+    # a metal is then held at 0.99 for the rest of the light phase instead of the initial 0.1. A soup held as a
+    # dielectric put a metal's surface where its highlights were: spot_small re-rendered as a metal (96², two point
+    # lights), surface Chamfer 0.0260 -> 0.0093 when held at 0.99 (bench/results/soup_metallic_pocl_2026-11-27.txt).
+    # The trial on the soup itself (not on a mesh) could not tell the metal from gadget's smooth-shaded dielectric.
+    # 0: no probe.
+    metallic_probe_at: int = 360
     # Blinn-Phong's ambient reflectance ka: "diffuse" keeps it equal to kd (one reflectance lights the diffuse and
     # the ambient term, as Cook-Torrance's albedo does; materials.tie_ambient_gradient / copy_ambient); "free": its
     # own per-vertex channel (runs before 2026-11-26), where shadows and ambient occlusion were painted into ka
@@ -258,7 +267,7 @@ class TrainConfig:
         return replace(self, iterations=int(iterations), warmup_until=sc(ref.warmup_until),
                        half_res_until=sc(ref.half_res_until), sh_band_every=sc(ref.sh_band_every, 1),
                        lr_position_steps=sc(ref.lr_position_steps, 1), prior_from=sc(ref.prior_from),
-                       material_tie_until=sc(ref.material_tie_until),
+                       material_tie_until=sc(ref.material_tie_until), metallic_probe_at=sc(ref.metallic_probe_at),
                        lr_boost_at=sc(ref.lr_boost_at, 1), density=density)
 
     def to_dict(self) -> dict:
@@ -284,6 +293,7 @@ class TrainConfig:
         d.setdefault("shadows", "off")  # saved before the cached shadows: none
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
+        d.setdefault("metallic_probe_at", 0)  # saved before the soup's metallic probe: none
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
         d.setdefault("ao", "learned")  # saved before the AO could be held
@@ -311,6 +321,9 @@ class TrainConfig:
             raise ValueError(f"blinn_phong_ka must be 'diffuse' or 'free', got {self.blinn_phong_ka!r}")
         if self.light_phase_lobes not in LIGHT_PHASE_LOBES:
             raise ValueError(f"light_phase_lobes must be one of {LIGHT_PHASE_LOBES}, got {self.light_phase_lobes!r}")
+        if isinstance(self.metallic_probe_at, bool) or not isinstance(self.metallic_probe_at, int) \
+                or self.metallic_probe_at < 0:
+            raise ValueError(f"metallic_probe_at must be an integer >= 0, got {self.metallic_probe_at!r}")
         if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
             raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
@@ -638,6 +651,7 @@ class Trainer:
                                             ray_eps=self.cfg.shadow_eps)
         self.targets = Targets(self.ds)
         self.it = 0
+        self.metallic_probe = None  # the soup's metal-or-dielectric probe (TrainConfig.metallic_probe_at), once run
         self.last_alpha_reset: int | None = None
         self.order: list[int] = []
         self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
@@ -690,6 +704,8 @@ class Trainer:
         cfg, it = self.cfg, self.it
         scale, K, deg = schedule(cfg, it)
         self.set_env_degree(deg)
+        if 0 < cfg.metallic_probe_at == it < cfg.material_tie_until:
+            self.probe_metallic()
         if cfg.background == "random":
             bg = self.rng.uniform(0, 1, 3)
         else:
@@ -800,6 +816,45 @@ class Trainer:
                               "pruned_screen": report.pruned_screen, "by_error": report.by_error,
                               "error_blocked": report.error_blocked,
                               "spared": report.spared_min_faces, "skipped_budget": report.skipped_max_faces}
+        return rec
+
+    def probe_metallic(self) -> dict | None:
+        """Metal or dielectric for the soup (``TrainConfig.metallic_probe_at``): a mesh extracted from it now, the
+        mesh stage's trial on that mesh (:meth:`~triplet_cl.mesh.refine.MeshStage.choose_metallic`, its light phase's
+        tied channels at their means, as the stage starts), the soup untouched but for its metallic column, set to
+        0.99 for a metal (which the light phase then holds). Deterministic (the stage's own seeded generators; the
+        run's is not drawn from). Returns the trial's record (also in metrics.json), or None without a metallic
+        channel."""
+        from .activations import logit
+        from .mesh.refine import MeshConfig, MeshStage, tied_channels
+
+        brdf = get_brdf(self.scene.brdf)
+        col = brdf.column("metallic")
+        if col is None:
+            return None
+        t = time.perf_counter()
+        stage = MeshStage(self, MeshConfig(), quiet=True)
+        try:
+            mesh = stage.extract(self.scene)
+        except ValueError as exc:  # a soup with no surface yet (a very short run): the dielectric stays
+            self.metallic_probe = {"it": self.it, "skipped": str(exc)}
+            self.log.info(f"soup metallic probe skipped: {exc}")
+            return None
+        if stage.cfg.pixel_sigma is None:
+            stage.resolve_pixel_filter(mesh)
+        held = stage.held_columns(mesh)
+        tied = [k for k in tied_channels(mesh.brdf) if k not in self.ambient_pairs[1] and k not in held]
+        m = np.asarray(mesh.material.data)
+        m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
+        out = stage.choose_metallic(mesh, tied, col)
+        if out["metallic"] > 0.5:
+            self.scene.material.data[:, col] = logit(0.99)
+        rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),
+               "seconds": time.perf_counter() - t}
+        self.metallic_probe = rec
+        self.log.info("soup metallic probe: " + json.dumps(rec))
+        del stage, mesh
+        self.device.release_memory()
         return rec
 
     def balance_lights(self) -> None:
@@ -919,6 +974,8 @@ class Trainer:
         self.export_scene()
         metrics = self.evaluate(write_renders=True)
         metrics.update({"iterations": self.it, "faces": len(self.scene.F)})
+        if self.metallic_probe is not None:  # (decided in this process; a run resumed past it has it in train.log)
+            metrics["metallic_probe"] = self.metallic_probe
         if wall is not None:
             metrics["wall_time_s"] = wall
             steps = [h for h in self.history if "render" in h]
