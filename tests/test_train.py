@@ -599,8 +599,9 @@ def test_targets_keep_only_one_scale():
 
 def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monkeypatch):
     """``TrainConfig.metallic_probe_at``: at that step, the mesh stage's trial on a mesh extracted from the soup; a
-    metal verdict sets the soup's metallic column to 0.99 (the light phase then holds it), a dielectric leaves it;
-    recorded in metrics.json. A soup with no surface yet is skipped, not an error; 0 turns the probe off."""
+    metal verdict restarts the soup from iteration 0 with every metallic at 0.99 (the light phase then holds it), a
+    dielectric leaves the soup as it is; recorded in metrics.json and in the checkpoints (a resumed run does not
+    probe again). A soup with no surface yet is skipped, not an error; 0 turns the probe off."""
     from triplet_cl.activations import sigmoid
     from triplet_cl.mesh import refine
     from triplet_cl.train import Trainer
@@ -619,11 +620,15 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     cfg = replace(TrainConfig(iterations=150, init_points=2000, checkpoint_every=0).with_iterations(150),
                   metallic_probe_at=54)  # a soup with a surface by then
     assert 0 < cfg.metallic_probe_at < cfg.material_tie_until
-    tr = Trainer(str(data), tmp_path / "run", cfg, quiet=True)
-    rec = tr.train()["metallic_probe"]
+    tr = Trainer(str(data), tmp_path / "run", replace(cfg, checkpoint_every=100), quiet=True)
+    m = tr.train()
+    rec = m["metallic_probe"]
     assert len(calls) == 1 and rec["metallic"] == 0.99 and rec["it"] == cfg.metallic_probe_at and rec["faces"] > 0
+    assert rec["restarted"] and m["iterations"] == 150 and len(tr.history) == 150 + cfg.metallic_probe_at
     col = 4  # Cook-Torrance's metallic, held through the light phase, then per vertex: still a metal at the end
     assert np.median(sigmoid(np.asarray(tr.scene.material.data[:, col], np.float64))) > 0.5
+    again = Trainer(None, tmp_path / "run", resume=True, quiet=True)  # the verdict is in the checkpoint
+    assert again.metallic_probe["restarted"] and again.it == 150
     off = Trainer(str(data), tmp_path / "off", replace(tiny, metallic_probe_at=0), quiet=True)
     assert "metallic_probe" not in off.train()
     with pytest.raises(ValueError, match="metallic_probe_at must be an integer >= 0"):

@@ -639,21 +639,9 @@ class Trainer:
         self.ambient_pairs = ambient_pairs(brdf) if self.cfg.blinn_phong_ka == "diffuse" else ([], [])
         # TrainConfig.ao "off": the AO column takes no step (soup and mesh stage)
         self.held_ao = [brdf.column("ao")] if self.cfg.ao == "off" and brdf.column("ao") is not None else []
-        self.rng = np.random.default_rng(self.cfg.seed)
-        self.scene = initial_scene(self.cfg, self.ds, self.rng)
-        copy_ambient(self.scene.material, self.ambient_pairs)
-        self.opt = build_optimizer(self.cfg, self.scene, self.extent)
-        self.split_error = np.full(len(self.scene.F), np.inf)  # per-face error records (error_resplit_ratio)
-        self.spatial_sort()
-        self.stats = DensityStats(len(self.scene.F))
-        self.priors = Priors(self.cfg, look_at_center(self.ds))
-        self.shadow_cache = VisibilityCache(self.cfg.shadow_every, self.cfg.shadow_from, self.extent,
-                                            ray_eps=self.cfg.shadow_eps)
+        self.start_soup()
         self.targets = Targets(self.ds)
-        self.it = 0
         self.metallic_probe = None  # the soup's metal-or-dielectric probe (TrainConfig.metallic_probe_at), once run
-        self.last_alpha_reset: int | None = None
-        self.order: list[int] = []
         self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -666,6 +654,27 @@ class Trainer:
         else:
             write_json(self.run_dir / "config.json", {"data": self.data, "format": data_format,
                                                       "train": self.cfg.to_dict()})
+
+    def start_soup(self, metallic: float | None = None) -> None:
+        """The soup's initial state at iteration 0 (scene, optimiser, generator, density statistics, priors, shadow
+        cache, view order); ``metallic``: every vertex's initial metallic (the probe's restart for a metal)."""
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.scene = initial_scene(self.cfg, self.ds, self.rng)
+        if metallic is not None:
+            from .activations import logit
+
+            self.scene.material.data[:, get_brdf(self.scene.brdf).column("metallic")] = logit(metallic)
+        copy_ambient(self.scene.material, self.ambient_pairs)
+        self.opt = build_optimizer(self.cfg, self.scene, self.extent)
+        self.split_error = np.full(len(self.scene.F), np.inf)  # per-face error records (error_resplit_ratio)
+        self.spatial_sort()
+        self.stats = DensityStats(len(self.scene.F))
+        self.priors = Priors(self.cfg, look_at_center(self.ds))
+        self.shadow_cache = VisibilityCache(self.cfg.shadow_every, self.cfg.shadow_from, self.extent,
+                                            ray_eps=self.cfg.shadow_eps)
+        self.it = 0
+        self.last_alpha_reset: int | None = None
+        self.order: list[int] = []
 
     def check_device_budget(self) -> None:
         """Refuse (``ValueError``, before any work) a schedule whose largest renders cannot fit the device
@@ -701,11 +710,11 @@ class Trainer:
         return int(self.order.pop())
 
     def step(self) -> dict:
+        if 0 < self.cfg.metallic_probe_at == self.it < self.cfg.material_tie_until and self.metallic_probe is None:
+            self.probe_metallic()  # (a metal's verdict restarts the soup: this step is then iteration 0)
         cfg, it = self.cfg, self.it
         scale, K, deg = schedule(cfg, it)
         self.set_env_degree(deg)
-        if 0 < cfg.metallic_probe_at == it < cfg.material_tie_until:
-            self.probe_metallic()
         if cfg.background == "random":
             bg = self.rng.uniform(0, 1, 3)
         else:
@@ -825,7 +834,6 @@ class Trainer:
         0.99 for a metal (which the light phase then holds). Deterministic (the stage's own seeded generators; the
         run's is not drawn from). Returns the trial's record (also in metrics.json), or None without a metallic
         channel."""
-        from .activations import logit
         from .mesh.refine import MeshConfig, MeshStage, tied_channels
 
         brdf = get_brdf(self.scene.brdf)
@@ -847,14 +855,20 @@ class Trainer:
         m = np.asarray(mesh.material.data)
         m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         out = stage.choose_metallic(mesh, tied, col)
-        if out["metallic"] > 0.5:
-            self.scene.material.data[:, col] = logit(0.99)
         rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),
-               "seconds": time.perf_counter() - t}
+               "seconds": time.perf_counter() - t, "restarted": bool(out["metallic"] > 0.5)}
         self.metallic_probe = rec
         self.log.info("soup metallic probe: " + json.dumps(rec))
         del stage, mesh
         self.device.release_memory()
+        if rec["restarted"]:  # a metal: the soup again from its first step, held as one (its surface placed as one)
+            self.start_soup(metallic=0.99)
+            ck = self.run_dir / "checkpoints"  # the first pass's checkpoints: a resume must not take them for newer
+            for p in [*ck.glob("ckpt_*.npz"), ck / "latest"]:
+                p.unlink(missing_ok=True)
+            if self.cfg.checkpoint_every:  # the restart's state, so that a resume from here does not probe again
+                self.save_checkpoint()
+            self.log.info("soup restarted from iteration 0 as a metal (metallic 0.99)")
         return rec
 
     def balance_lights(self) -> None:
@@ -951,7 +965,9 @@ class Trainer:
                     self.log.info(f"stopped: {exc}")
                     raise
                 self.history.append(rec)
-                bar.update(1)
+                if self.it < bar.n:  # the soup restarted (a metal: probe_metallic)
+                    bar.reset(total=cfg.iterations)
+                bar.update(self.it - bar.n)
                 bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}", faces=str(rec["faces"]))
                 if self.it % 100 == 0 or "densify" in rec:
                     self.log.info(json.dumps(rec))
@@ -1084,6 +1100,7 @@ class Trainer:
         meta = {"it": self.it, "t": opt_state["t"], "order": [int(x) for x in self.order],
                 "train_views": len(self.ds.train),
                 "last_alpha_reset": self.last_alpha_reset,
+                "metallic_probe": self.metallic_probe,
                 "rng": self.rng.bit_generator.state,
                 "config": {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS},
                 "opt_hyper": {g: {k: v for k, v in st.items() if k not in ("exp_avg", "exp_avg_sq")}
@@ -1138,6 +1155,7 @@ class Trainer:
         self.it = int(meta["it"])
         self.set_env_degree(schedule(self.cfg, max(self.it - 1, 0))[2])  # the degree of the last step
         self.last_alpha_reset = meta.get("last_alpha_reset")
+        self.metallic_probe = meta.get("metallic_probe")  # decided before the checkpoint: not again
         self.order = list(meta["order"])
         self.rng.bit_generator.state = meta["rng"]
 
