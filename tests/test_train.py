@@ -631,5 +631,8 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     assert again.metallic_probe["restarted"] and again.it == 150
     off = Trainer(str(data), tmp_path / "off", replace(tiny, metallic_probe_at=0), quiet=True)
     assert "metallic_probe" not in off.train()
+    bg = Trainer(str(data), tmp_path / "bg", replace(cfg, iterations=60), quiet=True)  # photos with a background
+    monkeypatch.setattr(type(bg.ds), "has_alpha", property(lambda self: False))
+    assert "no alpha" in bg.train()["metallic_probe"]["skipped"] and len(calls) == 1
     with pytest.raises(ValueError, match="metallic_probe_at must be an integer >= 0"):
         replace(cfg, metallic_probe_at=-1).validate()

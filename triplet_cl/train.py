@@ -840,6 +840,11 @@ class Trainer:
         col = brdf.column("metallic")
         if col is None:
             return None
+        if not self.ds.has_alpha:  # photos with a background: a mesh of the object alone cannot be compared with them
+            # (the mesh stage skips its refinement there for the same reason); the soup stays a dielectric
+            self.metallic_probe = {"it": self.it, "skipped": "the photos have no alpha (a background)"}
+            self.log.info("soup metallic probe skipped: the photos have no alpha (a background)")
+            return None
         t = time.perf_counter()
         stage = MeshStage(self, MeshConfig(), quiet=True)
         try:
