@@ -649,6 +649,8 @@ def test_camera_conventions():
     assert cn.project_points(np.array([[0.5, 0, 0]]))[0, 0] > 50, "+X world appears to the right"
     assert cn.project_points(np.array([[0, 0.5, 0]]))[0, 1] < 40, "+Y world appears upwards"
     np.testing.assert_allclose(cn.center, [0, 0, 3])
+    np.testing.assert_allclose(cn.c2w_nerf, c2w, atol=1e-12)  # from_nerf's inverse
+    np.testing.assert_allclose(cl.c2w_nerf, c2w, atol=1e-12)
     # COLMAP: w2c rotation from the quaternion, same camera
     from scipy.spatial.transform import Rotation
 

@@ -153,6 +153,12 @@ class Camera:
     def c2w(self) -> np.ndarray:
         return np.linalg.inv(self.w2c)
 
+    @property
+    def c2w_nerf(self) -> np.ndarray:
+        """``[4, 4]`` camera-to-world in the NeRF/Blender convention (looks down −Z, +Y up): what :meth:`from_nerf`
+        takes."""
+        return self.c2w @ _GL_TO_CV
+
     def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by ``factor`` (e.g. 0.25 for ¼ resolution)."""
         w = max(1, int(round(self.width * factor)))

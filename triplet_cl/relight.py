@@ -574,13 +574,13 @@ def check_vertex_sh(sets, has_vertex_sh: bool) -> None:
                                  "trained without one (--lights vertex-sh): it has no per-vertex SH to relight with")
 
 
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff", ".webp", ".bmp", ".gif")
-
-
 def _frame_key(file_path: str) -> str:
-    """A transforms frame's image name as the views are named (a known image extension dropped, dots kept)."""
+    """A transforms frame's image name as the views are named (an image extension the loader knows dropped, dots
+    kept)."""
+    from .datasets.images import IMAGE_EXTENSIONS
+
     p = Path(file_path)
-    return p.stem if p.suffix.lower() in _IMAGE_SUFFIXES else p.name
+    return p.stem if p.suffix.lower() in IMAGE_EXTENSIONS else p.name
 
 
 def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: float = 1e-4) -> None:
@@ -615,12 +615,11 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
             poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None
-    gl_to_cv = np.diag([1.0, -1.0, -1.0, 1.0])
     for name, cam in zip(view_names, cameras, strict=True):
         key = Path(name).name  # the reference images' own key (check_references: NAME.png)
         if key not in poses:
             raise LightFileError(spec, "cameras", f"{path} has no frame for the test view {name}")
-        mine = (cam.c2w @ gl_to_cv)[:3]
+        mine = cam.c2w_nerf[:3]
         scale = max(1.0, float(np.linalg.norm(cam.center)))
         if not np.allclose(poses[key][:3], mine, rtol=0, atol=tol * scale):
             raise LightFileError(spec, "cameras", f"{path}: the pose of {key} is not the run's test camera {name} "

@@ -220,11 +220,11 @@ class TrainConfig:
     # metal or dielectric, decided in the soup (issue 18): at iteration metallic_probe_at (in the light phase, scaled
     # with the run) a mesh is extracted from the soup and the mesh stage's own trial decides on it
     # (MeshStage.choose_metallic: a fit of each hypothesis, the lower loss wins, a metal rougher than 0.8 refused);
-    # a metal is then held at 0.99 for the rest of the light phase instead of the initial 0.1. A soup held as a
-    # dielectric put a metal's surface where its highlights were: spot_small re-rendered as a metal (96², two point
-    # lights), surface Chamfer 0.0260 -> 0.0093 when held at 0.99 (bench/results/soup_metallic_pocl_2026-11-27.txt).
-    # The trial on the soup itself (not on a mesh) could not tell the metal from gadget's smooth-shaded dielectric.
-    # 0: no probe.
+    # a metal restarts the soup from iteration 0 held at 0.99 instead of the initial 0.1. A soup held as a dielectric
+    # put a metal's surface where its highlights were: spot_small re-rendered as a metal (96², two point lights),
+    # surface Chamfer 0.0260 -> 0.0093, relight +1.6 to +2.6 dB; every dielectric capture's verdict dielectric, its
+    # soup unchanged (bench/results/soup_metallic_pocl_2026-11-27.txt). The trial on the soup itself (not on a
+    # mesh) could not tell the metal from gadget's smooth-shaded dielectric. 0: no probe.
     metallic_probe_at: int = 360
     # Blinn-Phong's ambient reflectance ka: "diffuse" keeps it equal to kd (one reflectance lights the diffuse and
     # the ambient term, as Cook-Torrance's albedo does; materials.tie_ambient_gradient / copy_ambient); "free": its
@@ -829,12 +829,12 @@ class Trainer:
 
     def probe_metallic(self) -> dict | None:
         """Metal or dielectric for the soup (``TrainConfig.metallic_probe_at``): a mesh extracted from it now, the
-        mesh stage's trial on that mesh (:meth:`~triplet_cl.mesh.refine.MeshStage.choose_metallic`, its light phase's
-        tied channels at their means, as the stage starts), the soup untouched but for its metallic column, set to
-        0.99 for a metal (which the light phase then holds). Deterministic (the stage's own seeded generators; the
-        run's is not drawn from). Returns the trial's record (also in metrics.json), or None without a metallic
-        channel."""
-        from .mesh.refine import MeshConfig, MeshStage, tied_channels
+        mesh stage's trial on that mesh (:meth:`~triplet_cl.mesh.refine.MeshStage.choose_metallic`, from its light
+        phase's start: :meth:`~triplet_cl.mesh.refine.MeshStage.light_phase_ties`). A dielectric leaves the soup as it
+        is; a metal restarts it from iteration 0 with every metallic at 0.99, which the light phase then holds
+        (:meth:`start_soup`). Deterministic (the stage's own seeded generators; the run's is not drawn from). Returns
+        the trial's record (also in metrics.json and the checkpoints), or None (no metallic channel; skipped)."""
+        from .mesh.refine import MeshConfig, MeshStage
 
         brdf = get_brdf(self.scene.brdf)
         col = brdf.column("metallic")
@@ -855,11 +855,7 @@ class Trainer:
             return None
         if stage.cfg.pixel_sigma is None:
             stage.resolve_pixel_filter(mesh)
-        held = stage.held_columns(mesh)
-        tied = [k for k in tied_channels(mesh.brdf) if k not in self.ambient_pairs[1] and k not in held]
-        m = np.asarray(mesh.material.data)
-        m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
-        out = stage.choose_metallic(mesh, tied, col)
+        out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col)
         rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),
                "seconds": time.perf_counter() - t, "restarted": bool(out["metallic"] > 0.5)}
         self.metallic_probe = rec
@@ -995,7 +991,7 @@ class Trainer:
         self.export_scene()
         metrics = self.evaluate(write_renders=True)
         metrics.update({"iterations": self.it, "faces": len(self.scene.F)})
-        if self.metallic_probe is not None:  # (decided in this process; a run resumed past it has it in train.log)
+        if self.metallic_probe is not None:  # (a resumed run's from its checkpoint)
             metrics["metallic_probe"] = self.metallic_probe
         if wall is not None:
             metrics["wall_time_s"] = wall

@@ -624,6 +624,20 @@ class MeshStage:
                    bounce=bounce)
         return r, r.image, r.alpha
 
+    def light_phase_ties(self, scene: Scene) -> list[int]:
+        """The material columns the light phase ties (``MeshConfig.material_tie``: all but the albedo, Blinn-Phong's
+        ka that follows kd and the held ones), each set to its mean over the mesh: the light phase starts from one
+        value per tied channel. Also where the soup's metallic probe starts its trial (``Trainer.probe_metallic``)."""
+        amb = self.trainer.ambient_pairs
+        held = self.held_columns(scene)
+        tied = [k for k in tied_channels(scene.brdf) if k not in amb[1] and k not in held] \
+            if self.cfg.material_tie > 0 else []
+        copy_ambient(scene.material, amb)
+        if tied:
+            m = np.asarray(scene.material.data)
+            m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
+        return tied
+
     def choose_metallic(self, scene: Scene, tied: list[int], col: int) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
         hypothesis at one sample per pixel, the same views and backgrounds for each); the winner is kept in the
@@ -1006,12 +1020,7 @@ class MeshStage:
             self.choose_ao(scene)
         ao_col = self.computed_ao_column(scene)
         held_cols = self.held_columns(scene)
-        tied = [k for k in tied_channels(scene.brdf) if k not in amb[1] and k not in held_cols] \
-            if c.material_tie > 0 else []
-        copy_ambient(scene.material, amb)
-        if tied:  # the light phase starts from one value per tied channel
-            m = np.asarray(scene.material.data)
-            m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
+        tied = self.light_phase_ties(scene)
         # the metallic column is decided, not drifted: held through the light phase at the value choose_metallic
         # picked (round 0) or at its mean (later rounds)
         self.set_computed_ao(scene, ao_col)
