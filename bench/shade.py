@@ -23,6 +23,11 @@ from triplet_cl.ops.common import to_device
 MIXES = {
     "dir+amb": lambda rng: [DirectionalLight([0.3, 0.2, 1.0], [1.0] * 3), AmbientLight([0.1] * 3)],
     "vsh+amb": lambda rng: [VertexSHLight(), AmbientLight([0.1] * 3)],
+    # the mesh stage's mixes: a point light and its SH environment (degree 2: a dielectric's, 8: a metal's)
+    "pt+env2": lambda rng: [PointLight([1.0, 2.0, 2.0], [3.0] * 3),
+                            SHEnvironmentLight(rng.standard_normal((3, 9)) * 0.2 + np.r_[2.0, np.zeros(8)])],
+    "pt+env8": lambda rng: [PointLight([1.0, 2.0, 2.0], [3.0] * 3),
+                            SHEnvironmentLight(rng.standard_normal((3, 81)) * 0.2 + np.r_[2.0, np.zeros(80)])],
     "4pt+env3+vsh": lambda rng: [PointLight(rng.standard_normal(3) * 2, [3.0] * 3) for _ in range(4)]
     + [SHEnvironmentLight(rng.standard_normal((3, 16)) * 0.2 + np.r_[2.0, np.zeros(15)]), VertexSHLight()],
 }
@@ -43,6 +48,8 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default=None)
+    ap.add_argument("--brdfs", nargs="+", default=list(BRDFS), choices=list(BRDFS))
+    ap.add_argument("--mixes", nargs="+", default=list(MIXES), choices=list(MIXES))
     args = ap.parse_args()
     dev = get_device(args.device)
     rng = np.random.default_rng(0)
@@ -54,10 +61,10 @@ def main() -> None:
         fid = np.where(rng.random(P) < 0.1, -1, 0).astype(np.int32)
         vlight = np.concatenate([rng.uniform(0, 1, (P, 3)), rng.standard_normal((P, 3))], 1).astype(np.float32)
         v_rgb = to_device(dev.queue, rng.standard_normal((P, 3)).astype(np.float32))
-        for brdf in BRDFS:
+        for brdf in args.brdfs:
             mat = rng.uniform(0.05, 0.95, (P, shade_op.num_material_channels(brdf))).astype(np.float32)
-            for mix, make in MIXES.items():
-                lights = make(rng)
+            for mix in args.mixes:
+                lights = MIXES[mix](rng)
                 _, inp = shade_op.prepare(pos, nrm, mat, fid, [0.0, 0.0, 4.0], lights, brdf=brdf, vlight=vlight,
                                           device=dev)
 

@@ -402,7 +402,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
     p.add_argument("--mesh-env-degree", type=int, metavar="D", help="after the light fit, the ambient light becomes "
                    "an SH environment of degree D (the same radiance in band 0, the higher bands learned: a sky "
-                   "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only)")
+                   "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only); also a "
+                   "metal's unless --mesh-env-degree-metal is given")
+    p.add_argument("--mesh-env-degree-metal", type=int, metavar="D", help="the same for a metal (the metallic trial's "
+                   "verdict): its reflections keep the environment's higher bands; default 8 (or --mesh-env-degree's D "
+                   "when that is given)")
     p.add_argument("--mesh-env-occlusion", type=int, metavar="D", help="the SH environment is occluded by the mesh "
                    "itself: its bands 1..D see only the sky each vertex sees (traced from the geometry when its faces "
                    "change); default 0 = off, at most 4")
@@ -453,6 +457,7 @@ def _mesh_config_from_args(args: argparse.Namespace):
                        ("mesh_metallic_trial", "metallic_trial"),
                        ("mesh_ao", "ao"), ("mesh_bounce", "bounce"), ("mesh_light_fit", "light_fit"),
                        ("mesh_metal_f0", "metal_f0"), ("mesh_env_degree", "env_degree"),
+                       ("mesh_env_degree", "env_degree_metal"), ("mesh_env_degree_metal", "env_degree_metal"),
                        ("mesh_env_occlusion", "env_occlusion"),
                        ("mesh_supersample", "supersample"), ("mesh_eval_supersample", "eval_supersample"),
                        ("mesh_laplacian", "laplacian"), ("texture_size", "texture_size")):

@@ -65,6 +65,12 @@
 #ifndef RED_W
 #define RED_W 16
 #endif
+/* the SH environment's coefficient sums in shade_bwd: ENV_KC coefficients per channel a chunk, a local row of ENV_SW
+ * per work-item (the host sizes scratch as local size x max(RED_W, ENV_SW): ops/shade.py, scratch_width) */
+#ifndef ENV_KC
+#define ENV_KC (ENV_NK < 32 ? ENV_NK : 32)
+#endif
+#define ENV_SW (2 * ENV_KC + 6)
 #if !defined(NUM_LIGHTS) || !defined(LIGHT_TABLE)
 #error "shade.cl needs NUM_LIGHTS and LIGHT_TABLE (ops/shade.py: _defines)"
 #endif
@@ -363,29 +369,37 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 }
 #endif
             }
-            /* coefficient j = ch * nk + k of the active bands, RED_W at a time */
-            for (int j0 = 0; j0 < 3 * nk; j0 += RED_W) {
-                REAL g[RED_W];
-                for (int jj = 0; jj < RED_W; ++jj) {
-                    const int j = j0 + jj, ch = j / nk, k = j - ch * nk;
-                    REAL val = (REAL)0;
-                    if (j < 3 * nk) {
-                        const int l = (int)floor(sqrt((REAL)k + (REAL)0.5));
-                        const REAL ge = ch == 0 ? gE.x : (ch == 1 ? gE.y : gE.z);
-                        const REAL gg = ch == 0 ? gG.x : (ch == 1 ? gG.y : gG.z);
-                        val = ge * (SH_BAND_A[l] * Yn[k] - U[k]) + gg * gl[l] * Yr[k];
-                    }
-                    g[jj] = val;
+            /* the coefficient gradients' two factors per k, once: Yn_k <- A_l Yn_k - U_k, Yr_k <- g_l Yr_k */
+            for (int l = 0; l <= a; ++l)
+                for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+                    Yn[k] = SH_BAND_A[l] * Yn[k] - U[k];
+                    Yr[k] = gl[l] * Yr[k];
                 }
-                /* write into the [3, stride] layout of this light */
-                const int lid = get_local_id(0), lsz = get_local_size(0);
-                for (int jj = 0; jj < RED_W; ++jj) scratch[lid * RED_W + jj] = g[jj];
+            /* v_c[ch, k] = sum over the work-group of gE_ch Yn_k + gG_ch Yr_k: ENV_KC values of k at a time through
+             * local memory (a row of ENV_SW per work-item: gE, gG, Yn, Yr), then each work-item sums its
+             * coefficients of the chunk over the rows; two barriers per chunk (three chunks at degree 8), where one
+             * sum per RED_W coefficients took 32 */
+            const int lid = get_local_id(0), lsz = get_local_size(0);
+            for (int k0 = 0; k0 < nk; k0 += ENV_KC) {
+                __local REAL* row = scratch + lid * ENV_SW;
+                row[0] = gE.x; row[1] = gE.y; row[2] = gE.z;
+                row[3] = gG.x; row[4] = gG.y; row[5] = gG.z;
+                for (int kk = 0; kk < ENV_KC; ++kk) {
+                    const int k = k0 + kk;
+                    row[6 + kk] = k < nk ? Yn[k] : (REAL)0;
+                    row[6 + ENV_KC + kk] = k < nk ? Yr[k] : (REAL)0;
+                }
                 barrier(CLK_LOCAL_MEM_FENCE);
-                if (lid < RED_W && j0 + lid < 3 * nk) {
-                    REAL s = (REAL)0;
-                    for (int r = 0; r < lsz; ++r) s += scratch[r * RED_W + lid];
-                    const int j = j0 + lid, ch = j / nk;
-                    part[off + ch * b + (j - ch * nk)] = s;
+                for (int j = lid; j < 3 * ENV_KC; j += lsz) {
+                    const int ch = j / ENV_KC, kk = j - ch * ENV_KC;
+                    if (k0 + kk < nk) {
+                        REAL s = (REAL)0;
+                        for (int r = 0; r < lsz; ++r) {
+                            __local const REAL* w = scratch + r * ENV_SW;
+                            s += w[ch] * w[6 + kk] + w[3 + ch] * w[6 + ENV_KC + kk];
+                        }
+                        part[off + ch * b + k0 + kk] = s;
+                    }
                 }
                 barrier(CLK_LOCAL_MEM_FENCE);
             }

@@ -337,7 +337,9 @@ def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, 
     band 0 the ambient radiance and its other bands 0, so the mesh renders the same at the switch; its higher bands
     then learn with the lights, it is saved and loaded with the mesh and recorded in metrics.json; 0 or held lights
     keep the ambient light."""
+    from triplet_cl.activations import logit
     from triplet_cl.lights import AmbientLight, SHEnvironmentLight
+    from triplet_cl.materials import get_brdf
 
     tr = Trainer(None, trained_run, resume=True, quiet=True)
     cam = tr.ds.test[0].camera
@@ -368,10 +370,32 @@ def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, 
         mesh = stage.extract(tr.scene)
         assert stage.ambient_to_environment(mesh) is None and stage.environment is None
         assert any(isinstance(x, AmbientLight) for x in mesh.current_lights())
-    for bad in ({"env_degree": 9}, {"env_degree": -1}, {"env_degree": 1.5}, {"env_degree": True}):
-        with pytest.raises(ValueError, match="env_degree"):
+    # a metal (the trial's verdict, else its mean metallic) gets env_degree_metal: its reflections keep higher bands
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2,
+                                        env_degree_metal=4))
+    mesh = stage.extract(tr.scene)
+    mesh.material.data[:, get_brdf(mesh.brdf).column("metallic")] = logit(0.99)
+    rec = stage.ambient_to_environment(mesh)
+    env = [x for x in mesh.current_lights() if isinstance(x, SHEnvironmentLight)]
+    assert rec["degree"] == 4 and rec["metal"] and env[0].degree == 4 and env[0].coeffs.shape == (3, 25)
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2,
+                                        env_degree_metal=4))
+    mesh = stage.extract(tr.scene)  # the demo's dielectric soup: env_degree
+    stage.metallic_choice = {"metallic": 0.01}
+    assert stage.ambient_to_environment(mesh)["degree"] == 2 and not stage.environment["metal"]
+    stage = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_degree=2,
+                                        env_degree_metal=0))
+    mesh = stage.extract(tr.scene)
+    stage.metallic_choice = {"metallic": 0.99}  # the trial's verdict counts over the material's mean
+    assert stage.ambient_to_environment(mesh) is None  # 0 for metals: a metal keeps its ambient light
+    for bad in ({"env_degree": 9}, {"env_degree": -1}, {"env_degree": 1.5}, {"env_degree": True},
+                {"env_degree_metal": 9}, {"env_degree_metal": -1}, {"env_degree_metal": "8"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
             MeshConfig(**bad).validate()
     assert MeshConfig.from_dict({}).env_degree == 0  # a mesh stage saved before it: its ambient light kept
+    old = MeshConfig.from_dict({"env_degree": 2})  # saved before a metal's own degree: the one degree for both
+    assert (old.env_degree, old.env_degree_metal) == (2, 2)
+    assert (MeshConfig().env_degree, MeshConfig().env_degree_metal) == (2, 8)
 
 
 def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path):

@@ -115,6 +115,50 @@ def test_vjp_float32_vs_reference(device, rng, brdf, mix):
         assert got.v_lights[4] == {} and np.abs(got.v_vlight[:, :3]).max() > 0 and not got.v_vlight[:, 3:].any()
 
 
+@pytest.mark.parametrize("degree", [4, 8])
+def test_vjp_env_higher_degrees_vs_reference(device, rng, degree):
+    """The SH environment's coefficient sums of ``shade_bwd`` go through local memory in chunks of 32 coefficients
+    per channel (degree 8: three chunks, the last partial); over several work-groups and a partial last one, every
+    gradient against the numpy reference, beside a point light and with a second environment of another degree."""
+    P = 150
+    frag = make_fragments(rng, "cook_torrance", P=P)
+    pos, nrm, mat, face_id, vlight = frag
+    lights = make_lights("point", rng) + make_lights("env", rng, env_degree=degree) + [
+        SHEnvironmentLight(rng.standard_normal((3, 16)) * 0.2, 3)]
+    t = pack_lights(lights)
+    v_rgb = rng.standard_normal((P, 3))
+    got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, brdf="cook_torrance", vlight=vlight,
+                         device=device)
+    want = ref.vjp(pos, nrm, mat, face_id, CAM, t.ints, t.params, v_rgb, "cook_torrance", vlight)
+    for name in ("v_pos", "v_nrm", "v_mat"):
+        w, g = want[name], getattr(got, name)
+        np.testing.assert_allclose(g, w, rtol=2e-3, atol=2e-4 * np.abs(w).max(), err_msg=name)
+    w = want["v_params"]
+    np.testing.assert_allclose(got.v_light_params, w, rtol=2e-3, atol=2e-4 * np.abs(w).max())
+    assert got.v_lights[1]["coeffs"].shape == (3, (degree + 1) ** 2) and np.abs(got.v_lights[1]["coeffs"]).min() > 0
+
+
+def test_vjp_env_degree8_float64_central_differences(device64, rng):
+    """Degree 8's coefficient gradients (the three local-memory chunks) against float64 central differences."""
+    P, h = 70, 1e-6
+    pos, nrm, mat, face_id, vlight = make_fragments(rng, "cook_torrance", P=P)
+    lights = make_lights("env", rng, env_degree=8)
+    v_rgb = rng.standard_normal((P, 3))
+    kw = {"brdf": "cook_torrance", "device": device64, "real": np.float64, "vlight": vlight}
+    got = \
+        shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, **kw).v_lights[0]["coeffs"]
+    base = lights[0].coeffs
+    fd = np.zeros(base.shape)
+    for idx in np.ndindex(base.shape):
+        vals = []
+        for s in (1, -1):
+            arr = base.copy()
+            arr[idx] += s * h
+            vals.append(np.sum(v_rgb * shade(pos, nrm, mat, face_id, CAM, [SHEnvironmentLight(arr, 8)], **kw)))
+        fd[idx] = (vals[0] - vals[1]) / (2 * h)
+    np.testing.assert_allclose(got, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
 def _fd_columns(f, x, h):
     """Central differences of the per-fragment map ``f`` for each column of ``x`` (all rows at once)."""
     cols = []

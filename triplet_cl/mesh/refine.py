@@ -184,6 +184,15 @@ class MeshConfig:
     # of the same soups (session 39, bench/results/mesh_env_pocl_2026-11-27.txt). 0: keep the ambient light (runs
     # saved before it)
     env_degree: int = 2
+    # the same for a metal (the metallic trial's verdict, else a mean metallic above 0.5): a dielectric's diffuse
+    # reflection of an environment keeps only its bands 0-2 (Lambert's A_l is 0 at l = 3 and under 0.05 above), a
+    # metal's reflection is the environment filtered by its specular lobe, which keeps the higher bands; with degree 2
+    # a metal's reflections cannot sharpen and its roughness goes unconstrained. Measured on the mesh stage of the same
+    # soups (session 45, bench/results/env_degree_pocl_2026-11-27.txt): spot_small as a metal under the HDR
+    # environment, relight 27.07 / 26.74 / 31.77 -> 28.76 / 28.88 / 34.76, albedo 25.75 -> 27.78 (roughness median
+    # 0.65 -> 0.57, truth 0.35); the three other metal captures -0.03 to +0.27 dB of relight; degree 8 costs about 60 %
+    # more mesh-stage time (spot, all degree 8: 80 -> 127 s), paid by metals only
+    env_degree_metal: int = 8
     # the SH environment's occlusion by the mesh itself (visibility.vertex_occlusion, env_occlusion_directions rays
     # per vertex, traced when the mesh's faces change: round start, remesh): bands 1 .. this degree of every SH
     # environment light (the learned one, a relit one) see only the sky each vertex sees; band 0 is the AO's, bands
@@ -286,9 +295,10 @@ class MeshConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0.0 <= v < 1.0):
                 raise ValueError(f"mesh {name} must be a number in [0, 1), got {v!r}")
-        if isinstance(self.env_degree, bool) or not isinstance(self.env_degree, int) or not 0 <= self.env_degree <= 8:
-            raise ValueError(f"mesh env_degree must be an integer in [0, 8] (0: keep the ambient light), got "
-                             f"{self.env_degree!r}")
+        for name in ("env_degree", "env_degree_metal"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 8:
+                raise ValueError(f"mesh {name} must be an integer in [0, 8] (0: keep the ambient light), got {v!r}")
         if isinstance(self.env_occlusion, bool) or not isinstance(self.env_occlusion, int) or \
                 not 0 <= self.env_occlusion <= 4:
             raise ValueError(f"mesh env_occlusion must be an integer in [0, 4] (the occluded SH bands' degree; 0: "
@@ -366,6 +376,7 @@ class MeshConfig:
         d.setdefault("pixel_sigma", 0.0)  # saved before the pixel filter: trained with the box
         d.setdefault("metal_f0", 0.0)  # saved before the metal's F0 prior: scaled to the mesh's own F0
         d.setdefault("env_degree", 0)  # saved before the mesh's SH environment: its ambient light kept
+        d.setdefault("env_degree_metal", d["env_degree"])  # saved before a metal's own degree: the one degree for all
         d.setdefault("env_occlusion", 0)  # saved before the environment's occlusion: rendered without it
         d.setdefault("normal_kappa", None)  # saved before the robust normal term: refined with the plain one
         if "formats" in d:
@@ -757,24 +768,26 @@ class MeshStage:
         return rec
 
     def ambient_to_environment(self, scene: Scene) -> dict | None:
-        """``MeshConfig.env_degree``: each ambient light of a Cook-Torrance mesh replaced by an SH environment of that
-        degree with the same radiance in band 0 and 0 above (Cook-Torrance's ambient term is the environment term of
+        """``MeshConfig.env_degree`` (``env_degree_metal`` for a metal: :meth:`metallic_value` above 0.5): each ambient
+        light of a Cook-Torrance mesh replaced by an SH environment of that degree with the same radiance in band 0 and 0 above (Cook-Torrance's ambient term is the environment term of
         a constant radiance: the renders are the same at the switch), its higher bands then learned with the lights.
-        None (nothing done) when ``env_degree`` is 0, for Blinn-Phong (its ambient term is ``La ka``, not the
+        None (nothing done) when that degree is 0, for Blinn-Phong (its ambient term is ``La ka``, not the
         environment's), when the lights are held (``lr_lights`` 0) or have no ambient light. Recorded in
         ``metrics.json``'s ``mesh.environment``."""
         from ..lights import AmbientLight, SHEnvironmentLight, pack_lights
 
         c = self.cfg
         lights = scene.current_lights()
-        if (c.env_degree == 0 or scene.brdf != "cook_torrance" or c.lr_lights == 0 or scene.light_params is None
+        metal = scene.brdf == "cook_torrance" and self.metallic_value(scene) > 0.5
+        degree = c.env_degree_metal if metal else c.env_degree
+        if (degree == 0 or scene.brdf != "cook_torrance" or c.lr_lights == 0 or scene.light_params is None
                 or not any(isinstance(x, AmbientLight) for x in lights)):
             return None
-        new = [SHEnvironmentLight.constant(x.color, degree=c.env_degree) if isinstance(x, AmbientLight) else x
+        new = [SHEnvironmentLight.constant(x.color, degree=degree) if isinstance(x, AmbientLight) else x
                for x in lights]
         scene.lights = new
         scene.light_params = Param(pack_lights(new).params.astype(scene.light_params.data.dtype), "light_params")
-        self.environment = {"degree": c.env_degree, "from": "ambient",
+        self.environment = {"degree": degree, "metal": metal, "from": "ambient",
                             "radiance": [float(np.mean(x.color)) for x in lights if isinstance(x, AmbientLight)]}
         self.trainer.log.info("mesh environment: " + json.dumps(self.environment))
         return self.environment

@@ -60,6 +60,13 @@ def _env_bucket(deg: int) -> int:
     return 2 if deg <= 2 else (4 if deg <= 4 else 8)
 
 
+def scratch_width(inp) -> int:
+    """Local-memory values per work-item of ``shade_bwd``: ``RED_W`` for the lights' group sums, or the SH
+    environment's row (shade.cl's ``ENV_SW``: gE, gG and up to 32 coefficients of Y(N) and Y(R)) when wider."""
+    nk = (_env_bucket(inp.table.env_degree) + 1) ** 2
+    return max(RED_W, 2 * min(nk, 32) + 6)
+
+
 @dataclass
 class ShadeInputs:
     """Validated device-side inputs of one shading call."""
@@ -236,7 +243,7 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
         launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
                **_inputs(inp), **outs, **(extra or {}), T=T, v_rgb=v_rgb, v_light_part=part,
-               scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
+               scratch=cl.LocalMemory(LOCAL_SIZE * scratch_width(inp) * np.dtype(real).itemsize))
         # only the active parameters: the kernel writes no partial for an inactive one (an SH environment's bands
         # above its active degree), whose column holds whatever the buffer held (a NaN there warned in the sum)
         # (an inactive parameter's gradient stays 0)
