@@ -402,8 +402,8 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
     p.add_argument("--mesh-env-degree", type=int, metavar="D", help="after the light fit, the ambient light becomes "
                    "an SH environment of degree D (the same radiance in band 0, the higher bands learned: a sky "
-                   "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only); also a "
-                   "metal's unless --mesh-env-degree-metal is given")
+                   "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only); "
+                   "also a metal's unless --mesh-env-degree-metal is given")
     p.add_argument("--mesh-env-degree-metal", type=int, metavar="D", help="the same for a metal (the metallic trial's "
                    "verdict): its reflections keep the environment's higher bands; default 8 (or --mesh-env-degree's D "
                    "when that is given)")

@@ -769,8 +769,9 @@ class MeshStage:
 
     def ambient_to_environment(self, scene: Scene) -> dict | None:
         """``MeshConfig.env_degree`` (``env_degree_metal`` for a metal: :meth:`metallic_value` above 0.5): each ambient
-        light of a Cook-Torrance mesh replaced by an SH environment of that degree with the same radiance in band 0 and 0 above (Cook-Torrance's ambient term is the environment term of
-        a constant radiance: the renders are the same at the switch), its higher bands then learned with the lights.
+        light of a Cook-Torrance mesh replaced by an SH environment of that degree with the same radiance in band 0
+        and 0 above (Cook-Torrance's ambient term is the environment term of a constant radiance: the renders are the
+        same at the switch), its higher bands then learned with the lights.
         None (nothing done) when that degree is 0, for Blinn-Phong (its ambient term is ``La ka``, not the
         environment's), when the lights are held (``lr_lights`` 0) or have no ambient light. Recorded in
         ``metrics.json``'s ``mesh.environment``."""
