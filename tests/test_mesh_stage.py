@@ -21,6 +21,8 @@ DEMO = demo_data_path()
 def tiny_mesh_cfg(**kw) -> MeshConfig:
     base = dict(resolution=40, iterations=24, remesh_every=12, texture_size=64, formats=("glb", "ply"),
                 subdivide_fraction=0.05, simplify_fraction=0.05)
+    if "env_degree" in kw:  # as the CLI's --mesh-env-degree: a metal's degree too, unless given
+        base["env_degree_metal"] = kw["env_degree"]
     base.update(kw)
     return MeshConfig(**base)
 
