@@ -23,6 +23,8 @@ from triplet_cl.ops.common import to_device
 MIXES = {
     "dir+amb": lambda rng: [DirectionalLight([0.3, 0.2, 1.0], [1.0] * 3), AmbientLight([0.1] * 3)],
     "vsh+amb": lambda rng: [VertexSHLight(), AmbientLight([0.1] * 3)],
+    # the soup's default mix: a point light and the ambient light
+    "pt+amb": lambda rng: [PointLight([1.0, 2.0, 2.0], [3.0] * 3), AmbientLight([0.1] * 3)],
     # the mesh stage's mixes: a point light and its SH environment (degree 2: a dielectric's, 8: a metal's)
     "pt+env2": lambda rng: [PointLight([1.0, 2.0, 2.0], [3.0] * 3),
                             SHEnvironmentLight(rng.standard_normal((3, 9)) * 0.2 + np.r_[2.0, np.zeros(8)])],
