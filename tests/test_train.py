@@ -597,6 +597,43 @@ def test_targets_keep_only_one_scale():
     assert t.get(0, 1.0, np.ones(3, np.float32))[1].shape == (16, 16, 3)
 
 
+def test_metallic_probe_shrinks_large_photos(tmp_path, monkeypatch):
+    """``probe_downscale``: the probe keeps photos up to about 200² as they are (the sizes its verdicts were measured
+    at) and shrinks larger ones by an integer factor towards that; the probe then extracts its mesh from depth
+    renders of that size and runs its trial on the photos block-averaged as much, and drops those from the training
+    targets' cache afterwards."""
+    from types import SimpleNamespace
+
+    from triplet_cl import train as train_mod
+    from triplet_cl.train import Trainer, probe_downscale
+
+    def views(*sizes):
+        return [SimpleNamespace(camera=SimpleNamespace(width=w, height=h)) for w, h in sizes]
+
+    assert [probe_downscale(views((n, n))) for n in (96, 200, 250, 300, 400, 800, 1600)] == [1, 1, 1, 2, 2, 4, 8]
+    assert probe_downscale(views((800, 600), (100, 100))) == 3 and probe_downscale([]) == 1
+    data = Path(__file__).resolve().parents[1] / "triplet_cl" / "data" / "spot_small"
+    cfg = replace(TrainConfig(iterations=100, init_points=2000, checkpoint_every=0).with_iterations(100),
+                  metallic_probe_at=0)  # a soup with a surface (probed by hand below)
+    tr = Trainer(str(data), tmp_path / "run", cfg, quiet=True)
+    tr.train()
+    seen = []
+    orig = train_mod.Targets.get
+
+    def get(self, i, scale, background):
+        out = orig(self, i, scale, background)
+        seen.append(out[0].width)
+        return out
+
+    monkeypatch.setattr(train_mod.Targets, "get", get)
+    monkeypatch.setattr(train_mod, "probe_downscale", lambda views: 2)
+    rec = tr.probe_metallic()
+    w = tr.ds.train[0].camera.width
+    assert rec["downscale"] == 2 and rec["faces"] > 0 and rec["metallic"] in (0.01, 0.99)
+    assert seen and set(seen) == {w // 2}  # the extraction's cameras and every trial step: half size
+    assert all(k[1] != 2 for k in tr.targets.cache)  # the probe's photos are not kept for training
+
+
 def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monkeypatch):
     """``TrainConfig.metallic_probe_at``: at that step, the mesh stage's trial on a mesh extracted from the soup; a
     metal verdict restarts the soup from iteration 0 with every metallic at 0.99 (the light phase then holds it), a
@@ -608,7 +645,7 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
 
     calls = []
 
-    def fake_choose(self, scene, tied, col):  # the verdict under test; the stage's real trial is tested elsewhere
+    def fake_choose(self, scene, tied, col, downscale=1):  # the verdict under test; the real trial: elsewhere
         calls.append((len(scene.F), col))
         return {"metallic": 0.99, "loss": {"0.01": 0.2, "0.99": 0.1}, "steps": 1, "tied": {}, "refused": None}
 

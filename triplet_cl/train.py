@@ -538,6 +538,20 @@ def schedule(cfg: TrainConfig, it: int) -> tuple[float, int, int]:
     return scale, K, deg
 
 
+# the soup's metallic probe works on photos of about this many pixels at most (probe_downscale): its verdicts were
+# measured at 96² and 200² (bench/results/soup_metallic_pocl_2026-11-27.txt); at 800² its extraction's depth renders
+# alone took 180 s and its trial 49 s (gadget upsampled to 800², bench/results/env_degree_pocl_2026-11-27.txt)
+PROBE_PIXELS = 200 * 200
+
+
+def probe_downscale(views) -> int:
+    """The integer factor by which the soup's metallic probe shrinks the training photos: 1 up to about
+    :data:`PROBE_PIXELS` (the sizes its verdicts were measured at: the dev scenes and captures), else the nearest
+    factor that brings the largest view there (400² -> 2, 800² -> 4)."""
+    px = max((v.camera.width * v.camera.height for v in views), default=0)
+    return max(1, int(round(math.sqrt(px / PROBE_PIXELS)))) if px else 1
+
+
 def _downsample(img: np.ndarray, f: int) -> np.ndarray:
     if f == 1:
         return img
@@ -847,17 +861,20 @@ class Trainer:
             return None
         t = time.perf_counter()
         stage = MeshStage(self, MeshConfig(), quiet=True)
+        f = probe_downscale(self.ds.train)
         try:
-            mesh = stage.extract(self.scene)
+            mesh = stage.extract(self.scene, downscale=f)
         except ValueError as exc:  # a soup with no surface yet (a very short run): the dielectric stays
             self.metallic_probe = {"it": self.it, "skipped": str(exc)}
             self.log.info(f"soup metallic probe skipped: {exc}")
             return None
         if stage.cfg.pixel_sigma is None:
             stage.resolve_pixel_filter(mesh)
-        out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col)
+        out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col, downscale=f)
+        if f > 1:  # the probe's smaller photos: not the training's
+            self.targets.cache = {k: v for k, v in self.targets.cache.items() if k[1] != f}
         rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),
-               "seconds": time.perf_counter() - t, "restarted": bool(out["metallic"] > 0.5)}
+               "downscale": f, "seconds": time.perf_counter() - t, "restarted": bool(out["metallic"] > 0.5)}
         self.metallic_probe = rec
         self.log.info("soup metallic probe: " + json.dumps(rec))
         del stage, mesh

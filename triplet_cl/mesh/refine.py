@@ -487,15 +487,24 @@ class MeshStage:
         self.renderer = "raster"  # of every render of the stage (relighting may ask for "hybrid")
 
     # ---- one round -----------------------------------------------------------------------------
-    def extract(self, source: Scene) -> Scene:
+    def extract(self, source: Scene, downscale: int = 1) -> Scene:
+        """The mesh of ``source`` (a soup, or a previous round's mesh): ``MeshConfig.method`` over the training views,
+        their depth rendered at the photos' size, or ``downscale`` times smaller (the soup's metallic probe at large
+        photos: a coarser mesh, fused from fewer pixels and voxels, is enough to tell a metal)."""
+        from ..train import _downsample
         from .extract import extract_scene
 
         views = self.ds.train
-        cams = [v.camera for v in views]
+        f = int(downscale)
+        cams = [v.camera for v in views] if f == 1 else \
+            [self.trainer.targets.get(i, 1.0 / f, np.zeros(3, np.float32))[0] for i in range(len(views))]
         masks = None
         if self.cfg.photo_masks and self.cfg.method == "tsdf":
-            masks = [v.alpha if v.alpha is not None and v.alpha.shape == (v.camera.height, v.camera.width) else None
+            masks = [_downsample(v.alpha, f) if v.alpha is not None and v.alpha.shape == (v.camera.height,
+                                                                                          v.camera.width) else None
                      for v in views]
+            masks = [m if m is None or m.shape == (c.height, c.width) else None for m, c in zip(masks, cams,
+                                                                                              strict=True)]
             masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
         roi = self.roi()
@@ -649,11 +658,11 @@ class MeshStage:
             m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         return tied
 
-    def choose_metallic(self, scene: Scene, tied: list[int], col: int) -> dict:
+    def choose_metallic(self, scene: Scene, tied: list[int], col: int, downscale: int = 1) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
-        hypothesis at one sample per pixel, the same views and backgrounds for each); the winner is kept in the
-        column ``col`` of ``scene.material`` and the trial in ``self.metallic_choice`` (metrics.json's
-        ``mesh.metallic_trial``)."""
+        hypothesis at one sample per pixel, the same views and backgrounds for each, the photos ``downscale`` times
+        smaller: the soup's probe at large photos); the winner is kept in the column ``col`` of ``scene.material`` and
+        the trial in ``self.metallic_choice`` (metrics.json's ``mesh.metallic_trial``)."""
         from ..lights import balanced_lights, relative_lr_scales
 
         c, tc = self.cfg, self.trainer.cfg
@@ -667,7 +676,7 @@ class MeshStage:
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
 
         def loss_and_backward(k: int) -> float:
-            cam, target = self.trainer.targets.get(int(views[k]), 1.0, np.asarray(bgs[k], np.float32))
+            cam, target = self.trainer.targets.get(int(views[k]), 1.0 / downscale, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss = photometric_backward(r, target, tc.ssim_lambda)
             if held and scene.material.grad is not None:
