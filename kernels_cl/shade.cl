@@ -66,7 +66,8 @@
 #define RED_W 16
 #endif
 /* the SH environment's coefficient sums in shade_bwd: ENV_KC coefficients per channel a chunk, a local row of ENV_SW
- * per work-item (the host sizes scratch as local size x max(RED_W, ENV_SW): ops/shade.py, scratch_width) */
+ * per work-item (the host picks ENV_KC by the device's local memory and sizes scratch as local size x max(RED_W,
+ * ENV_SW): ops/shade.py, env_chunk and scratch_width) */
 #ifndef ENV_KC
 #define ENV_KC (ENV_NK < 32 ? ENV_NK : 32)
 #endif

@@ -518,7 +518,21 @@ def test_mesh_options_are_validated(capsys):
     assert _mesh_config_from_args(argparse.Namespace(mesh_creases="keep")).normal_kappa == MeshConfig().normal_kappa
     assert cfg.pixel_sigma is None  # auto: read from the photos
     assert _mesh_config_from_args(argparse.Namespace(mesh_metal_f0=0.6)).metal_f0 == 0.6
-    assert _mesh_config_from_args(argparse.Namespace(mesh_env_degree=4)).env_degree == 4
+    c4 = _mesh_config_from_args(argparse.Namespace(mesh_env_degree=4))
+    assert (c4.env_degree, c4.env_degree_metal) == (4, 4)  # --mesh-env-degree: a metal's too
+    c = _mesh_config_from_args(argparse.Namespace(mesh_env_degree=4, mesh_env_degree_metal=6))
+    assert (c.env_degree, c.env_degree_metal) == (4, 6)
+    assert _mesh_config_from_args(argparse.Namespace(mesh_env_degree_metal=0)).env_degree_metal == 0
+    # checked at the boundary, before any work: in range, and only with a mesh stage
+    from triplet_cl.cli.main import build_parser
+    from triplet_cl.errors import UsageError
+    from triplet_cl.validate import validate_args
+
+    for argv, msg in ((["--mesh-stage", "--mesh-env-degree-metal", "9"], "expected"),
+                      (["--mesh-env-degree-metal", "4"], "only applies with --mesh-stage")):
+        with pytest.raises(UsageError) as err:
+            validate_args(build_parser().parse_args(["train", "--demo", "--out", "x", *argv]))
+        assert "--mesh-env-degree-metal" in str(err.value) and msg in str(err.value)
     with pytest.raises(ValueError, match="env_degree"):
         _mesh_config_from_args(argparse.Namespace(mesh_env_degree=9))
     with pytest.raises(ValueError, match="metal_f0"):

@@ -651,6 +651,17 @@ def test_camera_conventions():
     np.testing.assert_allclose(cn.center, [0, 0, 3])
     np.testing.assert_allclose(cn.c2w_nerf, c2w, atol=1e-12)  # from_nerf's inverse
     np.testing.assert_allclose(cl.c2w_nerf, c2w, atol=1e-12)
+    # block_averaged(f): the image of f x f pixel blocks (a remainder dropped), a point lands at 1/f of its
+    # pixel-edge coordinates; scaled() to the rounded size misplaces it when the size is not divisible by f
+    odd = Camera.look_at([0, 0, 3], [0, 0, 0], [0, 1, 0], 40, 101, 83)
+    for f in (1, 2, 3, 4):
+        b = odd.block_averaged(f)
+        assert (b.width, b.height) == (101 // f, 83 // f)
+        np.testing.assert_allclose(b.project_points(pts)[:, :2], odd.project_points(pts)[:, :2] / f, atol=1e-9)
+    off = odd.scaled((101 // 3) / 101).project_points(pts)[:, 0] - odd.project_points(pts)[:, 0] / 3
+    assert np.abs(off).max() > 0.1  # what Targets used before
+    with pytest.raises(ValueError, match="block size"):
+        odd.block_averaged(0)
     # COLMAP: w2c rotation from the quaternion, same camera
     from scipy.spatial.transform import Rotation
 

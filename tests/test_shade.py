@@ -115,11 +115,16 @@ def test_vjp_float32_vs_reference(device, rng, brdf, mix):
         assert got.v_lights[4] == {} and np.abs(got.v_vlight[:, :3]).max() > 0 and not got.v_vlight[:, 3:].any()
 
 
-@pytest.mark.parametrize("degree", [4, 8])
-def test_vjp_env_higher_degrees_vs_reference(device, rng, degree):
+@pytest.mark.parametrize("degree,kc", [(4, None), (8, None), (8, 8)])
+def test_vjp_env_higher_degrees_vs_reference(device, rng, degree, kc, monkeypatch):
     """The SH environment's coefficient sums of ``shade_bwd`` go through local memory in chunks of 32 coefficients
-    per channel (degree 8: three chunks, the last partial); over several work-groups and a partial last one, every
-    gradient against the numpy reference, beside a point light and with a second environment of another degree."""
+    per channel (degree 8: three chunks, the last partial; ``kc`` 8: the smaller chunks of a device with little
+    local memory, eleven); over several work-groups and a partial last one, every gradient against the numpy
+    reference, beside a point light and with a second environment of another degree."""
+    from triplet_cl.ops import shade as shade_op
+
+    if kc is not None:
+        monkeypatch.setattr(shade_op, "env_chunk", lambda inp, local_mem, itemsize: kc)
     P = 150
     frag = make_fragments(rng, "cook_torrance", P=P)
     pos, nrm, mat, face_id, vlight = frag
@@ -136,6 +141,20 @@ def test_vjp_env_higher_degrees_vs_reference(device, rng, degree):
     w = want["v_params"]
     np.testing.assert_allclose(got.v_light_params, w, rtol=2e-3, atol=2e-4 * np.abs(w).max())
     assert got.v_lights[1]["coeffs"].shape == (3, (degree + 1) ** 2) and np.abs(got.v_lights[1]["coeffs"]).min() > 0
+
+
+def test_env_chunk_fits_the_device_local_memory():
+    """``env_chunk``: 32 coefficients a chunk (fewer for a lower degree), halved while the scratch does not fit."""
+    from types import SimpleNamespace
+
+    from triplet_cl.ops.shade import LOCAL_SIZE, env_chunk, scratch_width
+
+    def inp(deg):
+        return SimpleNamespace(table=SimpleNamespace(env_degree=deg))
+
+    assert [env_chunk(inp(d), 1 << 20, 8) for d in (-1, 2, 4, 8)] == [9, 9, 25, 32]
+    assert env_chunk(inp(8), 32 * 1024, 8) == 16 and env_chunk(inp(8), 32 * 1024, 4) == 32
+    assert LOCAL_SIZE * scratch_width(16) * 8 <= 32 * 1024 < LOCAL_SIZE * scratch_width(32) * 8
 
 
 def test_vjp_env_degree8_float64_central_differences(device64, rng):

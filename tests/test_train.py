@@ -625,13 +625,22 @@ def test_metallic_probe_shrinks_large_photos(tmp_path, monkeypatch):
         seen.append(out[0].width)
         return out
 
+    def no_filter_estimate(self, scene):  # block averages: no filter, and no full-size renders to estimate one
+        raise AssertionError("the probe at shrunk photos estimated the full-size pixel filter")
+
+    from triplet_cl.mesh import refine
+
     monkeypatch.setattr(train_mod.Targets, "get", get)
     monkeypatch.setattr(train_mod, "probe_downscale", lambda views: 2)
+    monkeypatch.setattr(refine.MeshStage, "resolve_pixel_filter", no_filter_estimate)
+    tr.targets.get(0, 0.5, np.zeros(3, np.float32))  # the training's own entry at the probe's factor: kept
+    before = set(tr.targets.cache)
+    seen.clear()
     rec = tr.probe_metallic()
     w = tr.ds.train[0].camera.width
     assert rec["downscale"] == 2 and rec["faces"] > 0 and rec["metallic"] in (0.01, 0.99)
     assert seen and set(seen) == {w // 2}  # the extraction's cameras and every trial step: half size
-    assert all(k[1] != 2 for k in tr.targets.cache)  # the probe's photos are not kept for training
+    assert set(tr.targets.cache) == before  # the probe's photos are not kept; what the training had stays
 
 
 def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monkeypatch):

@@ -167,6 +167,17 @@ class Camera:
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy,
                        width=w, height=h)
 
+    def block_averaged(self, f: int) -> Camera:
+        """The camera of the image made of this one's ``f × f`` pixel blocks (the right and bottom remainder, fewer
+        than ``f`` pixels, dropped): ``W // f × H // f`` pixels, intrinsics exactly ``1 / f`` (pixel-edge
+        coordinates). :meth:`scaled` instead rescales to the rounded size, which for a size not divisible by ``f``
+        moves the principal point by up to half a block against the blocks."""
+        f = int(f)
+        if f < 1 or self.width < f or self.height < f:
+            raise ValueError(f"block size must be in [1, min(width, height)], got {f} for {self.width}x{self.height}")
+        return replace(self, fx=self.fx / f, fy=self.fy / f, cx=self.cx / f, cy=self.cy / f,
+                       width=self.width // f, height=self.height // f)
+
     def project_points(self, points: np.ndarray) -> np.ndarray:
         """Host-side projection ``[N,3] → [N,3]`` of (u, v, z) in float64 (reference / tools)."""
         p = np.asarray(points, dtype=np.float64) @ self.w2c[:3, :3].T + self.w2c[:3, 3]

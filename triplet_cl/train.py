@@ -574,7 +574,7 @@ class Targets:
         if key not in self.cache:
             rgb = _downsample(v.rgb, f)
             alpha = None if v.alpha is None else _downsample(v.alpha, f)
-            cam = v.camera if f == 1 else v.camera.scaled(rgb.shape[1] / v.camera.width)
+            cam = v.camera if f == 1 else v.camera.block_averaged(f)
             cam = cam if (cam.width, cam.height) == (rgb.shape[1], rgb.shape[0]) else _fix_size(cam, rgb)
             self.cache[key] = (cam, rgb, alpha)
         cam, rgb, alpha = self.cache[key]
@@ -860,19 +860,23 @@ class Trainer:
             self.log.info("soup metallic probe skipped: the photos have no alpha (a background)")
             return None
         t = time.perf_counter()
-        stage = MeshStage(self, MeshConfig(), quiet=True)
         f = probe_downscale(self.ds.train)
+        # photos shrunk by f are f x f block averages, next to which the capture's own pixel filter (a fraction of
+        # a photo pixel) is negligible: no filter then, and no full-size renders to estimate one
+        stage = MeshStage(self, MeshConfig(pixel_sigma=None if f == 1 else 0.0), quiet=True)
+        cached = set(self.targets.cache)
         try:
-            mesh = stage.extract(self.scene, downscale=f)
-        except ValueError as exc:  # a soup with no surface yet (a very short run): the dielectric stays
-            self.metallic_probe = {"it": self.it, "skipped": str(exc)}
-            self.log.info(f"soup metallic probe skipped: {exc}")
-            return None
-        if stage.cfg.pixel_sigma is None:
-            stage.resolve_pixel_filter(mesh)
-        out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col, downscale=f)
-        if f > 1:  # the probe's smaller photos: not the training's
-            self.targets.cache = {k: v for k, v in self.targets.cache.items() if k[1] != f}
+            try:
+                mesh = stage.extract(self.scene, downscale=f)
+            except ValueError as exc:  # a soup with no surface yet (a very short run): the dielectric stays
+                self.metallic_probe = {"it": self.it, "skipped": str(exc)}
+                self.log.info(f"soup metallic probe skipped: {exc}")
+                return None
+            if stage.cfg.pixel_sigma is None:
+                stage.resolve_pixel_filter(mesh)
+            out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col, downscale=f)
+        finally:  # the photos the probe shrank: not kept for the training (what it had cached stays)
+            self.targets.cache = {k: v for k, v in self.targets.cache.items() if k in cached}
         rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),
                "downscale": f, "seconds": time.perf_counter() - t, "restarted": bool(out["metallic"] > 0.5)}
         self.metallic_probe = rec

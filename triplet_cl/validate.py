@@ -59,13 +59,14 @@ _INT_OPTIONS = {
     "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
     "--mesh-env-degree": ("mesh_env_degree", 0, 8),  # MeshConfig.env_degree: the mesh's SH environment
+    "--mesh-env-degree-metal": ("mesh_env_degree_metal", 0, 8),  # MeshConfig.env_degree_metal: a metal's
     "--mesh-env-occlusion": ("mesh_env_occlusion", 0, 4),  # MeshConfig.env_occlusion: its occluded bands' degree
 }
 _MESH_OPTIONS = ("--mesh-method", "--mesh-resolution", "--mesh-faces", "--mesh-rounds", "--mesh-iterations",
                  "--mesh-light-phase", "--mesh-metallic-trial", "--mesh-ao", "--mesh-bounce", "--mesh-light-fit",
                  "--remesh-every", "--mesh-supersample", "--mesh-eval-supersample", "--texture-size", "--formats",
-                 "--bbox", "--mesh-crop", "--mesh-env-degree", "--mesh-env-occlusion", "--mesh-metal-f0",
-                 "--mesh-pixel-filter", "--mesh-laplacian", "--mesh-creases")
+                 "--bbox", "--mesh-crop", "--mesh-env-degree", "--mesh-env-degree-metal", "--mesh-env-occlusion",
+                 "--mesh-metal-f0", "--mesh-pixel-filter", "--mesh-laplacian", "--mesh-creases")
 OUTPUT_FORMATS = ("glb", "obj", "ply")
 
 

@@ -60,11 +60,20 @@ def _env_bucket(deg: int) -> int:
     return 2 if deg <= 2 else (4 if deg <= 4 else 8)
 
 
-def scratch_width(inp) -> int:
+def env_chunk(inp, local_mem_bytes: int, itemsize: int) -> int:
+    """shade.cl's ``ENV_KC`` for ``shade_bwd``: the SH environment's coefficients per channel summed in one chunk
+    through local memory, at most 32 (three chunks at degree 8), halved while the scratch (:func:`scratch_width`)
+    would not fit the device's local memory (float64 at degree 8 needs 35 KB at 32)."""
+    kc = min((_env_bucket(inp.table.env_degree) + 1) ** 2, 32)
+    while kc > 4 and LOCAL_SIZE * scratch_width(kc) * itemsize > local_mem_bytes:
+        kc //= 2
+    return kc
+
+
+def scratch_width(kc: int) -> int:
     """Local-memory values per work-item of ``shade_bwd``: ``RED_W`` for the lights' group sums, or the SH
-    environment's row (shade.cl's ``ENV_SW``: gE, gG and up to 32 coefficients of Y(N) and Y(R)) when wider."""
-    nk = (_env_bucket(inp.table.env_degree) + 1) ** 2
-    return max(RED_W, 2 * min(nk, 32) + 6)
+    environment's row (shade.cl's ``ENV_SW``: gE, gG and ``kc`` coefficients of Y(N) and Y(R)) when wider."""
+    return max(RED_W, 2 * kc + 6)
 
 
 @dataclass
@@ -241,9 +250,12 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
     part = empty(q, (max(groups, 1), max(T, 1)), real)
     if P:
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
-        launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,), defines=_defines(inp), real=real,
+        item = np.dtype(real).itemsize
+        kc = env_chunk(inp, int(dev.cl_device.local_mem_size), item)
+        launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,),
+               defines={**_defines(inp), "ENV_KC": kc}, real=real,
                **_inputs(inp), **outs, **(extra or {}), T=T, v_rgb=v_rgb, v_light_part=part,
-               scratch=cl.LocalMemory(LOCAL_SIZE * scratch_width(inp) * np.dtype(real).itemsize))
+               scratch=cl.LocalMemory(LOCAL_SIZE * scratch_width(kc) * item))
         # only the active parameters: the kernel writes no partial for an inactive one (an SH environment's bands
         # above its active degree), whose column holds whatever the buffer held (a NaN there warned in the sum)
         # (an inactive parameter's gradient stays 0)
