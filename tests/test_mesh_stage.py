@@ -525,6 +525,7 @@ def test_mesh_options_are_validated(capsys):
     assert _mesh_config_from_args(argparse.Namespace(mesh_env_degree_metal=0)).env_degree_metal == 0
     # checked at the boundary, before any work: in range, and only with a mesh stage
     from triplet_cl.cli.main import build_parser
+
     from triplet_cl.errors import UsageError
     from triplet_cl.validate import validate_args
 
