@@ -164,18 +164,23 @@ def test_vjp_env_degree8_float64_central_differences(device64, rng):
     lights = make_lights("env", rng, env_degree=8)
     v_rgb = rng.standard_normal((P, 3))
     kw = {"brdf": "cook_torrance", "device": device64, "real": np.float64, "vlight": vlight}
-    got = \
-        shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, **kw).v_lights[0]["coeffs"]
-    base = lights[0].coeffs
+    got = shade_backward(pos, nrm, mat, face_id, CAM, lights, v_rgb, **kw).v_lights[0]["coeffs"]
+    fd = _fd_entries(lambda c: np.sum(v_rgb * shade(pos, nrm, mat, face_id, CAM, [SHEnvironmentLight(c, 8)], **kw)),
+                     lights[0].coeffs, h)
+    np.testing.assert_allclose(got, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+
+
+def _fd_entries(f, base, h):
+    """Central differences of the scalar ``f(array)`` for each entry of ``base``."""
     fd = np.zeros(base.shape)
     for idx in np.ndindex(base.shape):
         vals = []
         for s in (1, -1):
             arr = base.copy()
             arr[idx] += s * h
-            vals.append(np.sum(v_rgb * shade(pos, nrm, mat, face_id, CAM, [SHEnvironmentLight(arr, 8)], **kw)))
+            vals.append(f(arr))
         fd[idx] = (vals[0] - vals[1]) / (2 * h)
-    np.testing.assert_allclose(got, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+    return fd
 
 
 def _fd_columns(f, x, h):
@@ -214,17 +219,11 @@ def test_vjp_float64_finite_differences(device64, rng, brdf, mix):
 
     for i, light in enumerate(lights):
         for pname, grad in got.v_lights[i].items():
-            base = getattr(light, pname)
-            fd = np.zeros(base.shape)
-            for idx in np.ndindex(base.shape):
-                vals = []
-                for s in (1, -1):
-                    arr = base.copy()
-                    arr[idx] += s * h
-                    mod = [type(light)(**{**light.__dict__, pname: arr}) if k == i else l
-                           for k, l in enumerate(lights)]
-                    vals.append(np.sum(v_rgb * run(lights=mod)))
-                fd[idx] = (vals[0] - vals[1]) / (2 * h)
+            def loss(arr, i=i, light=light, pname=pname):
+                mod = [type(light)(**{**light.__dict__, pname: arr}) if k == i else l for k, l in enumerate(lights)]
+                return np.sum(v_rgb * run(lights=mod))
+
+            fd = _fd_entries(loss, getattr(light, pname), h)
             np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6 * max(np.abs(fd).max(), 1e-3),
                                        err_msg=f"light {i} {pname}")
 
