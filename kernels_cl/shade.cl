@@ -71,7 +71,7 @@
 #ifndef ENV_KC
 #define ENV_KC (ENV_NK < 32 ? ENV_NK : 32)
 #endif
-#define ENV_SW (2 * ENV_KC + 6)
+#define ENV_SW (3 * ENV_KC + 6)
 #if !defined(NUM_LIGHTS) || !defined(LIGHT_TABLE)
 #error "shade.cl needs NUM_LIGHTS and LIGHT_TABLE (ops/shade.py: _defines)"
 #endif
@@ -370,16 +370,18 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 }
 #endif
             }
-            /* the coefficient gradients' two factors per k, once: Yn_k <- A_l Yn_k - U_k, Yr_k <- g_l Yr_k */
+            /* the diffuse factor once per k: Yn_k <- A_l Yn_k - U_k; the band factor g_l of each k kept beside it */
+            REAL gk[ENV_NK];
             for (int l = 0; l <= a; ++l)
                 for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
                     Yn[k] = SH_BAND_A[l] * Yn[k] - U[k];
-                    Yr[k] = gl[l] * Yr[k];
+                    gk[k] = gl[l];
                 }
-            /* v_c[ch, k] = sum over the work-group of gE_ch Yn_k + gG_ch Yr_k: ENV_KC values of k at a time through
-             * local memory (a row of ENV_SW per work-item: gE, gG, Yn, Yr), then each work-item sums its
-             * coefficients of the chunk over the rows; two barriers per chunk (three chunks at degree 8), where one
-             * sum per RED_W coefficients took 32 */
+            /* v_c[ch, k] = sum over the work-group of gE_ch Yn_k + gG_ch g_l Yr_k: ENV_KC values of k at a time
+             * through local memory (a row of ENV_SW per work-item: gE, gG, Yn, g, Yr), then each work-item sums its
+             * coefficients of the chunk over the rows, in the row order and with the products of the former one
+             * group sum per RED_W coefficients (the same sums bit for bit); two barriers per chunk (three chunks at
+             * degree 8) where that took 32 */
             const int lid = get_local_id(0), lsz = get_local_size(0);
             for (int k0 = 0; k0 < nk; k0 += ENV_KC) {
                 __local REAL* row = scratch + lid * ENV_SW;
@@ -388,7 +390,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                 for (int kk = 0; kk < ENV_KC; ++kk) {
                     const int k = k0 + kk;
                     row[6 + kk] = k < nk ? Yn[k] : (REAL)0;
-                    row[6 + ENV_KC + kk] = k < nk ? Yr[k] : (REAL)0;
+                    row[6 + ENV_KC + kk] = k < nk ? gk[k] : (REAL)0;
+                    row[6 + 2 * ENV_KC + kk] = k < nk ? Yr[k] : (REAL)0;
                 }
                 barrier(CLK_LOCAL_MEM_FENCE);
                 for (int j = lid; j < 3 * ENV_KC; j += lsz) {
@@ -397,7 +400,8 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
                         REAL s = (REAL)0;
                         for (int r = 0; r < lsz; ++r) {
                             __local const REAL* w = scratch + r * ENV_SW;
-                            s += w[ch] * w[6 + kk] + w[3 + ch] * w[6 + ENV_KC + kk];
+                            const REAL val = w[ch] * w[6 + kk] + w[3 + ch] * w[6 + ENV_KC + kk] * w[6 + 2 * ENV_KC + kk];
+                            s += val;
                         }
                         part[off + ch * b + k0 + kk] = s;
                     }

@@ -63,7 +63,7 @@ def _env_bucket(deg: int) -> int:
 def env_chunk(inp, local_mem_bytes: int, itemsize: int) -> int:
     """shade.cl's ``ENV_KC`` for ``shade_bwd``: the SH environment's coefficients per channel summed in one chunk
     through local memory, at most 32 (three chunks at degree 8), halved while the scratch (:func:`scratch_width`)
-    would not fit the device's local memory (float64 at degree 8 needs 35 KB at 32)."""
+    would not fit the device's local memory (float64 at degree 8 needs 52 KB at 32)."""
     kc = min((_env_bucket(inp.table.env_degree) + 1) ** 2, 32)
     while kc > 4 and LOCAL_SIZE * scratch_width(kc) * itemsize > local_mem_bytes:
         kc //= 2
@@ -72,8 +72,9 @@ def env_chunk(inp, local_mem_bytes: int, itemsize: int) -> int:
 
 def scratch_width(kc: int) -> int:
     """Local-memory values per work-item of ``shade_bwd``: ``RED_W`` for the lights' group sums, or the SH
-    environment's row (shade.cl's ``ENV_SW``: gE, gG and ``kc`` coefficients of Y(N) and Y(R)) when wider."""
-    return max(RED_W, 2 * kc + 6)
+    environment's row (shade.cl's ``ENV_SW``: gE, gG and, for ``kc`` coefficients, the diffuse factor, the band
+    factor and Y(R)) when wider."""
+    return max(RED_W, 3 * kc + 6)
 
 
 @dataclass
