@@ -628,8 +628,17 @@ def test_metallic_probe_shrinks_large_photos(tmp_path, monkeypatch):
     def no_filter_estimate(self, scene):  # block averages: no filter, and no full-size renders to estimate one
         raise AssertionError("the probe at shrunk photos estimated the full-size pixel filter")
 
+    from triplet_cl.mesh import extract as extract_mod
     from triplet_cl.mesh import refine
 
+    fused = []
+    orig_extract = extract_mod.extract_scene
+
+    def extract_scene(scene, cameras=None, *a, masks=None, **kw):
+        fused.append(({(c.width, c.height) for c in cameras}, {None if m is None else m.shape for m in masks or []}))
+        return orig_extract(scene, cameras, *a, masks=masks, **kw)
+
+    monkeypatch.setattr(extract_mod, "extract_scene", extract_scene)
     monkeypatch.setattr(train_mod.Targets, "get", get)
     monkeypatch.setattr(train_mod, "probe_downscale", lambda views: 2)
     monkeypatch.setattr(refine.MeshStage, "resolve_pixel_filter", no_filter_estimate)
@@ -639,7 +648,9 @@ def test_metallic_probe_shrinks_large_photos(tmp_path, monkeypatch):
     rec = tr.probe_metallic()
     w = tr.ds.train[0].camera.width
     assert rec["downscale"] == 2 and rec["faces"] > 0 and rec["metallic"] in (0.01, 0.99)
-    assert seen and set(seen) == {w // 2}  # the extraction's cameras and every trial step: half size
+    assert seen and set(seen) == {w // 2}  # every trial step: half size
+    h = tr.ds.train[0].camera.height
+    assert fused == [({(w // 2, h // 2)}, {(h // 2, w // 2)})]  # the extraction's cameras and masks: half size too
     assert set(tr.targets.cache) == before  # the probe's photos are not kept; what the training had stays
 
 

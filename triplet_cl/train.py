@@ -574,8 +574,7 @@ class Targets:
         if key not in self.cache:
             rgb = _downsample(v.rgb, f)
             alpha = None if v.alpha is None else _downsample(v.alpha, f)
-            cam = v.camera if f == 1 else v.camera.block_averaged(f)
-            cam = cam if (cam.width, cam.height) == (rgb.shape[1], rgb.shape[0]) else _fix_size(cam, rgb)
+            cam = v.camera if f == 1 else v.camera.block_averaged(f)  # (W // f) x (H // f), as _downsample's
             self.cache[key] = (cam, rgb, alpha)
         cam, rgb, alpha = self.cache[key]
         if alpha is None:
@@ -586,12 +585,6 @@ class Targets:
         """Drop the images cached at every other scale (a phase that trains at ``scale`` only)."""
         f = max(1, int(round(1 / scale)))
         self.cache = {k: v for k, v in self.cache.items() if k[1] == f}
-
-
-def _fix_size(cam: Camera, rgb: np.ndarray) -> Camera:
-    from dataclasses import replace
-
-    return replace(cam, width=rgb.shape[1], height=rgb.shape[0])
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:

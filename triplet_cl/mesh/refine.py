@@ -190,8 +190,8 @@ class MeshConfig:
     # a metal's reflections cannot sharpen and its roughness goes unconstrained. Measured on the mesh stage of the same
     # soups (session 45, bench/results/env_degree_pocl_2026-11-27.txt): spot_small as a metal under the HDR
     # environment, relight 27.07 / 26.74 / 31.77 -> 28.76 / 28.88 / 34.76, albedo 25.75 -> 27.78 (roughness median
-    # 0.65 -> 0.57, truth 0.35); the three other metal captures -0.03 to +0.27 dB of relight; degree 8 costs about 60 %
-    # more mesh-stage time (spot, all degree 8: 80 -> 127 s), paid by metals only
+    # 0.65 -> 0.57, truth 0.35); the three other metal captures -0.03 to +0.27 dB of relight; degree 8 costs a mesh
+    # stage ~45 % more time (spot, all degree 8: 80 s at degree 2 -> 116 s with shade_bwd's chunked sums), metals only
     env_degree_metal: int = 8
     # the SH environment's occlusion by the mesh itself (visibility.vertex_occlusion, env_occlusion_directions rays
     # per vertex, traced when the mesh's faces change: round start, remesh): bands 1 .. this degree of every SH
@@ -496,15 +496,13 @@ class MeshStage:
 
         views = self.ds.train
         f = int(downscale)
-        cams = [v.camera for v in views] if f == 1 else \
-            [self.trainer.targets.get(i, 1.0 / f, np.zeros(3, np.float32))[0] for i in range(len(views))]
+        # the cameras and masks of f x f pixel blocks, as the trainer's targets at 1 / f (Targets.get)
+        cams = [v.camera if f == 1 else v.camera.block_averaged(f) for v in views]
         masks = None
         if self.cfg.photo_masks and self.cfg.method == "tsdf":
             masks = [_downsample(v.alpha, f) if v.alpha is not None and v.alpha.shape == (v.camera.height,
                                                                                           v.camera.width) else None
                      for v in views]
-            masks = [m if m is None or m.shape == (c.height, c.width) else None for m, c in zip(masks, cams,
-                                                                                              strict=True)]
             masks = masks if any(m is not None for m in masks) else None
         t = time.perf_counter()
         roi = self.roi()

@@ -252,7 +252,7 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
     if P:
         dev.check_alloc(groups * max(T, 1) * np.dtype(real).itemsize, "shade light-gradient partials")
         item = np.dtype(real).itemsize
-        kc = env_chunk(inp, int(dev.cl_device.local_mem_size), item)
+        kc = env_chunk(inp, dev.cached("local_mem_size", lambda: int(dev.cl_device.local_mem_size)), item)
         launch(dev, "shade", "shade_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,),
                defines={**_defines(inp), "ENV_KC": kc}, real=real,
                **_inputs(inp), **outs, **(extra or {}), T=T, v_rgb=v_rgb, v_light_part=part,
