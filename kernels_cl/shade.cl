@@ -436,7 +436,7 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             load_fragment(p, pos, nrm, mat, cam, two_sided, &xr, &Vr, &Nr, &sr, mr); /* see the env note */
             env_scales(Nr, Vr, mr, &s_d, &s_g);
             v_r = s_g * v_o;
-            env_scales_vjp(Nr, Vr, mr, (REAL3)(0), v_o * LOAD3(refl, p), (REAL)0, &v_N, &v_V, v_m);
+            env_scales_vjp(Nr, Vr, mr, (REAL3)(0), v_o * LOAD3(refl, p), &v_N, &v_V, v_m);
         }
         STORE3(v_r, v_refl, p);
     }

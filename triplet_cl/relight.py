@@ -417,20 +417,20 @@ class Relighter:
 
         s = self.base
         mat = np.asarray(s.material.data)
+        brdf = s.brdf
         if albedo:
-            if s.brdf != "cook_torrance":
-                mat = mat.copy()
-                mat[:, 7:10] = mat[:, 0:3]  # Blinn-Phong ambient term: La ka; show kd
-            else:
-                mat = mat.copy()
-                # sigmoid → 1: no ambient occlusion; metallic 1 and roughness 1 make the ambient term's Fresnel
-                # reflectance Fe = F0 = albedo and its diffuse share 0, so the ambient light shows the albedo exactly
-                mat[:, 3:6] = 30.0
+            # shown by Blinn-Phong's ambient term La ka, which is ka itself under La = 1, whatever a BRDF's environment
+            # weights are (Cook-Torrance's metal reflects F0 A + B of an ambient light, not F0): kd and ka the base
+            # colour's raw values (Blinn-Phong's kd and Cook-Torrance's albedo share the sigmoid), ks 0
+            n = len(mat)
+            base = mat[:, 0:3]
+            mat = np.concatenate([base, np.full((n, 3), -30.0), np.zeros((n, 1)), base], axis=1)
+            brdf = "blinn_phong"
             lights = [AmbientLight(np.ones(3))]
         keep_vsh = any(isinstance(lt, VertexSHLight) for lt in lights)
         return Scene.from_arrays(s.V.data, s.F, material=mat, alpha=s.alpha.data, lights=lights,
                                  vertex_sh=s.vertex_sh.data if keep_vsh and s.vertex_sh is not None else None,
-                                 brdf=s.brdf, dtype=np.asarray(s.V.data).dtype)
+                                 brdf=brdf, dtype=np.asarray(s.V.data).dtype)
 
     def render(self, scene, camera, background, renderer: str | None = None,
                bounce: bool = True) -> tuple[np.ndarray, np.ndarray]:

@@ -36,19 +36,26 @@
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
- *   g_l = exp(-l (l + 1) sigma^2 / 2)   (heat-kernel / Gaussian-lobe band attenuation; sigma^2 is
- *   the lobe variance: Cook-Torrance sigma^2 = a^2 = r^4, Blinn-Phong sigma^2 = 2/(e + 2), the
- *   GGX-equivalent a^2 of a Blinn-Phong exponent e)
- *   Cook-Torrance:  Fe = F0 + (1 - F0)(1 - r)(1 - nv)^5  (roughness-damped Schlick on N.V),
+ *   g_l the band attenuation of the glossy lobe (env_band):
+ *     Cook-Torrance: g_l = (1 - m) exp(-l (l + 1) a^2 / 2) + m LOBE_BANDS[r, l], a = r^2: a metal's is the GGX lobe's
+ *       own zonal SH coefficients at normal incidence (ggx_tables.h, linear in r); the Gaussian is half the lobe's
+ *       width, without its tails (band 2 at r = 0.35: 0.95 against 0.79). A dielectric keeps the Gaussian: with the
+ *       table its faint glossy part kept view-dependent bands at the high roughness it is fitted with, -0.3 to
+ *       -0.6 dB of novel views and no relight gain (session 46, bench/results/env_lobe_pocl_2026-11-27.txt).
+ *     Blinn-Phong: g_l = exp(-l (l + 1) sigma^2 / 2), sigma^2 = 2/(e + 2) (the GGX-equivalent a^2 of an exponent e)
+ *   Cook-Torrance:  Fe = (1 - m) [0.04 + 0.96 (1 - r)(1 - nv)^5] + m [albedo A(r, nv) + B(r, nv)],
  *                   out = ao [(1 - m) albedo / pi E + Fe Gl]
- *   (no (1 - Fe) on the diffuse, as the direct term has no (1 - F). Not the lobe's exact directional albedo: a
- *   table of it (F0 (A1 - A5) + A5 and the Disney diffuse's, over roughness and nv) was built and measured in
- *   session 38; it ties the environment's reflection to the fitted roughness, which drifts high on bob_env and
- *   gadget (0.73, 0.94 for 0.5, 0.4), and cost bob_env 1.9 dB of albedo and gadget 1 dB of env_rotated relight:
- *   bench/results/principled_bsdf_pocl_2026-11-27.txt)
+ *     a metal's weight is its lobe's exact directional albedo (DFG_A, DFG_B of ggx_tables.h, bilinear: the energy
+ *     masking takes as the lobe roughens, 0.82 of the light at r = 0.6 as Mitsuba's own white furnace, and the
+ *     Fresnel rise at grazing angles). Under an environment these two factors are all that tells a metal's
+ *     roughness: with the damped Schlick below and the Gaussian, spot_small as a metal of roughness 0.35 was fitted
+ *     at 0.57 (0.39 with both from the lobe; session 46). A dielectric keeps the roughness-damped Schlick: its
+ *     exact table (session 38, bench/results/principled_bsdf_pocl_2026-11-27.txt) tied the environment's
+ *     reflection to a roughness that drifts high on bob_env and gadget and cost bob_env 1.9 dB of albedo.
+ *     (No (1 - Fe) on the diffuse, as the direct term has no (1 - F).)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
- *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 for a rough metal.)
+ *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 A + B for a metal.)
  *   E and Gl are not clamped.
  *   Occluded environment (issue 18 item 2, shade.cl ENV_OCC): U [ENV_NK] (U_0 = 0) per fragment, the part of the
  *   bands above 0 that the geometry hides (visibility.vertex_occlusion: the cosine-weighted SH moments of the
@@ -66,6 +73,7 @@
 #include "real.h"
 #include "shade_math.h"
 #include "sh.h"
+#include "ggx_tables.h"
 
 /* BRDF (the selected model), BRDF_<NAME> (every model's id) and NMAT (its channel count) are
  * generated from the descriptors of triplet_cl/materials.py (BRDF.kernel_defines). */
@@ -230,7 +238,7 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
  * Gl = La): ao [(1 - m) albedo + Fe] La — the Fresnel reflection of the surroundings as well (issue 18) */
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g);
 inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m);
+                           REAL3* v_N, REAL3* v_V, REAL* v_m);
 
 inline REAL3 ambient_term(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m)
 {
@@ -245,13 +253,57 @@ inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const
     REAL3 s_d, s_g;
     env_scales(N, V, m, &s_d, &s_g);
     *v_La += v_out * (s_d * R_PI + s_g);
-    env_scales_vjp(N, V, m, v_out * La * R_PI, v_out * La, (REAL)0, v_N, v_V, v_m);
+    env_scales_vjp(N, V, m, v_out * La * R_PI, v_out * La, v_N, v_V, v_m);
 }
 
-inline REAL env_sigma2(const REAL* m)
+/* (A, B) of a metal's directional albedo F0 A + B at (r, nv), bilinear in ggx_tables.h's DFG_A / DFG_B (nodes k / 31
+ * in both), and their slopes (0 outside (0, 1), where the lookup clamps) */
+inline void env_dfg(const REAL r, const REAL nv, REAL* A, REAL* B, REAL* dAr, REAL* dBr, REAL* dAn, REAL* dBn)
 {
-    const REAL r = m[3];
-    return r * r * r * r;
+    const REAL fr = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const REAL fn = clamp(nv, (REAL)0, (REAL)1) * (REAL)(GGX_NNV - 1);
+    const int i = min((int)fr, GGX_NR - 2), j = min((int)fn, GGX_NNV - 2);
+    const REAL t = fr - (REAL)i, u = fn - (REAL)j;
+    const int k = i * GGX_NNV + j;
+    const REAL a00 = DFG_A[k], a01 = DFG_A[k + 1], a10 = DFG_A[k + GGX_NNV], a11 = DFG_A[k + GGX_NNV + 1];
+    const REAL b00 = DFG_B[k], b01 = DFG_B[k + 1], b10 = DFG_B[k + GGX_NNV], b11 = DFG_B[k + GGX_NNV + 1];
+    const REAL a0 = a00 + (a01 - a00) * u, a1 = a10 + (a11 - a10) * u;
+    const REAL b0 = b00 + (b01 - b00) * u, b1 = b10 + (b11 - b10) * u;
+    *A = a0 + (a1 - a0) * t;
+    *B = b0 + (b1 - b0) * t;
+    const REAL sr = (r > (REAL)0 && r < (REAL)1) ? (REAL)(GGX_NR - 1) : (REAL)0;
+    const REAL sn = (nv > (REAL)0 && nv < (REAL)1) ? (REAL)(GGX_NNV - 1) : (REAL)0;
+    *dAr = (a1 - a0) * sr;
+    *dBr = (b1 - b0) * sr;
+    *dAn = ((a01 - a00) + ((a11 - a10) - (a01 - a00)) * t) * sn;
+    *dBn = ((b01 - b00) + ((b11 - b10) - (b01 - b00)) * t) * sn;
+}
+
+/* the glossy lobe's attenuation g_l of SH band l, blended by the metallic m: (1 - m) exp(-l (l + 1) r^4 / 2) +
+ * m LOBE_BANDS[r, l] (ggx_tables.h, linear in r over nodes k / 31) */
+inline REAL env_band(const int l, const REAL* m)
+{
+    const REAL r = m[3], met = m[4];
+    const REAL f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const int i = min((int)f, GGX_NR - 2);
+    const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
+    const REAL g = exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * r * r * r * r);
+    return ((REAL)1 - met) * g + met * (a + (b - a) * (f - (REAL)i));
+}
+
+/* v_g (the adjoint of g_l) -> v_m */
+inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
+{
+    const REAL r = m[3], met = m[4];
+    const REAL f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const int i = min((int)f, GGX_NR - 2);
+    const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
+    const REAL ll = (REAL)(l * (l + 1));
+    const REAL g = exp(-(REAL)0.5 * ll * r * r * r * r);
+    v_m[4] += v_g * (a + (b - a) * (f - (REAL)i) - g);
+    REAL dr = -((REAL)1 - met) * g * (REAL)2 * ll * r * r * r;
+    if (r > (REAL)0 && r < (REAL)1) dr += met * (b - a) * (REAL)(GGX_NR - 1);
+    v_m[3] += v_g * dr;
 }
 
 /* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales */
@@ -260,42 +312,46 @@ inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, 
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nv = fmax(dot(N, V), (REAL)0);
-    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
-    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * pow5((REAL)1 - nv);
+    REAL A, B, dAr, dBr, dAn, dBn;
+    env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * pow5((REAL)1 - nv);
+    const REAL3 Fe = ((REAL)1 - met) * Fd + met * (alb * A + B);
     *s_d = ao * ((REAL)1 - met) * alb / R_PI;
     *s_g = ao * Fe;
 }
 
-/* adjoint of env_scales and of sigma2(m): v_sd, v_sg, v_sigma2 -> v_N, v_V, v_m */
+/* adjoint of env_scales: v_sd, v_sg -> v_N, v_V, v_m */
 inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m)
+                           REAL3* v_N, REAL3* v_V, REAL* v_m)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nvr = dot(N, V);
     const REAL nv = fmax(nvr, (REAL)0);
-    const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
     const REAL omv = (REAL)1 - nv;
     const REAL f5 = pow5(omv);
-    const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * f5;
+    REAL A, B, dAr, dBr, dAn, dBn;
+    env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * f5;
+    const REAL3 Fm = alb * A + B;
+    const REAL3 Fe = ((REAL)1 - met) * Fd + met * Fm;
     /* s_d = ao (1 - m) alb / pi,  s_g = ao Fe */
     v_m[5] += dot(v_sd, ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
     const REAL3 v_Fe = ao * v_sg;
     REAL v_met = -ao * dot(v_sd, alb) / R_PI;
     REAL3 v_alb = ao * v_sd * ((REAL)1 - met) / R_PI;
-    /* Fe = F0 + (1 - F0)(1 - r) f5 */
-    const REAL3 v_F0 = v_Fe * ((REAL)1 - ((REAL)1 - r) * f5);
-    const REAL w = dot(v_Fe, (REAL)1 - F0);
-    REAL v_r = -w * f5;
-    const REAL v_f5 = w * ((REAL)1 - r);
-    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_f5;
+    /* Fe = (1 - m) Fd + m Fm,  Fd = 0.04 + 0.96 (1 - r) f5,  Fm = alb A(r, nv) + B(r, nv) */
+    const REAL sFe = v_Fe.x + v_Fe.y + v_Fe.z;
+    v_met += dot(v_Fe, Fm) - Fd * sFe;
+    const REAL v_Fd = ((REAL)1 - met) * sFe;
+    v_alb += v_Fe * met * A;
+    const REAL v_A = met * dot(v_Fe, alb), v_B = met * sFe;
+    REAL v_r = -v_Fd * (REAL)0.96 * f5 + v_A * dAr + v_B * dBr;
+    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_Fd * (REAL)0.96 * ((REAL)1 - r) + v_A * dAn + v_B * dBn;
     if (nvr > (REAL)0) {
         *v_N += v_nv * V;
         *v_V += v_nv * N;
     }
-    v_met += dot(v_F0, alb - (REAL)0.04);
-    v_alb += v_F0 * met;
-    v_r += v_sigma2 * (REAL)4 * r * r * r;
     v_m[0] += v_alb.x;
     v_m[1] += v_alb.y;
     v_m[2] += v_alb.z;
@@ -366,9 +422,20 @@ inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const
     v_m[9] += v_ka.z;
 }
 
-inline REAL env_sigma2(const REAL* m)
+/* the glossy lobe's attenuation g_l = exp(-l (l + 1) sigma^2 / 2) of SH band l, sigma^2 = 2 / (relu(s) + 3) */
+inline REAL env_band(const int l, const REAL* m)
 {
-    return (REAL)2 / (fmax(m[6], (REAL)0) + (REAL)3);
+    const REAL s2 = (REAL)2 / (fmax(m[6], (REAL)0) + (REAL)3);
+    return exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * s2);
+}
+
+inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
+{
+    if (m[6] > (REAL)0) {
+        const REAL q = m[6] + (REAL)3;
+        const REAL v_s2 = v_g * env_band(l, m) * (-(REAL)0.5 * (REAL)(l * (l + 1)));
+        v_m[6] += -v_s2 * (REAL)2 / (q * q);
+    }
 }
 
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
@@ -378,7 +445,7 @@ inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, 
 }
 
 inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           const REAL v_sigma2, REAL3* v_N, REAL3* v_V, REAL* v_m)
+                           REAL3* v_N, REAL3* v_V, REAL* v_m)
 {
     v_m[0] += v_sd.x / R_PI;
     v_m[1] += v_sd.y / R_PI;
@@ -386,10 +453,6 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     v_m[3] += v_sg.x;
     v_m[4] += v_sg.y;
     v_m[5] += v_sg.z;
-    if (m[6] > (REAL)0) {
-        const REAL q = fmax(m[6], (REAL)0) + (REAL)3;
-        v_m[6] += -v_sigma2 * (REAL)2 / (q * q);
-    }
 }
 
 #else
@@ -411,8 +474,7 @@ inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg,
     const REAL3 R = (REAL)2 * dot(N, V) * N - V;
     sh_eval(deg, N, Yn);
     sh_eval(deg, R, Yr);
-    const REAL s2 = env_sigma2(m);
-    for (int l = 0; l <= deg; ++l) gl[l] = exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * s2);
+    for (int l = 0; l <= deg; ++l) gl[l] = env_band(l, m);
     REAL3 e = (REAL3)(0), g = (REAL3)(0);
     for (int l = 0; l <= deg; ++l)
         for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
@@ -447,8 +509,6 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
     *gE = v_out * s_d;
     *gG = v_out * s_g;
     REAL v_Yn[ENV_NK], v_Yr[ENV_NK];
-    REAL v_s2 = (REAL)0;
-    const REAL s2 = env_sigma2(m);
     for (int l = 0; l <= deg; ++l) {
         REAL v_gl = (REAL)0;
         for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
@@ -457,9 +517,8 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
             v_Yr[k] = gl[l] * dot(*gG, ck);
             v_gl += Yr[k] * dot(*gG, ck);
         }
-        v_s2 += v_gl * gl[l] * (-(REAL)0.5 * (REAL)(l * (l + 1)));
+        env_band_vjp(l, m, v_gl, v_m);
     }
-    (void)s2;
     const REAL nvr = dot(N, V);
     const REAL3 R = (REAL)2 * nvr * N - V;
     *v_N += sh_eval_vjp(deg, N, v_Yn);
@@ -467,7 +526,7 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
     const REAL rn = dot(v_R, N);
     *v_N += (REAL)2 * nvr * v_R + (REAL)2 * rn * V;
     *v_V += (REAL)2 * rn * N - v_R;
-    env_scales_vjp(N, V, m, v_out * E, v_out * Gl, v_s2, v_N, v_V, v_m);
+    env_scales_vjp(N, V, m, v_out * E, v_out * Gl, v_N, v_V, v_m);
 }
 
 #endif /* TRIPLET_SHADE_BRDF_H */

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from triplet_cl import ggx_tables
 from triplet_cl.lights import AmbientLight, BounceLight, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight
 
 from . import sh as shref
@@ -19,6 +20,8 @@ AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH, BOUNCE = (AmbientLight.TYPE, Dir
                                                           SHEnvironmentLight.TYPE, VertexSHLight.TYPE, BounceLight.TYPE)
 EPS2 = 1e-20
 POINT_D2_EPS = 1e-6
+# the Cook-Torrance lobe's tables as the kernels read them (float32 values of ggx_tables.h; interpolated here in float64)
+GGX = ggx_tables.load()
 
 
 def relu(x):
@@ -92,9 +95,14 @@ def ambient(N, V, La, m, brdf):
     if brdf != "cook_torrance":
         return La * m[:, 7:10]
     alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-    F0 = 0.04 * (1 - met) + met * alb
-    Fe = F0 + (1 - F0) * (1 - r) * (1 - relu(dot(N, V))) ** 5
-    return ao * ((1 - met) * alb + Fe) * La
+    return ao * ((1 - met) * alb + env_fresnel(alb, r, met, relu(dot(N, V)))) * La
+
+
+def env_fresnel(alb, r, met, nv):
+    """Cook-Torrance's environment weight Fe: a dielectric's damped Schlick 0.04 + 0.96 (1 - r)(1 - nv)^5 blended
+    with a metal's exact directional albedo alb A + B (ggx_tables' bilinear DFG)."""
+    A, B = ggx_tables.dfg(r, nv, GGX)
+    return (1 - met) * (0.04 + 0.96 * (1 - r) * (1 - nv) ** 5) + met * (alb * A + B)
 
 
 def env(N, V, m, brdf, c, deg, occ=None):
@@ -106,11 +114,12 @@ def env(N, V, m, brdf, c, deg, occ=None):
     nv_raw = dot(N, V)
     R = 2 * nv_raw * N - V
     Yn, Yr = shref.sh_eval(deg, N), shref.sh_eval(deg, R)
-    if brdf == "cook_torrance":
-        s2 = m[:, 3:4] ** 4
+    if brdf == "cook_torrance":  # a dielectric's Gaussian, a metal's GGX lobe's own zonal coefficients (blended)
+        r, met = m[:, 3:4], m[:, 4:5]
+        gl = (1 - met) * np.exp(-0.5 * band * (band + 1) * r ** 4) + met * ggx_tables.lobe_bands(r, band[None, :], GGX)
     else:
         s2 = 2 / (relu(m[:, 6:7]) + 3)
-    gl = np.exp(-0.5 * band * (band + 1) * s2)  # [P, nk]
+        gl = np.exp(-0.5 * band * (band + 1) * s2)  # [P, nk]
     tn = Yn * shref.BAND_A[band]
     if occ is not None:
         n = min(nk - 1, occ.shape[1])
@@ -120,9 +129,7 @@ def env(N, V, m, brdf, c, deg, occ=None):
     Gl = np.einsum("pk,ck->pc", Yr * gl, c)  # band-attenuated radiance along R
     if brdf == "cook_torrance":
         alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-        nv = relu(nv_raw)
-        F0 = 0.04 * (1 - met) + met * alb
-        Fe = F0 + (1 - F0) * (1 - r) * (1 - nv) ** 5
+        Fe = env_fresnel(alb, r, met, relu(nv_raw))
         return ao * ((1 - met) * alb / np.pi * E + Fe * Gl)
     return m[:, 0:3] / np.pi * E + m[:, 3:6] * Gl
 

@@ -44,6 +44,7 @@ import time
 
 import numpy as np
 
+from ..ggx_tables import dfg
 from ..visibility import sphere_directions
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -432,10 +433,13 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     group, n_groups = remap[vi], int(good.sum())
     P, nrm = V[vi], normals[vi]
     f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
-    grazing = (1.0 - np.maximum((nrm * to_cam).sum(axis=1), 0.0)) ** 5
+    nv_obs = np.clip((nrm * to_cam).sum(axis=1), 0.0, 1.0)
 
-    def ambient_column(r):  # the ambient term's Fresnel over F0: 1 + (1 / f0 - 1) (1 - r) (1 - n·v)^5 (shade.cl's Fe)
-        return np.ones(len(P)) if f0_obs is None else 1.0 + (1.0 / f0_obs - 1.0) * (1.0 - r) * grazing
+    def ambient_column(r):  # the ambient term's weight over F0: a metal's directional albedo A + B / f0 (shade_brdf.h)
+        if f0_obs is None:
+            return np.ones(len(P))
+        A, B = dfg(np.full(len(P), float(r)), nv_obs)
+        return A + B / f0_obs
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:
