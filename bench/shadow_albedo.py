@@ -45,9 +45,11 @@ def shadow_masks(scene_dir: Path, views):
     # facing the light (vertex normals of the mesh): N·L <= 0 is dark anyway, not a cast shadow
     facing = (np.asarray(m.vertex_normals) * (pos - V)).sum(1) > 0
     shade = np.where(facing, vis, 1.0)
-    mat = np.concatenate([logit(np.clip(np.repeat(shade[:, None], 3, 1), 1e-4, 1 - 1e-4)), np.full((n, 3), 0.0)], 1)
-    mat[:, 3:6] = 30.0  # roughness, metallic, AO 1: the ambient term shows the "albedo" column exactly (Fe = F0)
-    show = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=[AmbientLight(np.ones(3))])
+    s3 = logit(np.clip(np.repeat(shade[:, None], 3, 1), 1e-4, 1 - 1e-4))
+    # Blinn-Phong's ambient term La ka shows ka exactly (ks 0), as triplet_cl.relight's albedo renders
+    mat = np.concatenate([s3, np.full((n, 3), -30.0), np.zeros((n, 1)), s3], 1)
+    show = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=[AmbientLight(np.ones(3))],
+                             brdf="blinn_phong")
     out = []
     for v in views:
         r = render(show, v.camera, RenderSettings(K=4, sigma=None, normals="vertex", background=(1, 1, 1)))

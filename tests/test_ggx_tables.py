@@ -11,7 +11,7 @@ from triplet_cl import ggx_tables
 
 def test_committed_header_is_what_the_module_computes():
     # the header holds 7 decimals (float32 in the kernels); a regenerated table differs only by summation order
-    for have, want in zip(ggx_tables.load(), ggx_tables.compute()):
+    for have, want in zip(ggx_tables.load(), ggx_tables.compute(), strict=True):
         np.testing.assert_allclose(have, want, atol=2e-6)
 
 

@@ -64,13 +64,11 @@ def textured_scene(seed: int = 0):
     phase = rng.uniform(0, 2 * np.pi, (3, 16))
     field = np.sin(np.einsum("ckd,nd->nck", waves, V) + phase).sum(-1)  # [N, 3]
     albedo = np.clip(0.5 + 0.45 * np.tanh(0.6 * field), 0.02, 0.98)
-    mat = np.zeros((len(V), 6))
-    mat[:, :3] = logit(albedo)
-    # roughness and metallic 1: the ambient term's Fresnel reflectance is the albedo and its diffuse share 0, so the
-    # ambient light shows albedo x AO exactly (the flat-lit texture this capture was made with before issue 18)
-    mat[:, 3:] = [30.0, 30.0, logit(0.999)]
+    # Blinn-Phong's ambient term La ka with ks 0: the ambient light shows the albedo exactly (the flat-lit texture this
+    # capture was made with before issue 18)
+    mat = np.concatenate([logit(albedo), np.full((len(V), 3), -30.0), np.zeros((len(V), 1)), logit(albedo)], axis=1)
     alpha = np.full((len(V), 1), logit(0.999))
-    return Scene.from_arrays(V, F, material=mat, alpha=alpha, lights=[AmbientLight(np.ones(3))])
+    return Scene.from_arrays(V, F, material=mat, alpha=alpha, lights=[AmbientLight(np.ones(3))], brdf="blinn_phong")
 
 
 def ring_cameras(n: int, radius: float = 2.4, height: float = 1.5, w: int = W, h: int = H) -> list[Camera]:

@@ -16,7 +16,7 @@ BRDF                      C      channels (activation; initial value)
 ========================  =====  ===============================================================
 
 Adding a BRDF: its descriptor here (:data:`BRDFS`), its ``#elif BRDF == BRDF_<NAME>`` block in
-``shade_brdf.h`` (``brdf_direct``, ``ambient_term``, ``env_sigma2``, ``env_scales`` and their
+``shade_brdf.h`` (``brdf_direct``, ``ambient_term``, ``env_band``, ``env_scales`` and their
 adjoints) and its reference in ``tests/reference/shade.py``; the CLI (``--brdf``) reads ``cli`` here.
 """
 

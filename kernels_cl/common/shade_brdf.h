@@ -38,7 +38,7 @@
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
  *   g_l the band attenuation of the glossy lobe (env_band):
  *     Cook-Torrance: g_l = (1 - m) exp(-l (l + 1) a^2 / 2) + m LOBE_BANDS[r, l], a = r^2: a metal's is the GGX lobe's
- *       own zonal SH coefficients at normal incidence (ggx_tables.h, linear in r); the Gaussian is half the lobe's
+ *       own band multipliers at normal incidence (ggx_tables.h, linear in r); the Gaussian is half the lobe's
  *       width, without its tails (band 2 at r = 0.35: 0.95 against 0.79). A dielectric keeps the Gaussian: with the
  *       table its faint glossy part kept view-dependent bands at the high roughness it is fitted with, -0.3 to
  *       -0.6 dB of novel views and no relight gain (session 46, bench/results/env_lobe_pocl_2026-11-27.txt).
@@ -52,7 +52,8 @@
  *     at 0.57 (0.39 with both from the lobe; session 46). A dielectric keeps the roughness-damped Schlick: its
  *     exact table (session 38, bench/results/principled_bsdf_pocl_2026-11-27.txt) tied the environment's
  *     reflection to a roughness that drifts high on bob_env and gadget and cost bob_env 1.9 dB of albedo.
- *     (No (1 - Fe) on the diffuse, as the direct term has no (1 - F).)
+ *     (No (1 - Fe) on the diffuse, as the direct term has no (1 - F). For 0 < m < 1 the two blends multiply, Fe g_l,
+ *     with cross terms; exact at m = 0 and 1, where every fitted material ends: the metallic trial holds 0.01 or 0.99.)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
  *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 A + B for a metal.)

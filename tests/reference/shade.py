@@ -20,7 +20,7 @@ AMBIENT, DIRECTIONAL, POINT, SH_ENV, VERTEX_SH, BOUNCE = (AmbientLight.TYPE, Dir
                                                           SHEnvironmentLight.TYPE, VertexSHLight.TYPE, BounceLight.TYPE)
 EPS2 = 1e-20
 POINT_D2_EPS = 1e-6
-# the Cook-Torrance lobe's tables as the kernels read them (float32 values of ggx_tables.h; interpolated here in float64)
+# the Cook-Torrance lobe's tables as the kernels read them (ggx_tables.h's float32 values; interpolated in float64)
 GGX = ggx_tables.load()
 
 

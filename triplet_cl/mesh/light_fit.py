@@ -404,7 +404,7 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
             (the matrices hold observations × atoms; 18k on a 96² capture of 40 views found two lights within 3°).
         max_iter: L-BFGS-B iterations per fit (150: the same lights as 500 at a third of the time).
         f0: ``[N]`` each vertex's F0 as the mesh has it (luminance), for Schlick's Fresnel over F0 in the atoms and
-            the ambient column (None: F = F0).
+            the ambient column (the lobe's directional albedo A + B / f0; None: F = F0).
 
     Returns:
         ``{"positions", "intensities", "ambient" (radiance), "roughness", "objective", "objective_current",
@@ -435,11 +435,9 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
     nv_obs = np.clip((nrm * to_cam).sum(axis=1), 0.0, 1.0)
 
-    def ambient_column(r):  # the ambient term's weight over F0: a metal's directional albedo A + B / f0 (shade_brdf.h)
-        if f0_obs is None:
-            return np.ones(len(P))
-        A, B = dfg(np.full(len(P), float(r)), nv_obs)
-        return A + B / f0_obs
+    def ambient_column(r):  # the ambient term's weight over F0: a metal's directional albedo A + B / f0 (shade_brdf.h;
+        A, B = dfg(np.full(len(P), float(r)), nv_obs)  # A + B without an F0 estimate: F = F0 = 1)
+        return A + B if f0_obs is None else A + B / f0_obs
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:
