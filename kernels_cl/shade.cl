@@ -235,7 +235,7 @@ __kernel void shade_fwd(__global const REAL* pos,     // [P, 3]
     }
     if (has_refl) {
         REAL3 s_d, s_g;
-        env_scales(N, V, m, &s_d, &s_g);
+        env_scales(N, V, m, 1, &s_d, &s_g);
         out += s_g * LOAD3(refl, p);
     }
     STORE3(out, rgb, p);
@@ -434,9 +434,9 @@ __kernel void shade_bwd(__global const REAL* pos,       // [P, 3]
             REAL3 xr, Vr, Nr, s_d, s_g;
             REAL sr, mr[NMAT];
             load_fragment(p, pos, nrm, mat, cam, two_sided, &xr, &Vr, &Nr, &sr, mr); /* see the env note */
-            env_scales(Nr, Vr, mr, &s_d, &s_g);
+            env_scales(Nr, Vr, mr, 1, &s_d, &s_g);
             v_r = s_g * v_o;
-            env_scales_vjp(Nr, Vr, mr, (REAL3)(0), v_o * LOAD3(refl, p), &v_N, &v_V, v_m);
+            env_scales_vjp(Nr, Vr, mr, 1, (REAL3)(0), v_o * LOAD3(refl, p), &v_N, &v_V, v_m);
         }
         STORE3(v_r, v_refl, p);
     }

@@ -220,12 +220,7 @@ def test_mesh_stage_light_fit_replaces_the_lights_or_says_why_not(trained_run, t
     # the atoms once the lobe is Mitsuba's, session 38)
     from triplet_cl.lights import lights_from_json, pack_lights
 
-    # and the point light dimmed to nothing: lights before that explain no view, so that the fit is kept whatever the
-    # lobe's model makes of the forced metal's dielectric photos (against the soup's point light the fit lost by 1 %
-    # once the ambient column followed the lobe's directional albedo, session 46; the margin test is above)
-    dark = [AmbientLight(np.zeros(3)) if isinstance(x, AmbientLight)
-            else PointLight(x.position, np.zeros(3), x.falloff) if isinstance(x, PointLight) else x
-            for x in mesh.current_lights()]
+    dark = [AmbientLight(np.zeros(3)) if isinstance(x, AmbientLight) else x for x in mesh.current_lights()]
     mesh.light_params.data[...] = pack_lights(dark).params.astype(mesh.light_params.data.dtype)
     f0_start = MeshStage._f0_median(mesh)
     alb_start = np.asarray(mesh.material.data[:, 0:3], np.float64).copy()

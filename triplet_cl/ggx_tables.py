@@ -1,6 +1,6 @@
 """The Cook-Torrance lobe's reflection of an environment, tabulated (``kernels_cl/common/ggx_tables.h``).
 
-A metal's environment (SH or ambient) light is shaded with the split-sum form: the environment filtered by the
+A metal's SH environment light is shaded with the split-sum form: the environment filtered by the
 specular lobe, seen along the mirror direction, times the lobe's directional albedo. Both factors are read from
 tables of *our own* lobe (``shade_brdf.h`` ``brdf_direct``: GGX with ``α = roughness²``, separable Smith masking,
 Schlick's Fresnel on ``h·v`` for a metal), integrated here once, over roughness 0, 1/31, …, 1:
@@ -19,7 +19,8 @@ Why (session 46, bench/results/env_lobe_pocl_2026-11-27.txt): a metal's environm
 width of the lobe's reflection and without its tails (``Λ_2`` at ρ = 0.35: 0.95 against 0.79). Under an
 environment only those two factors tell a metal's roughness, and the fit made up for them with a rougher lobe:
 spot_small re-rendered by Mitsuba as a metal of roughness 0.35 came out at 0.57 under an HDR environment (0.49 under
-sun and sky), 0.39 (0.40) with both from the lobe. Mitsuba's own white furnace checks the DFG's energy (a metal of
+sun and sky), 0.39 (0.40) with both from the lobe. (The ambient light keeps the damped Schlick: shade_brdf.h says
+why.) Mitsuba's own white furnace checks the DFG's energy (a metal of
 roughness 0.6 returns 0.82 of a uniform light at normal incidence, the table 0.81 at 0.61).
 
 The lobe is the path tracer's: ``brdf_direct``'s guard ``D = α⁴ / (π t² + 1e-6)`` is left out (it lowers a glossy

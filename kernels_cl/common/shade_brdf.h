@@ -45,18 +45,23 @@
  *     Blinn-Phong: g_l = exp(-l (l + 1) sigma^2 / 2), sigma^2 = 2/(e + 2) (the GGX-equivalent a^2 of an exponent e)
  *   Cook-Torrance:  Fe = (1 - m) [0.04 + 0.96 (1 - r)(1 - nv)^5] + m [albedo A(r, nv) + B(r, nv)],
  *                   out = ao [(1 - m) albedo / pi E + Fe Gl]
- *     a metal's weight is its lobe's exact directional albedo (DFG_A, DFG_B of ggx_tables.h, bilinear: the energy
- *     masking takes as the lobe roughens, 0.82 of the light at r = 0.6 as Mitsuba's own white furnace, and the
- *     Fresnel rise at grazing angles). Under an environment these two factors are all that tells a metal's
- *     roughness: with the damped Schlick below and the Gaussian, spot_small as a metal of roughness 0.35 was fitted
- *     at 0.57 (0.39 with both from the lobe; session 46). A dielectric keeps the roughness-damped Schlick: its
- *     exact table (session 38, bench/results/principled_bsdf_pocl_2026-11-27.txt) tied the environment's
- *     reflection to a roughness that drifts high on bob_env and gadget and cost bob_env 1.9 dB of albedo.
+ *     a metal's weight under the SH environment (and the reflection bounce) is its lobe's exact directional albedo
+ *     (DFG_A, DFG_B of ggx_tables.h, bilinear: the energy masking takes as the lobe roughens, 0.82 of the light at
+ *     r = 0.6 as Mitsuba's own white furnace, and the Fresnel rise at grazing angles). Under an environment these
+ *     two factors are all that tells a metal's roughness: with the damped Schlick and the Gaussian, spot_small as a
+ *     metal of roughness 0.35 was fitted at 0.57 (0.39 with both from the lobe; session 46). The ambient light keeps
+ *     the damped Schlick for a metal too (A = 1 - (1 - r)(1 - nv)^5, B = (1 - r)(1 - nv)^5: metal_weight): it is the
+ *     soup's catch-all light, and with the lobe's weights there the soup's metallic probe (an ambient-lit trial)
+ *     called three of four metal captures dielectrics (their soups then unrestarted: Chamfer 0.027 for 0.009).
+ *     A dielectric keeps the roughness-damped Schlick everywhere: its exact table (session 38,
+ *     bench/results/principled_bsdf_pocl_2026-11-27.txt) tied the environment's reflection to a roughness that drifts
+ *     high on bob_env and gadget and cost bob_env 1.9 dB of albedo.
  *     (No (1 - Fe) on the diffuse, as the direct term has no (1 - F). For 0 < m < 1 the two blends multiply, Fe g_l,
  *     with cross terms; exact at m = 0 and 1, where every fitted material ends: the metallic trial holds 0.01 or 0.99.)
  *   Blinn-Phong:    out = kd / pi E + ks Gl
  *   (a constant white environment, c_0 = sqrt(4 pi), gives E = pi, Gl = 1: Cook-Torrance reflects
- *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 A + B for a metal.)
+ *   ao [(1 - m) albedo + Fe]: albedo + 0.04 for a rough dielectric (1.04 for a white one), F0 A + B for a metal;
+ *   an ambient light of the same radiance: F0 for a rough metal.)
  *   E and Gl are not clamped.
  *   Occluded environment (issue 18 item 2, shade.cl ENV_OCC): U [ENV_NK] (U_0 = 0) per fragment, the part of the
  *   bands above 0 that the geometry hides (visibility.vertex_occlusion: the cosine-weighted SH moments of the
@@ -237,14 +242,14 @@ inline void brdf_direct_vjp(const REAL3 N, const REAL3 V, const REAL3 L, const R
 
 /* env_scales is defined below; the ambient term is the environment term of a constant radiance La (E = pi La,
  * Gl = La): ao [(1 - m) albedo + Fe] La — the Fresnel reflection of the surroundings as well (issue 18) */
-inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g);
-inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           REAL3* v_N, REAL3* v_V, REAL* v_m);
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, REAL3* s_d, REAL3* s_g);
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, const REAL3 v_sd,
+                           const REAL3 v_sg, REAL3* v_N, REAL3* v_V, REAL* v_m);
 
 inline REAL3 ambient_term(const REAL3 N, const REAL3 V, const REAL3 La, const REAL* m)
 {
     REAL3 s_d, s_g;
-    env_scales(N, V, m, &s_d, &s_g);
+    env_scales(N, V, m, 0, &s_d, &s_g);
     return (s_d * R_PI + s_g) * La;
 }
 
@@ -252,9 +257,9 @@ inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const
                              REAL3* v_N, REAL3* v_V, REAL3* v_La, REAL* v_m)
 {
     REAL3 s_d, s_g;
-    env_scales(N, V, m, &s_d, &s_g);
+    env_scales(N, V, m, 0, &s_d, &s_g);
     *v_La += v_out * (s_d * R_PI + s_g);
-    env_scales_vjp(N, V, m, v_out * La * R_PI, v_out * La, v_N, v_V, v_m);
+    env_scales_vjp(N, V, m, 0, v_out * La * R_PI, v_out * La, v_N, v_V, v_m);
 }
 
 /* (A, B) of a metal's directional albedo F0 A + B at (r, nv), bilinear in ggx_tables.h's DFG_A / DFG_B (nodes k / 31
@@ -307,14 +312,34 @@ inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
     v_m[3] += v_g * dr;
 }
 
-/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales */
-inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
+/* a metal's weight F0 A + B: its lobe's (lobe = 1: env_dfg) or the damped Schlick F0 + (1 - F0)(1 - r)(1 - nv)^5
+ * (lobe = 0: A = 1 - (1 - r)(1 - nv)^5, B = (1 - r)(1 - nv)^5), with the slopes */
+inline void metal_weight(const int lobe, const REAL r, const REAL nv, REAL* A, REAL* B, REAL* dAr, REAL* dBr,
+                         REAL* dAn, REAL* dBn)
+{
+    if (lobe) {
+        env_dfg(r, nv, A, B, dAr, dBr, dAn, dBn);
+        return;
+    }
+    const REAL omv = (REAL)1 - nv, f4 = omv * omv * omv * omv;
+    const REAL f5 = f4 * omv;
+    *B = ((REAL)1 - r) * f5;
+    *A = (REAL)1 - *B;
+    *dBr = -f5;
+    *dAr = f5;
+    *dBn = -(REAL)5 * ((REAL)1 - r) * f4;
+    *dAn = -*dBn;
+}
+
+/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales; lobe: a metal's weight from its lobe
+ * (the SH environment, the reflection bounce) or the damped Schlick (the ambient light) */
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, REAL3* s_d, REAL3* s_g)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nv = fmax(dot(N, V), (REAL)0);
     REAL A, B, dAr, dBr, dAn, dBn;
-    env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    metal_weight(lobe, r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
     const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * pow5((REAL)1 - nv);
     const REAL3 Fe = ((REAL)1 - met) * Fd + met * (alb * A + B);
     *s_d = ao * ((REAL)1 - met) * alb / R_PI;
@@ -322,8 +347,8 @@ inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, 
 }
 
 /* adjoint of env_scales: v_sd, v_sg -> v_N, v_V, v_m */
-inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           REAL3* v_N, REAL3* v_V, REAL* v_m)
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, const REAL3 v_sd,
+                           const REAL3 v_sg, REAL3* v_N, REAL3* v_V, REAL* v_m)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
@@ -332,7 +357,7 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const RE
     const REAL omv = (REAL)1 - nv;
     const REAL f5 = pow5(omv);
     REAL A, B, dAr, dBr, dAn, dBn;
-    env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    metal_weight(lobe, r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
     const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * f5;
     const REAL3 Fm = alb * A + B;
     const REAL3 Fe = ((REAL)1 - met) * Fd + met * Fm;
@@ -439,15 +464,17 @@ inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
     }
 }
 
-inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, REAL3* s_d, REAL3* s_g)
+inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, REAL3* s_d, REAL3* s_g)
 {
+    (void)lobe;
     *s_d = LOAD_RGB(m, 0) / R_PI;
     *s_g = LOAD_RGB(m, 3);
 }
 
-inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const REAL3 v_sd, const REAL3 v_sg,
-                           REAL3* v_N, REAL3* v_V, REAL* v_m)
+inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, const REAL3 v_sd,
+                           const REAL3 v_sg, REAL3* v_N, REAL3* v_V, REAL* v_m)
 {
+    (void)lobe;
     v_m[0] += v_sd.x / R_PI;
     v_m[1] += v_sd.y / R_PI;
     v_m[2] += v_sd.z / R_PI;
@@ -493,7 +520,7 @@ inline REAL3 env_term(const REAL3 N, const REAL3 V, const REAL* m, const int deg
     REAL Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
     REAL3 E, Gl, s_d, s_g;
     env_eval(N, V, m, deg, c, stride, U, Yn, Yr, gl, &E, &Gl);
-    env_scales(N, V, m, &s_d, &s_g);
+    env_scales(N, V, m, 1, &s_d, &s_g);
     return s_d * E + s_g * Gl;
 }
 
@@ -506,7 +533,7 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
 {
     REAL3 E, Gl, s_d, s_g;
     env_eval(N, V, m, deg, c, stride, U, Yn, Yr, gl, &E, &Gl);
-    env_scales(N, V, m, &s_d, &s_g);
+    env_scales(N, V, m, 1, &s_d, &s_g);
     *gE = v_out * s_d;
     *gG = v_out * s_g;
     REAL v_Yn[ENV_NK], v_Yr[ENV_NK];
@@ -527,7 +554,7 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
     const REAL rn = dot(v_R, N);
     *v_N += (REAL)2 * nvr * v_R + (REAL)2 * rn * V;
     *v_V += (REAL)2 * rn * N - v_R;
-    env_scales_vjp(N, V, m, v_out * E, v_out * Gl, v_N, v_V, v_m);
+    env_scales_vjp(N, V, m, 1, v_out * E, v_out * Gl, v_N, v_V, v_m);
 }
 
 #endif /* TRIPLET_SHADE_BRDF_H */

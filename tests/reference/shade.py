@@ -95,11 +95,13 @@ def ambient(N, V, La, m, brdf):
     if brdf != "cook_torrance":
         return La * m[:, 7:10]
     alb, r, met, ao = m[:, 0:3], m[:, 3:4], m[:, 4:5], m[:, 5:6]
-    return ao * ((1 - met) * alb + env_fresnel(alb, r, met, relu(dot(N, V)))) * La
+    F0 = 0.04 * (1 - met) + met * alb
+    Fe = F0 + (1 - F0) * (1 - r) * (1 - relu(dot(N, V))) ** 5  # a metal's too: the damped Schlick (shade_brdf.h)
+    return ao * ((1 - met) * alb + Fe) * La
 
 
 def env_fresnel(alb, r, met, nv):
-    """Cook-Torrance's environment weight Fe: a dielectric's damped Schlick 0.04 + 0.96 (1 - r)(1 - nv)^5 blended
+    """Cook-Torrance's SH environment weight Fe: a dielectric's damped Schlick 0.04 + 0.96 (1 - r)(1 - nv)^5 blended
     with a metal's exact directional albedo alb A + B (ggx_tables' bilinear DFG)."""
     A, B = ggx_tables.dfg(r, nv, GGX)
     return (1 - met) * (0.04 + 0.96 * (1 - r) * (1 - nv) ** 5) + met * (alb * A + B)

@@ -44,7 +44,6 @@ import time
 
 import numpy as np
 
-from ..ggx_tables import dfg
 from ..visibility import sphere_directions
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -404,7 +403,7 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
             (the matrices hold observations × atoms; 18k on a 96² capture of 40 views found two lights within 3°).
         max_iter: L-BFGS-B iterations per fit (150: the same lights as 500 at a third of the time).
         f0: ``[N]`` each vertex's F0 as the mesh has it (luminance), for Schlick's Fresnel over F0 in the atoms and
-            the ambient column (the lobe's directional albedo A + B / f0; None: F = F0).
+            the ambient column (None: F = F0).
 
     Returns:
         ``{"positions", "intensities", "ambient" (radiance), "roughness", "objective", "objective_current",
@@ -433,11 +432,10 @@ def fit_metal_lights(V, normals, observations, visibility, *, center, extent: fl
     group, n_groups = remap[vi], int(good.sum())
     P, nrm = V[vi], normals[vi]
     f0_obs = None if f0 is None else np.clip(np.asarray(f0, np.float64)[vi], 0.02, 1.0)
-    nv_obs = np.clip((nrm * to_cam).sum(axis=1), 0.0, 1.0)
+    grazing = (1.0 - np.maximum((nrm * to_cam).sum(axis=1), 0.0)) ** 5
 
-    def ambient_column(r):  # the ambient term's weight over F0: a metal's directional albedo A + B / f0 (shade_brdf.h;
-        A, B = dfg(np.full(len(P), float(r)), nv_obs)  # A + B without an F0 estimate: F = F0 = 1)
-        return A + B if f0_obs is None else A + B / f0_obs
+    def ambient_column(r):  # the ambient term's Fresnel over F0: 1 + (1 / f0 - 1) (1 - r) (1 - n·v)^5 (shade.cl's Fe)
+        return np.ones(len(P)) if f0_obs is None else 1.0 + (1.0 / f0_obs - 1.0) * (1.0 - r) * grazing
 
     def design(pos, d, r, geometry=None):  # [M, L + 1]: the point lights at pos (about 1 at the centre), the ambient
         if geometry is None:

@@ -735,7 +735,7 @@ class MeshStage:
             self.light_fit = {"applied": False, "reason": why}
             return None
         t = time.perf_counter()
-        ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient: AO × (albedo or F0 A + B) × La
+        ao_col = get_brdf(scene.brdf).column("ao")  # Cook-Torrance's ambient term is AO × (albedo or F0) × La
         ao = float(np.mean(sigmoid(mat[:, ao_col].astype(np.float64)))) if ao_col is not None else 1.0
         fitter = self._fit_metal_lights if metal > 0.5 else self._fit_diffuse_lights
         try:
