@@ -50,7 +50,7 @@
  *     r = 0.6 as Mitsuba's own white furnace, and the Fresnel rise at grazing angles). Under an environment these
  *     two factors are all that tells a metal's roughness: with the damped Schlick and the Gaussian, spot_small as a
  *     metal of roughness 0.35 was fitted at 0.57 (0.39 with both from the lobe; session 46). The ambient light keeps
- *     the damped Schlick for a metal too (A = 1 - (1 - r)(1 - nv)^5, B = (1 - r)(1 - nv)^5: metal_weight): it is the
+ *     the damped Schlick for a metal too (env_scales' lobe = 0): it is the
  *     soup's catch-all light, and with the lobe's weights there the soup's metallic probe (an ambient-lit trial)
  *     called three of four metal captures dielectrics (their soups then unrestarted: Chamfer 0.027 for 0.009).
  *     A dielectric keeps the roughness-damped Schlick everywhere: its exact table (session 38,
@@ -312,36 +312,25 @@ inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
     v_m[3] += v_g * dr;
 }
 
-/* a metal's weight F0 A + B: its lobe's (lobe = 1: env_dfg) or the damped Schlick F0 + (1 - F0)(1 - r)(1 - nv)^5
- * (lobe = 0: A = 1 - (1 - r)(1 - nv)^5, B = (1 - r)(1 - nv)^5), with the slopes */
-inline void metal_weight(const int lobe, const REAL r, const REAL nv, REAL* A, REAL* B, REAL* dAr, REAL* dBr,
-                         REAL* dAn, REAL* dBn)
-{
-    if (lobe) {
-        env_dfg(r, nv, A, B, dAr, dBr, dAn, dBn);
-        return;
-    }
-    const REAL omv = (REAL)1 - nv, f4 = omv * omv * omv * omv;
-    const REAL f5 = f4 * omv;
-    *B = ((REAL)1 - r) * f5;
-    *A = (REAL)1 - *B;
-    *dBr = -f5;
-    *dAr = f5;
-    *dBn = -(REAL)5 * ((REAL)1 - r) * f4;
-    *dAn = -*dBn;
-}
-
-/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales; lobe: a metal's weight from its lobe
- * (the SH environment, the reflection bounce) or the damped Schlick (the ambient light) */
+/* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales. lobe = 1 (the SH environment, the
+ * reflection bounce): a metal's weight from its lobe, Fe = (1 - m) [0.04 + 0.96 (1 - r) f5] + m (alb A + B);
+ * lobe = 0 (the ambient light): the damped Schlick Fe = F0 + (1 - F0)(1 - r) f5, F0 = 0.04 (1 - m) + m alb, the same
+ * value for a dielectric, written as before session 46 so that an ambient-lit soup is the same bit for bit */
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, REAL3* s_d, REAL3* s_g)
 {
     const REAL3 alb = LOAD_RGB(m, 0);
     const REAL r = m[3], met = m[4], ao = m[5];
     const REAL nv = fmax(dot(N, V), (REAL)0);
-    REAL A, B, dAr, dBr, dAn, dBn;
-    metal_weight(lobe, r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
-    const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * pow5((REAL)1 - nv);
-    const REAL3 Fe = ((REAL)1 - met) * Fd + met * (alb * A + B);
+    REAL3 Fe;
+    if (lobe) {
+        REAL A, B, dAr, dBr, dAn, dBn;
+        env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+        const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * pow5((REAL)1 - nv);
+        Fe = ((REAL)1 - met) * Fd + met * (alb * A + B);
+    } else {
+        const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+        Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * pow5((REAL)1 - nv);
+    }
     *s_d = ao * ((REAL)1 - met) * alb / R_PI;
     *s_g = ao * Fe;
 }
@@ -356,24 +345,44 @@ inline void env_scales_vjp(const REAL3 N, const REAL3 V, const REAL* m, const in
     const REAL nv = fmax(nvr, (REAL)0);
     const REAL omv = (REAL)1 - nv;
     const REAL f5 = pow5(omv);
-    REAL A, B, dAr, dBr, dAn, dBn;
-    metal_weight(lobe, r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
-    const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * f5;
-    const REAL3 Fm = alb * A + B;
-    const REAL3 Fe = ((REAL)1 - met) * Fd + met * Fm;
-    /* s_d = ao (1 - m) alb / pi,  s_g = ao Fe */
-    v_m[5] += dot(v_sd, ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
-    const REAL3 v_Fe = ao * v_sg;
-    REAL v_met = -ao * dot(v_sd, alb) / R_PI;
-    REAL3 v_alb = ao * v_sd * ((REAL)1 - met) / R_PI;
-    /* Fe = (1 - m) Fd + m Fm,  Fd = 0.04 + 0.96 (1 - r) f5,  Fm = alb A(r, nv) + B(r, nv) */
-    const REAL sFe = v_Fe.x + v_Fe.y + v_Fe.z;
-    v_met += dot(v_Fe, Fm) - Fd * sFe;
-    const REAL v_Fd = ((REAL)1 - met) * sFe;
-    v_alb += v_Fe * met * A;
-    const REAL v_A = met * dot(v_Fe, alb), v_B = met * sFe;
-    REAL v_r = -v_Fd * (REAL)0.96 * f5 + v_A * dAr + v_B * dBr;
-    const REAL v_nv = -(REAL)5 * omv * omv * omv * omv * v_Fd * (REAL)0.96 * ((REAL)1 - r) + v_A * dAn + v_B * dBn;
+    REAL v_met, v_r, v_nv;
+    REAL3 v_alb;
+    if (lobe) {
+        REAL A, B, dAr, dBr, dAn, dBn;
+        env_dfg(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+        const REAL Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * f5;
+        const REAL3 Fm = alb * A + B;
+        const REAL3 Fe = ((REAL)1 - met) * Fd + met * Fm;
+        /* s_d = ao (1 - m) alb / pi,  s_g = ao Fe */
+        v_m[5] += dot(v_sd, ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
+        const REAL3 v_Fe = ao * v_sg;
+        v_met = -ao * dot(v_sd, alb) / R_PI;
+        v_alb = ao * v_sd * ((REAL)1 - met) / R_PI;
+        /* Fe = (1 - m) Fd + m Fm,  Fd = 0.04 + 0.96 (1 - r) f5,  Fm = alb A(r, nv) + B(r, nv) */
+        const REAL sFe = v_Fe.x + v_Fe.y + v_Fe.z;
+        v_met += dot(v_Fe, Fm) - Fd * sFe;
+        const REAL v_Fd = ((REAL)1 - met) * sFe;
+        v_alb += v_Fe * met * A;
+        const REAL v_A = met * dot(v_Fe, alb), v_B = met * sFe;
+        v_r = -v_Fd * (REAL)0.96 * f5 + v_A * dAr + v_B * dBr;
+        v_nv = -(REAL)5 * omv * omv * omv * omv * v_Fd * (REAL)0.96 * ((REAL)1 - r) + v_A * dAn + v_B * dBn;
+    } else {
+        const REAL3 F0 = (REAL)0.04 * ((REAL)1 - met) + met * alb;
+        const REAL3 Fe = F0 + ((REAL)1 - F0) * ((REAL)1 - r) * f5;
+        /* s_d = ao (1 - m) alb / pi,  s_g = ao Fe */
+        v_m[5] += dot(v_sd, ((REAL)1 - met) * alb / R_PI) + dot(v_sg, Fe);
+        const REAL3 v_Fe = ao * v_sg;
+        v_met = -ao * dot(v_sd, alb) / R_PI;
+        v_alb = ao * v_sd * ((REAL)1 - met) / R_PI;
+        /* Fe = F0 + (1 - F0)(1 - r) f5 */
+        const REAL3 v_F0 = v_Fe * ((REAL)1 - ((REAL)1 - r) * f5);
+        const REAL w = dot(v_Fe, (REAL)1 - F0);
+        v_r = -w * f5;
+        const REAL v_f5 = w * ((REAL)1 - r);
+        v_nv = -(REAL)5 * omv * omv * omv * omv * v_f5;
+        v_met += dot(v_F0, alb - (REAL)0.04);
+        v_alb += v_F0 * met;
+    }
     if (nvr > (REAL)0) {
         *v_N += v_nv * V;
         *v_V += v_nv * N;
