@@ -176,8 +176,8 @@ class MeshConfig:
     light_fit: str = "auto"
     light_fit_max: int = 3
     # Cook-Torrance's ambient light becomes an SH environment of this degree after the light fit (round 0; whether
-    # the fit was kept, refused or off):
-    # the same radiance in band 0 (the renders unchanged at the switch), the higher bands learned from 0 with the
+    # the fit was kept, refused or off): the same radiance in band 0 (a dielectric's renders unchanged at the switch;
+    # a metal's reflection takes its lobe's weight, shade_brdf.h), the higher bands learned from 0 with the
     # lights: what a sky brighter above than below, or a room, gives a mesh beside its point lights. The soup keeps
     # its ambient light: as its default the environment took the point light's share on spot (albedo -2.0 / -2.8 dB
     # over two seeds) and the mesh stage's light fit reads only point and ambient lights. Measured on the mesh stage
