@@ -29,6 +29,7 @@ def shadow_masks(scene_dir: Path, views):
     import trimesh
 
     from triplet_cl.lights import AmbientLight, PointLight
+    from triplet_cl.materials import colour_display_raw
     from triplet_cl.render import RenderSettings, render
     from triplet_cl.scene import Scene, logit
     from triplet_cl.visibility import vertex_visibility
@@ -45,9 +46,8 @@ def shadow_masks(scene_dir: Path, views):
     # facing the light (vertex normals of the mesh): N·L <= 0 is dark anyway, not a cast shadow
     facing = (np.asarray(m.vertex_normals) * (pos - V)).sum(1) > 0
     shade = np.where(facing, vis, 1.0)
-    s3 = logit(np.clip(np.repeat(shade[:, None], 3, 1), 1e-4, 1 - 1e-4))
-    # Blinn-Phong's ambient term La ka shows ka exactly (ks 0), as triplet_cl.relight's albedo renders
-    mat = np.concatenate([s3, np.full((n, 3), -30.0), np.zeros((n, 1)), s3], 1)
+    # shown exactly by an ambient light of 1 (as triplet_cl.relight's albedo renders)
+    mat = colour_display_raw(logit(np.clip(np.repeat(shade[:, None], 3, 1), 1e-4, 1 - 1e-4)))
     show = Scene.from_arrays(V, F, material=mat, alpha=np.full((n, 1), 30.0), lights=[AmbientLight(np.ones(3))],
                              brdf="blinn_phong")
     out = []

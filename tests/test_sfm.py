@@ -46,6 +46,7 @@ def textured_scene(seed: int = 0):
     """A box (0.8 × 0.6 × 0.6, z up) on a 2.4 × 2.4 ground, coloured by a smooth random field of the position
     (sums of random sinusoids, interpolated over fine grid cells): blobs at several scales, as SIFT likes."""
     from triplet_cl.lights import AmbientLight
+    from triplet_cl.materials import colour_display_raw
     from triplet_cl.scene import Scene, logit
 
     rng = np.random.default_rng(seed)
@@ -64,9 +65,8 @@ def textured_scene(seed: int = 0):
     phase = rng.uniform(0, 2 * np.pi, (3, 16))
     field = np.sin(np.einsum("ckd,nd->nck", waves, V) + phase).sum(-1)  # [N, 3]
     albedo = np.clip(0.5 + 0.45 * np.tanh(0.6 * field), 0.02, 0.98)
-    # Blinn-Phong's ambient term La ka with ks 0: the ambient light shows the albedo exactly (the flat-lit texture this
-    # capture was made with before issue 18)
-    mat = np.concatenate([logit(albedo), np.full((len(V), 3), -30.0), np.zeros((len(V), 1)), logit(albedo)], axis=1)
+    # the ambient light shows the albedo exactly (the flat-lit texture this capture was made with before issue 18)
+    mat = colour_display_raw(logit(albedo))
     alpha = np.full((len(V), 1), logit(0.999))
     return Scene.from_arrays(V, F, material=mat, alpha=alpha, lights=[AmbientLight(np.ones(3))], brdf="blinn_phong")
 

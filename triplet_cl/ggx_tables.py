@@ -159,7 +159,7 @@ def dfg(rough, nv, tables=None):
 
 
 def lobe_bands(rough, bands, tables=None):
-    """``Λ_l`` at ``rough`` for each entry of ``bands``, linear in roughness as the kernel's ``env_band``."""
+    """``Λ_l`` at ``rough`` for each entry of ``bands``, linear in roughness as the kernel's ``env_bands``."""
     lb = (load() if tables is None else tables)[2].astype(np.float64)
     i, t = _cell(rough, N_ROUGH)
     return lb[i, bands] * (1 - t) + lb[i + 1, bands] * t

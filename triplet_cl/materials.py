@@ -16,7 +16,7 @@ BRDF                      C      channels (activation; initial value)
 ========================  =====  ===============================================================
 
 Adding a BRDF: its descriptor here (:data:`BRDFS`), its ``#elif BRDF == BRDF_<NAME>`` block in
-``shade_brdf.h`` (``brdf_direct``, ``ambient_term``, ``env_band``, ``env_scales`` and their
+``shade_brdf.h`` (``brdf_direct``, ``ambient_term``, ``env_bands``, ``env_scales`` and their
 adjoints) and its reference in ``tests/reference/shade.py``; the CLI (``--brdf``) reads ``cli`` here.
 """
 
@@ -216,6 +216,15 @@ def copy_ambient(param, pairs) -> None:
     kd, ka = pairs
     if kd:
         param.data[:, ka] = param.data[:, kd]
+
+
+def colour_display_raw(raw_rgb: np.ndarray) -> np.ndarray:
+    """A Blinn-Phong raw material ``[N, 10]`` that an ambient light of radiance 1 shows as ``sigmoid(raw_rgb)``
+    exactly (its ambient term is ``La ka``; kd = ka = ``raw_rgb``, ks 0): a base colour rendered with no BRDF's
+    environment weights in it (the albedo images of ``eval --relight``, test and bench captures)."""
+    raw_rgb = np.asarray(raw_rgb)
+    n = len(raw_rgb)
+    return np.concatenate([raw_rgb, np.full((n, 3), -30.0), np.zeros((n, 1)), raw_rgb], axis=1)
 
 
 #: every BRDF by name

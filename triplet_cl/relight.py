@@ -47,6 +47,7 @@ import numpy as np
 from .datasets.base import render_files
 from .io import strict_json_object
 from .lights import LIGHT_CLASSES, DirectionalLight, PointLight, SHEnvironmentLight, VertexSHLight, lights_from_json
+from .materials import colour_display_raw
 from .mesh.envmap import project_envmap, rotation_y  # noqa: F401  (rotation_y: re-exported)
 
 # SH degree of projected environment maps, chosen by accuracy (README "Relighting"). On the dataset's sky
@@ -419,13 +420,9 @@ class Relighter:
         mat = np.asarray(s.material.data)
         brdf = s.brdf
         if albedo:
-            # shown by Blinn-Phong's ambient term La ka, which is ka itself under La = 1, whatever a BRDF's environment
-            # weights are (Cook-Torrance's metal reflects F0 A + B of an ambient light, not F0): kd and ka the base
-            # colour's raw values (Blinn-Phong's kd and Cook-Torrance's albedo share the sigmoid), ks 0
-            n = len(mat)
-            base = mat[:, 0:3]
-            mat = np.concatenate([base, np.full((n, 3), -30.0), np.zeros((n, 1)), base], axis=1)
-            brdf = "blinn_phong"
+            # Blinn-Phong's ambient term shows the base colour whatever a BRDF's environment weights are (Blinn-Phong's
+            # kd and Cook-Torrance's albedo are columns 0-2 under the same sigmoid)
+            mat, brdf = colour_display_raw(mat[:, 0:3]), "blinn_phong"
             lights = [AmbientLight(np.ones(3))]
         keep_vsh = any(isinstance(lt, VertexSHLight) for lt in lights)
         return Scene.from_arrays(s.V.data, s.F, material=mat, alpha=s.alpha.data, lights=lights,

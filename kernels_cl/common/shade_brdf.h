@@ -36,7 +36,7 @@
  * env (SH environment light c [3, NK], radiance L(w) = sum_k c_k Y_k(w), active degree deg):
  *   E  = sum_k A_l(k) c_k Y_k(N)                       irradiance (Ramamoorthi-Hanrahan)
  *   R  = 2 (N.V) N - V,   Gl = sum_k g_l(k) c_k Y_k(R)   glossy radiance along the reflection,
- *   g_l the band attenuation of the glossy lobe (env_band):
+ *   g_l the band attenuation of the glossy lobe (env_bands):
  *     Cook-Torrance: g_l = (1 - m) exp(-l (l + 1) a^2 / 2) + m LOBE_BANDS[r, l], a = r^2: a metal's is the GGX lobe's
  *       own band multipliers at normal incidence (ggx_tables.h, linear in r); the Gaussian is half the lobe's
  *       width, without its tails (band 2 at r = 0.35: 0.95 against 0.79). A dielectric keeps the Gaussian: with the
@@ -285,31 +285,48 @@ inline void env_dfg(const REAL r, const REAL nv, REAL* A, REAL* B, REAL* dAr, RE
     *dBn = ((b01 - b00) + ((b11 - b10) - (b01 - b00)) * t) * sn;
 }
 
-/* the glossy lobe's attenuation g_l of SH band l, blended by the metallic m: (1 - m) exp(-l (l + 1) r^4 / 2) +
- * m LOBE_BANDS[r, l] (ggx_tables.h, linear in r over nodes k / 31) */
-inline REAL env_band(const int l, const REAL* m)
+/* the glossy lobe's attenuation g_l of the SH bands l = 0 .. deg, blended by the metallic m: (1 - m) G_l + m T_l,
+ * G_l = exp(-l (l + 1) r^4 / 2) (by its recurrence G_l = G_(l-1) q^l, q = exp(-r^4): one exp a lobe) and
+ * T_l = LOBE_BANDS[r, l] (ggx_tables.h, linear in r over nodes k / 31) */
+inline void env_bands(const REAL* m, const int deg, REAL* gl)
 {
     const REAL r = m[3], met = m[4];
     const REAL f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
     const int i = min((int)f, GGX_NR - 2);
-    const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
-    const REAL g = exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * r * r * r * r);
-    return ((REAL)1 - met) * g + met * (a + (b - a) * (f - (REAL)i));
+    const REAL t = f - (REAL)i;
+    const REAL q = exp(-r * r * r * r);
+    REAL G = (REAL)1, ql = (REAL)1;
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
+        gl[l] = ((REAL)1 - met) * G + met * (a + (b - a) * t);
+    }
 }
 
-/* v_g (the adjoint of g_l) -> v_m */
-inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
+/* v_gl (the adjoints of g_0 .. g_deg) -> v_m */
+inline void env_bands_vjp(const REAL* m, const int deg, const REAL* v_gl, REAL* v_m)
 {
     const REAL r = m[3], met = m[4];
     const REAL f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
     const int i = min((int)f, GGX_NR - 2);
-    const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
-    const REAL ll = (REAL)(l * (l + 1));
-    const REAL g = exp(-(REAL)0.5 * ll * r * r * r * r);
-    v_m[4] += v_g * (a + (b - a) * (f - (REAL)i) - g);
-    REAL dr = -((REAL)1 - met) * g * (REAL)2 * ll * r * r * r;
-    if (r > (REAL)0 && r < (REAL)1) dr += met * (b - a) * (REAL)(GGX_NR - 1);
-    v_m[3] += v_g * dr;
+    const REAL t = f - (REAL)i;
+    const REAL inside = (r > (REAL)0 && r < (REAL)1) ? (REAL)(GGX_NR - 1) : (REAL)0;
+    const REAL q = exp(-r * r * r * r), r3 = r * r * r;
+    REAL G = (REAL)1, ql = (REAL)1, v_met = (REAL)0, v_r = (REAL)0;
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        const REAL a = LOBE_BANDS[i * GGX_NBANDS + l], b = LOBE_BANDS[(i + 1) * GGX_NBANDS + l];
+        v_met += v_gl[l] * (a + (b - a) * t - G);
+        v_r += v_gl[l] * (-((REAL)1 - met) * G * (REAL)(2 * l * (l + 1)) * r3 + met * (b - a) * inside);
+    }
+    v_m[3] += v_r;
+    v_m[4] += v_met;
 }
 
 /* out = s_d * E + s_g * Gl (per channel), with the material-dependent scales. lobe = 1 (the SH environment, the
@@ -457,20 +474,35 @@ inline void ambient_term_vjp(const REAL3 N, const REAL3 V, const REAL3 La, const
     v_m[9] += v_ka.z;
 }
 
-/* the glossy lobe's attenuation g_l = exp(-l (l + 1) sigma^2 / 2) of SH band l, sigma^2 = 2 / (relu(s) + 3) */
-inline REAL env_band(const int l, const REAL* m)
+/* the glossy lobe's attenuation g_l = exp(-l (l + 1) sigma^2 / 2) of the SH bands l = 0 .. deg, sigma^2 =
+ * 2 / (relu(s) + 3) (by its recurrence g_l = g_(l-1) q^l, q = exp(-sigma^2)) */
+inline void env_bands(const REAL* m, const int deg, REAL* gl)
 {
-    const REAL s2 = (REAL)2 / (fmax(m[6], (REAL)0) + (REAL)3);
-    return exp(-(REAL)0.5 * (REAL)(l * (l + 1)) * s2);
+    const REAL q = exp(-(REAL)2 / (fmax(m[6], (REAL)0) + (REAL)3));
+    REAL G = (REAL)1, ql = (REAL)1;
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        gl[l] = G;
+    }
 }
 
-inline void env_band_vjp(const int l, const REAL* m, const REAL v_g, REAL* v_m)
+inline void env_bands_vjp(const REAL* m, const int deg, const REAL* v_gl, REAL* v_m)
 {
-    if (m[6] > (REAL)0) {
-        const REAL q = m[6] + (REAL)3;
-        const REAL v_s2 = v_g * env_band(l, m) * (-(REAL)0.5 * (REAL)(l * (l + 1)));
-        v_m[6] += -v_s2 * (REAL)2 / (q * q);
+    if (!(m[6] > (REAL)0)) return;
+    const REAL qd = m[6] + (REAL)3;
+    const REAL q = exp(-(REAL)2 / qd);
+    REAL G = (REAL)1, ql = (REAL)1, v_s2 = (REAL)0;
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        v_s2 += v_gl[l] * G * (-(REAL)0.5 * (REAL)(l * (l + 1)));
     }
+    v_m[6] += -v_s2 * (REAL)2 / (qd * qd);
 }
 
 inline void env_scales(const REAL3 N, const REAL3 V, const REAL* m, const int lobe, REAL3* s_d, REAL3* s_g)
@@ -511,7 +543,7 @@ inline void env_eval(const REAL3 N, const REAL3 V, const REAL* m, const int deg,
     const REAL3 R = (REAL)2 * dot(N, V) * N - V;
     sh_eval(deg, N, Yn);
     sh_eval(deg, R, Yr);
-    for (int l = 0; l <= deg; ++l) gl[l] = env_band(l, m);
+    env_bands(m, deg, gl);
     REAL3 e = (REAL3)(0), g = (REAL3)(0);
     for (int l = 0; l <= deg; ++l)
         for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
@@ -545,17 +577,17 @@ inline void env_term_vjp(const REAL3 N, const REAL3 V, const REAL* m, const int 
     env_scales(N, V, m, 1, &s_d, &s_g);
     *gE = v_out * s_d;
     *gG = v_out * s_g;
-    REAL v_Yn[ENV_NK], v_Yr[ENV_NK];
+    REAL v_Yn[ENV_NK], v_Yr[ENV_NK], v_gl[ENV_MAX_DEG + 1];
     for (int l = 0; l <= deg; ++l) {
-        REAL v_gl = (REAL)0;
+        v_gl[l] = (REAL)0;
         for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
             const REAL3 ck = (REAL3)(c[k], c[stride + k], c[2 * stride + k]);
             v_Yn[k] = SH_BAND_A[l] * dot(*gE, ck);
             v_Yr[k] = gl[l] * dot(*gG, ck);
-            v_gl += Yr[k] * dot(*gG, ck);
+            v_gl[l] += Yr[k] * dot(*gG, ck);
         }
-        env_band_vjp(l, m, v_gl, v_m);
     }
+    env_bands_vjp(m, deg, v_gl, v_m);
     const REAL nvr = dot(N, V);
     const REAL3 R = (REAL)2 * nvr * N - V;
     *v_N += sh_eval_vjp(deg, N, v_Yn);
