@@ -171,7 +171,8 @@ def test_relative_lr_scales_follow_the_radiometric_parameters():
 
 def test_training_steps_the_light_position_by_its_own_rate(tmp_path):
     """``TrainConfig.lr_light_position_scale`` reaches the optimizer: the point light's position rows of the light
-    group's learning-rate factors are ``lr_light_position_scale`` (10 by default; 1 in a config from before)."""
+    group's learning-rate factors are ``lr_light_position_scale`` (10 by default; 1 in a config from before), a rate in
+    world units at the reference extent scaled by the scene's (``datasets.base.REFERENCE_EXTENT``)."""
     from triplet_cl.cli.main import demo_data_path
 
     from triplet_cl.train import TrainConfig, Trainer
@@ -180,7 +181,10 @@ def test_training_steps_the_light_position_by_its_own_rate(tmp_path):
     assert cfg.lr_light_position_scale == 10.0
     tr = Trainer(demo_data_path(), tmp_path / "run", cfg, quiet=True)
     sc = tr.opt.group("lights").lr_scale[0]
-    np.testing.assert_allclose(sc[:3], 10.0)  # PointLight: position, then intensity
+    from triplet_cl.datasets.base import REFERENCE_EXTENT
+
+    assert 0.99 < tr.extent / REFERENCE_EXTENT < 1.02  # the demo is at the reference scale
+    np.testing.assert_allclose(sc[:3], 10.0 * tr.extent / REFERENCE_EXTENT)  # PointLight: position, then intensity
     old = cfg.to_dict()
     del old["lr_light_position_scale"]
     assert TrainConfig.from_dict(old).lr_light_position_scale == 1.0

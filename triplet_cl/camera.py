@@ -42,6 +42,9 @@ def _check_pose(name: str, m) -> np.ndarray:
     return a
 
 
+DEFAULT_NEAR, DEFAULT_FAR = 0.01, 1000.0  # world units at datasets.base.REFERENCE_EXTENT (datasets scale them)
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera in the internal convention (see module docstring).
@@ -60,8 +63,8 @@ class Camera:
     width: int
     height: int
     w2c: np.ndarray = field(repr=False)
-    near: float = 0.01
-    far: float = 1000.0
+    near: float = DEFAULT_NEAR
+    far: float = DEFAULT_FAR
 
     def __post_init__(self):
         object.__setattr__(self, "w2c", _check_pose("w2c", self.w2c))
@@ -83,7 +86,7 @@ class Camera:
     @classmethod
     def from_nerf(cls, c2w, width: int, height: int, camera_angle_x: float | None = None,
                   fl_x: float | None = None, fl_y: float | None = None, cx: float | None = None,
-                  cy: float | None = None, near: float = 0.01, far: float = 1000.0) -> Camera:
+                  cy: float | None = None, near: float = DEFAULT_NEAR, far: float = DEFAULT_FAR) -> Camera:
         """From a NeRF/Blender camera-to-world matrix (camera looks down −Z, +Y up).
 
         Give either ``camera_angle_x`` (horizontal field of view, radians; NeRF-synthetic) or the
@@ -101,7 +104,7 @@ class Camera:
 
     @classmethod
     def from_colmap(cls, qvec, tvec, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                    near: float = 0.01, far: float = 1000.0) -> Camera:
+                    near: float = DEFAULT_NEAR, far: float = DEFAULT_FAR) -> Camera:
         """From a COLMAP image pose (``qvec = [qw, qx, qy, qz]``, ``tvec``: world-to-camera)."""
         q = np.asarray(qvec, dtype=np.float64).reshape(-1)
         t = np.asarray(tvec, dtype=np.float64).reshape(-1)
@@ -116,7 +119,8 @@ class Camera:
         return cls(fx, fy, cx, cy, width, height, w2c, near, far)
 
     @classmethod
-    def from_opencv(cls, K, w2c, width: int, height: int, near: float = 0.01, far: float = 1000.0) -> Camera:
+    def from_opencv(cls, K, w2c, width: int, height: int, near: float = DEFAULT_NEAR,
+                    far: float = DEFAULT_FAR) -> Camera:
         """From an OpenCV intrinsic matrix ``K [3,3]`` (first pixel centre at 0,0) and ``w2c``."""
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
@@ -125,7 +129,7 @@ class Camera:
 
     @classmethod
     def look_at(cls, eye, target, up, fov_x_deg: float, width: int, height: int,
-                near: float = 0.01, far: float = 1000.0) -> Camera:
+                near: float = DEFAULT_NEAR, far: float = DEFAULT_FAR) -> Camera:
         """A camera at ``eye`` looking at ``target`` (``up`` appears upwards in the image)."""
         eye, target, up = (np.asarray(x, dtype=np.float64) for x in (eye, target, up))
         z = target - eye

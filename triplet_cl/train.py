@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .datasets import load_dataset
-from .datasets.base import Dataset, render_files, resolve_background
+from .datasets.base import REFERENCE_EXTENT, Dataset, render_files, resolve_background
 from .density import (
     DensityConfig,
     DensityStats,
@@ -147,7 +147,8 @@ class TrainConfig:
     # bob_env at 100² (1500 it.): relight +0.2/+0.1/+0.2 and +0.4/+1.5/+0.2 dB, albedo (scaled) +1.1 / +1.4 dB; at 200²,
     # 3000 it.: spot +1.2/+1.5/+1.9 dB (albedo +1.6), gadget -0.1/0.0/+0.8 (+0.3), bob_env -0.0/+0.2/-1.0 (+0.5)
     lr_lights_mode: str = "relative"
-    # × lr_lights for the point lights' positions (world units per step; "relative" mode). At 1 (0.01 per step, ~0.2°
+    # × lr_lights for the point lights' positions (world units per step at the reference extent, scaled by extent /
+    # datasets.base.REFERENCE_EXTENT; "relative" mode). At 1 (0.01 per step, ~0.2°
     # of arc at spot's light distance) the light was still moving when the light phase ended and the per-vertex albedo
     # then kept whatever direction it had reached: spot_small's recovered light 0.7° off the truth with seed 0 but
     # 28.8° / 11.5° with seeds 1 / 2 (the initial light is jittered by 0.3 extent). At 10: 8.2° / 3.0°, soup relight
@@ -508,7 +509,8 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),
                       max_grad_norm=cfg.sh_clip, **kw)
     if scene.light_params is not None:
-        scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale)]
+        # the positions' rate in world units per step at the reference extent, scaled with the scene's
+        scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale * extent / REFERENCE_EXTENT)]
                  if cfg.lr_lights_mode == "relative" else None)
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt

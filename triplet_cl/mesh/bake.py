@@ -158,6 +158,13 @@ def uv_atlas(V: np.ndarray, F: np.ndarray, texture_size: int = 1024, padding: in
     if len(F) == 0:
         raise ValueError("uv_atlas: the mesh has no faces")
     pieces = [np.arange(len(F))] if piece_faces is None else spatial_pieces(V, F, piece_faces)
+    # xatlas' tolerances are absolute: a mesh a thousandth the dev scenes' size (a capture in other units) came back
+    # with no atlas at all. Far from unit size, the positions it sees are scaled by a power of two (exact) to a
+    # bounding-box diagonal in [1, 2); the charts and UVs do not depend on the scale.
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) if len(V) else 1.0
+    Vx = V
+    if np.isfinite(diag) and diag > 0 and not 1 / 16 <= diag <= 16:
+        Vx = np.ascontiguousarray(V * np.float32(2.0 ** -np.floor(np.log2(diag))), np.float32)
     local = []
     for idx in pieces:
         used, inv = np.unique(F[idx], return_inverse=True)
@@ -166,7 +173,7 @@ def uv_atlas(V: np.ndarray, F: np.ndarray, texture_size: int = 1024, padding: in
     for _ in range(8):
         atlas = xatlas.Atlas()
         for _, used, f in local:
-            atlas.add_mesh(V[used], f)
+            atlas.add_mesh(Vx[used], f)
         pack = xatlas.PackOptions()
         pack.resolution = int(texture_size)
         pack.padding = int(padding)

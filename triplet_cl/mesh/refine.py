@@ -31,7 +31,7 @@ import pyopencl.array as cla
 
 from ..activations import logit, sigmoid
 from ..autodiff import Param, Tape
-from ..datasets.base import render_files, resolve_background
+from ..datasets.base import REFERENCE_EXTENT, render_files, resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
 from ..materials import copy_ambient, get_brdf, tie_ambient_gradient
@@ -121,7 +121,8 @@ class MeshConfig:
     # plain term 0.02 %); the plain term at weight 0.02 instead: gadget 0.00765, bob_env 38.45
     normal_kappa: float | None = 0.05  # None: the plain 1 − cos
     normal_kappa_anneal: float = 0.5
-    laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in scene units)
+    laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in world units; at the
+    # reference extent 3.9: × (REFERENCE_EXTENT / extent)² elsewhere, Regularizers)
     # "uniform": |L x|² (its gradient, the bi-Laplacian, rounds edges and corners, a thin part's first); "rest":
     # |L x − L x₀|², x₀ the positions at the extraction and after each remesh (keeps the extracted shape's
     # curvature, damps the noise the steps grow). Measured, same soups (bench/results/parts_pocl_2026-11-24b.txt):
@@ -387,11 +388,17 @@ class MeshConfig:
 
 
 class Regularizers:
-    """The mesh regularisers of one topology, their weighted sum and gradients (into ``.grad``)."""
+    """The mesh regularisers of one topology, their weighted sum and gradients (into ``.grad``). ``extent``: the
+    scene's (:meth:`~triplet_cl.datasets.base.Dataset.scene_extent`); the Laplacian, an energy in squared world
+    units, is weighted by ``laplacian_weight × (REFERENCE_EXTENT / extent)²``, so that a capture in other units is
+    smoothed as the same capture at the reference scale (the normal and material terms are scale-free)."""
 
-    def __init__(self, scene: Scene, cfg: MeshConfig):
+    def __init__(self, scene: Scene, cfg: MeshConfig, extent: float = REFERENCE_EXTENT):
         n = scene.V.shape[0]
         self.cfg = cfg
+        if not (np.isfinite(extent) and extent > 0):
+            raise ValueError(f"extent must be finite and > 0, got {extent!r}")
+        self.lap_weight = cfg.laplacian_weight * (REFERENCE_EXTENT / extent) ** 2
         self.normal = FaceNormalConsistency(scene.F, n, kappa=cfg.normal_kappa) if cfg.normal_weight > 0 else None
         self.lap = None
         if cfg.laplacian_weight > 0:
@@ -401,7 +408,7 @@ class Regularizers:
 
     def __call__(self, scene: Scene) -> float:
         total = 0.0
-        for fn, x, w in ((self.normal, scene.V, self.cfg.normal_weight), (self.lap, scene.V, self.cfg.laplacian_weight),
+        for fn, x, w in ((self.normal, scene.V, self.cfg.normal_weight), (self.lap, scene.V, self.lap_weight),
                          (self.gtv, scene.material, self.cfg.gtv_weight)):
             if fn is None:
                 continue
@@ -422,7 +429,7 @@ class Regularizers:
 
         total, grads = 0.0, []
         for fn, name, x, w in ((self.normal, "V", V, self.cfg.normal_weight),
-                               (self.lap, "V", V, self.cfg.laplacian_weight),
+                               (self.lap, "V", V, self.lap_weight),
                                (self.gtv, "material", material, self.cfg.gtv_weight)):
             if fn is None:
                 continue
@@ -553,7 +560,8 @@ class MeshStage:
             # 0.03 % a step and the ambient light by 2 %: the mesh stage could not move the intensity at all)
             from ..lights import relative_lr_scales
 
-            scale = [relative_lr_scales(scene.lights)] if tc.lr_lights_mode == "relative" else None
+            scale = ([relative_lr_scales(scene.lights, position=ext / REFERENCE_EXTENT)]
+                     if tc.lr_lights_mode == "relative" else None)
             opt.add_group("lights", [scene.light_params], lr=c.lr_lights, lr_scale=scale, **kw)
         return opt
 
@@ -685,7 +693,8 @@ class MeshStage:
             scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights, scene.light_params.data,
                                                            self.trainer.priors.center)
 
-        light_scale = (relative_lr_scales(scene.lights) if scene.light_params is not None
+        light_scale = (relative_lr_scales(scene.lights, position=self.trainer.extent / REFERENCE_EXTENT)
+                       if scene.light_params is not None
                        and tc.lr_lights_mode == "relative" else None)
         t = time.perf_counter()
         out = metallic_trial(scene, tied, col, loss_and_backward, n, lr_material=c.lr_material,
@@ -1056,7 +1065,7 @@ class MeshStage:
         # and, Adam's step count shared, it left the phase at up to 3× the rate, undoing the trial's choice
         phase_tied = [k for k in tied if k != held]
         opt = self.build_optimizer(scene)
-        reg = Regularizers(scene, c)
+        reg = Regularizers(scene, c, self.trainer.extent)
         shadows = None
         if self.shadows_active():
             from ..visibility import VisibilityCache
@@ -1122,7 +1131,7 @@ class MeshStage:
                     rep = refine_scene(scene, opt, grad_acc, fraction_hi=hi, fraction_lo=c.simplify_fraction)
                     self.trainer.log.info(f"mesh remesh at {it + 1}: faces {rep.faces_before} -> {rep.faces_after} "
                                           f"({rep.subdivided} subdivided, {rep.simplified} simplified)")
-                    reg = Regularizers(scene, c)
+                    reg = Regularizers(scene, c, self.trainer.extent)
                     grad_acc = np.zeros(len(scene.F))
                     self.set_computed_ao(scene, ao_col)
                     bounce = None  # the topology changed: re-traced at the next step
