@@ -714,12 +714,17 @@ def test_training_is_the_same_in_any_units(tmp_path):
     same capture would: every length × s, every radiometric value the same. s = 8 (a power of two: the scaled
     lengths are exact in floating point). Before, the point light's position moved by one world-unit rate whatever
     the scene's size (datasets.base.REFERENCE_EXTENT) and the cameras culled at a fixed depth range."""
+    from triplet_cl.datasets.base import REFERENCE_EXTENT
+
     s = 8.0
     cfg = small_cfg(iterations=40)
     a = Trainer(DEMO, tmp_path / "a", cfg, quiet=True)
     b = Trainer(_scaled_copy(DEMO, tmp_path / "x8", s), tmp_path / "b", cfg, quiet=True)
     assert b.extent == pytest.approx(s * a.extent, rel=1e-12)
-    assert b.ds.train[0].camera.near == pytest.approx(s * a.ds.train[0].camera.near, rel=1e-12)
+    # the depth range follows the units, never narrower than the default (a = the demo, at about the reference scale)
+    assert b.ds.train[0].camera.far == pytest.approx(s * a.ds.train[0].camera.far, rel=1e-12)
+    small = Trainer(_scaled_copy(DEMO, tmp_path / "x1_8", 1 / s), tmp_path / "c", cfg, quiet=True).ds.train[0].camera
+    assert small.near == pytest.approx(0.01 * a.extent / REFERENCE_EXTENT / s, rel=1e-12) and small.far == 1000.0
     np.testing.assert_allclose(b.scene.V.data, s * a.scene.V.data, rtol=0, atol=1e-6 * s)
     for _ in range(12):  # before the first densification (15): the same faces throughout
         a.step()

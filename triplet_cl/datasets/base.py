@@ -113,7 +113,8 @@ class Dataset:
         for s in SPLITS:
             self.splits.setdefault(s, [])
         # the cameras' depth range in the scene's units: the default (0.01, 1000) is world units at the reference
-        # extent, so a capture in millimetres is not culled beyond 1000 nor one a hundredth the size before 0.01
+        # extent, so a capture in millimetres is not culled beyond 1000 nor one a hundredth the size before 0.01;
+        # never narrower than the default (a forward-facing capture's cameras span little of what they see)
         views = [v for vs in self.splits.values() for v in vs]
         if not self.train or any(v.camera is None for v in views):  # (test doubles without cameras)
             return
@@ -125,8 +126,8 @@ class Dataset:
             for i, v in enumerate(vs):
                 c = v.camera
                 if f != 1.0 and (c.near, c.far) == (DEFAULT_NEAR, DEFAULT_FAR):
-                    vs[i] = dataclasses.replace(v, camera=dataclasses.replace(c, near=DEFAULT_NEAR * f,
-                                                                               far=DEFAULT_FAR * f))
+                    vs[i] = dataclasses.replace(v, camera=dataclasses.replace(c, near=DEFAULT_NEAR * min(f, 1.0),
+                                                                               far=DEFAULT_FAR * max(f, 1.0)))
 
     # ---- access ---------------------------------------------------------------------------
     @property
