@@ -450,6 +450,11 @@ def initial_budget(cfg: TrainConfig) -> int | None:
     return max(cfg.density.max_faces - cfg.background_shell, 4)
 
 
+# below this scene extent (world units) a capture trains worse: the kernels' guards (e.g. a point light's falloff
+# |w|^2 >= 1e-6) are absolute (bench/results/scale_units_pocl_2026-11-27.txt); Trainer warns
+MIN_EXTENT = 0.01
+
+
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     """The configured lights, placed from the cameras (each light class's ``initial``: a point light
     above the scene, a directional light from the cameras' mean up direction, dim ambient, a
@@ -641,6 +646,16 @@ class Trainer:
         check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading
         self.check_device_budget()
         self.extent = self.ds.scene_extent()
+        if self.extent < MIN_EXTENT:
+            import warnings
+
+            from .datasets.base import DatasetWarning
+
+            warnings.warn(DatasetWarning(
+                f"{data}: the capture is very small in world units (scene extent {self.extent:.3g}; the dev scenes' "
+                f"{REFERENCE_EXTENT}): below {MIN_EXTENT} the shading kernels' absolute guards bias the result "
+                "(measured on spot_small: x 0.001 the mesh 1.5 dB worse, x 0.0001 4.4 dB); multiply the cameras' "
+                "positions by a power of ten for the best result"), stacklevel=2)
         brdf = get_brdf(self.cfg.brdf)  # the light phase's columns: lobes held, the others tied (Trainer.step)
         self.lobe_columns = brdf.lobe_columns
         self.tied_columns = [c for c in range(brdf.num_channels) if c not in self.lobe_columns]
