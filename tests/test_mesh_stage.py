@@ -805,12 +805,11 @@ def test_silhouette_window_thins_the_outline_by_one_over_sigma(sigma):
 
 @pytest.mark.parametrize("laplacian", ["uniform", "rest"])
 def test_the_laplacian_is_weighted_in_the_scene_s_units(laplacian):
-    """The same mesh in other units (× 8, the scene's extent × 8) is regularised the same: the weighted energy the
-    same and its position gradient / 8, as the photometric loss's is, so the two keep their balance whatever the
-    capture's scale (before, the Laplacian, an energy in squared world units, was 64x stronger against the photos)."""
+    """The same mesh in other units (× 8, the capture's length scale × 8) is regularised the same: the weighted
+    energy the same and its position gradient / 8, as the photometric loss's is, so the two keep their balance
+    whatever the capture's scale (before, the Laplacian, an energy in squared world units, was 64x stronger against
+    the photos)."""
     import trimesh
-
-    from triplet_cl.datasets.base import REFERENCE_EXTENT
 
     box = trimesh.creation.box([0.3, 0.2, 0.5])
     V0, F = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.1)
@@ -819,11 +818,11 @@ def test_the_laplacian_is_weighted_in_the_scene_s_units(laplacian):
     out = []
     for s in (1.0, 8.0):
         scene = Scene.from_arrays(s * V0, F, material=np.zeros((len(V0), 6)), dtype=np.float64)
-        reg = Regularizers(scene, cfg, extent=s * REFERENCE_EXTENT)
+        reg = Regularizers(scene, cfg, length_scale=s)
         scene.V.data = s * (V0 + noise)
         total, grads = reg.compute(np.asarray(scene.V.data), np.asarray(scene.material.data))
         out.append((total, sum(g for name, g in grads if name == "V")))
     assert out[1][0] == pytest.approx(out[0][0], rel=1e-9)
     np.testing.assert_allclose(out[1][1] * 8.0, out[0][1], rtol=1e-9, atol=1e-12 * np.abs(out[0][1]).max())
-    with pytest.raises(ValueError, match="extent"):
-        Regularizers(scene, cfg, extent=0.0)
+    with pytest.raises(ValueError, match="length_scale"):
+        Regularizers(scene, cfg, length_scale=0.0)

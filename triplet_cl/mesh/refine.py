@@ -121,8 +121,8 @@ class MeshConfig:
     # plain term 0.02 %); the plain term at weight 0.02 instead: gadget 0.00765, bob_env 38.45
     normal_kappa: float | None = 0.05  # None: the plain 1 − cos
     normal_kappa_anneal: float = 0.5
-    laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in world units; at the
-    # reference extent 3.9: × (REFERENCE_EXTENT / extent)² elsewhere, Regularizers)
+    laplacian_weight: float = 20.0  # uniform Laplacian of the positions (mean |δ|², δ in world units; at the dev
+    # scenes' size: / Trainer.length_scale² elsewhere, Regularizers)
     # "uniform": |L x|² (its gradient, the bi-Laplacian, rounds edges and corners, a thin part's first); "rest":
     # |L x − L x₀|², x₀ the positions at the extraction and after each remesh (keeps the extracted shape's
     # curvature, damps the noise the steps grow). Measured, same soups (bench/results/parts_pocl_2026-11-24b.txt):
@@ -388,17 +388,18 @@ class MeshConfig:
 
 
 class Regularizers:
-    """The mesh regularisers of one topology, their weighted sum and gradients (into ``.grad``). ``extent``: the
-    scene's (:meth:`~triplet_cl.datasets.base.Dataset.scene_extent`); the Laplacian, an energy in squared world
-    units, is weighted by ``laplacian_weight × (REFERENCE_EXTENT / extent)²``, so that a capture in other units is
-    smoothed as the same capture at the reference scale (the normal and material terms are scale-free)."""
+    """The mesh regularisers of one topology, their weighted sum and gradients (into ``.grad``). ``length_scale``:
+    the capture's size against the dev scenes' (``Trainer.length_scale``: its frame radius / 1.165); the Laplacian,
+    an energy in squared world units, is weighted by ``laplacian_weight / length_scale²``, so that an object in
+    other units or framed with another lens is smoothed as the same object in a dev scene (the normal and material
+    terms are scale-free)."""
 
-    def __init__(self, scene: Scene, cfg: MeshConfig, extent: float = REFERENCE_EXTENT):
+    def __init__(self, scene: Scene, cfg: MeshConfig, length_scale: float = 1.0):
         n = scene.V.shape[0]
         self.cfg = cfg
-        if not (np.isfinite(extent) and extent > 0):
-            raise ValueError(f"extent must be finite and > 0, got {extent!r}")
-        self.lap_weight = cfg.laplacian_weight * (REFERENCE_EXTENT / extent) ** 2
+        if not (np.isfinite(length_scale) and length_scale > 0):
+            raise ValueError(f"length_scale must be finite and > 0, got {length_scale!r}")
+        self.lap_weight = cfg.laplacian_weight / length_scale**2
         self.normal = FaceNormalConsistency(scene.F, n, kappa=cfg.normal_kappa) if cfg.normal_weight > 0 else None
         self.lap = None
         if cfg.laplacian_weight > 0:
@@ -1065,7 +1066,7 @@ class MeshStage:
         # and, Adam's step count shared, it left the phase at up to 3× the rate, undoing the trial's choice
         phase_tied = [k for k in tied if k != held]
         opt = self.build_optimizer(scene)
-        reg = Regularizers(scene, c, self.trainer.extent)
+        reg = Regularizers(scene, c, self.trainer.length_scale)
         shadows = None
         if self.shadows_active():
             from ..visibility import VisibilityCache
@@ -1131,7 +1132,7 @@ class MeshStage:
                     rep = refine_scene(scene, opt, grad_acc, fraction_hi=hi, fraction_lo=c.simplify_fraction)
                     self.trainer.log.info(f"mesh remesh at {it + 1}: faces {rep.faces_before} -> {rep.faces_after} "
                                           f"({rep.subdivided} subdivided, {rep.simplified} simplified)")
-                    reg = Regularizers(scene, c, self.trainer.extent)
+                    reg = Regularizers(scene, c, self.trainer.length_scale)
                     grad_acc = np.zeros(len(scene.F))
                     self.set_computed_ao(scene, ao_col)
                     bounce = None  # the topology changed: re-traced at the next step
