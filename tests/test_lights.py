@@ -167,6 +167,12 @@ def test_relative_lr_scales_follow_the_radiometric_parameters():
     s10 = relative_lr_scales(lights, position=10.0)
     np.testing.assert_allclose(s10[:3], 10.0)
     np.testing.assert_array_equal(s10[3:], s[3:])
+    # in world units at the dev scenes' extent: a scene twice as large steps its lights' positions twice as far
+    from triplet_cl.datasets.base import REFERENCE_EXTENT
+
+    s20 = relative_lr_scales(lights, position=10.0, extent=2 * REFERENCE_EXTENT)
+    np.testing.assert_allclose(s20[:3], 20.0)
+    np.testing.assert_array_equal(s20[3:], s[3:])
 
 
 def test_training_steps_the_light_position_by_its_own_rate(tmp_path):

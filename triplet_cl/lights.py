@@ -496,7 +496,7 @@ def pack_lights(lights) -> LightTable:
     return LightTable(ints, params, env_deg, has_vsh, inactive, np.asarray(ray_off, np.int64))
 
 
-def relative_lr_scales(lights, floor: float = 1e-3, position: float = 1.0) -> np.ndarray:
+def relative_lr_scales(lights, floor: float = 1e-3, position: float = 1.0, extent: float | None = None) -> np.ndarray:
     """``[T]`` learning-rate factors of the packed parameters: each radiometric parameter (``RADIOMETRIC``: a
     colour, an intensity, SH radiance) gets the largest magnitude of its current value (at least ``floor``),
     every other (positions, directions) 1. With them Adam moves every radiometric parameter by about the same
@@ -504,7 +504,12 @@ def relative_lr_scales(lights, floor: float = 1e-3, position: float = 1.0) -> np
     per step and a point light of intensity ~12 (extent²) by 0.08 %, so the ambient light and the albedo
     explained the shading long before the point light's intensity could (spot: ambient 0.39, truth 0.08;
     intensity 15, truth 30). ``position``: the factor of the point lights' positions
-    (``TrainConfig.lr_light_position_scale``)."""
+    (``TrainConfig.lr_light_position_scale``), a rate in world units at the dev scenes' size: with the scene's
+    ``extent`` it is scaled by ``extent / datasets.base.REFERENCE_EXTENT`` (a capture in other units)."""
+    if extent is not None:
+        from .datasets.base import REFERENCE_EXTENT
+
+        position = position * extent / REFERENCE_EXTENT
     out = []
     for lt in _check_lights(lights):
         for n, shape in lt.param_shapes().items():

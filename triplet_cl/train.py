@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .datasets import load_dataset
-from .datasets.base import REFERENCE_EXTENT, Dataset, render_files, resolve_background
+from .datasets.base import REFERENCE_EXTENT, Dataset, DatasetWarning, render_files, resolve_background
 from .density import (
     DensityConfig,
     DensityStats,
@@ -546,8 +546,7 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
         opt.add_group("vertex_sh", [scene.vertex_sh], lr=StepUp(Constant(cfg.lr_vertex_sh), boost),
                       max_grad_norm=cfg.sh_clip, **kw)
     if scene.light_params is not None:
-        # the positions' rate in world units per step at the reference extent, scaled with the scene's
-        scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale * extent / REFERENCE_EXTENT)]
+        scale = ([relative_lr_scales(scene.lights, position=cfg.lr_light_position_scale, extent=extent)]
                  if cfg.lr_lights_mode == "relative" else None)
         opt.add_group("lights", [scene.light_params], lr=cfg.lr_lights, lr_scale=scale, **kw)
     return opt
@@ -682,8 +681,6 @@ class Trainer:
         self.length_scale = frame_radius(self.ds) / REFERENCE_FRAME_RADIUS
         if self.extent < MIN_EXTENT:
             import warnings
-
-            from .datasets.base import DatasetWarning
 
             warnings.warn(DatasetWarning(
                 f"{data}: the capture is very small in world units (scene extent {self.extent:.3g}; the dev scenes' "

@@ -40,15 +40,15 @@ def render_files(views) -> list[str]:
 class DatasetWarning(UserWarning):
     """Something in a dataset was skipped (e.g. frames whose image file is missing)."""
 
-
-
 # The scene extent (:meth:`Dataset.scene_extent`) at which the defaults given in world units were measured: every dev
-# scene's cameras sit 3.2 from the object (extent 3.91-3.94). Those defaults are scaled by extent / REFERENCE_EXTENT
-# (a light position's learning rate) or its square (the mesh stage's Laplacian, an energy in squared world units), so
-# a capture in other units (a COLMAP reconstruction's arbitrary scale, a benchmark object ten times larger) trains as
-# the same capture at the reference scale would. Measured on spot_small scaled by 10 before this: mesh NVS 40.2 -> 37.7
-# dB (the Laplacian 100x too strong); scaled by 0.1: soup 34.0 -> 31.9 dB (the light moving 10x too fast).
+# scene's cameras sit 3.2 from the object (extent 3.91-3.94). The cameras' near / far and the point lights' position
+# learning rate (lights.relative_lr_scales) are scaled by extent / REFERENCE_EXTENT, so a capture in other units (a
+# COLMAP reconstruction's arbitrary scale, a benchmark object ten times larger) trains as the same capture at the
+# reference scale would (the object's own size, train.frame_radius, scales the random start and the mesh stage's
+# Laplacian). Measured on spot_small scaled by 0.1 before this: soup 34.0 -> 31.9 dB (the light moving 10x too fast);
+# by 1000 or 0.001: nothing drawn (bench/results/scale_units_pocl_2026-11-27.txt).
 REFERENCE_EXTENT = 3.9
+
 
 @dataclass(frozen=True, eq=False)
 class View:
@@ -115,19 +115,17 @@ class Dataset:
         # the cameras' depth range in the scene's units: the default (0.01, 1000) is world units at the reference
         # extent, so a capture in millimetres is not culled beyond 1000 nor one a hundredth the size before 0.01;
         # never narrower than the default (a forward-facing capture's cameras span little of what they see)
-        views = [v for vs in self.splits.values() for v in vs]
-        if not self.train or any(v.camera is None for v in views):  # (test doubles without cameras)
+        if not self.train or any(v.camera is None for vs in self.splits.values() for v in vs):  # (test doubles)
             return
         with np.errstate(over="ignore", invalid="ignore"):  # absurd poses are refused later, with their names
             f = self.scene_extent() / REFERENCE_EXTENT
-        if not (np.isfinite(f) and f > 0):
-            f = 1.0
+        if not (np.isfinite(f) and f > 0) or f == 1.0:
+            return
+        near, far = DEFAULT_NEAR * min(f, 1.0), DEFAULT_FAR * max(f, 1.0)
         for vs in self.splits.values():
             for i, v in enumerate(vs):
-                c = v.camera
-                if f != 1.0 and (c.near, c.far) == (DEFAULT_NEAR, DEFAULT_FAR):
-                    vs[i] = dataclasses.replace(v, camera=dataclasses.replace(c, near=DEFAULT_NEAR * min(f, 1.0),
-                                                                               far=DEFAULT_FAR * max(f, 1.0)))
+                if (v.camera.near, v.camera.far) == (DEFAULT_NEAR, DEFAULT_FAR):
+                    vs[i] = dataclasses.replace(v, camera=dataclasses.replace(v.camera, near=near, far=far))
 
     # ---- access ---------------------------------------------------------------------------
     @property

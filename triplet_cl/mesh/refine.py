@@ -31,7 +31,7 @@ import pyopencl.array as cla
 
 from ..activations import logit, sigmoid
 from ..autodiff import Param, Tape
-from ..datasets.base import REFERENCE_EXTENT, render_files, resolve_background
+from ..datasets.base import render_files, resolve_background
 from ..io import atomic_write_bytes, write_json
 from ..losses import loss_backend, photometric_loss_and_grad
 from ..materials import copy_ambient, get_brdf, tie_ambient_gradient
@@ -561,7 +561,7 @@ class MeshStage:
             # 0.03 % a step and the ambient light by 2 %: the mesh stage could not move the intensity at all)
             from ..lights import relative_lr_scales
 
-            scale = ([relative_lr_scales(scene.lights, position=ext / REFERENCE_EXTENT)]
+            scale = ([relative_lr_scales(scene.lights, extent=ext)]
                      if tc.lr_lights_mode == "relative" else None)
             opt.add_group("lights", [scene.light_params], lr=c.lr_lights, lr_scale=scale, **kw)
         return opt
@@ -694,7 +694,7 @@ class MeshStage:
             scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights, scene.light_params.data,
                                                            self.trainer.priors.center)
 
-        light_scale = (relative_lr_scales(scene.lights, position=self.trainer.extent / REFERENCE_EXTENT)
+        light_scale = (relative_lr_scales(scene.lights, extent=self.trainer.extent)
                        if scene.light_params is not None
                        and tc.lr_lights_mode == "relative" else None)
         t = time.perf_counter()
