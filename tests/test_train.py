@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -742,6 +743,54 @@ def test_training_is_the_same_in_any_units(tmp_path):
     # the materials are scale-free; Adam (rate 0.05) normalises each value's gradient, so a rounding difference in a
     # near-zero one moves that value by a fraction of the rate: 2e-4 of 0.05 seen
     np.testing.assert_allclose(b.scene.material.data, a.scene.material.data, rtol=0, atol=2e-3)
+
+
+def _reframed_copy(src: Path, dst: Path, k: float) -> Path:
+    """The NeRF dataset ``src`` seen through another lens: every camera moved along its ray k times as far from the
+    look-at centre and its field narrowed to match (the object framed as before; the photos shared)."""
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.train import look_at_center
+
+    c = look_at_center(load_dataset(src))
+    dst.mkdir()
+    for sp in ("train", "test"):
+        (dst / sp).symlink_to(src / sp)
+        d = json.loads((src / f"transforms_{sp}.json").read_text())
+        d["camera_angle_x"] = 2 * math.atan(math.tan(d["camera_angle_x"] / 2) / k)
+        for f in d["frames"]:
+            m = np.asarray(f["transform_matrix"], np.float64)
+            m[:3, 3] = c + k * (m[:3, 3] - c)
+            f["transform_matrix"] = m.tolist()
+        (dst / f"transforms_{sp}.json").write_text(json.dumps(d))
+    return dst
+
+
+def test_the_scene_extent_is_what_the_cameras_frame(tmp_path):
+    """Every world-size default (position rates, split / prune sizes, the light's start and rate) is a multiple of
+    the scene extent. The cameras' extent says where they stand, not what they frame: the demo seen through a 2.5x
+    longer lens from 2.5x as far (the cow filling the photos as before) had a 2.5x larger one (Mitsuba's re-render of
+    that rig relit 2.4-4.9 dB worse than the shipped one). Now the extent is at most the frame radius x
+    EXTENT_PER_FRAME_RADIUS; closer cameras with a wider field keep theirs; the demo's is its cameras' (unchanged)."""
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.train import EXTENT_PER_FRAME_RADIUS, frame_radius, scene_extent
+
+    cfg = small_cfg(iterations=2)
+    a = Trainer(DEMO, tmp_path / "a", cfg, quiet=True)
+    assert a.extent == a.ds.scene_extent()  # the dev rig: the cameras' extent, as before
+    tele = Trainer(_reframed_copy(DEMO, tmp_path / "tele", 2.5), tmp_path / "t", cfg, quiet=True)
+    assert tele.ds.scene_extent() == pytest.approx(2.5 * a.extent, rel=0.02)
+    assert tele.extent == pytest.approx(frame_radius(tele.ds) * EXTENT_PER_FRAME_RADIUS, rel=1e-12)
+    assert tele.extent == pytest.approx(a.extent, rel=0.02)  # the object's scale, not the cameras'
+    # the light starts where the demo's does (relative to the centre) with the same irradiance there
+    la = next(lt for lt in a.scene.current_lights() if hasattr(lt, "position"))
+    lt_ = next(lt for lt in tele.scene.current_lights() if hasattr(lt, "position"))
+    ca, ct = look_at_center(a.ds), look_at_center(tele.ds)
+    assert np.linalg.norm(lt_.position - ct) == pytest.approx(np.linalg.norm(la.position - ca), rel=0.05)
+    wide = load_dataset(_reframed_copy(DEMO, tmp_path / "wide", 0.6))
+    assert scene_extent(wide) == wide.scene_extent() == pytest.approx(0.6 * a.extent, rel=0.02)
+    # a run saved before keeps the cameras' extent (its resume continues as it started)
+    old = TrainConfig.from_dict({k: v for k, v in cfg.to_dict().items() if k != "extent_frame"})
+    assert old.extent_frame is False and scene_extent(tele.ds, old.extent_frame) == tele.ds.scene_extent()
 
 
 def test_a_very_small_capture_is_warned_about(tmp_path):

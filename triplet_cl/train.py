@@ -101,6 +101,10 @@ class TrainConfig:
     # soup 27.9 dB, mesh 30.7 dB, Chamfer 0.24 against 34.0 / 40.1 / 0.0048 (bench/results/framing_pocl_2026-11-27.txt)
     init_box: float = 1.1
     init_box_frame: bool = True  # init_box is × the frame radius (False: × the mean camera distance, runs before)
+    # the scene extent that sets every world-size default (position rates, the density thresholds, the lights' start
+    # and rate): the cameras' extent, or the frame radius × EXTENT_PER_FRAME_RADIUS where that is smaller (scene_extent;
+    # False: the cameras' extent alone, runs before)
+    extent_frame: bool = True
     init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
     # photos with a background (no alpha): this many extra triangles on a sphere of radius background_radius × the
     # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none)
@@ -308,6 +312,7 @@ class TrainConfig:
         d.setdefault("white_light", "off")  # saved before the white balance of the lights
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         d.setdefault("init_box_frame", False)  # saved before the random box followed the frame: × camera distance
+        d.setdefault("extent_frame", False)  # saved before the extent followed the frame: the cameras' extent
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -369,6 +374,8 @@ class TrainConfig:
         if not (np.isfinite(self.init_box) and self.init_box > 0) or not isinstance(self.init_box_frame, bool):
             raise ValueError(f"init_box must be finite and > 0 and init_box_frame a boolean, got {self.init_box!r} "
                              f"and {self.init_box_frame!r}")
+        if not isinstance(self.extent_frame, bool):
+            raise ValueError(f"extent_frame must be a boolean, got {self.extent_frame!r}")
         mf = self.density.max_faces
         if mf is not None and self.init_points + self.background_shell > mf:
             raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
@@ -432,6 +439,27 @@ def frame_radius(ds: Dataset) -> float:
 REFERENCE_FRAME_RADIUS = 1.165
 
 
+# the dev scenes' camera extent per frame radius (3.91-3.94 / 1.165 = 3.36-3.38), rounded up so that they keep their
+# camera extent (scene_extent); NeRF-synthetic's rig (cameras 4.03 away, a 39.6° field) is 3.0
+EXTENT_PER_FRAME_RADIUS = 3.4
+
+
+def scene_extent(ds: Dataset, frame: bool = True) -> float:
+    """The scene's size in world units for every default given as a multiple of it (the soup's and the mesh stage's
+    position rates, the density thresholds, the point lights' start and rate, the shadow cache's tolerance): the
+    cameras' extent (:meth:`Dataset.scene_extent`, 3DGS's), or with ``frame`` :func:`frame_radius` ×
+    :data:`EXTENT_PER_FRAME_RADIUS` where that is smaller. The cameras' extent measures where the cameras stand, not
+    what they frame: spot_small re-rendered with its cameras 2.5× farther and a 2.5× narrower field (the cow filling
+    the photos as before) had a 2.5× larger extent, so its triplets split and pruned at 2.5× the size and its light
+    started and moved 2.5× as far: soup 32.70 dB, relight 31.60 / 29.71 / 27.62; with this soup 34.97, relight 34.80 /
+    33.09 / 32.58 (the shipped lens: 33.93; 34.03 / 32.49 / 32.56; bench/results/framing_pocl_2026-11-27.txt).
+    Cameras closer than the dev rig's keep their extent (the smaller)."""
+    e = ds.scene_extent()
+    if not frame or not ds.train:
+        return e
+    return min(e, frame_radius(ds) * EXTENT_PER_FRAME_RADIUS)
+
+
 # with TrainConfig.init_box_frame, the random box's half-size is at most this × the mean camera distance (the rule
 # before): cameras close to the object with a wide field (spot_small re-rendered 0.6x as far, a 62° field) frame a
 # large half-width, and a box of 1.1 x that reaches the cameras: soup 30.7 dB against 33.0 with the cap
@@ -492,7 +520,7 @@ def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     above the scene, a directional light from the cameras' mean up direction, dim ambient, a
     constant SH environment)."""
     c = look_at_center(ds)
-    ext = ds.scene_extent()
+    ext = scene_extent(ds, cfg.extent_frame)
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
     up = up / (np.linalg.norm(up) + 1e-12)
     return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng, distance=cfg.light_distance))
@@ -676,7 +704,7 @@ class Trainer:
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading
         self.check_device_budget()
-        self.extent = self.ds.scene_extent()
+        self.extent = scene_extent(self.ds, self.cfg.extent_frame)
         # the object's size against the dev scenes' (the mesh stage's Laplacian weight follows its square)
         self.length_scale = frame_radius(self.ds) / REFERENCE_FRAME_RADIUS
         if self.extent < MIN_EXTENT:
