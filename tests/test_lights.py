@@ -309,3 +309,69 @@ def test_point_light_distance_keeps_the_irradiance_at_the_centre():
             eb = b.intensity / (1.8 * 2.0) ** 2
             np.testing.assert_allclose(ea, eb, rtol=1e-12)
             assert irradiance_rgb(b, c) is not None
+
+
+def test_hold_irradiance_keeps_each_point_light_s_irradiance_at_the_centre():
+    """``lights.hold_irradiance``: a point light (with falloff) that moved keeps ``I / d²`` at the centre (its
+    intensity × (d / d_before)²); ambient, directional and falloff-free point lights, and lights that did not move,
+    are untouched; the offsets follow the packed table (two point lights after an ambient one)."""
+    from triplet_cl.lights import balanced_lights, hold_irradiance
+
+    c = np.array([0.1, -0.2, 0.3])
+    lights = [AmbientLight(np.full(3, 0.1)), PointLight(np.array([2.0, 0.0, 0.0]), np.full(3, 4.0)),
+              DirectionalLight(np.array([0.0, -1.0, 0.0]), np.full(3, 2.0)),
+              PointLight(np.array([0.0, 3.0, 0.0]), np.array([9.0, 8.0, 7.0])),
+              PointLight(np.array([0.0, 0.0, 5.0]), np.full(3, 5.0), falloff=False)]
+    before = pack_lights(lights).params.astype(np.float64)
+    moved = [lights[0], PointLight(np.array([3.0, 0.5, 0.0]), np.full(3, 4.4)), lights[2],
+             PointLight(np.array([0.0, 3.0, 0.0]), np.array([9.0, 8.0, 7.0])),
+             PointLight(np.array([0.0, 0.0, 7.0]), np.full(3, 5.0), falloff=False)]
+    after = pack_lights(moved).params.astype(np.float64)
+    out = L.unpack_lights(moved, hold_irradiance(moved, before, after, c))
+    d0, d1 = np.sum((lights[1].position - c) ** 2), np.sum((moved[1].position - c) ** 2)
+    np.testing.assert_allclose(out[1].intensity / d1, 4.4 / d0, rtol=1e-12)  # the step's own intensity change stays
+    np.testing.assert_allclose(out[1].position, moved[1].position)
+    np.testing.assert_array_equal(out[3].intensity, [9.0, 8.0, 7.0])  # did not move
+    np.testing.assert_array_equal(out[4].intensity, np.full(3, 5.0))  # no falloff: no irradiance to keep
+    np.testing.assert_array_equal(out[0].color, lights[0].color)
+    np.testing.assert_array_equal(out[2].intensity, lights[2].intensity)
+    # balanced_lights applies it first when given the parameters before the step, and not without them
+    np.testing.assert_allclose(balanced_lights("off", moved, after, c, before=before),
+                               hold_irradiance(moved, before, after, c))
+    np.testing.assert_array_equal(balanced_lights("off", moved, after, c), after)
+
+
+def test_training_steps_keep_the_point_light_s_irradiance_but_for_its_intensity_step(tmp_path):
+    """``TrainConfig.hold_irradiance`` (default): after each soup step the point light's intensity is what the
+    optimiser made it × (d / d_before)², d its distance from the look-at centre, so moving it changes nothing at the
+    centre (the gauge the photos do not fix stayed with the distance they constrain least: an avocado-shaped dark
+    object's light walked out to 5.6 at a constant intensity, its irradiance a quarter of the truth's). A config
+    from before has it off."""
+    from triplet_cl.cli.main import demo_data_path
+    from triplet_cl.train import TrainConfig, Trainer
+
+    cfg = TrainConfig(iterations=5, init_points=300, checkpoint_every=0, max_test_views=1)
+    assert cfg.hold_irradiance is True
+    tr = Trainer(demo_data_path(), tmp_path / "run", cfg, quiet=True)
+    c = tr.priors.center
+    raw = {}
+    step = tr.opt.step
+
+    def spy():  # the parameters before and after the optimiser's own update
+        raw["before"] = np.array(tr.scene.light_params.data, np.float64)
+        step()
+        raw["after"] = np.array(tr.scene.light_params.data, np.float64)
+
+    tr.opt.step = spy
+    for _ in range(3):
+        tr.step()
+        b, a = raw["before"], raw["after"]
+        p = np.array(tr.scene.light_params.data, np.float64)
+        d0, d1 = np.sum((b[:3] - c) ** 2), np.sum((a[:3] - c) ** 2)
+        assert abs(d1 / d0 - 1) > 1e-6  # the light moved
+        np.testing.assert_allclose(p[3:6], np.mean(a[3:6]) * d1 / d0, rtol=1e-5)  # grey ("each"), then held
+    old = cfg.to_dict()
+    del old["hold_irradiance"]
+    assert TrainConfig.from_dict(old).hold_irradiance is False
+    with pytest.raises(ValueError, match="hold_irradiance"):
+        TrainConfig(hold_irradiance=1).validate()

@@ -614,11 +614,40 @@ def nonnegative_lights(lights, params: np.ndarray) -> np.ndarray:
 WHITE_LIGHT_MODES = ("each", "total", "off")
 
 
-def balanced_lights(mode: str, lights, params, center, light_phase: bool = False) -> np.ndarray:
+def hold_irradiance(lights, before, params, center) -> np.ndarray:
+    """The packed light ``params`` with each point light's (with falloff) intensity × ``(d / d_before)²``, ``d`` its
+    distance from ``center`` in ``params`` and ``d_before`` in ``before`` (the parameters before the optimiser
+    step): moving a point light does not change the irradiance it gives the centre, which only its intensity's own
+    gradient changes.
+
+    Why: photos fix albedo × irradiance (the gauge), and the distance is what they constrain least (the falloff's
+    variation across the object). A point light's position steps 10× its intensity's relative rate
+    (``TrainConfig.lr_light_position_scale``), so the gauge drifted with the distance: spot_small's shape with a dark
+    uniform albedo (the avocado's, bench/results/avocado_pocl_2026-11-27.txt) had its light walk from 2.4 to 5.6
+    away at a constant intensity, the irradiance at the centre falling to 0.39 (truth 1.56) and the albedo rising to
+    match: relight 25.45 / 22.82 / 19.29 dB; with this 35.44 / 33.32 / 29.70."""
+    out = np.array(params, np.float64, copy=True)
+    before = np.asarray(before, np.float64)
+    c = np.asarray(center, np.float64)
+    off = 0
+    for lt in lights:
+        if isinstance(lt, PointLight) and lt.falloff:
+            d0 = float(np.sum((before[off:off + 3] - c) ** 2))
+            d1 = float(np.sum((out[off:off + 3] - c) ** 2))
+            if d0 > 0 and np.isfinite(d1):
+                out[off + 3:off + 6] *= d1 / d0
+        off += lt.num_params
+    return out.astype(np.asarray(params).dtype, copy=False)
+
+
+def balanced_lights(mode: str, lights, params, center, light_phase: bool = False, before=None) -> np.ndarray:
     """The packed light ``params`` after the white-light rule ``mode`` (``TrainConfig.white_light``), applied after
     each optimiser step of the soup and mesh stages: "each" every light grey (:func:`grey_lights`); "total" the
     lights together white at ``center`` (:func:`white_balance`), each grey during the light phase; "off"
-    any tint. In every mode the colours and intensities end clamped to ``>= 0`` (:func:`nonnegative_lights`)."""
+    any tint. In every mode the colours and intensities end clamped to ``>= 0`` (:func:`nonnegative_lights`).
+    ``before``: the parameters before the step, for :func:`hold_irradiance` (first; None: not applied)."""
+    if before is not None:
+        params = hold_irradiance(lights, before, params, center)
     if mode == "each" or (mode == "total" and light_phase):
         params = grey_lights(lights, params)
     if mode == "total":

@@ -164,6 +164,10 @@ class TrainConfig:
     # 28.8° / 11.5° with seeds 1 / 2 (the initial light is jittered by 0.3 extent). At 10: 8.2° / 3.0°, soup relight
     # +1.2 to +5.0 dB on those seeds and level on seed 0 (bench/results/light_position_pocl_2026-11-26.txt)
     lr_light_position_scale: float = 10.0
+    # a point light's step does not change its irradiance at the look-at centre (lights.hold_irradiance: its intensity
+    # × (d / d_before)² after each step of the soup, the mesh stage and the metallic trials): the photos fix albedo ×
+    # irradiance, and the gauge drifted with the distance the photos constrain least. False: runs before
+    hold_irradiance: bool = True
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
     betas: tuple = (0.5, 0.999)  # Adam betas (the method's)
@@ -313,6 +317,7 @@ class TrainConfig:
         d.setdefault("sensor_clip", False)  # saved before the camera's saturation was modelled
         d.setdefault("init_box_frame", False)  # saved before the random box followed the frame: × camera distance
         d.setdefault("extent_frame", False)  # saved before the extent followed the frame: the cameras' extent
+        d.setdefault("hold_irradiance", False)  # saved before a light's step kept its irradiance at the centre
         for k, v in Priors.off().items():
             d.setdefault(k, v)  # saved before the priors: none
         return cls(**d)
@@ -374,8 +379,9 @@ class TrainConfig:
         if not (np.isfinite(self.init_box) and self.init_box > 0) or not isinstance(self.init_box_frame, bool):
             raise ValueError(f"init_box must be finite and > 0 and init_box_frame a boolean, got {self.init_box!r} "
                              f"and {self.init_box_frame!r}")
-        if not isinstance(self.extent_frame, bool):
-            raise ValueError(f"extent_frame must be a boolean, got {self.extent_frame!r}")
+        if not isinstance(self.extent_frame, bool) or not isinstance(self.hold_irradiance, bool):
+            raise ValueError(f"extent_frame and hold_irradiance must be booleans, got {self.extent_frame!r} and "
+                             f"{self.hold_irradiance!r}")
         mf = self.density.max_faces
         if mf is not None and self.init_points + self.background_shell > mf:
             raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
@@ -864,6 +870,8 @@ class Trainer:
         tie_ambient_gradient(self.scene.material, self.ambient_pairs)
         if self.held_ao and self.scene.material.grad is not None:
             self.scene.material.grad[:, self.held_ao] = 0.0
+        lp = self.scene.light_params
+        lights_before = np.array(lp.data) if lp is not None and cfg.hold_irradiance else None
         try:
             self.opt.step()  # the finiteness guard: see Adam.step
         except NonFiniteStep as exc:
@@ -873,7 +881,7 @@ class Trainer:
             self.scene.material.data[:, self.lobe_columns] = held
         copy_ambient(self.scene.material, self.ambient_pairs)
         self.priors.project(self.scene)
-        self.balance_lights()
+        self.balance_lights(lights_before)
         t4 = time.perf_counter()
         report = None
         if dens.densify_at(it):
@@ -962,12 +970,13 @@ class Trainer:
             self.log.info("soup restarted from iteration 0 as a metal (metallic 0.99)")
         return rec
 
-    def balance_lights(self) -> None:
-        """The white-light rule (``TrainConfig.white_light``, :func:`lights.balanced_lights`) after each step."""
+    def balance_lights(self, before=None) -> None:
+        """The white-light rule (``TrainConfig.white_light``, :func:`lights.balanced_lights`) after each step, and
+        with ``before`` (the light parameters before it) :func:`lights.hold_irradiance`."""
         lp = self.scene.light_params
         if lp is not None:
             lp.data[...] = balanced_lights(self.cfg.white_light, self.scene.lights, lp.data, self.priors.center,
-                                           self.it < self.cfg.material_tie_until)
+                                           self.it < self.cfg.material_tie_until, before=before)
 
     def set_env_degree(self, deg: int) -> None:
         """The SH environment lights' active degree follows the band schedule (one band every ``sh_band_every``

@@ -682,7 +682,11 @@ class MeshStage:
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
 
+        before = {}
+
         def loss_and_backward(k: int) -> float:
+            if scene.light_params is not None and tc.hold_irradiance:  # the lights before this step's update
+                before["lights"] = np.array(scene.light_params.data)
             cam, target = self.trainer.targets.get(int(views[k]), 1.0 / downscale, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss = photometric_backward(r, target, tc.ssim_lambda)
@@ -692,7 +696,7 @@ class MeshStage:
 
         def after_step() -> None:
             scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights, scene.light_params.data,
-                                                           self.trainer.priors.center)
+                                                           self.trainer.priors.center, before=before.get("lights"))
 
         light_scale = (relative_lr_scales(scene.lights, extent=self.trainer.extent)
                        if scene.light_params is not None
@@ -1113,14 +1117,17 @@ class MeshStage:
                     tie_rows(scene.material, phase_tied)
                     if held is not None:
                         kept = np.array(scene.material.data[:, held])
+                lights_before = (np.array(scene.light_params.data)
+                                 if scene.light_params is not None and tc.hold_irradiance else None)
                 opt.step()
                 opt.zero_grad()
                 if kept is not None:
                     scene.material.data[:, held] = kept
                 copy_ambient(scene.material, amb)
-                if scene.light_params is not None:  # the soup stage's white-light rule
+                if scene.light_params is not None:  # the soup stage's white-light rule (and its irradiance hold)
                     scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
-                                                                   scene.light_params.data, self.trainer.priors.center)
+                                                                   scene.light_params.data, self.trainer.priors.center,
+                                                                   before=lights_before)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
