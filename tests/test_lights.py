@@ -348,6 +348,7 @@ def test_training_steps_keep_the_point_light_s_irradiance_but_for_its_intensity_
     object's light walked out to 5.6 at a constant intensity, its irradiance a quarter of the truth's). A config
     from before has it off."""
     from triplet_cl.cli.main import demo_data_path
+
     from triplet_cl.train import TrainConfig, Trainer
 
     cfg = TrainConfig(iterations=5, init_points=300, checkpoint_every=0, max_test_views=1)
