@@ -49,7 +49,7 @@ def dry_trial(tr, steps: int) -> dict:
                             transfer=tr.transfer)
         return photometric_backward(render(s, cam, st, tr.device, vis=vis), target, cfg.ssim_lambda)
 
-    def after_step() -> None:
+    def after_step(lights_before=None) -> None:  # (the soup's own rule then, without the irradiance hold)
         s.light_params.data[...] = balanced_lights(cfg.white_light, s.lights, s.light_params.data, tr.priors.center,
                                                    True)
 

@@ -682,11 +682,7 @@ class MeshStage:
         bgs = (rng.uniform(0, 1, (n, 3)) if tc.background == "random"
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
 
-        before = {}
-
         def loss_and_backward(k: int) -> float:
-            if scene.light_params is not None and tc.hold_irradiance:  # the lights before this step's update
-                before["lights"] = np.array(scene.light_params.data)
             cam, target = self.trainer.targets.get(int(views[k]), 1.0 / downscale, np.asarray(bgs[k], np.float32))
             r, img, _ = self.render(scene, cam, bgs[k], supersample=1, vis=vis, bounce=bounce)
             loss = photometric_backward(r, target, tc.ssim_lambda)
@@ -694,9 +690,10 @@ class MeshStage:
                 scene.material.grad[:, held] = 0.0
             return float(loss)
 
-        def after_step() -> None:
+        def after_step(lights_before) -> None:
             scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights, scene.light_params.data,
-                                                           self.trainer.priors.center, before=before.get("lights"))
+                                                           self.trainer.priors.center,
+                                                           before=lights_before if tc.hold_irradiance else None)
 
         light_scale = (relative_lr_scales(scene.lights, extent=self.trainer.extent)
                        if scene.light_params is not None
@@ -1327,7 +1324,8 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     every vertex and held there, the same short fit run from the same start for each (``steps`` calls of
     ``loss_and_backward(k)``, which renders step ``k``'s view, returns its loss and leaves the gradients in the
     scene's parameters; Adam on the materials, the ``tied`` columns one value, and on the lights when the scene
-    has any; the geometry fixed); the value whose fit has the lower mean loss over its second half wins. The
+    has any, ``after_step(lights_before)`` after each step with the light parameters before it (None without
+    lights); the geometry fixed); the value whose fit has the lower mean loss over its second half wins. The
     scene is put back as it was, but for the column set to the winner. Returns ``{"metallic", "loss" (per value),
     "steps", "curves" (per value, the loss of every step), "tied" (per value, the tied columns' raw values at the
     end of its fit), "refused" (the metal value refused by the roughness rule, or None)}``.
@@ -1368,9 +1366,10 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
             tie_rows(scene.material, tied)
             if scene.material.grad is not None:
                 scene.material.grad[:, col] = 0.0
+            lights_before = None if lp is None else np.array(lp.data)
             opt.step()
             if after_step is not None:
-                after_step()
+                after_step(lights_before)
         for p in params:
             p.grad = None
         curves[value] = losses
