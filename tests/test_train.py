@@ -659,15 +659,17 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     """``TrainConfig.metallic_probe_at``: at that step, the mesh stage's trial on a mesh extracted from the soup; a
     metal verdict restarts the soup from iteration 0 with every metallic at 0.99 (the light phase then holds it), a
     dielectric leaves the soup as it is; recorded in metrics.json and in the checkpoints (a resumed run does not
-    probe again). A soup with no surface yet is skipped, not an error; 0 turns the probe off."""
+    probe again). A soup with no surface yet is skipped, not an error; 0 turns the probe off. The trial refuses a
+    metal rougher than ``TrainConfig.metal_probe_max_roughness`` (0.85; configs saved before it: the mesh stage's
+    0.8)."""
     from triplet_cl.activations import sigmoid
     from triplet_cl.mesh import refine
     from triplet_cl.train import Trainer
 
     calls = []
 
-    def fake_choose(self, scene, tied, col, downscale=1):  # the verdict under test; the real trial: elsewhere
-        calls.append((len(scene.F), col))
+    def fake_choose(self, scene, tied, col, downscale=1, max_metal_roughness=None):  # the verdict under test; the
+        calls.append((len(scene.F), col, max_metal_roughness))  # real trial: elsewhere
         return {"metallic": 0.99, "loss": {"0.01": 0.2, "0.99": 0.1}, "steps": 1, "tied": {}, "refused": None}
 
     monkeypatch.setattr(refine.MeshStage, "choose_metallic", fake_choose)
@@ -682,6 +684,7 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     m = tr.train()
     rec = m["metallic_probe"]
     assert len(calls) == 1 and rec["metallic"] == 0.99 and rec["it"] == cfg.metallic_probe_at and rec["faces"] > 0
+    assert calls[0][2] == cfg.metal_probe_max_roughness == 0.85  # the probe's own rule reaches the trial
     assert rec["restarted"] and m["iterations"] == 150 and len(tr.history) == 150 + cfg.metallic_probe_at
     col = 4  # Cook-Torrance's metallic, held through the light phase, then per vertex: still a metal at the end
     assert np.median(sigmoid(np.asarray(tr.scene.material.data[:, col], np.float64))) > 0.5
@@ -694,6 +697,12 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     assert "no alpha" in bg.train()["metallic_probe"]["skipped"] and len(calls) == 1
     with pytest.raises(ValueError, match="metallic_probe_at must be an integer >= 0"):
         replace(cfg, metallic_probe_at=-1).validate()
+    for bad in (1.5, -0.1, float("nan"), True, "0.8"):
+        with pytest.raises(ValueError, match="metal_probe_max_roughness must be a"):
+            replace(cfg, metal_probe_max_roughness=bad).validate()
+    old = cfg.to_dict()
+    del old["metal_probe_max_roughness"]
+    assert TrainConfig.from_dict(old).metal_probe_max_roughness == 0.8  # a run saved before: the mesh stage's rule
 
 
 def _scaled_copy(src: Path, dst: Path, s: float) -> Path:

@@ -241,6 +241,13 @@ class TrainConfig:
     # soup unchanged (bench/results/soup_metallic_pocl_2026-11-27.txt). The trial on the soup itself (not on a
     # mesh) could not tell the metal from gadget's smooth-shaded dielectric. 0: no probe.
     metallic_probe_at: int = 360
+    # the probe refuses a metal whose tied roughness fits above this (the mesh stage's own trial: MAX_METAL_ROUGHNESS
+    # 0.8). The probe's mesh comes from a soup at a tenth of its run, whose coarser surface widens every lobe: over the
+    # probes of sessions 45-48 (bench/results/metal_probe_pocl_2026-11-28.txt) the metal captures fitted 0.72-0.81
+    # and the dielectrics that the metal hypothesis won on loss (gadget, a capture at 1e-4 scale, a dimmed one)
+    # 0.90-0.94; at 0.8 the metal capture under two point lights (0.81 with the irradiance hold) was refused and its
+    # soup trained as a dielectric (surface Chamfer 0.0106 -> 0.0169). 0.85 sits between the two groups
+    metal_probe_max_roughness: float = 0.85
     # Blinn-Phong's ambient reflectance ka: "diffuse" keeps it equal to kd (one reflectance lights the diffuse and
     # the ambient term, as Cook-Torrance's albedo does; materials.tie_ambient_gradient / copy_ambient); "free": its
     # own per-vertex channel (runs before 2026-11-26), where shadows and ambient occlusion were painted into ka
@@ -309,6 +316,7 @@ class TrainConfig:
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("metallic_probe_at", 0)  # saved before the soup's metallic probe: none
+        d.setdefault("metal_probe_max_roughness", 0.8)  # saved before the probe's own roughness rule: the mesh stage's
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
         d.setdefault("ao", "learned")  # saved before the AO could be held
@@ -342,6 +350,11 @@ class TrainConfig:
         if isinstance(self.metallic_probe_at, bool) or not isinstance(self.metallic_probe_at, int) \
                 or self.metallic_probe_at < 0:
             raise ValueError(f"metallic_probe_at must be an integer >= 0, got {self.metallic_probe_at!r}")
+        if isinstance(self.metal_probe_max_roughness, bool) \
+                or not isinstance(self.metal_probe_max_roughness, int | float) \
+                or not 0.0 <= self.metal_probe_max_roughness <= 1.0:
+            raise ValueError(f"metal_probe_max_roughness must be a number in [0, 1], got "
+                             f"{self.metal_probe_max_roughness!r}")
         if not isinstance(self.material_tie_until, int) or self.material_tie_until < 0:
             raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
@@ -951,7 +964,8 @@ class Trainer:
                 return None
             if stage.cfg.pixel_sigma is None:
                 stage.resolve_pixel_filter(mesh)
-            out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col, downscale=f)
+            out = stage.choose_metallic(mesh, stage.light_phase_ties(mesh), col, downscale=f,
+                                        max_metal_roughness=self.cfg.metal_probe_max_roughness)
         finally:  # the photos the probe shrank: not kept for the training (what it had cached stays)
             self.targets.cache = {k: v for k, v in self.targets.cache.items() if k in cached}
         rec = {"it": self.it, **{k: v for k, v in out.items() if k != "curves"}, "faces": len(mesh.F),

@@ -665,11 +665,14 @@ class MeshStage:
             m[:, tied] = m[:, tied].mean(axis=0, keepdims=True)
         return tied
 
-    def choose_metallic(self, scene: Scene, tied: list[int], col: int, downscale: int = 1) -> dict:
+    def choose_metallic(self, scene: Scene, tied: list[int], col: int, downscale: int = 1,
+                        max_metal_roughness: float | None = None) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
         hypothesis at one sample per pixel, the same views and backgrounds for each, the photos ``downscale`` times
-        smaller: the soup's probe at large photos); the winner is kept in the column ``col`` of ``scene.material`` and
-        the trial in ``self.metallic_choice`` (metrics.json's ``mesh.metallic_trial``)."""
+        smaller: the soup's probe at large photos; a metal fitted rougher than ``max_metal_roughness`` refused, None:
+        :data:`MAX_METAL_ROUGHNESS`; the soup's probe passes ``TrainConfig.metal_probe_max_roughness``); the winner is
+        kept in the column ``col`` of ``scene.material`` and the trial in ``self.metallic_choice`` (metrics.json's
+        ``mesh.metallic_trial``)."""
         from ..lights import balanced_lights, relative_lr_scales
 
         c, tc = self.cfg, self.trainer.cfg
@@ -701,6 +704,8 @@ class MeshStage:
         t = time.perf_counter()
         out = metallic_trial(scene, tied, col, loss_and_backward, n, lr_material=c.lr_material,
                              rough_col=get_brdf(scene.brdf).column("roughness"),
+                             max_metal_roughness=MAX_METAL_ROUGHNESS if max_metal_roughness is None
+                             else max_metal_roughness,
                              betas=tuple(tc.betas), lr_lights=c.lr_lights, light_scale=light_scale,
                              after_step=after_step if scene.light_params is not None else None)
         out["seconds"] = time.perf_counter() - t
