@@ -230,8 +230,9 @@ def cmd_train(args: argparse.Namespace) -> int:
                 os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
-    if tr.background_note:
-        print(f"  {tr.background_note}")
+    for note in (tr.background_note, tr.downscale_note):
+        if note:
+            print(f"  {note}")
     try:
         _raise_if_terminated()
         metrics = tr.train()
@@ -731,7 +732,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "object pixels are white themselves)")
     t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
                    "far sphere for the sky / walls (default 0; see README 'Your own photos')")
-    t.add_argument("--downscale", type=int, help="reduce the dataset's images by this factor (default 1)")
+    t.add_argument("--downscale", help="reduce the dataset's images by this integer factor, or "
+                   "auto (default): the smallest factor that brings the photos' longer side to at most 1600 px (1 for "
+                   "smaller photos)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
     t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
     t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")

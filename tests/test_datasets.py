@@ -272,6 +272,39 @@ def test_downscale_images_and_intrinsics(tmp_path):
         np.testing.assert_allclose(cb.project_points(POINT[None])[0, :2], ca.project_points(POINT[None])[0, :2] / 2)
 
 
+def test_downscale_auto_keeps_the_longer_side_within_1600_px(tmp_path):
+    """``load_dataset(downscale="auto")``: the smallest integer factor bringing the first training image's longer side
+    to at most ``AUTO_MAX_SIDE`` (1600 px, 3D Gaussian Splatting's rule), read from its header; every split then loads
+    exactly as with that factor given; the chosen factor and the size it came from are on the dataset."""
+    from triplet_cl.datasets import AUTO_MAX_SIDE, auto_factor
+
+    def same(a, b):
+        for s in ("train", "val", "test"):
+            assert [v.name for v in a[s]] == [v.name for v in b[s]]
+            for va, vb in zip(a[s], b[s], strict=True):
+                _same_camera(va.camera, vb.camera)
+                np.testing.assert_array_equal(va.rgb, vb.rgb)
+                np.testing.assert_array_equal(va.alpha, vb.alpha)
+
+    assert AUTO_MAX_SIDE == 1600
+    assert [auto_factor(w, h) for w, h in ((800, 800), (1600, 1200), (1200, 1601), (4000, 3000), (6000, 4000))] \
+        == [1, 1, 2, 3, 4]
+    small = tmp_path / "small"
+    fac.make_nerf(small, {"train": 2, "test": 1})
+    a, b = load_dataset(small, downscale="auto"), load_dataset(small)
+    assert a.downscale == 1 and a.auto_downscale == (fac.W, fac.H) and b.auto_downscale is None
+    same(a, b)
+    wide = tmp_path / "wide"
+    fac.make_nerf(wide, {"train": 2, "test": 1}, w=3300, h=12)
+    a, b = load_dataset(wide, downscale="auto"), load_dataset(wide, downscale=3)
+    assert a.downscale == b.downscale == 3 and a.auto_downscale == (3300, 12)
+    assert all((v.width, v.height) == (1100, 4) for v in a.train + a.test)
+    same(a, b)
+    for bad in ("big", 0, 2.0, True):
+        with pytest.raises(ValueError, match="downscale must be a positive integer or 'auto'"):
+            load_dataset(small, downscale=bad)
+
+
 def test_downscale_crops_the_remainder():
     rgb = np.arange(7 * 5 * 3, dtype=np.float32).reshape(7, 5, 3)
     out, alpha = downscale_image(rgb, None, 2)

@@ -705,6 +705,34 @@ def test_metallic_probe_runs_once_and_decides_the_soup_s_metallic(tmp_path, monk
     assert TrainConfig.from_dict(old).metal_probe_max_roughness == 0.8  # a run saved before: the mesh stage's rule
 
 
+def test_downscale_auto_trains_large_photos_smaller(tmp_path, monkeypatch, capsys):
+    """``TrainConfig.downscale = "auto"`` (the default): photos whose longer side exceeds ``AUTO_MAX_SIDE`` (1600 px)
+    train reduced by the smallest integer factor that fits; config.json keeps the factor (a resume reads it), the
+    command prints why. With the bound set to 48 px, the demo's 96² photos train at 48²; at 1600 they stay 96²."""
+    from triplet_cl.datasets import images
+
+    cfg = TrainConfig(iterations=2, init_points=200, checkpoint_every=0)
+    assert cfg.downscale == "auto"
+    monkeypatch.setattr(images, "AUTO_MAX_SIDE", 48)
+    tr = Trainer(DEMO, tmp_path / "a", cfg, quiet=True)
+    assert tr.cfg.downscale == 2 and {(v.width, v.height) for v in tr.ds.train + tr.ds.test} == {(48, 48)}
+    assert "downscale: 2" in tr.downscale_note and "96x96" in tr.downscale_note and "48x48" in tr.downscale_note
+    assert json.loads((tmp_path / "a" / "config.json").read_text())["train"]["downscale"] == 2
+    from triplet_cl.runs import config_from_saved, read_run_config
+
+    assert config_from_saved(tmp_path / "a", read_run_config(tmp_path / "a")).downscale == 2  # what a resume reads
+    monkeypatch.setattr(images, "AUTO_MAX_SIDE", 1600)
+    tr = Trainer(DEMO, tmp_path / "b", cfg, quiet=True)
+    assert tr.cfg.downscale == 1 and tr.downscale_note is None and tr.ds.train[0].width == 96
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["downscale"] == 1
+    for bad, why in (("x", "an integer in [1, 64] or auto"), ("0", "an integer in [1, 64]"), ("65", "[1, 64]")):
+        rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "c"), "--iterations", "2", "--downscale", bad])
+        err = capsys.readouterr().err
+        assert rc == 2 and "--downscale" in err and why in err and not (tmp_path / "c").exists(), err
+    with pytest.raises(ValueError, match="downscale must be an integer in \\[1, 64\\] or 'auto'"):
+        replace(cfg, downscale="half").validate()
+
+
 def _scaled_copy(src: Path, dst: Path, s: float) -> Path:
     """The NeRF dataset ``src`` in other units: every camera position × ``s`` (the photos shared)."""
     dst.mkdir()

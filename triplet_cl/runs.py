@@ -102,6 +102,8 @@ def config_from_saved(run_dir, saved: dict):
             v = d[name]
             if v is None:
                 ok = "None" in str(f.type)
+            elif cls is TrainConfig and name == "downscale":  # the factor "auto" chose (or a hand-written "auto")
+                ok, default = (isinstance(v, int) and not isinstance(v, bool)) or v == "auto", 1
             elif default is None:
                 ok = isinstance(v, (int, float)) and not isinstance(v, bool)
             elif isinstance(default, bool):

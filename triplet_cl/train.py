@@ -29,6 +29,7 @@ import pyopencl.array as cla
 from scipy.spatial import cKDTree
 
 from .camera import Camera
+from .datasets import images as dataset_images
 from .datasets import load_dataset
 from .datasets.base import REFERENCE_EXTENT, Dataset, DatasetWarning, render_files, resolve_background
 from .density import (
@@ -186,7 +187,10 @@ class TrainConfig:
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)
-    downscale: int = 1  # dataset images reduced by this integer factor at load time
+    # dataset images reduced by this integer factor at load time; "auto": the smallest factor that brings the training
+    # photos' longer side to at most datasets.images.AUTO_MAX_SIDE (1600) px (3D Gaussian Splatting's rule; 1 for
+    # every dev scene and NeRF-synthetic's 800²). The factor chosen is what config.json keeps (a resume reads it)
+    downscale: int | str = "auto"
     max_test_views: int | None = None  # evaluate only the first N test views (None: all)
     # "linear": shading, lights and compositing in linear radiance, the photos' sRGB transfer after compositing
     # (8/16-bit datasets; linear EXR/HDR datasets skip it), albedo = linear reflectance. "encoded": the renderer
@@ -382,8 +386,9 @@ class TrainConfig:
             raise ValueError(f"light_distance must be finite and > 0, got {self.light_distance}")
         if not 0 <= self.sh_degree <= 8:
             raise ValueError(f"sh_degree must be in [0, 8], got {self.sh_degree}")
-        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or not 1 <= self.downscale <= 64:
-            raise ValueError(f"downscale must be an integer in [1, 64], got {self.downscale!r}")
+        if self.downscale != "auto" and (isinstance(self.downscale, bool) or not isinstance(self.downscale, int)
+                                         or not 1 <= self.downscale <= 64):
+            raise ValueError(f"downscale must be an integer in [1, 64] or 'auto', got {self.downscale!r}")
         if self.checkpoint_every < 0 or self.keep_checkpoints < 0:
             raise ValueError(f"checkpoint_every and keep_checkpoints must be >= 0, got {self.checkpoint_every} "
                              f"and {self.keep_checkpoints}")
@@ -716,6 +721,13 @@ class Trainer:
                    f"{100 * frac:.1f} % of the photos' object pixels are white"
                    + (": a white background would hide their alpha" if bg == "random" else ""))
             bg_note = f"background: {bg} (auto; {why})"
+        ds_note = None
+        if self.cfg.downscale == "auto":
+            self.cfg = replace(self.cfg, downscale=self.ds.downscale)
+            if self.ds.downscale > 1:
+                (w, h), f = self.ds.auto_downscale, self.ds.downscale
+                ds_note = (f"downscale: {f} (auto: the photos are {w}x{h}, trained at {w // f}x{h // f}: at most "
+                           f"{dataset_images.AUTO_MAX_SIDE} px on the longer side; --downscale N to choose)")
         if not self.ds.train:
             raise ValueError(f"dataset {data} has no training views")
         from .validate import check_image_sizes, check_training_views
@@ -748,9 +760,10 @@ class Trainer:
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = _file_logger(self.run_dir / "train.log")
-        self.background_note = bg_note
-        if bg_note:
-            self.log.info(bg_note)
+        self.background_note, self.downscale_note = bg_note, ds_note
+        for note in (bg_note, ds_note):
+            if note:
+                self.log.info(note)
         if resume:
             self.load_checkpoint(self.latest_checkpoint())
         else:

@@ -39,7 +39,6 @@ _INT_OPTIONS = {
     "--faces-per-pixel": ("faces_per_pixel", 1, K_LIMIT),
     "--init-points": ("init_points", 1, None),
     "--max-faces": ("max_faces", 100, None),  # DensityConfig.min_faces is 100
-    "--downscale": ("downscale", 1, 64),  # and the images must stay >= 4 px (Trainer checks the dataset)
     "--checkpoint-every": ("checkpoint_every", 0, None),
     "--keep-checkpoints": ("keep_checkpoints", 0, None),
     "--shadow-every": ("shadow_every", 1, None),
@@ -87,6 +86,19 @@ def check_int(option: str, value, low: int | None, high: int | None) -> None:
         raise UsageError(option, f"expected {rng}, found {value}")
 
 
+def parse_downscale(option: str, value) -> int | str:
+    """``--downscale``: ``"auto"`` or an integer factor in [1, 64] (a :class:`UsageError` naming ``option``)."""
+    t = str(value).strip().lower()
+    if t == "auto":
+        return "auto"
+    try:
+        n = int(t)
+    except ValueError:
+        raise UsageError(option, f"expected an integer in [1, 64] or auto, found {value!r}") from None
+    check_int(option, n, 1, 64)
+    return n
+
+
 def parse_formats(option: str, text: str | None) -> tuple | None:
     """``"glb,obj"`` → ``("glb", "obj")``; unknown or empty names refused naming ``option``."""
     if text is None:
@@ -101,6 +113,8 @@ def parse_formats(option: str, text: str | None) -> tuple | None:
 def _check_options(args) -> None:
     for option, (attr, low, high) in _INT_OPTIONS.items():
         check_int(option, getattr(args, attr, None), low, high)
+    if getattr(args, "downscale", None) is not None:  # an integer factor or auto; the images must stay >= 11 px too
+        args.downscale = parse_downscale("--downscale", args.downscale)  # (Trainer checks the dataset)
     dist = getattr(args, "light_distance", None)
     if dist is not None and not (math.isfinite(dist) and 0 < dist <= 1000):
         raise UsageError("--light-distance", f"expected a number of scene extents in (0, 1000], found {dist}")
@@ -705,6 +719,8 @@ def resume_config(args, saved_cfg, given_cfg):
             continue
         if option == "--background" and given_cfg.background == "auto":
             continue  # the run saved what "auto" resolved to when it started (white, or random with alpha)
+        if option == "--downscale" and given_cfg.downscale == "auto":
+            continue  # the run saved the factor "auto" chose when it started
         if getattr(given_cfg, field) != getattr(saved_cfg, field):
             raise UsageError(option, f"cannot change on --resume (the run has {getattr(saved_cfg, field)!r}, "
                                      f"given {getattr(given_cfg, field)!r}); start a new run (another --out, or "

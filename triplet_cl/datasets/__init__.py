@@ -23,7 +23,7 @@ from .base import (
     resolve_background,
 )
 from .colmap import find_model, load_colmap, read_model
-from .images import downscale_camera, downscale_image, read_image
+from .images import AUTO_MAX_SIDE, AutoDownscale, auto_factor, downscale_camera, downscale_image, read_image
 from .nerf import load_nerf
 from .ngp import load_ngp
 
@@ -31,13 +31,16 @@ FORMATS = ("nerf", "ngp", "colmap")
 NERF_SPLIT_FILES = ("transforms_train.json", "transforms_val.json", "transforms_test.json")
 
 __all__ = [
+    "AUTO_MAX_SIDE",
     "BACKGROUNDS",
     "FORMATS",
+    "AutoDownscale",
     "Dataset",
     "DatasetError",
     "DatasetWarning",
     "View",
     "composite_background",
+    "auto_factor",
     "detect_format",
     "downscale_camera",
     "downscale_image",
@@ -95,7 +98,7 @@ def _photo_folder(path: Path) -> Path | None:
     return None
 
 
-def load_dataset(path, format: str = "auto", downscale: int = 1, background="white",
+def load_dataset(path, format: str = "auto", downscale: int | str = 1, background="white",
                  split_holdout: int | None = 8) -> Dataset:
     """Load a dataset folder.
 
@@ -103,6 +106,9 @@ def load_dataset(path, format: str = "auto", downscale: int = 1, background="whi
         path: the dataset folder (or an instant-ngp ``transforms.json``).
         format: ``"auto"`` (:func:`detect_format`), ``"nerf"``, ``"ngp"`` or ``"colmap"``.
         downscale: integer factor; images are area-averaged (``N×N`` blocks) and intrinsics divided.
+            ``"auto"``: the smallest factor that brings the first training image's longer side to at most
+            :data:`~triplet_cl.datasets.images.AUTO_MAX_SIDE` (1600) pixels (1 for smaller photos); the factor chosen
+            is the dataset's ``downscale``, the size it was chosen from its ``auto_downscale``.
         background: ``"white"``, ``"black"``, ``"random"`` or an RGB colour — recorded on the
             dataset as the default for :meth:`Dataset.targets` and the training loop (images keep
             their alpha; nothing is composited at load time).
@@ -110,8 +116,11 @@ def load_dataset(path, format: str = "auto", downscale: int = 1, background="whi
             ``transforms_test.json``) every ``split_holdout``-th view by name (index % N == 0) is a
             test view; 0/None keeps all views for training.
     """
-    if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
-        raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
+    auto = None
+    if isinstance(downscale, str) and downscale == "auto":
+        auto = downscale = AutoDownscale()
+    elif isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
+        raise ValueError(f"downscale must be a positive integer or 'auto', got {downscale!r}")
     if split_holdout is not None and (isinstance(split_holdout, bool) or not isinstance(split_holdout, int)
                                       or split_holdout < 0 or split_holdout == 1):
         raise ValueError(f"split_holdout must be 0/None (no hold-out) or an integer >= 2, got {split_holdout!r}")
@@ -126,4 +135,7 @@ def load_dataset(path, format: str = "auto", downscale: int = 1, background="whi
     else:
         raise ValueError(f"format must be 'auto' or one of {FORMATS}, got {format!r}")
     ds.background = background
+    if auto is not None:  # the factor the first image chose (1 for a dataset without images)
+        ds.downscale = auto.factor or 1
+        ds.auto_downscale = auto.size
     return ds

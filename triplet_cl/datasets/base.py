@@ -98,6 +98,8 @@ class Dataset:
         background: the background asked for at load time (``"white"``, ``"black"``, ``"random"``
             or an RGB colour) — the default for :meth:`targets` and for the training loop.
         downscale: the integer factor the images and intrinsics were reduced by.
+        auto_downscale: with ``load_dataset(downscale="auto")``, the ``(width, height)`` of the image that chose
+            the factor (None otherwise).
     """
 
     root: Path
@@ -108,6 +110,7 @@ class Dataset:
     color_space: str = "srgb"
     background: object = "white"
     downscale: int = 1
+    auto_downscale: tuple[int, int] | None = None
 
     def __post_init__(self):
         for s in SPLITS:

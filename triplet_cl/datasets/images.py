@@ -38,6 +38,51 @@ class Image(NamedTuple):
     height: int
 
 
+# downscale "auto": the smallest integer factor that brings the training photos' longer side to at most this many
+# pixels (3D Gaussian Splatting's rule for large inputs: 1.6K). NeRF-synthetic's 800² and every dev scene load as they
+# are; a phone's 4000x3000 photos train at 800x600 instead of being refused by the device budget (or taking hours)
+AUTO_MAX_SIDE = 1600
+
+
+def auto_factor(width: int, height: int, max_side: int = AUTO_MAX_SIDE) -> int:
+    """The smallest integer ``f >= 1`` with ``max(width, height) / f <= max_side``."""
+    return max(1, -(-max(int(width), int(height)) // int(max_side)))
+
+
+def image_size(path) -> tuple[int, int]:
+    """``(width, height)`` of an image file from its header (no pixels read); :class:`DatasetError` naming the file
+    when it is missing or unreadable."""
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DatasetError(path, f"cannot read the image: {_one_line(oiio.geterror() or 'unknown format')}")
+    try:
+        spec = inp.spec()
+        return int(spec.width), int(spec.height)
+    finally:
+        inp.close()
+
+
+class AutoDownscale:
+    """``load_dataset(downscale="auto")``: the factor is :func:`auto_factor` of the first image :func:`load_views`
+    reads (the first split's; every image of a split has one size), then used for every split. ``factor`` and
+    ``size`` (that image's) stay None until then."""
+
+    def __init__(self, max_side: int | None = None):
+        self.max_side = int(AUTO_MAX_SIDE if max_side is None else max_side)
+        self.factor: int | None = None
+        self.size: tuple[int, int] | None = None
+
+    def resolve(self, path) -> int:
+        if self.factor is None:
+            self.size = image_size(path)
+            self.factor = auto_factor(*self.size, self.max_side)
+        return self.factor
+
+
 NEGATIVE_TOLERANCE = 0.01  # linear images: values below -1 % of the brightest are an error, the rest clipped
 
 
@@ -211,6 +256,8 @@ def load_views(records, downscale: int = 1, split: str = "train"):
     from .base import View
 
     records = list(records)
+    if isinstance(downscale, AutoDownscale):
+        downscale = downscale.resolve(records[0][1]) if records else (downscale.factor or 1)
     images = read_images([r[1] for r in records], downscale)
     views, spaces = [], set()
     first = None
