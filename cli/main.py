@@ -121,8 +121,9 @@ def _config_from_args(args: argparse.Namespace):
         cfg = cfg.with_iterations(args.iterations)
     if args.max_faces is not None:
         cfg.density = replace(cfg.density, max_faces=args.max_faces)
-    if getattr(args, "error_resplit_ratio", None) is not None:
-        cfg.density = replace(cfg.density, error_resplit_ratio=args.error_resplit_ratio)
+    ratio = getattr(args, "error_resplit_ratio", None)  # a number or "off" (validate_args parsed it)
+    if ratio is not None:
+        cfg.density = replace(cfg.density, error_resplit_ratio=None if ratio == "off" else ratio)
     if getattr(args, "white_light", None):
         cfg = replace(cfg, white_light=args.white_light)
     if getattr(args, "light_phase_lobes", None):
@@ -723,9 +724,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
     t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
-    t.add_argument("--error-resplit-ratio", type=float, metavar="R",
+    t.add_argument("--error-resplit-ratio", metavar="R|off",
                    help="split a face by the error criterion again only once its error is <= R x its error at its "
-                   "last error split (default off; README 'Density control')")
+                   "last error split (default 0.9; off: no such rule; README 'Density control')")
     t.add_argument("--background", choices=["auto", "white", "black", "random"],
                    help="background the photos' alpha is composited over in training: white, black, random (a new "
                         "colour every iteration) or auto (default: white, random when 5 %% or more of the photos' "

@@ -70,6 +70,7 @@ BAD_TRAIN = {
     "sigma -1": (["--sigma", "-1"], "--sigma"),
     "error resplit ratio 0": (["--error-resplit-ratio", "0"], "--error-resplit-ratio"),
     "error resplit ratio nan": (["--error-resplit-ratio", "nan"], "--error-resplit-ratio"),
+    "error resplit ratio word": (["--error-resplit-ratio", "often"], "--error-resplit-ratio"),
     "init 0": (["--init-points", "0"], "--init-points"),
     "init -5": (["--init-points", "-5"], "--init-points"),
     "init 5M": (["--init-points", "5000000"], "--init-points"),
@@ -1197,8 +1198,14 @@ def test_checkpoint_from_before_a_new_config_field_still_resumes(run, capsys):
     meta["config"]["a_field_since_removed"] = 1
     a["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(ck, **a)
+    cfg = json.loads((run / "config.json").read_text())  # a run from before it has no such field in config.json
+    del cfg["train"]["density"]["error_resplit_ratio"]  # either (today's runs: 0.9)
+    (run / "config.json").write_text(json.dumps(cfg))
     rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
     assert rc == 0, err
+    from triplet_cl.runs import config_from_saved, read_run_config
+
+    assert config_from_saved(run, read_run_config(run)).density.error_resplit_ratio is None  # it resumed as it was
 
 
 # ---- review of issue 17 / 23 surfaces: relight, eval --relight, colmap -----------------------------------

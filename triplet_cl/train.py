@@ -183,7 +183,13 @@ class TrainConfig:
     density: DensityConfig = field(default_factory=lambda: DensityConfig(
         interval=100, densify_from=300, densify_until=2500, grad_threshold=5e-3, alpha_reset_interval=3000,
         prune_screen_frac=0.01, max_faces=200_000, min_faces=100, error_threshold=0.1, error_min_pixels=16.0,
-        max_prune_fraction=0.5, inherit_moments=True))
+        max_prune_fraction=0.5, inherit_moments=True, error_resplit_ratio=0.9))
+    # error_resplit_ratio 0.9 (session 49; configs saved before keep theirs, None = off): a face split by the error
+    # criterion is split by it again only once its error dropped 10 % (density.py). Measured from scratch with
+    # --mesh-stage, the three dev scenes back to back (bench/results/resplit_pocl_2026-11-28.txt): soups of a fifth
+    # to a sixth of the triplets, whole runs 21-28 % faster (spot 275 -> 199 s, bob_env 325 -> 257 s, gadget 232 ->
+    # 179 s: issue 19's bob_env row was 1.18x its filing time), soup -0.4 to -0.8 dB, mesh -0.2 to +0.2 dB, surface
+    # Chamfer +5 %, relight -0.1 to -0.6 dB, albedo -0.3 to +0.3 dB
     alpha_reset_grace: int = 500  # no pruning for this many iterations after an alpha reset
     checkpoint_every: int = 1000  # also at the end and on Ctrl-C
     keep_checkpoints: int = 3  # keep the newest N checkpoints (0: keep all)

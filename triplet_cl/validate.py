@@ -123,8 +123,16 @@ def _check_options(args) -> None:
         # (a battery's 1e-30 left the soup invisible to its gradients: nothing learned, exit 0)
         raise UsageError("--sigma", f"expected 0 (hard edges) or a sharpness in [0.01, 1000] (1/px), found {sigma}")
     ratio = getattr(args, "error_resplit_ratio", None)
-    if ratio is not None and not (math.isfinite(ratio) and 0 < ratio <= 10):
-        raise UsageError("--error-resplit-ratio", f"expected a number in (0, 10] (e.g. 0.9), found {ratio}")
+    if ratio is not None and not (isinstance(ratio, str) and ratio.strip().lower() == "off"):
+        try:
+            value = float(ratio)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not (math.isfinite(value) and 0 < value <= 10):
+            raise UsageError("--error-resplit-ratio", f"expected a number in (0, 10] (e.g. 0.9) or off, found {ratio}")
+        args.error_resplit_ratio = value
+    elif ratio is not None:
+        args.error_resplit_ratio = "off"
     lights = getattr(args, "lights", None)
     if lights is not None:
         from .train import LIGHT_KINDS
