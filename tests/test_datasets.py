@@ -305,6 +305,29 @@ def test_downscale_auto_keeps_the_longer_side_within_1600_px(tmp_path):
             load_dataset(small, downscale=bad)
 
 
+
+def test_downscale_auto_warns_of_a_larger_later_split_and_names_itself_when_too_small(tmp_path, monkeypatch):
+    """The factor "auto" picks comes from the first split's first image; a later split whose images would have
+    chosen a larger one loads at that factor with a warning naming both sizes. An auto factor that leaves images
+    below the SSIM window is refused saying auto chose it (not "lower --downscale", an option never given)."""
+    from triplet_cl.datasets import images
+    from triplet_cl.errors import UsageError
+    from triplet_cl.validate import check_image_sizes
+
+    monkeypatch.setattr(images, "AUTO_MAX_SIDE", max(fac.W, fac.H))
+    fac.make_nerf(tmp_path / "a", {"train": 2, "test": 1})
+    big = fac.write_image(next((tmp_path / "a" / "test").iterdir()), fac.image_pixels(0, w=3 * fac.W, h=3 * fac.H))
+    with pytest.warns(DatasetWarning, match=f"test images are {3 * fac.W}x{3 * fac.H}.*downscale 1 \\(auto\\)"):
+        ds = load_dataset(tmp_path / "a", downscale="auto")
+    assert ds.downscale == 1 and (ds.test[0].width, ds.test[0].height) == (3 * fac.W, 3 * fac.H) and big.is_file()
+    monkeypatch.setattr(images, "AUTO_MAX_SIDE", 1600)
+    fac.make_nerf(tmp_path / "wide", {"train": 2, "test": 1}, w=3300, h=24)
+    ds = load_dataset(tmp_path / "wide", downscale="auto")
+    assert ds.downscale == 3
+    with pytest.raises(UsageError, match="auto chose 3 for 3300x24-pixel photos.*give --downscale 1"):
+        check_image_sizes(ds, ds.downscale, auto=True)
+
+
 def test_downscale_crops_the_remainder():
     rgb = np.arange(7 * 5 * 3, dtype=np.float32).reshape(7, 5, 3)
     out, alpha = downscale_image(rgb, None, 2)

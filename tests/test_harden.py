@@ -244,7 +244,9 @@ def test_resume_refuses_fixed_options_and_applies_the_others(run, capsys):
     before = _tree(run)
     for extra, named in ((["--seed", "5"], "--seed"), (["--lights", "point,directional"], "--lights"),
                          (["--sigma", "0"], "--sigma"), (["--faces-per-pixel", "9"], "--faces-per-pixel"),
-                         (["--iterations", "2"], "--iterations"), (["--data-format", "colmap"], "--data-format")):
+                         (["--iterations", "2"], "--iterations"), (["--data-format", "colmap"], "--data-format"),
+                         (["--error-resplit-ratio", "off"], "--error-resplit-ratio"),
+                         (["--error-resplit-ratio", "0.5"], "--error-resplit-ratio")):
         rc, err, _ = _run_cli(["train", "--resume", "--out", run, *extra], capsys)
         assert rc == 2 and named in err, (extra, err)
     assert _tree(run) == before

@@ -742,6 +742,9 @@ def test_downscale_auto_trains_large_photos_smaller(tmp_path, monkeypatch, capsy
         assert rc == 2 and "--downscale" in err and why in err and not (tmp_path / "c").exists(), err
     with pytest.raises(ValueError, match="downscale must be an integer in \\[1, 64\\] or 'auto'"):
         replace(cfg, downscale="half").validate()
+    old = TrainConfig(downscale=1).to_dict()
+    del old["downscale"]  # a config without the field (none saved since 2026-11-22 lacks it): the factor 1 of then
+    assert TrainConfig.from_dict(old).downscale == 1
 
 
 def _scaled_copy(src: Path, dst: Path, s: float) -> Path:

@@ -326,6 +326,7 @@ class TrainConfig:
         d.setdefault("lr_lobe_scale", 1.0)  # saved before the roughness / metallic learning-rate scale
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("metallic_probe_at", 0)  # saved before the soup's metallic probe: none
+        d.setdefault("downscale", 1)  # (every config saved since 2026-11-22 has it: an int, what "auto" chose)
         d.setdefault("metal_probe_max_roughness", 0.8)  # saved before the probe's own roughness rule: the mesh stage's
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
@@ -738,7 +739,7 @@ class Trainer:
             raise ValueError(f"dataset {data} has no training views")
         from .validate import check_image_sizes, check_training_views
 
-        check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
+        check_image_sizes(self.ds, self.cfg.downscale, auto=self.ds.auto_downscale is not None)  # before any writing
         check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading
         self.check_device_budget()
         self.extent = scene_extent(self.ds, self.cfg.extent_frame)

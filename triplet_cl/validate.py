@@ -236,7 +236,7 @@ def check_device_budget(info, renders, max_faces: int | None) -> None:
                              f"{info.global_mem_bytes / 2**30:.2f} GiB: {fix}")
 
 
-def check_image_sizes(ds, downscale: int = 1) -> None:
+def check_image_sizes(ds, downscale: int = 1, auto: bool = False) -> None:
     """Every image of the dataset ``ds`` (after ``downscale``) is at least :data:`MIN_IMAGE_SIDE` pixels on each
     side: smaller ones used to train to the end and then fail in the evaluation's SSIM, after the run was written.
     A :class:`~triplet_cl.errors.UsageError` naming ``--downscale`` when it made them so small, else a
@@ -252,6 +252,11 @@ def check_image_sizes(ds, downscale: int = 1) -> None:
         return
     need = (f"images must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (the {MIN_IMAGE_SIDE}x"
             f"{MIN_IMAGE_SIDE} window of the SSIM that evaluates the test views)")
+    if downscale > 1 and auto:  # the factor the photos' size chose ("auto"), not one the user gave
+        big = ds.auto_downscale
+        raise UsageError("--downscale", f"auto chose {downscale} for {big[0]}x{big[1]}-pixel photos, which leaves "
+                                        f"{w}x{h}-pixel {split} images ({small.name}); {need}: give --downscale 1 "
+                                        "(or a smaller factor)")
     if downscale > 1:
         raise UsageError("--downscale", f"{downscale} leaves {w}x{h}-pixel {split} images ({small.name}); {need}: "
                                         "lower --downscale")
@@ -740,6 +745,13 @@ def resume_config(args, saved_cfg, given_cfg):
             had = {k: getattr(saved_cfg, k) for k in WEIGHT_FIELDS}
             raise UsageError("--priors", f"cannot change on --resume (the run has {had}, given --priors "
                                          f"{args.priors}); start a new run (another --out, or --overwrite)")
+    if getattr(args, "error_resplit_ratio", None) is not None \
+            and given_cfg.density.error_resplit_ratio != saved_cfg.density.error_resplit_ratio:
+        had = saved_cfg.density.error_resplit_ratio
+        had = "off" if had is None else had
+        raise UsageError("--error-resplit-ratio", f"cannot change on --resume (the run has {had}, given "
+                                                  f"{args.error_resplit_ratio}); start a new run (another --out, or "
+                                                  "--overwrite) to change it")
     if getattr(args, "max_faces", None) is not None and given_cfg.density.max_faces != saved_cfg.density.max_faces:
         raise UsageError("--max-faces", f"cannot change on --resume (the run has {saved_cfg.density.max_faces}, "
                                         f"given {given_cfg.density.max_faces})")

@@ -257,7 +257,20 @@ def load_views(records, downscale: int = 1, split: str = "train"):
 
     records = list(records)
     if isinstance(downscale, AutoDownscale):
-        downscale = downscale.resolve(records[0][1]) if records else (downscale.factor or 1)
+        auto = downscale
+        chosen = auto.factor
+        downscale = auto.resolve(records[0][1]) if records else (auto.factor or 1)
+        if chosen is not None and records:  # a later split: the factor its first image would have chosen
+            size = image_size(records[0][1])
+            if auto_factor(*size, auto.max_side) > downscale:
+                import warnings
+
+                from .base import DatasetWarning
+
+                warnings.warn(f"{Path(records[0][1]).parent}: the {split} images are {size[0]}x{size[1]}, larger "
+                              f"than the {auto.size[0]}x{auto.size[1]} images that chose downscale {downscale} "
+                              f"(auto): they load at {size[0] // downscale}x{size[1] // downscale}; give --downscale "
+                              "to choose the factor", DatasetWarning, stacklevel=2)
     images = read_images([r[1] for r in records], downscale)
     views, spaces = [], set()
     first = None
