@@ -325,7 +325,7 @@ def test_downscale_auto_warns_of_a_larger_later_split_and_names_itself_when_too_
     ds = load_dataset(tmp_path / "wide", downscale="auto")
     assert ds.downscale == 3
     with pytest.raises(UsageError, match="auto chose 3 for 3300x24-pixel photos.*give --downscale 1"):
-        check_image_sizes(ds, ds.downscale, auto=True)
+        check_image_sizes(ds, ds.downscale)
 
 
 def test_downscale_crops_the_remainder():

@@ -739,7 +739,7 @@ class Trainer:
             raise ValueError(f"dataset {data} has no training views")
         from .validate import check_image_sizes, check_training_views
 
-        check_image_sizes(self.ds, self.cfg.downscale, auto=self.ds.auto_downscale is not None)  # before any writing
+        check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading
         self.check_device_budget()
         self.extent = scene_extent(self.ds, self.cfg.extent_frame)

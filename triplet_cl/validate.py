@@ -236,7 +236,7 @@ def check_device_budget(info, renders, max_faces: int | None) -> None:
                              f"{info.global_mem_bytes / 2**30:.2f} GiB: {fix}")
 
 
-def check_image_sizes(ds, downscale: int = 1, auto: bool = False) -> None:
+def check_image_sizes(ds, downscale: int = 1) -> None:
     """Every image of the dataset ``ds`` (after ``downscale``) is at least :data:`MIN_IMAGE_SIDE` pixels on each
     side: smaller ones used to train to the end and then fail in the evaluation's SSIM, after the run was written.
     A :class:`~triplet_cl.errors.UsageError` naming ``--downscale`` when it made them so small, else a
@@ -252,7 +252,7 @@ def check_image_sizes(ds, downscale: int = 1, auto: bool = False) -> None:
         return
     need = (f"images must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (the {MIN_IMAGE_SIDE}x"
             f"{MIN_IMAGE_SIDE} window of the SSIM that evaluates the test views)")
-    if downscale > 1 and auto:  # the factor the photos' size chose ("auto"), not one the user gave
+    if downscale > 1 and ds.auto_downscale is not None:  # the factor "auto" chose, not one the user gave
         big = ds.auto_downscale
         raise UsageError("--downscale", f"auto chose {downscale} for {big[0]}x{big[1]}-pixel photos, which leaves "
                                         f"{w}x{h}-pixel {split} images ({small.name}); {need}: give --downscale 1 "

@@ -40,7 +40,7 @@ class Image(NamedTuple):
 
 # downscale "auto": the smallest integer factor that brings the training photos' longer side to at most this many
 # pixels (3D Gaussian Splatting's rule for large inputs: 1.6K). NeRF-synthetic's 800² and every dev scene load as they
-# are; a phone's 4000x3000 photos train at 800x600 instead of being refused by the device budget (or taking hours)
+# are; a phone's 4000x3000 photos train at 1333x1000 instead of being refused by the device budget (or taking hours)
 AUTO_MAX_SIDE = 1600
 
 
@@ -76,10 +76,23 @@ class AutoDownscale:
         self.factor: int | None = None
         self.size: tuple[int, int] | None = None
 
-    def resolve(self, path) -> int:
+    def resolve(self, path, split: str = "train") -> int:
+        """The factor, chosen from ``path`` (a split's first image) on the first call; a later split whose first
+        image would have chosen a larger one loads at this factor with a :class:`DatasetWarning`."""
         if self.factor is None:
             self.size = image_size(path)
             self.factor = auto_factor(*self.size, self.max_side)
+            return self.factor
+        w, h = image_size(path)
+        if auto_factor(w, h, self.max_side) > self.factor:
+            import warnings
+
+            from .base import DatasetWarning
+
+            warnings.warn(f"{Path(path).parent}: the {split} images are {w}x{h}, larger than the {self.size[0]}x"
+                          f"{self.size[1]} images that chose downscale {self.factor} (auto): they load at "
+                          f"{w // self.factor}x{h // self.factor}; give --downscale to choose the factor",
+                          DatasetWarning, stacklevel=3)
         return self.factor
 
 
@@ -257,20 +270,7 @@ def load_views(records, downscale: int = 1, split: str = "train"):
 
     records = list(records)
     if isinstance(downscale, AutoDownscale):
-        auto = downscale
-        chosen = auto.factor
-        downscale = auto.resolve(records[0][1]) if records else (auto.factor or 1)
-        if chosen is not None and records:  # a later split: the factor its first image would have chosen
-            size = image_size(records[0][1])
-            if auto_factor(*size, auto.max_side) > downscale:
-                import warnings
-
-                from .base import DatasetWarning
-
-                warnings.warn(f"{Path(records[0][1]).parent}: the {split} images are {size[0]}x{size[1]}, larger "
-                              f"than the {auto.size[0]}x{auto.size[1]} images that chose downscale {downscale} "
-                              f"(auto): they load at {size[0] // downscale}x{size[1] // downscale}; give --downscale "
-                              "to choose the factor", DatasetWarning, stacklevel=2)
+        downscale = downscale.resolve(records[0][1], split) if records else (downscale.factor or 1)
     images = read_images([r[1] for r in records], downscale)
     views, spaces = [], set()
     first = None

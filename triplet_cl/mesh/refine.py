@@ -56,6 +56,10 @@ def supersample_for(width: int, height: int, factor: int, max_pixels: int) -> in
 
 # the metal gauge's factor stays within this range (MeshStage.metal_gauge)
 METAL_GAUGE_RANGE = (0.25, 4.0)
+# the two hypotheses of MeshConfig.metallic_trial (a sigmoid's value: 0 and 1 are out of reach)
+METALLIC_TRIAL_VALUES = (0.01, 0.99)
+# a metal hypothesis fitted rougher than this is refused (metallic_trial)
+MAX_METAL_ROUGHNESS = 0.8
 NORMAL_KAPPA_START = 10.0  # the robust normal term's κ at a round's first step: ρ'(x) within 0.9–1.1 of the plain
 # term's slope up to 60°, 1.9 at 90° (every bend of the extracted surface smoothed, folds resisted)
 
@@ -666,13 +670,12 @@ class MeshStage:
         return tied
 
     def choose_metallic(self, scene: Scene, tied: list[int], col: int, downscale: int = 1,
-                        max_metal_roughness: float | None = None) -> dict:
+                        max_metal_roughness: float = MAX_METAL_ROUGHNESS) -> dict:
         """Metal or dielectric for the whole mesh (:func:`metallic_trial`, ``MeshConfig.metallic_trial`` steps per
         hypothesis at one sample per pixel, the same views and backgrounds for each, the photos ``downscale`` times
-        smaller: the soup's probe at large photos; a metal fitted rougher than ``max_metal_roughness`` refused, None:
-        :data:`MAX_METAL_ROUGHNESS`; the soup's probe passes ``TrainConfig.metal_probe_max_roughness``); the winner is
-        kept in the column ``col`` of ``scene.material`` and the trial in ``self.metallic_choice`` (metrics.json's
-        ``mesh.metallic_trial``)."""
+        smaller: the soup's probe at large photos; a metal fitted rougher than ``max_metal_roughness`` refused: the
+        soup's probe passes ``TrainConfig.metal_probe_max_roughness``); the winner is kept in the column ``col`` of
+        ``scene.material`` and the trial in ``self.metallic_choice`` (metrics.json's ``mesh.metallic_trial``)."""
         from ..lights import balanced_lights, relative_lr_scales
 
         c, tc = self.cfg, self.trainer.cfg
@@ -704,8 +707,7 @@ class MeshStage:
         t = time.perf_counter()
         out = metallic_trial(scene, tied, col, loss_and_backward, n, lr_material=c.lr_material,
                              rough_col=get_brdf(scene.brdf).column("roughness"),
-                             max_metal_roughness=MAX_METAL_ROUGHNESS if max_metal_roughness is None
-                             else max_metal_roughness,
+                             max_metal_roughness=max_metal_roughness,
                              betas=tuple(tc.betas), lr_lights=c.lr_lights, light_scale=light_scale,
                              after_step=after_step if scene.light_params is not None else None)
         out["seconds"] = time.perf_counter() - t
@@ -1315,10 +1317,6 @@ class MeshStage:
         self.trainer.log.info("mesh metrics: " + json.dumps({k: v for k, v in mesh_metrics.items() if k != "views"}))
 
 
-# the two hypotheses of MeshConfig.metallic_trial (a sigmoid's value: 0 and 1 are out of reach)
-METALLIC_TRIAL_VALUES = (0.01, 0.99)
-# a metal hypothesis fitted rougher than this is refused (metallic_trial)
-MAX_METAL_ROUGHNESS = 0.8
 
 
 def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, steps: int, *, lr_material: float,
