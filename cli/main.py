@@ -231,7 +231,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                 os.chdir(out / cwd_inside)  # the old folder is about to go: the process stays in the new run
     print(f"triplet train: {tr.ds.summary()}\n  device: {dev.name}\n  run: {out}  "
           f"({len(tr.scene.F)} initial triplets, {tr.cfg.iterations} iterations)")
-    for note in (tr.background_note, tr.downscale_note):
+    for note in (tr.background_note, tr.shell_note, tr.downscale_note):
         if note:
             print(f"  {note}")
     try:
@@ -526,7 +526,11 @@ def _run_mesh_stage(tr, cfg) -> int:
     if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees
         chamfer += (f" (its outer surface {m['chamfer_surface_to_gt']:.4f}; {100 * m['gt_buried_fraction']:.0f} % of "
                     "gt_mesh's area lies inside its other parts)")
-    print(f"mesh: {m['faces']} faces, test PSNR {m['psnr']:.2f} dB (soup {m['soup_psnr']:.2f} dB){chamfer}")
+    if m.get("cropped_to_object"):
+        print(f"mesh: {m['faces']} faces, cropped to the object (its test PSNR {m['psnr']:.2f} dB is against photos "
+              f"that also show the background it no longer has; soup {m['soup_psnr']:.2f} dB){chamfer}")
+    else:
+        print(f"mesh: {m['faces']} faces, test PSNR {m['psnr']:.2f} dB (soup {m['soup_psnr']:.2f} dB){chamfer}")
     print(f"wrote {', '.join(m['files'])} in {tr.run_dir}/")
     return 0
 
@@ -729,10 +733,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "last error split (default 0.9; off: no such rule; README 'Density control')")
     t.add_argument("--background", choices=["auto", "white", "black", "random"],
                    help="background the photos' alpha is composited over in training: white, black, random (a new "
-                        "colour every iteration) or auto (default: white, random when 5 %% or more of the photos' "
-                        "object pixels are white themselves)")
-    t.add_argument("--background-shell", type=int, help="photos with a background: add this many triangles on a "
-                   "far sphere for the sky / walls (default 0; see README 'Your own photos')")
+                        "colour every iteration) or auto (default: random for photos without alpha; with alpha "
+                        "white, random when 5 %% or more of the photos' object pixels are white themselves)")
+    t.add_argument("--background-shell", metavar="N|auto", help="photos with a background: add this many triangles "
+                   "on a far sphere for the sky / walls; auto (default): 4000 for photos without alpha, 0 with "
+                   "alpha (README 'Your own photos')")
     t.add_argument("--downscale", help="reduce the dataset's images by this integer factor, or "
                    "auto (default): the smallest factor that brings the photos' longer side to at most 1600 px (1 for "
                    "smaller photos)")

@@ -826,3 +826,31 @@ def test_the_laplacian_is_weighted_in_the_scene_s_units(laplacian):
     np.testing.assert_allclose(out[1][1] * 8.0, out[0][1], rtol=1e-9, atol=1e-12 * np.abs(out[0][1]).max())
     with pytest.raises(ValueError, match="length_scale"):
         Regularizers(scene, cfg, length_scale=0.0)
+
+
+def test_a_mesh_cropped_from_photos_with_a_background_is_not_scored_against_them(trained_run, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """Photos without alpha and a mesh cropped to the object: ``metrics.json`` marks the mesh ``cropped_to_object``
+    and the command prints its test PSNR as what it is (against photos that also show the background), not as the
+    mesh's quality beside the soup's."""
+    import shutil
+
+    from triplet_cl.cli import main as cli_mod
+
+    shutil.copytree(trained_run, tmp_path / "run")
+    tr = Trainer(None, tmp_path / "run", resume=True, quiet=True)
+    stage = MeshStage(tr, tiny_mesh_cfg(resolution=32, iterations=0), quiet=True)
+    stage.scene = stage.extract(tr.scene)
+    assert "cropped_to_object" not in stage.evaluate()  # photos with alpha: the mesh is scored as usual
+    monkeypatch.setattr(type(tr.ds), "has_alpha", property(lambda self: False))
+    monkeypatch.setattr(MeshStage, "roi", lambda self: object())  # a region of interest was found
+    assert stage.evaluate()["cropped_to_object"] is True
+
+    def fake_run(self):
+        return {"faces": 1234, "psnr": 10.68, "soup_psnr": 27.34, "cropped_to_object": True, "files": ["mesh.glb"]}
+
+    monkeypatch.setattr(MeshStage, "run", fake_run)
+    assert cli_mod._run_mesh_stage(tr, MeshConfig()) == 0
+    out = capsys.readouterr().out
+    assert "1234 faces, cropped to the object" in out and "10.68 dB is against photos that also show the background" \
+        in out and "soup 27.34 dB" in out, out

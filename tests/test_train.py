@@ -462,8 +462,76 @@ def test_auto_background_follows_the_white_object_pixels():
     for x in v:
         x.rgb[x.rgb == 1.0] = 0.98
     assert auto_background(Dataset(Path("."), "nerf", {"train": v}))[0] == "white"
-    # photos without alpha: the background is in the picture, white stays
-    assert auto_background(Dataset(Path("."), "nerf", {"train": _views(0.5, alpha=False)})) == ("white", 0.0)
+    # photos without alpha (a real capture, the background in the picture): random, so that the soup stays opaque
+    # over the whole frame (bench/results/photos_defaults_pocl_2026-11-28.txt); the share is then the border's flat
+    # colour (here 3/4 of the border white: not a backdrop)
+    assert auto_background(Dataset(Path("."), "nerf", {"train": _views(0.5, alpha=False)})) == ("random", 0.75)
+    v = _views(0.0, alpha=False)
+    for x in v:
+        x.rgb[:] = 0.5
+    assert auto_background(Dataset(Path("."), "nerf", {"train": v})) == ("random", 0.0)
+    for x in v:  # a flat white backdrop (a render saved without alpha) keeps white
+        x.rgb[:] = 1.0
+        x.rgb[3:7, 3:7] = 0.2
+    assert auto_background(Dataset(Path("."), "nerf", {"train": v})) == ("white", 1.0)
+
+
+def _demo_without_alpha(dst, grey: float = 0.4):
+    """The demo's data as photos without alpha, each composited over ``grey`` (0.4: not a flat white or black
+    backdrop, so read as a real capture's background; 1 / 0: a synthetic render saved without alpha)."""
+    import shutil
+
+    from tests.data_factory import write_image
+    from triplet_cl.datasets.images import read_image
+
+    shutil.copytree(DEMO, dst)
+    for p in sorted(dst.rglob("*.png")):
+        img = read_image(p)
+        write_image(p, img.rgb * img.alpha[..., None] + grey * (1 - img.alpha[..., None]))
+    return dst
+
+
+def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
+    """``--background auto`` and ``--background-shell auto`` (the defaults) for photos without alpha: a random
+    background and AUTO_BACKGROUND_SHELL triangles on the far sphere, resolved and saved as what they chose; photos
+    with alpha keep white and no shell; an explicit choice is kept; the shell is capped by the face budget."""
+    import warnings
+
+    from triplet_cl.train import AUTO_BACKGROUND_SHELL
+
+    assert TrainConfig().background_shell == "auto" and AUTO_BACKGROUND_SHELL == 4000
+    data = _demo_without_alpha(tmp_path / "rgb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cfg = small_cfg(iterations=2, init_points=300, density=replace(small_cfg().density, max_faces=None))
+        tr = Trainer(str(data), tmp_path / "run", cfg, quiet=True)
+        assert not tr.ds.has_alpha
+        assert tr.cfg.background == "random" and tr.cfg.background_shell == AUTO_BACKGROUND_SHELL
+        assert len(tr.scene.F) == 300 + AUTO_BACKGROUND_SHELL
+        assert "background shell: 4000" in tr.shell_note and "random" in tr.background_note
+        saved = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
+        assert saved["background"] == "random" and saved["background_shell"] == AUTO_BACKGROUND_SHELL
+        tr.train()  # (two steps: a checkpoint to resume)
+        again = Trainer(None, tmp_path / "run", resume=True, quiet=True)  # the saved number, not "auto" again
+        assert again.cfg.background_shell == AUTO_BACKGROUND_SHELL
+        # the face budget leaves room for fewer: the shell takes what is left beside the initial triangles
+        tight = Trainer(str(data), tmp_path / "tight", replace(cfg, density=replace(cfg.density, max_faces=1300)),
+                        quiet=True)
+        assert tight.cfg.background_shell == 1000
+        mine = Trainer(str(data), tmp_path / "mine", replace(cfg, background_shell=7, background="white"), quiet=True)
+        assert mine.cfg.background_shell == 7 and mine.cfg.background == "white" and mine.shell_note is None
+        # a render saved without alpha on a flat white (black) backdrop: that colour is its background, no shell
+        for grey, colour in ((1.0, "white"), (0.0, "black")):
+            flat = _demo_without_alpha(tmp_path / f"flat{grey}", grey)
+            t = Trainer(str(flat), tmp_path / f"run{grey}", cfg, quiet=True)
+            assert t.cfg.background == colour and t.cfg.background_shell == 0 and t.shell_note is None
+            assert "a backdrop" in t.background_note and "100 % of their borders" in t.background_note
+    with_alpha = Trainer(DEMO, tmp_path / "alpha", cfg, quiet=True)
+    assert with_alpha.cfg.background_shell == 0 and with_alpha.cfg.background == "white"
+    assert with_alpha.shell_note is None and len(with_alpha.scene.F) == 300
+    for bad in (-1, 1.5, True, "many"):
+        with pytest.raises(ValueError, match="background_shell"):
+            replace(cfg, background_shell=bad).validate()
 
 
 def test_auto_background_is_resolved_and_saved(tmp_path):
@@ -745,6 +813,31 @@ def test_downscale_auto_trains_large_photos_smaller(tmp_path, monkeypatch, capsy
     old = TrainConfig(downscale=1).to_dict()
     del old["downscale"]  # a config without the field (none saved since 2026-11-22 lacks it): the factor 1 of then
     assert TrainConfig.from_dict(old).downscale == 1
+
+
+def test_background_shell_option_takes_a_number_or_auto(tmp_path, capsys):
+    """``--background-shell N|auto`` through the command line into config.json; the command prints the automatic
+    choice for photos without alpha; a word or a negative number exits 2 naming the option, nothing written."""
+    import warnings
+
+    data = _demo_without_alpha(tmp_path / "rgb")
+    tiny = ["--iterations", "2", "--init-points", "200", "--checkpoint-every", "0"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert cli_main(["train", str(data), "--out", str(tmp_path / "a"), *tiny]) == 0
+        out = capsys.readouterr().out
+        assert "background shell: 4000 triangles" in out and "background: random (auto; photos without alpha)" in out
+        assert cli_main(["train", str(data), "--out", str(tmp_path / "b"), *tiny, "--background-shell", "0"]) == 0
+        assert "background shell" not in capsys.readouterr().out
+    for run, n in (("a", 4000), ("b", 0)):
+        assert json.loads((tmp_path / run / "config.json").read_text())["train"]["background_shell"] == n
+    assert cli_main(["train", str(DEMO), "--out", str(tmp_path / "c"), *tiny, "--background-shell", "AUTO"]) == 0
+    assert json.loads((tmp_path / "c" / "config.json").read_text())["train"]["background_shell"] == 0  # alpha
+    capsys.readouterr()
+    for bad, why in (("many", "a number of triangles in [0, 10000000] or auto"), ("-3", "[0, 10000000]")):
+        rc = cli_main(["train", str(DEMO), "--out", str(tmp_path / "d"), *tiny, "--background-shell", bad])
+        err = capsys.readouterr().err
+        assert rc == 2 and "--background-shell" in err and why in err and not (tmp_path / "d").exists(), err
 
 
 def _scaled_copy(src: Path, dst: Path, s: float) -> Path:

@@ -102,7 +102,7 @@ def config_from_saved(run_dir, saved: dict):
             v = d[name]
             if v is None:
                 ok = "None" in str(f.type)
-            elif cls is TrainConfig and name == "downscale":  # the factor "auto" chose (or a hand-written "auto")
+            elif cls is TrainConfig and name in ("downscale", "background_shell"):  # what "auto" chose (or "auto")
                 ok, default = (isinstance(v, int) and not isinstance(v, bool)) or v == "auto", 1
             elif default is None:
                 ok = isinstance(v, (int, float)) and not isinstance(v, bool)

@@ -108,8 +108,12 @@ class TrainConfig:
     extent_frame: bool = True
     init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
     # photos with a background (no alpha): this many extra triangles on a sphere of radius background_radius × the
-    # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none)
-    background_shell: int = 0
+    # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none).
+    # "auto": AUTO_BACKGROUND_SHELL for photos without alpha, 0 for photos with it (resolved by the Trainer and saved
+    # in config.json as the number). Measured on shared/data/photos/spot_ground (320x240, 3000 it.; together with
+    # the random background that "auto" also chooses there, bench/results/photos_defaults_pocl_2026-11-28.txt):
+    # test PSNR 27.34 -> 28.72 dB, the cropped mesh's Chamfer 0.0414 -> 0.0265 of the cow's radius
+    background_shell: int | str = "auto"
     background_radius: float = 3.0
     faces_per_pixel: int = 30  # K after the warm-up
     warmup_faces_per_pixel: int = 150  # K during the warm-up
@@ -131,7 +135,9 @@ class TrainConfig:
     # spot_small demo soup against the ground-truth mesh's visibility (facing points): 0.003 / 0.01 / 0.03 →
     # 41 / 21 / 15 % shadowed against the truth's 14 % (agreement 73 / 93 / 98 %)
     shadow_eps: float = 0.03
-    # "white", "black", "random" (a new colour per iteration) or "auto": white, unless the photos have alpha and at
+    # "white", "black", "random" (a new colour per iteration) or "auto": random for photos without alpha (a real
+    # capture: the background is in the picture, and a soup that turned transparent anywhere would show the random
+    # colour, so it stays opaque over the ground and the sky); for photos with alpha white, unless at
     # least AUTO_BACKGROUND_FRACTION of their object pixels are white themselves (auto_background): a pixel the colour
     # of the background gives its alpha no gradient, and a soup there turns transparent (spot re-rendered under a
     # bright environment, bench/make_scene.py --lights env: 19 % of its object pixels white, the soup lost them and
@@ -372,7 +378,10 @@ class TrainConfig:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
-        if self.background_shell < 0 or not self.background_radius > 0:
+        shell = self.background_shell
+        if not (shell == "auto" or (isinstance(shell, (int, np.integer)) and not isinstance(shell, bool))):
+            raise ValueError(f"background_shell must be a number of triangles (>= 0) or 'auto', got {shell!r}")
+        if (shell != "auto" and shell < 0) or not self.background_radius > 0:
             raise ValueError(f"background_shell must be >= 0 and background_radius > 0, got {self.background_shell}, "
                              f"{self.background_radius}")
         if self.lr_lights_mode not in LR_LIGHTS_MODES:
@@ -408,7 +417,7 @@ class TrainConfig:
             raise ValueError(f"extent_frame and hold_irradiance must be booleans, got {self.extent_frame!r} and "
                              f"{self.hold_irradiance!r}")
         mf = self.density.max_faces
-        if mf is not None and self.init_points + self.background_shell > mf:
+        if mf is not None and self.init_points + (0 if shell == "auto" else shell) > mf:
             raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
                              f"the face budget max_faces ({mf}): density control would prune them at once; give at "
                              "most the budget, or raise max_faces")
@@ -436,6 +445,9 @@ def look_at_center(ds: Dataset) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
+# TrainConfig.background_shell "auto": the far shell's triangles for photos without alpha (the README's photo command
+# gave 4000 by hand before it was the default; 2 % of the default face budget)
+AUTO_BACKGROUND_SHELL = 4000
 AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels up
 WHITE_LEVEL = 1.0 - 2.0 / 255.0  # a photo pixel this close to white in every channel is the white background's colour
 
@@ -444,7 +456,14 @@ def auto_background(ds: Dataset) -> tuple[str, float]:
     """``TrainConfig.background = "auto"`` resolved for ``ds``: ``("random", f)`` when the training photos have
     alpha and a share ``f`` >= :data:`AUTO_BACKGROUND_FRACTION` of their object pixels (alpha > 0.5) is white in
     every channel (>= :data:`WHITE_LEVEL`: what a white background looks like, so nothing there tells the soup to
-    stay opaque), else ``("white", f)``. Photos without alpha (the background is in the picture) keep white."""
+    stay opaque), else ``("white", f)``. Photos without alpha (a real capture: the ground and the sky are in the
+    picture) get ``("random", 0.0)``: wherever the soup turned transparent the render would show a new colour
+    each step, so it stays opaque over the whole frame (README "Your own photos") — unless their borders are a
+    backdrop (:func:`photo_backdrop`: a synthetic render saved without alpha), which stays their background; ``f`` is
+    then the share of border pixels of the backdrop's colour."""
+    if ds.train and not ds.has_alpha:
+        colour, share = photo_backdrop(ds)
+        return (colour or "random"), share
     n = white = 0
     for v in ds.train:
         if v.alpha is None:
@@ -454,6 +473,45 @@ def auto_background(ds: Dataset) -> tuple[str, float]:
         white += int((np.asarray(v.rgb)[m].min(axis=-1) >= WHITE_LEVEL).sum())
     frac = white / n if n else 0.0
     return ("random" if n and frac >= AUTO_BACKGROUND_FRACTION else "white"), frac
+
+
+BACKDROP_FRACTION = 0.95  # photo_backdrop: this share of the border pixels one flat colour
+
+
+def photo_backdrop(ds: Dataset) -> tuple[str | None, float]:
+    """The flat backdrop of photos without alpha: ``("white", f)`` / ``("black", f)`` when a share ``f`` >=
+    :data:`BACKDROP_FRACTION` of the training photos' border pixels (a frame of 2 pixels) is white (>=
+    :data:`WHITE_LEVEL` in every channel) / black (<= 2/255), else ``(None, f)`` with ``f`` the larger share: a real
+    capture, whose borders show the ground, the sky, a room."""
+    n = white = black = 0
+    for v in ds.train:
+        rgb = np.asarray(v.rgb)
+        if rgb.shape[0] < 5 or rgb.shape[1] < 5:
+            continue
+        border = np.concatenate([rgb[:2].reshape(-1, 3), rgb[-2:].reshape(-1, 3), rgb[2:-2, :2].reshape(-1, 3),
+                                 rgb[2:-2, -2:].reshape(-1, 3)])
+        n += len(border)
+        white += int((border.min(axis=-1) >= WHITE_LEVEL).sum())
+        black += int((border.max(axis=-1) <= 2.0 / 255.0).sum())
+    if not n:
+        return None, 0.0
+    fw, fb = white / n, black / n
+    if fw >= BACKDROP_FRACTION:
+        return "white", fw
+    if fb >= BACKDROP_FRACTION:
+        return "black", fb
+    return None, max(fw, fb)
+
+
+def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
+    """``TrainConfig.background_shell = "auto"`` resolved for ``ds``: :data:`AUTO_BACKGROUND_SHELL` triangles for
+    photos without alpha of a real capture (SfM finds no points on the sky or far walls), none for photos with alpha
+    or on a flat backdrop (:func:`photo_backdrop`); never more than the face budget leaves beside the initial
+    triangles."""
+    if not ds.train or ds.has_alpha or photo_backdrop(ds)[0] is not None:
+        return 0
+    mf = cfg.density.max_faces
+    return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
 
 
 def frame_radius(ds: Dataset) -> float:
@@ -535,7 +593,7 @@ def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Genera
 
 def initial_budget(cfg: TrainConfig) -> int | None:
     """How many initial triangles from sparse points fit the face budget: ``max_faces`` less the background
-    shell (None: no budget)."""
+    shell (a number: :func:`initial_scene` resolves "auto" first; None: no budget)."""
     if cfg.density.max_faces is None:
         return None
     return max(cfg.density.max_faces - cfg.background_shell, 4)
@@ -559,6 +617,8 @@ def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
     """The method's initialisation: COLMAP points when present, else random points in the bounds."""
+    if cfg.background_shell == "auto":  # (the Trainer resolves it first; here for callers that did not)
+        cfg = replace(cfg, background_shell=auto_background_shell(cfg, ds))
     pts = ds.points if ds.points is not None and len(ds.points) >= 4 else None
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng, frame=cfg.init_box_frame)
@@ -724,10 +784,18 @@ class Trainer:
             bg, frac = auto_background(self.ds)
             self.cfg = replace(self.cfg, background=bg)
             self.ds.background = bg
-            why = ("photos without alpha" if not self.ds.has_alpha else
+            why = ((f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop" if bg != "random" else
+                    "photos without alpha") if not self.ds.has_alpha else
                    f"{100 * frac:.1f} % of the photos' object pixels are white"
                    + (": a white background would hide their alpha" if bg == "random" else ""))
             bg_note = f"background: {bg} (auto; {why})"
+        shell_note = None
+        if self.cfg.background_shell == "auto":
+            self.cfg = replace(self.cfg, background_shell=auto_background_shell(self.cfg, self.ds))
+            if self.cfg.background_shell:
+                shell_note = (f"background shell: {self.cfg.background_shell} triangles on a far sphere for the sky / "
+                              "walls (auto; photos without alpha; --background-shell 0 for none)")
+        self.cfg.validate()
         ds_note = None
         if self.cfg.downscale == "auto":
             self.cfg = replace(self.cfg, downscale=self.ds.downscale)
@@ -767,8 +835,8 @@ class Trainer:
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = _file_logger(self.run_dir / "train.log")
-        self.background_note, self.downscale_note = bg_note, ds_note
-        for note in (bg_note, ds_note):
+        self.background_note, self.shell_note, self.downscale_note = bg_note, shell_note, ds_note
+        for note in (bg_note, shell_note, ds_note):
             if note:
                 self.log.info(note)
         if resume:

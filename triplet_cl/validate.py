@@ -53,7 +53,6 @@ _INT_OPTIONS = {
     "--mesh-supersample": ("mesh_supersample", 1, 4),
     "--mesh-eval-supersample": ("mesh_eval_supersample", 1, 8),
     "--texture-size": ("texture_size", 16, 16384),
-    "--background-shell": ("background_shell", 0, 10_000_000),
     "--max-features": ("max_features", 64, 1_000_000),  # triplet colmap
     "--threads": ("threads", -1, 4096),  # triplet colmap (-1: all cores)
     "--env-degree": ("env_degree", 0, 8),  # relight / eval --relight: SH degree of projected environment maps
@@ -99,6 +98,20 @@ def parse_downscale(option: str, value) -> int | str:
     return n
 
 
+def parse_background_shell(option: str, value) -> int | str:
+    """``--background-shell``: ``"auto"`` or a number of triangles in [0, 10 000 000] (a :class:`UsageError` naming
+    ``option``)."""
+    t = str(value).strip().lower()
+    if t == "auto":
+        return "auto"
+    try:
+        n = int(t)
+    except ValueError:
+        raise UsageError(option, f"expected a number of triangles in [0, 10000000] or auto, found {value!r}") from None
+    check_int(option, n, 0, 10_000_000)
+    return n
+
+
 def parse_formats(option: str, text: str | None) -> tuple | None:
     """``"glb,obj"`` → ``("glb", "obj")``; unknown or empty names refused naming ``option``."""
     if text is None:
@@ -115,6 +128,8 @@ def _check_options(args) -> None:
         check_int(option, getattr(args, attr, None), low, high)
     if getattr(args, "downscale", None) is not None:  # an integer factor or auto; the images must stay >= 11 px too
         args.downscale = parse_downscale("--downscale", args.downscale)  # (Trainer checks the dataset)
+    if getattr(args, "background_shell", None) is not None:  # a number of triangles or auto (photos without alpha)
+        args.background_shell = parse_background_shell("--background-shell", args.background_shell)
     dist = getattr(args, "light_distance", None)
     if dist is not None and not (math.isfinite(dist) and 0 < dist <= 1000):
         raise UsageError("--light-distance", f"expected a number of scene extents in (0, 1000], found {dist}")
@@ -177,7 +192,7 @@ def _check_options(args) -> None:
     if max_faces is not None:
         check_memory_for_points(max_faces, "--max-faces")
     shell = getattr(args, "background_shell", None)
-    if shell:  # the shell's triangles join the initial soup: the same face budget and memory
+    if shell and shell != "auto":  # the shell's triangles join the initial soup: the same face budget and memory
         budget = max_faces if max_faces is not None else 200_000
         if shell > budget:
             raise UsageError("--background-shell", f"{shell} shell triangles exceed the face budget ({budget}, "
@@ -732,6 +747,8 @@ def resume_config(args, saved_cfg, given_cfg):
             continue
         if option == "--background" and given_cfg.background == "auto":
             continue  # the run saved what "auto" resolved to when it started (white, or random with alpha)
+        if option == "--background-shell" and given_cfg.background_shell == "auto":
+            continue  # the run saved the number of triangles "auto" chose when it started
         if option == "--downscale" and given_cfg.downscale == "auto":
             continue  # the run saved the factor "auto" chose when it started
         if getattr(given_cfg, field) != getattr(saved_cfg, field):

@@ -1260,6 +1260,10 @@ class MeshStage:
         out = {"faces": len(self.scene.F), "vertices": self.scene.V.shape[0], "method": self.cfg.method,
                "psnr": mesh["psnr"], "ssim": mesh["ssim"], "soup_psnr": soup["psnr"], "soup_ssim": soup["ssim"],
                "soup_faces": len(tr.scene.F), "views": mesh["views"]}
+        if self.roi() is not None and not self.ds.has_alpha:
+            # the mesh is the object alone and the photos show the ground and the sky around it: its PSNR against
+            # them measures the missing background, not the mesh (the command says so beside the number)
+            out["cropped_to_object"] = True
         ref = load_reference_mesh(tr.data) if Path(tr.data).is_dir() else None
         if ref is not None:
             cd = chamfer_distance(self.scene.V.data, self.scene.F, *ref)
