@@ -518,6 +518,10 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
         tight = Trainer(str(data), tmp_path / "tight", replace(cfg, density=replace(cfg.density, max_faces=1300)),
                         quiet=True)
         assert tight.cfg.background_shell == 1000
+        from triplet_cl.train import auto_background_shell
+
+        tight.ds.points = np.zeros((500, 3))  # with SfM points, one initial triangle each: they leave the rest
+        assert auto_background_shell(TrainConfig(density=replace(cfg.density, max_faces=1300)), tight.ds) == 800
         mine = Trainer(str(data), tmp_path / "mine", replace(cfg, background_shell=7, background="white"), quiet=True)
         assert mine.cfg.background_shell == 7 and mine.cfg.background == "white" and mine.shell_note is None
         # a render saved without alpha on a flat white (black) backdrop: that colour is its background, no shell

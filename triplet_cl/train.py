@@ -507,11 +507,15 @@ def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
     """``TrainConfig.background_shell = "auto"`` resolved for ``ds``: :data:`AUTO_BACKGROUND_SHELL` triangles for
     photos without alpha of a real capture (SfM finds no points on the sky or far walls), none for photos with alpha
     or on a flat backdrop (:func:`photo_backdrop`); never more than the face budget leaves beside the initial
-    triangles."""
+    triangles (the SfM points', or ``init_points``)."""
     if not ds.train or ds.has_alpha or photo_backdrop(ds)[0] is not None:
         return 0
     mf = cfg.density.max_faces
-    return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
+    if mf is None:
+        return AUTO_BACKGROUND_SHELL
+    # the initial triangles: one per sparse SfM point when there are any (initial_scene), else init_points
+    n_init = len(ds.points) if ds.points is not None and len(ds.points) >= 4 else cfg.init_points
+    return int(max(0, min(AUTO_BACKGROUND_SHELL, mf - n_init)))
 
 
 def frame_radius(ds: Dataset) -> float:
