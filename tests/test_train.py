@@ -517,13 +517,20 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
         # the face budget leaves room for fewer: the shell takes what is left beside the initial triangles
         tight = Trainer(str(data), tmp_path / "tight", replace(cfg, density=replace(cfg.density, max_faces=1300)),
                         quiet=True)
-        assert tight.cfg.background_shell == 1000
-        from triplet_cl.train import auto_background_shell
-
-        tight.ds.points = np.zeros((500, 3))  # with SfM points, one initial triangle each: they leave the rest
-        assert auto_background_shell(TrainConfig(density=replace(cfg.density, max_faces=1300)), tight.ds) == 800
+        assert tight.cfg.background_shell == 1000 and "all that --max-faces leaves" in tight.shell_note
+        full = Trainer(str(data), tmp_path / "full", replace(cfg, density=replace(cfg.density, max_faces=300)),
+                       quiet=True)  # no room at all: none, and the command says why
+        assert full.cfg.background_shell == 0
+        assert "none (auto: --init-points 300 fill --max-faces 300" in full.shell_note
         mine = Trainer(str(data), tmp_path / "mine", replace(cfg, background_shell=7, background="white"), quiet=True)
         assert mine.cfg.background_shell == 7 and mine.cfg.background == "white" and mine.shell_note is None
+        # a background the user chose white: no automatic shell (white with the shell made the worst mesh)
+        white = Trainer(str(data), tmp_path / "white", replace(cfg, background="white"), quiet=True)
+        assert white.cfg.background_shell == 0 and white.shell_note is None and len(white.scene.F) == 300
+        from triplet_cl.train import initial_scene
+
+        ds = white.ds  # a caller that resolved neither: initial_scene resolves both as the Trainer does
+        assert len(initial_scene(cfg, ds, np.random.default_rng(0)).F) == 300 + AUTO_BACKGROUND_SHELL
         # a render saved without alpha on a flat white (black) backdrop: that colour is its background, no shell
         for grey, colour in ((1.0, "white"), (0.0, "black")):
             flat = _demo_without_alpha(tmp_path / f"flat{grey}", grey)
@@ -536,6 +543,30 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
     for bad in (-1, 1.5, True, "many"):
         with pytest.raises(ValueError, match="background_shell"):
             replace(cfg, background_shell=bad).validate()
+    old = TrainConfig().to_dict()
+    del old["background_shell"]  # a config saved before the shell existed: none
+    assert TrainConfig.from_dict(old).background_shell == 0
+
+
+def test_a_run_saved_before_the_background_shell_resumes(tmp_path):
+    """A run whose config.json and checkpoint have no ``background_shell`` (saved before the option) resumes with
+    no shell, as it was trained (the automatic default must not read into it)."""
+    run = tmp_path / "old"
+    tr = Trainer(DEMO, run, small_cfg(iterations=2, init_points=300), quiet=True)
+    tr.train()
+    cfg = json.loads((run / "config.json").read_text())
+    del cfg["train"]["background_shell"]
+    (run / "config.json").write_text(json.dumps(cfg))
+    ck = tr.latest_checkpoint()
+    with np.load(ck, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["meta"].tobytes().decode())
+    del meta["config"]["background_shell"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    with open(ck, "wb") as f:
+        np.savez(f, **arrays)
+    again = Trainer(None, run, resume=True, quiet=True)
+    assert again.cfg.background_shell == 0 and again.it == 2
 
 
 def test_auto_background_is_resolved_and_saved(tmp_path):

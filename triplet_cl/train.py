@@ -333,6 +333,7 @@ class TrainConfig:
         d.setdefault("material_tie_until", 0)  # saved before the light phase: none
         d.setdefault("metallic_probe_at", 0)  # saved before the soup's metallic probe: none
         d.setdefault("downscale", 1)  # (every config saved since 2026-11-22 has it: an int, what "auto" chose)
+        d.setdefault("background_shell", 0)  # saved before the far shell: none (since then an int, what "auto" chose)
         d.setdefault("metal_probe_max_roughness", 0.8)  # saved before the probe's own roughness rule: the mesh stage's
         d.setdefault("light_phase_lobes", "tied")  # saved before the lobes were held in the light phase
         d.setdefault("blinn_phong_ka", "free")  # saved before ka was tied to kd
@@ -504,18 +505,16 @@ def photo_backdrop(ds: Dataset) -> tuple[str | None, float]:
 
 
 def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
-    """``TrainConfig.background_shell = "auto"`` resolved for ``ds``: :data:`AUTO_BACKGROUND_SHELL` triangles for
-    photos without alpha of a real capture (SfM finds no points on the sky or far walls), none for photos with alpha
-    or on a flat backdrop (:func:`photo_backdrop`); never more than the face budget leaves beside the initial
-    triangles (the SfM points', or ``init_points``)."""
-    if not ds.train or ds.has_alpha or photo_backdrop(ds)[0] is not None:
+    """``TrainConfig.background_shell = "auto"`` resolved for ``ds`` and the resolved ``cfg.background``:
+    :data:`AUTO_BACKGROUND_SHELL` triangles for photos without alpha trained over a random background (a real
+    capture: SfM finds no points on the sky or far walls), none for photos with alpha, on a flat backdrop
+    (:func:`photo_backdrop`) or over a background the user chose white or black (measured worse with the shell,
+    bench/results/photos_defaults_pocl_2026-11-28.txt); never more than the face budget leaves beside
+    ``init_points`` (:meth:`TrainConfig.validate`'s rule; SfM points are thinned to fit, :func:`initial_budget`)."""
+    if not ds.train or ds.has_alpha or cfg.background != "random":
         return 0
     mf = cfg.density.max_faces
-    if mf is None:
-        return AUTO_BACKGROUND_SHELL
-    # the initial triangles: one per sparse SfM point when there are any (initial_scene), else init_points
-    n_init = len(ds.points) if ds.points is not None and len(ds.points) >= 4 else cfg.init_points
-    return int(max(0, min(AUTO_BACKGROUND_SHELL, mf - n_init)))
+    return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
 
 
 def frame_radius(ds: Dataset) -> float:
@@ -621,8 +620,9 @@ def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
     """The method's initialisation: COLMAP points when present, else random points in the bounds."""
-    if cfg.background_shell == "auto":  # (the Trainer resolves it first; here for callers that did not)
-        cfg = replace(cfg, background_shell=auto_background_shell(cfg, ds))
+    if cfg.background_shell == "auto":  # (the Trainer resolves both first; here for callers that did not)
+        bg = auto_background(ds)[0] if cfg.background == "auto" else cfg.background
+        cfg = replace(cfg, background_shell=auto_background_shell(replace(cfg, background=bg), ds))
     pts = ds.points if ds.points is not None and len(ds.points) >= 4 else None
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng, frame=cfg.init_box_frame)
@@ -796,10 +796,14 @@ class Trainer:
         shell_note = None
         if self.cfg.background_shell == "auto":
             self.cfg = replace(self.cfg, background_shell=auto_background_shell(self.cfg, self.ds))
-            if self.cfg.background_shell:
-                shell_note = (f"background shell: {self.cfg.background_shell} triangles on a far sphere for the sky / "
-                              "walls (auto; photos without alpha; --background-shell 0 for none)")
-        self.cfg.validate()
+            n = self.cfg.background_shell
+            if n:
+                shell_note = (f"background shell: {n} triangles on a far sphere for the sky / walls (auto; photos "
+                              "without alpha" + (", all that --max-faces leaves beside --init-points" if n <
+                                                 AUTO_BACKGROUND_SHELL else "") + "; --background-shell 0 for none)")
+            elif not self.ds.has_alpha and self.cfg.background == "random":
+                shell_note = (f"background shell: none (auto: --init-points {self.cfg.init_points} fill --max-faces "
+                              f"{self.cfg.density.max_faces}; give --background-shell N with room for it)")
         ds_note = None
         if self.cfg.downscale == "auto":
             self.cfg = replace(self.cfg, downscale=self.ds.downscale)
