@@ -738,7 +738,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the photos' object pixels are white themselves)")
     t.add_argument("--background-shell", metavar="N|auto", help="photos with a background: add this many triangles "
                    "on a far sphere for the sky / walls; auto (default): 4000 for photos without alpha trained over "
-                   "the random background, else 0 (README 'Your own photos')")
+                   "the random background with SfM points to crop the mesh by, else 0 (README 'Your own photos')")
     t.add_argument("--downscale", help="reduce the dataset's images by this integer factor, or "
                    "auto (default): the smallest factor that brings the photos' longer side to at most 1600 px (1 for "
                    "smaller photos)")

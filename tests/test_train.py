@@ -491,7 +491,23 @@ def _demo_without_alpha(dst, grey: float = 0.4):
     return dst
 
 
-def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
+def _with_sfm_points(monkeypatch, n: int = 300):
+    """Datasets without alpha load with ``n`` sparse points around the demo cow, as ``triplet colmap``'s do (the
+    automatic shell wants them: they crop it away); ``n`` = the tests' ``init_points``, so the counts stay."""
+    from triplet_cl import train as train_mod
+
+    load = train_mod.load_dataset
+
+    def with_points(*a, **kw):
+        ds = load(*a, **kw)
+        if not ds.has_alpha:
+            ds.points = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 3)).astype(np.float32)
+        return ds
+
+    monkeypatch.setattr(train_mod, "load_dataset", with_points)
+
+
+def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path, monkeypatch):
     """``--background auto`` and ``--background-shell auto`` (the defaults) for photos without alpha: a random
     background and AUTO_BACKGROUND_SHELL triangles on the far sphere, resolved and saved as what they chose; photos
     with alpha keep white and no shell; an explicit choice is kept; the shell is capped by the face budget."""
@@ -501,6 +517,13 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path):
 
     assert TrainConfig().background_shell == "auto" and AUTO_BACKGROUND_SHELL == 4000
     data = _demo_without_alpha(tmp_path / "rgb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bare = Trainer(str(data), tmp_path / "bare", small_cfg(iterations=2, init_points=300), quiet=True)
+        # without SfM points nothing would crop the shell from the mesh: random background, no shell, and why
+        assert bare.cfg.background == "random" and bare.cfg.background_shell == 0
+        assert "none (auto: the dataset has no SfM points" in bare.shell_note
+    _with_sfm_points(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cfg = small_cfg(iterations=2, init_points=300, density=replace(small_cfg().density, max_faces=None))
@@ -850,12 +873,13 @@ def test_downscale_auto_trains_large_photos_smaller(tmp_path, monkeypatch, capsy
     assert TrainConfig.from_dict(old).downscale == 1
 
 
-def test_background_shell_option_takes_a_number_or_auto(tmp_path, capsys):
+def test_background_shell_option_takes_a_number_or_auto(tmp_path, capsys, monkeypatch):
     """``--background-shell N|auto`` through the command line into config.json; the command prints the automatic
     choice for photos without alpha; a word or a negative number exits 2 naming the option, nothing written."""
     import warnings
 
     data = _demo_without_alpha(tmp_path / "rgb")
+    _with_sfm_points(monkeypatch)
     tiny = ["--iterations", "2", "--init-points", "200", "--checkpoint-every", "0"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

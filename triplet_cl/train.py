@@ -449,6 +449,7 @@ def look_at_center(ds: Dataset) -> np.ndarray:
 # TrainConfig.background_shell "auto": the far shell's triangles for photos without alpha (the README's photo command
 # gave 4000 by hand before it was the default; 2 % of the default face budget)
 AUTO_BACKGROUND_SHELL = 4000
+MIN_SHELL_POINTS = 10  # ... and only with SfM points (mesh.roi.auto_roi's minimum): they crop the shell away
 AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels up
 WHITE_LEVEL = 1.0 - 2.0 / 255.0  # a photo pixel this close to white in every channel is the white background's colour
 
@@ -509,9 +510,13 @@ def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
     :data:`AUTO_BACKGROUND_SHELL` triangles for photos without alpha trained over a random background (a real
     capture: SfM finds no points on the sky or far walls), none for photos with alpha, on a flat backdrop
     (:func:`photo_backdrop`) or over a background the user chose white or black (measured worse with the shell,
-    bench/results/photos_defaults_pocl_2026-11-28.txt); never more than the face budget leaves beside
+    bench/results/photos_defaults_pocl_2026-11-28.txt); none without SfM points either (:data:`MIN_SHELL_POINTS`):
+    the mesh is cropped to the object only where they locate it (mesh/roi.py), and uncropped, the far shell would
+    widen the extraction's volume to six camera distances. Never more than the face budget leaves beside
     ``init_points`` (:meth:`TrainConfig.validate`'s rule; SfM points are thinned to fit, :func:`initial_budget`)."""
     if not ds.train or ds.has_alpha or cfg.background != "random":
+        return 0
+    if ds.points is None or len(ds.points) < MIN_SHELL_POINTS:
         return 0
     mf = cfg.density.max_faces
     return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
@@ -802,7 +807,10 @@ class Trainer:
                               "without alpha" + (", all that --max-faces leaves beside --init-points" if n <
                                                  AUTO_BACKGROUND_SHELL else "") + "; --background-shell 0 for none)")
             elif not self.ds.has_alpha and self.cfg.background == "random":
-                shell_note = (f"background shell: none (auto: --init-points {self.cfg.init_points} fill --max-faces "
+                shell_note = ("background shell: none (auto: the dataset has no SfM points to crop the mesh to the "
+                              "object; --background-shell N to add one anyway)"
+                              if self.ds.points is None or len(self.ds.points) < MIN_SHELL_POINTS else
+                              f"background shell: none (auto: --init-points {self.cfg.init_points} fill --max-faces "
                               f"{self.cfg.density.max_faces}; give --background-shell N with room for it)")
         ds_note = None
         if self.cfg.downscale == "auto":
