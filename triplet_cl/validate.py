@@ -85,31 +85,28 @@ def check_int(option: str, value, low: int | None, high: int | None) -> None:
         raise UsageError(option, f"expected {rng}, found {value}")
 
 
-def parse_downscale(option: str, value) -> int | str:
-    """``--downscale``: ``"auto"`` or an integer factor in [1, 64] (a :class:`UsageError` naming ``option``)."""
+def parse_int_or_auto(option: str, value, low: int, high: int, what: str = "an integer") -> int | str:
+    """``"auto"`` (any case) or an integer in [``low``, ``high``]; anything else a :class:`UsageError` naming
+    ``option`` ("expected {what} in [low, high] or auto")."""
     t = str(value).strip().lower()
     if t == "auto":
         return "auto"
     try:
         n = int(t)
     except ValueError:
-        raise UsageError(option, f"expected an integer in [1, 64] or auto, found {value!r}") from None
-    check_int(option, n, 1, 64)
+        raise UsageError(option, f"expected {what} in [{low}, {high}] or auto, found {value!r}") from None
+    check_int(option, n, low, high)
     return n
+
+
+def parse_downscale(option: str, value) -> int | str:
+    """``--downscale``: ``"auto"`` or an integer factor in [1, 64]."""
+    return parse_int_or_auto(option, value, 1, 64)
 
 
 def parse_background_shell(option: str, value) -> int | str:
-    """``--background-shell``: ``"auto"`` or a number of triangles in [0, 10 000 000] (a :class:`UsageError` naming
-    ``option``)."""
-    t = str(value).strip().lower()
-    if t == "auto":
-        return "auto"
-    try:
-        n = int(t)
-    except ValueError:
-        raise UsageError(option, f"expected a number of triangles in [0, 10000000] or auto, found {value!r}") from None
-    check_int(option, n, 0, 10_000_000)
-    return n
+    """``--background-shell``: ``"auto"`` or a number of triangles in [0, 10 000 000]."""
+    return parse_int_or_auto(option, value, 0, 10_000_000, "a number of triangles")
 
 
 def parse_formats(option: str, text: str | None) -> tuple | None:
