@@ -465,15 +465,19 @@ def test_auto_background_follows_the_white_object_pixels():
     # photos without alpha (a real capture, the background in the picture): random, so that the soup stays opaque
     # over the whole frame (bench/results/photos_defaults_pocl_2026-11-28.txt); the share is then the border's flat
     # colour (here 3/4 of the border white: not a backdrop)
-    assert auto_background(Dataset(Path("."), "nerf", {"train": _views(0.5, alpha=False)})) == ("random", 0.75)
+    pts = np.zeros((20, 3), np.float32)  # SfM points (a triplet colmap folder)
+    assert auto_background(Dataset(Path("."), "colmap", {"train": _views(0.5, alpha=False)}, points=pts)) == \
+        ("random", 0.75)
     v = _views(0.0, alpha=False)
     for x in v:
         x.rgb[:] = 0.5
-    assert auto_background(Dataset(Path("."), "nerf", {"train": v})) == ("random", 0.0)
+    assert auto_background(Dataset(Path("."), "colmap", {"train": v}, points=pts)) == ("random", 0.0)
+    # without SfM points (the soup starts as a random cloud) random measured worse: white stays
+    assert auto_background(Dataset(Path("."), "ngp", {"train": v})) == ("white", 0.0)
     for x in v:  # a flat white backdrop (a render saved without alpha) keeps white
         x.rgb[:] = 1.0
         x.rgb[3:7, 3:7] = 0.2
-    assert auto_background(Dataset(Path("."), "nerf", {"train": v})) == ("white", 1.0)
+    assert auto_background(Dataset(Path("."), "colmap", {"train": v}, points=pts)) == ("white", 1.0)
 
 
 def _demo_without_alpha(dst, grey: float = 0.4):
@@ -520,9 +524,12 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path, monk
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         bare = Trainer(str(data), tmp_path / "bare", small_cfg(iterations=2, init_points=300), quiet=True)
-        # without SfM points nothing would crop the shell from the mesh: random background, no shell, and why
-        assert bare.cfg.background == "random" and bare.cfg.background_shell == 0
-        assert "none (auto: the dataset has no SfM points" in bare.shell_note
+        # without SfM points: white (random measured worse from a random cloud) and no shell (nothing would crop it)
+        assert bare.cfg.background == "white" and bare.cfg.background_shell == 0 and bare.shell_note is None
+        assert "without SfM points" in bare.background_note
+        rand = Trainer(str(data), tmp_path / "rand", small_cfg(iterations=2, init_points=300, background="random"),
+                       quiet=True)  # random asked for: still no shell without points, and the command says why
+        assert rand.cfg.background_shell == 0 and "none (auto: the dataset has no SfM points" in rand.shell_note
     _with_sfm_points(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

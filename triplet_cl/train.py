@@ -135,9 +135,10 @@ class TrainConfig:
     # spot_small demo soup against the ground-truth mesh's visibility (facing points): 0.003 / 0.01 / 0.03 →
     # 41 / 21 / 15 % shadowed against the truth's 14 % (agreement 73 / 93 / 98 %)
     shadow_eps: float = 0.03
-    # "white", "black", "random" (a new colour per iteration) or "auto": random for photos without alpha (a real
-    # capture: the background is in the picture, and a soup that turned transparent anywhere would show the random
-    # colour, so it stays opaque over the ground and the sky); for photos with alpha white, unless at
+    # "white", "black", "random" (a new colour per iteration) or "auto": random for photos without alpha with SfM
+    # points (a real capture: the background is in the picture, and a soup that turned transparent anywhere would
+    # show the random colour, so it stays opaque over the ground and the sky; white without SfM points, a flat
+    # backdrop's colour on one); for photos with alpha white, unless at
     # least AUTO_BACKGROUND_FRACTION of their object pixels are white themselves (auto_background): a pixel the colour
     # of the background gives its alpha no gradient, and a soup there turns transparent (spot re-rendered under a
     # bright environment, bench/make_scene.py --lights env: 19 % of its object pixels white, the soup lost them and
@@ -459,12 +460,17 @@ def auto_background(ds: Dataset) -> tuple[str, float]:
     alpha and a share ``f`` >= :data:`AUTO_BACKGROUND_FRACTION` of their object pixels (alpha > 0.5) is white in
     every channel (>= :data:`WHITE_LEVEL`: what a white background looks like, so nothing there tells the soup to
     stay opaque), else ``("white", f)``. Photos without alpha (a real capture: the ground and the sky are in the
-    picture) get ``("random", 0.0)``: wherever the soup turned transparent the render would show a new colour
-    each step, so it stays opaque over the whole frame (README "Your own photos") — unless their borders are a
-    backdrop (:func:`photo_backdrop`: a synthetic render saved without alpha), which stays their background; ``f`` is
-    then the share of border pixels of the backdrop's colour."""
+    picture) with SfM points get ``"random"``: wherever the soup turned transparent the render would show a new
+    colour each step, so it stays opaque over the whole frame (README "Your own photos") — unless their borders are a
+    backdrop (:func:`photo_backdrop`: a synthetic render saved without alpha), which stays their background; without
+    SfM points they keep white. ``f`` is then the larger share of border pixels of one flat colour."""
     if ds.train and not ds.has_alpha:
         colour, share = photo_backdrop(ds)
+        if colour is None and (ds.points is None or len(ds.points) < MIN_SHELL_POINTS):
+            # no SfM points (e.g. a transforms.json of real photos): the soup starts as a random cloud, and random
+            # backgrounds measured worse there (spot_ground's cameras without its points, 320x240: test PSNR 18.72
+            # against white's 20.62, 100k triplets against 20k; bench/results/photos_defaults_pocl_2026-11-28.txt)
+            colour = "white"
         return (colour or "random"), share
     n = white = 0
     for v in ds.train:
@@ -793,8 +799,15 @@ class Trainer:
             bg, frac = auto_background(self.ds)
             self.cfg = replace(self.cfg, background=bg)
             self.ds.background = bg
-            why = ((f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop" if bg != "random" else
-                    "photos without alpha") if not self.ds.has_alpha else
+            no_points = self.ds.points is None or len(self.ds.points) < MIN_SHELL_POINTS
+            if bg == "random" or self.ds.has_alpha:
+                no_alpha = "photos without alpha"
+            elif frac >= BACKDROP_FRACTION:
+                no_alpha = f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop"
+            else:  # (no_points: auto_background's one other reason)
+                no_alpha = ("photos without alpha and without SfM points: the soup starts as a random cloud, where "
+                            "random backgrounds measured worse" if no_points else "photos without alpha")
+            why = (no_alpha if not self.ds.has_alpha else
                    f"{100 * frac:.1f} % of the photos' object pixels are white"
                    + (": a white background would hide their alpha" if bg == "random" else ""))
             bg_note = f"background: {bg} (auto; {why})"
