@@ -734,8 +734,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--background", choices=["auto", "white", "black", "random"],
                    help="background the photos' alpha is composited over in training: white, black, random (a new "
                         "colour every iteration) or auto (default: random for photos without alpha with SfM points, "
-                        "unless their borders are a flat white / black backdrop; with alpha white, random when 5 %% or "
-                        "more of the photos' object pixels are white themselves)")
+                        "white without them, unless their borders are a flat white / black backdrop; with alpha "
+                        "white, random when 5 %% or more of the photos' object pixels are white themselves)")
     t.add_argument("--background-shell", metavar="N|auto", help="photos with a background: add this many triangles "
                    "on a far sphere for the sky / walls; auto (default): 4000 for photos without alpha trained over "
                    "the random background with SfM points to crop the mesh by, else 0 (README 'Your own photos')")

@@ -529,7 +529,14 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path, monk
         assert "without SfM points" in bare.background_note
         rand = Trainer(str(data), tmp_path / "rand", small_cfg(iterations=2, init_points=300, background="random"),
                        quiet=True)  # random asked for: still no shell without points, and the command says why
-        assert rand.cfg.background_shell == 0 and "none (auto: the dataset has no SfM points" in rand.shell_note
+        assert rand.cfg.background_shell == 0 and "none (auto: the dataset has 0 SfM points" in rand.shell_note
+        from triplet_cl.datasets.base import Dataset
+        from triplet_cl.train import MIN_INIT_POINTS, MIN_SHELL_POINTS, auto_background, auto_background_shell
+
+        few = Dataset(Path("."), "colmap", {"train": bare.ds.train}, points=np.zeros((5, 3), np.float32))
+        assert MIN_INIT_POINTS <= 5 < MIN_SHELL_POINTS  # enough to start the soup from, too few to crop by
+        assert auto_background(few)[0] == "random"
+        assert auto_background_shell(replace(TrainConfig(), background="random"), few) == 0
     _with_sfm_points(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -109,8 +109,9 @@ class TrainConfig:
     init_size: float = 0.5  # triangle radius, × mean distance to the 3 nearest initial points
     # photos with a background (no alpha): this many extra triangles on a sphere of radius background_radius × the
     # mean camera distance around the look-at point, for the sky / far walls that SfM gives no points for (0: none).
-    # "auto": AUTO_BACKGROUND_SHELL for photos without alpha, 0 for photos with it (resolved by the Trainer and saved
-    # in config.json as the number). Measured on shared/data/photos/spot_ground (320x240, 3000 it.; together with
+    # "auto": AUTO_BACKGROUND_SHELL for photos without alpha trained over the random background with SfM points to
+    # crop the mesh by (auto_background_shell), else 0 (resolved by the Trainer and saved in config.json as the
+    # number). Measured on shared/data/photos/spot_ground (320x240, 3000 it.; together with
     # the random background that "auto" also chooses there, bench/results/photos_defaults_pocl_2026-11-28.txt):
     # test PSNR 27.34 -> 28.72 dB, the cropped mesh's Chamfer 0.0414 -> 0.0265 of the cow's radius
     background_shell: int | str = "auto"
@@ -451,6 +452,12 @@ def look_at_center(ds: Dataset) -> np.ndarray:
 # gave 4000 by hand before it was the default; 2 % of the default face budget)
 AUTO_BACKGROUND_SHELL = 4000
 MIN_SHELL_POINTS = 10  # ... and only with SfM points (mesh.roi.auto_roi's minimum): they crop the shell away
+MIN_INIT_POINTS = 4  # initial_scene starts from the SfM points when there are at least this many (else a random cloud)
+
+
+def num_sfm_points(ds: Dataset) -> int:
+    """How many sparse SfM points ``ds`` holds (0 without)."""
+    return 0 if ds.points is None else len(ds.points)
 AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels up
 WHITE_LEVEL = 1.0 - 2.0 / 255.0  # a photo pixel this close to white in every channel is the white background's colour
 
@@ -466,7 +473,7 @@ def auto_background(ds: Dataset) -> tuple[str, float]:
     SfM points they keep white. ``f`` is then the larger share of border pixels of one flat colour."""
     if ds.train and not ds.has_alpha:
         colour, share = photo_backdrop(ds)
-        if colour is None and (ds.points is None or len(ds.points) < MIN_SHELL_POINTS):
+        if colour is None and num_sfm_points(ds) < MIN_INIT_POINTS:
             # no SfM points (e.g. a transforms.json of real photos): the soup starts as a random cloud, and random
             # backgrounds measured worse there (spot_ground's cameras without its points, 320x240: test PSNR 18.72
             # against white's 20.62, 100k triplets against 20k; bench/results/photos_defaults_pocl_2026-11-28.txt)
@@ -522,7 +529,7 @@ def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
     ``init_points`` (:meth:`TrainConfig.validate`'s rule; SfM points are thinned to fit, :func:`initial_budget`)."""
     if not ds.train or ds.has_alpha or cfg.background != "random":
         return 0
-    if ds.points is None or len(ds.points) < MIN_SHELL_POINTS:
+    if num_sfm_points(ds) < MIN_SHELL_POINTS:
         return 0
     mf = cfg.density.max_faces
     return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
@@ -634,7 +641,7 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     if cfg.background_shell == "auto":  # (the Trainer resolves both first; here for callers that did not)
         bg = auto_background(ds)[0] if cfg.background == "auto" else cfg.background
         cfg = replace(cfg, background_shell=auto_background_shell(replace(cfg, background=bg), ds))
-    pts = ds.points if ds.points is not None and len(ds.points) >= 4 else None
+    pts = ds.points if num_sfm_points(ds) >= MIN_INIT_POINTS else None
     if pts is None:
         pts = random_points(ds, cfg.init_points, cfg.init_box, rng, frame=cfg.init_box_frame)
     else:
@@ -799,14 +806,13 @@ class Trainer:
             bg, frac = auto_background(self.ds)
             self.cfg = replace(self.cfg, background=bg)
             self.ds.background = bg
-            no_points = self.ds.points is None or len(self.ds.points) < MIN_SHELL_POINTS
             if bg == "random" or self.ds.has_alpha:
                 no_alpha = "photos without alpha"
             elif frac >= BACKDROP_FRACTION:
                 no_alpha = f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop"
-            else:  # (no_points: auto_background's one other reason)
+            else:  # auto_background's one other reason for white: fewer than MIN_INIT_POINTS SfM points
                 no_alpha = ("photos without alpha and without SfM points: the soup starts as a random cloud, where "
-                            "random backgrounds measured worse" if no_points else "photos without alpha")
+                            "random backgrounds measured worse")
             why = (no_alpha if not self.ds.has_alpha else
                    f"{100 * frac:.1f} % of the photos' object pixels are white"
                    + (": a white background would hide their alpha" if bg == "random" else ""))
@@ -820,9 +826,10 @@ class Trainer:
                               "without alpha" + (", all that --max-faces leaves beside --init-points" if n <
                                                  AUTO_BACKGROUND_SHELL else "") + "; --background-shell 0 for none)")
             elif not self.ds.has_alpha and self.cfg.background == "random":
-                shell_note = ("background shell: none (auto: the dataset has no SfM points to crop the mesh to the "
-                              "object; --background-shell N to add one anyway)"
-                              if self.ds.points is None or len(self.ds.points) < MIN_SHELL_POINTS else
+                shell_note = (f"background shell: none (auto: the dataset has {num_sfm_points(self.ds)} SfM points, "
+                              f"fewer than the {MIN_SHELL_POINTS} that locate the object to crop the mesh to; "
+                              "--background-shell N to add one anyway)"
+                              if num_sfm_points(self.ds) < MIN_SHELL_POINTS else
                               f"background shell: none (auto: --init-points {self.cfg.init_points} fill --max-faces "
                               f"{self.cfg.density.max_faces}; give --background-shell N with room for it)")
         ds_note = None
