@@ -458,6 +458,8 @@ MIN_INIT_POINTS = 4  # initial_scene starts from the SfM points when there are a
 def num_sfm_points(ds: Dataset) -> int:
     """How many sparse SfM points ``ds`` holds (0 without)."""
     return 0 if ds.points is None else len(ds.points)
+
+
 AUTO_BACKGROUND_FRACTION = 0.05  # "auto" trains on random backgrounds from this share of white object pixels up
 WHITE_LEVEL = 1.0 - 2.0 / 255.0  # a photo pixel this close to white in every channel is the white background's colour
 
@@ -488,6 +490,19 @@ def auto_background(ds: Dataset) -> tuple[str, float]:
         white += int((np.asarray(v.rgb)[m].min(axis=-1) >= WHITE_LEVEL).sum())
     frac = white / n if n else 0.0
     return ("random" if n and frac >= AUTO_BACKGROUND_FRACTION else "white"), frac
+
+
+def auto_background_reason(ds: Dataset, bg: str, frac: float) -> str:
+    """Why :func:`auto_background` chose ``bg`` (with its share ``frac``) for ``ds``: the command's note."""
+    if ds.has_alpha:
+        return (f"{100 * frac:.1f} % of the photos' object pixels are white"
+                + (": a white background would hide their alpha" if bg == "random" else ""))
+    if bg == "random":
+        return "photos without alpha"
+    if frac >= BACKDROP_FRACTION:
+        return f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop"
+    return ("photos without alpha and without SfM points: the soup starts as a random cloud, where random "
+            "backgrounds measured worse")
 
 
 BACKDROP_FRACTION = 0.95  # photo_backdrop: this share of the border pixels one flat colour
@@ -533,6 +548,24 @@ def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
         return 0
     mf = cfg.density.max_faces
     return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
+
+
+def auto_background_shell_note(cfg: TrainConfig, ds: Dataset) -> str | None:
+    """The command's note on what ``background_shell = "auto"`` resolved to (``cfg`` resolved): the triangles, or
+    why a real capture over a random background got none; None where no shell was to be expected."""
+    n = cfg.background_shell
+    if n:
+        capped = ", all that --max-faces leaves beside --init-points" if n < AUTO_BACKGROUND_SHELL else ""
+        return (f"background shell: {n} triangles on a far sphere for the sky / walls (auto; photos without "
+                f"alpha{capped}; --background-shell 0 for none)")
+    if ds.has_alpha or cfg.background != "random":
+        return None
+    if num_sfm_points(ds) < MIN_SHELL_POINTS:
+        return (f"background shell: none (auto: the dataset has {num_sfm_points(ds)} SfM points, fewer than the "
+                f"{MIN_SHELL_POINTS} that locate the object to crop the mesh to; --background-shell N to add one "
+                "anyway)")
+    return (f"background shell: none (auto: --init-points {cfg.init_points} fill --max-faces "
+            f"{cfg.density.max_faces}; give --background-shell N with room for it)")
 
 
 def frame_radius(ds: Dataset) -> float:
@@ -806,32 +839,11 @@ class Trainer:
             bg, frac = auto_background(self.ds)
             self.cfg = replace(self.cfg, background=bg)
             self.ds.background = bg
-            if bg == "random" or self.ds.has_alpha:
-                no_alpha = "photos without alpha"
-            elif frac >= BACKDROP_FRACTION:
-                no_alpha = f"photos without alpha, {100 * frac:.0f} % of their borders {bg}: a backdrop"
-            else:  # auto_background's one other reason for white: fewer than MIN_INIT_POINTS SfM points
-                no_alpha = ("photos without alpha and without SfM points: the soup starts as a random cloud, where "
-                            "random backgrounds measured worse")
-            why = (no_alpha if not self.ds.has_alpha else
-                   f"{100 * frac:.1f} % of the photos' object pixels are white"
-                   + (": a white background would hide their alpha" if bg == "random" else ""))
-            bg_note = f"background: {bg} (auto; {why})"
+            bg_note = f"background: {bg} (auto; {auto_background_reason(self.ds, bg, frac)})"
         shell_note = None
         if self.cfg.background_shell == "auto":
             self.cfg = replace(self.cfg, background_shell=auto_background_shell(self.cfg, self.ds))
-            n = self.cfg.background_shell
-            if n:
-                shell_note = (f"background shell: {n} triangles on a far sphere for the sky / walls (auto; photos "
-                              "without alpha" + (", all that --max-faces leaves beside --init-points" if n <
-                                                 AUTO_BACKGROUND_SHELL else "") + "; --background-shell 0 for none)")
-            elif not self.ds.has_alpha and self.cfg.background == "random":
-                shell_note = (f"background shell: none (auto: the dataset has {num_sfm_points(self.ds)} SfM points, "
-                              f"fewer than the {MIN_SHELL_POINTS} that locate the object to crop the mesh to; "
-                              "--background-shell N to add one anyway)"
-                              if num_sfm_points(self.ds) < MIN_SHELL_POINTS else
-                              f"background shell: none (auto: --init-points {self.cfg.init_points} fill --max-faces "
-                              f"{self.cfg.density.max_faces}; give --background-shell N with room for it)")
+            shell_note = auto_background_shell_note(self.cfg, self.ds)
         ds_note = None
         if self.cfg.downscale == "auto":
             self.cfg = replace(self.cfg, downscale=self.ds.downscale)
