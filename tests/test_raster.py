@@ -298,6 +298,12 @@ def test_interpolate_forward_and_vjp(device64, rng):
     # accumulation into an existing barycentric adjoint
     _, v_bary2 = interpolate_backward(device64, attr, fr, v, v_bary_acc=v_bary)
     np.testing.assert_allclose(fr.to_hwk(v_bary2)[ok], 2 * rb[ok], atol=1e-10)
+    # zero cotangent rows (fragments behind compositing's cut-off) are skipped: the same as the reference's
+    v[rng.uniform(size=v.shape[:3]) < 0.4] = 0.0
+    v_attr, v_bary = interpolate_backward(device64, attr, fr, v, v_bary_acc=v_bary)
+    ra, rb2 = ref.interpolate_vjp_ref(attr, F, h["face"], h["bary"], v)
+    np.testing.assert_allclose(v_attr.get(), ra, atol=1e-10)
+    np.testing.assert_allclose(fr.to_hwk(v_bary)[ok], (rb + rb2)[ok], atol=1e-10)
 
 
 def test_interpolate_shared_vertices(device64, rng):
@@ -578,12 +584,19 @@ def test_whole_chain_central_differences(device64, rng):
     assert np.abs(g["V"]).sum() > 0 and checked > 100
 
 
-def test_fused_fragments_backward_equals_separate_ops(device64, rng):
+@pytest.mark.parametrize("dead", [0.0, 0.4])
+def test_fused_fragments_backward_equals_separate_ops(device64, rng, dead):
+    """The fused pass against interpolation's and the raster's adjoints; ``dead``: that share of the fragments has a
+    zero attribute cotangent (behind compositing's cut-off; the pass skips their attribute rows), half of them a
+    zero window cotangent too."""
     V, F = soup(rng, M=60)
     _, _, vs, fr = run_raster(device64, V, F, 5)
     attr = rng.standard_normal((len(V), 4))
     v_out = rng.standard_normal((H, W, 5, 4))
     v_d, v_w = rng.standard_normal((H, W, 5)), rng.standard_normal((H, W, 5))
+    gone = rng.uniform(size=(H, W, 5)) < dead
+    v_out[gone] = 0.0
+    v_w[gone & (rng.uniform(size=gone.shape) < 0.5)] = 0.0
     va_sep, vb = interpolate_backward(device64, attr, fr, v_out)
     vvs_sep, vsig_sep = raster_backward(device64, fr, v_bary=vb, v_depth=v_d, v_win=v_w, sigma=0.5)
     va, vvs, vsig = fragments_backward(device64, fr, attr, v_out, v_depth=v_d, v_win=v_w, sigma=0.5)
