@@ -179,10 +179,11 @@ def test_loss_backend_by_size(device, rng):
 @pytest.mark.parametrize("shape", [(24, 24, 3), (48, 48, 3), (96, 96, 3), (13, 29, 3), (5, 7, 3), (9, 6, 1), (1, 13, 3),
                                    (8, 4, 4), (12, 31, 2), (3, 1, 1), (1, 1, 3)])
 @pytest.mark.parametrize("kind", ["random", "white", "ties", "tiny", "equal_rows"])
-def test_exact_device_loss_is_numpy_bit_for_bit(shape, kind, device64, rng):
+def test_exact_device_loss_is_numpy_bit_for_bit(shape, kind, device64, rng, bitwise):
     """The training loop's small-image loss on the device (ssim_exact.cl) gives the numpy reference's adjoint and
-    value bit for bit: the float32 operations in numpy's order, the Gaussian passes in double as scipy's
-    correlate1d (a float32 device loss moved the demo's test PSNR by up to 0.24 dB)."""
+    value bit for bit on PoCL: the float32 operations in numpy's order, the Gaussian passes in double as scipy's
+    correlate1d (a float32 device loss moved the demo's test PSNR by up to 0.24 dB). Other devices (``bitwise``
+    false): within 1e-5 of the values' scale (a uniform image's adjoint is rounding noise, ~1e-11)."""
     import pyopencl.array as cla
 
     x, y = rng.random(shape), rng.random(shape)
@@ -201,6 +202,10 @@ def test_exact_device_loss_is_numpy_bit_for_bit(shape, kind, device64, rng):
     loss, v = losses.photometric_loss_and_grad_exact(device64, cla.to_device(device64.queue, x), x, y, lam=0.2)
     v = v.get()
     assert v.dtype == ref_v.dtype == np.float32
+    if not bitwise:
+        np.testing.assert_allclose(v, ref_v, rtol=1e-5, atol=1e-5 / v.size)
+        assert loss.value() == pytest.approx(ref_value, rel=1e-6, abs=1e-9)
+        return
     np.testing.assert_array_equal(v.view(np.uint32), ref_v.view(np.uint32))
     assert loss.value() == ref_value
 

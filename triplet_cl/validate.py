@@ -202,13 +202,15 @@ def _check_options(args) -> None:
         need, avail = tex * tex * TEXTURE_BYTES_PER_TEXEL, available_memory()
         if avail is not None and need > 0.8 * avail:
             raise UsageError("--texture-size", f"baking a {tex}² texture needs about {need / 2**30:.1f} GiB of memory, "
-                                               f"this machine has {avail / 2**30:.1f} GiB available")
+                                               f"more than 80 % of the {avail / 2**30:.1f} GiB this machine has "
+                                               "available")
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
         if avail is not None and need > 0.8 * avail:
-            raise UsageError("--mesh-resolution", f"a {res}³ TSDF needs about {need / 2**30:.1f} GiB of memory, this "
-                                                  f"machine has {avail / 2**30:.1f} GiB available")
+            raise UsageError("--mesh-resolution", f"a {res}³ TSDF needs about {need / 2**30:.1f} GiB of memory, more "
+                                                  f"than 80 % of the {avail / 2**30:.1f} GiB this machine has "
+                                                  "available")
 
 
 def check_memory_for_points(n: int, option: str = "--init-points") -> None:
@@ -216,8 +218,8 @@ def check_memory_for_points(n: int, option: str = "--init-points") -> None:
     need = n * HOST_BYTES_PER_INIT_POINT
     avail = available_memory()
     if avail is not None and need > 0.8 * avail:
-        raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, this machine has "
-                                 f"{avail / 2**30:.1f} GiB available")
+        raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, more than 80 % of the "
+                                 f"{avail / 2**30:.1f} GiB this machine has available")
 
 
 def device_budget(width: int, height: int, K: int, max_faces: int | None) -> tuple[int, int]:
