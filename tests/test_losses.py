@@ -183,7 +183,9 @@ def test_exact_device_loss_is_numpy_bit_for_bit(shape, kind, device64, rng, bitw
     """The training loop's small-image loss on the device (ssim_exact.cl) gives the numpy reference's adjoint and
     value bit for bit on PoCL: the float32 operations in numpy's order, the Gaussian passes in double as scipy's
     correlate1d (a float32 device loss moved the demo's test PSNR by up to 0.24 dB). Other devices (``bitwise``
-    false): within 1e-5 of the values' scale (a uniform image's adjoint is rounding noise, ~1e-11)."""
+    false): within 1e-5, and 1e-4 of a unit residual's adjoint (1 / n) absolute: on a uniform image the adjoint is
+    rounding noise, 0 or 3e-11 in numpy and up to 1.5e-8 (2.6e-5 / n at n = 1728) on NVIDIA's OpenCL; the value
+    within 1e-6 relative and float32's epsilon (1.2e-7) absolute (1 − SSIM of equal images: 1.6e-9 against 3.2e-9)."""
     import pyopencl.array as cla
 
     x, y = rng.random(shape), rng.random(shape)
@@ -203,8 +205,8 @@ def test_exact_device_loss_is_numpy_bit_for_bit(shape, kind, device64, rng, bitw
     v = v.get()
     assert v.dtype == ref_v.dtype == np.float32
     if not bitwise:
-        np.testing.assert_allclose(v, ref_v, rtol=1e-5, atol=1e-5 / v.size)
-        assert loss.value() == pytest.approx(ref_value, rel=1e-6, abs=1e-9)
+        np.testing.assert_allclose(v, ref_v, rtol=1e-5, atol=1e-4 / v.size)
+        assert loss.value() == pytest.approx(ref_value, rel=1e-6, abs=float(np.finfo(np.float32).eps))
         return
     np.testing.assert_array_equal(v.view(np.uint32), ref_v.view(np.uint32))
     assert loss.value() == ref_value
