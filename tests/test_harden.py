@@ -86,6 +86,8 @@ BAD_TRAIN = {
     "light-phase -1": (["--light-phase", "-1"], "--light-phase"),
     "light-distance 0": (["--light-distance", "0"], "--light-distance"),
     "light-distance nan": (["--light-distance", "nan"], "--light-distance"),
+    "light-min-distance -1": (["--light-min-distance", "-1"], "--light-min-distance"),
+    "light-min-distance inf": (["--light-min-distance", "inf"], "--light-min-distance"),
     "mesh-light-phase -2": (["--mesh-stage", "--mesh-light-phase", "-2"], "--mesh-light-phase"),
     "mesh-metallic-trial -1": (["--mesh-stage", "--mesh-metallic-trial", "-1"], "--mesh-metallic-trial"),
     "mesh-env-occlusion 5": (["--mesh-stage", "--mesh-env-occlusion", "5"], "--mesh-env-occlusion"),
@@ -254,7 +256,8 @@ def test_resume_refuses_fixed_options_and_applies_the_others(run, capsys):
                          (["--sigma", "0"], "--sigma"), (["--faces-per-pixel", "9"], "--faces-per-pixel"),
                          (["--iterations", "2"], "--iterations"), (["--data-format", "colmap"], "--data-format"),
                          (["--error-resplit-ratio", "off"], "--error-resplit-ratio"),
-                         (["--error-resplit-ratio", "0.5"], "--error-resplit-ratio")):
+                         (["--error-resplit-ratio", "0.5"], "--error-resplit-ratio"),
+                         (["--light-min-distance", "2"], "--light-min-distance")):
         rc, err, _ = _run_cli(["train", "--resume", "--out", run, *extra], capsys)
         assert rc == 2 and named in err, (extra, err)
     assert _tree(run) == before

@@ -130,6 +130,9 @@ def _check_options(args) -> None:
     dist = getattr(args, "light_distance", None)
     if dist is not None and not (math.isfinite(dist) and 0 < dist <= 1000):
         raise UsageError("--light-distance", f"expected a number of scene extents in (0, 1000], found {dist}")
+    rmin = getattr(args, "light_min_distance", None)
+    if rmin is not None and not (math.isfinite(rmin) and 0 <= rmin <= 1000):
+        raise UsageError("--light-min-distance", f"expected a number of frame radii in [0, 1000], found {rmin}")
     sigma = getattr(args, "sigma", None)
     if sigma is not None and not (math.isfinite(sigma) and (sigma == 0 or 0.01 <= sigma <= 1000)):
         # (a battery's 1e-30 left the soup invisible to its gradients: nothing learned, exit 0)
@@ -740,7 +743,8 @@ def resume_config(args, saved_cfg, given_cfg):
              "--shadow-every": "shadow_every", "--light-phase": "material_tie_until",
              "--white-light": "white_light", "--light-phase-lobes": "light_phase_lobes",
              "--blinn-phong-ka": "blinn_phong_ka",
-             "--light-distance": "light_distance", "--sensor-clip": "sensor_clip"}
+             "--light-distance": "light_distance", "--light-min-distance": "light_min_distance",
+             "--sensor-clip": "sensor_clip"}
     for option, field in fixed.items():
         if getattr(args, _attr(option), None) is None:
             continue

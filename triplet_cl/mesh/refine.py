@@ -699,7 +699,8 @@ class MeshStage:
         def after_step(lights_before) -> None:
             scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights, scene.light_params.data,
                                                            self.trainer.priors.center,
-                                                           before=lights_before if tc.hold_irradiance else None)
+                                                           before=lights_before if tc.hold_irradiance else None,
+                                                           min_distance=self.trainer.light_min_radius)
 
         light_scale = (relative_lr_scales(scene.lights, extent=self.trainer.extent)
                        if scene.light_params is not None
@@ -1131,7 +1132,8 @@ class MeshStage:
                 if scene.light_params is not None:  # the soup stage's white-light rule (and its irradiance hold)
                     scene.light_params.data[...] = balanced_lights(tc.white_light, scene.lights,
                                                                    scene.light_params.data, self.trainer.priors.center,
-                                                                   before=lights_before)
+                                                                   before=lights_before,
+                                                                   min_distance=self.trainer.light_min_radius)
                 rec = {"round": round_index, "it": it + 1, "loss": float(loss), "reg": reg_loss,
                        "psnr": psnr(img, target), "faces": len(scene.F), "time": time.perf_counter() - t0}
                 self.history.append(rec)
