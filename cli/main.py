@@ -726,9 +726,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "clipped (white) photo value is not pulled down (default on; sRGB photos only)")
     t.add_argument("--light-distance", type=float, metavar="D", help="point lights start D scene extents from the "
                    "centre (default 0.6); their intensity follows so that the irradiance at the centre is the same")
-    t.add_argument("--light-min-distance", type=float, metavar="R", help="point lights are kept at least R frame "
-                   "radii (the half-width the cameras see at the centre) from the centre, outside the object "
-                   "(default 1; 0: anywhere)")
+    t.add_argument("--light-min-distance", type=float, metavar="R", help="point lights are kept (and start) at "
+                   "least R frame radii (the half-width the cameras see at the centre) from the centre, outside the "
+                   "object (default 1; 0: anywhere)")
     t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
     t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
     t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")

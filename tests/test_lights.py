@@ -443,6 +443,43 @@ def test_training_keeps_the_point_light_out_of_the_object(tmp_path):
     old = cfg.to_dict()
     del old["light_min_distance"]
     assert TrainConfig.from_dict(old).light_min_distance == 0.0
-    for bad in (-1.0, float("nan"), True):
+    for bad in (-1.0, float("nan"), True, 1001.0):
         with pytest.raises(ValueError, match="light_min_distance"):
             TrainConfig(light_min_distance=bad).validate()
+
+
+def test_initial_point_light_starts_outside_the_keep_out_radius(monkeypatch):
+    """``train.initial_lights``: a point light whose start falls within ``light_keep_out_radius`` (a short
+    ``--light-distance``, or ~4 % of the jittered starts) starts on it, its intensity × (R / d_start)²: the irradiance
+    at the centre it was placed to give; with the rule off it starts where it was placed. The radius is the frame
+    radius × ``light_min_distance``, at most the cameras' mean distance (a lens wider than 90°)."""
+    from dataclasses import replace
+
+    from triplet_cl.cli.main import demo_data_path
+
+    from triplet_cl import train as train_mod
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.train import TrainConfig, frame_radius, initial_lights, light_keep_out_radius, look_at_center
+
+    ds = load_dataset(demo_data_path())
+    c, R = look_at_center(ds), frame_radius(ds)
+    cfg = replace(TrainConfig(), light_distance=0.05)
+    seed = next(s for s in range(200)  # a start within R (the jitter, 0.3 extent, is most of the offset here)
+                if np.linalg.norm(initial_lights(replace(cfg, light_min_distance=0.0), ds,
+                                                 np.random.default_rng(s))[0].position - c) < R)
+    off = initial_lights(replace(cfg, light_min_distance=0.0), ds, np.random.default_rng(seed))
+    on = initial_lights(cfg, ds, np.random.default_rng(seed))
+    d0, d1 = np.linalg.norm(off[0].position - c), np.linalg.norm(on[0].position - c)
+    assert d0 < R and d1 == pytest.approx(R, rel=1e-9)
+    np.testing.assert_allclose((on[0].position - c) / d1, (off[0].position - c) / d0, rtol=1e-9)
+    np.testing.assert_allclose(on[0].intensity / d1**2, off[0].intensity / d0**2, rtol=1e-9)
+    np.testing.assert_array_equal(on[1].color, off[1].color)  # the ambient light is not moved
+    far = initial_lights(replace(cfg, light_distance=0.6), ds, np.random.default_rng(0))  # placed outside: as is
+    np.testing.assert_array_equal(far[0].position, initial_lights(replace(cfg, light_distance=0.6,
+                                                                            light_min_distance=0.0), ds,
+                                                                    np.random.default_rng(0))[0].position)
+    assert light_keep_out_radius(replace(cfg, light_min_distance=2.0), ds) == pytest.approx(2 * R)
+    assert light_keep_out_radius(replace(cfg, light_min_distance=0.0), ds) == 0.0
+    dist = float(np.mean([np.linalg.norm(v.camera.center - c) for v in ds.train]))
+    monkeypatch.setattr(train_mod, "frame_radius", lambda ds: 10.0 * dist)  # a fisheye's frame radius
+    assert light_keep_out_radius(cfg, ds) == pytest.approx(dist)

@@ -51,8 +51,12 @@ from .lights import (
     LightInit,
     SHEnvironmentLight,
     balanced_lights,
+    hold_irradiance,
+    lights_kept_out,
     lights_to_json,
+    pack_lights,
     relative_lr_scales,
+    unpack_lights,
 )
 from .lights import initial_lights as _initial_lights
 from .losses import (
@@ -179,10 +183,11 @@ class TrainConfig:
     hold_irradiance: bool = True
     # point lights are kept at least this many frame radii (frame_radius: the half-width the cameras see at the look-at
     # centre, 1.165 on the dev scenes) from the centre, after each step of the soup, the mesh stage and the metallic
-    # trials (lights.lights_kept_out): a light inside the object lights nothing the photos show. On spot_small's photos
-    # flattened on white a gradient spike threw the light inside the cow at iteration 244: test PSNR 30.40 dB, the
-    # light ending below the object; with this 34.18 (bench/results/light_inside_pocl_2026-11-28.txt). 0: off (runs
-    # saved before)
+    # trials (lights.lights_kept_out), and start there if placed closer (initial_lights; the radius at most the
+    # cameras' mean distance: light_keep_out_radius): a light inside the object lights nothing the photos show. On
+    # spot_small's photos flattened on white a gradient spike threw the light inside the cow at iteration 244: test
+    # PSNR 30.40 dB, the light ending below the object; with this 34.18
+    # (bench/results/light_inside_pocl_2026-11-28.txt). 0: off (runs saved before)
     light_min_distance: float = 1.0
     lr_boost_at: int = 10_000  # material / vertex-SH learning rates × lr_boost from here (the method: 10k, ×5)
     lr_boost: float = 5.0
@@ -425,8 +430,8 @@ class TrainConfig:
             raise ValueError(f"init_box must be finite and > 0 and init_box_frame a boolean, got {self.init_box!r} "
                              f"and {self.init_box_frame!r}")
         if isinstance(self.light_min_distance, bool) or not isinstance(self.light_min_distance, int | float) \
-                or not (math.isfinite(self.light_min_distance) and self.light_min_distance >= 0):
-            raise ValueError(f"light_min_distance must be a finite number >= 0 (frame radii), got "
+                or not (math.isfinite(self.light_min_distance) and 0 <= self.light_min_distance <= 1000):
+            raise ValueError(f"light_min_distance must be a number in [0, 1000] (frame radii), got "
                              f"{self.light_min_distance!r}")
         if not isinstance(self.extent_frame, bool) or not isinstance(self.hold_irradiance, bool):
             raise ValueError(f"extent_frame and hold_irradiance must be booleans, got {self.extent_frame!r} and "
@@ -670,15 +675,35 @@ def initial_budget(cfg: TrainConfig) -> int | None:
 MIN_EXTENT = 0.01
 
 
+def light_keep_out_radius(cfg: TrainConfig, ds: Dataset) -> float:
+    """How close to :func:`look_at_center` a point light may come (world units): ``cfg.light_min_distance`` ×
+    :func:`frame_radius`, the frame radius at most the cameras' mean distance (a lens wider than 90° frames more
+    than the cameras' own distance, and would push the lights behind them)."""
+    if not cfg.light_min_distance > 0 or not ds.train:
+        return 0.0
+    c = look_at_center(ds)
+    dist = float(np.mean([np.linalg.norm(v.camera.center - c) for v in ds.train]))
+    return float(cfg.light_min_distance * min(frame_radius(ds), dist))
+
+
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     """The configured lights, placed from the cameras (each light class's ``initial``: a point light
     above the scene, a directional light from the cameras' mean up direction, dim ambient, a
-    constant SH environment)."""
+    constant SH environment). A point light whose jittered start falls within :func:`light_keep_out_radius` starts on
+    it, its intensity × (d / d_start)² (the irradiance at the centre it was placed to give; about 4 % of seeds on the
+    dev scenes, and every seed of a short ``--light-distance``), as the first step would have moved it."""
     c = look_at_center(ds)
     ext = scene_extent(ds, cfg.extent_frame)
     up = -np.mean([v.camera.w2c[1, :3] for v in ds.train], axis=0)  # average camera "up" (−y axis)
     up = up / (np.linalg.norm(up) + 1e-12)
-    return _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng, distance=cfg.light_distance))
+    lights = _initial_lights(cfg.lights, LightInit(c, ext, up, cfg.sh_degree, rng, distance=cfg.light_distance))
+    radius = light_keep_out_radius(cfg, ds)
+    if radius > 0 and lights:
+        p0 = pack_lights(lights).params.astype(np.float64)
+        p1 = lights_kept_out(lights, p0, c, radius)
+        if not np.array_equal(p0, p1):
+            lights = unpack_lights(lights, hold_irradiance(lights, p0, p1, c))
+    return lights
 
 
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
@@ -874,7 +899,7 @@ class Trainer:
         # the object's size against the dev scenes' (the mesh stage's Laplacian weight follows its square)
         self.length_scale = frame_radius(self.ds) / REFERENCE_FRAME_RADIUS
         # point lights stay this far from the look-at centre (world units; TrainConfig.light_min_distance)
-        self.light_min_radius = self.cfg.light_min_distance * frame_radius(self.ds)
+        self.light_min_radius = light_keep_out_radius(self.cfg, self.ds)
         if self.extent < MIN_EXTENT:
             import warnings
 

@@ -249,8 +249,8 @@ def check_device_budget(info, renders, max_faces: int | None) -> None:
         if total > 0.9 * info.global_mem_bytes:
             faces = f" and {max_faces} faces" if max_faces is not None else ""
             raise ValueError(f"a {width}x{height} render with K={K} fragments per pixel{faces} needs up to "
-                             f"{total / 2**30:.2f} GiB of device memory, {info.device_name!r} has "
-                             f"{info.global_mem_bytes / 2**30:.2f} GiB: {fix}")
+                             f"{total / 2**30:.2f} GiB of device memory, more than 90 % of the "
+                             f"{info.global_mem_bytes / 2**30:.2f} GiB {info.device_name!r} has: {fix}")
 
 
 def check_image_sizes(ds, downscale: int = 1) -> None:
