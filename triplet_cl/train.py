@@ -626,23 +626,26 @@ def scene_extent(ds: Dataset, frame: bool = True) -> float:
 INIT_BOX_CAMERA = 0.4
 
 
+def mean_camera_distance(ds: Dataset) -> float:
+    """The training cameras' mean distance from :func:`look_at_center`."""
+    return float(np.linalg.norm(ds.camera_centers() - look_at_center(ds), axis=1).mean())
+
+
 def random_points(ds: Dataset, n: int, box: float, rng: np.random.Generator, frame: bool = True) -> np.ndarray:
     """``n`` uniform points in a cube around :func:`look_at_center`, half-size ``box`` × :func:`frame_radius`
     (``frame``; 1.1 × 1.165 ≈ the method's ±1.3 on NeRF-synthetic objects) but at most :data:`INIT_BOX_CAMERA` × the
     mean camera distance from it, or ``box`` × that distance (``frame`` False: runs before)."""
-    c = look_at_center(ds)
-    dist = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean())
+    dist = mean_camera_distance(ds)
     r = min(frame_radius(ds) * box, INIT_BOX_CAMERA * dist) if frame else dist * box
-    return c + rng.uniform(-r, r, (n, 3))
+    return look_at_center(ds) + rng.uniform(-r, r, (n, 3))
 
 
 def background_shell_points(ds: Dataset, n: int, radius: float, rng: np.random.Generator) -> np.ndarray:
     """``n`` points uniform on a sphere around :func:`look_at_center`, of radius ``radius`` × the mean camera
     distance from it: the far background of a capture (sky, walls) as part of the scene."""
-    c = look_at_center(ds)
-    r = float(np.linalg.norm(ds.camera_centers() - c, axis=1).mean()) * radius
+    r = mean_camera_distance(ds) * radius
     d = rng.normal(size=(n, 3))
-    return c + r * d / np.linalg.norm(d, axis=1, keepdims=True)
+    return look_at_center(ds) + r * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def triangles_from_points(points: np.ndarray, size: float, rng: np.random.Generator) -> np.ndarray:
@@ -681,9 +684,7 @@ def light_keep_out_radius(cfg: TrainConfig, ds: Dataset) -> float:
     than the cameras' own distance, and would push the lights behind them)."""
     if not cfg.light_min_distance > 0 or not ds.train:
         return 0.0
-    c = look_at_center(ds)
-    dist = float(np.mean([np.linalg.norm(v.camera.center - c) for v in ds.train]))
-    return float(cfg.light_min_distance * min(frame_radius(ds), dist))
+    return float(cfg.light_min_distance * min(frame_radius(ds), mean_camera_distance(ds)))
 
 
 def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):

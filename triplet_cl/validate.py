@@ -202,27 +202,23 @@ def _check_options(args) -> None:
         check_memory_for_points((init if init is not None else 20_000) + shell, "--background-shell")
     tex = getattr(args, "texture_size", None)
     if tex is not None and tex > 0:
-        need, avail = tex * tex * TEXTURE_BYTES_PER_TEXEL, available_memory()
-        if avail is not None and need > 0.8 * avail:
-            raise UsageError("--texture-size", f"baking a {tex}² texture needs about {need / 2**30:.1f} GiB of memory, "
-                                               f"more than 80 % of the {avail / 2**30:.1f} GiB this machine has "
-                                               "available")
+        check_host_memory("--texture-size", f"baking a {tex}² texture", tex * tex * TEXTURE_BYTES_PER_TEXEL)
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
-        need, avail = res**3 * TSDF_BYTES_PER_VOXEL, available_memory()
-        if avail is not None and need > 0.8 * avail:
-            raise UsageError("--mesh-resolution", f"a {res}³ TSDF needs about {need / 2**30:.1f} GiB of memory, more "
-                                                  f"than 80 % of the {avail / 2**30:.1f} GiB this machine has "
-                                                  "available")
+        check_host_memory("--mesh-resolution", f"a {res}³ TSDF", res**3 * TSDF_BYTES_PER_VOXEL)
+
+
+def check_host_memory(option: str, what: str, need: float) -> None:
+    """Refuse ``option`` when ``what`` needs more than 80 % of the host memory available (unknown: accepted)."""
+    avail = available_memory()
+    if avail is not None and need > 0.8 * avail:
+        raise UsageError(option, f"{what} would need about {need / 2**30:.1f} GiB of memory, more than 80 % of the "
+                                 f"{avail / 2**30:.1f} GiB this machine has available")
 
 
 def check_memory_for_points(n: int, option: str = "--init-points") -> None:
     """Refuse ``--init-points`` / ``--max-faces`` whose estimated host memory exceeds what is available."""
-    need = n * HOST_BYTES_PER_INIT_POINT
-    avail = available_memory()
-    if avail is not None and need > 0.8 * avail:
-        raise UsageError(option, f"{n} triangles need about {need / 2**30:.1f} GiB of memory, more than 80 % of the "
-                                 f"{avail / 2**30:.1f} GiB this machine has available")
+    check_host_memory(option, f"{n} triangles", n * HOST_BYTES_PER_INIT_POINT)
 
 
 def device_budget(width: int, height: int, K: int, max_faces: int | None) -> tuple[int, int]:
