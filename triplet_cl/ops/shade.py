@@ -28,8 +28,9 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..device import Device, get_device
-from ..lights import LightTable, kernel_defines, pack_lights, unpack_gradients
-from ..materials import DEFAULT_BRDF, get_brdf
+from ..lights import (AmbientLight, DirectionalLight, LightTable, PointLight, kernel_defines, pack_lights,
+                      unpack_gradients)
+from ..materials import COOK_TORRANCE, DEFAULT_BRDF, get_brdf
 from .common import check_real, check_shape, device_rows, empty, launch, round_up, to_device, to_host
 from .vertex_sh import check_cam
 
@@ -262,17 +263,7 @@ def _launch_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, outs: dict
         # (an inactive parameter's gradient stays 0)
         active = np.ones(T, bool)
         active[inp.table.inactive] = False
-        if deferred:
-            from ..autodiff.arrays import Deferred, download_deferred
-
-            dl = download_deferred(part)
-
-            def total(dl=dl, v_params=v_params, active=active):
-                v_params[active] = dl.resolve()[:, :T][:, active].sum(axis=0, dtype=np.float64)
-                return v_params
-
-            return Deferred(v_params.shape, total)
-        v_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
+        return _sum_partials(part, T, active, v_params, deferred)
     return v_params
 
 
@@ -302,13 +293,59 @@ def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTab
                        bool(two_sided), real, vis=fa if "VIS" in blocks else None, blocks=dict(blocks))
 
 
-def forward_packed(dev: Device, inp: ShadeInputs) -> tuple[cla.Array, cla.Array | None]:
+#: the light types ``shade_lanes.cl`` shades (by their ``lights.py`` class ``TYPE``)
+LANES_LIGHT_TYPES = frozenset({AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE})
+LANES = 8  # fragments per work-item of shade_lanes.cl (its W)
+
+
+def lanes_supported(dev: Device, inp: ShadeInputs) -> bool:
+    """Whether packed inputs take ``shade_lanes.cl`` (eight fragments per work-item in vector lanes) instead of
+    ``shade.cl``: on a CPU device (where only that form vectorises: ``bench/pocl_vectorize.py``; a GPU keeps one
+    fragment per work-item), for the Cook-Torrance BRDF under ambient, directional and point lights, with at most
+    the shadow casters' transmittance among the ray-traced terms (no vertex-SH light, environment occlusion,
+    reflection bounce or per-fragment eye)."""
+    return (dev.is_cpu and inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.vlight is None
+            and inp.refl is None and inp.eye is None and inp.env_occ == 0 and len(inp.table.params) > 0
+            and len(inp.table.ints) > 0 and set(np.asarray(inp.table.ints)[:, 0].tolist()) <= LANES_LIGHT_TYPES)
+
+
+def _lanes_defines(inp: ShadeInputs) -> dict:
+    """The build defines of ``shade_lanes.cl`` for packed inputs: the row layout, ``HAS_VIS``, the light table
+    and its parameter count, the light type ids."""
+    d = {"RED_W": RED_W, **_layout_defines(inp), **_table_defines(inp.table),
+         "NUM_PARAMS": len(inp.table.params), **kernel_defines()}
+    if inp.vis is not None and inp.vis_width > 0:
+        d["HAS_VIS"] = True
+    return d
+
+
+def _lanes_groups(P: int) -> int:
+    """Work-groups of ``LOCAL_SIZE`` work-items, ``LANES`` fragments each, for ``P`` fragments."""
+    return round_up(-(-P // LANES), LOCAL_SIZE) // LOCAL_SIZE
+
+
+def _use_lanes(dev: Device, inp: ShadeInputs, lanes: bool | None) -> bool:
+    if lanes is None:
+        return lanes_supported(dev, inp)
+    if lanes and not lanes_supported(dev, inp):
+        raise ValueError("these shading inputs cannot take shade_lanes.cl (lanes_supported is False)")
+    return bool(lanes)
+
+
+def forward_packed(dev: Device, inp: ShadeInputs, lanes: bool | None = None) -> tuple[cla.Array, cla.Array | None]:
     """``(rgb [P, 3], alpha [P] or None)`` of packed inputs (:func:`packed_inputs`): the shading of
-    :func:`forward`, and the alpha block copied out in the same pass (what the compositing reads)."""
+    :func:`forward`, and the alpha block copied out in the same pass (what the compositing reads).
+    ``lanes``: ``shade_lanes.cl`` (True), ``shade.cl`` (False) or where supported (None:
+    :func:`lanes_supported`)."""
     P = inp.P
     rgb = device_rows(dev, (P, 3), inp.real)
     alpha = device_rows(dev, (P,), inp.real) if "ALPHA" in inp.blocks else None
-    if P:
+    if P and _use_lanes(dev, inp, lanes):
+        extra = dict(alpha=alpha) if alpha is not None else {}
+        launch(dev, "shade_lanes", "shade_lanes_fwd", (_lanes_groups(P) * LOCAL_SIZE,), (LOCAL_SIZE,),
+               defines=_lanes_defines(inp), real=inp.real, fa=inp.pos, P=P, cx=inp.cam[0], cy=inp.cam[1],
+               cz=inp.cam[2], two_sided=int(inp.two_sided), lt_f=inp.lt_f, **extra, rgb=rgb)
+    elif P:
         extra = dict(alpha_src=inp.pos, alpha=alpha) if alpha is not None else {}
         launch(dev, "shade", "shade_fwd", (round_up(P, LOCAL_SIZE),), (LOCAL_SIZE,), defines=_defines(inp),
                real=inp.real, **_inputs(inp), **extra, rgb=rgb)
@@ -316,7 +353,7 @@ def forward_packed(dev: Device, inp: ShadeInputs) -> tuple[cla.Array, cla.Array 
 
 
 def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cla.Array | None = None,
-                    deferred: bool = False):
+                    deferred: bool = False, lanes: bool | None = None):
     """``(v_fa [P, C], v_light_params [T] numpy)``: the adjoint of :func:`forward_packed`, written straight into
     the blocks of the attributes' adjoint (``v_alpha [P]`` into the alpha block; a column outside every block is
     not written). ``deferred``: ``v_light_params`` as an ``autodiff`` ``Deferred`` (no wait here)."""
@@ -326,12 +363,52 @@ def backward_packed(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha: cl
         if v_alpha is None:
             raise ValueError("v_alpha [P] is required with an ALPHA block")
         extra = dict(v_alpha=v_alpha, v_alpha_dst=v_fa)
+    if _use_lanes(dev, inp, lanes):
+        return v_fa, _launch_lanes_backward(dev, inp, v_rgb, v_alpha, v_fa, deferred)
     outs = dict(v_pos=v_fa, v_nrm=v_fa, v_mat=v_fa)
     if inp.vlight is not None:
         outs["v_vlight"] = v_fa
     if inp.vis is not None:
         outs["v_vis"] = v_fa
     return v_fa, _launch_backward(dev, inp, v_rgb, outs, extra, deferred=deferred)
+
+
+def _sum_partials(part: cla.Array, T: int, active: np.ndarray, v_params: np.ndarray, deferred: bool):
+    """The light parameters' gradient from the per-work-group partials ``part [groups, >= T]`` (float64 sums of
+    the ``active`` columns; an inactive parameter's gradient stays 0), or as a ``Deferred``."""
+    if deferred:
+        from ..autodiff.arrays import Deferred, download_deferred
+
+        dl = download_deferred(part)
+
+        def total(dl=dl, v_params=v_params, active=active):
+            v_params[active] = dl.resolve()[:, :T][:, active].sum(axis=0, dtype=np.float64)
+            return v_params
+
+        return Deferred(v_params.shape, total)
+    v_params[active] = part.get()[:, :T][:, active].sum(axis=0, dtype=np.float64)
+    return v_params
+
+
+def _launch_lanes_backward(dev: Device, inp: ShadeInputs, v_rgb: cla.Array, v_alpha, v_fa: cla.Array,
+                           deferred: bool):
+    """``shade_lanes_bwd`` into ``v_fa``; returns the light parameters' gradient as :func:`_launch_backward`."""
+    q, P, real = dev.queue, inp.P, inp.real
+    T = len(inp.table.params)
+    v_params = np.zeros(T)
+    groups = _lanes_groups(P)
+    part = empty(q, (max(groups, 1), T), real)
+    if not P:
+        return v_params
+    dev.check_alloc(groups * T * np.dtype(real).itemsize, "shade light-gradient partials")
+    extra = dict(v_alpha=v_alpha) if "ALPHA" in inp.blocks else {}
+    launch(dev, "shade_lanes", "shade_lanes_bwd", (groups * LOCAL_SIZE,), (LOCAL_SIZE,),
+           defines=_lanes_defines(inp), real=real, fa=inp.pos, P=P, cx=inp.cam[0], cy=inp.cam[1], cz=inp.cam[2],
+           two_sided=int(inp.two_sided), lt_f=inp.lt_f, v_rgb=v_rgb, **extra, v_fa=v_fa, v_light_part=part,
+           scratch=cl.LocalMemory(LOCAL_SIZE * RED_W * np.dtype(real).itemsize))
+    active = np.ones(T, bool)
+    active[inp.table.inactive] = False
+    return _sum_partials(part, T, active, v_params, deferred)
 
 
 # ---- validation ------------------------------------------------------------------------------
