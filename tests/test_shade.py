@@ -542,7 +542,7 @@ def test_packed_blocks_match_separate_arrays(device, rng, brdf, kind, with_vis, 
     q = device.queue
     pinp = shade_op.packed_inputs(device, cla.to_device(q, fa), blocks, CAM, table, inp.lt_i, inp.lt_f, brdf, True,
                                   np.float32)
-    rgb, a = shade_op.forward_packed(device, pinp)
+    rgb, a = shade_op.forward_packed(device, pinp, lanes=False)  # shade.cl (shade_lanes.cl: test_shade_lanes.py)
     assert same(rgb.get(), shade_op.forward(device, inp).get())
     assert np.array_equal(a.get(), fa[:, blocks["ALPHA"][0]])
     v_rgb_h = rng.standard_normal((P, 3)).astype(np.float32)
@@ -550,7 +550,7 @@ def test_packed_blocks_match_separate_arrays(device, rng, brdf, kind, with_vis, 
     v_rgb_h[dead] = 0.0
     v_rgb = cla.to_device(q, v_rgb_h)
     v_a = cla.to_device(q, rng.standard_normal(P).astype(np.float32))
-    v_fa, v_par = shade_op.backward_packed(device, pinp, v_rgb, v_a)
+    v_fa, v_par = shade_op.backward_packed(device, pinp, v_rgb, v_a, lanes=False)
     g = shade_op.backward(device, inp, v_rgb)
     v_fa = v_fa.get()
     others = [c for c in range(v_fa.shape[1]) if c != blocks["ALPHA"][0]]
