@@ -134,6 +134,36 @@ def test_opencl_backend_matches_numpy(lam, padding, shape, device64, rng):
     np.testing.assert_allclose(gy_d.get(), gy_h, rtol=1e-10, atol=1e-15)
 
 
+@pytest.mark.parametrize(("lam", "padding", "shape"), [(0.2, "zero", (17, 19, 3)), (0.0, "zero", (9, 16, 3)),
+                                                       (0.2, "valid", (23, 40, 3)), (0.2, "zero", (5, 7, 3)),
+                                                       (0.2, "zero", (1, 1, 3)), (0.2, "zero", (64, 64, 3))])
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_lanes_kernels_match_the_one_pixel_kernels(lam, padding, shape, real, device64, rng, bitwise, monkeypatch):
+    """losses.cl's ``*8`` kernels (eight pixels of a row per work-item: what a CPU device runs for colour images)
+    give the one-pixel kernels' loss and adjoints bit for bit (the same operations per value in the same order), on
+    widths below, at and past a multiple of 8, one pixel, a row shorter than the window; within a few ulp on devices
+    that round builds differently."""
+    import pyopencl.array as cla
+    from triplet_cl.autodiff import Context
+
+    q = device64.queue
+    x, y = (cla.to_device(q, rng.random(shape).astype(real)) for _ in range(2))
+    out = {}
+    for lanes in (True, False):
+        monkeypatch.setattr(losses, "_lanes", lambda dev, c, lanes=lanes: lanes and c == 3)
+        fn = losses.PhotometricLoss(lam, padding)
+        ctx = Context((True, True))
+        value = float(fn.forward(ctx, x, y))
+        gx, gy = fn.backward(ctx, np.asarray(1.3))
+        out[lanes] = (value, gx.get(), gy.get())
+    for a, b in zip(out[True][1:], out[False][1:], strict=True):
+        if bitwise:
+            assert np.array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-5 if real == np.float32 else 1e-12, atol=0)
+    assert out[True][0] == (out[False][0] if bitwise else pytest.approx(out[False][0], rel=1e-6))
+
+
 def test_opencl_backend_gradcheck_and_float32(device64, rng):
     import pyopencl.array as cla
 

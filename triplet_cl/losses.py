@@ -50,7 +50,7 @@ import pyopencl.array as cla
 import scipy.ndimage
 
 from triplet_cl.autodiff import Function, to_host
-from triplet_cl.ops.common import device_empty
+from triplet_cl.ops.common import device_empty, round_up
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -450,6 +450,28 @@ def _ch_defines(c: int) -> dict | None:
     return {"CH3": True} if c == 3 else None
 
 
+def _lanes(dev, c: int) -> bool:
+    """Whether the photometric passes run as losses.cl's ``*8`` kernels (eight pixels of a row per work-item in
+    vector lanes, the same operations per pixel in the same order): on a CPU device, for colour images (PoCL
+    vectorises the one-pixel kernels neither across work-items nor over the taps; a GPU keeps one pixel per
+    work-item)."""
+    return c == 3 and dev.is_cpu
+
+
+#: values of slack past the end of the SSIM scratch maps (tmp, d, tmp2): one work-item's 8 pixels x 3 channels
+NV_SLACK = 24
+
+
+def _pass_grid(dev, h: int, w: int, c: int):
+    """``(global size, local size, the size arguments, kernel-name suffix)`` of a photometric pass over ``[h, w, c]``
+    images: the ``*8`` kernels (:func:`_lanes`) in fixed 8 x 8 work-groups over (ceil(w / 8), h) rounded up (left to
+    the runtime, PoCL picked groups of one work-item for an odd width: 4x slower than the one-pixel kernels), with no
+    channel argument; else one work-item per pixel, the runtime's choice of group."""
+    if _lanes(dev, c):
+        return (round_up(-(-w // 8), 8), round_up(h, 8)), (8, 8), (np.int32(h), np.int32(w)), "8"
+    return (w, h), None, (np.int32(h), np.int32(w), np.int32(c)), ""
+
+
 def _cl_scratch(dev, dtype, shape):
     key = (dev.ctx, np.dtype(dtype), tuple(shape))
     sc = _CL_SCRATCH.get(key)
@@ -457,7 +479,10 @@ def _cl_scratch(dev, dtype, shape):
         n = int(np.prod(shape))
         dev.check_alloc(5 * n * np.dtype(dtype).itemsize, "the SSIM scratch buffer")
         window = cla.to_device(dev.queue, gaussian_window_1d().astype(dtype))
-        sc = (device_empty(dev.queue, (5 * n,), dtype), device_empty(dev.queue, (4 * n,), dtype), window)
+        # NV_SLACK values past the end: the *8 kernels' vertical taps read a row's last eight pixels in place, past the
+        # image's end on its last row (values only lanes that are never stored see)
+        sc = (device_empty(dev.queue, (5 * n + NV_SLACK,), dtype), device_empty(dev.queue, (4 * n + NV_SLACK,), dtype),
+              window)
         _CL_SCRATCH.clear()  # keep one size class (the training resolution) alive
         _CL_SCRATCH[key] = sc
     return sc
@@ -484,15 +509,14 @@ def _cl_photometric_fwd(ctx, pred, target, lam, padding):
     tmp, _, window = _cl_scratch(dev, pred.dtype, pred.shape)
     with_ssim = lam > 0.0
     term = cla.empty_like(pred)
-    d = device_empty(dev.queue, (4 * pred.size,), pred.dtype) if with_ssim else tmp  # placeholder when unused
-    gsize = (w, h)
+    d = device_empty(dev.queue, (4 * pred.size + NV_SLACK,), pred.dtype) if with_ssim else tmp  # (tmp: unused)
+    gsize, lsize, hwc, sfx = _pass_grid(dev, h, w, c)
     if with_ssim:
-        dev.kernel("losses", "photometric_h_fwd", _ch_defines(c), real=pred.dtype)(
-            dev.queue, gsize, None, pred.data, target.data, window.data, np.int32(h), np.int32(w), np.int32(c),
-            tmp.data)
-    dev.kernel("losses", "photometric_v_fwd", _ch_defines(c), real=pred.dtype)(
-        dev.queue, gsize, None, pred.data, target.data, tmp.data, window.data, np.int32(h), np.int32(w),
-        np.int32(c), real(lam), np.int32(with_ssim), np.int32(border), real(1.0 / count), term.data, d.data)
+        dev.kernel("losses", "photometric_h_fwd" + sfx, _ch_defines(c), real=pred.dtype)(
+            dev.queue, gsize, lsize, pred.data, target.data, window.data, *hwc, tmp.data)
+    dev.kernel("losses", "photometric_v_fwd" + sfx, _ch_defines(c), real=pred.dtype)(
+        dev.queue, gsize, lsize, pred.data, target.data, tmp.data, window.data, *hwc, real(lam), np.int32(with_ssim),
+        np.int32(border), real(1.0 / count), term.data, d.data)
     ctx.dev, ctx.lam, ctx.with_ssim, ctx.saved_cl = dev, lam, with_ssim, (pred, target, d)
     # the [H, W, C] terms summed in float64 on the host: download + numpy's pairwise sum measured 4x faster than
     # pyopencl's float64 reduction on PoCL (200²: 0.25 -> 0.06 ms, 800²: 4.2 -> 1.1 ms); the same float64 sum of
@@ -510,13 +534,13 @@ def _cl_photometric_bwd(ctx, v):
     want_t = bool(ctx.needs_input_grad[1])
     v_pred = cla.empty_like(pred)
     v_target = cla.empty_like(pred) if want_t else v_pred
+    gsize, lsize, hwc, sfx = _pass_grid(dev, h, w, c)
     if ctx.with_ssim:
-        dev.kernel("losses", "photometric_h_bwd", _ch_defines(c), real=pred.dtype)(
-            dev.queue, (w, h), None, d.data, window.data, np.int32(h), np.int32(w), np.int32(c), tmp2.data)
-    dev.kernel("losses", "photometric_v_bwd", _ch_defines(c), real=pred.dtype)(
-        dev.queue, (w, h), None, pred.data, target.data, tmp2.data, window.data, np.int32(h), np.int32(w),
-        np.int32(c), real(lam), np.int32(ctx.with_ssim), real(float(v)), np.int32(want_t), v_pred.data,
-        v_target.data)
+        dev.kernel("losses", "photometric_h_bwd" + sfx, _ch_defines(c), real=pred.dtype)(
+            dev.queue, gsize, lsize, d.data, window.data, *hwc, tmp2.data)
+    dev.kernel("losses", "photometric_v_bwd" + sfx, _ch_defines(c), real=pred.dtype)(
+        dev.queue, gsize, lsize, pred.data, target.data, tmp2.data, window.data, *hwc, real(lam),
+        np.int32(ctx.with_ssim), real(float(v)), np.int32(want_t), v_pred.data, v_target.data)
     if ctx.download:
         return v_pred.get(), (v_target.get() if want_t else None)
     return v_pred, (v_target if want_t else None)

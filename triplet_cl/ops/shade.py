@@ -16,6 +16,10 @@ by the parameter model:
 camera. Output ``rgb [P, 3]``; the backward pass returns per-fragment adjoints and the gradient of
 every light parameter (per-work-group partial sums, summed on the host: deterministic, no atomics).
 Formulas: ``kernels_cl/common/shade_brdf.h`` and ``kernels_cl/shade.cl``.
+
+On a CPU device the packed path (:func:`forward_packed`, :func:`backward_packed`: what ``render`` uses) runs the
+Cook-Torrance BRDF under ambient, directional and point lights as ``kernels_cl/shade_lanes.cl``, eight fragments per
+work-item in vector lanes (:func:`lanes_supported`); ``shade.cl`` stays the reference and serves everything else.
 """
 
 from __future__ import annotations
@@ -28,8 +32,15 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..device import Device, get_device
-from ..lights import (AmbientLight, DirectionalLight, LightTable, PointLight, kernel_defines, pack_lights,
-                      unpack_gradients)
+from ..lights import (
+    AmbientLight,
+    DirectionalLight,
+    LightTable,
+    PointLight,
+    kernel_defines,
+    pack_lights,
+    unpack_gradients,
+)
 from ..materials import COOK_TORRANCE, DEFAULT_BRDF, get_brdf
 from .common import check_real, check_shape, device_rows, empty, launch, round_up, to_device, to_host
 from .vertex_sh import check_cam
