@@ -37,7 +37,9 @@
 #error "shade_lanes.cl needs NUM_LIGHTS, LIGHT_TABLE and NUM_PARAMS (ops/shade.py)"
 #endif
 __constant int LIGHT_ROWS[] = {LIGHT_TABLE};
-/* the lane select: c ? b : a, per lane (c a comparison of S values) */
+/* the lane select: c ? b : a, per lane (c a comparison of S values, of type MASK_OF_<REAL>_8) */
+#define MASK_OF_float_8 int8
+#define MASK_OF_double_8 long8
 #define WHERE(c, b, a) select((a), (b), (c))
 
 typedef struct {
@@ -391,6 +393,10 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
         }
         const V3 v_o = v3(vload8(0, vo[0]), vload8(0, vo[1]), vload8(0, vo[2]));
         const S zero = (S)(0);
+        /* the lanes with a cotangent: the others (past P, or behind the compositing's cut-off) get exact zeros, as
+         * shade.cl's skip gives them, whatever their attributes hold (a non-finite one must not reach the sums) */
+#define KEEP(v) WHERE(live, (v), zero)
+        const TRIPLET_CAT(TRIPLET_CAT(MASK_OF_, REAL), _8) live = (v_o.x != (REAL)0) | (v_o.y != (REAL)0) | (v_o.z != (REAL)0);
         V3 v_x = v3(zero, zero, zero), v_V = v_x, v_N = v_x;
         S v_m[6];
         for (int j = 0; j < 6; ++j) v_m[j] = zero;
@@ -403,9 +409,9 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
             V3 v_L = v3(zero, zero, zero), v_Li = v_L;
             if (type == LIGHT_AMBIENT) {
                 ct_ambient_vjp(N, V, v3((S)(q[0]), (S)(q[1]), (S)(q[2])), m, v_o, &v_N, &v_V, &v_Li, v_m);
-                gsum[off] += lane_sum(v_Li.x);
-                gsum[off + 1] += lane_sum(v_Li.y);
-                gsum[off + 2] += lane_sum(v_Li.z);
+                gsum[off] += lane_sum(KEEP(v_Li.x));
+                gsum[off + 1] += lane_sum(KEEP(v_Li.y));
+                gsum[off + 2] += lane_sum(KEEP(v_Li.z));
             } else if (type == LIGHT_DIRECTIONAL) {
                 const S tv = TV(jv);
                 const V3 d = v3((S)(q[0]), (S)(q[1]), (S)(q[2]));
@@ -414,12 +420,12 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
                 v_tv[jv++] = v_Li.x * q[3] + v_Li.y * q[4] + v_Li.z * q[5];
                 v_Li = v3_scale(v_Li, tv);
                 const V3 v_d = safe_normalize_vjp_w(d, v_L);
-                gsum[off] += lane_sum(v_d.x);
-                gsum[off + 1] += lane_sum(v_d.y);
-                gsum[off + 2] += lane_sum(v_d.z);
-                gsum[off + 3] += lane_sum(v_Li.x);
-                gsum[off + 4] += lane_sum(v_Li.y);
-                gsum[off + 5] += lane_sum(v_Li.z);
+                gsum[off] += lane_sum(KEEP(v_d.x));
+                gsum[off + 1] += lane_sum(KEEP(v_d.y));
+                gsum[off + 2] += lane_sum(KEEP(v_d.z));
+                gsum[off + 3] += lane_sum(KEEP(v_Li.x));
+                gsum[off + 4] += lane_sum(KEEP(v_Li.y));
+                gsum[off + 5] += lane_sum(KEEP(v_Li.z));
             } else if (type == LIGHT_POINT) {
                 const S tv = TV(jv);
                 const V3 w = v3_sub(v3((S)(q[0]), (S)(q[1]), (S)(q[2])), x);
@@ -437,12 +443,12 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
                     v_w = v3_sub(v_w, v3_scale(w, k2));
                 }
                 v_x = v3_sub(v_x, v_w);
-                gsum[off] += lane_sum(v_w.x);
-                gsum[off + 1] += lane_sum(v_w.y);
-                gsum[off + 2] += lane_sum(v_w.z);
-                gsum[off + 3] += lane_sum(v_Li.x * sc);
-                gsum[off + 4] += lane_sum(v_Li.y * sc);
-                gsum[off + 5] += lane_sum(v_Li.z * sc);
+                gsum[off] += lane_sum(KEEP(v_w.x));
+                gsum[off + 1] += lane_sum(KEEP(v_w.y));
+                gsum[off + 2] += lane_sum(KEEP(v_w.z));
+                gsum[off + 3] += lane_sum(KEEP(v_Li.x * sc));
+                gsum[off + 4] += lane_sum(KEEP(v_Li.y * sc));
+                gsum[off + 5] += lane_sum(KEEP(v_Li.z * sc));
             }
         }
         /* the view direction and the normal's own normalisation (with the two-sided flip) */
@@ -456,16 +462,17 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
 #define NCOL 12
 #endif
         REAL o[NCOL][W];
-        vstore8(v_x.x, 0, o[0]);
-        vstore8(v_x.y, 0, o[1]);
-        vstore8(v_x.z, 0, o[2]);
-        vstore8(v_n.x, 0, o[3]);
-        vstore8(v_n.y, 0, o[4]);
-        vstore8(v_n.z, 0, o[5]);
-        for (int j = 0; j < 6; ++j) vstore8(v_m[j], 0, o[6 + j]);
+        vstore8(KEEP(v_x.x), 0, o[0]);
+        vstore8(KEEP(v_x.y), 0, o[1]);
+        vstore8(KEEP(v_x.z), 0, o[2]);
+        vstore8(KEEP(v_n.x), 0, o[3]);
+        vstore8(KEEP(v_n.y), 0, o[4]);
+        vstore8(KEEP(v_n.z), 0, o[5]);
+        for (int j = 0; j < 6; ++j) vstore8(KEEP(v_m[j]), 0, o[6 + j]);
 #ifdef HAS_VIS
-        for (int j = 0; j < jv; ++j) vstore8(v_tv[j], 0, o[12 + j]);
+        for (int j = 0; j < jv; ++j) vstore8(KEEP(v_tv[j]), 0, o[12 + j]);
 #endif
+#undef KEEP
         const int n = min(W, P - p0);
         for (int k = 0; k < n; ++k) {
             __global REAL* row = v_fa + (size_t)(p0 + k) * POS_LD;

@@ -26,15 +26,16 @@ LIGHT_SETS = {
     "point": lambda: [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0], falloff=True)],
     "point_nofalloff": lambda: [PointLight([-1.0, 0.5, 2.0], [0.9, 0.8, 1.1], falloff=False)],
     "directional": lambda: [DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7])],
-    # the training's default (point + ambient) and more casters than the reduction's 16 columns hold (21 params)
+    # the training's default (point + ambient, 9 parameters)
     "point_ambient": lambda: [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]), AmbientLight([0.1, 0.1, 0.1])],
+    # more parameters (21) than the reduction's 16 columns: two rounds of the group sum
     "mix": lambda: [AmbientLight([0.2, 0.5, 0.8]), PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]),
                     DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7]),
                     PointLight([-1.0, 0.5, 2.0], [0.9, 0.8, 1.1], falloff=False)],
 }
 
 
-def packed_case(device, rng, lights, P, real, with_vis, rough_lo=0.2):
+def packed_case(device, rng, lights, P, real, with_vis, rough_lo=0.2, two_sided=True):
     """Packed inputs (blocks in a shuffled order, as the rasterizer lays them out: alpha between position and normal,
     visibility last) and the same arrays; returns (packed ShadeInputs, the [P, C] host array, blocks)."""
     pos, nrm, mat, _, _ = make_fragments(rng, "cook_torrance", P=P, rough_lo=rough_lo)
@@ -48,7 +49,7 @@ def packed_case(device, rng, lights, P, real, with_vis, rough_lo=0.2):
     fa = np.concatenate([a for _, a in named], 1).astype(real)
     _, inp = shade_op.prepare(pos, nrm, mat, np.zeros(P, np.int32), CAM, lights, device=device, real=real)
     pinp = shade_op.packed_inputs(device, cla.to_device(device.queue, fa), blocks, CAM, table, inp.lt_i, inp.lt_f,
-                                  "cook_torrance", True, real)
+                                  "cook_torrance", two_sided, real)
     return pinp, fa, blocks
 
 
@@ -65,16 +66,17 @@ def written_columns(blocks):
 
 
 @pytest.mark.parametrize("kind", sorted(LIGHT_SETS))
-@pytest.mark.parametrize("P", [1, 7, 96, 333])
+@pytest.mark.parametrize("P", [1, 7, 96, 333, 1500])
 @pytest.mark.parametrize("with_vis", [False, True])
 def test_lanes_match_shade_cl_float64(device64, rng, kind, P, with_vis):
     """Every output of the lanes kernel equals shade.cl's to float64 rounding (the same formulas, evaluated in
     another order): rgb, the alpha copy (exact), each adjoint block, the alpha adjoint (exact) and the light
-    gradients; P not a multiple of 8 (the last work-item's lanes past P), one fragment, rows with a zero cotangent
+    gradients; P not a multiple of 8 (the last work-item's lanes past P), one fragment, several work-groups (1500:
+    their partial sums added on the host), one-sided shading on the largest case, rows with a zero cotangent
     (exactly zero adjoints, as shade.cl's skip)."""
     lights = LIGHT_SETS[kind]()
-    pinp, fa, blocks = packed_case(device64, rng, lights, P, np.float64, with_vis)
-    assert shade_op.lanes_supported(device64, pinp)
+    pinp, fa, blocks = packed_case(device64, rng, lights, P, np.float64, with_vis, two_sided=P != 1500)
+    assert shade_op.lanes_cover(pinp)
     v_rgb = rng.standard_normal((P, 3))
     dead = rng.uniform(size=P) < 0.25
     v_rgb[dead] = 0.0
@@ -166,8 +168,10 @@ def test_lanes_float64_central_differences(device64, rng, with_vis):
 
 
 def test_lanes_supported_and_refused(device, rng):
-    """The lanes kernel takes Cook-Torrance under ambient / directional / point lights (with the shadow casters'
-    transmittance) on a CPU device; everything else stays on shade.cl, and asking for lanes there is an error."""
+    """The lanes kernel covers Cook-Torrance under ambient / directional / point lights (with the shadow casters'
+    transmittance) and is the default on a CPU device; everything else stays on shade.cl (a vertex-SH light and its VL
+    block, an SH environment, environment-occlusion columns, no lights, Blinn-Phong, separate arrays), and asking for
+    lanes there is an error."""
     pinp, _, _ = packed_case(device, rng, LIGHT_SETS["mix"](), 16, np.float32, True)
     assert shade_op.lanes_supported(device, pinp) == device.is_cpu
     for lights in ([SHEnvironmentLight(np.ones((3, 4)))], [PointLight([1, 1, 1], [1, 1, 1]), VertexSHLight()]):
@@ -176,17 +180,23 @@ def test_lanes_supported_and_refused(device, rng):
                                      CAM, table, pinp.lt_i, pinp.lt_f, "cook_torrance", True, np.float32,
                                      blocks=pinp.blocks)
         assert not shade_op.lanes_supported(device, other)
-        with pytest.raises(ValueError, match="lanes_supported"):
+        with pytest.raises(ValueError, match="lanes_cover is False"):
             shade_op.forward_packed(device, other, lanes=True)
     bp = shade_op.ShadeInputs(**{**pinp.__dict__, "brdf": "blinn_phong"})
     assert not shade_op.lanes_supported(device, bp)
     unpacked = shade_op.ShadeInputs(**{**pinp.__dict__, "blocks": None})
     assert not shade_op.lanes_supported(device, unpacked)
+    # the shadow casters' columns and then environment-occlusion ones (VIS wider than the casters)
+    occ = shade_op.ShadeInputs(**{**pinp.__dict__, "blocks": {**pinp.blocks, "VIS": (pinp.blocks["VIS"][0],
+                                                                                      pinp.table.num_shadowed + 3)}})
+    assert occ.env_occ == 3 and not shade_op.lanes_cover(occ)
+    empty = shade_op.ShadeInputs(**{**pinp.__dict__, "table": pack_lights([])})
+    assert not shade_op.lanes_cover(empty)
 
     class Gpu:
         is_cpu = False
 
-    assert not shade_op.lanes_supported(Gpu(), pinp)
+    assert not shade_op.lanes_supported(Gpu(), pinp) and shade_op.lanes_cover(pinp)
 
 
 def test_render_through_lanes_matches_shade_cl(device64, rng, monkeypatch):
@@ -215,6 +225,7 @@ def test_render_through_lanes_matches_shade_cl(device64, rng, monkeypatch):
         return real_launch(dev, file, kernel, *a, **k)
 
     monkeypatch.setattr(shade_op, "launch", spy)
+    monkeypatch.setattr(shade_op, "lanes_supported", lambda dev, inp: shade_op.lanes_cover(inp))  # a GPU too
     r = render(scene, cam(), settings, device64)
     scene.zero_grad()
     grads = {k: np.array(v) for k, v in r.backward(w[..., :3], w[..., 3]).items()}
@@ -241,3 +252,26 @@ def test_render_through_lanes_matches_shade_cl(device64, rng, monkeypatch):
         idx, num, ok = sampled_fd(p, loss, rng, 20)
         assert ok.mean() > 0.9, p.name
         np.testing.assert_allclose(grads[p.name].reshape(-1)[idx][ok], num[ok], rtol=1e-5, atol=1e-7, err_msg=p.name)
+
+
+def test_lanes_rows_without_cotangent_give_zeros_whatever_they_hold(device64, rng):
+    """A row whose colour cotangent is zero (behind the compositing cut-off) gets exact zeros, as shade.cl's skip
+    gives it, even when its attributes are not finite: nothing of it reaches the light gradients of its work-group."""
+    lights = LIGHT_SETS["mix"]()
+    P = 40
+    pinp, fa, blocks = packed_case(device64, rng, lights, P, np.float64, True)
+    dead = np.zeros(P, bool)
+    dead[[3, 17, 39]] = True
+    fa[3, blocks["MAT"][0] + 3] = np.nan
+    fa[17, blocks["POS"][0]] = np.inf
+    fa[39, blocks["NRM"][0] + 1] = np.nan
+    pinp.pos = pinp.nrm = pinp.mat = pinp.vis = cla.to_device(device64.queue, fa)
+    v_rgb = rng.standard_normal((P, 3))
+    v_rgb[dead] = 0.0
+    v_a = rng.standard_normal(P)
+    got = run(device64, pinp, v_rgb, v_a, True)
+    want = run(device64, pinp, v_rgb, v_a, False)
+    cols = [c for c in written_columns(blocks) if c != blocks["ALPHA"][0]]
+    assert not got[2][np.ix_(dead, cols)].any()
+    assert np.isfinite(got[2][np.ix_(~dead, cols)]).all() and np.isfinite(got[3]).all()
+    np.testing.assert_allclose(got[3], want[3], rtol=1e-10, atol=1e-12 * np.abs(want[3]).max())

@@ -309,15 +309,20 @@ LANES_LIGHT_TYPES = frozenset({AmbientLight.TYPE, DirectionalLight.TYPE, PointLi
 LANES = 8  # fragments per work-item of shade_lanes.cl (its W)
 
 
+def lanes_cover(inp: ShadeInputs) -> bool:
+    """Whether ``shade_lanes.cl`` handles these inputs: packed rows, the Cook-Torrance BRDF under ambient, directional
+    and point lights, with at most the shadow casters' transmittance among the ray-traced terms (no vertex-SH light,
+    environment occlusion, reflection bounce or per-fragment eye)."""
+    return (inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.vlight is None and inp.refl is None
+            and inp.eye is None and inp.env_occ == 0 and len(inp.table.params) > 0 and len(inp.table.ints) > 0
+            and set(np.asarray(inp.table.ints)[:, 0].tolist()) <= LANES_LIGHT_TYPES)
+
+
 def lanes_supported(dev: Device, inp: ShadeInputs) -> bool:
-    """Whether packed inputs take ``shade_lanes.cl`` (eight fragments per work-item in vector lanes) instead of
-    ``shade.cl``: on a CPU device (where only that form vectorises: ``bench/pocl_vectorize.py``; a GPU keeps one
-    fragment per work-item), for the Cook-Torrance BRDF under ambient, directional and point lights, with at most
-    the shadow casters' transmittance among the ray-traced terms (no vertex-SH light, environment occlusion,
-    reflection bounce or per-fragment eye)."""
-    return (dev.is_cpu and inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.vlight is None
-            and inp.refl is None and inp.eye is None and inp.env_occ == 0 and len(inp.table.params) > 0
-            and len(inp.table.ints) > 0 and set(np.asarray(inp.table.ints)[:, 0].tolist()) <= LANES_LIGHT_TYPES)
+    """Whether packed inputs take ``shade_lanes.cl`` (eight fragments per work-item in vector lanes) by default
+    instead of ``shade.cl``: where it covers them (:func:`lanes_cover`) on a CPU device, where only that form
+    vectorises (``bench/pocl_vectorize.py``); a GPU keeps one fragment per work-item."""
+    return dev.is_cpu and lanes_cover(inp)
 
 
 def _lanes_defines(inp: ShadeInputs) -> dict:
@@ -336,18 +341,19 @@ def _lanes_groups(P: int) -> int:
 
 
 def _use_lanes(dev: Device, inp: ShadeInputs, lanes: bool | None) -> bool:
+    """``lanes`` None: the default (:func:`lanes_supported`); True: ``shade_lanes.cl`` on any device (a GPU too: the
+    tests' cross-check), which must cover the inputs; False: ``shade.cl``."""
     if lanes is None:
         return lanes_supported(dev, inp)
-    if lanes and not lanes_supported(dev, inp):
-        raise ValueError("these shading inputs cannot take shade_lanes.cl (lanes_supported is False)")
+    if lanes and not lanes_cover(inp):
+        raise ValueError("these shading inputs cannot take shade_lanes.cl (lanes_cover is False)")
     return bool(lanes)
 
 
 def forward_packed(dev: Device, inp: ShadeInputs, lanes: bool | None = None) -> tuple[cla.Array, cla.Array | None]:
     """``(rgb [P, 3], alpha [P] or None)`` of packed inputs (:func:`packed_inputs`): the shading of
     :func:`forward`, and the alpha block copied out in the same pass (what the compositing reads).
-    ``lanes``: ``shade_lanes.cl`` (True), ``shade.cl`` (False) or where supported (None:
-    :func:`lanes_supported`)."""
+    ``lanes``: ``shade_lanes.cl`` (True), ``shade.cl`` (False) or the default (None: :func:`lanes_supported`)."""
     P = inp.P
     rgb = device_rows(dev, (P, 3), inp.real)
     alpha = device_rows(dev, (P,), inp.real) if "ALPHA" in inp.blocks else None
