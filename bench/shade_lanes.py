@@ -5,7 +5,8 @@ Usage::
 
     python bench/shade_lanes.py [--sizes 160000 1000000] [--repeats 7] [--real float32] [--out bench/results/NAME.txt]
 
-Rows: fragments x light mix x cached shadows (a transmittance column per point / directional light, as the soup
+Rows: fragments x light mix (the soup's point + ambient, a directional light, three points, the mesh stage's point + SH
+environment of degree 2 + bounce) x cached shadows (a transmittance column per point / directional light, as the soup
 trains from iteration 600). The packed rows are laid out as ``render`` packs them (position, alpha, normal, the six
 Cook-Torrance channels, then the visibility), a quarter of the cotangent rows zero (behind the compositing cut-off,
 as a late soup's). Times: the best of ``--repeats`` calls (forward; backward including the host sum of the
@@ -24,7 +25,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from triplet_cl.device import get_device
-from triplet_cl.lights import AmbientLight, DirectionalLight, PointLight, pack_lights
+from triplet_cl.lights import AmbientLight, BounceLight, DirectionalLight, PointLight, SHEnvironmentLight, pack_lights
 from triplet_cl.ops import shade as shade_op
 
 MIXES = {
@@ -32,6 +33,9 @@ MIXES = {
     "dir+amb": lambda: [DirectionalLight([0.3, 0.2, 1.0], [1.0] * 3), AmbientLight([0.1] * 3)],
     "3pt+amb": lambda: [PointLight([1.0, 2.0, 2.0], [3.0] * 3), PointLight([-2.0, 1.0, 1.0], [2.0] * 3),
                         PointLight([0.0, -2.0, 2.0], [1.0] * 3), AmbientLight([0.1] * 3)],
+    # the mesh stage's: a point light, its SH environment of degree 2 and the traced bounce (a per-fragment radiance)
+    "pt+env2+bnc": lambda: [PointLight([1.0, 2.0, 2.0], [3.0] * 3),
+                            SHEnvironmentLight(np.r_[2.0, 0.3 * np.ones(8)][None].repeat(3, 0)), BounceLight()],
 }
 
 
@@ -42,11 +46,14 @@ def case(dev, rng, P, lights, vis, real):
     nrm[:, 2] += 1.0
     named = [("POS", rng.uniform(-1, 1, (P, 3))), ("ALPHA", rng.uniform(0, 1, (P, 1))), ("NRM", nrm),
              ("MAT", rng.uniform(0.05, 0.95, (P, 6)))] + ([("VIS", rng.uniform(0, 1, (P, nv)))] if nv else [])
+    if table.has_vertex_sh:  # the bounce's radiance (and an unused direction)
+        named.append(("VL", rng.uniform(0, 0.5, (P, 6))))
     offs = np.cumsum([0] + [a.shape[1] for _, a in named])
     blocks = {n: (int(offs[i]), a.shape[1]) for i, (n, a) in enumerate(named)}
     fa = np.concatenate([a for _, a in named], 1).astype(real)
     _, inp = shade_op.prepare(np.zeros((1, 3)), np.ones((1, 3)), np.full((1, 6), 0.5), np.zeros(1, np.int32),
-                              [0.0, 0.0, 4.0], lights, device=dev, real=real)
+                              [0.0, 0.0, 4.0], lights, device=dev, real=real,
+                              vlight=np.ones((1, 6)) if table.has_vertex_sh else None)  # (only its light table used)
     q = dev.queue
     pinp = shade_op.packed_inputs(dev, cla.to_device(q, fa), blocks, [0.0, 0.0, 4.0], table, inp.lt_i, inp.lt_f,
                                   "cook_torrance", True, real)

@@ -23,7 +23,13 @@
  * order, RED_W columns at a time, after the light loop) into one row of v_light_part [num_groups, NUM_PARAMS].
  */
 #include "real.h"
+#include "sh.h"          /* SH_KLM, SH_BAND_A (included before S is defined: its functions name a variable S) */
+#include "ggx_tables.h"  /* DFG_A, DFG_B, LOBE_BANDS */
 
+#ifndef ENV_MAX_DEG
+#define ENV_MAX_DEG 0
+#endif
+#define ENV_NK ((ENV_MAX_DEG + 1) * (ENV_MAX_DEG + 1))
 #define W 8
 #define S REAL8
 #define R_PI ((REAL)3.14159265358979323846)
@@ -280,6 +286,281 @@ inline void ct_ambient_vjp(const V3 N, const V3 V, const V3 La, const S* m, cons
     v_m[4] += v_met;
 }
 
+
+/* ---- the SH environment (env_scales' lobe 1, env_eval, env_term and their adjoints: shade_brdf.h, sh.h) --------- */
+
+/* eight lookups of a __constant table, one per lane */
+inline S lookup_w(__constant const float* tab, const int8 i)
+{
+    return (S)((REAL)tab[i.s0], (REAL)tab[i.s1], (REAL)tab[i.s2], (REAL)tab[i.s3], (REAL)tab[i.s4], (REAL)tab[i.s5],
+               (REAL)tab[i.s6], (REAL)tab[i.s7]);
+}
+
+/* sh.h's sh_eval per lane (its recurrences; qmm depends on m only) */
+inline void sh_eval_w(const int deg, const V3 d, S* Y)
+{
+    const S x = d.x, y = d.y, z = d.z;
+    S Cc = (S)(1), Sc = (S)(0);
+    REAL qmm = (REAL)1;
+    for (int m = 0; m <= deg; ++m) {
+        if (m > 0) {
+            const S Cn = x * Cc - y * Sc;
+            Sc = x * Sc + y * Cc;
+            Cc = Cn;
+            qmm *= -(REAL)(2 * m - 1);
+        }
+        S q2 = (S)(0), q1 = (S)(0);
+        for (int l = m; l <= deg; ++l) {
+            S q;
+            if (l == m) q = (S)(qmm);
+            else if (l == m + 1) q = (REAL)(2 * m + 1) * z * qmm;
+            else q = ((REAL)(2 * l - 1) * z * q1 - (REAL)(l + m - 1) * q2) / (REAL)(l - m);
+            const S kq = SH_KLM[l * (l + 1) / 2 + m] * q;
+            const int c = l * l + l;
+            if (m == 0) {
+                Y[c] = kq;
+            } else {
+                Y[c + m] = kq * Cc;
+                Y[c - m] = kq * Sc;
+            }
+            q2 = q1;
+            q1 = q;
+        }
+    }
+}
+
+/* sh.h's sh_eval_vjp per lane */
+inline V3 sh_eval_vjp_w(const int deg, const V3 d, const S* v_Y)
+{
+    const S x = d.x, y = d.y, z = d.z;
+    S Cc = (S)(1), Sc = (S)(0);
+    REAL qmm = (REAL)1;
+    S v_x = (S)(0), v_y = (S)(0), v_z = (S)(0);
+    for (int m = 0; m <= deg; ++m) {
+        const S Cp = Cc, Sp = Sc;
+        if (m > 0) {
+            const S Cn = x * Cc - y * Sc;
+            Sc = x * Sc + y * Cc;
+            Cc = Cn;
+            qmm *= -(REAL)(2 * m - 1);
+        }
+        S q2 = (S)(0), q1 = (S)(0), dq2 = (S)(0), dq1 = (S)(0);
+        S v_C = (S)(0), v_S = (S)(0);
+        for (int l = m; l <= deg; ++l) {
+            S q, dq;
+            if (l == m) {
+                q = (S)(qmm);
+                dq = (S)(0);
+            } else if (l == m + 1) {
+                q = (REAL)(2 * m + 1) * z * qmm;
+                dq = (S)((REAL)(2 * m + 1) * qmm);
+            } else {
+                const REAL a = (REAL)(2 * l - 1), b = (REAL)(l + m - 1), inv = (REAL)1 / (REAL)(l - m);
+                q = (a * z * q1 - b * q2) * inv;
+                dq = (a * (q1 + z * dq1) - b * dq2) * inv;
+            }
+            const REAL K = SH_KLM[l * (l + 1) / 2 + m];
+            const int c = l * l + l;
+            if (m == 0) {
+                v_z += v_Y[c] * K * dq;
+            } else {
+                v_z += K * dq * (v_Y[c + m] * Cc + v_Y[c - m] * Sc);
+                v_C += K * q * v_Y[c + m];
+                v_S += K * q * v_Y[c - m];
+            }
+            q2 = q1;
+            q1 = q;
+            dq2 = dq1;
+            dq1 = dq;
+        }
+        if (m > 0) {
+            const REAL fm = (REAL)m;
+            v_x += fm * (v_C * Cp + v_S * Sp);
+            v_y += fm * (v_S * Cp - v_C * Sp);
+        }
+    }
+    return v3(v_x, v_y, v_z);
+}
+
+/* shade_brdf.h's env_dfg per lane: (A, B) bilinear in DFG_A / DFG_B at (r, nv) and their slopes */
+inline void env_dfg_w(const S r, const S nv, S* A, S* B, S* dAr, S* dBr, S* dAn, S* dBn)
+{
+    const S fr = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const S fn = clamp(nv, (REAL)0, (REAL)1) * (REAL)(GGX_NNV - 1);
+    const int8 i = min(convert_int8(fr), GGX_NR - 2), j = min(convert_int8(fn), GGX_NNV - 2);
+    const S t = fr - TRIPLET_CAT(convert_, S)(i), u = fn - TRIPLET_CAT(convert_, S)(j);
+    const int8 k = i * GGX_NNV + j;
+    const S a00 = lookup_w(DFG_A, k), a01 = lookup_w(DFG_A, k + 1), a10 = lookup_w(DFG_A, k + GGX_NNV),
+            a11 = lookup_w(DFG_A, k + GGX_NNV + 1);
+    const S b00 = lookup_w(DFG_B, k), b01 = lookup_w(DFG_B, k + 1), b10 = lookup_w(DFG_B, k + GGX_NNV),
+            b11 = lookup_w(DFG_B, k + GGX_NNV + 1);
+    const S a0 = a00 + (a01 - a00) * u, a1 = a10 + (a11 - a10) * u;
+    const S b0 = b00 + (b01 - b00) * u, b1 = b10 + (b11 - b10) * u;
+    *A = a0 + (a1 - a0) * t;
+    *B = b0 + (b1 - b0) * t;
+    const S sr = WHERE(r > (REAL)0 && r < (REAL)1, (S)((REAL)(GGX_NR - 1)), (S)(0));
+    const S sn = WHERE(nv > (REAL)0 && nv < (REAL)1, (S)((REAL)(GGX_NNV - 1)), (S)(0));
+    *dAr = (a1 - a0) * sr;
+    *dBr = (b1 - b0) * sr;
+    *dAn = ((a01 - a00) + ((a11 - a10) - (a01 - a00)) * t) * sn;
+    *dBn = ((b01 - b00) + ((b11 - b10) - (b01 - b00)) * t) * sn;
+}
+
+/* env_bands per lane: g_l = (1 - m) G_l + m T_l (LOBE_BANDS linear in r) */
+inline void env_bands_w(const S* m, const int deg, S* gl)
+{
+    const S r = m[3], met = m[4];
+    const S f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const int8 i = min(convert_int8(f), GGX_NR - 2);
+    const S t = f - TRIPLET_CAT(convert_, S)(i);
+    const S q = exp(-r * r * r * r);
+    S G = (S)(1), ql = (S)(1);
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        const S a = lookup_w(LOBE_BANDS, i * GGX_NBANDS + l), b = lookup_w(LOBE_BANDS, (i + 1) * GGX_NBANDS + l);
+        gl[l] = ((REAL)1 - met) * G + met * (a + (b - a) * t);
+    }
+}
+
+inline void env_bands_vjp_w(const S* m, const int deg, const S* v_gl, S* v_m)
+{
+    const S r = m[3], met = m[4];
+    const S f = clamp(r, (REAL)0, (REAL)1) * (REAL)(GGX_NR - 1);
+    const int8 i = min(convert_int8(f), GGX_NR - 2);
+    const S t = f - TRIPLET_CAT(convert_, S)(i);
+    const S inside = WHERE(r > (REAL)0 && r < (REAL)1, (S)((REAL)(GGX_NR - 1)), (S)(0));
+    const S q = exp(-r * r * r * r), r3 = r * r * r;
+    S G = (S)(1), ql = (S)(1), v_met = (S)(0), v_r = (S)(0);
+    for (int l = 0; l <= deg; ++l) {
+        if (l > 0) {
+            ql *= q;
+            G *= ql;
+        }
+        const S a = lookup_w(LOBE_BANDS, i * GGX_NBANDS + l), b = lookup_w(LOBE_BANDS, (i + 1) * GGX_NBANDS + l);
+        v_met += v_gl[l] * (a + (b - a) * t - G);
+        v_r += v_gl[l] * (-((REAL)1 - met) * G * (REAL)(2 * l * (l + 1)) * r3 + met * (b - a) * inside);
+    }
+    v_m[3] += v_r;
+    v_m[4] += v_met;
+}
+
+/* env_scales, lobe 1 (the SH environment): s_d = ao (1 - m) alb / pi, s_g = ao Fe,
+ * Fe = (1 - m) [0.04 + 0.96 (1 - r) f5] + m (alb A + B) */
+inline void env_scales1_w(const V3 N, const V3 V, const S* m, V3* s_d, V3* s_g)
+{
+    const S r = m[3], met = m[4], ao = m[5];
+    const S nv = fmax(v3_dot(N, V), (REAL)0);
+    S A, B, dAr, dBr, dAn, dBn;
+    env_dfg_w(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    const S Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * pow5w((REAL)1 - nv);
+    const S om = (REAL)1 - met, fd = om * Fd, aom = ao * om;
+    *s_d = v3(aom * m[0] / R_PI, aom * m[1] / R_PI, aom * m[2] / R_PI);
+    *s_g = v3(ao * (fd + met * (m[0] * A + B)), ao * (fd + met * (m[1] * A + B)), ao * (fd + met * (m[2] * A + B)));
+}
+
+inline void env_scales1_vjp_w(const V3 N, const V3 V, const S* m, const V3 v_sd, const V3 v_sg, V3* v_N, V3* v_V,
+                              S* v_m)
+{
+    const V3 alb = v3(m[0], m[1], m[2]);
+    const S r = m[3], met = m[4], ao = m[5];
+    const S nvr = v3_dot(N, V);
+    const S nv = fmax(nvr, (REAL)0);
+    const S omv = (REAL)1 - nv;
+    const S f5 = pow5w(omv);
+    S A, B, dAr, dBr, dAn, dBn;
+    env_dfg_w(r, nv, &A, &B, &dAr, &dBr, &dAn, &dBn);
+    const S Fd = (REAL)0.04 + (REAL)0.96 * ((REAL)1 - r) * f5;
+    const S om = (REAL)1 - met;
+    const V3 Fm = v3(alb.x * A + B, alb.y * A + B, alb.z * A + B);
+    const V3 Fe = v3(om * Fd + met * Fm.x, om * Fd + met * Fm.y, om * Fd + met * Fm.z);
+    v_m[5] += v3_dot(v_sd, v3_scale(alb, om / R_PI)) + v3_dot(v_sg, Fe);
+    const V3 v_Fe = v3_scale(v_sg, ao);
+    S v_met = -ao * v3_dot(v_sd, alb) / R_PI;
+    V3 v_alb = v3_scale(v_sd, ao * om / R_PI);
+    const S sFe = v_Fe.x + v_Fe.y + v_Fe.z;
+    v_met += v3_dot(v_Fe, Fm) - Fd * sFe;
+    const S v_Fd = om * sFe;
+    v_alb = v3_add(v_alb, v3_scale(v_Fe, met * A));
+    const S v_A = met * v3_dot(v_Fe, alb), v_B = met * sFe;
+    const S v_r = -v_Fd * (REAL)0.96 * f5 + v_A * dAr + v_B * dBr;
+    const S v_nv = WHERE(nvr > (REAL)0,
+                         -(REAL)5 * omv * omv * omv * omv * v_Fd * (REAL)0.96 * ((REAL)1 - r) + v_A * dAn + v_B * dBn,
+                         (S)(0));
+    *v_N = v3_add(*v_N, v3_scale(V, v_nv));
+    *v_V = v3_add(*v_V, v3_scale(N, v_nv));
+    v_m[0] += v_alb.x;
+    v_m[1] += v_alb.y;
+    v_m[2] += v_alb.z;
+    v_m[3] += v_r;
+    v_m[4] += v_met;
+}
+
+/* env_eval (no occlusion): Yn = Y(N), Yr = Y(R), gl; E = sum A_l Yn_k c_k, Gl = sum g_l Yr_k c_k */
+inline void env_eval_w(const V3 N, const V3 V, const S* m, const int deg, __global const REAL* c, const int stride,
+                       S* Yn, S* Yr, S* gl, V3* E, V3* Gl)
+{
+    const S nv2 = (REAL)2 * v3_dot(N, V);
+    const V3 R = v3_sub(v3_scale(N, nv2), V);
+    sh_eval_w(deg, N, Yn);
+    sh_eval_w(deg, R, Yr);
+    env_bands_w(m, deg, gl);
+    V3 e = v3((S)(0), (S)(0), (S)(0)), g = e;
+    for (int l = 0; l <= deg; ++l)
+        for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+            const S wn = SH_BAND_A[l] * Yn[k], wr = gl[l] * Yr[k];
+            const REAL c0 = c[k], c1 = c[stride + k], c2 = c[2 * stride + k];
+            e = v3(e.x + wn * c0, e.y + wn * c1, e.z + wn * c2);
+            g = v3(g.x + wr * c0, g.y + wr * c1, g.z + wr * c2);
+        }
+    *E = e;
+    *Gl = g;
+}
+
+inline V3 env_term_w(const V3 N, const V3 V, const S* m, const int deg, __global const REAL* c, const int stride)
+{
+    S Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
+    V3 E, Gl, s_d, s_g;
+    env_eval_w(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_scales1_w(N, V, m, &s_d, &s_g);
+    return v3_add(v3_mul(s_d, E), v3_mul(s_g, Gl));
+}
+
+/* env_term_vjp: leaves Yn, Yr, gl and gE = v_out s_d, gG = v_out s_g for the coefficient gradients
+ * v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k (formed by the caller) */
+inline void env_term_vjp_w(const V3 N, const V3 V, const S* m, const int deg, __global const REAL* c, const int stride,
+                           const V3 v_out, S* Yn, S* Yr, S* gl, V3* gE, V3* gG, V3* v_N, V3* v_V, S* v_m)
+{
+    V3 E, Gl, s_d, s_g;
+    env_eval_w(N, V, m, deg, c, stride, Yn, Yr, gl, &E, &Gl);
+    env_scales1_w(N, V, m, &s_d, &s_g);
+    *gE = v3_mul(v_out, s_d);
+    *gG = v3_mul(v_out, s_g);
+    S v_Yn[ENV_NK], v_Yr[ENV_NK], v_gl[ENV_MAX_DEG + 1];
+    for (int k = 0; k < ENV_NK; ++k) v_Yn[k] = v_Yr[k] = (S)(0);
+    for (int l = 0; l <= deg; ++l) {
+        v_gl[l] = (S)(0);
+        for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+            const REAL c0 = c[k], c1 = c[stride + k], c2 = c[2 * stride + k];
+            const S dE = gE->x * c0 + gE->y * c1 + gE->z * c2, dG = gG->x * c0 + gG->y * c1 + gG->z * c2;
+            v_Yn[k] = SH_BAND_A[l] * dE;
+            v_Yr[k] = gl[l] * dG;
+            v_gl[l] += Yr[k] * dG;
+        }
+    }
+    env_bands_vjp_w(m, deg, v_gl, v_m);
+    const S nvr = v3_dot(N, V);
+    const V3 R = v3_sub(v3_scale(N, (REAL)2 * nvr), V);
+    *v_N = v3_add(*v_N, sh_eval_vjp_w(deg, N, v_Yn));
+    const V3 v_R = sh_eval_vjp_w(deg, R, v_Yr);
+    const S rn = v3_dot(v_R, N);
+    *v_N = v3_add(*v_N, v3_add(v3_scale(v_R, (REAL)2 * nvr), v3_scale(V, (REAL)2 * rn)));
+    *v_V = v3_add(*v_V, v3_sub(v3_scale(N, (REAL)2 * rn), v_R));
+    env_scales1_vjp_w(N, V, m, v3_mul(v_out, E), v3_mul(v_out, Gl), v_N, v_V, v_m);
+}
+
 /* ---- the packed rows: 8 rows p0 .. p0 + 7 (a row past P repeats row P - 1) ------------------------------------ */
 #define ROWP(k) (fa + (size_t)min(p0 + (k), P - 1) * POS_LD)
 #define LANES(c) ((S)(r0[(c)], r1[(c)], r2[(c)], r3[(c)], r4[(c)], r5[(c)], r6[(c)], r7[(c)]))
@@ -288,6 +569,9 @@ inline void ct_ambient_vjp(const V3 N, const V3 V, const V3 La, const S* m, cons
                         *r5 = ROWP(5), *r6 = ROWP(6), *r7 = ROWP(7)
 #if POS_LD != NRM_LD || POS_LD != MAT_LD
 #error "shade_lanes.cl reads the packed rows: POS_LD, NRM_LD and MAT_LD must be equal"
+#endif
+#if defined(VL_OFF) && VL_LD != POS_LD
+#error "shade_lanes.cl reads the packed rows: VL_LD must be POS_LD"
 #endif
 
 /* the fragment's x, V, N (flipped towards the camera when two-sided) and material, as shade.cl's load_fragment */
@@ -326,9 +610,16 @@ __kernel void shade_lanes_fwd(__global const REAL* fa,   // [P, LD] packed fragm
     int jv = 0;
 #pragma unroll
     for (int li = 0; li < NUM_LIGHTS; ++li) {
-        const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2];
+        const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2],
+                  b = LIGHT_ROWS[4 * li + 3];
         __global const REAL* q = lt_f + off;
-        if (type == LIGHT_AMBIENT) {
+        if (type == LIGHT_SH_ENV) {
+            out = v3_add(out, env_term_w(N, V, m, a, q, b));
+#ifdef VL_OFF
+        } else if (type == LIGHT_BOUNCE) {
+            out = v3_add(out, ct_ambient(N, V, v3(LANES(VL_OFF), LANES(VL_OFF + 1), LANES(VL_OFF + 2)), m));
+#endif
+        } else if (type == LIGHT_AMBIENT) {
             out = v3_add(out, ct_ambient(N, V, v3((S)(q[0]), (S)(q[1]), (S)(q[2])), m));
         } else if (type == LIGHT_DIRECTIONAL) {
             const S tv = TV(jv);
@@ -401,13 +692,32 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
         S v_m[6];
         for (int j = 0; j < 6; ++j) v_m[j] = zero;
         S v_tv[NUM_LIGHTS];
+        V3 v_rad = v3(zero, zero, zero);  /* the bounce's per-fragment radiance (the VL block's first three columns) */
         int jv = 0;
 #pragma unroll
         for (int li = 0; li < NUM_LIGHTS; ++li) {
-            const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2];
+            const int type = LIGHT_ROWS[4 * li], off = LIGHT_ROWS[4 * li + 1], a = LIGHT_ROWS[4 * li + 2],
+                      b = LIGHT_ROWS[4 * li + 3];
             __global const REAL* q = lt_f + off;
             V3 v_L = v3(zero, zero, zero), v_Li = v_L;
-            if (type == LIGHT_AMBIENT) {
+            if (type == LIGHT_SH_ENV) {
+                /* v_c[ch, k] = gE_ch A_l Yn_k + gG_ch g_l Yr_k, the active bands only */
+                S Yn[ENV_NK], Yr[ENV_NK], gl[ENV_MAX_DEG + 1];
+                V3 gE, gG;
+                env_term_vjp_w(N, V, m, a, q, b, v_o, Yn, Yr, gl, &gE, &gG, &v_N, &v_V, v_m);
+                for (int l = 0; l <= a; ++l)
+                    for (int k = l * l; k < (l + 1) * (l + 1); ++k) {
+                        const S yn = SH_BAND_A[l] * Yn[k], yr = gl[l] * Yr[k];
+                        gsum[off + k] += lane_sum(KEEP(gE.x * yn + gG.x * yr));
+                        gsum[off + b + k] += lane_sum(KEEP(gE.y * yn + gG.y * yr));
+                        gsum[off + 2 * b + k] += lane_sum(KEEP(gE.z * yn + gG.z * yr));
+                    }
+#ifdef VL_OFF
+            } else if (type == LIGHT_BOUNCE) {
+                ct_ambient_vjp(N, V, v3(LANES(VL_OFF), LANES(VL_OFF + 1), LANES(VL_OFF + 2)), m, v_o, &v_N, &v_V,
+                               &v_rad, v_m);
+#endif
+            } else if (type == LIGHT_AMBIENT) {
                 ct_ambient_vjp(N, V, v3((S)(q[0]), (S)(q[1]), (S)(q[2])), m, v_o, &v_N, &v_V, &v_Li, v_m);
                 gsum[off] += lane_sum(KEEP(v_Li.x));
                 gsum[off + 1] += lane_sum(KEEP(v_Li.y));
@@ -472,6 +782,12 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
 #ifdef HAS_VIS
         for (int j = 0; j < jv; ++j) vstore8(KEEP(v_tv[j]), 0, o[12 + j]);
 #endif
+#ifdef VL_OFF
+        REAL orad[3][W];
+        vstore8(KEEP(v_rad.x), 0, orad[0]);
+        vstore8(KEEP(v_rad.y), 0, orad[1]);
+        vstore8(KEEP(v_rad.z), 0, orad[2]);
+#endif
 #undef KEEP
         const int n = min(W, P - p0);
         for (int k = 0; k < n; ++k) {
@@ -481,6 +797,10 @@ __kernel void shade_lanes_bwd(__global const REAL* fa,      // [P, LD] packed fr
             for (int j = 0; j < 6; ++j) row[MAT_OFF + j] = o[6 + j][k];
 #ifdef HAS_VIS
             for (int j = 0; j < jv; ++j) row[VIS_OFF + j] = o[12 + j][k];
+#endif
+#ifdef VL_OFF
+            for (int j = 0; j < 3; ++j) row[VL_OFF + j] = orad[j][k];
+            for (int j = 3; j < 6; ++j) row[VL_OFF + j] = (REAL)0;  /* the bounce has no direction */
 #endif
 #ifdef ALPHA_COPY
             row[ALPHA_OFF] = v_alpha[p0 + k];

@@ -13,6 +13,7 @@ from tests.gradients import sampled_fd
 from tests.test_shade import CAM, make_fragments
 from triplet_cl.lights import (
     AmbientLight,
+    BounceLight,
     DirectionalLight,
     PointLight,
     SHEnvironmentLight,
@@ -20,6 +21,10 @@ from triplet_cl.lights import (
     pack_lights,
 )
 from triplet_cl.ops import shade as shade_op
+
+ENV_C2 = np.array([[1.8, 0.3, -0.2, 0.1, 0.05, -0.1, 0.2, 0.0, -0.05],
+                   [1.6, -0.1, 0.3, 0.2, -0.05, 0.1, 0.0, 0.1, 0.05],
+                   [2.0, 0.2, 0.1, -0.3, 0.1, 0.0, -0.1, 0.05, 0.1]])
 
 LIGHT_SETS = {
     "ambient": lambda: [AmbientLight([0.2, 0.5, 0.8])],
@@ -32,22 +37,30 @@ LIGHT_SETS = {
     "mix": lambda: [AmbientLight([0.2, 0.5, 0.8]), PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]),
                     DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7]),
                     PointLight([-1.0, 0.5, 2.0], [0.9, 0.8, 1.1], falloff=False)],
+    # an SH environment of degree 2 (27 coefficients) with a point light: the mesh stage's lights, and with its traced
+    # bounce (a per-fragment radiance in the VL block); an environment whose active degree (1) is below its stored one
+    "point_env2": lambda: [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]), SHEnvironmentLight(ENV_C2)],
+    "mesh_stage": lambda: [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]), SHEnvironmentLight(ENV_C2), BounceLight()],
+    "env_active1": lambda: [SHEnvironmentLight(ENV_C2, degree=1), AmbientLight([0.1, 0.1, 0.2])],
 }
 
 
 def packed_case(device, rng, lights, P, real, with_vis, rough_lo=0.2, two_sided=True):
     """Packed inputs (blocks in a shuffled order, as the rasterizer lays them out: alpha between position and normal,
     visibility last) and the same arrays; returns (packed ShadeInputs, the [P, C] host array, blocks)."""
-    pos, nrm, mat, _, _ = make_fragments(rng, "cook_torrance", P=P, rough_lo=rough_lo)
+    pos, nrm, mat, _, vlight = make_fragments(rng, "cook_torrance", P=P, rough_lo=rough_lo)
     table = pack_lights(lights)
     nv = table.num_shadowed if with_vis else 0
     named = [("POS", pos), ("ALPHA", rng.uniform(0, 1, (P, 1))), ("NRM", nrm), ("MAT", mat)]
+    vl = vlight if table.has_vertex_sh else None  # the bounce's radiance (and a direction it does not use)
+    if vl is not None:
+        named.append(("VL", vl))
     if nv:
         named.append(("VIS", rng.uniform(0, 1, (P, nv))))
     offs = np.cumsum([0] + [a.shape[1] for _, a in named])
     blocks = {n: (int(offs[i]), a.shape[1]) for i, (n, a) in enumerate(named)}
     fa = np.concatenate([a for _, a in named], 1).astype(real)
-    _, inp = shade_op.prepare(pos, nrm, mat, np.zeros(P, np.int32), CAM, lights, device=device, real=real)
+    _, inp = shade_op.prepare(pos, nrm, mat, np.zeros(P, np.int32), CAM, lights, device=device, real=real, vlight=vl)
     pinp = shade_op.packed_inputs(device, cla.to_device(device.queue, fa), blocks, CAM, table, inp.lt_i, inp.lt_f,
                                   "cook_torrance", two_sided, real)
     return pinp, fa, blocks
@@ -98,7 +111,7 @@ def test_lanes_match_shade_cl_float64(device64, rng, kind, P, with_vis):
         assert np.abs(got[3]).max() > 0
 
 
-@pytest.mark.parametrize("kind", ["point_ambient", "mix"])
+@pytest.mark.parametrize("kind", ["point_ambient", "mix", "mesh_stage"])
 def test_lanes_float32_as_accurate_as_shade_cl(device64, rng, kind):
     """In float32 the two kernels round differently (both differ from float64 by up to ~5e-5 of the largest value
     on these inputs: the float32 inputs, near-grazing lights, sqrt and division): the lanes kernel's error against
@@ -107,7 +120,8 @@ def test_lanes_float32_as_accurate_as_shade_cl(device64, rng, kind):
     P = 2000
     pinp64, fa, blocks = packed_case(device64, rng, lights, P, np.float64, True)
     _, inp = shade_op.prepare(np.zeros((1, 3)), np.ones((1, 3)), np.full((1, 6), 0.5), np.zeros(1, np.int32), CAM,
-                              lights, device=device64, real=np.float32)
+                              lights, device=device64, real=np.float32,
+                              vlight=np.ones((1, 6)) if pack_lights(lights).has_vertex_sh else None)
     pinp32 = shade_op.packed_inputs(device64, cla.to_device(device64.queue, fa.astype(np.float32)), blocks, CAM,
                                     pack_lights(lights), inp.lt_i, inp.lt_f, "cook_torrance", True, np.float32)
     v_rgb = rng.standard_normal((P, 3))
@@ -125,10 +139,11 @@ def test_lanes_float32_as_accurate_as_shade_cl(device64, rng, kind):
 @pytest.mark.parametrize("with_vis", [False, True])
 def test_lanes_float64_central_differences(device64, rng, with_vis):
     """The lanes kernel's adjoint against central differences of its own forward (float64): sampled entries of
-    every block of the packed rows (position, normal, material, transmittance) and every light parameter, for
-    L = Σ w · rgb under the training's point + ambient lights and a directional one."""
+    every block of the packed rows (position, normal, material, the bounce's radiance, transmittance) and every light
+    parameter, for L = Σ w · rgb under the training's point + ambient lights, a directional one, an SH environment of
+    degree 2 and the bounce."""
     lights = [PointLight([0.8, 1.2, 2.0], [4.0, 3.0, 5.0]), AmbientLight([0.1, 0.2, 0.1]),
-              DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7])]
+              DirectionalLight([0.3, -0.2, 1.0], [1.5, 1.0, 0.7]), SHEnvironmentLight(ENV_C2), BounceLight()]
     P = 21
     pinp, fa, blocks = packed_case(device64, rng, lights, P, np.float64, with_vis, rough_lo=0.3)
     w = rng.standard_normal((P, 3))
@@ -136,12 +151,13 @@ def test_lanes_float64_central_differences(device64, rng, with_vis):
     q = device64.queue
 
     def loss_fa(x):
-        pinp.pos = pinp.nrm = pinp.mat = cla.to_device(q, x)
+        pinp.pos = pinp.nrm = pinp.mat = pinp.vlight = cla.to_device(q, x)
         if pinp.vis is not None:
             pinp.vis = pinp.pos
         return float((shade_op.forward_packed(device64, pinp, lanes=True)[0].get() * w).sum())
 
     h = 1e-6
+    # (the VL block's direction columns: unused by the bounce, their adjoint 0 and so their differences)
     cols = [c for c in written_columns(blocks) if c != blocks["ALPHA"][0]]
     for c in cols:
         for p in rng.choice(P, 4, replace=False):
@@ -150,7 +166,7 @@ def test_lanes_float64_central_differences(device64, rng, with_vis):
             xm[p, c] -= h
             num = (loss_fa(xp) - loss_fa(xm)) / (2 * h)
             assert v_fa[p, c] == pytest.approx(num, rel=1e-6, abs=1e-8), (p, c)
-    pinp.pos = pinp.nrm = pinp.mat = cla.to_device(q, fa)
+    pinp.pos = pinp.nrm = pinp.mat = pinp.vlight = cla.to_device(q, fa)
     if pinp.vis is not None:
         pinp.vis = pinp.pos
     lt = pinp.lt_f.get()
@@ -168,13 +184,13 @@ def test_lanes_float64_central_differences(device64, rng, with_vis):
 
 
 def test_lanes_supported_and_refused(device, rng):
-    """The lanes kernel covers Cook-Torrance under ambient / directional / point lights (with the shadow casters'
-    transmittance) and is the default on a CPU device; everything else stays on shade.cl (a vertex-SH light and its VL
-    block, an SH environment, environment-occlusion columns, no lights, Blinn-Phong, separate arrays), and asking for
-    lanes there is an error."""
+    """The lanes kernel covers Cook-Torrance under ambient / directional / point / SH environment / bounce lights
+    (with the shadow casters' transmittance; at most LANES_MAX_PARAMS parameters) and is the default on a CPU device;
+    everything else stays on shade.cl (a vertex-SH light, an environment of degree 4: 75 parameters,
+    environment-occlusion columns, no lights, Blinn-Phong, separate arrays), and asking for lanes there is an error."""
     pinp, _, _ = packed_case(device, rng, LIGHT_SETS["mix"](), 16, np.float32, True)
     assert shade_op.lanes_supported(device, pinp) == device.is_cpu
-    for lights in ([SHEnvironmentLight(np.ones((3, 4)))], [PointLight([1, 1, 1], [1, 1, 1]), VertexSHLight()]):
+    for lights in ([SHEnvironmentLight(np.ones((3, 25)))], [PointLight([1, 1, 1], [1, 1, 1]), VertexSHLight()]):
         table = pack_lights(lights)
         other = shade_op.ShadeInputs(pinp.pos, pinp.nrm, pinp.mat, None, pinp.pos if table.has_vertex_sh else None,
                                      CAM, table, pinp.lt_i, pinp.lt_f, "cook_torrance", True, np.float32,

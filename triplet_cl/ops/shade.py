@@ -34,9 +34,11 @@ import pyopencl.array as cla
 from ..device import Device, get_device
 from ..lights import (
     AmbientLight,
+    BounceLight,
     DirectionalLight,
     LightTable,
     PointLight,
+    SHEnvironmentLight,
     kernel_defines,
     pack_lights,
     unpack_gradients,
@@ -305,16 +307,21 @@ def packed_inputs(dev: Device, fa: cla.Array, blocks: dict, cam, table: LightTab
 
 
 #: the light types ``shade_lanes.cl`` shades (by their ``lights.py`` class ``TYPE``)
-LANES_LIGHT_TYPES = frozenset({AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE})
+LANES_LIGHT_TYPES = frozenset({AmbientLight.TYPE, DirectionalLight.TYPE, PointLight.TYPE, SHEnvironmentLight.TYPE,
+                               BounceLight.TYPE})
+#: the most light parameters ``shade_lanes.cl`` takes (each work-item keeps their sums in private memory: a point
+#: light and an SH environment of degree 2 are 33; degree 8 alone is 243)
+LANES_MAX_PARAMS = 64
 LANES = 8  # fragments per work-item of shade_lanes.cl (its W)
 
 
 def lanes_cover(inp: ShadeInputs) -> bool:
-    """Whether ``shade_lanes.cl`` handles these inputs: packed rows, the Cook-Torrance BRDF under ambient, directional
-    and point lights, with at most the shadow casters' transmittance among the ray-traced terms (no vertex-SH light,
-    environment occlusion, reflection bounce or per-fragment eye)."""
-    return (inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.vlight is None and inp.refl is None
-            and inp.eye is None and inp.env_occ == 0 and len(inp.table.params) > 0 and len(inp.table.ints) > 0
+    """Whether ``shade_lanes.cl`` handles these inputs: packed rows, the Cook-Torrance BRDF under ambient, directional,
+    point, SH environment and bounce lights (at most :data:`LANES_MAX_PARAMS` parameters), with at most the shadow
+    casters' transmittance among the ray-traced terms (no vertex-SH light, environment occlusion, reflection bounce
+    or per-fragment eye)."""
+    return (inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.refl is None and inp.eye is None
+            and inp.env_occ == 0 and 0 < len(inp.table.params) <= LANES_MAX_PARAMS and len(inp.table.ints) > 0
             and set(np.asarray(inp.table.ints)[:, 0].tolist()) <= LANES_LIGHT_TYPES)
 
 
@@ -329,7 +336,7 @@ def _lanes_defines(inp: ShadeInputs) -> dict:
     """The build defines of ``shade_lanes.cl`` for packed inputs: the row layout, ``HAS_VIS``, the light table
     and its parameter count, the light type ids."""
     d = {"RED_W": RED_W, **_layout_defines(inp), **_table_defines(inp.table),
-         "NUM_PARAMS": len(inp.table.params), **kernel_defines()}
+         "NUM_PARAMS": len(inp.table.params), "ENV_MAX_DEG": _env_bucket(inp.table.env_degree), **kernel_defines()}
     if inp.vis is not None and inp.vis_width > 0:
         d["HAS_VIS"] = True
     return d
