@@ -321,6 +321,7 @@ def lanes_cover(inp: ShadeInputs) -> bool:
     casters' transmittance among the ray-traced terms (no vertex-SH light, environment occlusion, reflection bounce
     or per-fragment eye)."""
     return (inp.blocks is not None and inp.brdf == COOK_TORRANCE.name and inp.refl is None and inp.eye is None
+            and ("VL" in inp.blocks) == inp.table.has_vertex_sh  # (the bounce reads its radiance there)
             and inp.env_occ == 0 and 0 < len(inp.table.params) <= LANES_MAX_PARAMS and len(inp.table.ints) > 0
             and set(np.asarray(inp.table.ints)[:, 0].tolist()) <= LANES_LIGHT_TYPES)
 
