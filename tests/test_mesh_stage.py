@@ -403,7 +403,7 @@ def test_mesh_stage_turns_the_ambient_light_into_an_sh_environment(trained_run, 
     assert (MeshConfig().env_degree, MeshConfig().env_degree_metal) == (2, 8)
 
 
-def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path):
+def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path, monkeypatch):
     """``MeshConfig.env_occlusion``: the mesh's SH environment is occluded by the mesh (``MeshStage.env_occlusion``,
     ``visibility.vertex_occlusion``): traced once per set of faces and held while the vertices move, its columns
     appended to each render's ``vis`` (after the cast shadows' when there are some); the renders change where the
@@ -426,6 +426,11 @@ def test_mesh_stage_occludes_its_sh_environment(trained_run, tmp_path):
     assert (np.abs(U).max(axis=1) == 0).any()  # vertices that see their whole hemisphere: U = 0 exactly
     _, flat0, _ = stage.render(mesh, cam, np.ones(3), 1)  # bands above 0 still 0: the occlusion changes nothing
     off = MeshStage(tr, tiny_mesh_cfg(iterations=0, metallic_trial=0, light_fit="off", env_occlusion=0))
+    # both through shade.cl (the render without the occlusion columns would take shade_lanes.cl on a CPU, another
+    # kernel's float32 rounding: tests/test_shade_lanes.py compares the two)
+    from triplet_cl.ops import shade as shade_op
+
+    monkeypatch.setattr(shade_op, "lanes_supported", lambda dev, inp: False)
     _, flat1, _ = off.render(mesh, cam, np.ones(3), 1)
     np.testing.assert_allclose(np.asarray(flat0), np.asarray(flat1), atol=1e-6)  # (float32 rounding of E − 0)
     # a sky bright above: the occluded render differs, and is the render with U in vis (after the point light's
