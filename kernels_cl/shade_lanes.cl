@@ -7,18 +7,20 @@
  * is fragment p0 + k, and the maths is written per component (a 3-vector is three REAL8: struct V3). Measured on
  * a toy of the Cook-Torrance point-light forward: 2-3x the scalar kernel (bench/results/shade_lanes_*.txt).
  *
- * What it covers (ops/shade.py: lanes_supported): the Cook-Torrance BRDF (NMAT 6: albedo rgb, roughness,
- * metallic, ambient occlusion), lights among ambient, directional and point (their table compiled in as in
- * shade.cl), the packed fragment attributes (every row a fragment, X_LD / X_OFF column blocks, ALPHA_COPY),
- * optionally HAS_VIS (the shadow casters' transmittance, no environment occlusion). Everything else, and GPUs,
- * take shade.cl, which stays the reference this is tested against (tests/test_shade_lanes.py: images, every
- * adjoint, float64).
+ * What it covers (ops/shade.py: lanes_cover; the CPU default: lanes_supported): the Cook-Torrance BRDF (NMAT 6:
+ * albedo rgb, roughness, metallic, ambient occlusion), lights among ambient, directional, point, SH environment
+ * (at most NUM_PARAMS <= 64: degree 2 with a few point lights) and the traced bounce (its radiance in the VL block),
+ * their table compiled in as in shade.cl; the packed fragment attributes (every row a fragment, X_LD / X_OFF column
+ * blocks, ALPHA_COPY), optionally HAS_VIS (the shadow casters' transmittance, no environment occlusion). Everything
+ * else, and GPUs by default, take shade.cl, which stays the reference this is tested against
+ * (tests/test_shade_lanes.py: images, every adjoint, float64, central differences).
  *
- * The formulas are shade_brdf.h's and lights.h's (brdf_direct, ambient_term with env_scales' lobe 0,
- * light_incident) and their adjoints, with each branch a per-lane select: brdf_direct's "nl <= 0: no light" masks
- * the lane's result (forward) or its cotangent (adjoint: every adjoint is linear in it, and every intermediate is
- * finite there). A lane past P repeats row P - 1 and is never stored; a lane whose cotangent is zero (behind the
- * compositing's cut-off) contributes zeros, as shade_bwd's skip.
+ * The formulas are shade_brdf.h's, sh.h's and lights.h's (brdf_direct, ambient_term and env_term with env_scales'
+ * lobes 0 and 1, sh_eval, light_incident) and their adjoints, with each branch a per-lane select: brdf_direct's
+ * "nl <= 0: no light" masks the lane's result (forward) or its cotangent (adjoint: every adjoint is linear in it,
+ * and every intermediate is finite there); the GGX tables are looked up lane by lane. A lane past P repeats row
+ * P - 1, a lane whose cotangent is zero (behind the compositing's cut-off) computes anyway; both are masked to
+ * exact zeros (KEEP) before the stores and the light sums, as shade_bwd's skip gives them.
  * Light-parameter adjoints: each work-item sums its lanes, then the work-group sums its items (local memory, fixed
  * order, RED_W columns at a time, after the light loop) into one row of v_light_part [num_groups, NUM_PARAMS].
  */
