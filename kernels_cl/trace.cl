@@ -68,6 +68,12 @@
 #define K_MAX 1
 #endif
 #define AMAX ((REAL)(1.0 - 1e-6))
+/* EARLY_OUT (trace_shadow_fwd without an adjoint: the cached visibility, ambient occlusion, which camera sees a
+ * vertex): a ray's walk ends after the leaf that brought T below T_EARLY, so T is its exact value or a product
+ * of fewer factors below T_EARLY (an absolute error under 1e-4, a 40th of an 8-bit step); nhit then counts the
+ * hits walked. Occluded rays no longer cross the rest of the object (or, towards a directional light, every
+ * surface behind the first). */
+#define T_EARLY ((REAL)1e-4)
 
 /* entry id of (tile t, face f) in the rasterizer's binning, or -1 when f is not binned into t */
 inline int find_entry(__global const int* tile_off, __global const int* face_off, __global const int* face_entries,
@@ -263,6 +269,9 @@ __kernel void trace_shadow_fwd(__global const REAL* nodes,   // [2P - 1, 6]
                 T *= (REAL)1 - a;
                 ++n;
             }
+#ifdef EARLY_OUT
+            if (T < T_EARLY) break;   /* the walk stops: nothing farther can lift T above T_EARLY */
+#endif
         }
         vis[p * NV + j] = T;
         nhit[p * NV + j] = n;

@@ -105,7 +105,7 @@ def test_primary_rays_match_raster_and_reference(device, device64, rng, real):
 # ------------------------------------------------------------------------------------------------ shadows
 
 
-def _shadow(dev, V, F, alpha_v, pos, own, lights, eps, real=np.float64):
+def _shadow(dev, V, F, alpha_v, pos, own, lights, eps, real=np.float64, early_out=False):
     mesh = DeviceMesh(dev, F, len(V))
     b = build_bvh(dev, V.astype(real), mesh)
     import pyopencl.array as cla
@@ -115,8 +115,32 @@ def _shadow(dev, V, F, alpha_v, pos, own, lights, eps, real=np.float64):
     st = trace_op.shadow_forward(dev, b, cla.to_device(q, V.astype(real)),
                                  cla.to_device(q, np.ascontiguousarray(alpha_v[:, None], real)), 0,
                                  cla.to_device(q, pos.astype(real)), cla.to_device(q, own.astype(np.int32)),
-                                 cla.to_device(q, table.ints), cla.to_device(q, table.params.astype(real)), table, eps)
+                                 cla.to_device(q, table.ints), cla.to_device(q, table.params.astype(real)), table, eps,
+                                 early_out=early_out)
     return b, st
+
+
+def test_shadow_early_out_stops_below_its_threshold(device64, rng):
+    """``early_out``: a ray whose full transmittance is at least 1e-4 gets it exactly (and all its hits); one
+    below gets a value in [full T, 1e-4) from fewer hits; the adjoint refuses such a state."""
+    V, F = soup(rng, M=300)
+    alpha_v = rng.uniform(0.6, 0.999, len(V))  # dense and nearly opaque: many rays fall below 1e-4
+    Pn = 60
+    pos = rng.uniform(-0.7, 0.7, (Pn, 3))
+    own = rng.integers(0, len(F), Pn)
+    lights = [PointLight([0.2, 1.9, 0.4], [1, 1, 1]), DirectionalLight([0.3, -1.0, 0.5], [1, 1, 1])]
+    T, n = ref.transmittance_ref(V, F, alpha_v, pos, own, [("point", [0.2, 1.9, 0.4]), ("dir", [0.3, -1.0, 0.5])],
+                                 1e-6)
+    b, st = _shadow(device64, V, F, alpha_v, pos, own, lights, 1e-6, early_out=True)
+    vis, hits = st.vis.get(), st.nhit.get().reshape(Pn, 2)
+    deep = T < 1e-4
+    assert 0.2 < deep.mean() < 0.9  # both kinds of rays
+    np.testing.assert_allclose(vis[~deep], T[~deep], rtol=1e-12)
+    np.testing.assert_array_equal(hits[~deep], n[~deep])
+    assert (vis[deep] >= T[deep] * (1 - 1e-12)).all() and (vis[deep] < 1e-4).all()
+    assert (hits[deep] <= n[deep]).all() and (hits[deep] < n[deep]).any()  # the walk did stop early
+    with pytest.raises(ValueError, match="early_out"):
+        trace_op.shadow_backward(device64, b, st, np.ones((Pn, 2)))
 
 
 def test_shadow_transmittance_matches_reference(device64, rng):

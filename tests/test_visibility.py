@@ -89,6 +89,23 @@ def test_vertex_visibility_matches_reference(device64):
     np.testing.assert_allclose(vis, T, rtol=1e-10, atol=1e-12)
 
 
+def test_vertex_visibility_skips_lights_behind_given_normals(device64):
+    """``normals``: T = 1 (no ray) where ``n · l <= 0``, the traced value elsewhere; a wrong shape is refused."""
+    lights = [PointLight([0.3, 3.0, -0.2], [9.0, 9.0, 9.0]), DirectionalLight([0.2, 1.0, 0.1], [1.0, 1.0, 1.0])]
+    scene, _ = box_over_plane(lights)
+    V = scene.V.data
+    normals = np.random.default_rng(5).normal(size=V.shape)
+    full = vertex_visibility(scene, device64, real=np.float64)
+    vis = vertex_visibility(scene, device64, real=np.float64, normals=normals)
+    ldir = np.stack([np.array([0.3, 3.0, -0.2]) - V, np.broadcast_to([0.2, 1.0, 0.1], V.shape)], 1)  # [N, 2, 3]
+    behind = np.einsum("nk,njk->nj", normals, ldir) <= 0
+    assert 0.3 < behind.mean() < 0.7 and (full[behind] < 1).any()
+    np.testing.assert_array_equal(vis[behind], 1.0)
+    np.testing.assert_array_equal(vis[~behind], full[~behind])
+    with pytest.raises(ValueError, match="normals"):
+        vertex_visibility(scene, device64, normals=normals[:-1])
+
+
 def test_owner_faces_and_no_shadow_casters(device):
     F = np.array([[0, 1, 2], [3, 4, 5]])
     np.testing.assert_array_equal(owner_faces(F, 7), [0, 0, 0, 1, 1, 1, -1])

@@ -115,7 +115,8 @@ class ShadowGrads:
 
 def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alpha_col: int, pos: cla.Array,
                    face: cla.Array, lt_i: cla.Array, lt_f: cla.Array, table: LightTable, eps: float,
-                   nrm: cla.Array | None = None, cam_center=None, two_sided: bool = True) -> ShadowState:
+                   nrm: cla.Array | None = None, cam_center=None, two_sided: bool = True,
+                   early_out: bool = False) -> ShadowState:
     """Transmittance from ``P`` points towards each point / directional light.
 
     Args:
@@ -127,6 +128,9 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
         nrm, cam_center, two_sided: with ``nrm [P, 3]`` the shading normals (flipped towards
             ``cam_center`` when ``two_sided``, as shade.cl), rays towards lights behind a point
             (N·L ≤ 0, which contribute nothing) are skipped: T = 1, no hits.
+        early_out: a ray's walk stops once its T is below 1e-4 (``trace.cl``'s ``T_EARLY``: T is then within
+            1e-4 of the full product); for a visibility without an adjoint (:func:`shadow_backward` refuses
+            such a state: its walk would not be the forward's).
 
     Returns:
         :class:`ShadowState` with ``vis [P, NV]`` (NV = :func:`num_shadowed_lights`, in light order).
@@ -146,7 +150,7 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
                 NV=NV, eps=eps)
     if nrm is not None:
         args.update(nrm=nrm, cx=c[0], cy=c[1], cz=c[2], two_sided=int(bool(two_sided)))
-    defines = {"HAS_NRM": nrm is not None}
+    defines = {"HAS_NRM": nrm is not None, "EARLY_OUT": bool(early_out)}
     if P and NV:
         _run(device, "trace_shadow_fwd", real, (round_up(P, LOCAL),), (LOCAL,), defines, **args, vis=vis.base_data,
              nhit=nhit)
@@ -160,6 +164,8 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis) -> ShadowG
         :class:`ShadowGrads`: adjoints of the vertex alphas and positions of the occluders, of the
         shading points and of each light's position (point) or direction (directional), per shading point.
     """
+    if st.defines.get("EARLY_OUT"):
+        raise ValueError("shadow_backward needs a shadow_forward state traced without early_out")
     q, real = device.queue, bvh.real
     P, NV = st.vis.shape
     n = bvh.mesh.num_vertices
