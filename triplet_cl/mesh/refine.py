@@ -583,14 +583,17 @@ class MeshStage:
         """The mesh is shaded with cast shadows when its soup was (``--shadows vertex``) and it is rasterized."""
         return self.trainer.shadows_active() and self.renderer == "raster"
 
-    def visibility(self, scene: Scene, lights=None, vertices=None):
+    def visibility(self, scene: Scene, lights=None, vertices=None, normals=None):
         """``[N, NV]`` per-vertex visibility of ``scene`` (of its ``vertices`` when given) towards ``lights``
-        (default its own), or None without shadows (:meth:`shadows_active`)."""
+        (default its own), or None without shadows (:meth:`shadows_active`); with ``normals`` (one per traced
+        vertex) 1 without a ray towards a light behind a vertex's normal (for callers that weight it by
+        ``max(0, n · l)``: :func:`~triplet_cl.visibility.vertex_visibility`)."""
         if not self.shadows_active():
             return None
         from ..visibility import vertex_visibility
 
-        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps, vertices=vertices)
+        return vertex_visibility(scene, self.device, lights=lights, ray_eps=self.cfg.shadow_eps, vertices=vertices,
+                                 normals=normals)
 
     def bounce_active(self, scene: Scene) -> bool:
         """The mesh is lit with the traced interreflection (``MeshConfig.bounce``): rasterized, without a vertex-SH
@@ -887,25 +890,30 @@ class MeshStage:
         decode = self.trainer.transfer is not None
         return [(v.camera, srgb_decode(v.rgb) if decode else v.rgb, v.alpha) for v in self.ds.train]
 
-    def _seen(self, scene: Scene, vertices=None) -> np.ndarray:
-        """``[N, views]``: which training camera sees which vertex (shadow rays towards the camera centres)."""
+    def _seen(self, scene: Scene, vertices=None, normals=None) -> np.ndarray:
+        """``[N, views]``: which training camera sees which vertex (shadow rays towards the camera centres); with
+        ``normals`` (one per vertex asked), no ray (1) towards a camera behind a vertex's normal: the observations
+        (:func:`~triplet_cl.mesh.light_fit.vertex_observations`) need ``n · to camera > min_cos`` anyway."""
         from ..lights import PointLight
         from ..visibility import vertex_visibility
 
         return vertex_visibility(scene, self.device, lights=[PointLight(v.camera.center, np.ones(3))
                                                              for v in self.ds.train],
-                                 ray_eps=self.cfg.shadow_eps, vertices=vertices)
+                                 ray_eps=self.cfg.shadow_eps, vertices=vertices, normals=normals)
 
-    def _point_visibility(self, scene: Scene, n: int, vertices=None):
+    def _point_visibility(self, scene: Scene, n: int, vertices=None, normals=None):
         """``visibility(P, rows=None) -> [n, len(P)]``: the transmittance of point lights at ``P`` from the ``n``
         vertices ``vertices`` (default all), with the mesh's cast shadows where the run's renders have them
-        (:meth:`visibility`), else 1; ``rows`` (indices into those ``n``): only their rows, traced from them alone."""
+        (:meth:`visibility`), else 1; ``rows`` (indices into those ``n``): only their rows, traced from them alone.
+        ``normals`` ``[n, 3]``: no ray (1) towards a light behind a vertex's normal, where the light fit's atoms
+        weigh it by ``max(0, n · l) = 0``."""
         from ..lights import PointLight
 
         def visibility(P, rows=None):
             sel = vertices if rows is None else (np.asarray(rows) if vertices is None else np.asarray(vertices)[rows])
             m = n if rows is None else len(rows)
-            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P], vertices=sel)
+            nrm = None if normals is None else (normals if rows is None else np.asarray(normals)[np.asarray(rows)])
+            vis = self.visibility(scene, [PointLight(p, np.ones(3)) for p in P], vertices=sel, normals=nrm)
             return np.ones((m, len(P))) if vis is None else vis
         return visibility
 
@@ -933,9 +941,9 @@ class MeshStage:
 
         V = np.asarray(scene.V.data, np.float64)
         normals = vertex_normals(V, scene.F)
-        rad, count = vertex_radiance(V, normals, self._photos(), self._seen(scene))
+        rad, count = vertex_radiance(V, normals, self._photos(), self._seen(scene, normals=normals))
         lo, hi = V.min(axis=0), V.max(axis=0)  # the atoms around the mesh itself, not the cameras' extent
-        fit = fit_lights(V, scene.F, normals, rad, count, self._point_visibility(scene, len(V)),
+        fit = fit_lights(V, scene.F, normals, rad, count, self._point_visibility(scene, len(V), normals=normals),
                          center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
                          max_lights=self.cfg.light_fit_max,
                          current=self._current_lights(lights, np.pi * ao))  # E = π AO La
@@ -964,10 +972,10 @@ class MeshStage:
         idx = np.arange(len(V))
         if len(V) > self.cfg.light_fit_samples:
             idx = np.sort(np.random.default_rng(0).choice(len(V), self.cfg.light_fit_samples, replace=False))
-        obs = vertex_observations(V[idx], normals[idx], self._photos(), self._seen(scene, idx))
+        obs = vertex_observations(V[idx], normals[idx], self._photos(), self._seen(scene, idx, normals[idx]))
         f0 = self._f0_luminance(scene, idx)
         lo, hi = V.min(axis=0), V.max(axis=0)
-        fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx),
+        fit = fit_metal_lights(V[idx], normals[idx], obs, self._point_visibility(scene, len(idx), idx, normals[idx]),
                                center=0.5 * (lo + hi), extent=0.5 * float(np.linalg.norm(hi - lo)),
                                max_lights=self.cfg.light_fit_max, f0=f0,
                                current=self._current_lights(lights, ao))  # AO × F0 × La
