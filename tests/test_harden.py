@@ -603,7 +603,8 @@ def test_bad_transforms_are_named(tmp_path, case):
     assert "transforms_train.json" in str(ei.value)
 
 
-@pytest.mark.parametrize("case", ["one view", "cameras at one place", "every photo transparent", "every photo black"])
+@pytest.mark.parametrize("case", ["one view", "one view held out", "cameras at one place", "every photo transparent",
+                                  "every photo black"])
 def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, case):
     from PIL import Image
 
@@ -614,6 +615,10 @@ def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, c
     if case == "one view":
         d["frames"] = d["frames"][:1]
         want = "1 training view"
+    elif case == "one view held out":  # without transforms_test.json the hold-out took it: said, not "no views"
+        (data / "transforms_test.json").unlink()
+        d["frames"] = d["frames"][:1]
+        want = "0 training views; 1 more is in its test split (a capture without a test split of its own holds out"
     elif case == "cameras at one place":
         for f in d["frames"]:
             for r, v in enumerate((0.0, 0.0, 4.0)):

@@ -889,9 +889,10 @@ class Trainer:
                 (w, h), f = self.ds.auto_downscale, self.ds.downscale
                 ds_note = (f"downscale: {f} (auto: the photos are {w}x{h}, trained at {w // f}x{h // f}: at most "
                            f"{dataset_images.AUTO_MAX_SIDE} px on the longer side; --downscale N to choose)")
-        if not self.ds.train:
-            raise ValueError(f"dataset {data} has no training views")
         from .validate import check_image_sizes, check_training_views
+
+        if not self.ds.train:  # named with its test split's count (check_training_views), before the sizes' check
+            check_training_views(self.ds, new_run=not resume)
 
         check_image_sizes(self.ds, self.cfg.downscale)  # before anything is written
         check_training_views(self.ds, new_run=not resume)  # a run trained already is not refused on loading

@@ -292,8 +292,11 @@ def check_training_views(ds, new_run: bool = True) -> None:
 
     views = ds.train
     if len(views) < 2:
-        raise DatasetError(ds.root, f"{len(views)} training view: a reconstruction needs photos from at least two "
-                                    "places")
+        n = len(ds.test)
+        held = (f"; {n} more {'is' if n == 1 else 'are'} in its test split (a capture without a test split of its "
+                "own holds out every 8th photo by name, the first among them, for the test metrics)") if n else ""
+        raise DatasetError(ds.root, f"{len(views)} training view{'' if len(views) == 1 else 's'}{held}: a "
+                                    "reconstruction needs photos from at least two places")
     c = ds.camera_centers("train")
     far = np.nonzero(~np.isfinite(c).all(axis=1) | (np.abs(c).max(axis=1) > MAX_CAMERA_COORD))[0]
     if len(far):
