@@ -614,11 +614,11 @@ def test_views_that_cannot_make_a_reconstruction_are_refused(tmp_path, capsys, c
     d = json.loads(p.read_text())
     if case == "one view":
         d["frames"] = d["frames"][:1]
-        want = "1 training view"
+        want = "1 training view: a reconstruction needs"  # its own test split: no word of a hold-out
     elif case == "one view held out":  # without transforms_test.json the hold-out took it: said, not "no views"
         (data / "transforms_test.json").unlink()
         d["frames"] = d["frames"][:1]
-        want = "0 training views; 1 more is in its test split (a capture without a test split of its own holds out"
+        want = "0 training views; 1 more is in the test split held out from them (every 8th photo by name"
     elif case == "cameras at one place":
         for f in d["frames"]:
             for r, v in enumerate((0.0, 0.0, 4.0)):

@@ -292,9 +292,9 @@ def check_training_views(ds, new_run: bool = True) -> None:
 
     views = ds.train
     if len(views) < 2:
-        n = len(ds.test)
-        held = (f"; {n} more {'is' if n == 1 else 'are'} in its test split (a capture without a test split of its "
-                "own holds out every 8th photo by name, the first among them, for the test metrics)") if n else ""
+        n, every = len(ds.test), getattr(ds, "held_out", None)
+        held = (f"; {n} more {'is' if n == 1 else 'are'} in the test split held out from them (every {every}th "
+                "photo by name, the first among them: the capture has no test split of its own)") if n and every else ""
         raise DatasetError(ds.root, f"{len(views)} training view{'' if len(views) == 1 else 's'}{held}: a "
                                     "reconstruction needs photos from at least two places")
     c = ds.camera_centers("train")

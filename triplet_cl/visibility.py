@@ -136,8 +136,8 @@ def vertex_occlusion(scene: Scene, normals: np.ndarray, device: Device | None = 
     cosine integral of π. The shading's irradiance ``ao Σ_j c_j (A_l Y_j(n) − U_j)`` is then the precomputed
     radiance transfer ``Σ_j c_j ∫ V(ω) max(0, n·ω) Y_j(ω) dω`` (its band 0 carried by ``ao``), with the quadrature
     error of the two sums cancelling where nothing occludes: ``U = 0`` exactly there (the same sums; a convex object
-    renders as without it). 0 too where nothing is visible (``ao`` = 0 there). A constant for the gradient, as the
-    visibility.
+    renders as without it). 0 too where (almost) nothing is visible: ``ao`` below 1e-4, where the traces' early-out
+    and not the geometry would set the ratio. A constant for the gradient, as the visibility.
     """
     from .lights import DirectionalLight
     from .mesh.envmap import sh_basis
@@ -159,7 +159,9 @@ def vertex_occlusion(scene: Scene, normals: np.ndarray, device: Device | None = 
     U = np.zeros((len(w), nk - 1))
     if nk > 1 and len(w):
         Y = sh_basis(int(degree), D)[:, 1:]  # [K, nk - 1]
-        ok = (tot > 0) & (seen > 1e-12 * np.maximum(tot, 1e-300))
+        # U is a ratio of transmittances: where the visible share is below the traces' early-out (1e-4: the walk's
+        # stopping point, not the geometry, would set the ratio) it is 0, as where nothing is visible
+        ok = (tot > 0) & (seen > 1e-4 * np.maximum(tot, 1e-300))
         U[ok] = np.pi * ((w[ok] @ Y) / tot[ok, None] - (Tw[ok] @ Y) / seen[ok, None])
     return ao, U
 

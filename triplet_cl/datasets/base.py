@@ -100,6 +100,8 @@ class Dataset:
         downscale: the integer factor the images and intrinsics were reduced by.
         auto_downscale: with ``load_dataset(downscale="auto")``, the ``(width, height)`` of the image that chose
             the factor (None otherwise).
+        held_out: N when the test split is the loader's hold-out (every N-th view by name, :func:`holdout_split`),
+            None when the capture brought its own (or nothing was held out).
     """
 
     root: Path
@@ -111,6 +113,7 @@ class Dataset:
     background: object = "white"
     downscale: int = 1
     auto_downscale: tuple[int, int] | None = None
+    held_out: int | None = None
 
     def __post_init__(self):
         for s in SPLITS:

@@ -416,4 +416,4 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
         raise DatasetError(img_dir, f"no images left: none of the {len(imgs)} image files of {img_path.name} exists")
     views, spaces = load_views(records, downscale, "train")
     return Dataset(root, "colmap", holdout_split(views, split_holdout), points=points, colors=colors,
-                   color_space=merge_color_spaces(root, spaces), downscale=downscale)
+                   color_space=merge_color_spaces(root, spaces), downscale=downscale, held_out=split_holdout or None)

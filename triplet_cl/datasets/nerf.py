@@ -266,7 +266,10 @@ def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Datase
         if p.is_file():
             splits[s], sp = load_transforms_split(p, s, downscale)
             spaces |= sp
+    held_out = None
     if "test" not in splits:
         held = holdout_split(splits["train"], split_holdout)
         splits["train"], splits["test"] = held["train"], held["test"]
-    return Dataset(root, "nerf", splits, color_space=merge_color_spaces(root, spaces), downscale=downscale)
+        held_out = split_holdout or None
+    return Dataset(root, "nerf", splits, color_space=merge_color_spaces(root, spaces), downscale=downscale,
+                   held_out=held_out)

@@ -27,4 +27,4 @@ def load_ngp(path, downscale: int = 1, split_holdout: int | None = 8) -> Dataset
     views, spaces = load_transforms_split(json_path, "train", downscale)
     splits = holdout_split(views, split_holdout)
     return Dataset(json_path.parent, "ngp", splits, color_space=merge_color_spaces(json_path.parent, spaces),
-                   downscale=downscale)
+                   downscale=downscale, held_out=split_holdout or None)
