@@ -859,3 +859,42 @@ def test_a_mesh_cropped_from_photos_with_a_background_is_not_scored_against_them
     out = capsys.readouterr().out
     assert "1234 faces, cropped to the object" in out and "10.68 dB is against photos that also show the background" \
         in out and "soup 27.34 dB" in out, out
+
+
+@pytest.mark.parametrize("size", [40, 97])
+def test_photometric_backward_is_the_host_loss_on_the_device(device, rng, size, monkeypatch):
+    """The mesh stage's loss below the resident device loss's size (the soup's metallic probe at 96²) runs the numpy
+    loss's arithmetic on the device (``photometric_loss_and_grad_exact``): the same value and the same gradients, bit
+    for bit, as the host loss it replaced; from that size on, the float32 kernels as before."""
+    from tests.test_render import cam, small_scene
+    from triplet_cl.losses import DEVICE_LOSS_RESIDENT_MIN_PIXELS
+    from triplet_cl.mesh import refine
+    from triplet_cl.render import RenderSettings, render
+
+    scene = small_scene(rng, "cook_torrance", mesh=True)
+    c = type(cam()).look_at([0.4, 0.3, 3.0], [0, 0, 0], [0, 1, 0], 40, size, size)
+    target = rng.uniform(0, 1, (size, size, 3)).astype(np.float32)
+    settings = RenderSettings(K=4, sigma=0.8, background=(0.3, 0.5, 0.9), normals="vertex")
+
+    def grads(host: bool):
+        for p in (scene.V, scene.material, scene.alpha, scene.light_params):
+            p.grad = None
+        if host:  # the path before: numpy on the host image
+            monkeypatch.setattr(refine, "exact_device_loss_available", lambda *a: False)
+        loss = refine.photometric_backward(render(scene, c, settings, device), target, 0.2)
+        monkeypatch.undo()
+        return loss, [np.array(p.grad) for p in (scene.V, scene.material, scene.alpha, scene.light_params)]
+
+    calls = []
+    exact = refine.photometric_loss_and_grad_exact
+    monkeypatch.setattr(refine, "photometric_loss_and_grad_exact", lambda *a, **k: calls.append(1) or exact(*a, **k))
+    dev_loss, dev_g = grads(False)
+    assert len(calls) == (size * size < DEVICE_LOSS_RESIDENT_MIN_PIXELS)  # the path taken below that size
+    assert all(np.abs(g).max() > 0 for g in dev_g)
+    host_loss, host_g = grads(True)
+    if size * size >= DEVICE_LOSS_RESIDENT_MIN_PIXELS:  # the float32 kernels: the same loss to float32 rounding
+        assert dev_loss == pytest.approx(host_loss, rel=1e-5)
+        return
+    assert dev_loss == host_loss
+    for a, b in zip(dev_g, host_g, strict=True):
+        np.testing.assert_array_equal(a, b)
