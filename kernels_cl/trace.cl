@@ -68,11 +68,12 @@
 #define K_MAX 1
 #endif
 #define AMAX ((REAL)(1.0 - 1e-6))
-/* EARLY_OUT (trace_shadow_fwd without an adjoint: the cached visibility, ambient occlusion, which camera sees a
- * vertex): a ray's walk ends after the leaf that brought T below T_EARLY, so T is its exact value or a product
+/* EARLY_OUT: a ray's walk ends after the leaf that brought T below T_EARLY, so T is its exact value or a product
  * of fewer factors below T_EARLY (an absolute error under 1e-4, a 40th of an 8-bit step); nhit then counts the
  * hits walked. Occluded rays no longer cross the rest of the object (or, towards a directional light, every
- * surface behind the first). */
+ * surface behind the first). trace_shadow_bwd built with it walks the same leaves (the same running product in
+ * the same order, so it stops where the forward stopped): the exact adjoint of the truncated product, whose
+ * factors beyond the stop have no gradient (each would be under T_EARLY). */
 #define T_EARLY ((REAL)1e-4)
 
 /* entry id of (tile t, face f) in the rasterizer's binning, or -1 when f is not binned into t */
@@ -324,6 +325,9 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
         const int lit = ray && (!has_nrm || dot(N, safe_normalize(d)) > (REAL)0);
         const REAL3 inv = ray_inv_dir(d);
         const REAL T = vis[p * NV + j], vT = v_vis[p * NV + j];
+#ifdef EARLY_OUT
+        REAL Tw = (REAL)1;    /* the forward's running product, in its order: its walk ends at the same leaf */
+#endif
         REAL3 gd = (REAL3)(0);
         int r = rec_off[p * NV + j];
         int stack[BVH_STACK];
@@ -342,6 +346,9 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                 REAL t, u, v;
                 if (!ray_tri(x, d, v0, v1, v2, tmin, tmax, &t, &u, &v)) continue;
                 const REAL a = hit_alpha(attr, C, ca, F, f, u, v, &A);
+#ifdef EARLY_OUT
+                Tw *= (REAL)1 - clamp(a, (REAL)0, AMAX);
+#endif
                 const REAL g = (a >= (REAL)0 && a <= AMAX) ? -vT * T / ((REAL)1 - a) : (REAL)0;
                 __global REAL* w = rec_w + (long)r * 12;
                 rec_face[r++] = f;
@@ -364,6 +371,9 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                 gx += vs;
                 gd += vd;
             }
+#ifdef EARLY_OUT
+            if (Tw < T_EARLY) break;  /* where the forward's walk ended: T is the product of the factors walked */
+#endif
         }
         if (light_shadow_ray_from_x(type)) gx -= gd;
         STORE3(gd, v_light, p * NV + j);

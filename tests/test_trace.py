@@ -122,7 +122,7 @@ def _shadow(dev, V, F, alpha_v, pos, own, lights, eps, real=np.float64, early_ou
 
 def test_shadow_early_out_stops_below_its_threshold(device64, rng):
     """``early_out``: a ray whose full transmittance is at least 1e-4 gets it exactly (and all its hits); one
-    below gets a value in [full T, 1e-4) from fewer hits; the adjoint refuses such a state."""
+    below gets a value in [full T, 1e-4) from fewer hits."""
     V, F = soup(rng, M=300)
     alpha_v = rng.uniform(0.6, 0.999, len(V))  # dense and nearly opaque: many rays fall below 1e-4
     Pn = 60
@@ -139,8 +139,75 @@ def test_shadow_early_out_stops_below_its_threshold(device64, rng):
     np.testing.assert_array_equal(hits[~deep], n[~deep])
     assert (vis[deep] >= T[deep] * (1 - 1e-12)).all() and (vis[deep] < 1e-4).all()
     assert (hits[deep] <= n[deep]).all() and (hits[deep] < n[deep]).any()  # the walk did stop early
-    with pytest.raises(ValueError, match="early_out"):
-        trace_op.shadow_backward(device64, b, st, np.ones((Pn, 2)))
+
+
+def test_shadow_early_out_adjoint(device64, rng):
+    """The adjoint of the early-out transmittance (the hybrid renderer's): the backward walks the forward's hits
+    and stops where it stopped. Rays that never fall below 1e-4 get the full walk's adjoint exactly; every
+    occluder's alpha and position adjoint, and the shading points', match float64 central differences of the
+    early-out forward (perturbations that move a ray's stop, a discrete change, skipped); occluders only the full
+    walk reaches get no gradient."""
+    V, F = soup(rng, M=300)
+    alpha_v = rng.uniform(0.6, 0.999, len(V))  # dense and nearly opaque: many rays stop early
+    Pn = 60
+    pos = rng.uniform(-0.7, 0.7, (Pn, 3))
+    own = rng.integers(0, len(F), Pn)
+    lights = [PointLight([0.2, 1.9, 0.4], [1, 1, 1]), DirectionalLight([0.3, -1.0, 0.5], [1, 1, 1])]
+    eps = 1e-6
+    w = rng.standard_normal((Pn, 2))
+    b, st = _shadow(device64, V, F, alpha_v, pos, own, lights, eps, early_out=True)
+    g = trace_op.shadow_backward(device64, b, st, w)
+    hits = st.nhit.get().reshape(Pn, 2)
+    _, full = _shadow(device64, V, F, alpha_v, pos, own, lights, eps)
+    deep = full.vis.get() < 1e-4
+    assert deep.any() and (hits < full.nhit.get().reshape(Pn, 2)).any()
+    # the rays that never fall below 1e-4: only their cotangents, against the full walk's adjoint
+    w_shallow = np.where(deep, 0.0, w)
+    g_e = trace_op.shadow_backward(device64, b, st, w_shallow)
+    g_f = trace_op.shadow_backward(device64, b, full, w_shallow)
+    np.testing.assert_allclose(g_e.v_alpha, g_f.v_alpha, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(g_e.v_V, g_f.v_V, rtol=1e-12, atol=1e-15)
+
+    def value(alpha_v=alpha_v, V=V, pos=pos):
+        _, s = _shadow(device64, V, F, alpha_v, pos, own, lights, eps, early_out=True)
+        return (s.vis.get() * w).sum(), s.nhit.get().tobytes()
+
+    sig = st.nhit.get().tobytes()
+    h = 1e-6  # float64: the difference quotient's rounding error ~1e-16 x |value| / h, under the abs tolerance
+    hit_vertices = np.flatnonzero(np.abs(g.v_alpha) > 0)
+    assert len(hit_vertices) > 20
+    checked = 0
+    for i in rng.choice(hit_vertices, 12, replace=False):
+        for what in ("alpha", "V"):
+            arr = alpha_v if what == "alpha" else V
+            idx = (i,) if what == "alpha" else (i, int(rng.integers(3)))
+            a0 = arr[idx]
+            arr[idx] = a0 + h
+            fp, sp = value(alpha_v, V)
+            arr[idx] = a0 - h
+            fm, sm = value(alpha_v, V)
+            arr[idx] = a0
+            if sp != sig or sm != sig:
+                continue
+            got = g.v_alpha[i] if what == "alpha" else g.v_V[idx]
+            assert got == pytest.approx((fp - fm) / (2 * h), rel=1e-5, abs=1e-8), (what, idx)
+            checked += 1
+    assert checked >= 16
+    gp = g.v_pos.get()
+    for p in rng.choice(Pn, 6, replace=False):
+        k = int(rng.integers(3))
+        p0 = pos[p, k]
+        pos[p, k] = p0 + h
+        fp, sp = value(pos=pos)
+        pos[p, k] = p0 - h
+        fm, sm = value(pos=pos)
+        pos[p, k] = p0
+        if sp == sig and sm == sig:
+            assert gp[p, k] == pytest.approx((fp - fm) / (2 * h), rel=1e-5, abs=1e-8), (p, k)
+    # an occluder the early walks never reach (only the full walk's hits beyond a stop) has no gradient
+    g_full = trace_op.shadow_backward(device64, b, full, w)
+    beyond = (np.abs(g_full.v_alpha) > 0) & (g.v_alpha == 0)
+    assert beyond.any()
 
 
 def test_shadow_transmittance_matches_reference(device64, rng):

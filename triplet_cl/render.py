@@ -500,9 +500,10 @@ class TracedShadeFragments(ShadeFragments):
         Vd = cla.to_device(d.queue, np.ascontiguousarray(attr_h[:, p0:p0 + 3]))
         ctx.shadow = ctx.hits = None
         if s.shadows and trace_op.num_shadowed_lights(inp.table) and comp.P:
+            # early_out: a ray stops once its T is below 1e-4 (its adjoint walks the same hits: trace.cl)
             ctx.shadow = trace_op.shadow_forward(d, v.bvh, Vd, attr_d, L["alpha"][0], blk["pos"], face_r, inp.lt_i,
                                                  inp.lt_f, inp.table, v.ray_eps, nrm=blk["nrm"],
-                                                 cam_center=v.camera.center, two_sided=s.two_sided)
+                                                 cam_center=v.camera.center, two_sided=s.two_sided, early_out=True)
             inp.vis = ctx.shadow.vis
         if s.reflections and comp.P:
             hf, hb = trace_op.bounce(d, v.bvh, Vd, blk["pos"], blk["nrm"], face_r, v.camera.center, s.two_sided,

@@ -129,8 +129,8 @@ def shadow_forward(device: Device, bvh: BVH, V: cla.Array, attr: cla.Array, alph
             ``cam_center`` when ``two_sided``, as shade.cl), rays towards lights behind a point
             (N·L ≤ 0, which contribute nothing) are skipped: T = 1, no hits.
         early_out: a ray's walk stops once its T is below 1e-4 (``trace.cl``'s ``T_EARLY``: T is then within
-            1e-4 of the full product); for a visibility without an adjoint (:func:`shadow_backward` refuses
-            such a state: its walk would not be the forward's).
+            1e-4 of the full product); :func:`shadow_backward` then walks the same hits (the adjoint of the
+            truncated product: occluders beyond the stop get no gradient).
 
     Returns:
         :class:`ShadowState` with ``vis [P, NV]`` (NV = :func:`num_shadowed_lights`, in light order).
@@ -164,8 +164,6 @@ def shadow_backward(device: Device, bvh: BVH, st: ShadowState, v_vis) -> ShadowG
         :class:`ShadowGrads`: adjoints of the vertex alphas and positions of the occluders, of the
         shading points and of each light's position (point) or direction (directional), per shading point.
     """
-    if st.defines.get("EARLY_OUT"):
-        raise ValueError("shadow_backward needs a shadow_forward state traced without early_out")
     q, real = device.queue, bvh.real
     P, NV = st.vis.shape
     n = bvh.mesh.num_vertices
