@@ -429,3 +429,52 @@ def test_plane_under_a_point_light_is_the_path_tracers(device):
     img = render(scene, cam, RenderSettings(K=4, sigma=None, normals="vertex", background=(0, 0, 0)), device).image
     for (y, x), want in MITSUBA_PLANE.items():
         assert img[y, x, 0] == pytest.approx(want, rel=5e-3), (y, x)
+
+
+@pytest.mark.parametrize("prune,sigma", [(True, 0.8), (False, None)])
+def test_fragment_cache_renders_bit_for_bit(device, rng, prune, sigma):
+    """``render(frag_cache=...)`` (the metallic trial's renders: materials and lights change, the geometry does not):
+    a view whose fragments it holds renders with them, and the image and every gradient equal an uncached render's
+    bit for bit, after the materials and lights moved too; a change of the positions or opacities empties it; a
+    budget of 0 bytes keeps nothing and changes nothing."""
+    from triplet_cl.render import FragmentCache
+
+    scene = small_scene(rng, "cook_torrance", mesh=True)
+    scene.alpha.data[...] = 4.0  # nearly opaque: pruning drops the fragments behind
+    settings = RenderSettings(K=6, sigma=sigma, background=(0.3, 0.5, 0.9), prune=prune, soft_edges="silhouette",
+                              normals="vertex")
+    views = [cam(), Camera.look_at([-0.6, 0.5, 2.8], [0, 0, 0], [0, 1, 0], 45, W, H)]
+    w = rng.standard_normal((H, W, 4))
+
+    def run(cache, c=views[0]):
+        scene.zero_grad()
+        r = render(scene, c, settings, device, frag_cache=cache)
+        g = r.backward(w[..., :3], w[..., 3])
+        return r.rgba.data.copy(), {k: None if v is None else np.array(v) for k, v in g.items()}, r.info["frags"].P
+
+    cache = FragmentCache()
+    for step in range(3):
+        for c in views:
+            want, g_want, P = run(None, c)
+            got, g_got, P2 = run(cache, c)
+            assert P == P2
+            np.testing.assert_array_equal(got, want)
+            for k in g_want:
+                np.testing.assert_array_equal(g_got[k], g_want[k], err_msg=k)
+        assert len(cache.entries) == 2 and cache.hits == 2 * step
+        scene.material.data[...] += 0.1 * rng.standard_normal(scene.material.data.shape)  # the trial's steps
+        scene.light_params.data[...] *= 1.05
+    scene.V.data[0] += 0.01  # the geometry moved: rasterized again
+    want, g_want, _ = run(None)
+    got, g_got, _ = run(cache)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(g_got["V"], g_want["V"])
+    assert len(cache.entries) == 1
+    scene.alpha.data[3] -= 1.0
+    run(cache)
+    assert len(cache.entries) == 1 and cache.hits == 4
+    empty = FragmentCache(max_bytes=0)
+    got, g_got, _ = run(empty)
+    want, g_want, _ = run(None)
+    np.testing.assert_array_equal(got, want)
+    assert not empty.entries

@@ -160,6 +160,7 @@ class RenderState:
         self.win = None  # [P] coverage window of the forward pass (sigma set)
         self.info: dict = {"frags": None, "vs": None, "v_vs": None}
         self._V_src = self._Vd = None  # the vertex positions on the device, uploaded once per render
+        self.frag_cache: FragmentCache | None = None  # render(frag_cache=...): fragments of unchanged geometry
 
     def device_V(self, V) -> cla.Array:
         """``V [N, 3]`` (host) on the device in the settings' REAL: uploaded once per render call and
@@ -168,6 +169,54 @@ class RenderState:
             self._Vd = _upload(self.device, np.ascontiguousarray(V, self.settings.real))
             self._V_src = V
         return self._Vd
+
+
+class FragmentCache:
+    """The rasterized fragments of views whose geometry stays put, for renders that only change materials and
+    lights: the metallic trial (``mesh/refine.py`` ``MeshStage.choose_metallic``: positions, faces and opacities
+    fixed through its 2 × 200 steps over the same views). :func:`render` with ``frag_cache`` takes a view's
+    fragments (projected, rasterized, their coverage windows and, with ``RenderSettings.prune``, pruned) from
+    here when it saw the same camera with the same positions, opacities and faces, and interpolates the attributes
+    on them: the render and every gradient are the same bit for bit, the geometry's forward runs once per view.
+    Any change of ``V``, ``alpha`` or ``F`` empties it. Raster renders only; at most ``max_bytes`` of fragments
+    are kept (views past it are rendered as without a cache)."""
+
+    def __init__(self, max_bytes: int = 768 << 20):
+        self.max_bytes = int(max_bytes)
+        self.entries: dict = {}
+        self.bytes = 0
+        self.hits = self.misses = 0
+        self._geometry = None  # (V, alpha, F) copies the entries were made with
+
+    def validate(self, scene: Scene) -> None:
+        """Empty the cache unless ``scene``'s positions, opacities and faces are those of its entries."""
+        g = self._geometry
+        V, a, F = (np.asarray(x) for x in (scene.V.data, scene.alpha.data, scene.F))
+        if g is None or not (np.array_equal(g[0], V) and np.array_equal(g[1], a) and np.array_equal(g[2], F)):
+            self.entries.clear()
+            self.bytes = 0
+            self._geometry = (V.copy(), a.copy(), F.copy())
+
+    @staticmethod
+    def key(camera: Camera, settings: RenderSettings) -> tuple:
+        return (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, camera.near, camera.far,
+                np.asarray(camera.w2c, np.float64).tobytes(), settings.K, settings.sigma, settings.soft_edges,
+                settings.cull_backface, settings.prune, settings.t_min, np.dtype(settings.real).str)
+
+    def get(self, key):
+        hit = self.entries.get(key)
+        if hit is None:
+            self.misses += 1
+        else:
+            self.hits += 1
+        return hit
+
+    def put(self, key, frags, win, vs) -> None:
+        size = sum(a.nbytes for a in vars(frags).values() if isinstance(a, cla.Array))
+        size += 0 if win is None else win.nbytes
+        if self.bytes + size <= self.max_bytes:
+            self.entries[key] = (frags, win, vs)
+            self.bytes += size
 
 
 # ---------------------------------------------------------------------------------------------- per vertex
@@ -357,6 +406,18 @@ class RasterInterpolate(Function):
         ctx.Vd = v.device_V(V)
         ctx.attr = attr if isinstance(attr, cla.Array) and attr.dtype == s.real else \
             cla.to_device(d.queue, np.ascontiguousarray(to_host(attr), s.real))
+        cache = v.frag_cache if s.renderer == "raster" else None
+        key = None if cache is None else FragmentCache.key(cam, s)
+        hit = None if cache is None else cache.get(key)
+        if hit is not None:  # the same view of the same geometry: only the attributes are interpolated again
+            fr, win, vs = hit
+            fa = interpolate(d, ctx.attr, fr)
+            v.frags = ctx.frags = fr
+            v.info.update(frags=fr, vs=vs)
+            if s.sigma is None:
+                return fa
+            v.win = win
+            return fa, win
         vs = project(d, ctx.Vd, cam)
         if s.renderer == "raytrace":
             fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
@@ -370,6 +431,8 @@ class RasterInterpolate(Function):
         win = None if s.sigma is None else coverage(d, fr, s.sigma)
         if s.prune and self.alpha_col is not None and s.renderer == "raster" and s.t_min > 0:
             fr, fa, win = prune_fragments(d, fr, fa, self.alpha_col, win, s.t_min)
+        if cache is not None:
+            cache.put(key, fr, win, vs)
         v.frags = ctx.frags = fr
         v.info.update(frags=fr, vs=vs)
         if s.sigma is None:
@@ -748,7 +811,7 @@ def device_mesh(device: Device, F: np.ndarray, n: int) -> DeviceMesh:
 
 def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
            device: Device | None = None, vis: np.ndarray | None = None,
-           bounce: np.ndarray | None = None) -> RenderResult:
+           bounce: np.ndarray | None = None, frag_cache: FragmentCache | None = None) -> RenderResult:
     """Render ``scene`` from ``camera``, recording on the active tape (or a new one).
 
     ``vis`` (optional, ``renderer="raster"`` only): ``[N, NV]`` per-vertex transmittance towards each
@@ -761,6 +824,9 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
     ``bounce`` (optional, ``renderer="raster"``, a scene without a vertex-SH light): ``[N, 3]`` per-vertex radiance
     of one interreflection bounce (``visibility.vertex_bounce``), interpolated per fragment and lit as a
     :class:`~triplet_cl.lights.BounceLight` appended to the scene's lights; a constant, as ``vis``.
+
+    ``frag_cache`` (optional, ``renderer="raster"``): a :class:`FragmentCache` the fragments of this view come from
+    when it holds them for the scene's current geometry (else they are rasterized and put there).
 
     Returns:
         :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
@@ -794,6 +860,9 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
                          f"{camera.width}x{camera.height}")
     mesh = device_mesh(d, scene.F, N)
     view = RenderState(d, mesh, camera, s)
+    if frag_cache is not None and s.renderer == "raster":
+        frag_cache.validate(scene)
+        view.frag_cache = frag_cache
     if s.renderer != "raster":
         Vh = np.asarray(scene.V.data, np.float64)
         view.bvh = scene_bvh(d, mesh, Vh, s.real)
