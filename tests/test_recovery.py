@@ -505,6 +505,36 @@ def test_metallic_trial_refuses_a_near_lambertian_metal():
     np.testing.assert_array_equal(np.delete(s.material.data, 4, axis=1), np.delete(before, 4, axis=1))
 
 
+def test_metallic_trial_holds_the_geometry():
+    """The trial optimises materials and lights only: positions and opacities require no gradient while it runs (the
+    renders skip the geometry's adjoint) and do again afterwards, also when a step fails."""
+    from autodiff import Param
+    from triplet_cl.mesh.refine import metallic_trial
+
+    class S:
+        vertex_sh = light_params = None
+
+    s = S()
+    s.V, s.alpha = Param(np.zeros((5, 3)), "V"), Param(np.zeros((5, 1)), "alpha")
+    s.material = Param(np.tile(logit(np.array([0.5, 0.5, 0.5, 0.5, 0.1, 0.99])), (5, 1)), "material")
+    seen = []
+
+    def loss_and_backward(k):
+        seen.append((s.V.requires_grad, s.alpha.requires_grad))
+        s.material.grad = np.ones_like(s.material.data)
+        return 1.0
+
+    metallic_trial(s, [3, 4, 5], 4, loss_and_backward, 3, lr_material=0.05)
+    assert set(seen) == {(False, False)} and s.V.requires_grad and s.alpha.requires_grad
+
+    def failing(k):
+        raise RuntimeError("a step failed")
+
+    with pytest.raises(RuntimeError, match="a step failed"):
+        metallic_trial(s, [3, 4, 5], 4, failing, 3, lr_material=0.05)
+    assert s.V.requires_grad and s.alpha.requires_grad
+
+
 def test_tie_rows_keeps_equal_rows_equal():
     """``tie_rows``: every row of the gradient becomes the mean, so equal rows with equal Adam moments stay equal."""
     from autodiff import Param

@@ -478,3 +478,24 @@ def test_fragment_cache_renders_bit_for_bit(device, rng, prune, sigma):
     want, g_want, _ = run(None)
     np.testing.assert_array_equal(got, want)
     assert not empty.entries
+
+
+@pytest.mark.parametrize("mesh", [True, False])
+def test_held_positions_skip_the_geometric_adjoint(device, rng, mesh):
+    """Positions (and opacities) that do not require a gradient (the metallic trial holds them): the backward skips
+    the geometry's adjoint (fragments_backward without GEOMETRY, no normals' adjoint), and every other gradient is
+    the full backward's bit for bit."""
+    scene = small_scene(rng, "cook_torrance", mesh=mesh)
+    settings = RenderSettings(K=6, sigma=0.8, background=(0.3, 0.5, 0.9), normals="vertex" if mesh else "face")
+    w = rng.standard_normal((H, W, 4))
+    scene.zero_grad()
+    full = render(scene, cam(), settings, device).backward(w[..., :3], w[..., 3])
+    scene.V.requires_grad = scene.alpha.requires_grad = False
+    try:
+        scene.zero_grad()
+        held = render(scene, cam(), settings, device).backward(w[..., :3], w[..., 3])
+    finally:
+        scene.V.requires_grad = scene.alpha.requires_grad = True
+    assert held["V"] is None and held["alpha"] is None and np.abs(full["V"]).max() > 0
+    for k in ("material", "light_params"):
+        np.testing.assert_array_equal(held[k], full[k], err_msg=k)

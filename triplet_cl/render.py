@@ -372,13 +372,15 @@ class VertexAttributes(Function):
         v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.attr, v_attr,
                                                                              self.softplus, ctx.has_vl, real,
                                                                              ctx.nconst)
+        rest = (v_mat.get(), v_alpha.get().reshape(-1, 1)) + ((v_vl.get(),) if ctx.has_vl else ())
+        if not ctx.needs_input_grad[0]:  # positions held: no normals' adjoint
+            return (None,) + rest
         if ctx.face:
             v_Vn = normals_op.face_backward(d, ctx.Vd, m.F, vattr_op.face_sum3(d, v_nrm, real), m.csr_off,
                                             m.csr_corner, True, real, corners_are_vertices=True)
         else:
             v_Vn = normals_op.vertex_backward(d, ctx.Vd, m.F, v_nrm, m.csr_off, m.csr_corner, real)
-        out = ((v_pos + v_Vn).get(), v_mat.get(), v_alpha.get().reshape(-1, 1))
-        return out + ((v_vl.get(),) if ctx.has_vl else ())
+        return ((v_pos + v_Vn).get(),) + rest
 
 
 def use_device_attributes(settings: RenderSettings, mesh: DeviceMesh) -> bool:
@@ -442,6 +444,9 @@ class RasterInterpolate(Function):
 
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
+        if not ctx.needs_input_grad[0]:  # positions held (the metallic trial): the attributes' adjoint alone
+            v_attr, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, geometry=False)
+            return None, v_attr
         v_attr, v_vs, _ = fragments_backward(d, ctx.frags, ctx.attr, v_fa, v_win=v_win,
                                              sigma=s.sigma or 0.0, want_sigma=False)  # no read-back: not used
         self.view.info["v_vs"] = v_vs  # screen-space vertex adjoint: density control's view-space gradient

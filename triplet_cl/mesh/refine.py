@@ -1376,12 +1376,26 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     small gain in loss comes from absorbing what the light model misses. Measured (96² captures, 200-step trials):
     the metal hypothesis won on the metal capture at roughness 0.65 (truth 0.35), and on two dielectric ones (two
     point lights; gadget) at 0.92 and 0.91; on spot_small the dielectric won outright (its metal at 0.93)."""
-    from ..train import tie_rows
-
     m0 = np.array(scene.material.data)
     lp = scene.light_params
-    l0 = None if lp is None else np.array(lp.data)
     params = [p for p in (scene.V, scene.alpha, scene.vertex_sh, scene.material, lp) if p is not None]
+    held = [p for p in (scene.V, scene.alpha, scene.vertex_sh) if p is not None]
+    for p in held:  # not optimised here: the renders' backward skips their adjoints (the geometry's)
+        p.requires_grad = False
+    try:
+        return _metallic_trial(scene, tied, col, loss_and_backward, steps, values, lr_material, rough_col,
+                               max_metal_roughness, betas, lr_lights, light_scale, after_step, m0, lp, params)
+    finally:
+        for p in held:
+            p.requires_grad = True
+
+
+def _metallic_trial(scene, tied, col, loss_and_backward, steps, values, lr_material, rough_col, max_metal_roughness,
+                    betas, lr_lights, light_scale, after_step, m0, lp, params) -> dict:
+    """:func:`metallic_trial`'s fits, its positions, opacities and vertex SH held."""
+    from ..train import tie_rows
+
+    l0 = None if lp is None else np.array(lp.data)
     curves, ends = {}, {}
     for value in values:
         scene.material.data[...] = m0
