@@ -432,6 +432,35 @@ def test_images_of_different_sizes_in_a_split(tmp_path):
         load_dataset(tmp_path)
 
 
+def _write_oriented_jpeg(path, pixels, orientation):
+    import OpenImageIO as oiio
+
+    px = np.ascontiguousarray(pixels[..., :3], np.float32)
+    spec = oiio.ImageSpec(px.shape[1], px.shape[0], 3, "uint8")
+    spec.attribute("Orientation", orientation)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(px), out.geterror()
+    out.close()
+
+
+def test_exif_orientation_is_named(tmp_path):
+    """Photos whose EXIF orientation has viewers show them turned are read as stored (as COLMAP and instant-ngp
+    read them), with one warning naming the tag; one stored sideways among the others: the size error says why."""
+    fac.make_nerf(tmp_path, {"train": 3, "test": 1})
+    for i in range(3):
+        (tmp_path / "train" / f"r_{i}.png").unlink()
+        _write_oriented_jpeg(tmp_path / "train" / f"r_{i}.jpg", fac.image_pixels(i), 6)
+    with pytest.warns(DatasetWarning, match=r"3 of 3 train images carry an EXIF orientation \(r_0.jpg: 6, shown "
+                                            "rotated 90° clockwise"):
+        ds = load_dataset(tmp_path)
+    assert ds.train[0].rgb.shape[:2] == (fac.H, fac.W)  # the pixels as stored
+    _write_oriented_jpeg(tmp_path / "train" / "r_2.jpg", fac.image_pixels(2, fac.H, fac.W), 6)  # stored sideways
+    with pytest.raises(
+            DatasetError, match=f"r_2.jpg: image is {fac.H}x{fac.W} but r_0.jpg .*its EXIF orientation 6 has "
+                                f"viewers show it rotated 90° clockwise, at {fac.W}x{fac.H}"):
+        load_dataset(tmp_path)
+
+
 def test_unreadable_image(tmp_path):
     fac.make_nerf(tmp_path, {"train": 3, "test": 1})
     (tmp_path / "train" / "r_1.png").write_bytes(b"this is not a png")

@@ -36,6 +36,12 @@ class Image(NamedTuple):
     color_space: str  # "srgb" or "linear"
     width: int  # of the file, before any downscale
     height: int
+    orientation: int = 1  # the file's EXIF Orientation tag (1: as stored); the pixels are returned as stored
+
+
+# EXIF Orientation values and how an image viewer shows the stored pixels (5-8 swap width and height)
+EXIF_ORIENTATIONS = {2: "mirrored", 3: "rotated 180°", 4: "flipped upside down", 5: "transposed",
+                     6: "rotated 90° clockwise", 7: "transversed", 8: "rotated 90° counter-clockwise"}
 
 
 # downscale "auto": the smallest integer factor that brings the training photos' longer side to at most this many
@@ -128,6 +134,7 @@ def read_image(path, downscale: int = 1) -> Image:
     try:
         spec = inp.spec()
         fmt = inp.format_name()
+        orientation = int(spec.get_int_attribute("Orientation", 1))
         px = inp.read_image(0, 0, 0, spec.nchannels, "float")
         err = inp.geterror()
     finally:
@@ -177,7 +184,7 @@ def read_image(path, downscale: int = 1) -> Image:
         if height < downscale or width < downscale:
             raise DatasetError(path, f"image of {width}x{height} is smaller than downscale={downscale}")
         rgb, alpha = downscale_image(rgb, alpha, downscale)
-    return Image(rgb, alpha, color_space, width, height)
+    return Image(rgb, alpha, color_space, width, height, orientation if orientation in EXIF_ORIENTATIONS else 1)
 
 
 def _one_line(message: str) -> str:
@@ -278,11 +285,30 @@ def load_views(records, downscale: int = 1, split: str = "train"):
         if first is None:
             first = (path, img.width, img.height)
         elif (img.width, img.height) != first[1:]:
+            shown = ""
+            if img.orientation >= 5:  # a phone photo stored sideways: viewers show it at the other size
+                shown = (f" (its EXIF orientation {img.orientation} has viewers show it "
+                         f"{EXIF_ORIENTATIONS[img.orientation]}, at {img.height}x{img.width}; triplet reads the pixels "
+                         "as stored, as COLMAP and instant-ngp do: rotate the file itself)")
             raise DatasetError(path, f"image is {img.width}x{img.height} but {first[0].name} in the same {split} "
-                                     f"split is {first[1]}x{first[2]}: every image of a split must have one size")
+                                     f"split is {first[1]}x{first[2]}: every image of a split must have one size"
+                                     + shown)
         cam = downscale_camera(make_camera(img.width, img.height), downscale)
         views.append(View(name, cam, img.rgb, img.alpha, path))
         spaces.add(img.color_space)
+    turned = [(Path(r[1]).name, img.orientation) for r, img in zip(records, images, strict=True)
+              if img.orientation != 1]
+    if turned:  # the cameras must be those of the stored pixels: say so where a viewer shows something else
+        import warnings
+
+        from .base import DatasetWarning
+
+        name, o = turned[0]
+        warnings.warn(f"{Path(records[0][1]).parent}: {len(turned)} of {len(records)} {split} images carry an EXIF "
+                      f"orientation ({name}: {o}, shown {EXIF_ORIENTATIONS[o]} by image viewers); triplet reads the "
+                      "pixels as stored, as COLMAP and instant-ngp do, so the cameras must be those of the stored "
+                      "pixels: if the poses were made for the photos as viewers show them, rotate the files themselves "
+                      "(e.g. exiftran -ai or mogrify -auto-orient)", DatasetWarning, stacklevel=2)
     bare = [v for v in views if v.alpha is None]
     if bare and len(bare) < len(views):  # a mix: those views' background would be trained as the object
         import warnings
