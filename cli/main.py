@@ -185,6 +185,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         check_output_slots(out, ["config.json", "train.log", "metrics.json", "lights.json", "triplets.ply",
                                  *[f"renders/test/{n}" for n in tests]], "training")
         _check_bbox_seen(mesh_cfg, tr)
+        if notes:  # the dataset's new place and the options changed: config.json says what the run now is
+            from triplet_cl.io import write_json
+
+            write_json(out / "config.json", {**saved, "data": data, "train": tr.cfg.to_dict()})
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
         from triplet_cl.runs import replacing_run

@@ -1693,6 +1693,42 @@ def test_a_moved_dataset_is_named_with_the_runs_config(run, tmp_path, capsys):
     assert _tree(run) == before
 
 
+def test_resume_of_a_moved_dataset_checks_its_views_and_records_its_place(run, tmp_path, capsys):
+    """The run's dataset moved: `train NEWPLACE --resume` takes it when its training views are the run's (names, image
+    size, cameras: checkpoints hold their digest) and config.json then names the new place (and the new
+    --iterations), so that render, eval and the next resume find it; another dataset with as many training views
+    (renamed frames, other poses) was accepted before, and is refused, naming what differs, with nothing written."""
+    cfg = json.loads((run / "config.json").read_text())
+    moved = tmp_path / "moved"
+    shutil.copytree(cfg["data"], moved)
+    cfg["data"] = str(tmp_path / "gone")
+    (run / "config.json").write_text(json.dumps(cfg))
+    renamed, posed = tmp_path / "renamed", tmp_path / "posed"
+    for d in (renamed, posed):
+        shutil.copytree(moved, d)
+    doc = json.loads((renamed / "transforms_train.json").read_text())
+    for f in doc["frames"]:
+        old = renamed / (f["file_path"] + ("" if f["file_path"].endswith(".png") else ".png"))
+        f["file_path"] = f["file_path"].replace("r_", "view_")
+        old.rename(renamed / (f["file_path"] + ("" if f["file_path"].endswith(".png") else ".png")))
+    (renamed / "transforms_train.json").write_text(json.dumps(doc))
+    doc = json.loads((posed / "transforms_train.json").read_text())
+    for f in doc["frames"]:
+        f["transform_matrix"][1][3] += 0.05  # every camera 5 cm higher
+    (posed / "transforms_train.json").write_text(json.dumps(doc))
+    before = _tree(run)
+    for data, named in ((renamed, "its training frames were train/r_0"), (posed, "cameras")):
+        rc, err, _ = _run_cli(["train", data, "--resume", "--out", run, "--iterations", "6"], capsys)
+        assert rc == 2 and "other training views" in err and named in err, err
+        assert _tree(run) == before
+    rc, err, _ = _run_cli(["train", moved, "--resume", "--out", run, "--iterations", "6"], capsys)
+    assert rc == 0, err
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["data"] == str(moved) and saved["train"]["iterations"] == 6
+    rc, err, _ = _run_cli(["eval", run], capsys)
+    assert rc == 0, err
+
+
 def test_config_json_records_the_dataset_as_an_absolute_path(tmp_path, demo_copy, monkeypatch):
     """A run trained with a relative DATA could not be rendered from any other folder."""
     monkeypatch.chdir(demo_copy.parent)

@@ -837,6 +837,23 @@ class Targets:
         self.cache = {k: v for k, v in self.cache.items() if k[1] == f}
 
 
+def training_views_id(ds: Dataset) -> dict:
+    """What identifies the training views a run is trained on (saved in its checkpoints, compared on resume): their
+    names, their image size and a digest of their cameras (intrinsics and poses, rounded to 1e-6); a moved dataset
+    keeps all three, another one (or frames renamed, resized or re-posed) does not."""
+    import hashlib
+
+    cams = hashlib.sha256()
+    for v in ds.train:
+        c = v.camera
+        k = np.array([c.fx, c.fy, c.cx, c.cy, c.width, c.height, *np.asarray(c.w2c, np.float64).ravel()], np.float64)
+        cams.update((np.round(k, 6) + 0.0).tobytes())  # + 0.0: -0.0 and 0.0 alike
+    names = [str(v.name) for v in ds.train]
+    first = ds.train[0] if len(ds.train) else None
+    return {"names": hashlib.sha256("\n".join(names).encode()).hexdigest()[:16], "first_names": names[:3],
+            "size": [first.width, first.height] if first is not None else None, "cameras": cams.hexdigest()[:16]}
+
+
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB of two ``[H, W, 3]`` images in [0, 1] (clipped)."""
     mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
@@ -921,6 +938,7 @@ class Trainer:
         self.targets = Targets(self.ds)
         self.metallic_probe = None  # the soup's metal-or-dielectric probe (TrainConfig.metallic_probe_at), once run
         self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
+        self._resumed_id: dict | None = None  # the checkpoint's training_views_id
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = _file_logger(self.run_dir / "train.log")
@@ -1390,7 +1408,7 @@ class Trainer:
             for j, (m, v) in enumerate(zip(st["exp_avg"], st["exp_avg_sq"], strict=True)):
                 arrays[f"opt.{g}.{j}.m"], arrays[f"opt.{g}.{j}.v"] = m, v
         meta = {"it": self.it, "t": opt_state["t"], "order": [int(x) for x in self.order],
-                "train_views": len(self.ds.train),
+                "train_views": len(self.ds.train), "train_views_id": self._views_id(),
                 "last_alpha_reset": self.last_alpha_reset,
                 "metallic_probe": self.metallic_probe,
                 "rng": self.rng.bit_generator.state,
@@ -1458,6 +1476,12 @@ class Trainer:
             h.close()
             self.log.removeHandler(h)
 
+    def _views_id(self) -> dict:
+        """:func:`training_views_id` of the dataset, computed once."""
+        if getattr(self, "_views_id_cache", None) is None:
+            self._views_id_cache = training_views_id(self.ds)
+        return self._views_id_cache
+
     def check_resumable(self, action: str = "resume") -> None:
         """Training may go on from the loaded checkpoint: the dataset has the training views it was made with (their
         number, and every view its order has left), else a :class:`RunError` naming the checkpoint. Training and the
@@ -1472,6 +1496,22 @@ class Trainer:
             raise RunError(path, f"was trained on {was}, the dataset {self.data} now has {n} (another dataset, or "
                                  f"frames added or removed since): {action} with the dataset the run was made with "
                                  "(config.json's \"data\"), or start a new run")
+        saved_id = self._resumed_id  # checkpoints written before it was saved: the count above only
+        if isinstance(saved_id, dict):
+            mine = training_views_id(self.ds)
+            what = None
+            if saved_id.get("names") != mine["names"]:
+                what = (f"its training frames were {', '.join(map(str, saved_id.get('first_names') or []))}, ... and "
+                        f"the dataset's are {', '.join(mine['first_names'])}, ...")
+            elif saved_id.get("size") != mine["size"]:
+                was, now = saved_id.get("size") or ["?", "?"], mine["size"]
+                what = f"it was trained on {was[0]}x{was[1]} photos and the dataset's are {now[0]}x{now[1]}"
+            elif saved_id.get("cameras") != mine["cameras"]:
+                what = "the training views' cameras (poses or intrinsics) are not the ones it was trained with"
+            if what is not None:
+                raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
+                                     f"({what}): {action} with the dataset the run was made with (config.json's "
+                                     "\"data\"), or start a new run")
 
     def warn_if_dataset_changed(self) -> None:
         """Evaluating or rendering a run whose dataset's training split changed since it was trained is allowed (new
@@ -1497,6 +1537,7 @@ class Trainer:
         if not isinstance(order, list) or any(not isinstance(i, int) or isinstance(i, bool) or i < 0 for i in order):
             raise RunError(path, f"damaged: its view order must be a list of integers >= 0, found {str(order)[:60]}")
         self._resumed_from = (path, meta.get("train_views"))
+        self._resumed_id = meta.get("train_views_id")
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}
