@@ -91,6 +91,16 @@ def test_ngp_missing_images_one_warning_counting_them(tmp_path):
     assert len(ds.train) == 3
 
 
+def test_windows_separators_in_file_paths_are_named(tmp_path):
+    """file_path written with backslashes (a Windows tool's): the missing images' warning says why."""
+    fac.make_nerf(tmp_path, {"train": 3, "test": 1})
+    doc = json.loads((tmp_path / "transforms_train.json").read_text())
+    doc["frames"][1]["file_path"] = doc["frames"][1]["file_path"].replace("/", "\\")
+    (tmp_path / "transforms_train.json").write_text(json.dumps(doc))
+    with pytest.warns(DatasetWarning, match="skipped 1 of 3 .*backslashes \\(Windows separators\\): write them with /"):
+        load_dataset(tmp_path)
+
+
 def test_ngp_all_images_missing_is_an_error(tmp_path):
     fac.make_ngp(tmp_path, n=3, missing=(0, 1, 2))
     with pytest.warns(DatasetWarning), pytest.raises(DatasetError, match="transforms.json.*no frames left"):

@@ -1781,6 +1781,7 @@ def test_a_mesh_state_with_a_vertex_far_out_is_damaged(run, capsys):
 @pytest.mark.parametrize("item, where, says", [
     ({"type": ["point"], "position": [1, 2, 3], "intensity": [1, 1, 1]}, "lights[0].type", "expected one of"),
     ({"type": {"point": 1}, "position": [1, 2, 3], "intensity": [1, 1, 1]}, "lights[0].type", "expected one of"),
+    ({"position": [1, 2, 3], "intensity": [1, 1, 1]}, "lights[0].type", "missing: every light needs a \"type\""),
     ({"type": "DirectionalLight", "direction": [0, 0, 0], "intensity": [1, 1, 1]}, "lights[0].direction",
      "zero vector"),
     ({"type": "PointLight", "position": [0, 0, 3], "intensity": [1, 1, 1], "radius": 2}, "lights[0]",

@@ -215,6 +215,9 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
         if not isinstance(it, dict):
             raise LightFileError(path, w, f"expected an object with a \"type\", found {it!r}")
         kind = it.get("type")
+        if "type" not in it:
+            raise LightFileError(path, f"{w}.type", f"missing: every light needs a \"type\", one of "
+                                 f"{list(MITSUBA_TYPES)} (or a class of triplet_cl.lights: {sorted(LIGHT_CLASSES)})")
         if not isinstance(kind, str):  # a list or an object is not a light type (nor hashable: a lookup would raise)
             raise LightFileError(path, f"{w}.type", f"expected one of {list(MITSUBA_TYPES)} (or a class of "
                                  f"triplet_cl.lights: {sorted(LIGHT_CLASSES)}), found {kind!r}")

@@ -267,7 +267,10 @@ def warn_missing(where, missing: Sequence[str], total: int, what: str) -> None:
         import warnings
 
         shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
-        warnings.warn(f"{where}: skipped {len(missing)} of {total} {what} whose image file is missing ({shown})",
+        hint = ""
+        if any("\\" in str(m) for m in missing):  # a Windows path: the backslash is part of a name here
+            hint = "; their paths hold backslashes (Windows separators): write them with / instead"
+        warnings.warn(f"{where}: skipped {len(missing)} of {total} {what} whose image file is missing ({shown}){hint}",
                       DatasetWarning, stacklevel=4)
 
 
