@@ -52,9 +52,10 @@ def _pycolmap():
 
 
 def _quiet_colmap(pycolmap, verbose: bool) -> None:
-    """COLMAP logs every step to stderr (glog): warnings and up only, unless ``verbose``."""
-    pycolmap.logging.minloglevel = 0 if verbose else 2
-    pycolmap.logging.stderrthreshold = 0 if verbose else 2
+    """COLMAP logs every step to stderr (glog): nothing but fatal errors unless ``verbose`` (its errors, e.g. "Failed
+    to create any sparse model", come with our own message saying what failed and what helps)."""
+    pycolmap.logging.minloglevel = 0 if verbose else 3
+    pycolmap.logging.stderrthreshold = 0 if verbose else 3
 
 
 # ---------------------------------------------------------------------------------------------- inputs
