@@ -414,12 +414,22 @@ class RasterInterpolate(Function):
         if hit is not None:  # the same view of the same geometry: only the attributes are interpolated again
             fr, win, vs = hit
             fa = interpolate(d, ctx.attr, fr)
-            v.frags = ctx.frags = fr
-            v.info.update(frags=fr, vs=vs)
-            if s.sigma is None:
-                return fa
-            v.win = win
-            return fa, win
+        else:
+            fr, fa, win, vs = self._fragments(ctx)
+            if cache is not None:
+                cache.put(key, fr, win, vs)
+        v.frags = ctx.frags = fr
+        v.info.update(frags=fr, vs=vs)
+        if s.sigma is None:
+            return fa
+        v.win = win
+        return fa, win
+
+    def _fragments(self, ctx):
+        """``(frags, frag_attr, win, vs)`` of this view: projected, rasterized (or traced), interpolated, windowed and,
+        with ``RenderSettings.prune``, pruned."""
+        v, s = self.view, self.view.settings
+        d, cam = v.device, v.camera
         vs = project(d, ctx.Vd, cam)
         if s.renderer == "raytrace":
             fr = trace_op.trace_primary(d, v.bvh, ctx.Vd, vs, cam, s.K, s.cull_backface)
@@ -433,14 +443,7 @@ class RasterInterpolate(Function):
         win = None if s.sigma is None else coverage(d, fr, s.sigma)
         if s.prune and self.alpha_col is not None and s.renderer == "raster" and s.t_min > 0:
             fr, fa, win = prune_fragments(d, fr, fa, self.alpha_col, win, s.t_min)
-        if cache is not None:
-            cache.put(key, fr, win, vs)
-        v.frags = ctx.frags = fr
-        v.info.update(frags=fr, vs=vs)
-        if s.sigma is None:
-            return fa
-        v.win = win
-        return fa, win
+        return fr, fa, win, vs
 
     def backward(self, ctx, v_fa, v_win=None):
         d, s = self.view.device, self.view.settings
