@@ -188,7 +188,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if notes:  # the dataset's new place and the options changed: config.json says what the run now is
             from triplet_cl.io import write_json
 
-            write_json(out / "config.json", {**saved, "data": data, "train": tr.cfg.to_dict()})
+            write_json(out / "config.json", {**saved, "data": tr.data, "train": tr.cfg.to_dict()})  # data: absolute
         print(f"triplet train: resuming at iteration {tr.it}" + (f"; applying {', '.join(notes)}" if notes else ""))
     else:
         from triplet_cl.runs import replacing_run

@@ -330,6 +330,7 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
 #endif
         REAL3 gd = (REAL3)(0);
         int r = rec_off[p * NV + j];
+        const int r_end = rec_off[p * NV + j + 1];  /* the forward's hits of this ray: never written past */
         int stack[BVH_STACK];
         REAL tstack[BVH_STACK];
         int sp = 0;
@@ -345,6 +346,8 @@ __kernel void trace_shadow_bwd(__global const REAL* nodes,   // [2P - 1, 6]
                 load_tri(V, F, f, &v0, &v1, &v2);
                 REAL t, u, v;
                 if (!ray_tri(x, d, v0, v1, v2, tmin, tmax, &t, &u, &v)) continue;
+                if (r >= r_end) break;  /* a walk that found more hits than the forward's (it cannot, by
+                                           construction: a guard for the records of the next ray) */
                 const REAL a = hit_alpha(attr, C, ca, F, f, u, v, &A);
 #ifdef EARLY_OUT
                 Tw *= (REAL)1 - clamp(a, (REAL)0, AMAX);

@@ -469,6 +469,13 @@ def test_exif_orientation_is_named(tmp_path):
             DatasetError, match=f"r_2.jpg: image is {fac.H}x{fac.W} but r_0.jpg .*its EXIF orientation 6 has "
                                 f"viewers show it rotated 90° clockwise, at {fac.W}x{fac.H}"):
         load_dataset(tmp_path)
+    for i in (1, 2):  # the sideways one first: the others' error names it
+        _write_oriented_jpeg(tmp_path / "train" / f"r_{i}.jpg", fac.image_pixels(i), 1)
+    _write_oriented_jpeg(tmp_path / "train" / "r_0.jpg", fac.image_pixels(0, fac.H, fac.W), 6)
+    with pytest.raises(DatasetError, match=f"r_1.jpg: image is {fac.W}x{fac.H} but r_0.jpg .*r_0.jpg's EXIF "
+                                           f"orientation 6 has viewers show it rotated 90° clockwise, at "
+                                           f"{fac.W}x{fac.H}"):
+        load_dataset(tmp_path)
 
 
 def test_unreadable_image(tmp_path):

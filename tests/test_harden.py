@@ -1693,7 +1693,7 @@ def test_a_moved_dataset_is_named_with_the_runs_config(run, tmp_path, capsys):
     assert _tree(run) == before
 
 
-def test_resume_of_a_moved_dataset_checks_its_views_and_records_its_place(run, tmp_path, capsys):
+def test_resume_of_a_moved_dataset_checks_its_views_and_records_its_place(run, tmp_path, capsys, monkeypatch):
     """The run's dataset moved: `train NEWPLACE --resume` takes it when its training views are the run's (names, image
     size, cameras: checkpoints hold their digest) and config.json then names the new place (and the new
     --iterations), so that render, eval and the next resume find it; another dataset with as many training views
@@ -1721,12 +1721,51 @@ def test_resume_of_a_moved_dataset_checks_its_views_and_records_its_place(run, t
         rc, err, _ = _run_cli(["train", data, "--resume", "--out", run, "--iterations", "6"], capsys)
         assert rc == 2 and "other training views" in err and named in err, err
         assert _tree(run) == before
-    rc, err, _ = _run_cli(["train", moved, "--resume", "--out", run, "--iterations", "6"], capsys)
+    monkeypatch.chdir(tmp_path)  # DATA given relative: config.json records it absolute, as a new run's
+    rc, err, _ = _run_cli(["train", "moved", "--resume", "--out", run, "--iterations", "6"], capsys)
     assert rc == 0, err
     saved = json.loads((run / "config.json").read_text())
     assert saved["data"] == str(moved) and saved["train"]["iterations"] == 6
+    monkeypatch.chdir(run.parent.parent)
     rc, err, _ = _run_cli(["eval", run], capsys)
     assert rc == 0, err
+
+
+def test_checkpoint_without_the_training_views_record_resumes(run, capsys):
+    """A checkpoint written before the training views' record (session 54: no digest, no cameras) resumes, the
+    number of views checked as before."""
+    ck = run / "checkpoints" / "ckpt_0000004.npz"
+    with np.load(ck) as z:
+        a = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(a["meta"]).decode())
+    del meta["train_views_id"], a["views.cameras"]
+    a["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(ck, **a)
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run, "--iterations", "5"], capsys)
+    assert rc == 0, err
+
+
+def test_same_cameras_tolerates_what_a_new_undistortion_moves():
+    """The cameras compared on resume: the same within rounding and a 0.5 % focal length (COLMAP's undistortion
+    run again), not a camera moved by a thousandth of the rig's spread or turned by 0.1 degree."""
+    from triplet_cl.train import same_cameras
+
+    rng = np.random.default_rng(3)
+    c = np.concatenate([np.tile([100.0, 100.0, 48.0, 48.0], (6, 1)), rng.normal(0, 3, (6, 3)),
+                        rng.normal(0, 1, (6, 3))], 1)
+    c[:, 7:] /= np.linalg.norm(c[:, 7:], axis=1, keepdims=True)
+    spread = np.linalg.norm(c[:, 4:7] - c[:, 4:7].mean(0), axis=1).max()
+    d = c.copy()
+    d[:, :2] *= 1.005
+    assert same_cameras(c, c + 1e-12) and same_cameras(c, d)
+    d = c.copy()
+    d[2, 5] += 1e-3 * spread
+    assert not same_cameras(c, d)
+    d = c.copy()
+    t = np.radians(0.1)
+    x, z = d[0, 7], d[0, 9]
+    d[0, 7], d[0, 9] = np.cos(t) * x - np.sin(t) * z, np.sin(t) * x + np.cos(t) * z
+    assert not same_cameras(c, d) and not same_cameras(c, c[:5])
 
 
 def test_config_json_records_the_dataset_as_an_absolute_path(tmp_path, demo_copy, monkeypatch):

@@ -512,27 +512,30 @@ def test_metallic_trial_holds_the_geometry():
     from triplet_cl.mesh.refine import metallic_trial
 
     class S:
-        vertex_sh = light_params = None
+        light_params = None
 
     s = S()
     s.V, s.alpha = Param(np.zeros((5, 3)), "V"), Param(np.zeros((5, 1)), "alpha")
+    s.vertex_sh = Param(np.zeros((5, 6)), "vertex_sh")
+    s.vertex_sh.requires_grad = False  # held by its caller already: it stays held
     s.material = Param(np.tile(logit(np.array([0.5, 0.5, 0.5, 0.5, 0.1, 0.99])), (5, 1)), "material")
     seen = []
 
     def loss_and_backward(k):
-        seen.append((s.V.requires_grad, s.alpha.requires_grad))
+        seen.append((s.V.requires_grad, s.alpha.requires_grad, s.vertex_sh.requires_grad))
         s.material.grad = np.ones_like(s.material.data)
         return 1.0
 
     metallic_trial(s, [3, 4, 5], 4, loss_and_backward, 3, lr_material=0.05)
-    assert set(seen) == {(False, False)} and s.V.requires_grad and s.alpha.requires_grad
+    assert set(seen) == {(False, False, False)} and s.V.requires_grad and s.alpha.requires_grad
+    assert not s.vertex_sh.requires_grad
 
     def failing(k):
         raise RuntimeError("a step failed")
 
     with pytest.raises(RuntimeError, match="a step failed"):
         metallic_trial(s, [3, 4, 5], 4, failing, 3, lr_material=0.05)
-    assert s.V.requires_grad and s.alpha.requires_grad
+    assert s.V.requires_grad and s.alpha.requires_grad and not s.vertex_sh.requires_grad
 
 
 def test_tie_rows_keeps_equal_rows_equal():

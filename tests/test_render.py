@@ -473,6 +473,14 @@ def test_fragment_cache_renders_bit_for_bit(device, rng, prune, sigma):
     scene.alpha.data[3] -= 1.0
     run(cache)
     assert len(cache.entries) == 1 and cache.hits == 4
+    other = RenderSettings(K=3, sigma=sigma, background=(0.3, 0.5, 0.9), prune=prune, soft_edges="silhouette",
+                           normals="vertex")  # another setting, the same view and geometry: its own fragments
+    scene.zero_grad()
+    want = render(scene, views[0], other, device).rgba.data.copy()
+    scene.zero_grad()
+    got = render(scene, views[0], other, device, frag_cache=cache).rgba.data.copy()
+    np.testing.assert_array_equal(got, want)
+    assert len(cache.entries) == 2 and cache.hits == 4
     empty = FragmentCache(max_bytes=0)
     got, g_got, _ = run(empty)
     want, g_want, _ = run(None)

@@ -210,6 +210,27 @@ def test_shadow_early_out_adjoint(device64, rng):
     assert beyond.any()
 
 
+def test_shadow_early_out_adjoint_float32(device, device64, rng):
+    """The hybrid renderer's float32 early-out: the adjoint walks the float32 forward's hits (its own rounding of the
+    running product), so the occluders' adjoints match the float64 ones to float32 precision."""
+    V, F = soup(rng, M=300)
+    alpha_v = rng.uniform(0.6, 0.999, len(V))
+    Pn = 60
+    pos = rng.uniform(-0.7, 0.7, (Pn, 3))
+    own = rng.integers(0, len(F), Pn)
+    lights = [PointLight([0.2, 1.9, 0.4], [1, 1, 1]), DirectionalLight([0.3, -1.0, 0.5], [1, 1, 1])]
+    w = rng.standard_normal((Pn, 2))
+    out = {}
+    for dev, real in ((device64, np.float64), (device, np.float32)):
+        b, st = _shadow(dev, V, F, alpha_v, pos, own, lights, 1e-6, real=real, early_out=True)
+        out[real] = (st.nhit.get(), trace_op.shadow_backward(dev, b, st, w))
+    (n64, g64), (n32, g32) = out[np.float64], out[np.float32]
+    np.testing.assert_array_equal(n32, n64)  # the same stops (no running product within rounding of 1e-4 here)
+    scale = np.abs(g64.v_alpha).max()
+    np.testing.assert_allclose(g32.v_alpha, g64.v_alpha, rtol=0, atol=2e-5 * scale)
+    np.testing.assert_allclose(g32.v_V, g64.v_V, rtol=0, atol=2e-4 * np.abs(g64.v_V).max())
+
+
 def test_shadow_transmittance_matches_reference(device64, rng):
     V, F = soup(rng, M=50)
     alpha_v = rng.uniform(0.05, 0.95, len(V))

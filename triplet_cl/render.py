@@ -179,9 +179,13 @@ class FragmentCache:
     here when it saw the same camera with the same positions, opacities and faces, and interpolates the attributes
     on them: the render and every gradient are the same bit for bit, the geometry's forward runs once per view.
     Any change of ``V``, ``alpha`` or ``F`` empties it. Raster renders only; at most ``max_bytes`` of fragments
-    are kept (views past it are rendered as without a cache)."""
+    are kept (views past it are rendered as without a cache), by default 768 MiB or an eighth of ``device``'s
+    memory, the smaller."""
 
-    def __init__(self, max_bytes: int = 768 << 20):
+    def __init__(self, max_bytes: int | None = None, device: Device | None = None):
+        if max_bytes is None:
+            mem = device.info.global_mem_bytes if device is not None else 1 << 40
+            max_bytes = min(768 << 20, mem // 8)
         self.max_bytes = int(max_bytes)
         self.entries: dict = {}
         self.bytes = 0
@@ -212,8 +216,8 @@ class FragmentCache:
         return hit
 
     def put(self, key, frags, win, vs) -> None:
-        size = sum(a.nbytes for a in vars(frags).values() if isinstance(a, cla.Array))
-        size += 0 if win is None else win.nbytes
+        arrays = {id(a): a for a in (*vars(frags).values(), win, vs) if isinstance(a, cla.Array)}  # win: frags.win
+        size = sum(a.nbytes for a in arrays.values())
         if self.bytes + size <= self.max_bytes:
             self.entries[key] = (frags, win, vs)
             self.bytes += size

@@ -838,20 +838,39 @@ class Targets:
 
 
 def training_views_id(ds: Dataset) -> dict:
-    """What identifies the training views a run is trained on (saved in its checkpoints, compared on resume): their
-    names, their image size and a digest of their cameras (intrinsics and poses, rounded to 1e-6); a moved dataset
-    keeps all three, another one (or frames renamed, resized or re-posed) does not."""
+    """What names the training views a run is trained on (in its checkpoints' metadata, compared on resume): a digest
+    of their names, the first three, and their image size; their cameras go beside it (:func:`training_cameras`)."""
     import hashlib
 
-    cams = hashlib.sha256()
-    for v in ds.train:
-        c = v.camera
-        k = np.array([c.fx, c.fy, c.cx, c.cy, c.width, c.height, *np.asarray(c.w2c, np.float64).ravel()], np.float64)
-        cams.update((np.round(k, 6) + 0.0).tobytes())  # + 0.0: -0.0 and 0.0 alike
     names = [str(v.name) for v in ds.train]
     first = ds.train[0] if len(ds.train) else None
     return {"names": hashlib.sha256("\n".join(names).encode()).hexdigest()[:16], "first_names": names[:3],
-            "size": [first.width, first.height] if first is not None else None, "cameras": cams.hexdigest()[:16]}
+            "size": [first.width, first.height] if first is not None else None}
+
+
+def training_cameras(ds: Dataset) -> np.ndarray:
+    """``[n, 10]`` per training view: ``fx, fy, cx, cy``, the camera centre and its viewing axis (in the
+    checkpoints, compared on resume with :func:`same_cameras`)."""
+    rows = []
+    for v in ds.train:
+        c = v.camera
+        R = np.asarray(c.w2c, np.float64)[:3, :3]
+        rows.append([c.fx, c.fy, c.cx, c.cy, *np.asarray(c.center, np.float64), *R[2]])
+    return np.asarray(rows, np.float64).reshape(-1, 10)
+
+
+def same_cameras(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two :func:`training_cameras` arrays are the same captures' cameras: positions within 1e-5 of the
+    cameras' spread, axes within 0.01°, intrinsics within 1 % (a COLMAP dataset undistorted again, e.g. by another
+    pycolmap, may shift its pinhole focal length a little; another dataset's cameras differ far more)."""
+    if a.shape != b.shape:
+        return False
+    if not len(a):
+        return True
+    spread = max(float(np.linalg.norm(a[:, 4:7] - a[:, 4:7].mean(axis=0), axis=1).max()), 1e-9)
+    return bool(np.abs(a[:, 4:7] - b[:, 4:7]).max() <= 1e-5 * spread
+                and (a[:, 7:10] * b[:, 7:10]).sum(axis=1).min() >= np.cos(np.radians(0.01))
+                and np.abs(a[:, :4] - b[:, :4]).max() <= 1e-2 * np.abs(a[:, :2]).max())
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -938,7 +957,8 @@ class Trainer:
         self.targets = Targets(self.ds)
         self.metallic_probe = None  # the soup's metal-or-dielectric probe (TrainConfig.metallic_probe_at), once run
         self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
-        self._resumed_id: dict | None = None  # the checkpoint's training_views_id
+        self._resumed_id: tuple = (None, None)  # the checkpoint's training_views_id and training_cameras
+        self._views_id_cache: dict | None = None
         self.history: list[dict] = []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = _file_logger(self.run_dir / "train.log")
@@ -1399,6 +1419,7 @@ class Trainer:
             if isinstance(v, np.ndarray):
                 arrays[f"stats.{k}"] = v
         arrays["density.split_error"] = self.split_error
+        arrays["views.cameras"] = training_cameras(self.ds)  # compared on resume (Trainer.check_resumable)
         sc = self.shadow_cache
         if sc.vis is not None:  # the cached visibility: a resumed run continues bit for bit
             arrays["shadow.vis"], arrays["shadow.rays"] = sc.vis, sc.rays
@@ -1478,7 +1499,7 @@ class Trainer:
 
     def _views_id(self) -> dict:
         """:func:`training_views_id` of the dataset, computed once."""
-        if getattr(self, "_views_id_cache", None) is None:
+        if self._views_id_cache is None:
             self._views_id_cache = training_views_id(self.ds)
         return self._views_id_cache
 
@@ -1496,22 +1517,22 @@ class Trainer:
             raise RunError(path, f"was trained on {was}, the dataset {self.data} now has {n} (another dataset, or "
                                  f"frames added or removed since): {action} with the dataset the run was made with "
                                  "(config.json's \"data\"), or start a new run")
-        saved_id = self._resumed_id  # checkpoints written before it was saved: the count above only
+        saved_id, saved_cams = self._resumed_id  # checkpoints written before they were saved: the count above only
+        what = None
         if isinstance(saved_id, dict):
-            mine = training_views_id(self.ds)
-            what = None
+            mine = self._views_id()
             if saved_id.get("names") != mine["names"]:
                 what = (f"its training frames were {', '.join(map(str, saved_id.get('first_names') or []))}, ... and "
                         f"the dataset's are {', '.join(mine['first_names'])}, ...")
             elif saved_id.get("size") != mine["size"]:
                 was, now = saved_id.get("size") or ["?", "?"], mine["size"]
                 what = f"it was trained on {was[0]}x{was[1]} photos and the dataset's are {now[0]}x{now[1]}"
-            elif saved_id.get("cameras") != mine["cameras"]:
-                what = "the training views' cameras (poses or intrinsics) are not the ones it was trained with"
-            if what is not None:
-                raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
-                                     f"({what}): {action} with the dataset the run was made with (config.json's "
-                                     "\"data\"), or start a new run")
+        if what is None and saved_cams is not None and not same_cameras(saved_cams, training_cameras(self.ds)):
+            what = "the training views' cameras (poses or intrinsics) are not the ones it was trained with"
+        if what is not None:
+            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
+                                 f"({what}): {action} with the dataset the run was made with (config.json's "
+                                 "\"data\"), or start a new run")
 
     def warn_if_dataset_changed(self) -> None:
         """Evaluating or rendering a run whose dataset's training split changed since it was trained is allowed (new
@@ -1537,7 +1558,8 @@ class Trainer:
         if not isinstance(order, list) or any(not isinstance(i, int) or isinstance(i, bool) or i < 0 for i in order):
             raise RunError(path, f"damaged: its view order must be a list of integers >= 0, found {str(order)[:60]}")
         self._resumed_from = (path, meta.get("train_views"))
-        self._resumed_id = meta.get("train_views_id")
+        cams = np.asarray(a["views.cameras"], np.float64) if "views.cameras" in a else None
+        self._resumed_id = (meta.get("train_views_id"), cams)
         saved = meta.get("config")
         if saved is not None:
             mine = {k: v for k, v in self.cfg.to_dict().items() if k not in RESUMABLE_FIELDS}

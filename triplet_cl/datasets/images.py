@@ -283,13 +283,16 @@ def load_views(records, downscale: int = 1, split: str = "train"):
     first = None
     for (name, path, make_camera), img in zip(records, images, strict=True):
         if first is None:
-            first = (path, img.width, img.height)
-        elif (img.width, img.height) != first[1:]:
+            first = (path, img.width, img.height, img.orientation)
+        elif (img.width, img.height) != first[1:3]:
             shown = ""
-            if img.orientation >= 5:  # a phone photo stored sideways: viewers show it at the other size
-                shown = (f" (its EXIF orientation {img.orientation} has viewers show it "
-                         f"{EXIF_ORIENTATIONS[img.orientation]}, at {img.height}x{img.width}; triplet reads the pixels "
-                         "as stored, as COLMAP and instant-ngp do: rotate the file itself)")
+            sideways = [(who, o, w, h) for who, o, w, h in (("its", img.orientation, img.width, img.height),
+                                                            (f"{first[0].name}'s", first[3], first[1], first[2]))
+                        if o >= 5]  # a phone photo stored sideways: viewers show it at the other size
+            if sideways:
+                who, o, w, h = sideways[0]
+                shown = (f" ({who} EXIF orientation {o} has viewers show it {EXIF_ORIENTATIONS[o]}, at {h}x{w}; "
+                         "triplet reads the pixels as stored, as COLMAP and instant-ngp do: rotate the file itself)")
             raise DatasetError(path, f"image is {img.width}x{img.height} but {first[0].name} in the same {split} "
                                      f"split is {first[1]}x{first[2]}: every image of a split must have one size"
                                      + shown)

@@ -51,11 +51,12 @@ def _pycolmap():
     return pycolmap
 
 
-def _quiet_colmap(pycolmap, verbose: bool) -> None:
-    """COLMAP logs every step to stderr (glog): nothing but fatal errors unless ``verbose`` (its errors, e.g. "Failed
-    to create any sparse model", come with our own message saying what failed and what helps)."""
-    pycolmap.logging.minloglevel = 0 if verbose else 3
-    pycolmap.logging.stderrthreshold = 0 if verbose else 3
+def _quiet_colmap(pycolmap, verbose: bool, level: int = 3) -> None:
+    """COLMAP logs every step to stderr (glog): only ``level`` and up unless ``verbose`` (3, fatal: structure from
+    motion, whose failures, e.g. "Failed to create any sparse model", come with our own message saying what failed and
+    what helps; 2, errors too: the undistortion of a dataset, where COLMAP reports and goes on)."""
+    pycolmap.logging.minloglevel = 0 if verbose else level
+    pycolmap.logging.stderrthreshold = 0 if verbose else level
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -393,7 +394,7 @@ def undistorted_model(root: Path, model_dir: Path, images_dir: Path, cameras: di
     if (dest / "sparse" / "0").is_dir() and (dest / "images").is_dir():
         return dest
     pycolmap = _pycolmap()
-    _quiet_colmap(pycolmap, False)
+    _quiet_colmap(pycolmap, False, level=2)
     try:
         base.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".undistorted-{key}.tmp-", dir=base))

@@ -21,6 +21,7 @@ the dataset's ``gt_mesh.ply`` when there is one).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import asdict, dataclass, fields
@@ -707,7 +708,7 @@ class MeshStage:
                else np.tile(np.asarray(resolve_background(tc.background), np.float64), (n, 1)))
         # both hypotheses step through the same views of the same geometry: each view's fragments are rasterized
         # once (the renders and gradients bit for bit the same; the probe's trial 13.1 -> 10.3 s on the demo)
-        frags = FragmentCache()
+        frags = FragmentCache(device=self.device)
 
         def loss_and_backward(k: int) -> float:
             cam, target = self.trainer.targets.get(int(views[k]), 1.0 / downscale, np.asarray(bgs[k], np.float32))
@@ -1376,67 +1377,68 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     small gain in loss comes from absorbing what the light model misses. Measured (96² captures, 200-step trials):
     the metal hypothesis won on the metal capture at roughness 0.65 (truth 0.35), and on two dielectric ones (two
     point lights; gadget) at 0.92 and 0.91; on spot_small the dielectric won outright (its metal at 0.93)."""
+    from ..train import tie_rows
+
     m0 = np.array(scene.material.data)
     lp = scene.light_params
     params = [p for p in (scene.V, scene.alpha, scene.vertex_sh, scene.material, lp) if p is not None]
-    held = [p for p in (scene.V, scene.alpha, scene.vertex_sh) if p is not None]
-    for p in held:  # not optimised here: the renders' backward skips their adjoints (the geometry's)
-        p.requires_grad = False
-    try:
-        return _metallic_trial(scene, tied, col, loss_and_backward, steps, values, lr_material, rough_col,
-                               max_metal_roughness, betas, lr_lights, light_scale, after_step, m0, lp, params)
-    finally:
-        for p in held:
-            p.requires_grad = True
-
-
-def _metallic_trial(scene, tied, col, loss_and_backward, steps, values, lr_material, rough_col, max_metal_roughness,
-                    betas, lr_lights, light_scale, after_step, m0, lp, params) -> dict:
-    """:func:`metallic_trial`'s fits, its positions, opacities and vertex SH held."""
-    from ..train import tie_rows
-
-    l0 = None if lp is None else np.array(lp.data)
-    curves, ends = {}, {}
-    for value in values:
-        scene.material.data[...] = m0
-        scene.material.data[:, col] = logit(value)
-        if l0 is not None:
-            lp.data[...] = l0
-        opt = Adam()
-        opt.add_group("material", [scene.material], lr=lr_material, betas=tuple(betas), eps=1e-12)
-        if l0 is not None:
-            opt.add_group("lights", [lp], lr=lr_lights, lr_scale=None if light_scale is None else [light_scale],
-                          betas=tuple(betas), eps=1e-12)
-        losses = []
-        for k in range(steps):
+    # not optimised here: held, the renders' backward skips their adjoints (the geometry's)
+    with held_params([p for p in (scene.V, scene.alpha, scene.vertex_sh) if p is not None]):
+        l0 = None if lp is None else np.array(lp.data)
+        curves, ends = {}, {}
+        for value in values:
+            scene.material.data[...] = m0
+            scene.material.data[:, col] = logit(value)
+            if l0 is not None:
+                lp.data[...] = l0
+            opt = Adam()
+            opt.add_group("material", [scene.material], lr=lr_material, betas=tuple(betas), eps=1e-12)
+            if l0 is not None:
+                opt.add_group("lights", [lp], lr=lr_lights, lr_scale=None if light_scale is None else [light_scale],
+                              betas=tuple(betas), eps=1e-12)
+            losses = []
+            for k in range(steps):
+                for p in params:
+                    p.grad = None
+                losses.append(loss_and_backward(k))
+                tie_rows(scene.material, tied)
+                if scene.material.grad is not None:
+                    scene.material.grad[:, col] = 0.0
+                lights_before = None if lp is None else np.array(lp.data)
+                opt.step()
+                if after_step is not None:
+                    after_step(lights_before)
             for p in params:
                 p.grad = None
-            losses.append(loss_and_backward(k))
-            tie_rows(scene.material, tied)
-            if scene.material.grad is not None:
-                scene.material.grad[:, col] = 0.0
-            lights_before = None if lp is None else np.array(lp.data)
-            opt.step()
-            if after_step is not None:
-                after_step(lights_before)
-        for p in params:
-            p.grad = None
-        curves[value] = losses
-        ends[value] = np.asarray(scene.material.data)[0, tied].tolist()
-    scores = {v: float(np.mean(c[len(c) // 2:])) for v, c in curves.items()}
-    best = min(scores, key=scores.get)
-    refused = None
-    if best > 0.5 and rough_col is not None and rough_col in tied:
-        # a near-Lambertian metal: what a dielectric explains as well, the prior wins
-        if sigmoid(ends[best][tied.index(rough_col)]) > max_metal_roughness:
-            refused, best = best, min(values)
-    scene.material.data[...] = m0
-    scene.material.data[:, col] = logit(best)
-    if l0 is not None:
-        lp.data[...] = l0
-    return {"metallic": best, "loss": {str(v): x for v, x in scores.items()}, "steps": steps,
-            "curves": {str(v): c for v, c in curves.items()}, "tied": {str(v): e for v, e in ends.items()},
-            "refused": refused}
+            curves[value] = losses
+            ends[value] = np.asarray(scene.material.data)[0, tied].tolist()
+        scores = {v: float(np.mean(c[len(c) // 2:])) for v, c in curves.items()}
+        best = min(scores, key=scores.get)
+        refused = None
+        if best > 0.5 and rough_col is not None and rough_col in tied:
+            # a near-Lambertian metal: what a dielectric explains as well, the prior wins
+            if sigmoid(ends[best][tied.index(rough_col)]) > max_metal_roughness:
+                refused, best = best, min(values)
+        scene.material.data[...] = m0
+        scene.material.data[:, col] = logit(best)
+        if l0 is not None:
+            lp.data[...] = l0
+        return {"metallic": best, "loss": {str(v): x for v, x in scores.items()}, "steps": steps,
+                "curves": {str(v): c for v, c in curves.items()}, "tied": {str(v): e for v, e in ends.items()},
+                "refused": refused}
+
+
+@contextlib.contextmanager
+def held_params(params):
+    """``requires_grad`` off for ``params`` inside the block, each put back as it was after it (also on an error)."""
+    before = [p.requires_grad for p in params]
+    for p in params:
+        p.requires_grad = False
+    try:
+        yield
+    finally:
+        for p, b in zip(params, before, strict=True):
+            p.requires_grad = b
 
 
 def tied_channels(brdf: str) -> list[int]:
