@@ -376,15 +376,18 @@ class VertexAttributes(Function):
         v_pos, v_nrm, v_mat, v_alpha, v_vl = vattr_op.vertex_attr_backward(d, ctx.mat, ctx.attr, v_attr,
                                                                              self.softplus, ctx.has_vl, real,
                                                                              ctx.nconst)
-        rest = (v_mat.get(), v_alpha.get().reshape(-1, 1)) + ((v_vl.get(),) if ctx.has_vl else ())
+        def rest():  # read back after every kernel is queued (one wait)
+            return (v_mat.get(), v_alpha.get().reshape(-1, 1)) + ((v_vl.get(),) if ctx.has_vl else ())
+
         if not ctx.needs_input_grad[0]:  # positions held: no normals' adjoint
-            return (None,) + rest
+            return (None,) + rest()
         if ctx.face:
             v_Vn = normals_op.face_backward(d, ctx.Vd, m.F, vattr_op.face_sum3(d, v_nrm, real), m.csr_off,
                                             m.csr_corner, True, real, corners_are_vertices=True)
         else:
             v_Vn = normals_op.vertex_backward(d, ctx.Vd, m.F, v_nrm, m.csr_off, m.csr_corner, real)
-        return ((v_pos + v_Vn).get(),) + rest
+        v_V = v_pos + v_Vn
+        return (v_V.get(),) + rest()
 
 
 def use_device_attributes(settings: RenderSettings, mesh: DeviceMesh) -> bool:
