@@ -1382,10 +1382,10 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
     m0 = np.array(scene.material.data)
     lp = scene.light_params
     params = [p for p in (scene.V, scene.alpha, scene.vertex_sh, scene.material, lp) if p is not None]
+    l0 = None if lp is None else np.array(lp.data)
+    curves, ends = {}, {}
     # not optimised here: held, the renders' backward skips their adjoints (the geometry's)
     with held_params([p for p in (scene.V, scene.alpha, scene.vertex_sh) if p is not None]):
-        l0 = None if lp is None else np.array(lp.data)
-        curves, ends = {}, {}
         for value in values:
             scene.material.data[...] = m0
             scene.material.data[:, col] = logit(value)
@@ -1412,20 +1412,20 @@ def metallic_trial(scene: Scene, tied: list[int], col: int, loss_and_backward, s
                 p.grad = None
             curves[value] = losses
             ends[value] = np.asarray(scene.material.data)[0, tied].tolist()
-        scores = {v: float(np.mean(c[len(c) // 2:])) for v, c in curves.items()}
-        best = min(scores, key=scores.get)
-        refused = None
-        if best > 0.5 and rough_col is not None and rough_col in tied:
-            # a near-Lambertian metal: what a dielectric explains as well, the prior wins
-            if sigmoid(ends[best][tied.index(rough_col)]) > max_metal_roughness:
-                refused, best = best, min(values)
-        scene.material.data[...] = m0
-        scene.material.data[:, col] = logit(best)
-        if l0 is not None:
-            lp.data[...] = l0
-        return {"metallic": best, "loss": {str(v): x for v, x in scores.items()}, "steps": steps,
-                "curves": {str(v): c for v, c in curves.items()}, "tied": {str(v): e for v, e in ends.items()},
-                "refused": refused}
+    scores = {v: float(np.mean(c[len(c) // 2:])) for v, c in curves.items()}
+    best = min(scores, key=scores.get)
+    refused = None
+    if best > 0.5 and rough_col is not None and rough_col in tied:
+        # a near-Lambertian metal: what a dielectric explains as well, the prior wins
+        if sigmoid(ends[best][tied.index(rough_col)]) > max_metal_roughness:
+            refused, best = best, min(values)
+    scene.material.data[...] = m0
+    scene.material.data[:, col] = logit(best)
+    if l0 is not None:
+        lp.data[...] = l0
+    return {"metallic": best, "loss": {str(v): x for v, x in scores.items()}, "steps": steps,
+            "curves": {str(v): c for v, c in curves.items()}, "tied": {str(v): e for v, e in ends.items()},
+            "refused": refused}
 
 
 @contextlib.contextmanager
