@@ -28,11 +28,15 @@ def gt_lights(data: Path) -> list:
 
     gt = json.loads((data / "ground_truth.json").read_text())
     out = []
+    ambient = float(gt.get("ambient", 0.0))
     for it in gt["lights"]:
+        if it["type"] == "constant":  # a constant environment is our ambient light
+            ambient += float(np.mean(it["radiance"]))
+            continue
         if it["type"] != "point":
             raise SystemExit(f"{data}: only point lights can be frozen by this diagnostic, got {it['type']}")
         out.append(PointLight(it["position"], np.broadcast_to(np.asarray(it["intensity"], float), 3).copy()))
-    out.append(AmbientLight(np.full(3, float(gt.get("ambient", 0.0)))))
+    out.append(AmbientLight(np.full(3, ambient)))
     return out
 
 
