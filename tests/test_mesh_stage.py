@@ -788,7 +788,7 @@ def test_silhouette_window_thins_the_outline_by_one_over_sigma(sigma):
     only takes coverage away: a square's rendered outline is 1/σ pixels thinner on every side than its geometry (on
     average over the edges' sub-pixel positions: the square is turned so that its edges cross them all). At
     the stage's 3×3 supersampling σ = 1 is a third of a photo pixel (half a 1.2-pixel rod's width); the refinement
-    then grows the mesh to fill it. Why the default is 6 (README "Latest (session 41)")."""
+    then grows the mesh to fill it. Why the default is 6 (docs/RESULTS.md "Latest (session 41)")."""
     from triplet_cl.camera import Camera
     from triplet_cl.lights import AmbientLight
     from triplet_cl.render import RenderSettings, render
