@@ -1659,15 +1659,38 @@ def test_images_smaller_than_the_ssim_window_are_refused_before_any_work(tmp_pat
     assert not (tmp_path / "out").exists() and _tree(tmp_path / "ds") == before
 
 
-def test_an_unreadable_image_is_one_line(tmp_path):
-    """A truncated PNG: OpenImageIO's error is three lines (the read error, libpng's, "PNG library error")."""
+def test_an_unreadable_image_is_one_line(tmp_path, capfd):
+    """A truncated PNG: OpenImageIO's error is three lines (the read error, libpng's, "PNG library error"); and
+    libpng wrote its own "libpng error: ..." line to the process's stderr before it (battery 7)."""
     fac.make_nerf(tmp_path / "ds", w=64, h=48)
     p = tmp_path / "ds" / "train" / "r_1.png"
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    capfd.readouterr()
     with pytest.raises(DatasetError) as ei:
         load_dataset(tmp_path / "ds")
     msg = str(ei.value)
     assert "r_1.png: cannot read the image" in msg and "\n" not in msg, msg
+    assert "libpng" not in capfd.readouterr().err
+
+
+def test_library_lines_are_held_while_images_are_read(capfd):
+    """What a C library writes to stderr during a read passes on when the read succeeds, in order, and is dropped
+    when it fails (the error carries it); nested (and threaded) reads go through the outer redirection."""
+    import os
+
+    from triplet_cl.datasets.images import _library_stderr
+
+    capfd.readouterr()
+    with _library_stderr():
+        os.write(2, b"warning: kept\n")
+        with _library_stderr():
+            os.write(2, b"nested\n")
+    assert capfd.readouterr().err == "warning: kept\nnested\n"
+    with pytest.raises(DatasetError), _library_stderr():
+        os.write(2, b"libpng error: dropped\n")
+        raise DatasetError("x.png", "cannot read the image")
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "after\n"
 
 
 @pytest.mark.parametrize("content", [b"\xff\xfe\x00garbage", b"ckpt\x00.npz"])

@@ -13,7 +13,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -113,6 +117,50 @@ def _oiio():
     return oiio
 
 
+_stderr_lock = threading.Lock()
+_stderr_depth = 0
+
+
+@contextlib.contextmanager
+def _library_stderr():
+    """The C libraries' own lines on stderr (libpng's "libpng error: ..." before a truncated PNG's exception) held
+    back while images are read: passed on as they were when the reads succeed, dropped when one fails (its
+    :class:`DatasetError` carries the library's message already, so the user sees one line). Re-entrant: the
+    outermost call redirects the process's file descriptor 2, nested and worker-thread reads go through it."""
+    global _stderr_depth
+    with _stderr_lock:
+        outer = _stderr_depth == 0
+        _stderr_depth += 1
+    if not outer:
+        try:
+            yield
+        finally:
+            with _stderr_lock:
+                _stderr_depth -= 1
+        return
+    failed = False
+    with tempfile.TemporaryFile() as tmp:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            failed = True
+            raise
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            with _stderr_lock:
+                _stderr_depth -= 1
+            if not failed:
+                tmp.seek(0)
+                held = tmp.read()
+                if held:
+                    os.write(2, held)
+
+
 def read_image(path, downscale: int = 1) -> Image:
     """Read one image → :class:`Image` ``(rgb [h,w,3] float32, alpha [h,w] float32 or None,
     color_space, width, height)`` where ``h, w = H // downscale, W // downscale``.
@@ -128,19 +176,20 @@ def read_image(path, downscale: int = 1) -> Image:
         raise DatasetError(path, "image file not found")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise DatasetError(path, f"cannot read the image: {_one_line(oiio.geterror() or 'unknown format')}")
-    try:
-        spec = inp.spec()
-        fmt = inp.format_name()
-        orientation = int(spec.get_int_attribute("Orientation", 1))
-        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror()
-    finally:
-        inp.close()
-    if px is None or err:  # a truncated JPEG comes back filled in, with an error message
-        raise DatasetError(path, f"cannot read the image: {_one_line(err or oiio.geterror() or 'read failed')}")
+    with _library_stderr():
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp is None:
+            raise DatasetError(path, f"cannot read the image: {_one_line(oiio.geterror() or 'unknown format')}")
+        try:
+            spec = inp.spec()
+            fmt = inp.format_name()
+            orientation = int(spec.get_int_attribute("Orientation", 1))
+            px = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            err = inp.geterror()
+        finally:
+            inp.close()
+        if px is None or err:  # a truncated JPEG comes back filled in, with an error message
+            raise DatasetError(path, f"cannot read the image: {_one_line(err or oiio.geterror() or 'read failed')}")
     window = (spec.x, spec.y, spec.width, spec.height)
     # EXR only: a PNG's oFFs offset (a crop without +repage) shows as a data window too, on a complete image
     if fmt == "openexr" and spec.full_width > 0 and spec.full_height > 0 and window != (
@@ -261,7 +310,7 @@ def read_images(paths: list[Path], downscale: int = 1, workers: int | None = Non
     workers = workers or min(8, os.cpu_count() or 1, len(paths))
     if workers <= 1 or len(paths) < 4:
         return [read_image(p, downscale) for p in paths]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with _library_stderr(), ThreadPoolExecutor(max_workers=workers) as pool:  # (the workers' lines held with ours)
         return list(pool.map(lambda p: read_image(p, downscale), paths))
 
 
