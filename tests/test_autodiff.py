@@ -78,6 +78,34 @@ def test_chain_accumulates_and_matches_closed_form(rng):
     assert len(tape) == 0  # cleared by default
 
 
+def test_a_cleared_tape_frees_its_arrays_without_the_collector(rng):
+    """After ``backward`` (or ``clear``) the intermediates and the arrays the contexts saved are freed by reference
+    counting: a node and its outputs referenced each other, and a training step's device arrays stayed allocated
+    until Python's cyclic collector ran (the memory pool then allocated new buffers every step). An output keeps its
+    creator: it is still no leaf, and a second backward is refused as before."""
+    import gc
+    import weakref
+
+    x = Param(rng.standard_normal(5), "x")
+    gc.disable()
+    try:
+        with Tape() as tape:
+            y = Mul()(x, x)
+            s = Sum()(y)
+        saved = weakref.ref(y.creator.ctx.saved[1])
+        y_data = weakref.ref(y.data)
+        saved_x = y.creator.ctx.saved[0]  # x's own data: alive while x is
+        tape.backward(s)
+        del y
+        assert y_data() is None, "the intermediate output's array"
+        assert saved() is x.data or saved() is None
+        assert saved_x is x.data and not s.is_leaf
+        with pytest.raises(ValueError, match="not produced by a call recorded on this tape"):
+            tape.backward(s)
+    finally:
+        gc.enable()
+
+
 def test_grad_accumulates_over_backward_calls_until_zero_grad(rng):
     x = Param(rng.standard_normal(4), "x")
     for _ in range(2):
