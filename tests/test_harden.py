@@ -1619,6 +1619,30 @@ def test_interrupted_training_saves_a_checkpoint_and_resumes(tmp_path, sig):
     assert Trainer(None, tmp_path / "r", quiet=True, resume=True).it == 5
 
 
+def test_sigterm_during_training_exits_143(tmp_path, capsys, demo_copy, monkeypatch):
+    """`kill PID` on `triplet train` exited 130 (Ctrl-C's status): the trainer's own SIGTERM handler (the clean
+    stop with a checkpoint) replaced the CLI's, which records the signal (battery 8). It now hands the signal on."""
+    import os
+    import signal
+
+    from triplet_cl import train as train_mod
+
+    orig = train_mod.Trainer.step
+
+    def step(self):
+        if self.it == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return orig(self)
+
+    monkeypatch.setattr(train_mod.Trainer, "step", step)
+    old = signal.getsignal(signal.SIGTERM)
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", tmp_path / "r", "--iterations", "20", "--init-points",
+                           "300"], capsys)
+    assert rc == 143 and "interrupted" in err, err
+    assert signal.getsignal(signal.SIGTERM) == old
+    assert (tmp_path / "r" / "checkpoints" / "latest").read_text() == "ckpt_0000003.npz"
+
+
 def test_a_split_mixing_images_with_and_without_alpha_warns(tmp_path):
     """One RGB image among RGBA ones trained its white background as part of the object, silently."""
     from triplet_cl.datasets import DatasetWarning

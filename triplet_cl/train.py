@@ -1306,6 +1306,8 @@ class Trainer:
                 if interrupted:
                     self.save_checkpoint()
                     self.log.info(f"interrupted at iteration {self.it}; checkpoint saved")
+                    if interrupted[0] == signal.SIGTERM and callable(old_term):
+                        old_term(signal.SIGTERM, None)  # the caller's own handler (the CLI's: exit status 143)
                     raise KeyboardInterrupt
         finally:
             bar.close()
