@@ -2292,6 +2292,13 @@ def test_eval_relight_checks_the_references_cameras(run, tmp_path, capsys):
         rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
         assert rc == 2 and "cameras" in err and needle in err and err.count("\n") == 1, (cams, err)
         assert "PSNR" not in out and _tree(run) == before
+    wide = json.loads((data / "transforms_test.json").read_text())  # the same poses through a wider lens (battery 8)
+    wide["camera_angle_x"] *= 1.2
+    (tmp_path / "wide.json").write_text(json.dumps(wide))
+    for cams, needle in ((str(tmp_path / "wide.json"), "field of view"),):
+        (rd / "relight.json").write_text(json.dumps({**doc, "cameras": cams}))
+        rc, err, out = _run_cli(["eval", run, "--relight", rd], capsys)
+        assert rc == 2 and "cameras" in err and needle in err and "another lens" in err and err.count("\n") == 1, err
     (rd / "relight.json").write_text(json.dumps({**doc, "cameras": str(data / "transforms_test.json")}))
     rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
     assert rc == 2 and "cameras" not in err and "sets.a.images" in err, err  # past the cameras: the next check

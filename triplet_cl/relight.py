@@ -604,7 +604,8 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
         frames = data.get("frames") if isinstance(data, dict) else None
         if not isinstance(frames, list):
             raise DatasetError(path, "expected an object with a list 'frames'")
-        poses = {}
+        poses, fovs = {}, {}
+        top = data.get("camera_angle_x")
         for i, fr in enumerate(frames):
             if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str) or "transform_matrix" not in fr:
                 raise DatasetError(path, f"frames[{i}]: expected an object with file_path and transform_matrix")
@@ -613,6 +614,13 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
                 raise DatasetError(path, f"frames[{i}]: a second frame named {key!r} (the references are matched to "
                                          "the test views by their images' names)")
             poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
+            fl, w = fr.get("fl_x", data.get("fl_x")), fr.get("w", data.get("w"))
+            fov = fr.get("camera_angle_x", top)
+            if fov is None and _is_number(fl) and _is_number(w) and fl > 0:
+                fov = 2 * np.arctan(0.5 * float(w) / float(fl))
+            if fov is not None and not (_is_number(fov) and 0 < fov < np.pi):
+                raise DatasetError(path, f"frames[{i}]: camera_angle_x must be a number in (0, pi), found {fov!r}")
+            fovs[key] = fov
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None
     for name, cam in zip(view_names, cameras, strict=True):
@@ -625,6 +633,17 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
             raise LightFileError(spec, "cameras", f"{path}: the pose of {key} is not the run's test camera {name} "
                                                   "(the references were rendered from other cameras than the run's "
                                                   "test views)")
+        fov = fovs[key]
+        theirs = 2 * np.arctan(0.5 * cam.width / cam.fx)
+        # (a field of view: any image size; 1 %: a --downscale that crops a row or column moves it by up to (f - 1) / W)
+        if fov is not None and abs(float(fov) - theirs) > 1e-2 * theirs:
+            raise LightFileError(spec, "cameras", f"{path}: the field of view of {key} ({np.degrees(float(fov)):.3f}°) "
+                                                  f"is not the run's test camera {name}'s ({np.degrees(theirs):.3f}°): "
+                                                  "the references were rendered through another lens")
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and bool(np.isfinite(x))
 
 
 def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None,
