@@ -264,7 +264,18 @@ def _load_run(args):
     return Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
 
 
+def _lock_if_writing_into(run, writes: bool) -> None:
+    """A command that writes into the run (eval's metrics.json, render's and relight's default folders) takes its
+    lock first: an `eval` beside a running `extract` wrote its metrics.json over the mesh stage's, whose results
+    were lost (battery 8); refused instead, as train, extract and export are."""
+    if writes and Path(run).is_dir():
+        from triplet_cl.runs import lock_run
+
+        lock_run(run, "RUN")
+
+
 def cmd_render(args: argparse.Namespace) -> int:
+    _lock_if_writing_into(args.run, not args.out)
     tr = _load_run(args)
     tr.warn_if_dataset_changed()
     if args.renderer:
@@ -300,6 +311,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from triplet_cl.validate import check_output_slots
 
         check_output_slots(run, ["metrics.json"], "eval")
+    _lock_if_writing_into(run, True)
     old = read_metrics(run, "eval")  # before any work: a damaged file is named, not met after the evaluation
     tr = _load_run(args)
     tr.warn_if_dataset_changed()
@@ -364,6 +376,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
     run = Path(args.run)
     if args.out is not None and Path(args.out).is_file():
         raise ValueError(f"--out {args.out} is a file; expected a folder")
+    _lock_if_writing_into(run, args.out is None)
     tr = _load_run(args)
     rl = Relighter(tr, args.stage, args.renderer, args.shadows)
     base = Path(args.out) if args.out else run / "relight"

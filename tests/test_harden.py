@@ -2384,15 +2384,24 @@ def test_a_run_being_written_by_another_process_is_refused(run, capsys):
         assert holder.stdout.readline().strip() == "held"
         before = _tree(run)
         for argv in (["train", DEMO, "--out", run, "--resume", "--iterations", "6"],
-                     ["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], ["extract", run], ["export", run]):
+                     ["train", DEMO, "--out", run, "--overwrite", *TINY_RUN], ["extract", run], ["export", run],
+                     ["eval", run], ["render", run], ["relight", run, "--lights", _light_file(run.parent)]):
             rc, err, _ = _run_cli(argv, capsys)
             assert rc == 2 and "being written by another triplet process" in err and err.count("\n") == 1, (argv, err)
             assert _tree(run) == before
+        rc, err, _ = _run_cli(["render", run, "--out", run.parent / "elsewhere"], capsys)  # not into the run
+        assert rc == 0, err
     finally:
         holder.kill()
         holder.wait()
     rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)
     assert rc == 0, err
+
+
+def _light_file(folder):
+    f = folder / "lights_for_relight.json"
+    f.write_text(json.dumps({"lights": [_POINT]}))
+    return f
 
 
 def test_reference_frames_are_keyed_as_the_views_are_named():
