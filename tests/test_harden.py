@@ -84,6 +84,8 @@ BAD_TRAIN = {
     "keep-checkpoints -1": (["--keep-checkpoints", "-1"], "--keep-checkpoints"),
     "shadow-every 0": (["--shadow-every", "0"], "--shadow-every"),
     "light-phase -1": (["--light-phase", "-1"], "--light-phase"),
+    "device empty": (["--device", ""], "--device"),
+    "device blank": (["--device", "  "], "--device"),
     "light-distance 0": (["--light-distance", "0"], "--light-distance"),
     "light-distance nan": (["--light-distance", "nan"], "--light-distance"),
     "light-min-distance -1": (["--light-min-distance", "-1"], "--light-min-distance"),

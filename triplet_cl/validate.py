@@ -606,6 +606,10 @@ def validate_args(args) -> None:
     """Check every option of ``args`` (an argparse namespace of any command) before any work."""
     _check_options(args)
     _check_phases(args)
+    dev = getattr(args, "device", None)
+    if dev is not None and not str(dev).strip():  # ("" fell back to the default device, " " matched every name)
+        raise UsageError("--device", f"expected P:D, a substring of a device's name, gpu or cpu (see `triplet "
+                                     f"devices`), found {dev!r}; leave it out for the default device")
     cmd = getattr(args, "command", None)
     if cmd == "train":
         if not getattr(args, "mesh_stage", False):
