@@ -522,11 +522,9 @@ def _pixel_filter(text) -> float | None:
 
 
 def _formats(text: str) -> tuple:
-    fmts = tuple(x.strip().lower() for x in text.split(","))
-    bad = [f for f in fmts if f not in ("glb", "obj", "ply")]  # an empty item too (glb,,obj), as --lights
-    if bad or not fmts:
-        raise ValueError(f"formats must be a comma-separated list of glb, obj, ply; got {text!r}")
-    return fmts
+    from triplet_cl.validate import parse_formats
+
+    return parse_formats("--formats", text)
 
 
 def _run_mesh_stage(tr, cfg) -> int:
@@ -731,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint "
                    "(--iterations, --checkpoint-every, --keep-checkpoints may change; other options must match)")
     t.add_argument("--overwrite", action="store_true", help="replace the existing run in --out (deletes it)")
-    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format")
+    t.add_argument("--data-format", default="auto", choices=["auto", *DATASET_FORMATS], help="dataset format",
+                   action=DeprecatedAlias.given())
     t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
     t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
@@ -849,7 +848,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     o = sub.add_parser("export", help="write the refined mesh of a run (from `triplet extract`) in other formats")
     o.add_argument("run", help="run directory")
-    o.add_argument("--formats", default="glb", help="comma-separated among glb,obj,ply (default glb)")
+    o.add_argument("--formats", default="glb", action=DeprecatedAlias.given(),
+                   help="comma-separated among glb,obj,ply (default glb)")
     o.add_argument("--format", dest="formats", action=DeprecatedAlias.action("--formats"), help=argparse.SUPPRESS)
     o.add_argument("--out", help="output folder (default RUN)")
     o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")

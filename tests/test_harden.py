@@ -203,6 +203,24 @@ def test_deprecated_format_aliases_warn(capsys):
     assert args.formats == "obj" and "--formats" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv, option", [
+    (["export", "RUN", "--formats", "obj", "--format", "ply"], "--format"),
+    (["export", "RUN", "--format", "ply", "--formats", "obj"], "--format"),
+    (["export", "RUN", "--formats", "glb,"], "--formats"),
+    (["extract", "RUN", "--formats", "glb,"], "--formats"),
+    (["train", "DEMO", "--out", "OUT", "--data-format", "nerf", "--format", "colmap"], "--format"),
+])
+def test_format_conflicts_and_empty_items_are_refused_up_front(run, tmp_path, capsys, argv, option):
+    """`export --formats obj --format ply` wrote the PLY only (the deprecated alias won, with a deprecation line);
+    `--formats glb,` was taken by export and refused by extract only after the device had started, without naming
+    the option (battery 8)."""
+    before = _tree(run)
+    argv = [{"RUN": run, "DEMO": DEMO, "OUT": tmp_path / "out"}.get(a, a) for a in argv]
+    rc, err, _ = _run_cli(argv, capsys)
+    assert rc == 2 and option in err and "Traceback" not in err, err
+    assert _tree(run) == before and not (tmp_path / "out").exists()
+
+
 # ---- existing runs, resume ----------------------------------------------------------------------------
 def test_existing_run_is_refused_without_resume_or_overwrite(run, capsys):
     before = _tree(run)

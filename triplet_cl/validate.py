@@ -113,8 +113,8 @@ def parse_formats(option: str, text: str | None) -> tuple | None:
     """``"glb,obj"`` → ``("glb", "obj")``; unknown or empty names refused naming ``option``."""
     if text is None:
         return None
-    fmts = tuple(x.strip().lower() for x in text.split(",") if x.strip())
-    bad = [f for f in fmts if f not in OUTPUT_FORMATS]
+    fmts = tuple(x.strip().lower() for x in text.split(","))
+    bad = [f for f in fmts if f not in OUTPUT_FORMATS]  # an empty item too ("glb," or "glb,,obj"), as --lights
     if bad or not fmts:
         raise UsageError(option, f"expected a comma-separated list of {', '.join(OUTPUT_FORMATS)}, found {text!r}")
     return tuple(dict.fromkeys(fmts))
@@ -123,6 +123,14 @@ def parse_formats(option: str, text: str | None) -> tuple | None:
 def _check_options(args) -> None:
     for option, (attr, low, high) in _INT_OPTIONS.items():
         check_int(option, getattr(args, attr, None), low, high)
+    # every command's --formats before any work (extract refused "glb," only after the device had started, export
+    # took it); and the deprecated --format given beside it no longer silently wins
+    if getattr(args, "formats", None) is not None:
+        parse_formats("--formats", args.formats)
+    alias = getattr(args, "_deprecated_alias", None)
+    if alias is not None and getattr(args, "_given_" + alias[1], False):
+        raise UsageError(alias[0], f"is the deprecated spelling of --{alias[1]}, which was given too: give "
+                                   f"--{alias[1]} only")
     if getattr(args, "downscale", None) is not None:  # an integer factor or auto; the images must stay >= 11 px too
         args.downscale = parse_downscale("--downscale", args.downscale)  # (Trainer checks the dataset)
     if getattr(args, "background_shell", None) is not None:  # a number of triangles or auto (photos without alpha)
@@ -725,9 +733,23 @@ class DeprecatedAlias:
         class _Alias(argparse.Action):
             def __call__(self, parser, namespace, values, option_string=None):
                 print(f"triplet: warning: {option_string} is deprecated, use {new}", file=sys.stderr)
-                setattr(namespace, self.dest, values)
+                if not getattr(namespace, "_given_" + self.dest, False):  # (--formats first: it keeps its value)
+                    setattr(namespace, self.dest, values)
+                namespace._deprecated_alias = (option_string, self.dest)
 
         return _Alias
+
+    @staticmethod
+    def given():
+        """The store action of the new spelling, noting that it was given (validate_args refuses both)."""
+        import argparse
+
+        class _Given(argparse.Action):
+            def __call__(self, parser, namespace, values, option_string=None):
+                setattr(namespace, self.dest, values)
+                setattr(namespace, "_given_" + self.dest, True)
+
+        return _Given
 
 
 # ---- resume --------------------------------------------------------------------------------------------
