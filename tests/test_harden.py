@@ -1502,6 +1502,29 @@ def test_sigterm_during_colmap_removes_its_work_folder(tmp_path, capsys, monkeyp
     assert signal.getsignal(signal.SIGTERM) == old  # the CLI restored the handler
 
 
+def test_failed_colmap_removes_the_parents_it_made_and_names_duplicate_photos(tmp_path, capsys, monkeypatch):
+    """`colmap PHOTOS --out a/b/c` made a/b for its work folder and left them when structure from motion failed; and
+    byte-for-byte copies among the photos registered at their originals' poses without a word (battery 8)."""
+    pytest.importorskip("pycolmap")
+    import shutil as _shutil
+
+    import triplet_cl.datasets.sfm as sfm
+    from triplet_cl.errors import DatasetError
+
+    def solve(pycolmap, photos, images_dir, work, *a):
+        raise DatasetError(images_dir, "structure from motion failed (a test)")
+
+    monkeypatch.setattr(sfm, "_solve", solve)
+    photos = _photos(tmp_path / "photos")
+    first = sorted(photos.iterdir())[0]
+    _shutil.copy(first, photos / ("copy_of_" + first.name))
+    (tmp_path / "kept").mkdir()
+    rc, err, _ = _run_cli(["colmap", photos, "--out", tmp_path / "kept" / "a" / "b" / "c"], capsys)
+    assert rc == 2 and "a test" in err, err
+    assert "1 of the 4 photos is a byte-for-byte copy" in err and f"{first.name} = copy_of_{first.name}" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept", "photos"] and not any((tmp_path / "kept").iterdir())
+
+
 def test_work_folders_of_killed_colmap_runs_are_removed(tmp_path):
     """SIGKILL cannot be caught: the next `triplet colmap` with the same --out removes the dead process's
     folder, never one of a process still running."""

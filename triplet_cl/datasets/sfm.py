@@ -153,8 +153,10 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
         raise DatasetError(images_dir, f"only {len(photos)} image(s); structure from motion needs at least 3 "
                                        "overlapping photos (20 or more around an object)")
     width, height = check_one_size(photo_sizes(photos), images_dir)
+    warn_duplicate_photos(photos)
     pycolmap = _pycolmap()
     _quiet_colmap(pycolmap, verbose)
+    made = [p for p in (out_dir.parent, *out_dir.parent.parents) if not p.exists()]  # removed again on a failure
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     remove_dead_work_dirs(out_dir)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
@@ -170,8 +172,34 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
         os.replace(work, out_dir)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
+        for p in made:  # the parents this call created (innermost first), if nothing else went there (battery 8)
+            try:
+                p.rmdir()
+            except OSError:
+                break
         raise
     return summary
+
+
+def warn_duplicate_photos(photos) -> None:
+    """A :class:`DatasetWarning` naming photos that are byte-for-byte copies of others: each copy registers at its
+    original's pose and adds no view (battery 8: half the photos duplicated, all registered, nothing said)."""
+    import warnings
+
+    from .base import DatasetWarning
+
+    seen, copies = {}, []
+    for p in photos:
+        h = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+        if h in seen:
+            copies.append((Path(p).name, seen[h]))
+        else:
+            seen[h] = Path(p).name
+    if copies:
+        shown = ", ".join(f"{a} = {b}" for a, b in copies[:3]) + (", ..." if len(copies) > 3 else "")
+        what = "is a byte-for-byte copy of another" if len(copies) == 1 else "are byte-for-byte copies of others"
+        warnings.warn(DatasetWarning(f"{len(copies)} of the {len(photos)} photos {what} ({shown}): a copy adds no "
+                                     "view of the object; remove the copies"), stacklevel=2)
 
 
 WORK_PID = ".pid"  # the process writing a work folder (a folder whose process is gone is removed)
