@@ -2101,6 +2101,37 @@ def test_colmap_images_given_twice_are_refused(tmp_path, dup):
         read_images_text(p)
 
 
+def test_references_that_cannot_be_scored_as_meant_warn_and_wrong_kinds_are_named(run, tmp_path, capsys):
+    """References without alpha (1.04 dB) and fully transparent ones (24.80 dB) were scored without a word; a set's
+    images given as a file, "cameras" naming a folder and an envmap named as a folder were all "not found" (battery
+    8)."""
+    from PIL import Image
+
+    refs = _relight_refs(tmp_path / "refs")
+    names = [Path(f["file_path"]).name for f in json.loads((DEMO / "transforms_test.json").read_text())["frames"]]
+    (refs / "a").mkdir()
+    (refs / "albedo").mkdir()
+    for n in names:
+        Image.fromarray(np.full((96, 96, 3), 200, np.uint8)).save(refs / "a" / f"{n}.png")  # RGB: no alpha
+        Image.fromarray(np.full((96, 96, 4), 200, np.uint8)).save(refs / "albedo" / f"{n}.png")
+    Image.fromarray(np.zeros((96, 96, 4), np.uint8)).save(refs / "albedo" / f"{names[0]}.png")  # transparent
+    rc, err, _ = _run_cli(["eval", run, "--relight", refs, "--out", tmp_path / "ev"], capsys)
+    assert rc == 0, err
+    assert f"{len(names)} of the {len(names)} references" in err and "no alpha channel" in err, err
+    assert f"1 of the {len(names)} references" in err and "fully transparent" in err, err
+    doc = json.loads((refs / "relight.json").read_text())
+    for change, needle in (({"sets": {"a": {**doc["sets"]["a"], "images": "relight.json"}}}, "a file, not a folder"),
+                           ({"cameras": "a"}, "a folder, not a transforms JSON file")):
+        (refs / "relight.json").write_text(json.dumps({**doc, **change}))
+        rc, err, _ = _run_cli(["eval", run, "--relight", refs], capsys)
+        assert rc == 2 and needle in err, err
+    (tmp_path / "sky.exr").mkdir()
+    lf = tmp_path / "env.json"
+    lf.write_text(json.dumps({"lights": [{"type": "envmap", "filename": "sky.exr"}]}))
+    rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 2 and "is a folder, not an image" in err, err
+
+
 def test_relight_references_are_read_before_the_evaluation(run, tmp_path, capsys):
     """A set named 'albedo' beside an albedo folder had its relit images replaced by the albedo renders; a reference of
     another size, an unreadable one or a fully transparent albedo were met after the whole evaluation."""

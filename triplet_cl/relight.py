@@ -351,6 +351,10 @@ def find_envmap(name: str, base: Path, path=None, where: str = "filename") -> Pa
         tried.append(str(c))
         if c.is_file():
             return c
+    folders = [c for c in cands if c.is_dir()]
+    if folders:  # ("not found" for a folder of that name, battery 8)
+        raise LightFileError(path or base, where, f"environment map {name!r}: {folders[0]} is a folder, not an image "
+                                                  "(EXR, HDR or PNG)")
     raise LightFileError(path or base, where, f"environment map {name!r} not found; tried: {', '.join(tried)}")
 
 
@@ -598,7 +602,8 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
         raise LightFileError(spec, "cameras", f"expected the name of a transforms JSON file, found {ref!r}")
     path = spec.parent / ref
     if not path.is_file():
-        raise LightFileError(spec, "cameras", f"{path}: file not found")
+        raise LightFileError(spec, "cameras", f"{path}: " + ("a folder, not a transforms JSON file" if path.is_dir()
+                                                             else "file not found"))
     try:
         data = read_json(path)
         frames = data.get("frames") if isinstance(data, dict) else None
@@ -678,14 +683,18 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
         folders.append(("albedo", spec.parent / alb))
     for where, folder in folders:
         if not folder.is_dir():
-            raise LightFileError(spec, where, f"{folder}: folder not found")
+            raise LightFileError(spec, where, f"{folder}: " + ("a file, not a folder" if folder.exists()
+                                                               else "folder not found"))
         missing = [n for n in view_names if not (folder / f"{Path(n).name}.png").is_file()]
         if missing:
             raise LightFileError(spec, where, f"{folder}: no image for the test view(s) "
-                                              f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
+                                              f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
+                                              f"(expected {Path(missing[0]).name}.png: 8- or 16-bit PNG, straight "
+                                              "alpha)")
         if sizes is None:
             continue
         covered = False
+        no_alpha, empty = [], []
         for n, (w, h) in zip(view_names, sizes, strict=True):
             p = folder / f"{Path(n).name}.png"
             try:
@@ -695,9 +704,29 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
             if im.rgb.shape[:2] != (h, w):
                 raise LightFileError(spec, where, f"{p} is {im.rgb.shape[1]}x{im.rgb.shape[0]}, its view {w}x{h}")
             covered = covered or im.alpha is None or bool((im.alpha > 0.5).any())
+            if im.alpha is None:
+                no_alpha.append(p.name)
+            elif not (im.alpha > 0.5).any():
+                empty.append(p.name)
         if where == "albedo" and not covered:
             raise LightFileError(spec, where, f"{folder}: every image is transparent (alpha 0): the albedo covers no "
                                               "pixel to compare with")
+        _warn_references(spec, where, folder, no_alpha, empty, len(view_names))
+
+
+def _warn_references(spec, where: str, folder, no_alpha, empty, n: int) -> None:
+    """References that cannot be what the scores assume (battery 8: scored without a word, 1.04 dB and 24.80 dB):
+    without an alpha channel (their background then counts as the object, composited over white) or with no
+    opaque pixel (the score is then the render's background against white)."""
+    import warnings
+
+    from .datasets.base import DatasetWarning
+
+    for names, what in ((no_alpha, "have no alpha channel: their background is scored as part of the object"),
+                        (empty, "are fully transparent: they show no object to compare with")):
+        if names:
+            warnings.warn(DatasetWarning(f"{spec}: {where}: {len(names)} of the {n} references in {folder} {what} "
+                                         f"(e.g. {names[0]})"), stacklevel=3)
 
 
 def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None = None, out_dir=None) -> dict:
