@@ -1695,6 +1695,31 @@ def test_sigterm_during_training_exits_143(tmp_path, capsys, demo_copy, monkeypa
     assert (tmp_path / "r" / "checkpoints" / "latest").read_text() == "ckpt_0000003.npz"
 
 
+def test_cameras_looking_away_from_the_object_warn(tmp_path, demo_copy):
+    """Every camera turned 180° about its own y axis (looking away from the object): the soup was trained unseen
+    without a word, its face count never moving (battery 8). The demo's own cameras do not warn."""
+    import warnings
+
+    from triplet_cl.datasets import DatasetWarning
+
+    d = tmp_path / "away"
+    shutil.copytree(demo_copy, d)
+    for split in ("train", "test"):
+        p = d / f"transforms_{split}.json"
+        doc = json.loads(p.read_text())
+        for fr in doc["frames"]:
+            m = np.array(fr["transform_matrix"], float)
+            m[:3, 0] *= -1
+            m[:3, 2] *= -1
+            fr["transform_matrix"] = m.tolist()
+        p.write_text(json.dumps(doc))
+    with pytest.warns(DatasetWarning, match=r"only 0 of the 40 training cameras see the initial soup.*-z axis"):
+        Trainer(d, tmp_path / "r", _small_cfg(), quiet=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DatasetWarning)
+        Trainer(demo_copy, tmp_path / "r2", _small_cfg(), quiet=True)
+
+
 def test_a_split_mixing_images_with_and_without_alpha_warns(tmp_path):
     """One RGB image among RGBA ones trained its white background as part of the object, silently."""
     from triplet_cl.datasets import DatasetWarning

@@ -707,6 +707,31 @@ def initial_lights(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator):
     return lights
 
 
+def warn_if_unseen(ds: Dataset, V: np.ndarray, data=None, sample: int = 2000) -> None:
+    """A :class:`DatasetWarning` when fewer than half the training cameras see any of the initial soup's vertices
+    ``V`` (in front, inside the image): cameras that look away from the object trained an unseen soup without a
+    word (battery 8: the face count never moved). The usual cause is a camera convention: NeRF / Blender cameras look
+    down their -z axis, OpenCV / COLMAP ones down +z."""
+    import warnings
+
+    n = len(ds.train)
+    if not n or not len(V):
+        return
+    pts = np.asarray(V, np.float64)[:: max(1, len(V) // sample)]
+    seeing = 0
+    for v in ds.train:
+        c = v.camera
+        uvz = c.project_points(pts)
+        ok = (uvz[:, 2] > c.near) & (uvz[:, 0] >= 0) & (uvz[:, 0] < c.width) & (uvz[:, 1] >= 0) & (uvz[:, 1] < c.height)
+        seeing += bool(ok.any())
+    if 2 * seeing < n:
+        warnings.warn(DatasetWarning(
+            f"{data or ds.root}: only {seeing} of the {n} training cameras see the initial soup (around "
+            f"{np.round(np.asarray(V).mean(axis=0), 3).tolist()}, where the cameras' optical axes meet or the SfM "
+            "points are): the cameras may look away from the object. NeRF / Blender transforms look down the camera's "
+            "-z axis (OpenCV / COLMAP poses down +z): check the transform_matrix convention"), stacklevel=3)
+
+
 def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Scene:
     """The method's initialisation: COLMAP points when present, else random points in the bounds."""
     if cfg.background_shell == "auto":  # (the Trainer resolves both first; here for callers that did not)
@@ -954,6 +979,8 @@ class Trainer:
         # TrainConfig.ao "off": the AO column takes no step (soup and mesh stage)
         self.held_ao = [brdf.column("ao")] if self.cfg.ao == "off" and brdf.column("ao") is not None else []
         self.start_soup()
+        if not resume:
+            warn_if_unseen(self.ds, np.asarray(self.scene.V.data), data)
         self.targets = Targets(self.ds)
         self.metallic_probe = None  # the soup's metal-or-dielectric probe (TrainConfig.metallic_probe_at), once run
         self._resumed_from: tuple | None = None  # (checkpoint, its number of training views) once one is loaded
