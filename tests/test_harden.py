@@ -2360,9 +2360,10 @@ def test_overwrite_refuses_the_user_s_files_inside_the_run_s_own_folders(run, ca
     assert not (run / "mesh.obj").exists()
 
 
-@pytest.mark.parametrize("name", ["mesh.obj", "mesh.ply", "mesh.glb"])
+@pytest.mark.parametrize("name", ["mesh.obj", "mesh.ply", "mesh.glb", "mesh_basecolor.png"])
 def test_extract_and_export_refuse_the_user_s_mesh_files_in_the_run(run, capsys, name):
-    """`extract RUN` and `export RUN` (into the run) replaced a mesh.obj / mesh.ply the user had put there."""
+    """`extract RUN` and `export RUN` (into the run) replaced a mesh.obj / mesh.ply the user had put there; and a
+    text file named like a texture (battery 8: a PNG or EXR that is not one is not triplet's)."""
     from triplet_cl.mesh.refine import MeshConfig, save_mesh_state
     from triplet_cl.scene import Scene
 
@@ -2374,7 +2375,7 @@ def test_extract_and_export_refuse_the_user_s_mesh_files_in_the_run(run, capsys,
                     MeshConfig())
     (run / name).write_bytes(b"USER MESH\n")
     before = _tree(run)
-    fmt = name.split(".")[1]
+    fmt = "obj" if name.endswith(".png") else name.split(".")[1]  # (the OBJ's textures)
     for argv in (["extract", run, "--formats", fmt], ["export", run, "--formats", fmt]):
         rc, err, _ = _run_cli(argv, capsys)
         assert rc == 2 and name in err and "not written by triplet" in err and err.count("\n") == 1, (argv, err)

@@ -287,10 +287,21 @@ _SIGNED_SUFFIXES = frozenset({".obj", ".mtl", ".ply", ".glb", ".gltf"})
 _SIGNATURE = b"triplet_cl"
 
 
+_MAGIC = {".png": b"\x89PNG\r\n\x1a\n", ".exr": b"\x76\x2f\x31\x01"}  # the first bytes of every such file
+
+
 def made_by_triplet(path) -> bool | None:
     """Whether the existing file ``path`` is one triplet wrote: for a signed kind (OBJ, MTL, PLY, glTF / GLB) its
-    first 64 kB hold the signature; None for a file of another kind (no way to tell) or no regular file."""
+    first 64 kB hold the signature; a PNG or EXR that is not one at all (its magic bytes) is not; None for a file of
+    another kind or a real image (no way to tell) or no regular file."""
     p = Path(path)
+    if p.suffix.lower() in _MAGIC and p.is_file():  # an image triplet writes (textures, envmap.exr): unsigned, but a
+        # file that is not of that kind at all is not ours (battery 8: extract replaced the user's text file there)
+        try:
+            with open(p, "rb") as f:
+                return None if f.read(len(_MAGIC[p.suffix.lower()])) == _MAGIC[p.suffix.lower()] else False
+        except OSError:
+            return False
     if p.suffix.lower() not in _SIGNED_SUFFIXES or not p.is_file():
         return None
     try:
