@@ -386,10 +386,10 @@ def cmd_relight(args: argparse.Namespace) -> int:
 
     names = render_files(rl.views(args.split))
     _check_image_outs(outs, names, "--out" if args.out else "RUN", tr.ds.root)  # every set's, before any work
+    from collections import Counter
+
     for ls, out in zip(sets, outs, strict=True):
         paths = relight_run(rl, ls, out, args.split)
-        from collections import Counter
-
         # each kind once, with its count (5000 lights printed a 60 kB line, battery 8)
         count = Counter(type(lt).__name__ for lt in ls.lights)
         kinds = ", ".join(k if n == 1 else f"{n} x {k}" for k, n in count.items())

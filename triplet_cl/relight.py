@@ -592,7 +592,7 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
     it names a file that has a frame for each test view (by the image's name), whose pose is the view's camera in
     the run (within ``tol`` × the camera's distance from the origin). A battery found the key ignored: references of
     other cameras were scored against the run's test views without a word."""
-    from .datasets.nerf import _matrix, read_json
+    from .datasets.nerf import _camera_maker, _check_intrinsics, _matrix, frame_intrinsics, read_json
     from .errors import DatasetError
 
     ref = doc.get("cameras")
@@ -609,8 +609,9 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
         frames = data.get("frames") if isinstance(data, dict) else None
         if not isinstance(frames, list):
             raise DatasetError(path, "expected an object with a list 'frames'")
-        poses, fovs = {}, {}
-        top = data.get("camera_angle_x")
+        poses, lenses = {}, {}
+        top = {k: v for k, v in data.items() if k != "frames"}
+        _check_intrinsics(path, "", top)
         for i, fr in enumerate(frames):
             if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str) or "transform_matrix" not in fr:
                 raise DatasetError(path, f"frames[{i}]: expected an object with file_path and transform_matrix")
@@ -619,13 +620,9 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
                 raise DatasetError(path, f"frames[{i}]: a second frame named {key!r} (the references are matched to "
                                          "the test views by their images' names)")
             poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
-            fl, w = fr.get("fl_x", data.get("fl_x")), fr.get("w", data.get("w"))
-            fov = fr.get("camera_angle_x", top)
-            if fov is None and _is_number(fl) and _is_number(w) and fl > 0:
-                fov = 2 * np.arctan(0.5 * float(w) / float(fl))
-            if fov is not None and not (_is_number(fov) and 0 < fov < np.pi):
-                raise DatasetError(path, f"frames[{i}]: camera_angle_x must be a number in (0, pi), found {fov!r}")
-            fovs[key] = fov
+            intr = frame_intrinsics(path, f"frames[{i}]: ", top, fr)
+            if "fl_x" in intr or "camera_angle_x" in intr:  # (a file without a focal length: the poses only)
+                lenses[key] = (_camera_maker(path, f"frames[{i}]: ", poses[key], intr), intr.get("w"), intr.get("h"))
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None
     for name, cam in zip(view_names, cameras, strict=True):
@@ -638,17 +635,20 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
             raise LightFileError(spec, "cameras", f"{path}: the pose of {key} is not the run's test camera {name} "
                                                   "(the references were rendered from other cameras than the run's "
                                                   "test views)")
-        fov = fovs[key]
-        theirs = 2 * np.arctan(0.5 * cam.width / cam.fx)
+        if key not in lenses:
+            continue
+        make, w, h = lenses[key]
+        try:  # the reference camera at its own size when the file gives it (the loader's intrinsics and checks)
+            ref_cam = make(int(round(float(w))) if w is not None else cam.width,
+                           int(round(float(h))) if h is not None else cam.height)
+        except DatasetError as exc:
+            raise LightFileError(spec, "cameras", str(exc)) from None
+        fov, theirs = (2 * np.arctan(0.5 * c.width / c.fx) for c in (ref_cam, cam))
         # (a field of view: any image size; 1 %: a --downscale that crops a row or column moves it by up to (f - 1) / W)
-        if fov is not None and abs(float(fov) - theirs) > 1e-2 * theirs:
-            raise LightFileError(spec, "cameras", f"{path}: the field of view of {key} ({np.degrees(float(fov)):.3f}°) "
+        if abs(fov - theirs) > 1e-2 * theirs:
+            raise LightFileError(spec, "cameras", f"{path}: the field of view of {key} ({np.degrees(fov):.3f}°) "
                                                   f"is not the run's test camera {name}'s ({np.degrees(theirs):.3f}°): "
                                                   "the references were rendered through another lens")
-
-
-def _is_number(x) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and bool(np.isfinite(x))
 
 
 def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None,

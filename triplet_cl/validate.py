@@ -127,10 +127,10 @@ def _check_options(args) -> None:
     # took it); and the deprecated --format given beside it no longer silently wins
     if getattr(args, "formats", None) is not None:
         parse_formats("--formats", args.formats)
-    alias = getattr(args, "_deprecated_alias", None)
+    alias = getattr(args, "_deprecated_alias", None)  # (the old spelling, its dest, the new spelling)
     if alias is not None and getattr(args, "_given_" + alias[1], False):
-        raise UsageError(alias[0], f"is the deprecated spelling of --{alias[1]}, which was given too: give "
-                                   f"--{alias[1]} only")
+        raise UsageError(alias[0], f"is the deprecated spelling of {alias[2]}, which was given too: give {alias[2]} "
+                                   "only")
     if getattr(args, "downscale", None) is not None:  # an integer factor or auto; the images must stay >= 11 px too
         args.downscale = parse_downscale("--downscale", args.downscale)  # (Trainer checks the dataset)
     if getattr(args, "background_shell", None) is not None:  # a number of triangles or auto (photos without alpha)
@@ -733,9 +733,8 @@ class DeprecatedAlias:
         class _Alias(argparse.Action):
             def __call__(self, parser, namespace, values, option_string=None):
                 print(f"triplet: warning: {option_string} is deprecated, use {new}", file=sys.stderr)
-                if not getattr(namespace, "_given_" + self.dest, False):  # (--formats first: it keeps its value)
-                    setattr(namespace, self.dest, values)
-                namespace._deprecated_alias = (option_string, self.dest)
+                setattr(namespace, self.dest, values)
+                namespace._deprecated_alias = (option_string, self.dest, new)  # (both given: validate_args refuses)
 
         return _Alias
 

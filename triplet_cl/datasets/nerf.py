@@ -177,6 +177,18 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
     return make
 
 
+def frame_intrinsics(path: Path, where: str, top: dict, frame: dict) -> dict:
+    """A frame's intrinsics: the file's ``top`` keys (checked by the caller) overridden by the frame's own (checked
+    here); a frame's own focal length overrides the file's in either form (``fl_x`` or ``camera_angle_x``)."""
+    own = {k: v for k, v in frame.items() if k not in ("file_path", "transform_matrix")}
+    _check_intrinsics(path, where, own)
+    intr = {**top, **own}
+    for fk, ak in (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y")):
+        if (fk in own) != (ak in own):
+            intr.pop(ak if fk in own else fk, None)
+    return intr
+
+
 def transforms_records(json_path: Path, data: dict | None = None):
     """Parse a ``transforms*.json`` → ``(records, missing)`` for :func:`load_views`.
 
@@ -207,12 +219,7 @@ def transforms_records(json_path: Path, data: dict | None = None):
         if not isinstance(fp, str) or not fp:
             raise DatasetError(json_path, f"{where}file_path must be a non-empty string, found {fp!r}")
         c2w = _matrix(json_path, where, fr["transform_matrix"])
-        own = {k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}
-        _check_intrinsics(json_path, where, own)
-        intr = {**top, **own}
-        for fk, ak in (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y")):
-            if (fk in own) != (ak in own):  # a frame's own focal length overrides the file's, in either form
-                intr.pop(ak if fk in own else fk, None)
+        intr = frame_intrinsics(json_path, where, top, fr)
         make = _camera_maker(json_path, where, c2w, intr)
         image = find_image(root / fp)
         if image is None:
