@@ -379,7 +379,9 @@ def cmd_relight(args: argparse.Namespace) -> int:
     _lock_if_writing_into(run, args.out is None)
     tr = _load_run(args)
     rl = Relighter(tr, args.stage, args.renderer, args.shadows)
-    base = Path(args.out) if args.out else run / "relight"
+    # the default folder of a split other than test is the split's own (battery 9: `--split train` then `--split
+    # test` mixed both splits' r_0.png ... in RUN/relight/SET/), as render's renders/SPLIT/
+    base = Path(args.out) if args.out else run / "relight" / ("" if args.split == "test" else args.split)
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
     check_vertex_sh(sets, rl.base.vertex_sh is not None)
     from triplet_cl.datasets.base import render_files
@@ -676,8 +678,13 @@ def cmd_colmap(args: argparse.Namespace) -> int:
           f"{s['mean_reprojection_error_px']:.2f} px; camera {cam['model']} "
           f"{' '.join(f'{x:.5g}' for x in cam['params'])}")
     print(f"wrote {args.out}/ (images/, sparse/0/, distorted/, sfm.json) in {time.perf_counter() - t0:.0f} s "
-          f"(CPU {s['cpu_s']:.0f} s); next: triplet train {args.out} --out RUN")
+          f"(CPU {s['cpu_s']:.0f} s); next: {train_hint(args.out)}")
     return 0
+
+
+def train_hint(data) -> str:
+    """The command that trains on ``data``, as it can be pasted into a shell (a path with a space was not quoted)."""
+    return f"triplet train {shlex.quote(str(data))} --out RUN"
 
 
 def add_colmap_parser(sub) -> None:
@@ -957,11 +964,15 @@ def _dispatch(args) -> int:
         validate_args(args)  # every option and path, before any work
         return int(args.func(args) or 0)
     except (TripletError, FileNotFoundError, ValueError) as exc:
-        msg = os_error_message(exc) if isinstance(exc, OSError) and exc.errno else exc  # raised by the OS
+        msg = os_error_message(exc, args.command) if isinstance(exc, OSError) and exc.errno else exc  # by the OS
         print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `triplet devices | head -1`: the reader left; quiet, the status of a SIGPIPE death
+        with contextlib.suppress(OSError):  # (and no second error when Python flushes stdout at exit)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except OSError as exc:  # not a folder, read-only, permission, no space left: one line
-        print(f"triplet {args.command}: error: {os_error_message(exc)}", file=sys.stderr)
+        print(f"triplet {args.command}: error: {os_error_message(exc, args.command)}", file=sys.stderr)
         return 2
     except MemoryError as exc:  # Device.check_alloc says which buffer and the device's limit; a bare one does not
         detail = f"{exc}; " if str(exc) else ""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -2540,3 +2541,152 @@ def test_a_sigterm_swallowed_while_starting_still_stops_training(tmp_path, capsy
     rc, err, _ = _run_cli(["train", DEMO, "--out", tmp_path / "run", *TINY_RUN], capsys)
     assert rc == 143 and "interrupted" in err, err
     assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+# ---- battery 9 ---------------------------------------------------------------------------------------------------
+def test_render_through_a_linked_renders_folder_keeps_the_user_s_files(run, tmp_path, capsys):
+    """`render RUN` wrote through RUN/renders/test when it was a link to the user's folder, replacing their r_0.png
+    (battery 9), the same link that --overwrite calls the user's. The linked folder is judged as any other."""
+    mine = tmp_path / "photos"
+    mine.mkdir()
+    (mine / "r_0.png").write_bytes(b"my photo")
+    shutil.rmtree(run / "renders" / "test")
+    (run / "renders" / "test").symlink_to(mine, target_is_directory=True)
+    rc, err, _ = _run_cli(["render", run], capsys)
+    assert rc == 2 and "not written by triplet" in err and err.count("\n") == 1, err
+    assert (mine / "r_0.png").read_bytes() == b"my photo" and sorted(p.name for p in mine.iterdir()) == ["r_0.png"]
+    rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)  # its final renders too
+    assert rc == 2 and "not written by triplet" in err, err
+    assert (mine / "r_0.png").read_bytes() == b"my photo"
+    (mine / "r_0.png").unlink()  # an empty linked folder is written, and its files are triplet's from then on
+    rc, err, _ = _run_cli(["render", run], capsys)
+    assert rc == 0 and (mine / "r_0.png").is_file(), err
+    rc, err, _ = _run_cli(["render", run], capsys)
+    assert rc == 0, err
+
+
+def test_light_files_with_a_hash_in_their_name_and_with_both_sets_and_lights(run, tmp_path, capsys):
+    """`--lights 'studio#1.json'` was split at '#' ("lights/studio: does not exist"); a file holding both "sets" and a
+    top-level "lights" list relit the sets and ignored the list (battery 9)."""
+    lf = tmp_path / "studio#1.json"
+    lf.write_text(json.dumps({"lights": [_POINT]}))
+    rc, err, out = _run_cli(["relight", run, "--lights", lf, "--out", tmp_path / "out"], capsys)
+    assert rc == 0 and (tmp_path / "out" / "r_0.png").is_file(), err
+    both = tmp_path / "both.json"
+    both.write_text(json.dumps({"lights": [_POINT], "sets": {"a": {"lights": [_POINT]}}}))
+    rc, err, _ = _run_cli(["relight", run, "--lights", both, "--out", tmp_path / "out2"], capsys)
+    assert rc == 2 and "both \"sets\" and a top-level \"lights\"" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out2").exists()
+
+
+def test_relight_of_each_split_goes_to_its_own_folder(run, tmp_path, capsys):
+    """`relight --split train` then `--split test` wrote both into RUN/relight/SET/, the test views' r_0 ... replacing
+    the training views' (battery 9). The test split keeps RUN/relight/SET/, another split RUN/relight/SPLIT/SET/."""
+    lf = _light_file(tmp_path)
+    for split in ("train", "test"):
+        rc, err, _ = _run_cli(["relight", run, "--lights", lf, "--split", split], capsys)
+        assert rc == 0, err
+    n_train = len(json.loads((Path(json.loads((run / "config.json").read_text())["data"])
+                              / "transforms_train.json").read_text())["frames"])
+    name = lf.stem
+    assert len(list((run / "relight" / "train" / name).glob("*.png"))) == n_train
+    assert len(list((run / "relight" / name).glob("*.png"))) == 8
+
+
+def test_eval_relight_reads_full_size_references_for_a_downscaled_run(tmp_path, demo_copy, capsys):
+    """A run trained with --downscale 2 was refused against the scene's full-size references ("r_0.png is 96x96, its
+    view 48x48", battery 9): a reference n times the view's size is downscaled as the photos were."""
+    from triplet_cl.datasets.images import downscale_image, read_image
+    from triplet_cl.relight import read_reference
+
+    run = tmp_path / "run"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", run, "--downscale", "2", *TINY_RUN], capsys)
+    assert rc == 0, err
+    refs = tmp_path / "refs"
+    refs.mkdir()
+    shutil.copytree(demo_copy / "test", refs / "a")
+    (refs / "relight.json").write_text(json.dumps({"sets": {"a": {"lights": [_POINT], "images": "a"}},
+                                                   "albedo": "a", "cameras": str(demo_copy / "transforms_test.json")}))
+    rc, err, out = _run_cli(["eval", run, "--relight", refs], capsys)
+    assert rc == 0 and "relight (soup" in out, err
+    full = read_image(refs / "a" / "r_0.png")
+    small = read_reference(refs / "a" / "r_0.png", full.width // 2, full.height // 2)
+    want = downscale_image(full.rgb, full.alpha, 2)
+    assert np.array_equal(small.rgb, want[0]) and np.array_equal(small.alpha, want[1])
+    assert read_reference(refs / "a" / "r_0.png", 50, 50).rgb.shape[:2] == full.rgb.shape[:2]  # not a multiple
+
+
+def test_a_closed_pipe_ends_quietly(capsys, monkeypatch):
+    """`triplet devices | head -1` printed "error: Broken pipe" and exited 2 (battery 9): quiet, status 141."""
+    import triplet_cl.cli.main as cm
+
+    def closed(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    parser_default = cm.build_parser
+    monkeypatch.setattr(cm, "build_parser", lambda: _with_func(parser_default(), "devices", closed))
+    rc, err, _ = _run_cli(["devices"], capsys)
+    assert rc == 141 and err == "", err
+
+
+def _with_func(parser, command, func):
+    parser._subparsers._group_actions[0].choices[command].set_defaults(func=func)
+    return parser
+
+
+def test_os_error_advice_follows_the_command():
+    """A full disk advised "--keep-checkpoints and resume" to every command, and to a run with no checkpoint to resume
+    (battery 9): train's advice names --resume and --overwrite, the others' says to run it again."""
+    import errno
+
+    from triplet_cl.validate import os_error_message
+
+    exc = OSError(errno.ENOSPC, "No space left on device")
+    assert "--resume" in os_error_message(exc, "train") and "--overwrite" in os_error_message(exc, "train")
+    other = os_error_message(exc, "eval")
+    assert "checkpoint" not in other and "run the command again" in other
+
+
+def test_a_read_only_folder_of_the_run_is_refused_before_the_work(run, capsys, monkeypatch):
+    """A read-only checkpoints/ inside a writable run was met at the first checkpoint, after the training, naming a
+    temporary file (battery 9). (os.access is what the check asks; as root every folder is writable, so it is
+    answered here for the folder in question.)"""
+    import triplet_cl.validate as val
+
+    real = os.access
+    ck = str(run / "checkpoints")
+    monkeypatch.setattr(val.os, "access", lambda p, mode, **kw: False if str(p) == ck else real(p, mode, **kw))
+    before = _tree(run)
+    for argv in (["train", "--out", run, "--resume", "--iterations", "6"], ["eval", run]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "checkpoints" in err and "not writable" in err and err.count("\n") == 1, (argv, err)
+    assert _tree(run) == before
+
+
+def test_relighting_an_encoded_run_warns(tmp_path, demo_copy, capsys):
+    """A --color encoded run (its lights and albedo not physical) was relit and scored without a word (battery 9)."""
+    run = tmp_path / "run"
+    rc, err, _ = _run_cli(["train", demo_copy, "--out", run, "--color", "encoded", *TINY_RUN], capsys)
+    assert rc == 0, err
+    rc, err, _ = _run_cli(["relight", run, "--lights", _light_file(tmp_path), "--out", tmp_path / "out"], capsys)
+    assert rc == 0 and "--color encoded" in err and "warning" in err, err
+
+
+def test_view_progress_is_silent_off_a_terminal(capsys):
+    """render / eval / relight show a bar per view on a terminal (battery 9: silent for minutes); off a terminal (a
+    log, a pipe, these tests) and with quiet, nothing is printed and every item comes through."""
+    from triplet_cl.runs import view_progress
+
+    assert list(view_progress(range(5), "render test")) == list(range(5))
+    assert list(view_progress(iter("ab"), "x", quiet=True)) == ["a", "b"]
+    assert capsys.readouterr().err == ""
+
+
+def test_the_next_command_after_colmap_can_be_pasted():
+    """`triplet colmap` ended with "next: triplet train ds/cöl map --out RUN", which breaks on the space (battery 9)."""
+    import shlex
+
+    from triplet_cl.cli.main import train_hint
+
+    hint = train_hint(Path("ds/cöl map"))
+    assert shlex.split(hint) == ["triplet", "train", "ds/cöl map", "--out", "RUN"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -118,6 +119,11 @@ def test_sfm_solves_synthetic_capture(capture, tmp_path):
     s = run_sfm(folder, out, progress=lines.append, num_threads=2)
     assert s["photos"] == 16 and s["registered"] == 16 and s["unregistered"] == []
     assert any(ln.startswith("features") for ln in lines) and any(ln.startswith("mapping") for ln in lines)
+    # the mapper's callback counts steps, not photos ("registered 25 of 16 photos", battery 9)
+    assert any("mapping step" in ln for ln in lines) and not any("registered" in ln for ln in lines), lines
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (out.stat().st_mode & 0o777) == 0o777 & ~mask  # not mkdtemp's 0700 (battery 9)
     # the standard COLMAP layout, PINHOLE after undistortion, sfm.json; no temporary folder left
     assert (out / "sparse" / "0" / "cameras.bin").is_file() and (out / "distorted" / "sparse" / "0").is_dir()
     assert json.loads((out / "sfm.json").read_text())["registered"] == 16

@@ -84,9 +84,10 @@ class LightSet:
 
 
 def split_spec(spec) -> tuple[Path, str | None]:
-    """``"FILE#name"`` → ``(FILE, name)``; ``"FILE"`` → ``(FILE, None)``."""
+    """``"FILE#name"`` → ``(FILE, name)``; ``"FILE"`` → ``(FILE, None)``. A file whose own name holds a ``#`` (it
+    exists as spelled) is that file (battery 9: ``studio#1.json`` was read as the set ``1.json`` of ``studio``)."""
     s = str(spec)
-    if "#" in s:
+    if "#" in s and not Path(s).exists():
         path, name = s.rsplit("#", 1)
         if not name:
             raise LightFileError(Path(path), "", f"{s!r} ends with '#' but names no set (FILE#name picks one set, "
@@ -127,6 +128,9 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
         raise ValueError(f"the environment SH degree must be in [0, 8], got {env_degree}")
     path, name = split_spec(spec)
     doc = _read_json(path)
+    if "sets" in doc and "lights" in doc:  # the top-level list was ignored (battery 9)
+        raise LightFileError(path, "", "holds both \"sets\" and a top-level \"lights\" list: expected one of them "
+                                       "(put those lights into a set of their own)")
     if "sets" in doc:
         sets = doc["sets"]
         if not isinstance(sets, dict) or not sets:
@@ -384,6 +388,15 @@ class Relighter:
         if shadows is not None and shadows not in SHADOW_MODES:
             raise ValueError(f"shadows must be one of {SHADOW_MODES}, got {shadows!r}")
         self.tr = trainer
+        if trainer.cfg.color == "encoded":  # relit and scored without a word (battery 9)
+            import warnings
+
+            from .datasets.base import DatasetWarning
+
+            warnings.warn(DatasetWarning(f"{trainer.run_dir} was trained with --color encoded (shaded in the photos' "
+                                         "sRGB-encoded values): its lights and albedo are not physical quantities, so "
+                                         "its relit images (and their scores) do not follow the new lights' units; "
+                                         "train with --color linear (the default) to relight"), stacklevel=2)
         # cast shadows of the relit lights with the raster renderer (visibility.py), traced once per light set;
         # default: as the run was trained (its albedo fitted with shadows, or with the photos' shadows in it)
         self.shadows = shadows or ("vertex" if trainer.shadows_active() else "off")
@@ -538,7 +551,9 @@ def relight_run(relighter: Relighter, light_set: LightSet, out_dir, split: str =
     bg = np.ones(3)
     out = []
     views = relighter.views(split)
-    for v, fname in zip(views, render_files(views), strict=True):
+    from .runs import view_progress
+
+    for v, fname in view_progress(zip(views, render_files(views), strict=True), f"relight {light_set.name}"):
         img, alpha = relighter.render(scene, v.camera, bg)
         p = Path(out_dir) / fname
         write_png(p, np.clip(straight(img, alpha, bg), 0, 1), np.clip(alpha, 0, 1))
@@ -651,6 +666,19 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
                                                   "the references were rendered through another lens")
 
 
+def read_reference(path, width: int, height: int):
+    """A reference image for a view of ``width × height``: as stored, or — when it is an integer multiple ``n`` of
+    the view's size as ``--downscale n`` leaves it (``W // n``, ``H // n``) — downscaled by ``n`` as the dataset's
+    photos were (:func:`~triplet_cl.datasets.images.downscale_image`): a run trained with ``--downscale 2`` was
+    refused against the scene's full-size references (battery 9). Any other size is returned as read (the callers
+    name the mismatch)."""
+    from .datasets.images import image_size, read_image
+
+    W, H = image_size(path)
+    n = max(1, round(W / max(int(width), 1)))
+    return read_image(path, downscale=n if n > 1 and (W // n, H // n) == (int(width), int(height)) else 1)
+
+
 def check_references(relight_dir, view_names, env_degree: int | None = None, sizes=None,
                      writes_out: bool = False, cameras=None) -> None:
     """Every reference image ``evaluate_relight`` will read exists (each set's ``images`` folder and the
@@ -659,7 +687,6 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
     beside an albedo folder (their renders would share ``OUT/STAGE/albedo``); with ``cameras`` (the views'), the
     file's ``"cameras"`` agree with them (:func:`check_reference_cameras`). Checked before any rendering, one error
     naming the file."""
-    from .datasets.images import read_image
     from .errors import DatasetError
 
     rdir = Path(relight_dir)
@@ -698,11 +725,12 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
         for n, (w, h) in zip(view_names, sizes, strict=True):
             p = folder / f"{Path(n).name}.png"
             try:
-                im = read_image(p)
+                im = read_reference(p, w, h)
             except DatasetError as exc:
                 raise LightFileError(spec, where, str(exc)) from None
             if im.rgb.shape[:2] != (h, w):
-                raise LightFileError(spec, where, f"{p} is {im.rgb.shape[1]}x{im.rgb.shape[0]}, its view {w}x{h}")
+                raise LightFileError(spec, where, f"{p} is {im.rgb.shape[1]}x{im.rgb.shape[0]}, its view {w}x{h} "
+                                                  "(an integer multiple is read as a --downscale of it)")
             covered = covered or im.alpha is None or bool((im.alpha > 0.5).any())
             if im.alpha is None:
                 no_alpha.append(p.name)
@@ -733,10 +761,10 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
     """Per light set of ``relight_dir/relight.json``: PSNR / SSIM of the relit test views against the set's images
     (both composited over white, as the novel-view metrics); albedo PSNR (raw / scaled, :func:`albedo_psnr`) of
     the rendered base colour against the file's ``albedo`` folder. ``out_dir``: also write the relit PNGs there."""
-    from .datasets.images import read_image
     from .errors import DatasetError
     from .io import write_png
     from .losses import ssim
+    from .runs import view_progress
     from .train import psnr
 
     rdir = Path(relight_dir)
@@ -751,7 +779,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
     def ref(folder: Path, v):
         p = folder / f"{Path(v.name).name}.png"
         try:
-            im = read_image(p)
+            im = read_reference(p, v.camera.width, v.camera.height)
         except DatasetError as exc:
             raise LightFileError(spec, "images", str(exc)) from None
         if im.rgb.shape[:2] != (v.camera.height, v.camera.width):
@@ -768,7 +796,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
             raise LightFileError(spec, f"sets.{ls.name}.images", "missing: the folder of the set's reference images")
         scene = relighter.with_lights(ls.lights)
         per = []
-        for v, fname in zip(views, render_files(views), strict=True):
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), f"relight {ls.name}"):
             rgb, a = ref(ls.images, v)
             target = rgb * a[..., None] + bg * (1 - a[..., None])
             img, alpha = relighter.render(scene, v.camera, bg)
@@ -785,7 +813,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
         if not isinstance(alb, str):
             raise LightFileError(spec, "albedo", f"expected a folder name, found {alb!r}")
         preds, gts, masks = [], [], []
-        for v, fname in zip(views, render_files(views), strict=True):
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), "albedo"):
             rgb, a = ref(spec.parent / alb, v)
             pred, pa = relighter.render_albedo(v.camera)
             preds.append(pred)

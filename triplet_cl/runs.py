@@ -28,6 +28,17 @@ _CKPT_RE = re.compile(r"^ckpt_(\d+)\.npz$")
 _TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.(tmp|png|exr)$")
 
 
+def view_progress(items, desc: str, quiet: bool = False):
+    """``items`` (views) with a progress bar on stderr when it is a terminal (``render``, ``eval``, ``relight`` were
+    silent until the end: 40 views at 96² ray-traced took 21 s without a word, battery 9); nothing when ``quiet``
+    or when stderr is not a terminal (logs and pipes stay clean)."""
+    from tqdm import tqdm
+
+    items = list(items)
+    return tqdm(items, total=len(items), desc=desc, unit="view", leave=False, dynamic_ncols=True,
+                disable=True if quiet else None)
+
+
 def is_run_dir(path) -> bool:
     """A folder with a ``config.json`` that triplet wrote (an object with ``"train"``)."""
     p = Path(path) / CONFIG

@@ -1308,6 +1308,10 @@ class Trainer:
                        *(sorted(renders.iterdir()) if renders.is_dir() else [])):
             remove_stale_temp_files(folder)
         self.check_resumable()
+        from .validate import check_render_out, linked_within
+
+        if self.ds["test"] and linked_within(self.run_dir, renders / "test"):  # the folder a link there points to
+            check_render_out(self, "test", renders / "test", "RUN")  # is the user's (battery 9)
         self.check_finite("before training")
         old = signal.signal(signal.SIGINT, on_sigint)
         old_term = signal.signal(signal.SIGTERM, on_sigint)  # `kill PID`: the same clean stop as Ctrl-C
@@ -1396,7 +1400,9 @@ class Trainer:
         out_dir = Path(out_dir) if out_dir else self.run_dir / "renders" / split
         per = []
         vis = self.final_visibility()
-        for v, fname in zip(views, render_files(views), strict=True):
+        from .runs import view_progress
+
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), f"render {split}", self.quiet):
             r = render(self.scene, v.camera, settings, self.device, vis=vis)
             target = v.target(bg)
             img = np.clip(r.image, 0, 1)

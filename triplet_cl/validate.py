@@ -466,7 +466,20 @@ def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
     saved = read_run_config(run)
     if writable:
         check_writable_dir(run, option)
+        check_run_folders_writable(run, option)
     return saved
+
+
+def check_run_folders_writable(run, option: str) -> None:
+    """The run's own folders that exist (``checkpoints/``, ``renders/`` and its folders, ``relight/``) are writable:
+    a read-only ``checkpoints/`` inside a writable run was met at the first checkpoint, after the training steps,
+    the error naming a temporary file (battery 9)."""
+    run = Path(run)
+    renders = run / "renders"
+    subs = sorted(p for p in renders.iterdir() if p.is_dir()) if renders.is_dir() else []
+    for d in (run / "checkpoints", renders, *subs, run / "relight"):
+        if d.is_dir():
+            check_writable_dir(d, option)
 
 
 def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=None) -> None:
@@ -486,6 +499,7 @@ def check_new_run_out(out, option: str, resume: bool, overwrite: bool, dataset=N
     if resume and overwrite:
         raise UsageError("--overwrite", "cannot be combined with --resume")
     if resume:
+        check_run_folders_writable(out, option)
         return
     from .runs import lock_run, stillborn_run_leftovers
 
@@ -527,6 +541,21 @@ def check_output_files(folder, names, option: str) -> None:
                                  "(triplet never overwrites files it did not make)")
 
 
+def linked_within(run_dir, path) -> bool:
+    """Whether ``path`` (inside ``run_dir``) or a folder between ``run_dir`` and it is a symbolic link."""
+    run_dir, path = Path(run_dir), Path(path)
+    try:
+        rel = path.relative_to(run_dir)
+    except ValueError:
+        return False
+    p = run_dir
+    for part in rel.parts:
+        p = p / part
+        if p.is_symlink():
+            return True
+    return False
+
+
 def check_render_out(trainer, split: str, out, option: str) -> None:
     """``render``: the split has views; ``out`` is not in the dataset and holds no file of the user."""
     from .errors import DatasetError
@@ -543,7 +572,10 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
     taken = [n for n in names if (Path(out) / n).is_dir()]
     if taken:  # the run's own renders too: found only after rendering, under the temporary file's name
         raise UsageError(option, f"{Path(out) / taken[0]} is a folder where a render goes: move it away")
-    if Path(out).resolve() != (trainer.run_dir / "renders" / split).resolve():
+    own = trainer.run_dir / "renders" / split
+    if Path(out).resolve() != own.resolve() or linked_within(trainer.run_dir, own):
+        # a run's renders/SPLIT that is (or lies under) a link is the linked folder's, as --overwrite judges it:
+        # `render RUN` replaced a user's r_0.png through such a link (battery 9)
         check_output_files(out, names, option)
         from .runs import mark_output_dir
 
@@ -847,7 +879,7 @@ def check_resume_iterations(option: str, iterations: int, at: int) -> None:
 
 # ---- OS errors -----------------------------------------------------------------------------------------
 _OS_HINTS = {
-    errno.ENOSPC: "no space left on the device: free some space (or use --keep-checkpoints) and resume",
+    errno.ENOSPC: "no space left on the device: free some space and run the command again",
     errno.EROFS: "read-only filesystem: choose a writable --out",
     errno.EACCES: "permission denied",
     errno.EPERM: "operation not permitted",
@@ -858,9 +890,18 @@ _OS_HINTS = {
 }
 
 
-def os_error_message(exc: OSError) -> str:
-    """One line for an expected OS error: the file and what went wrong."""
+# `train`'s own advice for a full disk: its checkpoints are what fills it, and a run stopped before its first one has
+# nothing to resume (battery 9: "resume" was advised, and --resume then refused)
+_TRAIN_ENOSPC = ("no space left on the device: free some space (or keep fewer checkpoints: --keep-checkpoints), then "
+                 "continue with --resume (a run stopped before its first checkpoint starts again with --overwrite)")
+
+
+def os_error_message(exc: OSError, command: str | None = None) -> str:
+    """One line for an expected OS error: the file and what went wrong (``command``: the ``triplet`` command that
+    met it, for its own advice)."""
     what = _OS_HINTS.get(exc.errno, exc.strerror or str(exc))
+    if exc.errno == errno.ENOSPC and command == "train":
+        what = _TRAIN_ENOSPC
     name = exc.filename if exc.filename is not None else ""
     return f"{name}: {what}" if name else what
 

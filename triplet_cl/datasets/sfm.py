@@ -167,6 +167,9 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
         summary.update({"images_dir": str(images_dir.resolve()), "width": width, "height": height})
         (work / "sfm.json").write_text(json.dumps(summary, indent=1) + "\n")
         (work / WORK_PID).unlink()
+        mask = os.umask(0)  # mkdtemp made the folder 0700: the dataset gets the user's usual mode (battery 9)
+        os.umask(mask)
+        work.chmod(0o777 & ~mask)
         if out_dir.exists():  # an empty folder (checked above)
             out_dir.rmdir()
         os.replace(work, out_dir)
@@ -262,9 +265,9 @@ def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, ma
     mapping.num_threads = num_threads
     registered = [0]
 
-    def next_image():
-        registered[0] += 1
-        say(f"  registered {registered[0] + 1} of {n} photos")
+    def next_image():  # called per registration attempt, retries and later models included: a step count, not
+        registered[0] += 1  # the photos registered ("registered 25 of 16 photos", battery 9)
+        say(f"  mapping step {registered[0]} ({n} photos)")
 
     models = work / "distorted" / "sparse"
     models.mkdir(parents=True)

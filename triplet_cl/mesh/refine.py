@@ -1303,6 +1303,7 @@ class MeshStage:
     def _evaluate_scene(self, scene: Scene, write_renders: bool) -> dict:
         from ..io import write_png
         from ..losses import ssim
+        from ..runs import view_progress
         from ..train import psnr
 
         tr = self.trainer
@@ -1314,7 +1315,7 @@ class MeshStage:
         vis = self.visibility(scene)
         bounce = self.bounce(scene, vis)
         per = []
-        for v, fname in zip(views, render_files(views), strict=True):
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), "render mesh", tr.quiet):
             _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis, bounce=bounce)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
