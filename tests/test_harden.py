@@ -2690,3 +2690,17 @@ def test_the_next_command_after_colmap_can_be_pasted():
 
     hint = train_hint(Path("ds/cöl map"))
     assert shlex.split(hint) == ["triplet", "train", "ds/cöl map", "--out", "RUN"]
+
+
+@pytest.mark.parametrize("kind,power", [("directional", "irradiance"), ("DirectionalLight", "intensity")])
+def test_a_tiny_direction_is_a_direction(tmp_path, kind, power):
+    """`[1e-200, 0, 0]` was refused as "the zero vector" (its squared norm underflows; battery 9); zero still is."""
+    from triplet_cl.relight import LightFileError, load_light_sets
+
+    f = tmp_path / "l.json"
+    f.write_text(json.dumps({"lights": [{"type": kind, "direction": [0, -1e-300, 1e-320], power: [1, 1, 1]}]}))
+    d = np.asarray(load_light_sets(f)[0].lights[0].direction)
+    assert np.allclose(np.abs(d), [0, 1, 0])
+    f.write_text(json.dumps({"lights": [{"type": kind, "direction": [0, 0, 0], power: [1, 1, 1]}]}))
+    with pytest.raises(LightFileError, match="zero vector"):
+        load_light_sets(f)

@@ -163,6 +163,18 @@ def load_light_sets(spec, env_degree: int | None = None) -> list[LightSet]:
     raise LightFileError(path, "", f"expected a \"sets\" object or a \"lights\" list, found keys {sorted(doc)}")
 
 
+def _unit(path, where: str, v) -> np.ndarray:
+    """``v`` (finite, checked before) as a unit vector; scaled by its largest component first, so that a tiny but
+    non-zero direction (``[1e-200, 0, 0]``, whose squared norm underflows: refused as "the zero vector", battery 9)
+    keeps its direction."""
+    v = np.asarray(v, np.float64)
+    m = float(np.abs(v).max()) if v.size else 0.0
+    if m == 0.0:
+        raise LightFileError(path, where, "must not be the zero vector")
+    v = v / m
+    return v / np.linalg.norm(v)
+
+
 def _check_set_name(path, name: str) -> None:
     """A set's name is the folder its renders go to (``OUT/NAME``): a plain folder name, else a
     :class:`LightFileError` (a name with ``/``, ``..`` or an absolute path wrote the renders over the user's files
@@ -243,8 +255,8 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
                     raise LightFileError(path, f"{w}.{p}", f"must be >= 0, found {it[p]!r}")
             if "falloff" in it and not isinstance(it["falloff"], bool):
                 raise LightFileError(path, f"{w}.falloff", f"expected true or false, found {it['falloff']!r}")
-            if "direction" in LIGHT_CLASSES[kind].PARAMS and np.linalg.norm(np.asarray(it["direction"], float)) < 1e-12:
-                raise LightFileError(path, f"{w}.direction", "must not be the zero vector")
+            if "direction" in LIGHT_CLASSES[kind].PARAMS:
+                it = {**it, "direction": _unit(path, f"{w}.direction", it["direction"]).tolist()}
             fields = [f.name for f in dataclasses.fields(LIGHT_CLASSES[kind])]  # lights.json's keys (to_json)
             unknown = set(it) - {"type", *fields}
             if unknown:
@@ -262,10 +274,8 @@ def parse_lights(items, path, where: str = "lights", env_degree: int = ENV_DEGRE
             out.append(PointLight(_vec(path, f"{w}.position", _need(path, w, it, "position")),
                                   _vec(path, f"{w}.intensity", _need(path, w, it, "intensity"), (1, 3), True)))
         elif kind == "directional":
-            d = _vec(path, f"{w}.direction", _need(path, w, it, "direction"))
-            if np.linalg.norm(d) < 1e-12:
-                raise LightFileError(path, f"{w}.direction", "must not be the zero vector")
-            out.append(DirectionalLight(-d / np.linalg.norm(d),
+            d = _unit(path, f"{w}.direction", _vec(path, f"{w}.direction", _need(path, w, it, "direction")))
+            out.append(DirectionalLight(-d,
                                         _vec(path, f"{w}.irradiance", _need(path, w, it, "irradiance"), (1, 3), True)))
         else:
             if kind == "constant":
