@@ -585,3 +585,40 @@ def test_camera_fields_of_the_wrong_type_are_named(tmp_path, intr, want):
         load_dataset(tmp_path)
     fac.make_ngp(tmp_path / "ok", n=2, intr={"fl_x": 7.0, "is_fisheye": False})
     assert len(load_dataset(tmp_path / "ok", split_holdout=0).train) == 2
+
+
+# ---- battery 9 (session 56) ---------------------------------------------------------------------------------
+def test_exr_alpha_is_premultiplied_and_read_straight(tmp_path):
+    """OpenEXR stores colour premultiplied by alpha: it was read as straight, an edge pixel's colour times alpha twice
+    (0.51 of the true colour over r_0's edge). The loader divides it back (0 where alpha is 0), as it reads PNG; an
+    environment map's colour stays as stored (its radiance)."""
+    import OpenImageIO as oiio
+
+    from triplet_cl.mesh.envmap import project_envmap, read_envmap_sh
+
+    straight = fac.image_pixels(2) * np.array([2.0, 1.5, 1.0, 1.0], np.float32)  # alpha 0 .. 1 across the image
+    a = straight[..., 3]
+    stored = np.concatenate([straight[..., :3] * a[..., None], a[..., None]], axis=-1)
+    img = read_image(fac.write_image(tmp_path / "p.exr", stored, "float"))
+    assert img.color_space == "linear" and img.alpha is not None
+    np.testing.assert_allclose(img.alpha, a, atol=1e-7)
+    np.testing.assert_allclose(img.rgb[a > 0], straight[..., :3][a > 0], rtol=1e-5)
+    assert (img.rgb[a == 0] == 0).all() and (a == 0).any()
+    kept = read_image(tmp_path / "p.exr", unpremultiply=False)
+    np.testing.assert_allclose(kept.rgb, stored[..., :3], rtol=1e-6)
+    # downscaling averages premultiplied: the stored values' block means, divided by the mean alpha
+    two = read_image(tmp_path / "p.exr", downscale=2)
+    np.testing.assert_allclose(two.rgb * two.alpha[..., None], stored[:6, :8, :3].reshape(3, 2, 4, 2, 3).mean((1, 3)),
+                               rtol=1e-5, atol=1e-7)
+    env = fac.write_image(tmp_path / "env.exr", np.concatenate(
+        [np.full((8, 16, 3), 0.25, np.float32), np.full((8, 16, 1), 0.5, np.float32)], -1), "float")
+    np.testing.assert_allclose(read_envmap_sh(env, 1), project_envmap(np.full((8, 16, 3), 0.25, np.float32), 1))
+    # a TIFF: premultiplied unless OIIO reports its alpha unassociated; a PNG is straight
+    px = np.concatenate([np.full((4, 4, 3), 0.4, np.float32), np.full((4, 4, 1), 0.5, np.float32)], -1)
+    np.testing.assert_allclose(read_image(fac.write_image(tmp_path / "s.png", px)).rgb, 0.4, atol=Q8)
+    np.testing.assert_allclose(read_image(fac.write_image(tmp_path / "s.tif", px)).rgb, 0.4, atol=Q8)
+    spec = oiio.ImageSpec(4, 4, 4, "uint8")  # no UnassociatedAlpha: OIIO writes the TIFF as associated
+    out = oiio.ImageOutput.create(str(tmp_path / "a.tif"))
+    assert out.open(str(tmp_path / "a.tif"), spec) and out.write_image(px)
+    out.close()
+    np.testing.assert_allclose(read_image(tmp_path / "a.tif").rgb, 0.8, atol=2 * Q8)

@@ -315,7 +315,7 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
     key = (str(file.resolve()), file.stat().st_mtime_ns, float(rot), degree)
     if key not in _PROJECTIONS:
         try:
-            img = read_image(file)
+            img = read_image(file, unpremultiply=False)  # an RGBA map's stored colour is its radiance
         except DatasetError as exc:
             raise LightFileError(path, f"{where}.filename", str(exc)) from None
         if img.color_space != "linear":

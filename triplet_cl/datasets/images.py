@@ -2,6 +2,10 @@
 
 * PNG/TIFF/… with alpha are read with ``oiio:UnassociatedAlpha = 1`` so the colour comes back as
   stored (straight), not premultiplied by OIIO.
+* OpenEXR stores colour premultiplied by alpha (associated), whatever that attribute says, and so does a TIFF
+  that OIIO does not report as unassociated: their colour is divided by alpha where alpha > 0 (0 where it is 0),
+  so every format comes back straight (:func:`read_image`'s ``unpremultiply``; an environment map keeps its
+  stored colour).
 * Integer files (8/16-bit PNG, JPEG, …) come back as float32 in [0, 1] (sRGB-encoded values, as
   stored); float files (EXR, HDR) as float32 linear values. Nothing is converted.
 * ``downscale = N`` averages N×N blocks (area filter). Rows/columns beyond a multiple of N are
@@ -161,14 +165,17 @@ def _library_stderr():
                     os.write(2, held)
 
 
-def read_image(path, downscale: int = 1) -> Image:
+def read_image(path, downscale: int = 1, unpremultiply: bool = True) -> Image:
     """Read one image → :class:`Image` ``(rgb [h,w,3] float32, alpha [h,w] float32 or None,
     color_space, width, height)`` where ``h, w = H // downscale, W // downscale``.
 
     ``color_space`` is ``"linear"`` for float files (EXR, HDR) and ``"srgb"`` otherwise. One
     channel is grey, two are grey + alpha, three RGB, four RGBA; with more, the first three are
-    colour and the spec's alpha channel (if any) is alpha. Raises :class:`DatasetError` naming
-    the file when it is missing, unreadable, or holds NaN/Inf.
+    colour and the spec's alpha channel (if any) is alpha.
+    Colour stored premultiplied (OpenEXR's convention; an associated-alpha TIFF) is divided by alpha
+    where alpha > 0 and 0 where it is 0, so that ``rgb`` is straight for every format; ``unpremultiply``
+    False keeps it as stored (an environment map: its stored colour is the radiance). Raises
+    :class:`DatasetError` naming the file when it is missing, unreadable, or holds NaN/Inf.
     """
     oiio = _oiio()
     path = Path(path)
@@ -184,6 +191,11 @@ def read_image(path, downscale: int = 1) -> Image:
             spec = inp.spec()
             fmt = inp.format_name()
             orientation = int(spec.get_int_attribute("Orientation", 1))
+            # colour stored premultiplied: an EXR by the format's convention, whatever the attribute says; a TIFF
+            # unless OIIO reports its alpha unassociated (1: kept as stored, as for PNG, WebP, TGA). Other formats
+            # with alpha store it straight (or one bit, GIF's) and are left alone
+            associated = fmt == "openexr" or (
+                fmt == "tiff" and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1)
             px = inp.read_image(0, 0, 0, spec.nchannels, "float")
             err = inp.geterror()
         finally:
@@ -226,6 +238,9 @@ def read_image(path, downscale: int = 1) -> Image:
         rgb = np.maximum(rgb, 0.0)
     if alpha is not None:
         alpha = np.clip(alpha, 0.0, 1.0)
+        if unpremultiply and associated:  # straight colour, as the other formats give it (0 where alpha is 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rgb = np.where(alpha[:, :, None] > 0, rgb / np.maximum(alpha, 1e-12)[:, :, None], 0.0)
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     alpha = None if alpha is None else np.ascontiguousarray(alpha, dtype=np.float32)
     height, width = rgb.shape[:2]
