@@ -588,6 +588,18 @@ def test_camera_fields_of_the_wrong_type_are_named(tmp_path, intr, want):
 
 
 # ---- battery 9 (session 56) ---------------------------------------------------------------------------------
+def _write_exr_channels(path, px, names):
+    """An EXR with the given channel names (a Blender multi-layer file's ``ViewLayer.Combined.R``, ...)."""
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(px.shape[1], px.shape[0], px.shape[2], "float")
+    spec.channelnames = tuple(names)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(px, np.float32)), out.geterror()
+    out.close()
+    return path
+
+
 def test_exr_alpha_is_premultiplied_and_read_straight(tmp_path):
     """OpenEXR stores colour premultiplied by alpha: it was read as straight, an edge pixel's colour times alpha twice
     (0.51 of the true colour over r_0's edge). The loader divides it back (0 where alpha is 0), as it reads PNG; an
@@ -622,3 +634,30 @@ def test_exr_alpha_is_premultiplied_and_read_straight(tmp_path):
     assert out.open(str(tmp_path / "a.tif"), spec) and out.write_image(px)
     out.close()
     np.testing.assert_allclose(read_image(tmp_path / "a.tif").rgb, 0.8, atol=2 * Q8)
+
+
+def test_multilayer_exr_reads_its_colour_layer_by_name(tmp_path):
+    """Blender's multi-layer EXR: ViewLayer.AO.* sorts before ViewLayer.Combined.*, and the first three channels (the
+    AO pass) were the photo. Plain R, G, B; else the one layer with R, G, B; else the "Combined" one; else refused."""
+    h, w = 4, 6
+    ao = np.full((h, w, 3), 0.8, np.float32)
+    cow = fac.image_pixels(1, w, h)
+    cow[..., :3] *= cow[..., 3:]  # premultiplied, as EXR stores it
+    px = np.concatenate([ao, cow], -1)
+    names = ["ViewLayer.AO.R", "ViewLayer.AO.G", "ViewLayer.AO.B", "ViewLayer.Combined.R", "ViewLayer.Combined.G",
+             "ViewLayer.Combined.B", "ViewLayer.Combined.A"]
+    img = read_image(_write_exr_channels(tmp_path / "ml.exr", px, names))
+    np.testing.assert_allclose(img.alpha, cow[..., 3])
+    np.testing.assert_allclose(img.rgb * img.alpha[..., None], cow[..., :3], rtol=1e-5, atol=1e-7)
+    # one colour layer (no Combined): that one; a plain R, G, B beside layers: the plain one
+    one = ["ViewLayer.AO.X", "ViewLayer.AO.Y", "ViewLayer.AO.Z"] + [n.replace("Combined", "Image") for n in names[3:]]
+    img = read_image(_write_exr_channels(tmp_path / "one.exr", px, one))
+    np.testing.assert_allclose(img.alpha, cow[..., 3])
+    plain = ["R", "G", "B"] + [n.replace("Combined", "Other") for n in names[3:]]
+    img = read_image(_write_exr_channels(tmp_path / "plain.exr", px[..., :6], plain[:6]))
+    np.testing.assert_allclose(img.rgb, ao)
+    assert img.alpha is None
+    # two colour layers, neither Combined: refused, naming the file and the layers
+    two = [n.replace("Combined", "Diffuse") for n in names]
+    with pytest.raises(DatasetError, match="two.exr: a multi-layer EXR.*ViewLayer.AO, ViewLayer.Diffuse"):
+        read_image(_write_exr_channels(tmp_path / "two.exr", px, two))
