@@ -661,3 +661,23 @@ def test_multilayer_exr_reads_its_colour_layer_by_name(tmp_path):
     two = [n.replace("Combined", "Diffuse") for n in names]
     with pytest.raises(DatasetError, match="two.exr: a multi-layer EXR.*ViewLayer.AO, ViewLayer.Diffuse"):
         read_image(_write_exr_channels(tmp_path / "two.exr", px, two))
+
+
+@pytest.mark.parametrize("key", ["camera_angle_y", "fl_y"])
+def test_a_vertical_focal_length_alone_means_square_pixels(tmp_path, key):
+    """camera_angle_y alone (instant-ngp reads it) was refused: "missing key 'camera_angle_x' (or 'fl_x')". The
+    focal length comes from it and the image height, fx = fy."""
+    fac.make_nerf(tmp_path, {"train": 2, "test": 1})
+    fy = 0.5 * fac.H / np.tan(0.35)
+    for split in ("train", "test"):
+        p = tmp_path / f"transforms_{split}.json"
+        d = json.loads(p.read_text())
+        del d["camera_angle_x"]
+        d[key] = 0.7 if key == "camera_angle_y" else fy
+        p.write_text(json.dumps(d))
+    cam = load_dataset(tmp_path).train[0].camera
+    assert cam.fx == pytest.approx(fy) and cam.fy == pytest.approx(fy) and fac.W != fac.H
+    d.pop(key)
+    p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match="transforms_test.json: missing key 'camera_angle_x'.*'camera_angle_y'"):
+        load_dataset(tmp_path)

@@ -592,7 +592,7 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
     it names a file that has a frame for each test view (by the image's name), whose pose is the view's camera in
     the run (within ``tol`` × the camera's distance from the origin). A battery found the key ignored: references of
     other cameras were scored against the run's test views without a word."""
-    from .datasets.nerf import _camera_maker, _check_intrinsics, _matrix, frame_intrinsics, read_json
+    from .datasets.nerf import _camera_maker, _check_intrinsics, _matrix, frame_intrinsics, has_focal, read_json
     from .errors import DatasetError
 
     ref = doc.get("cameras")
@@ -621,7 +621,7 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
                                          "the test views by their images' names)")
             poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
             intr = frame_intrinsics(path, f"frames[{i}]: ", top, fr)
-            if "fl_x" in intr or "camera_angle_x" in intr:  # (a file without a focal length: the poses only)
+            if has_focal(intr):  # (a file without a focal length: the poses only)
                 lenses[key] = (_camera_maker(path, f"frames[{i}]: ", poses[key], intr), intr.get("w"), intr.get("h"))
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None

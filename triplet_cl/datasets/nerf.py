@@ -137,11 +137,21 @@ def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
     _check_distortion(path, where, intr)
 
 
+FOCAL_KEYS = ("fl_x", "camera_angle_x", "fl_y", "camera_angle_y")
+
+
+def has_focal(intr: dict) -> bool:
+    """``intr`` gives a focal length: ``fl_x`` / ``camera_angle_x``, or only the vertical one (square pixels)."""
+    return any(k in intr for k in FOCAL_KEYS)
+
+
 def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
-    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON."""
-    if "fl_x" not in intr and "camera_angle_x" not in intr:
-        raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'), at the top level or in "
-                                 f"{where.rstrip(': ')}: the focal length is unknown")
+    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON. With only the vertical
+    focal length (``fl_y`` or ``camera_angle_y`` with the image height), the pixels are square: ``fl_x = fl_y``, as
+    instant-ngp reads it."""
+    if not has_focal(intr):
+        raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'; or 'camera_angle_y' / 'fl_y' for square "
+                                 f"pixels), at the top level or in {where.rstrip(': ')}: the focal length is unknown")
 
     def make(width: int, height: int, path=path, where=where) -> Camera:
         for k, size in (("w", width), ("h", height)):
@@ -154,9 +164,14 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
                     raise DatasetError(path, f"{where}{fk} = {float(intr[fk]):g} pixels and {ak} = {float(intr[ak]):g} "
                                              f"rad (a focal length of {f_angle:.4g} pixels on the {size}-pixel side) "
                                              "disagree: give one, or both for the same camera")
+        fl_y = intr.get("fl_y")
+        if fl_y is None and "camera_angle_y" in intr:
+            fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
         fl_x = intr.get("fl_x")
-        if fl_x is None:
+        if fl_x is None and "camera_angle_x" in intr:
             fl_x = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
+        if fl_x is None:  # only the vertical focal length: square pixels (instant-ngp's reading)
+            fl_x = fl_y
         for k, f, size in (("fl_x", fl_x, width), ("fl_y", intr.get("fl_y"), height)):
             if f is not None and 2.0 * math.atan(0.5 * size / float(f)) < MIN_FOV:
                 raise DatasetError(path, f"{where}{k} = {float(f):g} pixels on a {size}-pixel side is a field of view "
@@ -165,9 +180,6 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
             if k in intr and not -size <= float(intr[k]) <= 2 * size:
                 raise DatasetError(path, f"{where}{k} = {float(intr[k]):g} puts the principal point more than an image "
                                          f"away from the {width}x{height} image (expected {-size} to {2 * size})")
-        fl_y = intr.get("fl_y")
-        if fl_y is None and "camera_angle_y" in intr:
-            fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
         try:
             return Camera.from_nerf(c2w, width, height, fl_x=float(fl_x), fl_y=None if fl_y is None else float(fl_y),
                                     cx=intr.get("cx"), cy=intr.get("cy"))
