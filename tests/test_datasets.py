@@ -681,3 +681,23 @@ def test_a_vertical_focal_length_alone_means_square_pixels(tmp_path, key):
     p.write_text(json.dumps(d))
     with pytest.raises(DatasetError, match="transforms_test.json: missing key 'camera_angle_x'.*'camera_angle_y'"):
         load_dataset(tmp_path)
+
+
+def test_a_principal_point_far_from_the_image_centre_warns(tmp_path):
+    """fl_x / fl_y / cx / cy written for images half the size (no w / h to refuse the mismatch): the principal point at
+    a quarter of the image was accepted without a word (battery 9). One warning names the values, the image size and
+    the likely cause; a principal point near the centre says nothing."""
+    fac.make_ngp(tmp_path / "a", n=3, intr={"fl_x": 3.5, "fl_y": 3.5, "cx": 2.0, "cy": 1.5})
+    with pytest.warns(DatasetWarning, match=r"3 of 3 frames put the principal point far from the image centre "
+                                            r"\(frames\[0\]: cx = 2, cy = 1.5 on a 8x6 image, whose centre is 4, 3\): "
+                                            r"the intrinsics were likely written for images of another size.*give w "
+                                            r"and h") as rec:
+        load_dataset(tmp_path / "a", split_holdout=0)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1
+    fac.make_ngp(tmp_path / "b", n=3, intr={"fl_x": 7.0, "cx": 4.0, "cy": 5.0, "w": fac.W, "h": fac.H})
+    with pytest.warns(DatasetWarning, match=r"cy = 5 on a 8x6 image.*check cx / cy"):
+        load_dataset(tmp_path / "b", split_holdout=0)
+    fac.make_ngp(tmp_path / "c", n=3)  # cx 4.25, cy 2.75 on 8x6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DatasetWarning)
+        load_dataset(tmp_path / "c", split_holdout=0)

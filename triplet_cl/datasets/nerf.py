@@ -138,6 +138,11 @@ def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
 
 
 FOCAL_KEYS = ("fl_x", "camera_angle_x", "fl_y", "camera_angle_y")
+# a principal point farther than this share of the image's side from its centre warns: lenses put it within a few
+# percent of the centre, and intrinsics written for images of another size (twice the size: cx, cy at a quarter of
+# the image, exactly 0.25 off; half the size: three quarters) land at 0.25 or beyond (battery 9: trained without a
+# word). A crop of a photo can be that far off too: hence a warning, not a refusal
+OFF_CENTRE = 0.2
 
 
 def has_focal(intr: dict) -> bool:
@@ -145,10 +150,12 @@ def has_focal(intr: dict) -> bool:
     return any(k in intr for k in FOCAL_KEYS)
 
 
-def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
+def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict, notes: list | None = None):
     """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON. With only the vertical
     focal length (``fl_y`` or ``camera_angle_y`` with the image height), the pixels are square: ``fl_x = fl_y``, as
-    instant-ngp reads it."""
+    instant-ngp reads it. ``notes``: a list that gets ``(where, cx, cy, width, height, sized)`` for a principal point
+    farther than :data:`OFF_CENTRE` from the image centre (``sized``: the intrinsics gave ``w`` and ``h``), for the
+    caller's one warning (:func:`warn_off_centre`)."""
     if not has_focal(intr):
         raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'; or 'camera_angle_y' / 'fl_y' for square "
                                  f"pixels), at the top level or in {where.rstrip(': ')}: the focal length is unknown")
@@ -180,6 +187,10 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
             if k in intr and not -size <= float(intr[k]) <= 2 * size:
                 raise DatasetError(path, f"{where}{k} = {float(intr[k]):g} puts the principal point more than an image "
                                          f"away from the {width}x{height} image (expected {-size} to {2 * size})")
+        if notes is not None and ("cx" in intr or "cy" in intr):
+            cx, cy = float(intr.get("cx", 0.5 * width)), float(intr.get("cy", 0.5 * height))
+            if abs(cx - 0.5 * width) > OFF_CENTRE * width or abs(cy - 0.5 * height) > OFF_CENTRE * height:
+                notes.append((where, cx, cy, width, height, "w" in intr and "h" in intr))
         try:
             return Camera.from_nerf(c2w, width, height, fl_x=float(fl_x), fl_y=None if fl_y is None else float(fl_y),
                                     cx=intr.get("cx"), cy=intr.get("cy"))
@@ -201,11 +212,30 @@ def frame_intrinsics(path: Path, where: str, top: dict, frame: dict) -> dict:
     return intr
 
 
-def transforms_records(json_path: Path, data: dict | None = None):
+def warn_off_centre(json_path: Path, notes: list, total: int) -> None:
+    """One :class:`DatasetWarning` for the frames whose principal point :func:`_camera_maker` found far from the image
+    centre (``notes``), naming the first one's values and image size and the likely cause."""
+    if not notes:
+        return
+    import warnings
+
+    from .base import DatasetWarning
+
+    where, cx, cy, w, h, sized = notes[0]
+    cause = ("check cx / cy (a crop of the photos?)" if sized else
+             "the intrinsics were likely written for images of another size (e.g. the photos resized after the "
+             "poses were solved): give w and h with them, so that a size mismatch is refused, or fix fl_x / fl_y / "
+             "cx / cy for these images")
+    warnings.warn(f"{json_path}: {len(notes)} of {total} frames put the principal point far from the image centre "
+                  f"({where.rstrip(': ')}: cx = {cx:g}, cy = {cy:g} on a {w}x{h} image, whose centre is {w / 2:g}, "
+                  f"{h / 2:g}): {cause}", DatasetWarning, stacklevel=3)
+
+
+def transforms_records(json_path: Path, data: dict | None = None, notes: list | None = None):
     """Parse a ``transforms*.json`` → ``(records, missing)`` for :func:`load_views`.
 
     ``records`` are ``(name, image_path, make_camera)``; frames whose image file does not exist
-    are left out and their ``file_path`` returned in ``missing``.
+    are left out and their ``file_path`` returned in ``missing``. ``notes``: see :func:`_camera_maker`.
     """
     json_path = Path(json_path)
     root = json_path.parent
@@ -232,7 +262,7 @@ def transforms_records(json_path: Path, data: dict | None = None):
             raise DatasetError(json_path, f"{where}file_path must be a non-empty string, found {fp!r}")
         c2w = _matrix(json_path, where, fr["transform_matrix"])
         intr = frame_intrinsics(json_path, where, top, fr)
-        make = _camera_maker(json_path, where, c2w, intr)
+        make = _camera_maker(json_path, where, c2w, intr, notes)
         image = find_image(root / fp)
         if image is None:
             there = not_a_file(root / fp)
@@ -255,11 +285,14 @@ def transforms_records(json_path: Path, data: dict | None = None):
 def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
     """Views of one ``transforms*.json``; frames with a missing image are skipped with one
     :class:`DatasetWarning` that counts them. Returns ``(views, color_spaces)``."""
-    records, missing = transforms_records(json_path)
+    notes: list = []
+    records, missing = transforms_records(json_path, notes=notes)
     warn_missing(json_path, missing, len(missing) + len(records), "frames")
     if not records:
         raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
-    return load_views(records, downscale, split)
+    out = load_views(records, downscale, split)
+    warn_off_centre(json_path, notes, len(records))
+    return out
 
 
 def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:
