@@ -701,3 +701,14 @@ def test_a_principal_point_far_from_the_image_centre_warns(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", DatasetWarning)
         load_dataset(tmp_path / "c", split_holdout=0)
+
+
+def test_nerfstudio_masks_are_named_as_unused(tmp_path):
+    """Frames with nerfstudio's mask_path were loaded without a word about their masks (battery 9): one warning names
+    the key and how many frames have it. The masks are not applied (they mark pixels to leave out of the loss)."""
+    fac.make_ngp(tmp_path, n=4, per_frame={k: {"mask_path": f"masks/{k:04d}.png"} for k in (0, 2, 3)})
+    with pytest.warns(DatasetWarning, match=r"transforms.json: 3 of 4 frames have a 'mask_path' \(nerfstudio "
+                                            r"masks\): the masks are not used") as rec:
+        ds = load_dataset(tmp_path, split_holdout=0)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1
+    assert all(v.alpha is None for v in ds.train)

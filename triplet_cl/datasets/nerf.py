@@ -286,13 +286,33 @@ def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
     """Views of one ``transforms*.json``; frames with a missing image are skipped with one
     :class:`DatasetWarning` that counts them. Returns ``(views, color_spaces)``."""
     notes: list = []
-    records, missing = transforms_records(json_path, notes=notes)
+    data = read_json(json_path)
+    records, missing = transforms_records(json_path, data, notes=notes)
     warn_missing(json_path, missing, len(missing) + len(records), "frames")
     if not records:
         raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
     out = load_views(records, downscale, split)
     warn_off_centre(json_path, notes, len(records))
+    warn_masks(json_path, data["frames"])
     return out
+
+
+def warn_masks(json_path: Path, frames: list) -> None:
+    """One :class:`DatasetWarning` when frames carry nerfstudio's ``mask_path`` (battery 9: ignored without a word).
+
+    The masks are not applied, by choice: nerfstudio's mask marks the pixels to leave out of the loss (a passer-by, the
+    capture rig), not the object's coverage. Read as alpha, those pixels would be trained as transparent, the scene
+    behind a passer-by taught to vanish, and triplet has no per-pixel loss weight to leave them out instead."""
+    n = sum(isinstance(f, dict) and "mask_path" in f for f in frames)
+    if n:
+        import warnings
+
+        from .base import DatasetWarning
+
+        warnings.warn(f"{json_path}: {n} of {len(frames)} frames have a 'mask_path' (nerfstudio masks): the masks are "
+                      "not used (a nerfstudio mask marks pixels to leave out of the loss, which triplet cannot do), "
+                      "the masked pixels are trained as the photos show them; to leave out a background, give the "
+                      "photos an alpha channel", DatasetWarning, stacklevel=3)
 
 
 def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:
