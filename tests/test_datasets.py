@@ -712,3 +712,17 @@ def test_nerfstudio_masks_are_named_as_unused(tmp_path):
         ds = load_dataset(tmp_path, split_holdout=0)
     assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1
     assert all(v.alpha is None for v in ds.train)
+
+
+def test_a_test_frame_that_is_a_training_image_warns(tmp_path):
+    """A test frame naming a training image (the same file) was scored as a novel view without a word (battery 9):
+    one warning per split counts them and names one."""
+    fac.make_nerf(tmp_path, {"train": 3, "val": 1, "test": 2})
+    p = tmp_path / "transforms_test.json"
+    d = json.loads(p.read_text())
+    d["frames"][1]["file_path"] = "./train/r_2.png"
+    p.write_text(json.dumps(d))
+    with pytest.warns(DatasetWarning, match=r"1 of the 2 test frames is a training image too, the same file \(e\.g\. "
+                                            r"train/r_2\): scored as novel views") as rec:
+        ds = load_dataset(tmp_path)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1 and len(ds.test) == 2

@@ -315,6 +315,27 @@ def warn_masks(json_path: Path, frames: list) -> None:
                       "photos an alpha channel", DatasetWarning, stacklevel=3)
 
 
+def warn_shared_frames(root: Path, splits: dict) -> None:
+    """One :class:`DatasetWarning` per split (val, test) whose frames name training images (the same file): they are
+    scored as novel views though trained on (battery 9: without a word)."""
+    import warnings
+
+    from .base import DatasetWarning
+
+    trained = {}
+    for v in splits.get("train", []):
+        trained.setdefault(Path(v.path).resolve(), v.name)
+    for s in ("val", "test"):
+        shared = [(v.name, trained[p]) for v in splits.get(s, []) if (p := Path(v.path).resolve()) in trained]
+        if shared:
+            name, was = shared[0]
+            same = name if name == was else f"{name}, the training frame {was}"
+            warnings.warn(f"{root}: {len(shared)} of the {len(splits[s])} {s} frames "
+                          f"{'is a training image' if len(shared) == 1 else 'are training images'} too, the same file "
+                          f"(e.g. {same}): scored as novel views though trained on, the {s} metrics overstate; give "
+                          f"the {s} split images of its own", DatasetWarning, stacklevel=3)
+
+
 def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:
     """A NeRF-synthetic folder: ``transforms_train.json`` (required), ``transforms_val.json`` and
     ``transforms_test.json`` (optional; without a test file, the LLFF hold-out of
@@ -338,6 +359,7 @@ def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Datase
         if p.is_file():
             splits[s], sp = load_transforms_split(p, s, downscale)
             spaces |= sp
+    warn_shared_frames(root, splits)
     held_out = None
     if "test" not in splits:
         held = holdout_split(splits["train"], split_holdout)
