@@ -751,3 +751,13 @@ def test_a_scene_far_from_the_origin_warns_before_training(tmp_path):
         assert len(said) == int(far), said
         if far:
             assert said[0].startswith("DATA: the scene lies 1e+06 from the origin") and "recentre the poses" in said[0]
+
+
+def test_instant_ngp_per_frame_sizes_must_agree_within_a_split(tmp_path):
+    """Per-frame w / h are read (README), but one split holds one image size: two sizes in instant-ngp's one split
+    are refused, naming both (battery 9 found the README silent about it)."""
+    fac.make_ngp(tmp_path, n=3, intr={"fl_x": 7.0}, per_frame={2: {"w": 10, "h": 6}})
+    fac.write_image(tmp_path / "images" / "0002.png", fac.image_pixels(2, 10, 6, alpha=False))
+    with pytest.raises(DatasetError, match="0002.png: image is 10x6 but 0000.png in the same train split is 8x6: every "
+                                           "image of a split must have one size"):
+        load_dataset(tmp_path)
