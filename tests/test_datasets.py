@@ -585,3 +585,179 @@ def test_camera_fields_of_the_wrong_type_are_named(tmp_path, intr, want):
         load_dataset(tmp_path)
     fac.make_ngp(tmp_path / "ok", n=2, intr={"fl_x": 7.0, "is_fisheye": False})
     assert len(load_dataset(tmp_path / "ok", split_holdout=0).train) == 2
+
+
+# ---- battery 9 (session 56) ---------------------------------------------------------------------------------
+def _write_exr_channels(path, px, names):
+    """An EXR with the given channel names (a Blender multi-layer file's ``ViewLayer.Combined.R``, ...)."""
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(px.shape[1], px.shape[0], px.shape[2], "float")
+    spec.channelnames = tuple(names)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(px, np.float32)), out.geterror()
+    out.close()
+    return path
+
+
+def test_exr_alpha_is_premultiplied_and_read_straight(tmp_path):
+    """OpenEXR stores colour premultiplied by alpha: it was read as straight, an edge pixel's colour times alpha twice
+    (0.51 of the true colour over r_0's edge). The loader divides it back (0 where alpha is 0), as it reads PNG; an
+    environment map's colour stays as stored (its radiance)."""
+    import OpenImageIO as oiio
+
+    from triplet_cl.mesh.envmap import project_envmap, read_envmap_sh
+
+    straight = fac.image_pixels(2) * np.array([2.0, 1.5, 1.0, 1.0], np.float32)  # alpha 0 .. 1 across the image
+    a = straight[..., 3]
+    stored = np.concatenate([straight[..., :3] * a[..., None], a[..., None]], axis=-1)
+    img = read_image(fac.write_image(tmp_path / "p.exr", stored, "float"))
+    assert img.color_space == "linear" and img.alpha is not None
+    np.testing.assert_allclose(img.alpha, a, atol=1e-7)
+    np.testing.assert_allclose(img.rgb[a > 0], straight[..., :3][a > 0], rtol=1e-5)
+    assert (img.rgb[a == 0] == 0).all() and (a == 0).any()
+    kept = read_image(tmp_path / "p.exr", unpremultiply=False)
+    np.testing.assert_allclose(kept.rgb, stored[..., :3], rtol=1e-6)
+    # downscaling averages premultiplied: the stored values' block means, divided by the mean alpha
+    two = read_image(tmp_path / "p.exr", downscale=2)
+    np.testing.assert_allclose(two.rgb * two.alpha[..., None], stored[:6, :8, :3].reshape(3, 2, 4, 2, 3).mean((1, 3)),
+                               rtol=1e-5, atol=1e-7)
+    env = fac.write_image(tmp_path / "env.exr", np.concatenate(
+        [np.full((8, 16, 3), 0.25, np.float32), np.full((8, 16, 1), 0.5, np.float32)], -1), "float")
+    np.testing.assert_allclose(read_envmap_sh(env, 1), project_envmap(np.full((8, 16, 3), 0.25, np.float32), 1))
+    # a TIFF: premultiplied unless OIIO reports its alpha unassociated; a PNG is straight
+    px = np.concatenate([np.full((4, 4, 3), 0.4, np.float32), np.full((4, 4, 1), 0.5, np.float32)], -1)
+    np.testing.assert_allclose(read_image(fac.write_image(tmp_path / "s.png", px)).rgb, 0.4, atol=Q8)
+    np.testing.assert_allclose(read_image(fac.write_image(tmp_path / "s.tif", px)).rgb, 0.4, atol=Q8)
+    spec = oiio.ImageSpec(4, 4, 4, "uint8")  # no UnassociatedAlpha: OIIO writes the TIFF as associated
+    out = oiio.ImageOutput.create(str(tmp_path / "a.tif"))
+    assert out.open(str(tmp_path / "a.tif"), spec) and out.write_image(px)
+    out.close()
+    np.testing.assert_allclose(read_image(tmp_path / "a.tif").rgb, 0.8, atol=2 * Q8)
+
+
+def test_multilayer_exr_reads_its_colour_layer_by_name(tmp_path):
+    """Blender's multi-layer EXR: ViewLayer.AO.* sorts before ViewLayer.Combined.*, and the first three channels (the
+    AO pass) were the photo. Plain R, G, B; else the one layer with R, G, B; else the "Combined" one; else refused."""
+    h, w = 4, 6
+    ao = np.full((h, w, 3), 0.8, np.float32)
+    cow = fac.image_pixels(1, w, h)
+    cow[..., :3] *= cow[..., 3:]  # premultiplied, as EXR stores it
+    px = np.concatenate([ao, cow], -1)
+    names = ["ViewLayer.AO.R", "ViewLayer.AO.G", "ViewLayer.AO.B", "ViewLayer.Combined.R", "ViewLayer.Combined.G",
+             "ViewLayer.Combined.B", "ViewLayer.Combined.A"]
+    img = read_image(_write_exr_channels(tmp_path / "ml.exr", px, names))
+    np.testing.assert_allclose(img.alpha, cow[..., 3])
+    np.testing.assert_allclose(img.rgb * img.alpha[..., None], cow[..., :3], rtol=1e-5, atol=1e-7)
+    # one colour layer (no Combined): that one; a plain R, G, B beside layers: the plain one
+    one = ["ViewLayer.AO.X", "ViewLayer.AO.Y", "ViewLayer.AO.Z"] + [n.replace("Combined", "Image") for n in names[3:]]
+    img = read_image(_write_exr_channels(tmp_path / "one.exr", px, one))
+    np.testing.assert_allclose(img.alpha, cow[..., 3])
+    plain = ["R", "G", "B"] + [n.replace("Combined", "Other") for n in names[3:]]
+    img = read_image(_write_exr_channels(tmp_path / "plain.exr", px[..., :6], plain[:6]))
+    np.testing.assert_allclose(img.rgb, ao)
+    assert img.alpha is None
+    # two colour layers, neither Combined: refused, naming the file and the layers
+    two = [n.replace("Combined", "Diffuse") for n in names]
+    with pytest.raises(DatasetError, match="two.exr: a multi-layer EXR.*ViewLayer.AO, ViewLayer.Diffuse"):
+        read_image(_write_exr_channels(tmp_path / "two.exr", px, two))
+
+
+@pytest.mark.parametrize("key", ["camera_angle_y", "fl_y"])
+def test_a_vertical_focal_length_alone_means_square_pixels(tmp_path, key):
+    """camera_angle_y alone (instant-ngp reads it) was refused: "missing key 'camera_angle_x' (or 'fl_x')". The
+    focal length comes from it and the image height, fx = fy."""
+    fac.make_nerf(tmp_path, {"train": 2, "test": 1})
+    fy = 0.5 * fac.H / np.tan(0.35)
+    for split in ("train", "test"):
+        p = tmp_path / f"transforms_{split}.json"
+        d = json.loads(p.read_text())
+        del d["camera_angle_x"]
+        d[key] = 0.7 if key == "camera_angle_y" else fy
+        p.write_text(json.dumps(d))
+    cam = load_dataset(tmp_path).train[0].camera
+    assert cam.fx == pytest.approx(fy) and cam.fy == pytest.approx(fy) and fac.W != fac.H
+    d.pop(key)
+    p.write_text(json.dumps(d))
+    with pytest.raises(DatasetError, match="transforms_test.json: missing key 'camera_angle_x'.*'camera_angle_y'"):
+        load_dataset(tmp_path)
+
+
+def test_a_principal_point_far_from_the_image_centre_warns(tmp_path):
+    """fl_x / fl_y / cx / cy written for images half the size (no w / h to refuse the mismatch): the principal point at
+    a quarter of the image was accepted without a word (battery 9). One warning names the values, the image size and
+    the likely cause; a principal point near the centre says nothing."""
+    fac.make_ngp(tmp_path / "a", n=3, intr={"fl_x": 3.5, "fl_y": 3.5, "cx": 2.0, "cy": 1.5})
+    with pytest.warns(DatasetWarning, match=r"3 of 3 frames put the principal point far from the image centre "
+                                            r"\(frames\[0\]: cx = 2, cy = 1.5 on a 8x6 image, whose centre is 4, 3\): "
+                                            r"the intrinsics were likely written for images of another size.*give w "
+                                            r"and h") as rec:
+        load_dataset(tmp_path / "a", split_holdout=0)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1
+    fac.make_ngp(tmp_path / "b", n=3, intr={"fl_x": 7.0, "cx": 4.0, "cy": 5.0, "w": fac.W, "h": fac.H})
+    with pytest.warns(DatasetWarning, match=r"cy = 5 on a 8x6 image.*check cx / cy"):
+        load_dataset(tmp_path / "b", split_holdout=0)
+    fac.make_ngp(tmp_path / "c", n=3)  # cx 4.25, cy 2.75 on 8x6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DatasetWarning)
+        load_dataset(tmp_path / "c", split_holdout=0)
+
+
+def test_nerfstudio_masks_are_named_as_unused(tmp_path):
+    """Frames with nerfstudio's mask_path were loaded without a word about their masks (battery 9): one warning names
+    the key and how many frames have it. The masks are not applied (they mark pixels to leave out of the loss)."""
+    fac.make_ngp(tmp_path, n=4, per_frame={k: {"mask_path": f"masks/{k:04d}.png"} for k in (0, 2, 3)})
+    with pytest.warns(DatasetWarning, match=r"transforms.json: 3 of 4 frames have a 'mask_path' \(nerfstudio "
+                                            r"masks\): the masks are not used") as rec:
+        ds = load_dataset(tmp_path, split_holdout=0)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1
+    assert all(v.alpha is None for v in ds.train)
+
+
+def test_a_test_frame_that_is_a_training_image_warns(tmp_path):
+    """A test frame naming a training image (the same file) was scored as a novel view without a word (battery 9):
+    one warning per split counts them and names one."""
+    fac.make_nerf(tmp_path, {"train": 3, "val": 1, "test": 2})
+    p = tmp_path / "transforms_test.json"
+    d = json.loads(p.read_text())
+    d["frames"][1]["file_path"] = "./train/r_2.png"
+    p.write_text(json.dumps(d))
+    with pytest.warns(DatasetWarning, match=r"1 of the 2 test frames is a training image too, the same file \(e\.g\. "
+                                            r"train/r_2\): scored as novel views") as rec:
+        ds = load_dataset(tmp_path)
+    assert len([r for r in rec if issubclass(r.category, DatasetWarning)]) == 1 and len(ds.test) == 2
+
+
+def test_a_scene_far_from_the_origin_warns_before_training(tmp_path):
+    """Cameras 1e6 from the origin (georeferenced poses) trained 14 dB against 23 at the origin in float32, without a
+    word (battery 9). train warns past FAR_FROM_ORIGIN scene extents, naming the distance and to recentre."""
+    from triplet_cl.train import FAR_FROM_ORIGIN, scene_extent, warn_if_far_from_origin
+
+    for shift, far in ((1e6, True), (1e2, False)):
+        root = tmp_path / f"s{shift:g}"
+        fac.make_nerf(root, {"train": 4})
+        p = root / "transforms_train.json"
+        d = json.loads(p.read_text())
+        for f in d["frames"]:
+            f["transform_matrix"][0][3] += shift
+        p.write_text(json.dumps(d))
+        ds = load_dataset(root, split_holdout=0)
+        ext = scene_extent(ds)
+        assert (np.linalg.norm(ds.scene_center()) > FAR_FROM_ORIGIN * ext) == far
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            warn_if_far_from_origin(ds, ext, "DATA")
+        said = [str(r.message) for r in rec if issubclass(r.category, DatasetWarning)]
+        assert len(said) == int(far), said
+        if far:
+            assert said[0].startswith("DATA: the scene lies 1e+06 from the origin") and "recentre the poses" in said[0]
+
+
+def test_instant_ngp_per_frame_sizes_must_agree_within_a_split(tmp_path):
+    """Per-frame w / h are read (README), but one split holds one image size: two sizes in instant-ngp's one split
+    are refused, naming both (battery 9 found the README silent about it)."""
+    fac.make_ngp(tmp_path, n=3, intr={"fl_x": 7.0}, per_frame={2: {"w": 10, "h": 6}})
+    fac.write_image(tmp_path / "images" / "0002.png", fac.image_pixels(2, 10, 6, alpha=False))
+    with pytest.raises(DatasetError, match="0002.png: image is 10x6 but 0000.png in the same train split is 8x6: every "
+                                           "image of a split must have one size"):
+        load_dataset(tmp_path)

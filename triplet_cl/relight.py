@@ -329,7 +329,7 @@ def envmap_item_sh(item: dict, path, where: str, degree: int) -> np.ndarray:
     key = (str(file.resolve()), file.stat().st_mtime_ns, float(rot), degree)
     if key not in _PROJECTIONS:
         try:
-            img = read_image(file)
+            img = read_image(file, unpremultiply=False)  # an RGBA map's stored colour is its radiance
         except DatasetError as exc:
             raise LightFileError(path, f"{where}.filename", str(exc)) from None
         if img.color_space != "linear":
@@ -617,7 +617,7 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
     it names a file that has a frame for each test view (by the image's name), whose pose is the view's camera in
     the run (within ``tol`` × the camera's distance from the origin). A battery found the key ignored: references of
     other cameras were scored against the run's test views without a word."""
-    from .datasets.nerf import _camera_maker, _check_intrinsics, _matrix, frame_intrinsics, read_json
+    from .datasets.nerf import _camera_maker, _check_intrinsics, _matrix, frame_intrinsics, has_focal, read_json
     from .errors import DatasetError
 
     ref = doc.get("cameras")
@@ -646,7 +646,7 @@ def check_reference_cameras(spec: Path, doc: dict, view_names, cameras, tol: flo
                                          "the test views by their images' names)")
             poses[key] = _matrix(path, f"frames[{i}]: ", fr["transform_matrix"])
             intr = frame_intrinsics(path, f"frames[{i}]: ", top, fr)
-            if "fl_x" in intr or "camera_angle_x" in intr:  # (a file without a focal length: the poses only)
+            if has_focal(intr):  # (a file without a focal length: the poses only)
                 lenses[key] = (_camera_maker(path, f"frames[{i}]: ", poses[key], intr), intr.get("w"), intr.get("h"))
     except DatasetError as exc:
         raise LightFileError(spec, "cameras", str(exc)) from None

@@ -2,6 +2,12 @@
 
 * PNG/TIFF/… with alpha are read with ``oiio:UnassociatedAlpha = 1`` so the colour comes back as
   stored (straight), not premultiplied by OIIO.
+* OpenEXR stores colour premultiplied by alpha (associated), whatever that attribute says, and so does a TIFF
+  that OIIO does not report as unassociated: their colour is divided by alpha where alpha > 0 (0 where it is 0),
+  so every format comes back straight (:func:`read_image`'s ``unpremultiply``; an environment map keeps its
+  stored colour).
+* A multi-layer EXR (Blender's ``ViewLayer.Combined.R``, ``ViewLayer.AO.R``, ...) gives its photo by channel
+  name (:func:`exr_channels`), not by position.
 * Integer files (8/16-bit PNG, JPEG, …) come back as float32 in [0, 1] (sRGB-encoded values, as
   stored); float files (EXR, HDR) as float32 linear values. Nothing is converted.
 * ``downscale = N`` averages N×N blocks (area filter). Rows/columns beyond a multiple of N are
@@ -161,14 +167,52 @@ def _library_stderr():
                     os.write(2, held)
 
 
-def read_image(path, downscale: int = 1) -> Image:
+def exr_channels(path, names) -> tuple[list[int], int] | None:
+    """The channels of an EXR's photo by name: ``([r, g, b], a)`` (``a`` -1 without alpha), or None for an EXR whose
+    channels carry neither R/G/B names nor layers (the caller then goes by position).
+
+    Plain ``R``, ``G``, ``B`` (and ``A``) when present; else the one layer (the name's prefix before its last ``.``,
+    e.g. ``ViewLayer.Combined``) holding R, G and B; else, among several, the one named ``Combined`` (Blender's
+    rendered image; ``ViewLayer.AO`` or ``ViewLayer.Normal`` sort before it, and taking the first three channels
+    trained on the AO pass). :class:`DatasetError` naming the layers when none of these decides."""
+    names = [str(n) for n in names]
+    layers: dict[str, dict[str, int]] = {}
+    for i, n in enumerate(names):
+        prefix, _, last = n.rpartition(".")
+        layers.setdefault(prefix, {}).setdefault(last.upper(), i)
+    rgb_layers = [k for k, ch in layers.items() if all(c in ch for c in "RGB")]
+    if "" in rgb_layers:
+        chosen = ""
+    elif len(rgb_layers) == 1:
+        chosen = rgb_layers[0]
+    else:
+        combined = [k for k in rgb_layers if k.rpartition(".")[2].lower() == "combined"]
+        if len(combined) == 1:
+            chosen = combined[0]
+        elif set(layers) == {""}:  # no layers, and no channel named R, G, B (X, Y, Z): by position, as before
+            return None
+        else:
+            found = ", ".join(k or "(no layer)" for k in layers)
+            raise DatasetError(path, "a multi-layer EXR without a single colour layer to read as the photo: found "
+                                     f"the layers {found}, " + (f"{len(rgb_layers)} of them with R, G, B"
+                                                                if rgb_layers else "none with R, G, B channels")
+                                     + "; expected plain R, G, B channels, one layer with them, or one named "
+                                       "'Combined': save the rendered image alone (or its Combined pass)")
+    ch = layers[chosen]
+    return [ch["R"], ch["G"], ch["B"]], ch.get("A", -1)
+
+
+def read_image(path, downscale: int = 1, unpremultiply: bool = True) -> Image:
     """Read one image → :class:`Image` ``(rgb [h,w,3] float32, alpha [h,w] float32 or None,
     color_space, width, height)`` where ``h, w = H // downscale, W // downscale``.
 
     ``color_space`` is ``"linear"`` for float files (EXR, HDR) and ``"srgb"`` otherwise. One
     channel is grey, two are grey + alpha, three RGB, four RGBA; with more, the first three are
-    colour and the spec's alpha channel (if any) is alpha. Raises :class:`DatasetError` naming
-    the file when it is missing, unreadable, or holds NaN/Inf.
+    colour and the spec's alpha channel (if any) is alpha — an EXR's by name (:func:`exr_channels`).
+    Colour stored premultiplied (OpenEXR's convention; an associated-alpha TIFF) is divided by alpha
+    where alpha > 0 and 0 where it is 0, so that ``rgb`` is straight for every format; ``unpremultiply``
+    False keeps it as stored (an environment map: its stored colour is the radiance). Raises
+    :class:`DatasetError` naming the file when it is missing, unreadable, or holds NaN/Inf.
     """
     oiio = _oiio()
     path = Path(path)
@@ -184,6 +228,11 @@ def read_image(path, downscale: int = 1) -> Image:
             spec = inp.spec()
             fmt = inp.format_name()
             orientation = int(spec.get_int_attribute("Orientation", 1))
+            # colour stored premultiplied: an EXR by the format's convention, whatever the attribute says; a TIFF
+            # unless OIIO reports its alpha unassociated (1: kept as stored, as for PNG, WebP, TGA). Other formats
+            # with alpha store it straight (or one bit, GIF's) and are left alone
+            associated = fmt == "openexr" or (
+                fmt == "tiff" and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1)
             px = inp.read_image(0, 0, 0, spec.nchannels, "float")
             err = inp.geterror()
         finally:
@@ -210,9 +259,13 @@ def read_image(path, downscale: int = 1) -> Image:
     elif nc == 2:
         rgb, alpha = np.repeat(px[:, :, :1], 3, axis=2), px[:, :, 1]
     else:
-        rgb = px[:, :, :3]
-        # the header's alpha channel, where it names one the pixels have (a GIF's names channel 4 of 4)
-        a_ch = spec.alpha_channel if 3 <= spec.alpha_channel < nc else (3 if nc == 4 else -1)
+        picked = exr_channels(path, spec.channelnames) if fmt == "openexr" else None
+        if picked is not None:
+            rgb, a_ch = px[:, :, picked[0]], picked[1]
+        else:
+            rgb = px[:, :, :3]
+            # the header's alpha channel, where it names one the pixels have (a GIF's names channel 4 of 4)
+            a_ch = spec.alpha_channel if 3 <= spec.alpha_channel < nc else (3 if nc == 4 else -1)
         if a_ch >= 0:
             alpha = px[:, :, a_ch]
     if not np.isfinite(rgb).all() or (alpha is not None and not np.isfinite(alpha).all()):
@@ -226,6 +279,9 @@ def read_image(path, downscale: int = 1) -> Image:
         rgb = np.maximum(rgb, 0.0)
     if alpha is not None:
         alpha = np.clip(alpha, 0.0, 1.0)
+        if unpremultiply and associated:  # straight colour, as the other formats give it (0 where alpha is 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rgb = np.where(alpha[:, :, None] > 0, rgb / np.maximum(alpha, 1e-12)[:, :, None], 0.0)
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     alpha = None if alpha is None else np.ascontiguousarray(alpha, dtype=np.float32)
     height, width = rgb.shape[:2]

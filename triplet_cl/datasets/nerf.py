@@ -137,11 +137,28 @@ def _check_intrinsics(path: Path, where: str, intr: dict) -> None:
     _check_distortion(path, where, intr)
 
 
-def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
-    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON."""
-    if "fl_x" not in intr and "camera_angle_x" not in intr:
-        raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'), at the top level or in "
-                                 f"{where.rstrip(': ')}: the focal length is unknown")
+FOCAL_KEYS = ("fl_x", "camera_angle_x", "fl_y", "camera_angle_y")
+# a principal point farther than this share of the image's side from its centre warns: lenses put it within a few
+# percent of the centre, and intrinsics written for images of another size (twice the size: cx, cy at a quarter of
+# the image, exactly 0.25 off; half the size: three quarters) land at 0.25 or beyond (battery 9: trained without a
+# word). A crop of a photo can be that far off too: hence a warning, not a refusal
+OFF_CENTRE = 0.2
+
+
+def has_focal(intr: dict) -> bool:
+    """``intr`` gives a focal length: ``fl_x`` / ``camera_angle_x``, or only the vertical one (square pixels)."""
+    return any(k in intr for k in FOCAL_KEYS)
+
+
+def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict, notes: list | None = None):
+    """A ``make_camera(width, height)`` for :func:`load_views`, checked against the JSON. With only the vertical
+    focal length (``fl_y`` or ``camera_angle_y`` with the image height), the pixels are square: ``fl_x = fl_y``, as
+    instant-ngp reads it. ``notes``: a list that gets ``(where, cx, cy, width, height, sized)`` for a principal point
+    farther than :data:`OFF_CENTRE` from the image centre (``sized``: the intrinsics gave ``w`` and ``h``), for the
+    caller's one warning (:func:`warn_off_centre`)."""
+    if not has_focal(intr):
+        raise DatasetError(path, "missing key 'camera_angle_x' (or 'fl_x'; or 'camera_angle_y' / 'fl_y' for square "
+                                 f"pixels), at the top level or in {where.rstrip(': ')}: the focal length is unknown")
 
     def make(width: int, height: int, path=path, where=where) -> Camera:
         for k, size in (("w", width), ("h", height)):
@@ -154,9 +171,14 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
                     raise DatasetError(path, f"{where}{fk} = {float(intr[fk]):g} pixels and {ak} = {float(intr[ak]):g} "
                                              f"rad (a focal length of {f_angle:.4g} pixels on the {size}-pixel side) "
                                              "disagree: give one, or both for the same camera")
+        fl_y = intr.get("fl_y")
+        if fl_y is None and "camera_angle_y" in intr:
+            fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
         fl_x = intr.get("fl_x")
-        if fl_x is None:
+        if fl_x is None and "camera_angle_x" in intr:
             fl_x = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
+        if fl_x is None:  # only the vertical focal length: square pixels (instant-ngp's reading)
+            fl_x = fl_y
         for k, f, size in (("fl_x", fl_x, width), ("fl_y", intr.get("fl_y"), height)):
             if f is not None and 2.0 * math.atan(0.5 * size / float(f)) < MIN_FOV:
                 raise DatasetError(path, f"{where}{k} = {float(f):g} pixels on a {size}-pixel side is a field of view "
@@ -165,9 +187,10 @@ def _camera_maker(path: Path, where: str, c2w: np.ndarray, intr: dict):
             if k in intr and not -size <= float(intr[k]) <= 2 * size:
                 raise DatasetError(path, f"{where}{k} = {float(intr[k]):g} puts the principal point more than an image "
                                          f"away from the {width}x{height} image (expected {-size} to {2 * size})")
-        fl_y = intr.get("fl_y")
-        if fl_y is None and "camera_angle_y" in intr:
-            fl_y = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"]))
+        if notes is not None and ("cx" in intr or "cy" in intr):
+            cx, cy = float(intr.get("cx", 0.5 * width)), float(intr.get("cy", 0.5 * height))
+            if abs(cx - 0.5 * width) > OFF_CENTRE * width or abs(cy - 0.5 * height) > OFF_CENTRE * height:
+                notes.append((where, cx, cy, width, height, "w" in intr and "h" in intr))
         try:
             return Camera.from_nerf(c2w, width, height, fl_x=float(fl_x), fl_y=None if fl_y is None else float(fl_y),
                                     cx=intr.get("cx"), cy=intr.get("cy"))
@@ -189,11 +212,30 @@ def frame_intrinsics(path: Path, where: str, top: dict, frame: dict) -> dict:
     return intr
 
 
-def transforms_records(json_path: Path, data: dict | None = None):
+def warn_off_centre(json_path: Path, notes: list, total: int) -> None:
+    """One :class:`DatasetWarning` for the frames whose principal point :func:`_camera_maker` found far from the image
+    centre (``notes``), naming the first one's values and image size and the likely cause."""
+    if not notes:
+        return
+    import warnings
+
+    from .base import DatasetWarning
+
+    where, cx, cy, w, h, sized = notes[0]
+    cause = ("check cx / cy (a crop of the photos?)" if sized else
+             "the intrinsics were likely written for images of another size (e.g. the photos resized after the "
+             "poses were solved): give w and h with them, so that a size mismatch is refused, or fix fl_x / fl_y / "
+             "cx / cy for these images")
+    warnings.warn(f"{json_path}: {len(notes)} of {total} frames put the principal point far from the image centre "
+                  f"({where.rstrip(': ')}: cx = {cx:g}, cy = {cy:g} on a {w}x{h} image, whose centre is {w / 2:g}, "
+                  f"{h / 2:g}): {cause}", DatasetWarning, stacklevel=3)
+
+
+def transforms_records(json_path: Path, data: dict | None = None, notes: list | None = None):
     """Parse a ``transforms*.json`` → ``(records, missing)`` for :func:`load_views`.
 
     ``records`` are ``(name, image_path, make_camera)``; frames whose image file does not exist
-    are left out and their ``file_path`` returned in ``missing``.
+    are left out and their ``file_path`` returned in ``missing``. ``notes``: see :func:`_camera_maker`.
     """
     json_path = Path(json_path)
     root = json_path.parent
@@ -220,7 +262,7 @@ def transforms_records(json_path: Path, data: dict | None = None):
             raise DatasetError(json_path, f"{where}file_path must be a non-empty string, found {fp!r}")
         c2w = _matrix(json_path, where, fr["transform_matrix"])
         intr = frame_intrinsics(json_path, where, top, fr)
-        make = _camera_maker(json_path, where, c2w, intr)
+        make = _camera_maker(json_path, where, c2w, intr, notes)
         image = find_image(root / fp)
         if image is None:
             there = not_a_file(root / fp)
@@ -243,11 +285,55 @@ def transforms_records(json_path: Path, data: dict | None = None):
 def load_transforms_split(json_path: Path, split: str, downscale: int = 1):
     """Views of one ``transforms*.json``; frames with a missing image are skipped with one
     :class:`DatasetWarning` that counts them. Returns ``(views, color_spaces)``."""
-    records, missing = transforms_records(json_path)
+    notes: list = []
+    data = read_json(json_path)
+    records, missing = transforms_records(json_path, data, notes=notes)
     warn_missing(json_path, missing, len(missing) + len(records), "frames")
     if not records:
         raise DatasetError(json_path, f"no frames left: none of the {len(missing)} image files exists")
-    return load_views(records, downscale, split)
+    out = load_views(records, downscale, split)
+    warn_off_centre(json_path, notes, len(records))
+    warn_masks(json_path, data["frames"])
+    return out
+
+
+def warn_masks(json_path: Path, frames: list) -> None:
+    """One :class:`DatasetWarning` when frames carry nerfstudio's ``mask_path`` (battery 9: ignored without a word).
+
+    The masks are not applied, by choice: nerfstudio's mask marks the pixels to leave out of the loss (a passer-by, the
+    capture rig), not the object's coverage. Read as alpha, those pixels would be trained as transparent, the scene
+    behind a passer-by taught to vanish, and triplet has no per-pixel loss weight to leave them out instead."""
+    n = sum(isinstance(f, dict) and "mask_path" in f for f in frames)
+    if n:
+        import warnings
+
+        from .base import DatasetWarning
+
+        warnings.warn(f"{json_path}: {n} of {len(frames)} frames have a 'mask_path' (nerfstudio masks): the masks are "
+                      "not used (a nerfstudio mask marks pixels to leave out of the loss, which triplet cannot do), "
+                      "the masked pixels are trained as the photos show them; to leave out a background, give the "
+                      "photos an alpha channel", DatasetWarning, stacklevel=3)
+
+
+def warn_shared_frames(root: Path, splits: dict) -> None:
+    """One :class:`DatasetWarning` per split (val, test) whose frames name training images (the same file): they are
+    scored as novel views though trained on (battery 9: without a word)."""
+    import warnings
+
+    from .base import DatasetWarning
+
+    trained = {}
+    for v in splits.get("train", []):
+        trained.setdefault(Path(v.path).resolve(), v.name)
+    for s in ("val", "test"):
+        shared = [(v.name, trained[p]) for v in splits.get(s, []) if (p := Path(v.path).resolve()) in trained]
+        if shared:
+            name, was = shared[0]
+            same = name if name == was else f"{name}, the training frame {was}"
+            warnings.warn(f"{root}: {len(shared)} of the {len(splits[s])} {s} frames "
+                          f"{'is a training image' if len(shared) == 1 else 'are training images'} too, the same file "
+                          f"(e.g. {same}): scored as novel views though trained on, the {s} metrics overstate; give "
+                          f"the {s} split images of its own", DatasetWarning, stacklevel=3)
 
 
 def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Dataset:
@@ -273,6 +359,7 @@ def load_nerf(root, downscale: int = 1, split_holdout: int | None = 8) -> Datase
         if p.is_file():
             splits[s], sp = load_transforms_split(p, s, downscale)
             spaces |= sp
+    warn_shared_frames(root, splits)
     held_out = None
     if "test" not in splits:
         held = holdout_split(splits["train"], split_holdout)

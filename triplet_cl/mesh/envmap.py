@@ -162,7 +162,7 @@ def read_envmap_sh(path, degree: int = 2) -> np.ndarray:
     ``coeffs [3, (degree+1)^2]``, e.g. to compare a trained SH environment with a ground-truth map."""
     from ..datasets.images import read_image
 
-    return project_envmap(read_image(path).rgb, degree)
+    return project_envmap(read_image(path, unpremultiply=False).rgb, degree)  # (any alpha: radiance as stored)
 
 
 def export_envmap(lights, path, height: int = 256, dtype: str = "half", clamp_negative: bool = True) -> Path:
