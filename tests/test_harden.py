@@ -2649,18 +2649,22 @@ def test_os_error_advice_follows_the_command():
 
 def test_a_read_only_folder_of_the_run_is_refused_before_the_work(run, capsys, monkeypatch):
     """A read-only checkpoints/ inside a writable run was met at the first checkpoint, after the training, naming a
-    temporary file (battery 9). (os.access is what the check asks; as root every folder is writable, so it is
-    answered here for the folder in question.)"""
+    temporary file (battery 9). Each command's own folders are checked up front (os.access is what the check asks; as
+    root every folder is writable, so it is answered here for the folder in question)."""
     import triplet_cl.validate as val
 
     real = os.access
-    ck = str(run / "checkpoints")
-    monkeypatch.setattr(val.os, "access", lambda p, mode, **kw: False if str(p) == ck else real(p, mode, **kw))
     before = _tree(run)
-    for argv in (["train", "--out", run, "--resume", "--iterations", "6"], ["eval", run]):
+    for folder, argv in (("checkpoints", ["train", "--out", run, "--resume", "--iterations", "6"]),
+                         ("renders/test", ["render", run])):
+        ro = str(run / folder)
+        monkeypatch.setattr(val.os, "access", lambda p, mode, ro=ro, **kw: False if str(p) == ro else
+                            real(p, mode, **kw))
         rc, err, _ = _run_cli(argv, capsys)
-        assert rc == 2 and "checkpoints" in err and "not writable" in err and err.count("\n") == 1, (argv, err)
-    assert _tree(run) == before
+        assert rc == 2 and folder in err and "not writable" in err and err.count("\n") == 1, (argv, err)
+        assert _tree(run) == before
+    rc, err, _ = _run_cli(["eval", run], capsys)  # eval writes metrics.json only: its renders/ is not its business
+    assert rc == 0, err
 
 
 def test_relighting_an_encoded_run_warns(tmp_path, demo_copy, capsys):

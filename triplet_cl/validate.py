@@ -459,26 +459,28 @@ def check_not_other_run(path, run, option: str) -> None:
                                      f"renders) would be replaced by those of {run}; choose a folder outside it")
 
 
-def check_run_dir(run, option: str = "RUN", writable: bool = False) -> dict:
-    """A run directory with a readable config.json; ``writable``: results can be written into it."""
+def check_run_dir(run, option: str = "RUN", writable: bool = False, folders=()) -> dict:
+    """A run directory with a readable config.json; ``writable``: results can be written into it, and into its own
+    output ``folders`` that exist (:func:`check_run_folders_writable`)."""
     from .runs import read_run_config
 
     saved = read_run_config(run)
     if writable:
         check_writable_dir(run, option)
-        check_run_folders_writable(run, option)
+        check_run_folders_writable(run, option, folders)
     return saved
 
 
-def check_run_folders_writable(run, option: str) -> None:
-    """The run's own folders that exist (``checkpoints/``, ``renders/`` and its folders, ``relight/``) are writable:
-    a read-only ``checkpoints/`` inside a writable run was met at the first checkpoint, after the training steps,
-    the error naming a temporary file (battery 9)."""
+def check_run_folders_writable(run, option: str, folders=("checkpoints", "renders")) -> None:
+    """The run's own ``folders`` a command writes into (``checkpoints``, ``renders``, ``relight``), where they exist,
+    and the folders inside them, are writable: a read-only ``checkpoints/`` inside a writable run was met at the first
+    checkpoint, after the training steps, the error naming a temporary file (battery 9)."""
     run = Path(run)
-    renders = run / "renders"
-    subs = sorted(p for p in renders.iterdir() if p.is_dir()) if renders.is_dir() else []
-    for d in (run / "checkpoints", renders, *subs, run / "relight"):
-        if d.is_dir():
+    for name in folders:
+        top = run / name
+        if not top.is_dir():
+            continue
+        for d in (top, *sorted(p for p in top.iterdir() if p.is_dir())):
             check_writable_dir(d, option)
 
 
@@ -691,7 +693,9 @@ def validate_args(args) -> None:
             if writable:
                 check_writable_dir(args.run, "RUN")
         else:
-            saved = check_run_dir(args.run, "RUN", writable=writable)
+            saved = check_run_dir(args.run, "RUN", writable=writable,
+                                  folders={"render": ("renders",), "extract": ("renders",),
+                                           "relight": ("relight",)}.get(cmd, ()))
             check_run_dataset(args.run, saved["data"])  # read by every command but export: moved or deleted?
         if getattr(args, "out", None):
             rel = getattr(args, "relight", None) if cmd == "eval" else None
