@@ -838,7 +838,8 @@ def build_parser() -> argparse.ArgumentParser:
     lt.add_argument("--lights", required=True, dest="light_file", help="light file: a relight.json (FILE#set picks "
                     "one of its sets; without #set every set), a bare {\"lights\": [...]} or a run's lights.json")
     lt.add_argument("--split", default="test", choices=["test", "train", "val"], help="views to render (default test)")
-    lt.add_argument("--out", help="output folder (default RUN/relight/SET; with several sets OUT/SET)")
+    lt.add_argument("--out", help="output folder (default RUN/relight/SET, RUN/relight/SPLIT/SET for --split train or "
+                    "val; with several sets OUT/SET)")
     lt.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help="renderer (default: the run's for the "
                     "soup, raster for the mesh; hybrid gives cast shadows)")
     lt.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows of the relit lights on the soup with "
