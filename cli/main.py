@@ -406,16 +406,16 @@ def cmd_relight(args: argparse.Namespace) -> int:
 def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-method", choices=["tsdf", "weld"], help="soup → mesh: TSDF fusion + marching cubes "
                    "(default) or welding of coincident vertices")
-    p.add_argument("--mesh-resolution", type=int, help="TSDF voxels along the longest side (default: a voxel ≈ a "
+    p.add_argument("--mesh-resolution", type=_int, help="TSDF voxels along the longest side (default: a voxel ≈ a "
                    "pixel of the training views)")
-    p.add_argument("--mesh-faces", type=int, help="simplify the extracted mesh to at most this many faces "
+    p.add_argument("--mesh-faces", type=_int, help="simplify the extracted mesh to at most this many faces "
                    "(default 50000)")
-    p.add_argument("--mesh-rounds", type=int, help="extraction → refinement rounds (default 1)")
-    p.add_argument("--mesh-iterations", type=int, help="refinement steps per round (default 600; 0 = extract only)")
-    p.add_argument("--mesh-light-phase", type=int, metavar="N", help="the first N refinement steps of a round keep "
+    p.add_argument("--mesh-rounds", type=_int, help="extraction → refinement rounds (default 1)")
+    p.add_argument("--mesh-iterations", type=_int, help="refinement steps per round (default 600; 0 = extract only)")
+    p.add_argument("--mesh-light-phase", type=_int, metavar="N", help="the first N refinement steps of a round keep "
                    "roughness, metallic and AO one value for the whole mesh (started at their mean), the lights "
                    "learning; then per vertex (default 300; 0 = none; at most --mesh-iterations)")
-    p.add_argument("--mesh-metallic-trial", type=int, metavar="N", help="before the light phase, fit the mesh "
+    p.add_argument("--mesh-metallic-trial", type=_int, metavar="N", help="before the light phase, fit the mesh "
                    "as a dielectric and as a metal for N steps each and keep the better one's metallic, held "
                    "through the light phase (default 200; 0 = none: the metallic is tied with the others; "
                    "Cook-Torrance only, and only with a light phase: --mesh-light-phase > 0)")
@@ -427,14 +427,14 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "mesh's shading (a metal's: from its highlights) before its light phase (auto, default: when the "
                    "lights are point and ambient ones; kept when clearly better than the soup's, the number of point "
                    "lights, up to 3, is then the data's) or keep the soup's (off)")
-    p.add_argument("--mesh-env-degree", type=int, metavar="D", help="after the light fit, the ambient light becomes "
+    p.add_argument("--mesh-env-degree", type=_int, metavar="D", help="after the light fit, the ambient light becomes "
                    "an SH environment of degree D (the same radiance in band 0, the higher bands learned: a sky "
                    "brighter above than below, a room); default 2, 0 = keep the ambient light (Cook-Torrance only); "
                    "also a metal's unless --mesh-env-degree-metal is given")
-    p.add_argument("--mesh-env-degree-metal", type=int, metavar="D", help="the same for a metal (the metallic trial's "
+    p.add_argument("--mesh-env-degree-metal", type=_int, metavar="D", help="the same for a metal (the metallic trial's "
                    "verdict): its reflections keep the environment's higher bands; default 8 (or --mesh-env-degree's D "
                    "when that is given)")
-    p.add_argument("--mesh-env-occlusion", type=int, metavar="D", help="the SH environment is occluded by the mesh "
+    p.add_argument("--mesh-env-occlusion", type=_int, metavar="D", help="the SH environment is occluded by the mesh "
                    "itself: its bands 1..D see only the sky each vertex sees (traced from the geometry when its faces "
                    "change); default 0 = off, at most 4")
     p.add_argument("--mesh-metal-f0", type=float, metavar="F", help="a metal's brightness gauge: its lights are "
@@ -444,11 +444,11 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-bounce", choices=["traced", "off"], help="interreflection on the mesh: traced (one diffuse "
                    "bounce of the lights off the rest of the mesh, per vertex, re-traced with the cast shadows) "
                    "or off (default)")
-    p.add_argument("--remesh-every", type=int, help="steps between gradient-driven subdivision / simplification "
+    p.add_argument("--remesh-every", type=_int, help="steps between gradient-driven subdivision / simplification "
                    "(default 200; 0 = never)")
-    p.add_argument("--mesh-supersample", type=int, help="render the mesh at this × resolution during refinement "
+    p.add_argument("--mesh-supersample", type=_int, help="render the mesh at this × resolution during refinement "
                    "and box-filter down (antialiased outlines; default 3, 2 is ~1.5× faster)")
-    p.add_argument("--mesh-eval-supersample", type=int, help="samples per pixel side of the mesh's test renders "
+    p.add_argument("--mesh-eval-supersample", type=_int, help="samples per pixel side of the mesh's test renders "
                    "(default 4)")
     p.add_argument("--mesh-pixel-filter", metavar="auto|box|SIGMA",
                    help="the photos' pixel filter in the mesh renders: auto (default: a Gaussian whose width is read "
@@ -462,7 +462,7 @@ def _add_mesh_options(p: argparse.ArgumentParser) -> None:
                    "bends of ~25-75 degrees pulled weakly, right angles and folds as by the plain term or harder), "
                    "smooth pulls every crease towards a round edge (the plain term: for smooth, organic objects with "
                    "painted detail)")
-    p.add_argument("--texture-size", type=int, help="baked texture size in texels (default 1024)")
+    p.add_argument("--texture-size", type=_int, help="baked texture size in texels (default 1024)")
     p.add_argument("--formats", help="comma-separated export formats among glb,obj,ply (default all)")
     p.add_argument("--bbox", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX: extract only the object inside this box (world "
                    "units of the dataset); default for photos without alpha: a box found from the cameras' look-at "
@@ -695,11 +695,11 @@ def add_colmap_parser(sub) -> None:
     c.add_argument("--camera-model", default="SIMPLE_RADIAL",
                    choices=["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"],
                    help="COLMAP camera model shared by all photos (default SIMPLE_RADIAL)")
-    c.add_argument("--max-features", type=int, default=1024, help="SIFT features per photo (default 1024; matching "
+    c.add_argument("--max-features", type=_int, default=1024, help="SIFT features per photo (default 1024; matching "
                    "time grows with its square: raise it for hard captures)")
     c.add_argument("--min-registered", type=float, default=0.5, help="fail when fewer than this fraction of the "
                    "photos register (default 0.5; at least 3 always)")
-    c.add_argument("--threads", type=int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")
+    c.add_argument("--threads", type=_int, default=-1, help="CPU threads of the SfM steps (default -1: all cores)")
     c.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
     c.set_defaults(func=cmd_colmap)
 
@@ -744,8 +744,8 @@ def build_parser() -> argparse.ArgumentParser:
                    action=DeprecatedAlias.given())
     t.add_argument("--format", dest="data_format", choices=["auto", *DATASET_FORMATS],
                    action=DeprecatedAlias.action("--data-format"), help=argparse.SUPPRESS)
-    t.add_argument("--iterations", type=int, help="optimisation steps (default 3000; --demo: 1500)")
-    t.add_argument("--seed", type=int, help="random seed (default 0)")
+    t.add_argument("--iterations", type=_int, help="optimisation steps (default 3000; --demo: 1500)")
+    t.add_argument("--seed", type=_int, help="random seed (default 0)")
     t.add_argument("--brdf", choices=[b.cli for b in BRDFS.values()],
                    help=f"BRDF (default {BRDFS[DEFAULT_BRDF].cli})")
     t.add_argument("--lights", help=f"comma-separated mix of {','.join(LIGHT_KINDS)} (default point,ambient)")
@@ -756,10 +756,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--light-min-distance", type=float, metavar="R", help="point lights are kept (and start) at "
                    "least R frame radii (the half-width the cameras see at the centre) from the centre, outside the "
                    "object (default 1; 0: anywhere)")
-    t.add_argument("--sh-degree", type=int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
-    t.add_argument("--faces-per-pixel", type=int, help="K after the warm-up (default 30)")
-    t.add_argument("--init-points", type=int, help="random initial triangles (default 20000)")
-    t.add_argument("--max-faces", type=int, help="face budget of density control (default 200000)")
+    t.add_argument("--sh-degree", type=_int, help="max SH degree of vertex-SH / SH-environment lights (default 2)")
+    t.add_argument("--faces-per-pixel", type=_int, help="K after the warm-up (default 30)")
+    t.add_argument("--init-points", type=_int, help="random initial triangles (default 20000)")
+    t.add_argument("--max-faces", type=_int, help="face budget of density control (default 200000)")
     t.add_argument("--error-resplit-ratio", metavar="R|off",
                    help="split a face by the error criterion again only once its error is <= R x its error at its "
                    "last error split (default 0.9; off: no such rule; README 'Density control')")
@@ -775,15 +775,15 @@ def build_parser() -> argparse.ArgumentParser:
                    "auto (default): the smallest factor that brings the photos' longer side to at most 1600 px (1 for "
                    "smaller photos)")
     t.add_argument("--sigma", type=float, help="soft-coverage sharpness in 1/px; 0 = hard edges (default 2)")
-    t.add_argument("--checkpoint-every", type=int, help="iterations between checkpoints (default 1000)")
-    t.add_argument("--keep-checkpoints", type=int, help="keep the newest N checkpoints (default 3; 0 = all)")
+    t.add_argument("--checkpoint-every", type=_int, help="iterations between checkpoints (default 1000)")
+    t.add_argument("--keep-checkpoints", type=_int, help="keep the newest N checkpoints (default 3; 0 = all)")
     t.add_argument("--renderer", choices=["raster", "raytrace", "hybrid"], help=renderer_help)
     t.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows in training with the raster renderer "
                    "(default vertex: per-vertex visibility towards point / directional lights, ray-traced through the "
                    "soup every --shadow-every steps, from iteration 600; off: none; README 'Cached shadows')")
-    t.add_argument("--shadow-every", type=int, help="steps between visibility refreshes (default 100; also after "
+    t.add_argument("--shadow-every", type=_int, help="steps between visibility refreshes (default 100; also after "
                    "density control, and when a light moved, at most every N/2 steps)")
-    t.add_argument("--light-phase", type=int, metavar="N", help="the first N steps fit the lights with one material "
+    t.add_argument("--light-phase", type=_int, metavar="N", help="the first N steps fit the lights with one material "
                    "for the whole object (every vertex the same albedo, roughness, metallic), then per vertex "
                    "(default 40 %% of --iterations: 1200 of 3000; 0 = none; at most --iterations; "
                    "README 'Light phase')")
@@ -827,7 +827,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: as `triplet relight`)")
     e.add_argument("--shadows", choices=["vertex", "off"], help="cast shadows of the relit soup with the raster "
                    "renderer (default: as `triplet relight`)")
-    e.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+    e.add_argument("--env-degree", type=_int, help="SH degree of projected environment maps, 0..8 "
                    "(default 8)")
     e.add_argument("--out", help="also write the relit images (and albedo) to OUT/STAGE/SET/")
     e.add_argument("--device", default=None, help=dev_help)
@@ -847,7 +847,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "as the run was trained; the mesh stage has none; README 'Cached shadows')")
     lt.add_argument("--stage", default="auto", choices=["auto", "soup", "mesh"], help="what to render (default auto: "
                     "the refined mesh when the run has one, else the soup)")
-    lt.add_argument("--env-degree", type=int, help="SH degree of projected environment maps, 0..8 "
+    lt.add_argument("--env-degree", type=_int, help="SH degree of projected environment maps, 0..8 "
                     "(default 8: see README, Relighting)")
     lt.add_argument("--device", default=None, help=dev_help)
     lt.set_defaults(func=cmd_relight)
@@ -864,7 +864,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated among glb,obj,ply (default glb)")
     o.add_argument("--format", dest="formats", action=DeprecatedAlias.action("--formats"), help=argparse.SUPPRESS)
     o.add_argument("--out", help="output folder (default RUN)")
-    o.add_argument("--texture-size", type=int, default=1024, help="baked texture size in texels (default 1024)")
+    o.add_argument("--texture-size", type=_int, default=1024, help="baked texture size in texels (default 1024)")
     o.add_argument("--device", default=None, help="accepted for uniformity with the other commands; export bakes "
                    "on the CPU and uses no OpenCL device")
     o.set_defaults(func=cmd_export)
@@ -887,7 +887,36 @@ def _join_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _reopen_closed_streams() -> None:
+    """A standard stream the caller closed (`2>&-`, a daemon, cron) is opened on /dev/null: Python sets
+    ``sys.stderr`` to None then, and the first warning or progress line raised AttributeError with nothing printed
+    anywhere (battery 10); the C libraries' writes to the descriptor would land in whatever file took its number."""
+    for fd, name, mode in ((0, "stdin", "r"), (1, "stdout", "w"), (2, "stderr", "w")):
+        try:
+            os.fstat(fd)
+            closed = False
+        except OSError:
+            closed = True
+        if closed:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+        if closed or getattr(sys, name) is None:
+            setattr(sys, name, open(fd, mode, closefd=False, encoding="utf-8", errors="replace"))
+
+
+def _int(text: str) -> int:
+    """An integer option: decimal digits with an optional sign (Python's ``int`` also reads ``3_0`` as 30, ten times
+    what a typo for 3.0 or 3,0 meant: battery 10)."""
+    t = str(text).strip()
+    if "_" in t:
+        raise argparse.ArgumentTypeError(f"invalid integer {text!r} (no '_' separators)")
+    return int(t)
+
+
 def main(argv: list[str] | None = None) -> int:
+    _reopen_closed_streams()
     parser = build_parser()
     for sp in parser._subparsers._group_actions[0].choices.values():  # `--format` never silently `--formats`
         sp.allow_abbrev = False

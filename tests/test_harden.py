@@ -2708,3 +2708,103 @@ def test_a_tiny_direction_is_a_direction(tmp_path, kind, power):
     f.write_text(json.dumps({"lights": [{"type": kind, "direction": [0, 0, 0], power: [1, 1, 1]}]}))
     with pytest.raises(LightFileError, match="zero vector"):
         load_light_sets(f)
+
+
+# ---- battery 10 --------------------------------------------------------------------------------------------------
+def test_strided_device_arrays_are_refused_by_the_ops(run):
+    """A strided device view (`a[::2]`) was read as if it were contiguous: projections 33.7 px off, no fragments,
+    wrong gradients, without a word (battery 10). The ops and backward_device refuse it, naming the argument."""
+    import pyopencl.array as cla
+
+    from triplet_cl import get_device
+    from triplet_cl.camera import Camera
+    from triplet_cl.ops.project import project
+
+    dev = get_device()
+    V = np.random.default_rng(0).normal(size=(64, 3)).astype(np.float32)
+    cam = Camera.look_at((0, 0, 4), (0, 0, 0), (0, 1, 0), 40.0, 32, 32)
+    wide = cla.to_device(dev.queue, np.repeat(V, 2, axis=0))
+    with pytest.raises(ValueError, match="V must be a C-contiguous device array"):
+        project(dev, wide[::2], cam)
+    assert np.allclose(project(dev, cla.to_device(dev.queue, V), cam).get(), project(dev, V, cam).get())
+
+
+def test_paths_that_are_not_utf8_and_an_unexpanded_tilde_are_refused_up_front(tmp_path, capsys, monkeypatch):
+    """A Latin-1 folder name trained to the end and then failed with OpenImageIO's traceback; `--out '~/x'` made a
+    folder named "~" in the current folder (battery 10)."""
+    monkeypatch.chdir(tmp_path)
+    latin = os.fsdecode(b"r\xf6n")
+    rc, err, _ = _run_cli(["train", DEMO, "--out", latin, *TINY_RUN], capsys)
+    assert rc == 2 and "--out" in err and "not UTF-8" in err and err.count("\n") == 1, err
+    rc, err, _ = _run_cli(["train", os.fsdecode(b"sp\xf6t"), "--out", "run", *TINY_RUN], capsys)
+    assert rc == 2 and "DATA" in err and "not UTF-8" in err, err
+    rc, err, _ = _run_cli(["train", DEMO, "--out", "~/x", *TINY_RUN], capsys)
+    assert rc == 2 and "did not expand" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_bare_number_or_letter_is_not_a_device(capsys):
+    """`--device 1` chose the device whose name holds a "1" ("OpenCL C 1.2"), "a" any device (battery 10)."""
+    from triplet_cl.device import DeviceSelectionError, get_device
+
+    for spec in ("1", "0", "a"):
+        with pytest.raises(DeviceSelectionError, match="is not a device: give 'P:D'"):
+            get_device(spec)
+    assert get_device("0:0") is get_device("cpu")
+
+
+@pytest.mark.parametrize("field,value", [("faces_per_pixel", 0), ("sigma", -1.0), ("seed", -1), ("init_points", 0),
+                                         ("iterations", 2.5), ("faces_per_pixel", 2000), ("sigma", float("nan"))])
+def test_train_config_refuses_what_the_command_line_refuses(field, value):
+    """The library's TrainConfig passed faces_per_pixel=0 (trained to the end, then failed at the renders) and
+    iterations=2.5 (saved, then refused by eval and --resume) (battery 10)."""
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(**{field: value}).validate()
+
+
+def test_the_library_trainer_keeps_the_user_s_files(tmp_path):
+    """Trainer(DATA, FOLDER) replaced the user's config.json, metrics.json, lights.json and triplets.ply (battery 10);
+    the CLI refused such a folder."""
+    from triplet_cl.errors import RunError
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for n in ("config.json", "lights.json", "notes.txt"):
+        (mine / n).write_text("{}")
+    before = _tree(mine)
+    with pytest.raises(RunError, match="not a triplet run and holds config.json, lights.json"):
+        Trainer(DEMO, mine, _small_cfg())
+    assert _tree(mine) == before
+
+
+def test_a_closed_stderr_does_not_stop_the_command(tmp_path):
+    """`triplet train ... 2>&-` (a daemon, cron) exited 1 with nothing written and nothing said: sys.stderr was None
+    (battery 10). The closed stream is opened on /dev/null and the command runs."""
+    import subprocess
+    import sys as _sys
+
+    out = tmp_path / "run"
+    code = "import sys; from triplet_cl.cli.main import main; sys.exit(main(sys.argv[1:]))"
+    p = subprocess.run(f"{_sys.executable} -c '{code}' train '{DEMO}' --out '{out}' {' '.join(TINY_RUN)} 2>&-",
+                       shell=True, capture_output=False, stdout=subprocess.PIPE, text=True, timeout=600)
+    assert p.returncode == 0 and (out / "metrics.json").is_file(), p.stdout[-500:]
+
+
+def test_integer_options_take_no_underscores_and_huge_textures_warn(run, capsys):
+    """`--iterations 3_0` was read as 30 (Python's int); --texture-size 8193 was written without a word (battery 10)."""
+    with pytest.raises(SystemExit) as exc:  # argparse's own refusal
+        cli_main(["train", str(DEMO), "--out", str(run.parent / "new"), "--iterations", "3_0"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "invalid integer '3_0'" in err, err
+    import warnings
+
+    from triplet_cl.cli.main import build_parser
+
+    from triplet_cl.validate import MAX_VIEWER_TEXTURE, _check_options
+
+    for size, warned in ((MAX_VIEWER_TEXTURE, False), (MAX_VIEWER_TEXTURE + 1, True)):
+        args = build_parser().parse_args(["export", str(run), "--texture-size", str(size)])
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            _check_options(args)
+        assert any("many viewers" in str(w.message) for w in got) == warned, size

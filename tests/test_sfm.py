@@ -112,15 +112,20 @@ def _umeyama(src, dst):
 
 
 # ---- SfM ----------------------------------------------------------------------------------------------------
-def test_sfm_solves_synthetic_capture(capture, tmp_path):
+def test_sfm_solves_synthetic_capture(capture, tmp_path, monkeypatch):
+    import triplet_cl.datasets.sfm as sfm_mod
+
+    monkeypatch.setattr(sfm_mod, "HEARTBEAT_S", 0.05)  # the long COLMAP calls' progress lines (battery 10)
     folder, cams, _ = capture
     out = tmp_path / "data"
+    (folder / "._IMG_0000.JPG").write_bytes(b"\x00\x05\x16\x07 a Mac's resource fork")  # skipped (battery 10)
     lines = []
     s = run_sfm(folder, out, progress=lines.append, num_threads=2)
     assert s["photos"] == 16 and s["registered"] == 16 and s["unregistered"] == []
     assert any(ln.startswith("features") for ln in lines) and any(ln.startswith("mapping") for ln in lines)
     # the mapper's callback counts steps, not photos ("registered 25 of 16 photos", battery 9)
     assert any("mapping step" in ln for ln in lines) and not any("registered" in ln for ln in lines), lines
+    assert any(ln.startswith("  features: ") for ln in lines), lines  # seconds so far (and photos done)
     mask = os.umask(0)
     os.umask(mask)
     assert (out.stat().st_mode & 0o777) == 0o777 & ~mask  # not mkdtemp's 0700 (battery 9)

@@ -179,6 +179,12 @@ def resolve_spec(spec: str | None = None):
         raise DeviceSelectionError(
             f"device index {spec!r} ({source}) does not exist; expected 'P:D' from this list:\n{_describe(entries)}"
         )
+    if re.fullmatch(r"\d+", spec) or len(spec) < 2:  # "1" matched "OpenCL C 1.2", "a" any name (battery 10): on two
+        # GPUs `--device 1` picked whichever name held a 1
+        raise DeviceSelectionError(
+            f"{spec!r} ({source}) is not a device: give 'P:D' (platform and device indices, e.g. '0:{spec}' if "
+            f"{spec!r} meant a device of platform 0), a part of a device's name, 'gpu' or 'cpu'; available "
+            f"devices:\n{_describe(entries)}")
     needle = spec.lower()
     for e in entries:
         if needle in e[0].full_name.lower() or needle == e[0].type.lower():

@@ -793,6 +793,9 @@ class RenderResult:
             raise ValueError(f"v_image must be a device array of shape [{H}, {W}, 3] and dtype "
                              f"{np.dtype(s.real).name}, got {type(v_image).__name__} "
                              f"{list(getattr(v_image, 'shape', ()))} {getattr(v_image, 'dtype', '')}")
+        from .ops.common import check_contiguous
+
+        check_contiguous("v_image", v_image)  # a strided view gave wrong gradients without a word (battery 10)
         self.tape.backward(self.image_var, v_image)
 
 

@@ -392,8 +392,16 @@ class TrainConfig:
             raise ValueError(f"material_tie_until must be an integer >= 0, got {self.material_tie_until!r}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        # the library's own checks of what the CLI refuses up front (battery 10: faces_per_pixel=0 trained to the end
+        # and failed at the final renders; iterations=2.5 was saved and then refused by eval and --resume)
+        for name, lo in (("iterations", 1), ("faces_per_pixel", 1), ("init_points", 1), ("seed", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < lo:
+                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if self.faces_per_pixel > 1024:
+            raise ValueError(f"faces_per_pixel must be at most 1024, got {self.faces_per_pixel}")
+        if isinstance(self.sigma, bool) or not isinstance(self.sigma, int | float) or not 0 < self.sigma < math.inf:
+            raise ValueError(f"sigma must be a finite number > 0, got {self.sigma!r}")
         shell = self.background_shell
         if not (shell == "auto" or (isinstance(shell, (int, np.integer)) and not isinstance(shell, bool))):
             raise ValueError(f"background_shell must be a number of triangles (>= 0) or 'auto', got {shell!r}")
@@ -935,6 +943,25 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------------ trainer
 
 
+RUN_FILES = ("config.json", "metrics.json", "lights.json", "triplets.ply", "train.log", "checkpoints", "renders")
+
+
+def check_new_run_dir(run_dir) -> None:
+    """A new run (the library's ``Trainer``, as the CLI's ``train --out``) is not started in a folder that is not a run
+    and holds files of a run's names: the user's ``config.json``, ``metrics.json``, ``lights.json`` and
+    ``triplets.ply`` were replaced (battery 10). A triplet run there is replaced (the CLI's ``--overwrite``)."""
+    from .errors import RunError
+    from .runs import is_run_dir
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir() or is_run_dir(run_dir):
+        return
+    found = [n for n in RUN_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()]
+    if found:
+        raise RunError(run_dir, f"is not a triplet run and holds {', '.join(found)}: a new run would replace them; "
+                                "give an empty or new folder")
+
+
 class Trainer:
     """Runs (or resumes) a training run in ``run_dir``; see the module docstring."""
 
@@ -956,6 +983,8 @@ class Trainer:
             data_format = saved.get("format", data_format)
         self.cfg = cfg or TrainConfig()
         self.cfg.validate()
+        if not resume:
+            check_new_run_dir(self.run_dir)
         # the dataset's absolute path goes into config.json: render / eval / relight find it from any folder
         self.data, self.data_format = str(Path(data).absolute()), data_format
         auto_bg = self.cfg.background == "auto"

@@ -211,6 +211,11 @@ def _check_options(args) -> None:
     tex = getattr(args, "texture_size", None)
     if tex is not None and tex > 0:
         check_host_memory("--texture-size", f"baking a {tex}² texture", tex * tex * TEXTURE_BYTES_PER_TEXEL)
+        if tex > MAX_VIEWER_TEXTURE:  # written without a word (battery 10)
+            import warnings
+
+            warnings.warn(f"--texture-size {tex}: many viewers (WebGL, mobile GPUs) load textures of at most "
+                          f"{MAX_VIEWER_TEXTURE}², or fail; the asset is written as asked", stacklevel=2)
     res = getattr(args, "mesh_resolution", None)
     if res is not None:
         check_host_memory("--mesh-resolution", f"a {res}³ TSDF", res**3 * TSDF_BYTES_PER_VOXEL)
@@ -644,8 +649,33 @@ def check_export_out(out, formats, option: str) -> None:
 
 
 # ---- the CLI entry -------------------------------------------------------------------------------------
+MAX_VIEWER_TEXTURE = 8192  # the texture size WebGL 2 and most mobile GPUs guarantee (MAX_TEXTURE_SIZE)
+
+
+def _check_utf8_paths(args) -> None:
+    """Every string option is UTF-8: a path with other bytes (a Latin-1 folder name under a UTF-8 or C locale) reaches
+    Python as surrogates, which OpenImageIO cannot take: `train` trained to the end and then failed writing its renders
+    with a traceback (battery 10)."""
+    positional = {"data": "DATA", "run": "RUN", "images": "IMAGES", "light_file": "--lights"}
+    for dest, value in sorted(vars(args).items()):
+        if not isinstance(value, str):
+            continue
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            shown = value.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+            raise UsageError(positional.get(dest, "--" + dest.replace("_", "-")),
+                             f"{shown} holds bytes that are not UTF-8 text (a name from another encoding): the image "
+                             "library cannot open such a path; rename it in UTF-8") from None
+        if dest == "out" and (value == "~" or value.startswith("~/")):  # quoted: the shell did not expand it, and a
+            # folder named "~" was made in the current folder, printed as if it were the home folder (battery 10)
+            raise UsageError("--out", f"{value} starts with '~', which the shell did not expand (quoted, or after "
+                                      "'='): give the path unquoted or with $HOME, e.g. --out \"$HOME/...\"")
+
+
 def validate_args(args) -> None:
     """Check every option of ``args`` (an argparse namespace of any command) before any work."""
+    _check_utf8_paths(args)
     _check_options(args)
     _check_phases(args)
     dev = getattr(args, "device", None)

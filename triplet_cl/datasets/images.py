@@ -145,9 +145,18 @@ def _library_stderr():
                 _stderr_depth -= 1
         return
     failed = False
-    with tempfile.TemporaryFile() as tmp:
-        sys.stderr.flush()
+    try:
         saved = os.dup(2)
+    except OSError:  # no stderr at all (closed by the caller: `2>&-`, a daemon): nothing to hold back
+        try:
+            yield
+        finally:
+            with _stderr_lock:
+                _stderr_depth -= 1
+        return
+    with tempfile.TemporaryFile() as tmp:
+        if sys.stderr is not None:
+            sys.stderr.flush()
         os.dup2(tmp.fileno(), 2)
         try:
             yield
@@ -155,7 +164,8 @@ def _library_stderr():
             failed = True
             raise
         finally:
-            sys.stderr.flush()
+            if sys.stderr is not None:
+                sys.stderr.flush()
             os.dup2(saved, 2)
             os.close(saved)
             with _stderr_lock:

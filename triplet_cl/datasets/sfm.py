@@ -19,11 +19,13 @@ fisheyes, …: COLMAP's defaults for phone photos) is undistorted once with pyco
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -68,7 +70,14 @@ def list_photos(folder) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise DatasetError(folder, "images folder not found")
-    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SFM_EXTENSIONS)
+    # "._IMG_0001.JPG" is the resource fork a Mac leaves beside each photo on FAT / exFAT / network drives (no image:
+    # the whole folder was refused, battery 10); other hidden files are no photos either
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SFM_EXTENSIONS
+                    and not p.name.startswith("."))
+    bad = [p.name for p in photos if not _utf8(p.name)]
+    if bad:
+        raise DatasetError(folder, f"{len(bad)} photo name(s) hold bytes that are not UTF-8 text (e.g. "
+                                   f"{_shown(bad[0])}): the image library cannot open them; rename them in UTF-8")
     if not photos:
         others = sorted(p.name for p in folder.iterdir())[:3]
         found = f"found {', '.join(others)}{', ...' if len(others) == 3 else ''}" if others else "the folder is empty"
@@ -77,8 +86,21 @@ def list_photos(folder) -> list[Path]:
     return photos
 
 
+def _utf8(name: str) -> bool:
+    try:
+        name.encode("utf-8")
+        return True
+    except UnicodeEncodeError:
+        return False
+
+
+def _shown(name: str) -> str:
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def _has_photos(folder: Path) -> bool:
-    return folder.is_dir() and any(p.is_file() and p.suffix.lower() in SFM_EXTENSIONS for p in folder.iterdir())
+    return folder.is_dir() and any(p.is_file() and p.suffix.lower() in SFM_EXTENSIONS and not p.name.startswith(".")
+                                   for p in folder.iterdir())
 
 
 def photo_sizes(photos) -> dict[Path, tuple[int, int]]:
@@ -233,6 +255,47 @@ def remove_dead_work_dirs(out_dir) -> list[Path]:
     return removed
 
 
+HEARTBEAT_S = 20.0  # seconds between the progress lines of a long COLMAP call
+
+
+@contextlib.contextmanager
+def _heartbeat(say, what: str, done=None, total: int | None = None, every: float | None = None):
+    """A progress line every ``every`` seconds while a COLMAP call that reports nothing runs (14 photos of 4000x3000
+    were 240 s of silence in feature extraction, battery 10): the time so far and, with ``done``, how many of
+    ``total`` items are finished."""
+    stop = threading.Event()
+    t0 = time.perf_counter()
+    every = HEARTBEAT_S if every is None else every
+
+    def beat():
+        while not stop.wait(every):
+            k = done() if done is not None else None
+            count = f", {k} of {total} photos" if k is not None and total else ""
+            say(f"  {what}: {time.perf_counter() - t0:.0f} s{count}")
+
+    th = threading.Thread(target=beat, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        th.join()
+
+
+def _rows(db: Path, table: str) -> int | None:
+    """Rows of ``table`` in the COLMAP database while COLMAP writes it (None when it cannot be read just then)."""
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)
+        try:
+            return int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None
+
+
 def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, max_features: int,
            min_registered: float, num_threads: int, say) -> dict:
     n = len(photos)
@@ -248,15 +311,17 @@ def _solve(pycolmap, photos, images_dir: Path, work: Path, camera_model: str, ma
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = num_threads
     extraction.sift.max_num_features = max_features
-    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    with _heartbeat(say, "features", lambda: _rows(db, "keypoints"), n):
+        pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
     times["features_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     say(f"matching: {n * (n - 1) // 2} pairs (exhaustive) ...")
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = num_threads
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    with _heartbeat(say, "matching"):
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
     times["matching_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -38,6 +38,7 @@ def check_real(name: str, arr, shape: Sequence[int | None], real=np.float32, fin
     """
     if isinstance(arr, cla.Array):
         check_shape(name, arr, shape)
+        check_contiguous(name, arr)
         if arr.dtype != np.dtype(real):
             raise ValueError(f"{name} must be a device array of dtype {np.dtype(real)}, got {arr.dtype}")
         return arr
@@ -79,9 +80,18 @@ def real_of(a, name: str = "data") -> np.dtype:
     return dt
 
 
-def to_device(queue: cl.CommandQueue, a) -> cla.Array:
-    """A device copy of a host array (device arrays pass through unchanged)."""
+def check_contiguous(name: str, arr) -> None:
+    """A device array the kernels will read is C-contiguous: they index its buffer as dense rows, so a strided view
+    (``a[::2]``, ``a[..., ::2]``) was read as if it were one, silently (battery 10: a projection 33.7 px off)."""
+    if isinstance(arr, cla.Array) and arr.size and not arr.flags.c_contiguous:
+        raise ValueError(f"{name} must be a C-contiguous device array, got a strided view (strides {arr.strides}): "
+                         "pass a contiguous copy")
+
+
+def to_device(queue: cl.CommandQueue, a, name: str = "a device array") -> cla.Array:
+    """A device copy of a host array (device arrays pass through unchanged, if C-contiguous)."""
     if isinstance(a, cla.Array):
+        check_contiguous(name, a)
         return a
     return cla.to_device(queue, np.ascontiguousarray(a))
 
@@ -207,6 +217,7 @@ def fragment_array(queue: cl.CommandQueue, name: str, a, shape, real) -> cla.Arr
         return None
     if isinstance(a, cla.Array):
         check_shape(name, a, shape)
+        check_contiguous(name, a)
         if a.dtype != np.dtype(real):
             raise ValueError(f"{name} must have dtype {np.dtype(real)}, got {a.dtype}")
         return a

@@ -7,7 +7,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import TILE
-from .common import buf, check_real, device_rows, grid_1d, to_device
+from .common import buf, check_contiguous, check_real, device_rows, grid_1d, to_device
 from .fragment_bwd import fragments_backward
 from .fragments import Fragments
 
@@ -19,6 +19,7 @@ def _attr(device: Device, attr, frags: Fragments) -> cla.Array:
             raise ValueError(f"attr must have shape [{n}, C], got {list(attr.shape)}")
         if attr.dtype != frags.real:
             raise ValueError(f"attr must have dtype {frags.real} (as the fragments), got {attr.dtype}")
+        check_contiguous("attr", attr)
         return attr
     return to_device(device.queue, check_real("attr", attr, (n, None), frags.real))
 

@@ -33,7 +33,7 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import SETUP, TILE, Binning, bin_faces, check_soft_edges
-from .common import check_real, check_shape, device_empty, device_head, launch, real_of, to_device
+from .common import check_contiguous, check_real, check_shape, device_empty, device_head, launch, real_of, to_device
 from .fragment_bwd import MOMENTS, corners_to_vertices, fragments_backward, gather_to_vertices, raster_backward
 from .fragments import Fragments, frag_input, read_fragments, valid_faces
 from .mesh import DeviceMesh
@@ -68,6 +68,7 @@ def check_raster_args(device: Device, vs, mesh: DeviceMesh, width, height, K, ne
     if not isinstance(vs, cla.Array):
         vs = to_device(device.queue, check_real("vs", vs, (mesh.num_vertices, 3), real_of(np.asarray(vs), "vs")))
     check_shape("vs", vs, (mesh.num_vertices, 3))
+    check_contiguous("vs", vs)
     return vs, width, height, K
 
 
