@@ -324,3 +324,21 @@ def test_a_cache_inside_the_dataset_is_refused(tmp_path, monkeypatch):
     with pytest.raises(DatasetError, match="inside the dataset folder"):
         load_dataset(tmp_path / "s", split_holdout=0)
     assert not (tmp_path / "s" / "cache").exists()
+
+
+def test_photos_left_out_are_named(tmp_path):
+    """A photo link that leads nowhere and photos in a subfolder beside the folder's own were left out without a word;
+    a Mac's "._" file made the folder unreadable (battery 10)."""
+    from triplet_cl.datasets.base import DatasetWarning
+    from triplet_cl.datasets.sfm import list_photos
+
+    for n in ("IMG_1.jpg", "IMG_2.jpg", "._IMG_1.jpg", ".hidden.jpg"):
+        (tmp_path / n).write_bytes(b"x")
+    (tmp_path / "IMG_3.jpg").symlink_to(tmp_path / "gone.jpg")
+    (tmp_path / "extra").mkdir()
+    (tmp_path / "extra" / "IMG_9.jpg").write_bytes(b"x")
+    with pytest.warns(DatasetWarning) as got:
+        photos = list_photos(tmp_path)
+    assert [p.name for p in photos] == ["IMG_1.jpg", "IMG_2.jpg"]
+    text = " | ".join(str(w.message) for w in got)
+    assert "1 photo link(s) lead nowhere" in text and "IMG_3.jpg" in text and "subfolder(s) extra" in text, text

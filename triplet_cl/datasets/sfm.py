@@ -83,7 +83,27 @@ def list_photos(folder) -> list[Path]:
         found = f"found {', '.join(others)}{', ...' if len(others) == 3 else ''}" if others else "the folder is empty"
         raise DatasetError(folder, f"no images (expected {', '.join(SFM_EXTENSIONS)} files directly in the "
                                    f"folder; {found})")
+    _warn_left_out(folder)
     return photos
+
+
+def _warn_left_out(folder: Path) -> None:
+    """One :class:`DatasetWarning` each for photos that are not used although they look meant: links to a photo that
+    lead nowhere, and photos in subfolders beside the folder's own (both were left out without a word, battery 10)."""
+    import warnings
+
+    from .base import DatasetWarning
+
+    entries = sorted(folder.iterdir(), key=lambda e: e.name)
+    dead = [e.name for e in entries if e.is_symlink() and not e.exists() and e.suffix.lower() in SFM_EXTENSIONS]
+    if dead:
+        warnings.warn(DatasetWarning(f"{folder}: {len(dead)} photo link(s) lead nowhere and are left out (e.g. "
+                                     f"{_shown(dead[0])})"), stacklevel=3)
+    nested = [e.name for e in entries if e.is_dir() and not e.name.startswith(".") and _has_photos(e)]
+    if nested:
+        warnings.warn(DatasetWarning(f"{folder}: the photos in the subfolder(s) {', '.join(map(_shown, nested[:3]))}"
+                                     f"{' ...' if len(nested) > 3 else ''} are not used (only the folder's own photos "
+                                     "are): move them up to use them"), stacklevel=3)
 
 
 def _utf8(name: str) -> bool:
