@@ -14,7 +14,7 @@ from pathlib import Path
 
 from triplet_cl import __version__
 from triplet_cl.datasets import FORMATS as DATASET_FORMATS
-from triplet_cl.errors import TripletError
+from triplet_cl.errors import TripletError, UsageError
 from triplet_cl.lights import LIGHT_KINDS
 from triplet_cl.materials import BRDFS, DEFAULT_BRDF, brdf_from_cli
 from triplet_cl.validate import DeprecatedAlias, os_error_message, validate_args
@@ -261,7 +261,9 @@ def _load_run(args):
     from triplet_cl.device import get_device
     from triplet_cl.train import Trainer
 
-    return Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
+    tr = Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
+    tr.view_progress = True  # quiet (no training bar, no notes), but a bar per rendered view on a terminal
+    return tr
 
 
 def _lock_if_writing_into(run, writes: bool) -> None:
@@ -382,6 +384,11 @@ def cmd_relight(args: argparse.Namespace) -> int:
     # the default folder of a split other than test is the split's own (battery 9: `--split train` then `--split
     # test` mixed both splits' r_0.png ... in RUN/relight/SET/), as render's renders/SPLIT/
     base = Path(args.out) if args.out else run / "relight" / ("" if args.split == "test" else args.split)
+    if not args.out and args.split == "test":
+        clash = [ls.name for ls in sets if ls.name in ("train", "val")]
+        if clash:  # RUN/relight/train/ is the train split's folder of sets
+            raise UsageError("--lights", f"the set {clash[0]!r} would write the test views into RUN/relight/"
+                                         f"{clash[0]}/, the {clash[0]} split's folder of relit sets: give --out DIR")
     outs = [base / ls.name if (len(sets) > 1 or not args.out) else base for ls in sets]
     check_vertex_sh(sets, rl.base.vertex_sh is not None)
     from triplet_cl.datasets.base import render_files
@@ -912,7 +919,10 @@ def _int(text: str) -> int:
     t = str(text).strip()
     if "_" in t:
         raise argparse.ArgumentTypeError(f"invalid integer {text!r} (no '_' separators)")
-    return int(t)
+    try:
+        return int(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid integer {text!r}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -998,8 +1008,10 @@ def _dispatch(args) -> int:
         print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # `triplet devices | head -1`: the reader left; quiet, the status of a SIGPIPE death
-        with contextlib.suppress(OSError):  # (and no second error when Python flushes stdout at exit)
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        with contextlib.suppress(OSError, ValueError):  # (and no second error when Python flushes stdout at exit)
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, sys.stdout.fileno())
+            os.close(null)
         return 141
     except OSError as exc:  # not a folder, read-only, permission, no space left: one line
         print(f"triplet {args.command}: error: {os_error_message(exc, args.command)}", file=sys.stderr)

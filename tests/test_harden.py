@@ -2553,10 +2553,11 @@ def test_render_through_a_linked_renders_folder_keeps_the_user_s_files(run, tmp_
     shutil.rmtree(run / "renders" / "test")
     (run / "renders" / "test").symlink_to(mine, target_is_directory=True)
     rc, err, _ = _run_cli(["render", run], capsys)
-    assert rc == 2 and "not written by triplet" in err and err.count("\n") == 1, err
+    assert rc == 2 and "no record that triplet wrote them" in err and "through a link" in err, err
+    assert err.count("\n") == 1, err
     assert (mine / "r_0.png").read_bytes() == b"my photo" and sorted(p.name for p in mine.iterdir()) == ["r_0.png"]
     rc, err, _ = _run_cli(["train", "--out", run, "--resume", "--iterations", "6"], capsys)  # its final renders too
-    assert rc == 2 and "not written by triplet" in err, err
+    assert rc == 2 and "no record that triplet wrote them" in err and "through a link" in err, err
     assert (mine / "r_0.png").read_bytes() == b"my photo"
     (mine / "r_0.png").unlink()  # an empty linked folder is written, and its files are triplet's from then on
     rc, err, _ = _run_cli(["render", run], capsys)
@@ -2750,7 +2751,14 @@ def test_a_bare_number_or_letter_is_not_a_device(capsys):
     for spec in ("1", "0", "a"):
         with pytest.raises(DeviceSelectionError, match="is not a device: give 'P:D'"):
             get_device(spec)
-    assert get_device("0:0") is get_device("cpu")
+    d = get_device("0:0")
+    assert (d.info.platform_index, d.info.device_index) == (0, 0)
+
+
+def test_hard_edges_are_still_a_sigma():
+    """sigma None (hard edges, `--sigma 0`) must pass the new checks (a review found it refused, and every hard-edge
+    run with it)."""
+    TrainConfig(sigma=None).validate()
 
 
 @pytest.mark.parametrize("field,value", [("faces_per_pixel", 0), ("sigma", -1.0), ("seed", -1), ("init_points", 0),

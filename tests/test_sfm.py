@@ -342,3 +342,33 @@ def test_photos_left_out_are_named(tmp_path):
     assert [p.name for p in photos] == ["IMG_1.jpg", "IMG_2.jpg"]
     text = " | ".join(str(w.message) for w in got)
     assert "1 photo link(s) lead nowhere" in text and "IMG_3.jpg" in text and "subfolder(s) extra" in text, text
+
+
+def test_the_heartbeat_reads_the_database_read_only_and_survives_a_closed_pipe(tmp_path, monkeypatch):
+    """A '#' or '?' in the work folder's path cut SQLite's URI there: a stray empty file was made read-write; a closed
+    stdout printed a traceback from the heartbeat's thread (a review, session 56)."""
+    import sqlite3
+    import threading
+    import time as _time
+
+    import triplet_cl.datasets.sfm as sfm_mod
+
+    folder = tmp_path / "scan #2?x"
+    folder.mkdir()
+    db = folder / "database.db"
+    con = sqlite3.connect(db)
+    con.execute("CREATE TABLE keypoints (image_id INTEGER)")
+    con.executemany("INSERT INTO keypoints VALUES (?)", [(1,), (2,), (3,)])
+    con.commit()
+    con.close()
+    assert sfm_mod._rows(db, "keypoints") == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scan #2?x"]  # nothing made beside it
+    errors = []
+    monkeypatch.setattr(threading, "excepthook", lambda a: errors.append(a.exc_value))
+
+    def closed(line):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    with sfm_mod._heartbeat(closed, "features", lambda: 1, 3, every=0.01):
+        _time.sleep(0.1)
+    assert errors == []

@@ -179,11 +179,16 @@ def resolve_spec(spec: str | None = None):
         raise DeviceSelectionError(
             f"device index {spec!r} ({source}) does not exist; expected 'P:D' from this list:\n{_describe(entries)}"
         )
-    if re.fullmatch(r"\d+", spec) or len(spec) < 2:  # "1" matched "OpenCL C 1.2", "a" any name (battery 10): on two
-        # GPUs `--device 1` picked whichever name held a 1
+    if re.fullmatch(r"\d+", spec):  # a model number ("4090") as a whole number of a device's name; "1" matched
+        # "OpenCL C 1.2" or "avx512" as a substring (battery 10): on two GPUs `--device 1` picked whichever held a 1
+        for e in entries:
+            if re.search(rf"(?<![\d.]){spec}(?![\d.])", e[0].full_name):
+                return e
+    if re.fullmatch(r"\d+", spec) or len(spec) < 2:  # "a": any name
         raise DeviceSelectionError(
             f"{spec!r} ({source}) is not a device: give 'P:D' (platform and device indices, e.g. '0:{spec}' if "
-            f"{spec!r} meant a device of platform 0), a part of a device's name, 'gpu' or 'cpu'; available "
+            f"{spec!r} meant a device of platform 0), a part of a device's name (a number only as a whole number "
+            "in it, a model's), 'gpu' or 'cpu'; available "
             f"devices:\n{_describe(entries)}")
     needle = spec.lower()
     for e in entries:

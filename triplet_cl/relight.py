@@ -685,7 +685,7 @@ def read_reference(path, width: int, height: int):
     from .datasets.images import image_size, read_image
 
     W, H = image_size(path)
-    n = max(1, round(W / max(int(width), 1)))
+    n = max(1, W // max(int(width), 1))  # the largest n with W // n >= width: if any factor fits, this one does
     return read_image(path, downscale=n if n > 1 and (W // n, H // n) == (int(width), int(height)) else 1)
 
 

@@ -400,8 +400,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
         if self.faces_per_pixel > 1024:
             raise ValueError(f"faces_per_pixel must be at most 1024, got {self.faces_per_pixel}")
-        if isinstance(self.sigma, bool) or not isinstance(self.sigma, int | float) or not 0 < self.sigma < math.inf:
-            raise ValueError(f"sigma must be a finite number > 0, got {self.sigma!r}")
+        if self.sigma is not None and (isinstance(self.sigma, bool) or not isinstance(self.sigma, int | float)
+                                       or not 0 < self.sigma < math.inf):  # (None: hard edges, `--sigma 0`)
+            raise ValueError(f"sigma must be a finite number > 0 (or None: hard edges), got {self.sigma!r}")
         shell = self.background_shell
         if not (shell == "auto" or (isinstance(shell, (int, np.integer)) and not isinstance(shell, bool))):
             raise ValueError(f"background_shell must be a number of triangles (>= 0) or 'auto', got {shell!r}")
@@ -951,10 +952,10 @@ def check_new_run_dir(run_dir) -> None:
     and holds files of a run's names: the user's ``config.json``, ``metrics.json``, ``lights.json`` and
     ``triplets.ply`` were replaced (battery 10). A triplet run there is replaced (the CLI's ``--overwrite``)."""
     from .errors import RunError
-    from .runs import is_run_dir
+    from .runs import is_run_dir, stillborn_run_leftovers
 
     run_dir = Path(run_dir)
-    if not run_dir.is_dir() or is_run_dir(run_dir):
+    if not run_dir.is_dir() or is_run_dir(run_dir) or stillborn_run_leftovers(run_dir):  # (the CLI clears those)
         return
     found = [n for n in RUN_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()]
     if found:
@@ -970,6 +971,7 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.device = device or get_device()
         self.quiet = quiet
+        self.view_progress = not quiet  # a bar per rendered view on a terminal (render / eval / extract set it)
         if resume:
             from .runs import config_from_saved, read_run_config
 
@@ -1460,7 +1462,8 @@ class Trainer:
         vis = self.final_visibility()
         from .runs import view_progress
 
-        for v, fname in view_progress(zip(views, render_files(views), strict=True), f"render {split}", self.quiet):
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), f"render {split}",
+                                      not self.view_progress):
             r = render(self.scene, v.camera, settings, self.device, vis=vis)
             target = v.target(bg)
             img = np.clip(r.image, 0, 1)

@@ -580,10 +580,22 @@ def check_render_out(trainer, split: str, out, option: str) -> None:
     if taken:  # the run's own renders too: found only after rendering, under the temporary file's name
         raise UsageError(option, f"{Path(out) / taken[0]} is a folder where a render goes: move it away")
     own = trainer.run_dir / "renders" / split
-    if Path(out).resolve() != own.resolve() or linked_within(trainer.run_dir, own):
+    linked = linked_within(trainer.run_dir, own)
+    if Path(out).resolve() != own.resolve() or linked:
         # a run's renders/SPLIT that is (or lies under) a link is the linked folder's, as --overwrite judges it:
         # `render RUN` replaced a user's r_0.png through such a link (battery 9)
-        check_output_files(out, names, option)
+        try:
+            check_output_files(out, names, option)
+        except UsageError:
+            if not linked:
+                raise
+            from .runs import foreign_files
+
+            found = foreign_files(out, names)
+            raise UsageError(option, f"{own} leads (through a link) to {Path(out).resolve()}, which holds {found[0]}"
+                                     f"{f' and {len(found) - 1} more' if len(found) > 1 else ''} with no record that "
+                                     "triplet wrote them (a linked folder keeps a .triplet-output list once triplet "
+                                     "writes there): move or delete them, or remove the link") from None
         from .runs import mark_output_dir
 
         mark_output_dir(out, names)  # the checks passed: these files are triplet's from now on

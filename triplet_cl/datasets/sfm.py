@@ -209,9 +209,7 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
         summary.update({"images_dir": str(images_dir.resolve()), "width": width, "height": height})
         (work / "sfm.json").write_text(json.dumps(summary, indent=1) + "\n")
         (work / WORK_PID).unlink()
-        mask = os.umask(0)  # mkdtemp made the folder 0700: the dataset gets the user's usual mode (battery 9)
-        os.umask(mask)
-        work.chmod(0o777 & ~mask)
+        work.chmod(0o777 & ~_umask())  # mkdtemp made it 0700: the dataset gets the user's usual mode (battery 9)
         if out_dir.exists():  # an empty folder (checked above)
             out_dir.rmdir()
         os.replace(work, out_dir)
@@ -275,6 +273,19 @@ def remove_dead_work_dirs(out_dir) -> list[Path]:
     return removed
 
 
+def _umask() -> int:
+    """The process's umask, read from /proc where it can be (setting it to read it leaves a window for threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 HEARTBEAT_S = 20.0  # seconds between the progress lines of a long COLMAP call
 
 
@@ -291,7 +302,10 @@ def _heartbeat(say, what: str, done=None, total: int | None = None, every: float
         while not stop.wait(every):
             k = done() if done is not None else None
             count = f", {k} of {total} photos" if k is not None and total else ""
-            say(f"  {what}: {time.perf_counter() - t0:.0f} s{count}")
+            try:
+                say(f"  {what}: {time.perf_counter() - t0:.0f} s{count}")
+            except (OSError, ValueError):  # stdout gone (a closed pipe): the main thread reports it, once
+                return
 
     th = threading.Thread(target=beat, daemon=True)
     th.start()
@@ -307,7 +321,8 @@ def _rows(db: Path, table: str) -> int | None:
     import sqlite3
 
     try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)
+        # (as_uri escapes a '?' or '#' in the path: unescaped, SQLite opened, and made, the path cut there read-write)
+        con = sqlite3.connect(Path(db).absolute().as_uri() + "?mode=ro", uri=True, timeout=0.1)
         try:
             return int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
         finally:

@@ -1315,7 +1315,8 @@ class MeshStage:
         vis = self.visibility(scene)
         bounce = self.bounce(scene, vis)
         per = []
-        for v, fname in view_progress(zip(views, render_files(views), strict=True), "render mesh", tr.quiet):
+        for v, fname in view_progress(zip(views, render_files(views), strict=True), "render mesh",
+                                      not getattr(tr, "view_progress", not tr.quiet)):
             _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis, bounce=bounce)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
