@@ -137,7 +137,11 @@ def _library_stderr():
     with _stderr_lock:
         outer = _stderr_depth == 0
         _stderr_depth += 1
-    if not outer:
+    saved = None
+    if outer:
+        with contextlib.suppress(OSError):  # no stderr at all (closed: `2>&-`, a daemon): nothing to hold back
+            saved = os.dup(2)
+    if saved is None:  # nested, or nothing to redirect
         try:
             yield
         finally:
@@ -145,15 +149,6 @@ def _library_stderr():
                 _stderr_depth -= 1
         return
     failed = False
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr at all (closed by the caller: `2>&-`, a daemon): nothing to hold back
-        try:
-            yield
-        finally:
-            with _stderr_lock:
-                _stderr_depth -= 1
-        return
     with tempfile.TemporaryFile() as tmp:
         if sys.stderr is not None:
             sys.stderr.flush()
