@@ -93,3 +93,18 @@ class NonFiniteError(TripletError):
     def __str__(self) -> str:
         return (f"non-finite {self.what} in parameter group {self.group!r} at iteration {self.iteration}: "
                 f"{self.cause}")
+
+
+def is_utf8(text: str) -> bool:
+    """Whether ``text`` (a path or name from the OS) is UTF-8 text: bytes of another encoding reach Python as
+    surrogates, which OpenImageIO cannot take (battery 10)."""
+    try:
+        text.encode("utf-8")
+        return True
+    except UnicodeEncodeError:
+        return False
+
+
+def shown_text(text: str) -> str:
+    """``text`` printable in a message, a non-UTF-8 byte as ``\\xNN``."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")

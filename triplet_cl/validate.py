@@ -15,7 +15,7 @@ import os
 from dataclasses import replace
 from pathlib import Path
 
-from .errors import RunError, UsageError
+from .errors import RunError, UsageError, is_utf8, shown_text
 
 K_LIMIT = 1024  # ops.raster.K_LIMIT (not imported: validation must not load the OpenCL layers)
 TSDF_BYTES_PER_VOXEL = 64  # mesh.extract.tsdf_fusion: float64 grid, float32 centres, 2 float32 + 3 int32 sums
@@ -672,13 +672,10 @@ def _check_utf8_paths(args) -> None:
     for dest, value in sorted(vars(args).items()):
         if not isinstance(value, str):
             continue
-        try:
-            value.encode("utf-8")
-        except UnicodeEncodeError:
-            shown = value.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        if not is_utf8(value):
             raise UsageError(positional.get(dest, "--" + dest.replace("_", "-")),
-                             f"{shown} holds bytes that are not UTF-8 text (a name from another encoding): the image "
-                             "library cannot open such a path; rename it in UTF-8") from None
+                             f"{shown_text(value)} holds bytes that are not UTF-8 text (a name from another encoding): "
+                             "the image library cannot open such a path; rename it in UTF-8")
         if dest == "out" and (value == "~" or value.startswith("~/")):  # quoted: the shell did not expand it, and a
             # folder named "~" was made in the current folder, printed as if it were the home folder (battery 10)
             raise UsageError("--out", f"{value} starts with '~', which the shell did not expand (quoted, or after "

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import DatasetError, is_utf8, shown_text
 from .images import IMAGE_EXTENSIONS
 
 # the formats COLMAP's image reader (FreeImage) takes among ours
@@ -74,10 +74,10 @@ def list_photos(folder) -> list[Path]:
     # the whole folder was refused, battery 10); other hidden files are no photos either
     photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SFM_EXTENSIONS
                     and not p.name.startswith("."))
-    bad = [p.name for p in photos if not _utf8(p.name)]
+    bad = [p.name for p in photos if not is_utf8(p.name)]
     if bad:
         raise DatasetError(folder, f"{len(bad)} photo name(s) hold bytes that are not UTF-8 text (e.g. "
-                                   f"{_shown(bad[0])}): the image library cannot open them; rename them in UTF-8")
+                                   f"{shown_text(bad[0])}): the image library cannot open them; rename them in UTF-8")
     if not photos:
         others = sorted(p.name for p in folder.iterdir())[:3]
         found = f"found {', '.join(others)}{', ...' if len(others) == 3 else ''}" if others else "the folder is empty"
@@ -98,24 +98,13 @@ def _warn_left_out(folder: Path) -> None:
     dead = [e.name for e in entries if e.is_symlink() and not e.exists() and e.suffix.lower() in SFM_EXTENSIONS]
     if dead:
         warnings.warn(DatasetWarning(f"{folder}: {len(dead)} photo link(s) lead nowhere and are left out (e.g. "
-                                     f"{_shown(dead[0])})"), stacklevel=3)
+                                     f"{shown_text(dead[0])})"), stacklevel=3)
     nested = [e.name for e in entries if e.is_dir() and not e.name.startswith(".") and _has_photos(e)]
     if nested:
-        warnings.warn(DatasetWarning(f"{folder}: the photos in the subfolder(s) {', '.join(map(_shown, nested[:3]))}"
+        shown = ", ".join(map(shown_text, nested[:3]))
+        warnings.warn(DatasetWarning(f"{folder}: the photos in the subfolder(s) {shown}"
                                      f"{' ...' if len(nested) > 3 else ''} are not used (only the folder's own photos "
                                      "are): move them up to use them"), stacklevel=3)
-
-
-def _utf8(name: str) -> bool:
-    try:
-        name.encode("utf-8")
-        return True
-    except UnicodeEncodeError:
-        return False
-
-
-def _shown(name: str) -> str:
-    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def _has_photos(folder: Path) -> bool:

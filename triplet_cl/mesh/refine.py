@@ -1316,7 +1316,7 @@ class MeshStage:
         bounce = self.bounce(scene, vis)
         per = []
         for v, fname in view_progress(zip(views, render_files(views), strict=True), "render mesh",
-                                      not getattr(tr, "view_progress", not tr.quiet)):
+                                      not tr.view_progress):
             _, img, alpha = self.render(scene, v.camera, bg, self.cfg.eval_supersample, vis=vis, bounce=bounce)
             target = v.target(bg)
             img = np.clip(img, 0, 1)
