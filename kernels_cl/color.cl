@@ -25,19 +25,28 @@
  * unclipped slope: on spot under a bright environment (54 % of the object clipped) the mesh stage's point light
  * went inside the object at 4x its intensity (mesh NVS 36.4 -> 26.1 dB).
  *
- * The root r_c = u_c^(1/2.4) (0 on the linear segment) is the only transcendental of either pass (exp2 and
- * log2: ~10 ns a channel on PoCL's CPU device, most of both kernels' time). With KEEP_ROOT the forward
- * writes it out ([H*W, 3]) and with HAS_ROOT the adjoint reads it back instead of computing it again:
- * the same values, bit for bit (u is computed by the same expression in both passes).
+ * The root r_c = u_c^(1/2.4) (0 on the linear segment) is the only transcendental of either pass (as the
+ * builtins exp2 and log2, ~10 ns a channel on PoCL's CPU device, most of both kernels' time; see srgb_root
+ * below for what it is now). With KEEP_ROOT the forward writes it out ([H*W, 3]) and with HAS_ROOT the
+ * adjoint reads it back instead of computing it again: the same values, bit for bit (u is computed by the
+ * same expression in both passes).
  */
 #include "real.h"
+#include "fast_math.h"
 
 #define SRGB_KNEE ((REAL)0.0031308)
 
-/* u^(1/2.4) for u > 0 as exp2(log2(u) / 2.4): PoCL's generic pow() measured 0.2 us per call on
- * the CPU (27 ms for one 200x200 forward); exp2/log2 vectorise */
+/* u^(1/2.4) for u > 0. PoCL's generic pow() measured 0.2 us per call on the CPU (27 ms for one 200x200
+ * forward), and its log2 / exp2 are scalar library calls too (fast_math.h): in float, exp(log2(u) ln2 / 2.4)
+ * with fast_math.h's log2 (exp vectorises): relative error against float64 at most 3.1e-7 from the knee to 1e4,
+ * where exp2(log2(u) / 2.4) measured 4.2e-7 (tests/test_fast_math.py); in double (the float64 checks) the
+ * builtins. */
 inline REAL srgb_root(const REAL u) {
+#ifdef REAL_FP64
     return exp2(log2(u) * (REAL)(1.0 / 2.4));
+#else
+    return exp(tl_log2(u) * (REAL)(0.69314718055994530942 / 2.4));
+#endif
 }
 
 inline REAL srgb_s(const REAL u) {
@@ -52,6 +61,9 @@ inline REAL srgb_ds(const REAL u) {
     return u <= SRGB_KNEE ? (REAL)12.92 : (REAL)(1.055 / 2.4) * srgb_root(u) / u;
 }
 
+/* One work-item per channel value (global size 3 npix): consecutive work-items read and write consecutive
+ * values, so the work-group loop vectorises (one work-item per pixel, with its three channels, did not:
+ * 2.4 -> 0.8 ms at 200x200 with the root of fast_math.h, bench/results/fast_math_pocl_2026-11-28.txt). */
 __kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear premultiplied radiance
                                  __global const REAL* A,   // [H*W]    accumulated alpha
                                  const REAL bg0, const REAL bg1, const REAL bg2, const REAL eps,
@@ -61,29 +73,28 @@ __kernel void srgb_composite_fwd(__global const REAL* C,   // [H*W, 3] linear pr
 #endif
                                  __global REAL* out)       // [H*W, 3] encoded, over bg
 {
-    const int p = get_global_id(0);
-    if (p >= npix) return;
+    const int i = get_global_id(0);
+    if (i >= 3 * npix) return;
+    const int p = i / 3, c = i - 3 * p;
     const REAL a = A[p];
     const REAL ad = fmax(a, eps);
-    const REAL bg[3] = {bg0, bg1, bg2};
-    for (int c = 0; c < 3; ++c) {
-        const REAL u = C[p * 3 + c] / ad;
+    const REAL bg = c == 0 ? bg0 : (c == 1 ? bg1 : bg2);
+    const REAL u = C[i] / ad;
 #ifdef KEEP_ROOT
-        /* srgb_s(u) from the root the adjoint reads back (the same expressions: bit for bit) */
-        const int lin = u <= SRGB_KNEE;
-        const REAL r = lin ? (REAL)0 : srgb_root(u);
+    /* srgb_s(u) from the root the adjoint reads back (the same expressions: bit for bit) */
+    const int lin = u <= SRGB_KNEE;
+    const REAL r = lin ? (REAL)0 : srgb_root(u);
 #ifdef SRGB_CLIP
-        const int sat = u >= (REAL)1;
+    const int sat = u >= (REAL)1;
 #else
-        const int sat = 0;
+    const int sat = 0;
 #endif
-        const REAL sv = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
-        root[p * 3 + c] = r;
+    const REAL sv = sat ? (REAL)1 : (lin ? (REAL)12.92 * u : (REAL)1.055 * r - (REAL)0.055);
+    root[i] = r;
 #else
-        const REAL sv = srgb_s(u);
+    const REAL sv = srgb_s(u);
 #endif
-        out[p * 3 + c] = a * sv + ((REAL)1 - a) * bg[c];
-    }
+    out[i] = a * sv + ((REAL)1 - a) * bg;
 }
 
 __kernel void srgb_composite_bwd(__global const REAL* C,     // [H*W, 3]

@@ -58,7 +58,7 @@ def srgb_composite(dev: Device, C: cla.Array, A: cla.Array, bg, eps: float = ALP
     root = device_empty(dev.queue, C.shape, real, allocator=dev.allocator) if keep_root else None
     if n:
         t = real.type
-        g, loc = grid_1d(n)
+        g, loc = grid_1d(3 * n)  # a work-item per channel value (color.cl)
         defines = {**(_defines(clip) or {}), "KEEP_ROOT": keep_root}
         dev.kernel("color", "srgb_composite_fwd", defines=defines, real=real)(
             dev.queue, g, loc, C.data, A.data, *(t(x) for x in _bg3(bg)), t(eps), np.int32(n),

@@ -18,6 +18,8 @@ import pyopencl.array as cla
 from ..device import Device
 from .common import device_rows, grid_1d, launch
 
+VA_LANES = 8  # vertices per work-item of vertex_attr_fwd (vertex_attr.cl: its activations as REAL8 lanes)
+
 
 def attr_defines(nmat: int, softplus_cols, face_nrm: bool, has_vlight: bool, nconst: int = 0) -> dict:
     """The build defines of ``vertex_attr.cl`` (softplus channels as a bit mask; ``nconst`` constant
@@ -60,9 +62,8 @@ def vertex_attr(dev: Device, V: cla.Array, nrm: cla.Array, mat_raw: cla.Array, a
         args["vlight"] = vlight
     if const is not None:
         args["cst"] = const
-    launch(dev, "vertex_attr", "vertex_attr_fwd", *grid_1d(N), defines=attr_defines(nmat, softplus_cols, face_nrm,
-                                                                                      vlight is not None, nconst),
-           real=real, **args)
+    defines = attr_defines(nmat, softplus_cols, face_nrm, vlight is not None, nconst)
+    launch(dev, "vertex_attr", "vertex_attr_fwd", *grid_1d(-(-N // VA_LANES)), defines=defines, real=real, **args)
     return attr
 
 
