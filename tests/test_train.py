@@ -13,7 +13,15 @@ from triplet_cl.cli.main import demo_data_path
 from triplet_cl.cli.main import main as cli_main
 
 from triplet_cl.density import DensityConfig
-from triplet_cl.train import TrainConfig, Trainer, look_at_center, schedule, triangles_from_points
+from triplet_cl.train import (
+    TrainConfig,
+    Trainer,
+    look_at_center,
+    mean_abs_error,
+    over_background,
+    schedule,
+    triangles_from_points,
+)
 
 DEMO = demo_data_path()
 
@@ -1031,3 +1039,18 @@ def test_a_very_small_capture_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", DatasetWarning)
         Trainer(DEMO, tmp_path / "b", cfg, quiet=True)
+
+
+@pytest.mark.parametrize("shape", [(200, 200), (7, 13), (1, 1)])
+def test_target_composite_and_error_map_are_numpys_bits(shape):
+    """The training target over its background and the density's error map, written on flat arrays for speed, give
+    the bits (and dtype) of numpy's broadcast expressions they replace, for float32 and float64 backgrounds."""
+    rng = np.random.default_rng(3)
+    rgb, alpha = rng.random((*shape, 3), dtype=np.float32), rng.random(shape, dtype=np.float32)
+    for bg in (rng.random(3), rng.random(3).astype(np.float32)):
+        want = rgb * alpha[..., None] + bg[None, None, :] * (1 - alpha[..., None])
+        got = over_background(rgb, alpha, bg)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    other = rng.random((*shape, 3), dtype=np.float32)
+    err = mean_abs_error(rgb, other)
+    assert err.dtype == np.float32 and np.array_equal(err, np.abs(rgb - other).mean(axis=2))

@@ -798,12 +798,15 @@ def initial_scene(cfg: TrainConfig, ds: Dataset, rng: np.random.Generator) -> Sc
     return Scene.from_arrays(V, F, lights=lights, vertex_sh=vsh, brdf=cfg.brdf)
 
 
-def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float) -> Adam:
-    """Adam with one group per parameter family and the configured learning-rate schedules."""
-    # numpy, not Adam(device=...): with the parameters on the host the kernel measured slower on PoCL
-    # (a launch per parameter, buffer set-up, hand-offs to the pool threads vs ~2.5 ms of numpy at 60k
-    # vertices); tests/test_optim.py keeps it bit for bit for when the parameters live on the device
-    opt = Adam()
+def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float, device=None) -> Adam:
+    """Adam with one group per parameter family and the configured learning-rate schedules; with a CPU ``device``
+    the update of each parameter without ``lr_scale`` runs as ``adam.cl`` there (bit for bit numpy's update)."""
+    # on a CPU device the kernel reads and writes the numpy arrays in place (USE_HOST_PTR) in one vectorised pass
+    # on the device's threads, where numpy makes eleven single-threaded passes: the update phase of a spot 200²
+    # step 12.7-13.2 -> 11.5-11.9 ms in three interleaved pairs, the same bits (session 57; earlier, with more host
+    # work around it, it had measured no faster). A GPU would copy the parameters both ways every step: unmeasured
+    # there, it keeps numpy
+    opt = Adam(device=device if device is not None and device.is_cpu else None)
     kw = {"betas": tuple(cfg.betas), "eps": cfg.adam_eps}
     opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
                                                       cfg.lr_position_steps), **kw)
@@ -872,6 +875,22 @@ def _downsample(img: np.ndarray, f: int) -> np.ndarray:
     return x.mean(axis=(1, 3)).astype(np.float32)
 
 
+def over_background(rgb: np.ndarray, alpha: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``rgb [H, W, 3]`` (float32) over ``background [3]`` by ``alpha [H, W]``: ``rgb·a + bg·(1 − a)``, the same
+    operations and bits as numpy's broadcast ``rgb * alpha[..., None] + bg * (1 - alpha[..., None])``, on flat arrays
+    (alpha repeated per channel): a broadcast over a last axis of 3 runs numpy's inner loops 3 values at a time,
+    2.0 -> 1.0 ms at 200² (a training step composites its target every step)."""
+    background = np.asarray(background)
+    if not rgb.dtype == alpha.dtype == background.dtype:  # numpy's promotions: its own expression
+        return rgb * alpha[..., None] + background[None, None, :] * (1 - alpha[..., None])
+    a3 = np.repeat(alpha.reshape(-1), 3)
+    out = rgb.reshape(-1) * a3
+    np.subtract(1, a3, out=a3)
+    a3 *= np.tile(background, alpha.size)
+    out += a3
+    return out.reshape(rgb.shape)
+
+
 class Targets:
     """Training images at each scheduled resolution (block-averaged once, cached)."""
 
@@ -891,7 +910,7 @@ class Targets:
         cam, rgb, alpha = self.cache[key]
         if alpha is None:
             return cam, rgb
-        return cam, rgb * alpha[..., None] + background[None, None, :] * (1 - alpha[..., None])
+        return cam, over_background(rgb, alpha, background)
 
     def keep_only(self, scale: float) -> None:
         """Drop the images cached at every other scale (a phase that trains at ``scale`` only)."""
@@ -933,6 +952,18 @@ def same_cameras(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.abs(a[:, 4:7] - b[:, 4:7]).max() <= 1e-5 * spread
                 and (a[:, 7:10] * b[:, 7:10]).sum(axis=1).min() >= np.cos(np.radians(0.01))
                 and np.abs(a[:, :4] - b[:, :4]).max() <= 1e-2 * np.abs(a[:, :2]).max())
+
+
+def mean_abs_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``[H, W]``: ``|a − b|`` averaged over the 3 channels, the bits of ``np.abs(a - b).mean(axis=2)`` (numpy sums
+    an axis of 3 as ``(d0 + d1) + d2`` and divides by 3) in a fifth of its time (1.5 -> 0.3 ms at 200²: a reduction
+    over a last axis of 3 is slow in numpy)."""
+    d = np.subtract(a, b)
+    np.abs(d, out=d)
+    s = d[..., 0] + d[..., 1]
+    s += d[..., 2]
+    s /= d.dtype.type(3)
+    return s
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -1069,7 +1100,7 @@ class Trainer:
 
             self.scene.material.data[:, get_brdf(self.scene.brdf).column("metallic")] = logit(metallic)
         copy_ambient(self.scene.material, self.ambient_pairs)
-        self.opt = build_optimizer(self.cfg, self.scene, self.extent)
+        self.opt = build_optimizer(self.cfg, self.scene, self.extent, self.device)
         self.split_error = np.full(len(self.scene.F), np.inf)  # per-face error records (error_resplit_ratio)
         self.spatial_sort()
         self.stats = DensityStats(len(self.scene.F))
@@ -1168,7 +1199,7 @@ class Trainer:
             # visibility and the nearest faces from the fragments on the device (face_visibility.cl): only
             # [M] bytes and the [H, W] map come down, not the [P] face ids (density.py's host functions are
             # the reference, bit for bit)
-            err = np.abs(r.image - target).mean(axis=2) if dens.error_threshold is not None else None
+            err = mean_abs_error(r.image, target) if dens.error_threshold is not None else None
             self.stats.add(r.info["v_vs"].get(), visible_faces(fr.face, len(self.scene.F), device=self.device),
                            self.scene.F, vs=r.info["vs"].get(), image_size=(cam.width, cam.height),
                            v_V=self.scene.V.grad, grad_scale=0.5 * cam.width, device=self.device, error=err,
