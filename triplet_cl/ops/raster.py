@@ -33,7 +33,17 @@ import pyopencl.array as cla
 
 from ..device import Device
 from .binning import SETUP, TILE, Binning, bin_faces, check_soft_edges
-from .common import check_contiguous, check_real, check_shape, device_empty, device_head, launch, real_of, to_device
+from .common import (
+    check_contiguous,
+    check_real,
+    check_shape,
+    device_empty,
+    device_head,
+    grid_1d,
+    launch,
+    real_of,
+    to_device,
+)
 from .fragment_bwd import MOMENTS, corners_to_vertices, fragments_backward, gather_to_vertices, raster_backward
 from .fragments import Fragments, frag_input, read_fragments, valid_faces
 from .mesh import DeviceMesh
@@ -123,7 +133,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
            frag_entry=s_entry, frag_depth=s_depth, frag_count=count)
     off, P, out = _packed_arrays(device, count, real, bool(sigma))
     if P:
-        launch(device, "raster", "pack_raster_fragments", (npx,), None, defines={"TILE": TILE, "WINDOW": bool(sigma)},
+        launch(device, "raster", "pack_raster_fragments", *grid_1d(npx), defines={"TILE": TILE, "WINDOW": bool(sigma)},
                real=real, width=width, height=height, K=K, sigma=sigma or 0.0, count=count, off=off,
                s_entry=s_entry, s_depth=s_depth, entry_face=b.entry_face, entry_setup=b.entry_setup,
                **_pack_outputs(out))
