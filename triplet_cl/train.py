@@ -836,10 +836,15 @@ def tie_rows(param, columns=None) -> None:
     g = param.grad
     if g is None or not len(g):
         return
+    # the mean of the rows as one BLAS product with a ones vector: 10x faster than numpy's mean over axis 0 of a
+    # [60k, 6] float32 array (0.16 against 1.5 ms; it ran every step of the light phase) and closer to the float64
+    # mean (numpy adds the rows one after another in float32: 1e-5 relative against 2e-6)
+    x = np.asarray(g) if columns is None else np.asarray(g[:, columns])
+    mean = (np.ones(len(x), x.dtype) @ x.reshape(len(x), -1)).reshape(1, *x.shape[1:]) / x.dtype.type(len(x))
     if columns is None:
-        g[...] = np.asarray(g).mean(axis=0, keepdims=True)
+        g[...] = mean
     else:
-        g[:, columns] = np.asarray(g[:, columns]).mean(axis=0, keepdims=True)
+        g[:, columns] = mean
 
 
 # ------------------------------------------------------------------------------------------------ schedules
