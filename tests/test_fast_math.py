@@ -37,11 +37,12 @@ def _log2_both(device, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def test_log2_is_as_accurate_as_the_builtin(device):
     """tl_log2 over every binade of the normal floats (dense, and at the mantissa split sqrt(2), powers of two and
     the largest float) against float64: within 6e-7 + 0.5 ulp of the result, and no worse than the builtin's
-    own largest error on the same values (+10 %); +inf stays +inf."""
+    own largest error on the same values (+10 %); +inf and NaN stay as they are."""
     x = np.geomspace(np.float32(1.2e-38), np.float32(3e38), 400_003).astype(np.float32)
     specials = np.array([1, 2, 0.5, 1.4142135, 1.4142137, 0.70710677, 3.4028235e38, 1.1754944e-38, 0.0031308],
                         np.float32)
-    x = np.concatenate([x, specials, np.nextafter(specials, np.float32(np.inf))])
+    with np.errstate(over="ignore"):  # the largest float's successor is inf (dropped below)
+        x = np.concatenate([x, specials, np.nextafter(specials, np.float32(np.inf))])
     x = x[np.isfinite(x) & (x > 0)]
     ours, builtin = _log2_both(device, x)
     ref = np.log2(x.astype(np.float64))
@@ -50,8 +51,19 @@ def test_log2_is_as_accurate_as_the_builtin(device):
     # the same bound measured against the builtin on the values it is used for (the sRGB root's u in [knee, 1e6])
     near = (x >= 0.0031308) & (x <= 1e6)
     assert err[near].max() <= 1.1 * err_builtin[near].max() + 1e-9, (err[near].max(), err_builtin[near].max())
-    inf, _ = _log2_both(device, np.array([np.inf, 1.0], np.float32))
-    assert inf[0] == np.inf and inf[1] == 0.0
+    odd, _ = _log2_both(device, np.array([np.inf, 1.0, np.nan], np.float32))
+    assert odd[0] == np.inf and odd[1] == 0.0 and np.isnan(odd[2])
+
+
+def test_a_nan_render_stays_nan_through_the_srgb_encoding(device):
+    """A NaN (or +inf) linear colour comes out of the sRGB compositing non-finite, as with the builtins: the training's
+    finiteness check on the rendered image sees it."""
+    C = cla.to_device(device.queue, np.array([[np.nan, 0.5, np.inf]], np.float32))
+    A = cla.to_device(device.queue, np.ones(1, np.float32))
+    for keep in (False, True):
+        out = color.srgb_composite(device, C, A, (1.0, 1.0, 1.0), keep_root=keep)
+        out = (out[0] if keep else out).get()
+        assert np.isnan(out[0, 0]) and np.isfinite(out[0, 1]) and not np.isfinite(out[0, 2])
 
 
 def test_srgb_root_relative_error(device):

@@ -12,9 +12,8 @@
  * s = f / (2 + f), ln m = f - (f²/2 - s (f²/2 + R(s²))) with the degree-4 minimax polynomial R of
  * FreeBSD's e_logf.c (its published coefficients Lg1..Lg4, as musl's logf uses them), then
  * log2 x = e + ln m / ln 2. Error against float64 within 6e-7 + 6e-8 |log2 x| over every normal float, and
- * no larger than the builtin's on [1e-3, 1e6] (tests/test_fast_math.py). +inf gives +inf; zero, negative,
- * subnormal and NaN inputs are outside its contract (callers guard them: color.cl calls it above the sRGB
- * knee).
+ * no larger than the builtin's on [1e-3, 1e6] (tests/test_fast_math.py). +inf gives +inf and NaN gives NaN;
+ * zero, negative and subnormal inputs are outside its contract (color.cl calls it above the sRGB knee).
  */
 #ifndef TRIPLET_FAST_MATH_H
 #define TRIPLET_FAST_MATH_H
@@ -35,7 +34,8 @@ inline float tl_log2(const float x)
     const float hfsq = 0.5f * f * f;
     const float lnm = f - (hfsq - s * (hfsq + (t2 + t1)));
     const float r = (float)e + lnm * 1.44269504089f;
-    return isinf(x) ? x : r;
+    return isfinite(x) ? r : x;  /* +inf stays +inf and NaN stays NaN (as the builtin): a NaN render must not turn
+                                  * into a finite colour past the training's finiteness check */
 }
 
 #endif /* TRIPLET_FAST_MATH_H */
