@@ -159,8 +159,16 @@ def test_joint_recovery_of_light_direction_albedo_colour_and_level(synthetic):
     assert err < 0.01, f"the fit itself failed (RMSE {err:.4f})"
     last = states[-300:]
     assert min(x[4] for x in last) >= 0, "a negative light"
-    ambient = np.mean([x[0] for x in last])
-    assert ambient < 0.04, f"ambient light {ambient:.3f} (started at 0.1, truth 0)"
+    # The ambient is judged on the last 750 steps against its start. Under one light a constant ambient is exactly
+    # absorbed by the per-vertex albedo (ρ' = ρ·E/(E + a) at each vertex), so only the 0.02 ambient prior pulls it
+    # down, and its level is a random walk of Adam's steps around ~0.03 (0.01-0.19 over 150-step windows). Session 57
+    # measured 10 view orders with the code of two commits: the mean of the last 300 steps ranged 0.014-0.137 and
+    # the former bound 0.04 on it passed about half the orders on either commit (seed 0 passed on one, failed on the
+    # other; the fits themselves, RMSE 0.003-0.01, and the direction, level and colour below are unaffected); the
+    # mean of the last 750 steps, recorded in 8 of those runs, stayed within 0.024-0.072
+    # (bench/results/recovery_ambient_pocl_2026-11-28.txt)
+    ambient = np.mean([x[0] for x in states[-750:]])
+    assert ambient < 0.1, f"ambient light {ambient:.3f} (started at 0.1, truth 0)"
     pos = np.mean([x[2] for x in last], axis=0)
     ang = np.degrees(np.arccos(np.clip(pos @ TRUE_POS / np.linalg.norm(pos) / np.linalg.norm(TRUE_POS), -1, 1)))
     assert ang < 5.0, f"light direction off by {ang:.1f} deg ({pos})"
