@@ -836,12 +836,13 @@ def tie_rows(param, columns=None) -> None:
     g = param.grad
     if g is None or not len(g):
         return
-    # the column sums by einsum: 3.7x faster than numpy's mean over axis 0 of a [60k, 6] float32 array (0.47 against
-    # 1.76 ms; it runs every step of the light phase), as accurate (1e-5 relative to the float64 mean). Not a BLAS
-    # product with a ones vector (0.24 ms, 2e-6): OpenBLAS's threads then spin beside the OpenCL CPU device's and
-    # slowed the demo's metallic probe from 7.5 to 9.3-10.1 s (session 57)
+    # the mean of the rows as one BLAS product with a ones vector: 10x faster than numpy's mean over axis 0 of a
+    # [60k, 6] float32 array (0.16 against 1.5 ms; it ran every step of the light phase) and closer to the float64
+    # mean (numpy adds the rows one after another in float32: 1e-5 relative against 2e-6). OpenBLAS's threads may spin
+    # beside the OpenCL CPU device's: the demo's metallic probe read 9.3-10.1 s in two runs against 7.2-7.9 s before,
+    # and 7.5 s with OPENBLAS_NUM_THREADS=1, but the code before also read 11.6 s once: not settled (session 57)
     x = np.asarray(g) if columns is None else np.asarray(g[:, columns])
-    mean = (np.einsum("ij->j", x.reshape(len(x), -1)) / x.dtype.type(len(x))).reshape(1, *x.shape[1:])
+    mean = (np.ones(len(x), x.dtype) @ x.reshape(len(x), -1)).reshape(1, *x.shape[1:]) / x.dtype.type(len(x))
     if columns is None:
         g[...] = mean
     else:
