@@ -11,145 +11,177 @@
  * FP_CONTRACT is off, so no a·b + c is fused; the float32 quotients are taken in double and rounded once
  * (a correctly rounded float division whatever the device's float division). Needs cl_khr_fp64.
  *
- * Pixel (y, x, c) lives at (y·W + x)·C + c; maps are [K, H, W, C] planes of n = H·W·C values.
- *   ssim_x_maps:    src = {x, y, x², y², xy};  ssim_x_rows_e: tmp[k] = G_rows * src[k]         (k < 5)
- *   ssim_x_fwd_h_e: μx, μy, sxx, syy, sxy = G_cols * tmp; the SSIM map m (out) and, for the adjoint seed g,
- *                   d[0] = ∂μx, d[1] = ∂B2, d[2] = 2·∂A2                                  (_ssim_bwd's maps)
- *   ssim_x_rows_e:  tmp[k] = G_rows * d[k]                                                 (k < 3)
- *   ssim_x_bwd_h_e: F = G_cols * tmp; v_x = sign(x − y)·l1 + ((F0 + (2x)·F1) + y·F2)
- * One work-item per value (the _e kernels: 2D, x the W·C values of a row, y the row; scalar, the loops unrolled), so
- * that PoCL vectorises them across work-items: it left the earlier per-pixel kernels (a run-time channel and map loop
- * inside, conditional loads) scalar, 2.3-3.2x slower at 96² and 200²
- * (bench/results/ssim_vectorize_pocl_2026-11-27.txt).
+ * Pixel (y, x, c) of an image lives at (y·W + x)·C + c (row = W·C values). The maps live in a padded layout,
+ * [K, H + 2R, S] (R = RADIUS), the value (y, j) of map k at (k·(H + 2R) + y + R)·S + MC + j with MC = R·C zeros
+ * before each row and S ≥ 2·MC + row a multiple of 8 (zeros after it), R rows of zeros above and below: the zero
+ * padding of both passes is then in memory, and a pass reads its 11 taps without a bound test or a select (adding the
+ * 0.0 the reference adds outside: the same bits).
+ *   ssim_x_maps8:  src = {x, y, x², y², xy} (padded, pads written 0)
+ *   ssim_x_rows8:  tmp[k] = G_rows * src[k], k < KMAPS (5, then 3), [K, H, S] after a margin of MC values
+ *   ssim_x_fwd8:   μx, μy, sxx, syy, sxy = G_cols * tmp; the SSIM map m (out, [H, W, C]) and, for the adjoint seed
+ *                  g, d[0] = ∂μx, d[1] = ∂B2, d[2] = 2·∂A2 (padded, pads written 0)       (_ssim_bwd's maps)
+ *   ssim_x_rows8:  tmp[k] = G_rows * d[k]                                                 (k < 3)
+ *   ssim_x_bwd8:   F = G_cols * tmp; v_x = sign(x − y)·l1 + ((F0 + (2x)·F1) + y·F2)        ([H, W, C])
+ * Each work-item computes 8 consecutive values of a padded row as vector lanes (double8 / float8: every lane the
+ * scalar operations above): 2.8-3.7x the pass of one work-item per value, which PoCL vectorised across work-items
+ * but with the bound tests and selects (bench/results/ssim_exact_lanes_pocl_2026-11-29.txt).
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
 #define RADIUS 5
 
-static inline float fdiv(const float a, const float b) { return (float)((double)a / (double)b); }
-
-__kernel void ssim_x_maps(__global const float* x, __global const float* y,  // [H, W, C] = n values
-                          const int n,
-                          __global float* src)                                // [5, n]: x, y, x², y², xy
+/* The 8 values j0 … j0 + 7 of an image row of n values (0.0 outside [0, n)). */
+static inline float8 load_row8(__global const float* row, const int j0, const int n)
 {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    const float a = x[i], b = y[i];
-    src[i] = a;
-    src[n + i] = b;
-    src[2 * n + i] = a * a;  // float32 products, as numpy's
-    src[3 * n + i] = b * b;
-    src[4 * n + i] = a * b;
+    if (j0 >= 0 && j0 + 8 <= n) return vload8(0, row + j0);
+    float v[8];
+    for (int e = 0; e < 8; ++e) {
+        const int j = j0 + e;
+        v[e] = (j >= 0 && j < n) ? row[j] : 0.0f;
+    }
+    return vload8(0, v);
 }
 
-/* One output of scipy's correlate1d loop along a line: in double, acc = m[i]·w0, then for k = 5, 4, …, 1
- * acc += (m[i − k] + m[i + k])·wk with 0.0 outside the line, rounded to float32. ``at(d)``: the line's value d steps
- * from the output's own, pos its position on the line of length len. Every load is made and a value outside the line
- * is selected away: no conditional load, which kept PoCL's vectoriser off. ``left(k, pos, len)`` / ``right(...)``: the
- * steps loaded for tap k, either clamped into the line (CORR_OFF, the rows pass: the clamp is the same for a whole row
- * of work-items) or not (CORR_COL, the columns pass: into the neighbouring row, or the margin of RADIUS·C values the
- * buffer has before and after the maps, never used; addresses that follow the work-item index in every lane). */
-#define CORR_SEL(at, left, right, pos, len, w, out)                                     \
-    do {                                                                                \
-        double acc_ = (double)(at(0)) * w[0];                                           \
-        _Pragma("unroll") for (int k_ = RADIUS; k_ >= 1; --k_) {                         \
-            const double lv_ = (double)(at(left(k_, (pos), (len))));                    \
-            const double rv_ = (double)(at(right(k_, (pos), (len))));                   \
-            const double l_ = ((pos) - k_ >= 0) ? lv_ : 0.0;                            \
-            const double r_ = ((pos) + k_ < (len)) ? rv_ : 0.0;                         \
-            acc_ += (l_ + r_) * w[k_];                                                  \
-        }                                                                               \
-        out = (float)acc_;                                                              \
-    } while (0)
-#define STEP_L_CLAMPED(k, pos, len) (-min((k), (pos)))
-#define STEP_R_CLAMPED(k, pos, len) (min((k), (len) - 1 - (pos)))
-#define STEP_L(k, pos, len) (-(k))
-#define STEP_R(k, pos, len) (k)
-#define CORR_OFF(at, pos, len, w, out) CORR_SEL(at, STEP_L_CLAMPED, STEP_R_CLAMPED, pos, len, w, out)
-#define CORR_COL(at, pos, len, w, out) CORR_SEL(at, STEP_L, STEP_R, pos, len, w, out)
-
-/* Element-wise forms: per value the operations of the numpy reference (and of the per-pixel kernels they
- * replaced), one work-item per value of [H, W, C] on a 2D range (x: the W·C values of a row, y: the row), scalar, its
- * loops unrolled, so that consecutive work-items read consecutive values: PoCL vectorises them across work-items (the
- * per-pixel forms, with channel and map loops of run-time length inside, ran one work-item at a time). KMAPS (a
- * define, 5 or 3): the maps of the rows pass. */
-#ifdef KMAPS
-__kernel void ssim_x_rows_e(__global const float* src,   // [KMAPS, H, W, C]
-                            __constant double* w,
-                            const int H, const int W, const int C,
-                            const int margin,
-                            __global float* tmp)         // margin, then [KMAPS, H, W, C], then margin
+/* Stores the lanes of v whose index j0 + e lies in [0, n) of an image row. */
+static inline void store_row8(__global float* row, const int j0, const int n, const float8 v)
 {
-    const int j = get_global_id(0), py = get_global_id(1);
-    const int row = W * C, n = H * row;
-    if (j >= row || py >= H) return;
-    const int i = py * row + j;
-    tmp += margin;
+    if (j0 >= 0 && j0 + 8 <= n) {
+        vstore8(v, 0, row + j0);
+        return;
+    }
+    float t[8];
+    vstore8(v, 0, t);
+    for (int e = 0; e < 8; ++e) {
+        const int j = j0 + e;
+        if (j >= 0 && j < n) row[j] = t[e];
+    }
+}
+
+/* -1 (true) in the lanes whose index j0 + e lies in [0, n). */
+static inline int8 lanes_inside(const int j0, const int n)
+{
+    const int8 j = (int8)(j0) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    return (j >= (int8)(0)) & (j < (int8)(n));
+}
+
+/* One correlate1d output per lane over 8 consecutive values at p (double, the reference's order): acc = p[0]·w0, then
+ * for k = 5 … 1 acc += (p[−k·step] + p[k·step])·wk; rounded to float. */
+static inline float8 corr8(__global const float* p, const int step, __constant double* w)
+{
+    double8 acc = convert_double8(vload8(0, p)) * w[0];
+#pragma unroll
+    for (int k = RADIUS; k >= 1; --k) {
+        acc += (convert_double8(vload8(0, p - k * step)) + convert_double8(vload8(0, p + k * step))) * w[k];
+    }
+    return convert_float8(acc);
+}
+
+static inline float8 fdiv8(const float8 a, const float8 b) { return convert_float8(convert_double8(a) / convert_double8(b)); }
+
+/* 2D range: x the S / 8 lane groups of a padded row (p8 = 8·x), y the padded row (H + 2R). */
+__kernel void ssim_x_maps8(__global const float* x, __global const float* y,  // [H, W, C]
+                           const int H, const int W, const int C, const int S,
+                           __global float* src)                                // [5, H + 2R, S]
+{
+    const int p8 = get_global_id(0) * 8, yy = get_global_id(1);
+    const int row = W * C, rows = H + 2 * RADIUS, plane = rows * S;
+    if (p8 >= S || yy >= rows) return;
+    const int py = yy - RADIUS, j0 = p8 - RADIUS * C;
+    float8 a = (float8)(0.0f), b = (float8)(0.0f);
+    if (py >= 0 && py < H) {
+        a = load_row8(x + py * row, j0, row);
+        b = load_row8(y + py * row, j0, row);
+    }
+    __global float* o = src + yy * S + p8;
+    vstore8(a, 0, o);
+    vstore8(b, 0, o + plane);
+    vstore8(a * a, 0, o + 2 * plane);  // float32 products, as numpy's
+    vstore8(b * b, 0, o + 3 * plane);
+    vstore8(a * b, 0, o + 4 * plane);
+}
+
+/* The rows pass: 2D range, x the lane groups of a padded row, y the image row (H). */
+#ifdef KMAPS
+__kernel void ssim_x_rows8(__global const float* src,   // [KMAPS, H + 2R, S] padded
+                           __constant double* w,
+                           const int H, const int C, const int S,
+                           __global float* tmp)         // R·C margin, then [KMAPS, H, S], then R·C margin
+{
+    const int p8 = get_global_id(0) * 8, py = get_global_id(1);
+    if (p8 >= S || py >= H) return;
+    const int plane = (H + 2 * RADIUS) * S;
+    tmp += RADIUS * C;
 #pragma unroll
     for (int k = 0; k < KMAPS; ++k) {
-#define AT(d) src[k * n + i + (d) * row]
-        float v;
-        CORR_OFF(AT, py, H, w, v);
-#undef AT
-        tmp[k * n + i] = v;
+        vstore8(corr8(src + k * plane + (py + RADIUS) * S + p8, S, w), 0, tmp + (k * H + py) * S + p8);
     }
 }
 #endif
 
-/* The columns pass of an element-wise kernel over the K maps of tmp (a margin before them): the work-item's value i
- * (row py, column px) and f[k] = G_cols * tmp[k] at i, k < K. Returns from the kernel outside the image. */
-#define COLUMNS_PASS(K)                                                                 \
-    const int j = get_global_id(0), py = get_global_id(1);                              \
-    const int row = W * C, n = H * row;                                                 \
-    if (j >= row || py >= H) return;                                                    \
-    const int i = py * row + j, px = j / C;                                             \
-    tmp += margin;                                                                      \
-    float f[K];                                                                         \
+/* The columns pass over the K maps of tmp at lanes p8 of row py: f[k] = G_cols * tmp[k]. */
+#define COLUMNS8(K)                                                                     \
+    float8 f[K];                                                                        \
     _Pragma("unroll") for (int k = 0; k < (K); ++k) {                                   \
-        CORR_COL(AT_COL, px, W, w, f[k]);                                               \
+        f[k] = corr8(tmp + (k * H + py) * S + p8, C, w);                                \
     }
-#define AT_COL(d) tmp[k * n + i + (d) * C]
 
-__kernel void ssim_x_fwd_h_e(__global const float* tmp,   // margin, [5, H, W, C], margin
-                             const int margin,
-                             __constant double* w,
-                             const int H, const int W, const int C,
-                             const float c1, const float c2, const float g,
-                             __global float* ssim_map,    // [H, W, C]
-                             __global float* d)           // [3, H, W, C]
+__kernel void ssim_x_fwd8(__global const float* tmp,    // R·C margin, [5, H, S], R·C margin
+                          __constant double* w,
+                          const int H, const int W, const int C, const int S,
+                          const float c1, const float c2, const float g,
+                          __global float* ssim_map,     // [H, W, C]
+                          __global float* d)            // [3, H + 2R, S] padded
 {
-    COLUMNS_PASS(5);
-    const float mu_x = f[0], mu_y = f[1], s_xx = f[2], s_yy = f[3], s_xy = f[4];
-    const float mu_xy = mu_x * mu_y;
-    const float a1 = 2.0f * mu_xy + c1;
-    const float a2 = 2.0f * (s_xy - mu_xy) + c2;
-    const float mxx = mu_x * mu_x, myy = mu_y * mu_y;
-    const float b1 = (mxx + myy) + c1;
-    const float b2 = (((s_xx + s_yy) - mxx) - myy) + c2;
-    const float m = fdiv(a1 * a2, b1 * b2);
-    ssim_map[i] = m;
-    const float dd = fdiv(g, b1 * b2);
-    const float d_a1 = dd * a2, d_a2 = dd * a1;
-    const float gm = (-g) * m;
-    const float d_b1 = fdiv(gm, b1), d_b2 = fdiv(gm, b2);
-    d[i] = 2.0f * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2));
-    d[n + i] = d_b2;
-    d[2 * n + i] = 2.0f * d_a2;
+    const int p8 = get_global_id(0) * 8, yy = get_global_id(1);
+    const int row = W * C, rows = H + 2 * RADIUS, plane = rows * S;
+    if (p8 >= S || yy >= rows) return;
+    __global float* o = d + yy * S + p8;
+    const int py = yy - RADIUS, j0 = p8 - RADIUS * C;
+    if (py < 0 || py >= H) {  // the padding rows of the next rows pass's input
+        vstore8((float8)(0.0f), 0, o);
+        vstore8((float8)(0.0f), 0, o + plane);
+        vstore8((float8)(0.0f), 0, o + 2 * plane);
+        return;
+    }
+    tmp += RADIUS * C;
+    COLUMNS8(5);
+    const float8 mu_x = f[0], mu_y = f[1], s_xx = f[2], s_yy = f[3], s_xy = f[4];
+    const float8 mu_xy = mu_x * mu_y;
+    const float8 a1 = 2.0f * mu_xy + c1;
+    const float8 a2 = 2.0f * (s_xy - mu_xy) + c2;
+    const float8 mxx = mu_x * mu_x, myy = mu_y * mu_y;
+    const float8 b1 = (mxx + myy) + c1;
+    const float8 b2 = (((s_xx + s_yy) - mxx) - myy) + c2;
+    const float8 m = fdiv8(a1 * a2, b1 * b2);
+    store_row8(ssim_map + py * row, j0, row, m);
+    const float8 dd = fdiv8((float8)(g), b1 * b2);
+    const float8 d_a1 = dd * a2, d_a2 = dd * a1;
+    const float8 gm = (-g) * m;
+    const float8 d_b1 = fdiv8(gm, b1), d_b2 = fdiv8(gm, b2);
+    const int8 in = lanes_inside(j0, row);  // the padding columns: 0
+    vstore8(select((float8)(0.0f), 2.0f * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2)), in), 0, o);
+    vstore8(select((float8)(0.0f), d_b2, in), 0, o + plane);
+    vstore8(select((float8)(0.0f), 2.0f * d_a2, in), 0, o + 2 * plane);
 }
 
-__kernel void ssim_x_bwd_h_e(__global const float* x, __global const float* y,  // [H, W, C]
-                             __global const float* tmp,                         // margin, [3, H, W, C], margin
-                             const int margin,
-                             __constant double* w,
-                             const int H, const int W, const int C,
-                             const float l1,
-                             __global float* v_x)                               // [H, W, C]
+__kernel void ssim_x_bwd8(__global const float* x, __global const float* y,  // [H, W, C]
+                          __global const float* tmp,                         // R·C margin, [3, H, S], R·C margin
+                          __constant double* w,
+                          const int H, const int W, const int C, const int S,
+                          const float l1,
+                          __global float* v_x)                               // [H, W, C]
 {
-    COLUMNS_PASS(3);
-    const float a = x[i], b = y[i];
-    const float e = a - b;
-    const float s = e > 0.0f ? 1.0f : (e < 0.0f ? -1.0f : (e == 0.0f ? 0.0f : e));
-    const float vs = (f[0] + (2.0f * a) * f[1]) + b * f[2];
-    v_x[i] = s * l1 + vs;
+    const int p8 = get_global_id(0) * 8, py = get_global_id(1);
+    const int row = W * C, j0 = p8 - RADIUS * C;
+    if (p8 >= S || py >= H || j0 >= row || j0 + 8 <= 0) return;
+    tmp += RADIUS * C;
+    COLUMNS8(3);
+    const float8 a = load_row8(x + py * row, j0, row), b = load_row8(y + py * row, j0, row);
+    const float8 e = a - b;
+    // sign(e) as numpy's: 1, -1, 0 for ±0, and NaN stays NaN
+    const float8 s = select(select(select(e, (float8)(0.0f), e == (float8)(0.0f)), (float8)(-1.0f), e < (float8)(0.0f)),
+                            (float8)(1.0f), e > (float8)(0.0f));
+    const float8 vs = (f[0] + (2.0f * a) * f[1]) + b * f[2];
+    store_row8(v_x + py * row, j0, row, s * l1 + vs);
 }

@@ -549,6 +549,10 @@ def _cl_photometric_bwd(ctx, v):
 # ---------------------------------------------------------------------------------------------
 # the numpy loss's adjoint on the device, bit for bit (kernels_cl/ssim_exact.cl)
 # ---------------------------------------------------------------------------------------------
+# its work-groups: 8 work-items of 8 lanes each along a padded row (bench/results/ssim_exact_lanes_pocl_2026-11-29.txt)
+SSIM_LANES_GROUP = 8
+
+
 def exact_device_loss_available(device, pred, lam: float) -> bool:
     """Whether :func:`photometric_loss_and_grad_exact` serves ``pred`` (``[H, W, C]`` float32 device array) on
     ``device``: the kernels widen to double (cl_khr_fp64), as scipy's filter loop does."""
@@ -583,7 +587,7 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     host from the SSIM map (:meth:`ExactLoss.value`). Needs :func:`exact_device_loss_available`."""
     import pyopencl as cl
 
-    from .ops.common import const_array, run_1d
+    from .ops.common import const_array
 
     if not exact_device_loss_available(device, pred, lam):
         raise ValueError("the exact device loss needs a C-contiguous float32 [H, W, C] device image, an fp64 device "
@@ -597,29 +601,34 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     target_d = cla.to_device(q, target, allocator=alloc)  # the queue is idle here (the render read its image)
     win = gaussian_window_1d().astype(np.float32).astype(np.float64)
     taps = const_array(device, np.ascontiguousarray(win[SSIM_RADIUS::-1]))  # w0 (centre), w1 … w5
-    src = device_empty(q, (5 * n,), np.float32, allocator=alloc)
-    margin = SSIM_RADIUS * c  # the columns pass reads RADIUS pixels either side of every value, inside the buffer
-    tmp = device_empty(q, (5 * n + 2 * margin,), np.float32, allocator=alloc)
-    dmaps = device_empty(q, (3 * n,), np.float32, allocator=alloc)
+    # the maps' padded layout (ssim_exact.cl): rows of S values (R·C zeros, the row, zeros up to a multiple of 8),
+    # R rows of zeros above and below; one work-item per 8 values of a padded row, on fixed work-groups (one build)
+    r = SSIM_RADIUS
+    S = -(-(2 * r * c + w * c) // 8) * 8
+    rows = h + 2 * r
+    src = device_empty(q, (5 * rows * S,), np.float32, allocator=alloc)
+    tmp = device_empty(q, (5 * h * S + 2 * r * c,), np.float32, allocator=alloc)  # R·C margin either side
+    dmaps = device_empty(q, (3 * rows * S,), np.float32, allocator=alloc)
     smap = device_empty(q, (h, w, c), np.float32, allocator=alloc)
     v_pred = device_empty(q, (h, w, c), np.float32, allocator=alloc)
-    # element-wise kernels on a fixed work-group (one build): x the w·c values of a row, y the row
-    gsize, lsize = (-(-(w * c) // 64) * 64, h), (64, 1)
+    lanes_x = -(-(S // 8) // SSIM_LANES_GROUP) * SSIM_LANES_GROUP
+    lsize = (SSIM_LANES_GROUP, 1)
     i32 = np.int32
-    run_1d(device, device.kernel("ssim_exact", "ssim_x_maps"), n, pred.data, target_d.data, i32(n), src.data)
-    device.kernel("ssim_exact", "ssim_x_rows_e", {"KMAPS": 5})(q, gsize, lsize, src.data, taps.data, i32(h), i32(w),
-                                                                i32(c), i32(margin), tmp.data)
+    device.kernel("ssim_exact", "ssim_x_maps8")(q, (lanes_x, rows), lsize, pred.data, target_d.data, i32(h), i32(w),
+                                                i32(c), i32(S), src.data)
+    device.kernel("ssim_exact", "ssim_x_rows8", {"KMAPS": 5})(q, (lanes_x, h), lsize, src.data, taps.data, i32(h),
+                                                               i32(c), i32(S), tmp.data)
     g = np.float32(-lam * 1.0 / n)  # _ssim_bwd's seed: float(v) / count with v = -λ·1, rounded to float32
-    device.kernel("ssim_exact", "ssim_x_fwd_h_e")(q, gsize, lsize, tmp.data, i32(margin), taps.data, i32(h), i32(w),
-                                                  i32(c), np.float32(SSIM_C1), np.float32(SSIM_C2), g, smap.data,
-                                                  dmaps.data)
+    device.kernel("ssim_exact", "ssim_x_fwd8")(q, (lanes_x, rows), lsize, tmp.data, taps.data, i32(h), i32(w), i32(c),
+                                               i32(S), np.float32(SSIM_C1), np.float32(SSIM_C2), g, smap.data,
+                                               dmaps.data)
     host_map = np.empty((h, w, c), np.float32)
     ev = cl.enqueue_copy(q, host_map, smap.data, is_blocking=False)
-    device.kernel("ssim_exact", "ssim_x_rows_e", {"KMAPS": 3})(q, gsize, lsize, dmaps.data, taps.data, i32(h), i32(w),
-                                                                i32(c), i32(margin), tmp.data)
+    device.kernel("ssim_exact", "ssim_x_rows8", {"KMAPS": 3})(q, (lanes_x, h), lsize, dmaps.data, taps.data, i32(h),
+                                                               i32(c), i32(S), tmp.data)
     l1 = np.float32((1.0 - lam) * 1.0 / n)  # _l1_bwd's factor float(v) / size with v = (1 − λ)·1
-    device.kernel("ssim_exact", "ssim_x_bwd_h_e")(q, gsize, lsize, pred.data, target_d.data, tmp.data, i32(margin),
-                                                  taps.data, i32(h), i32(w), i32(c), l1, v_pred.data)
+    device.kernel("ssim_exact", "ssim_x_bwd8")(q, (lanes_x, h), lsize, pred.data, target_d.data, tmp.data, taps.data,
+                                               i32(h), i32(w), i32(c), i32(S), l1, v_pred.data)
     # the scratch arrays go back to the pool only once their kernels are done: keep them with the value
     loss = ExactLoss(pred_host, target, host_map, ev, float(lam), n)
     loss._keep = (target_d, src, tmp, dmaps, smap)
