@@ -190,7 +190,7 @@ def _twin_optimizers(rng, device, dtype):
     out = []
     for dev in (None, device):
         ps = {k: Param(v.astype(dtype), k) for k, v in x0.items()}
-        opt = Adam(device=dev)
+        opt = Adam(device=dev, device_min_size=1)  # the kernel at every size
         kw = {"betas": (0.5, 0.999), "eps": 1e-15}
         opt.add_group("V", [ps["V"]], lr=ExponentialDecay(1e-2, 1e-4, 30), **kw)
         opt.add_group("mat", [ps["mat"], ps["a"]], lr=StepUp(Constant(0.05), {3: 5.0}), **kw)
@@ -255,13 +255,25 @@ def test_device_adam_matches_numpy(device, rng, dtype):
     # resume: a fresh device optimizer from the numpy one's state continues identically
     state = pickle.loads(pickle.dumps(a[1].state_dict()))
     ps_c = {k: Param(p.data.copy(), k) for k, p in a[0].items()}
-    opt_c = Adam(device=device)
+    opt_c = Adam(device=device, device_min_size=1)
     opt_c.add_group("V", [ps_c["V"]], lr=1.0)
     opt_c.add_group("mat", [ps_c["mat"], ps_c["a"]], lr=1.0)
     opt_c.add_group("sh", [ps_c["sh"]], lr=1.0)
     opt_c.load_state_dict(state)
     b = (ps_c, opt_c)
     run(3)
+
+
+def test_device_adam_keeps_numpy_for_small_parameters(device):
+    """The kernel's fixed cost exceeds numpy's passes below ``DEVICE_MIN_SIZE`` elements: such parameters take the
+    numpy update (the same bits), larger ones the kernel; ``device_min_size`` moves the line."""
+    from triplet_cl.optim import DEVICE_MIN_SIZE
+
+    small, big = np.zeros(DEVICE_MIN_SIZE - 1, np.float32), np.zeros(DEVICE_MIN_SIZE, np.float32)
+    opt = Adam(device=device)
+    assert not opt._on_device(small, small, small) and opt._on_device(big, big, big)
+    assert Adam(device=device, device_min_size=1)._on_device(small, small, small)
+    assert not Adam()._on_device(big, big, big)
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # the deliberate overflow
@@ -272,7 +284,7 @@ def test_device_adam_finiteness_guard(device):
 
     for dev in (None, device):
         a, b = Param(np.ones((4, 3), np.float32), "a"), Param(np.ones((5, 2), np.float32), "b")
-        opt = Adam(device=dev)
+        opt = Adam(device=dev, device_min_size=1)
         opt.add_group("a", [a], lr=0.1)
         opt.add_group("b", [b], lr=1e39)  # inf once rounded to float32: the update overflows
         a.grad, b.grad = np.ones((4, 3), np.float32), np.ones((5, 2), np.float32)

@@ -22,8 +22,9 @@ Parameters whose ``.grad`` is None are skipped (their moments do not decay).
 ``Adam(device=...)`` runs step 3 as one OpenCL kernel per parameter (``kernels_cl/adam.cl``:
 upload x, m, v and the gradient, one fused pass, download x, m, v into the same numpy arrays), bit
 for bit the numpy update on PoCL (``tests/test_optim.py``); parameters, moments, ``state_dict`` and
-``remap`` stay numpy, so checkpoints and density control are unchanged. Without a device (the
-default) the update is numpy.
+``remap`` stay numpy, so checkpoints and density control are unchanged. Parameters under
+``device_min_size`` elements (:data:`DEVICE_MIN_SIZE`) keep the numpy update, which is faster there. Without a device
+(the default) the update is numpy.
 
 Schedules: :class:`Constant`, :class:`ExponentialDecay` (3DGS ``get_expon_lr_func``: log-linear
 from ``lr_init`` at step 0 to ``lr_final`` at ``max_steps``, optional sine-eased delay) and
@@ -180,6 +181,13 @@ def _squared_norm(gr: np.ndarray, exact: bool) -> float:
     return float(np.sum(np.square(gr, dtype=np.float64)))
 
 
+# the smallest parameter (elements) whose update runs as the adam.cl kernel: below it the kernel's fixed cost (four
+# host-pointer buffers, the launch, four maps, a finish: ~0.75 ms on PoCL) exceeds numpy's passes (medians on this
+# 2-core machine, session 58: 100k elements 1.0 ms kernel / 0.43 numpy, 260k 1.44 / 1.44, 500k 2.3 / 3.1, 1M 4.4 / 8.0;
+# bench/results/adam_device_size_pocl_2026-11-29.txt); either way the same bits
+DEVICE_MIN_SIZE = 1 << 18
+
+
 class Adam:
     """Adam with named parameter groups (see the module docstring for the exact update).
 
@@ -192,10 +200,11 @@ class Adam:
         ... tape.backward(loss); opt.step(); opt.zero_grad()
     """
 
-    def __init__(self, device=None):
+    def __init__(self, device=None, device_min_size: int = DEVICE_MIN_SIZE):
         self.groups: dict[str, ParamGroup] = {}
         self.t = 0  # completed steps
         self.device = device  # a triplet_cl Device: the update runs as the adam.cl kernel there
+        self.device_min_size = int(device_min_size)  # for parameters of at least this many elements
         self._work: dict = {}  # dtype -> two flat scratch buffers of the numpy update (_workspace)
 
     # ---- groups -------------------------------------------------------------------------------
@@ -344,9 +353,9 @@ class Adam:
         x -= w0
 
     def _on_device(self, *arrays) -> bool:
-        """Whether this update runs as the kernel: a device is set, the arrays are non-empty,
-        C-contiguous float32 (or float64 on a device with fp64); otherwise numpy."""
-        if self.device is None or not arrays[0].size:
+        """Whether this update runs as the kernel: a device is set, the arrays hold at least ``device_min_size``
+        elements (and at least one), C-contiguous float32 (or float64 on a device with fp64); otherwise numpy."""
+        if self.device is None or not arrays[0].size or arrays[0].size < self.device_min_size:
             return False
         dt = arrays[0].dtype
         if dt != np.float32 and not (dt == np.float64 and self.device.fp64):

@@ -804,8 +804,9 @@ def build_optimizer(cfg: TrainConfig, scene: Scene, extent: float, device=None) 
     # on a CPU device the kernel reads and writes the numpy arrays in place (USE_HOST_PTR) in one vectorised pass
     # on the device's threads, where numpy makes eleven single-threaded passes: the update phase of a spot 200²
     # step 12.7-13.2 -> 11.5-11.9 ms in three interleaved pairs, the same bits (session 57; earlier, with more host
-    # work around it, it had measured no faster). A GPU would copy the parameters both ways every step: unmeasured
-    # there, it keeps numpy
+    # work around it, it had measured no faster); parameters under optim.DEVICE_MIN_SIZE elements keep numpy (the
+    # kernel's fixed cost: the demo's 96² soup, session 58). A GPU would copy the parameters both ways every step:
+    # unmeasured there, it keeps numpy
     opt = Adam(device=device if device is not None and device.is_cpu else None)
     kw = {"betas": tuple(cfg.betas), "eps": cfg.adam_eps}
     opt.add_group("V", [scene.V], lr=ExponentialDecay(cfg.lr_position * extent, cfg.lr_position_final * extent,
