@@ -587,7 +587,7 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     host from the SSIM map (:meth:`ExactLoss.value`). Needs :func:`exact_device_loss_available`."""
     import pyopencl as cl
 
-    from .ops.common import const_array
+    from .ops.common import const_array, round_up
 
     if not exact_device_loss_available(device, pred, lam):
         raise ValueError("the exact device loss needs a C-contiguous float32 [H, W, C] device image, an fp64 device "
@@ -604,14 +604,14 @@ def photometric_loss_and_grad_exact(device, pred, pred_host, target, lam: float 
     # the maps' padded layout (ssim_exact.cl): rows of S values (R·C zeros, the row, zeros up to a multiple of 8),
     # R rows of zeros above and below; one work-item per 8 values of a padded row, on fixed work-groups (one build)
     r = SSIM_RADIUS
-    S = -(-(2 * r * c + w * c) // 8) * 8
+    S = round_up(2 * r * c + w * c, 8)
     rows = h + 2 * r
     src = device_empty(q, (5 * rows * S,), np.float32, allocator=alloc)
     tmp = device_empty(q, (5 * h * S + 2 * r * c,), np.float32, allocator=alloc)  # R·C margin either side
     dmaps = device_empty(q, (3 * rows * S,), np.float32, allocator=alloc)
     smap = device_empty(q, (h, w, c), np.float32, allocator=alloc)
     v_pred = device_empty(q, (h, w, c), np.float32, allocator=alloc)
-    lanes_x = -(-(S // 8) // SSIM_LANES_GROUP) * SSIM_LANES_GROUP
+    lanes_x = round_up(S // 8, SSIM_LANES_GROUP)
     lsize = (SSIM_LANES_GROUP, 1)
     i32 = np.int32
     device.kernel("ssim_exact", "ssim_x_maps8")(q, (lanes_x, rows), lsize, pred.data, target_d.data, i32(h), i32(w),
