@@ -137,6 +137,30 @@ def test_gauss_rgba_forward_and_adjoint(device, rng, f, sigma):
     assert not vxa0.any()
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("H,W,f,sigma", [(4, 17, 3, 0.49), (3, 24, 3, 1.1), (2, 9, 2, 0.3), (5, 8, 1, 0.5),
+                                         (1, 33, 4, 0.7)])
+def test_gauss_rgba_blocks_of_eight(device, device64, rng, dtype, H, W, f, sigma):
+    """The row passes take eight outputs of a row per work-item and the column adjoint the F rows of an output
+    (``gauss4_rows_down8`` / ``gauss4_rows_up8`` / ``gauss4_cols_upF``): rows of whole blocks, a partial last block
+    and a single partial block give the per-array filters' values bit for bit, in float32 and float64, and the
+    dense reference."""
+    dev = device if dtype == np.float32 else device64
+    q = dev.queue
+    x = rng.standard_normal((H * f, W * f, 3)).astype(dtype)
+    a = rng.standard_normal((H * f, W * f)).astype(dtype)
+    y, ya = (r.get() for r in gauss_down_rgba(dev, cla.to_device(q, x), cla.to_device(q, a), f, sigma))
+    np.testing.assert_array_equal(y, gauss_down(dev, cla.to_device(q, x), f, sigma).get())
+    np.testing.assert_array_equal(ya, gauss_down(dev, cla.to_device(q, a), f, sigma).get())
+    np.testing.assert_allclose(y, ref.gauss_down(x.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+    v = rng.standard_normal((H, W, 3)).astype(dtype)
+    va = rng.standard_normal((H, W)).astype(dtype)
+    vx, vxa = (r.get() for r in gauss_up_rgba(dev, cla.to_device(q, v), cla.to_device(q, va), f, sigma))
+    np.testing.assert_array_equal(vx, gauss_up(dev, cla.to_device(q, v), f, sigma).get())
+    np.testing.assert_array_equal(vxa, gauss_up(dev, cla.to_device(q, va), f, sigma).get())
+    np.testing.assert_allclose(vxa, ref.gauss_up(va.astype(np.float64), f, sigma), rtol=1e-5, atol=1e-6)
+
+
 def test_gauss_rgba_float64_central_differences(device64, rng):
     """The four-channel filter's adjoint against central differences of its float64 forward, in the radiance and
     in the alpha."""

@@ -174,6 +174,11 @@ def _rgba_args(name: str, rgb: cla.Array, a: cla.Array | None) -> np.dtype:
     return real
 
 
+def _blocks8(n: int) -> int:
+    """The blocks of eight outputs of a row of ``n`` (the row passes' work-items: ``gauss4_rows_*8``)."""
+    return (int(n) + 7) // 8
+
+
 def _gauss4(device: Device, kernel: str, n: int, f: int, sigma: float, length: int, real, has_va: bool = False,
             **args) -> None:
     """One ``gauss4_*`` pass over ``n`` work-items, the weights of ``length`` outputs along its axis."""
@@ -193,7 +198,7 @@ def gauss_down_rgba(device: Device, rgb: cla.Array, a: cla.Array, f: int, sigma:
     H, W, _ = _shape(rgb, f)
     O = H * f
     tmp = device_empty(device.queue, (O, W, 4), real, allocator=device.allocator)
-    _gauss4(device, "gauss4_rows_down", O * W, f, sigma, W, real, rgb=rgb, a=a, O=O, L=W, dst=tmp)
+    _gauss4(device, "gauss4_rows_down8", O * _blocks8(W), f, sigma, W, real, rgb=rgb, a=a, O=O, L=W, dst=tmp)
     y = device_empty(device.queue, (H, W, 3), real, allocator=device.allocator)
     ya = device_empty(device.queue, (H, W), real, allocator=device.allocator)
     _gauss4(device, "gauss4_cols_down", H * W, f, sigma, H, real, src=tmp, L=H, W=W, rgb=y, a=ya)
@@ -209,9 +214,9 @@ def gauss_up_rgba(device: Device, v_rgb: cla.Array, v_a: cla.Array | None, f: in
     O = H * f
     tmp = device_empty(device.queue, (O, W, 4), real, allocator=device.allocator)
     va = {} if v_a is None else {"v_a": v_a}
-    _gauss4(device, "gauss4_cols_up", O * W, f, sigma, H, real, has_va=v_a is not None, v_rgb=v_rgb, L=H, W=W,
+    _gauss4(device, "gauss4_cols_upF", H * W, f, sigma, H, real, has_va=v_a is not None, v_rgb=v_rgb, L=H, W=W,
             dst=tmp, **va)
     vx = device_empty(device.queue, (O, W * f, 3), real, allocator=device.allocator)
     vxa = device_empty(device.queue, (O, W * f), real, allocator=device.allocator)
-    _gauss4(device, "gauss4_rows_up", O * W * f, f, sigma, W, real, src=tmp, O=O, L=W, v_rgb=vx, v_a=vxa)
+    _gauss4(device, "gauss4_rows_up8", O * _blocks8(W), f, sigma, W, real, src=tmp, O=O, L=W, v_rgb=vx, v_a=vxa)
     return vx, vxa
