@@ -13,6 +13,7 @@ and albedo scores then measure how well training *decomposes* under lights it wa
 Light sets (``LIGHT_SETS``; Mitsuba 3 units, see ``relight/relight.json``'s conventions):
 ``original`` (the scene's own ground_truth.json lights), ``relight:SET`` (a set of the scene's
 relight.json: checks the emitter conventions against its references), ``two_points``, ``sun_sky``, ``env``.
+``--light-scale S`` multiplies every emitter of the set (the same capture brighter or dimmer).
 Writes ``transforms_{train,test}.json``, ``train/``, ``test/`` (RGBA PNG, straight alpha, sRGB),
 ``ground_truth.json`` (the new lights) and a symlink ``relight -> SCENE/relight``.
 Mitsuba is a bench-only peer, never a dependency of the package.
@@ -66,6 +67,17 @@ def _emitters(mi, lights, envdir: Path):
         else:
             raise ValueError(f"light {i}: unknown type {t!r}")
         out[f"emitter_{i}"] = d
+    return out
+
+
+def scaled_light(lt: dict, s: float) -> dict:
+    """A light of the light-set format with its radiometric value (intensity, irradiance, radiance, scale) x ``s``."""
+    out = dict(lt)
+    for k in ("intensity", "irradiance", "radiance"):
+        if k in out:
+            out[k] = (np.asarray(out[k], float) * s).tolist()
+    if out["type"] == "envmap":
+        out["scale"] = float(out.get("scale", 1.0)) * s
     return out
 
 
@@ -129,6 +141,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lights", required=True, help=f"original or one of {sorted(LIGHT_SETS)}")
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--spp", type=int, default=256)
+    ap.add_argument("--light-scale", type=float, default=1.0, help="every emitter of the light set x this factor (the "
+                    "same capture brighter or dimmer: does the recovered albedo keep its level, or the lights theirs?)")
     ap.add_argument("--roughness", type=float, help="override the scene's roughness")
     ap.add_argument("--metallic", type=float, help="override the scene's metallic (the relight/ references are then "
                     "re-rendered with the new material under each set, the albedo linked)")
@@ -153,6 +167,8 @@ def main(argv=None) -> int:
         lights = json.loads((scene / "relight" / "relight.json").read_text())["sets"][args.lights[8:]]["lights"]
     else:
         lights = LIGHT_SETS[args.lights]
+    if args.light_scale != 1.0:
+        lights = [scaled_light(lt, args.light_scale) for lt in lights]
     rough = gt["roughness"] if args.roughness is None else args.roughness
     metal = gt["metallic"] if args.metallic is None else args.metallic
     tex = next((data / "meshes").rglob(gt["texture"]))
