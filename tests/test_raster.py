@@ -607,6 +607,31 @@ def test_fused_fragments_backward_equals_separate_ops(device64, rng, dead):
         fragments_backward(device64, fr, attr)
 
 
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+@pytest.mark.parametrize("C", [1, 2, 3, 7, 8, 14, 17, 30])
+def test_fragments_backward_vector_channels_are_the_scalar_bits(device, device64, rng, monkeypatch, real, C):
+    """The attribute channels eight, four and two at a time (the default) give the one-at-a-time loop's values bit
+    for bit (``ops.fragment_bwd.SCALAR_CHANNELS``): every channel count's chunks and tail, dead rows included."""
+    from triplet_cl.ops import fragment_bwd as fbwd
+
+    dev = device if real == np.float32 else device64
+    V, F = soup(rng, M=80)
+    _, _, _, fr = run_raster(dev, V, F, 5, real=real)
+    attr = rng.standard_normal((len(V), C)).astype(real)
+    v_out = rng.standard_normal((H, W, 5, C)).astype(real)
+    v_out[rng.uniform(size=(H, W, 5)) < 0.3] = 0.0
+    v_w = rng.standard_normal((H, W, 5)).astype(real)
+    out = {}
+    for scalar in (False, True):
+        monkeypatch.setattr(fbwd, "SCALAR_CHANNELS", scalar)
+        va, vvs, vsig = fragments_backward(dev, fr, attr, v_out, v_win=v_w, sigma=0.5)
+        out[scalar] = (va.get(), vvs.get(), vsig)
+    np.testing.assert_array_equal(out[False][0], out[True][0])
+    np.testing.assert_array_equal(out[False][1], out[True][1])
+    assert out[False][2] == out[True][2]
+    assert np.abs(out[False][0]).sum() > 0
+
+
 def test_backward_is_deterministic(device, rng):
     V, F = soup(rng, M=300, size=0.3)
     V = V.astype(np.float32)

@@ -68,6 +68,11 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
     return out_a, out_b
 
 
+#: the attribute channels one at a time in ``fragment_bwd`` (the reference the vector chunks are tested against
+#: bit for bit: ``tests/test_fragment_bwd.py``); False, the default: eight, four and two at a time
+SCALAR_CHANNELS = False
+
+
 def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
                        v_depth=None, v_win=None, sigma: float = 0.0, geometry: bool = True,
                        want_sigma: bool = True):
@@ -135,7 +140,7 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
     else:
         opt["v_bary_out"] = device_empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
     defines = {"TILE": TILE, "ATTR": bool(C), "V_BARY_IN": vb is not None, "V_DEPTH": vd is not None,
-               "V_WIN": vw is not None, "GEOMETRY": bool(geometry)}
+               "V_WIN": vw is not None, "GEOMETRY": bool(geometry), "SCALAR_CHANNELS": SCALAR_CHANNELS}
     launch(device, "fragment_bwd", "fragment_bwd", (T,), (1,), defines=defines, real=real,
            entry_setup=frags.entry_setup, F=frags.mesh.F, tile_off=frags.tile_off, frag_face=frags.face,
            frag_entry=frags.entry, frag_bary=frags.bary, frag_depth=frags.depth, frag_count=frags.count,
