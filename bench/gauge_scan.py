@@ -23,10 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/relight.py's gt_asset
 
 FINE = np.exp(np.linspace(np.log(0.5), np.log(2.0), 25))  # the specular fit's levels
 
@@ -128,39 +131,29 @@ def scan_run(run: Path, rdir: Path, grid: list[float], n_views: int) -> list[str
 
 
 def scan_gt(scene: Path, n_views: int) -> list[str]:
-    import trimesh
+    from relight import gt_asset  # a sibling script
 
     from triplet_cl.activations import logit
     from triplet_cl.datasets import load_dataset
-    from triplet_cl.datasets.images import read_image
-    from triplet_cl.ops.color import srgb_decode
     from triplet_cl.relight import parse_lights
     from triplet_cl.render import RenderSettings, render
     from triplet_cl.scene import Scene
     from triplet_cl.visibility import vertex_visibility
 
-    gt = json.loads((scene / "ground_truth.json").read_text())
-    m = trimesh.load(scene / "gt_mesh.obj", process=False)
-    tex = next(Path("/work/shared/data/meshes").glob(f"*/{gt['texture']}"))
-    uv, V, F = np.asarray(m.visual.uv), np.asarray(m.vertices), np.asarray(m.faces)
-    for _ in range(2):
-        V, F, attr = trimesh.remesh.subdivide(V, F, vertex_attributes={"uv": uv})
-        uv = attr["uv"]
-    t = read_image(tex).rgb
-    h, w = t.shape[:2]
-    px = np.clip((uv[:, 0] % 1) * (w - 1), 0, w - 1).round().astype(int)
-    py = np.clip((1 - uv[:, 1] % 1) * (h - 1), 0, h - 1).round().astype(int)
+    V, F, mat0, gt = gt_asset(scene, Path("/work/shared/data/meshes"))
     n = len(V)
 
     def material(albedo):
-        return np.concatenate([logit(np.clip(albedo, 1e-4, 1 - 1e-4)), np.full((n, 1), logit(gt["roughness"])),
-                               np.full((n, 1), logit(max(gt["metallic"], 1e-5))), np.full((n, 1), 30.0)], 1)
+        mat = mat0.copy()
+        mat[:, 0:3] = logit(np.clip(albedo, 1e-4, 1 - 1e-4))
+        return mat
 
     lights = parse_lights(gt["lights"], scene / "ground_truth.json")
     train = load_dataset(str(scene))["train"][:n_views]
     out = {}
-    for key, albedo in (("A", srgb_decode(t[py, px])), ("B", np.zeros((n, 3)))):
-        sc = Scene.from_arrays(V, F, material=material(albedo), alpha=np.full((n, 1), 30.0), lights=lights)
+    for key, albedo in (("A", None), ("B", np.zeros((n, 3)))):
+        sc = Scene.from_arrays(V, F, material=mat0 if albedo is None else material(albedo),
+                               alpha=np.full((n, 1), 30.0), lights=lights)
         vis = vertex_visibility(sc, ray_eps=0.01)
         imgs = []
         for v in train:

@@ -179,21 +179,19 @@ def view_images(runs: dict, scene: str, data: Path, out: Path, view: int = 0) ->
     return path
 
 
-def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> None:
+def gt_asset(scene_dir: Path, meshes: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """A scene's ground-truth asset as our renderer takes it: ``(V, F, raw material [n, 6], ground_truth.json)``,
+    ``gt_mesh.obj`` subdivided twice, the texture's base colour (linear) sampled at each vertex's UV (from the
+    ``meshes`` folder), the truth's roughness and metallic, AO 1 (logit 30)."""
     import trimesh
 
-    from triplet_cl.datasets import load_dataset
     from triplet_cl.datasets.images import read_image
     from triplet_cl.ops.color import srgb_decode
-    from triplet_cl.relight import load_light_sets
-    from triplet_cl.render import RenderSettings, render
-    from triplet_cl.scene import Scene, logit
-    from triplet_cl.train import psnr
+    from triplet_cl.scene import logit
 
-    d = data / "scenes" / scene
-    gt = json.loads((d / "ground_truth.json").read_text())
-    m = trimesh.load(d / "gt_mesh.obj", process=False)
-    tex = next((data / "meshes").glob(f"*/{gt['texture']}"))
+    gt = json.loads((scene_dir / "ground_truth.json").read_text())
+    m = trimesh.load(scene_dir / "gt_mesh.obj", process=False)
+    tex = next(meshes.glob(f"*/{gt['texture']}"))
     uv, V, F = np.asarray(m.visual.uv), np.asarray(m.vertices), np.asarray(m.faces)
     for _ in range(2):
         V, F, attr = trimesh.remesh.subdivide(V, F, vertex_attributes={"uv": uv})
@@ -206,6 +204,20 @@ def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> No
     mat = np.concatenate([logit(np.clip(srgb_decode(t[py, px]), 1e-4, 1 - 1e-4)),
                           np.full((n, 1), logit(gt["roughness"])), np.full((n, 1), logit(max(gt["metallic"], 1e-5))),
                           np.full((n, 1), 30.0)], 1)
+    return V, F, mat, gt
+
+
+def gt_ceiling(scene: str, degrees, renderers, data: Path, views: int = 4) -> None:
+    from triplet_cl.datasets import load_dataset
+    from triplet_cl.datasets.images import read_image
+    from triplet_cl.relight import load_light_sets
+    from triplet_cl.render import RenderSettings, render
+    from triplet_cl.scene import Scene, logit
+    from triplet_cl.train import psnr
+
+    d = data / "scenes" / scene
+    V, F, mat, gt = gt_asset(d, data / "meshes")
+    n = len(V)
     test = load_dataset(str(d))["test"][:views]
     print(f"ground-truth mesh + material of {scene} ({n} vertices), {len(test)} test views, 2x2 supersampled:")
     print("| env SH degree | renderer | " + " | ".join(SETS) + " |\n|---|---|" + "---|" * len(SETS))

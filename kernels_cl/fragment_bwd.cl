@@ -53,6 +53,24 @@
 #define TILE 8
 #endif
 
+/* ATTR_CHUNK(N): fragment_bwd's attribute channels c .. c + N - 1 as N-wide vectors (the rows' loads and stores), the
+ * cotangent's dot products vl0, vl1 summed lane by lane in channel order: the scalar loop's operations and order */
+#define ATTR_CHUNK(N) {                                                                                               \
+        const TRIPLET_CAT(REAL, N) gc = TRIPLET_CAT(vload, N)(0, g + c);                                              \
+        const TRIPLET_CAT(REAL, N) x2 = TRIPLET_CAT(vload, N)(0, a2 + c);                                             \
+        TRIPLET_CAT(vstore, N)(TRIPLET_CAT(vload, N)(0, d + c) + l0 * gc, 0, d + c);                                  \
+        TRIPLET_CAT(vstore, N)(TRIPLET_CAT(vload, N)(0, d + C + c) + l1 * gc, 0, d + C + c);                          \
+        TRIPLET_CAT(vstore, N)(TRIPLET_CAT(vload, N)(0, d + 2 * C + c) + l2 * gc, 0, d + 2 * C + c);                  \
+        REAL gs[N], e0[N], e1[N];                                                                                     \
+        TRIPLET_CAT(vstore, N)(gc, 0, gs);                                                                            \
+        TRIPLET_CAT(vstore, N)(TRIPLET_CAT(vload, N)(0, a0 + c) - x2, 0, e0);                                         \
+        TRIPLET_CAT(vstore, N)(TRIPLET_CAT(vload, N)(0, a1 + c) - x2, 0, e1);                                         \
+        for (int k = 0; k < N; ++k) {                                                                                 \
+            vl0 += gs[k] * e0[k];                                                                                     \
+            vl1 += gs[k] * e1[k];                                                                                     \
+        }                                                                                                             \
+    }
+
 __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                            __global const int* F,             // [M, 3]
                            __global const int* tile_off,      // [T + 1]
@@ -138,49 +156,12 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                     int c = 0;
 #ifndef SCALAR_CHANNELS
                     /* the channels eight, four and two at a time (vector loads and stores of the rows; session 59: the
-                     * pass 10-17 % faster on PoCL at C = 14), the cotangent's dot products still summed channel by
+                     * pass 1.08-1.24x faster on PoCL at C = 14), the cotangent's dot products still summed channel by
                      * channel in order: the same operations on the same values as the scalar loop (the tail and,
                      * with SCALAR_CHANNELS, every channel), the same bits */
-                    for (; c + 8 <= C; c += 8) {
-                        const REAL8 gc = vload8(0, g + c);
-                        const REAL8 x2 = vload8(0, a2 + c);
-                        const REAL8 e0 = vload8(0, a0 + c) - x2, e1 = vload8(0, a1 + c) - x2;
-                        vstore8(vload8(0, d + c) + l0 * gc, 0, d + c);
-                        vstore8(vload8(0, d + C + c) + l1 * gc, 0, d + C + c);
-                        vstore8(vload8(0, d + 2 * C + c) + l2 * gc, 0, d + 2 * C + c);
-                        vl0 += gc.s0 * e0.s0; vl1 += gc.s0 * e1.s0;
-                        vl0 += gc.s1 * e0.s1; vl1 += gc.s1 * e1.s1;
-                        vl0 += gc.s2 * e0.s2; vl1 += gc.s2 * e1.s2;
-                        vl0 += gc.s3 * e0.s3; vl1 += gc.s3 * e1.s3;
-                        vl0 += gc.s4 * e0.s4; vl1 += gc.s4 * e1.s4;
-                        vl0 += gc.s5 * e0.s5; vl1 += gc.s5 * e1.s5;
-                        vl0 += gc.s6 * e0.s6; vl1 += gc.s6 * e1.s6;
-                        vl0 += gc.s7 * e0.s7; vl1 += gc.s7 * e1.s7;
-                    }
-                    if (c + 4 <= C) {
-                        const REAL4 gc = vload4(0, g + c);
-                        const REAL4 x2 = vload4(0, a2 + c);
-                        const REAL4 e0 = vload4(0, a0 + c) - x2, e1 = vload4(0, a1 + c) - x2;
-                        vstore4(vload4(0, d + c) + l0 * gc, 0, d + c);
-                        vstore4(vload4(0, d + C + c) + l1 * gc, 0, d + C + c);
-                        vstore4(vload4(0, d + 2 * C + c) + l2 * gc, 0, d + 2 * C + c);
-                        vl0 += gc.s0 * e0.s0; vl1 += gc.s0 * e1.s0;
-                        vl0 += gc.s1 * e0.s1; vl1 += gc.s1 * e1.s1;
-                        vl0 += gc.s2 * e0.s2; vl1 += gc.s2 * e1.s2;
-                        vl0 += gc.s3 * e0.s3; vl1 += gc.s3 * e1.s3;
-                        c += 4;
-                    }
-                    if (c + 2 <= C) {
-                        const REAL2 gc = vload2(0, g + c);
-                        const REAL2 x2 = vload2(0, a2 + c);
-                        const REAL2 e0 = vload2(0, a0 + c) - x2, e1 = vload2(0, a1 + c) - x2;
-                        vstore2(vload2(0, d + c) + l0 * gc, 0, d + c);
-                        vstore2(vload2(0, d + C + c) + l1 * gc, 0, d + C + c);
-                        vstore2(vload2(0, d + 2 * C + c) + l2 * gc, 0, d + 2 * C + c);
-                        vl0 += gc.s0 * e0.s0; vl1 += gc.s0 * e1.s0;
-                        vl0 += gc.s1 * e0.s1; vl1 += gc.s1 * e1.s1;
-                        c += 2;
-                    }
+                    for (; c + 8 <= C; c += 8) ATTR_CHUNK(8)
+                    if (c + 4 <= C) { ATTR_CHUNK(4) c += 4; }
+                    if (c + 2 <= C) { ATTR_CHUNK(2) c += 2; }
 #endif
                     for (; c < C; ++c) {
                         const REAL gc = g[c];
