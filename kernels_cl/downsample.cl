@@ -139,7 +139,7 @@ __kernel void gauss_cols_up(__global const REAL* src,        // v_y [L, K]
  *               HAS_VA: v_a given, else 0)
  *   rows_up8:   tmp [O, L, 4] -> v_rgb [O, L F, 3], v_a [O, L F]  (one work-item per (o, eight outputs' 8 F samples))
  * The intermediate tmp is [rows, columns, 4] in both directions, so a pass reads or writes one float4 per sample.
- * Several outputs per work-item (session 59; 600² -> 200², sigma 0.49: forward + adjoint 11.2 -> 8.2 ms on PoCL):
+ * Several outputs per work-item (session 59; 600² -> 200², sigma 0.49: forward + adjoint 1.1-1.9x on PoCL):
  * the samples (rows_down8) or the outputs (the up passes) a work-item's results share are loaded once into private
  * memory, zero outside the row or column, and the up passes' taps follow the sample's phase r = t mod F, which fixes
  * which outputs it reads and their weights, so every loop has a compile-time count. A zero tap adds +0, so the sums

@@ -69,7 +69,7 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
 
 
 #: the attribute channels one at a time in ``fragment_bwd`` (the reference the vector chunks are tested against
-#: bit for bit: ``tests/test_fragment_bwd.py``); False, the default: eight, four and two at a time
+#: bit for bit: ``tests/test_raster.py``); False, the default: eight, four and two at a time
 SCALAR_CHANNELS = False
 
 
