@@ -1,6 +1,6 @@
 """Photos → cameras (`triplet colmap`, pycolmap SfM) and distorted COLMAP models loaded through undistortion.
 
-The capture is synthetic and made here: a box with a random per-cell albedo standing on a textured
+The capture is synthetic and made here: a box with a random multi-scale albedo standing on a textured
 ground, rendered by our own rasterizer (ambient light only: the colours are the albedos) from a
 ring of cameras. The distorted model: the same renders warped by a known SIMPLE_RADIAL / OPENCV
 distortion (scipy), written as a COLMAP text model; loading it must give back the pinhole
@@ -45,7 +45,13 @@ def _grid_quads(origin, du, dv, n_u, n_v):
 
 def textured_scene(seed: int = 0):
     """A box (0.8 × 0.6 × 0.6, z up) on a 2.4 × 2.4 ground, coloured by a smooth random field of the position
-    (sums of random sinusoids, interpolated over fine grid cells): blobs at several scales, as SIFT likes."""
+    (sums of random sinusoids, interpolated over fine grid cells): blobs at several scales, as SIFT likes.
+
+    64 waves of 8–80 rad/unit per channel: with the 16 of 8–40 it had before, SfM on the 16-view ring found
+    ~340 points and registered every photo for 5 of 12 texture seeds only (seed 0 among them; one photo kept
+    51 observations, and a CI machine registered 15 of 16). With these, 12 of 12 seeds register all 16
+    (~860–1010 points), 14 views still do (12 of 12), 12 views (30° apart) do not: the margin is the ring's
+    spacing, not the seed (`bench/results/sfm_capture_margin_2026-11-29.txt`)."""
     from triplet_cl.lights import AmbientLight
     from triplet_cl.materials import colour_display_raw
     from triplet_cl.scene import Scene, logit
@@ -61,10 +67,10 @@ def textured_scene(seed: int = 0):
             parts.append(_grid_quads(o, size[u] * e[u], size[v] * e[v], 32, 24))
     V = np.concatenate(parts).reshape(-1, 3)
     F = np.arange(len(V)).reshape(-1, 3)
-    waves = rng.normal(size=(3, 16, 3))
-    waves *= rng.uniform(8.0, 40.0, (3, 16, 1)) / np.linalg.norm(waves, axis=-1, keepdims=True)
-    phase = rng.uniform(0, 2 * np.pi, (3, 16))
-    field = np.sin(np.einsum("ckd,nd->nck", waves, V) + phase).sum(-1)  # [N, 3]
+    waves = rng.normal(size=(3, 64, 3))
+    waves *= rng.uniform(8.0, 80.0, (3, 64, 1)) / np.linalg.norm(waves, axis=-1, keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, (3, 64))
+    field = np.sin(np.einsum("ckd,nd->nck", waves, V) + phase).sum(-1) / 2.0  # [N, 3]; / √(64/16): same spread
     albedo = np.clip(0.5 + 0.45 * np.tanh(0.6 * field), 0.02, 0.98)
     # the ambient light shows the albedo exactly (the flat-lit texture this capture was made with before issue 18)
     mat = colour_display_raw(logit(albedo))
@@ -146,7 +152,7 @@ def test_sfm_solves_synthetic_capture(capture, tmp_path, monkeypatch):
     assert err.max() < 0.01, err
     for n, c in zip(names, cams, strict=True):
         M = c.w2c[:3, :3] @ R @ by_name[n].w2c[:3, :3].T
-        assert np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))) < 1.0  # ~300 features a photo
+        assert np.degrees(np.arccos(np.clip((np.trace(M) - 1) / 2, -1, 1))) < 1.0  # measured: 0.16°
     # the focal length found (the undistorted camera may be cropped a little: ~the true one)
     f_true = 0.5 * W / math.tan(math.radians(FOV_X) / 2)
     assert abs(ds.train[0].camera.fx / f_true - 1) < 0.02
