@@ -172,7 +172,8 @@ __kernel void raster_fwd_rows16(__global const int* tile_off,      // [T + 1]
  * coverage window computed from the entry's set-up:
  *   b0 = 1 + s2 dx + s3 dy,  b1 = s4 dx + s5 dy,  b2 = 1 - b0 - b1,  (dx, dy) = p - a0
  *   w_k = b_k / z_k,  lam_k = w_k / (w0 + w1 + w2)   (raster_math.h)
- *   win = setup_window(b0, b1, b2)                  (coverage.cl's formula)  */
+ *   win = setup_window(b0, b1, b2)                  (coverage.cl's formula; its distance here, the exp in
+ *                                                    window_from_distance)  */
 __kernel void pack_raster_fragments(const int width, const int height, const int K, const REAL sigma,
                                     __global const int* count,        // [H, W]
                                     __global const int* off,          // [H * W + 1]
@@ -207,10 +208,27 @@ __kernel void pack_raster_fragments(const int width, const int height, const int
         bary[2 * o] = w0 * is;
         bary[2 * o + 1] = w1 * is;
         depth[o] = s_depth[i];
-#ifdef WINDOW
+#if defined(WINDOW) && defined(WINDOW_IN_PACK)  /* the window itself, its exp in this loop (the reference) */
         win[o] = setup_window(s, b0, b1, b2, sigma);
+#elif defined(WINDOW)
+        int kk;
+        win[o] = setup_window_arg(s, b0, b1, b2, &kk);  /* the distance: window_from_distance makes it the window */
 #endif
     }
+}
+
+/* window_from_distance: win = 1 - exp(-sigma max(0, d)) in place, d the nearest soft edge's distance that
+ * pack_raster_fragments wrote (setup_window_ex's formula and operations: the same bits). A separate pass, one
+ * work-item per fragment, because the packing's per-pixel loop keeps the CPU device from vectorising it, and a
+ * scalar exp there is a library call (session 60: 18 ns a value against 2 ns in this pass's vector lanes on PoCL,
+ * the same bits). */
+__kernel void window_from_distance(const int P, const REAL sigma, __global REAL* win)  // [P] in: d, out: window
+{
+    const int o = get_global_id(0);
+    if (o >= P) return;
+    const REAL d = win[o];
+    const REAL ex = d < HARD_EDGE_DISTANCE ? exp(-sigma * fmax(d, (REAL)0)) : (REAL)0;
+    win[o] = (REAL)1 - ex;
 }
 
 /* Packed fragment layout (pack_fragments: the generic copy, used by ray-traced fragments): the

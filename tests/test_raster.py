@@ -632,6 +632,31 @@ def test_fragments_backward_vector_channels_are_the_scalar_bits(device, device64
     assert np.abs(out[False][0]).sum() > 0
 
 
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+@pytest.mark.parametrize("masked", [False, True])
+def test_window_pass_is_the_packing_bits(device, device64, rng, monkeypatch, real, masked):
+    """The coverage window's exp in its own pass over the fragments (``window_from_distance``, the default) gives the
+    window computed in ``pack_raster_fragments``'s per-pixel loop (``ops.raster.WINDOW_IN_PACK``) bit for bit: soft
+    edges everywhere (a soup) and on a random mask (the mesh stage's silhouettes: no soft edge, window exactly 1)."""
+    from triplet_cl.ops import raster as raster_mod
+
+    dev = device if real == np.float32 else device64
+    V, F = soup(rng, M=120)
+    soft = rng.integers(0, 8, len(F)).astype(np.int32) if masked else None
+    for sigma in (0.5, 6.0):
+        out = {}
+        for in_pack in (False, True):
+            monkeypatch.setattr(raster_mod, "WINDOW_IN_PACK", in_pack)
+            _, _, _, fr = run_raster(dev, V, F, 6, real=real, sigma=sigma, soft_edges=soft)
+            out[in_pack] = {k: getattr(fr, k).get() for k in ("face", "bary", "depth", "win")}
+        for k in out[False]:
+            np.testing.assert_array_equal(out[False][k], out[True][k], err_msg=k)
+        win = out[False]["win"]
+        assert len(win) > 100 and (win < 1).any() and (win > 0).all()
+        if masked:
+            assert (win == 1).any()
+
+
 def test_backward_is_deterministic(device, rng):
     V, F = soup(rng, M=300, size=0.3)
     V = V.astype(np.float32)

@@ -51,6 +51,9 @@ from .project import camera_params, project, project_backward
 from .scan import prefix_offsets
 
 K_LIMIT = 1024
+#: the coverage window computed inside ``pack_raster_fragments``'s per-pixel loop (the reference the separate
+#: ``window_from_distance`` pass is tested against bit for bit: ``tests/test_raster.py``); False, the default
+WINDOW_IN_PACK = False
 RASTER_VARIANTS = ("auto", "pixel", "rows", "rows16")
 ROWS16_LOCAL = 4  # work-items (2-row pairs) per work-group of raster_fwd_rows16: one 8x8 tile
 # raster_fwd_rows16 keeps its lists lane-wise (16 lanes x K slots x 12 bytes of private memory) and
@@ -133,10 +136,15 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
            frag_entry=s_entry, frag_depth=s_depth, frag_count=count)
     off, P, out = _packed_arrays(device, count, real, bool(sigma))
     if P:
-        launch(device, "raster", "pack_raster_fragments", *grid_1d(npx), defines={"TILE": TILE, "WINDOW": bool(sigma)},
+        win_in_pack = bool(sigma) and WINDOW_IN_PACK
+        launch(device, "raster", "pack_raster_fragments", *grid_1d(npx),
+               defines={"TILE": TILE, "WINDOW": bool(sigma), "WINDOW_IN_PACK": win_in_pack},
                real=real, width=width, height=height, K=K, sigma=sigma or 0.0, count=count, off=off,
                s_entry=s_entry, s_depth=s_depth, entry_face=b.entry_face, entry_setup=b.entry_setup,
                **_pack_outputs(out))
+        if sigma and not win_in_pack:  # the packing wrote each fragment's soft-edge distance; the exp in vector lanes
+            launch(device, "raster", "window_from_distance", *grid_1d(P), defines={"TILE": TILE, "WINDOW": True},
+                   real=real, P=P, sigma=sigma, win=out[4])
     face, entry, bary, depth, win = (None if a is None else device_head(a, P) for a in out)
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
                      b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
