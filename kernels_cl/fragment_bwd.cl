@@ -43,6 +43,7 @@
  * parameters exist only in the builds that use them:
  *   ATTR       attr [N, C], v_out [P, C] in, partial_attr [E, 3, C] out (interpolated attributes)
  *   V_BARY_IN  v_bary_in [P, 2]      V_DEPTH  v_depth [P]      V_WIN  v_win [P]
+ *   WIN_EX     win_ex [P]: the window's exp(-sigma max(0, d)) from the forward (else taken here again)
  *   GEOMETRY   partial_mom [E, MOMENTS], v_sigma_tile [T] out; else v_bary_out [P, 2] out
  */
 #include "real.h"
@@ -92,6 +93,9 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
 #endif
 #ifdef V_WIN
                            __global const REAL* v_win,        // [P]
+#endif
+#ifdef WIN_EX
+                           __global const REAL* win_ex,       // [P] the forward's exp(-sigma max(0, d))
 #endif
                            const REAL sigma,
                            const int width, const int height, const int tiles_x, const int num_tiles,
@@ -196,7 +200,16 @@ __kernel void fragment_bwd(__global const REAL* entry_setup,  // [E, SETUP]
                 const REAL zp = frag_depth[o];
                 int kk = 0;
                 REAL dm = (REAL)0, ex = (REAL)0;
-                if (vw != (REAL)0) setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+                if (vw != (REAL)0) {
+#ifdef WIN_EX
+                    /* the exp the rasterizer's window pass took in vector lanes (raster.cl window_from_distance): a
+                     * scalar exp in this loop is a library call (~18 ns a fragment on PoCL) */
+                    dm = setup_window_arg(s, b0, b1, b2, &kk);
+                    ex = win_ex[o];
+#else
+                    setup_window_ex(s, b0, b1, b2, sigma, &kk, &dm, &ex);
+#endif
+                }
                 vsig += fragment_moments(s, dx, dy, b0, b1, b2, l0, l1, zp, vl0, vl1, vzp, vw, sigma, kk, dm, ex,
                                          partial_mom + (long)e * MOMENTS);
 #endif

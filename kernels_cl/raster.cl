@@ -221,14 +221,18 @@ __kernel void pack_raster_fragments(const int width, const int height, const int
  * pack_raster_fragments wrote (setup_window_ex's formula and operations: the same bits). A separate pass, one
  * work-item per fragment, because the packing's per-pixel loop keeps the CPU device from vectorising it, and a
  * scalar exp there is a library call (session 60: 18 ns a value against 2 ns in this pass's vector lanes on PoCL,
- * the same bits). */
-__kernel void window_from_distance(const int P, const REAL sigma, __global REAL* win)  // [P] in: d, out: window
+ * the same bits). Its exp also goes to win_ex, which the adjoint (fragment_bwd.cl, WIN_EX) reads instead of
+ * taking the exp again in its own scalar loop. */
+__kernel void window_from_distance(const int P, const REAL sigma,
+                                   __global REAL* win,     // [P] in: d, out: the window
+                                   __global REAL* win_ex)  // [P] out: exp(-sigma max(0, d)), for fragment_bwd
 {
     const int o = get_global_id(0);
     if (o >= P) return;
     const REAL d = win[o];
     const REAL ex = d < HARD_EDGE_DISTANCE ? exp(-sigma * fmax(d, (REAL)0)) : (REAL)0;
     win[o] = (REAL)1 - ex;
+    win_ex[o] = ex;
 }
 
 /* Packed fragment layout (pack_fragments: the generic copy, used by ray-traced fragments): the

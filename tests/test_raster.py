@@ -657,6 +657,53 @@ def test_window_pass_is_the_packing_bits(device, device64, rng, monkeypatch, rea
             assert (win == 1).any()
 
 
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+@pytest.mark.parametrize("masked", [False, True])
+def test_fragments_backward_stored_window_exp(device, device64, rng, monkeypatch, real, masked):
+    """The adjoint reads the window's exp that the rasterizer's window pass stored (``Fragments.win_ex``) instead of
+    taking it again (``ops.fragment_bwd.USE_WIN_EX`` False: the reference): the same adjoints (the vertices', sigma's,
+    the attributes'), soft edges everywhere and on a random mask; a pruned list carries none (its adjoint takes the
+    exp again), nor a window of another sigma."""
+    from triplet_cl.ops import fragment_bwd as fbwd
+
+    dev = device if real == np.float32 else device64
+    V, F = soup(rng, M=120)
+    soft = rng.integers(0, 8, len(F)).astype(np.int32) if masked else None
+    _, _, _, fr = run_raster(dev, V, F, 6, real=real, sigma=0.7, soft_edges=soft)
+    assert fr.win_ex is not None  # win = 1 - win_ex, as the kernel forms it
+    np.testing.assert_array_equal(fr.win.get(), (real(1) - fr.win_ex.get()).astype(real))
+    attr = rng.standard_normal((len(V), 5)).astype(real)
+    v_out = rng.standard_normal((fr.P, 5)).astype(real)
+    v_w = rng.standard_normal(fr.P).astype(real)
+    v_w[rng.uniform(size=fr.P) < 0.2] = 0.0
+    out = {}
+    for stored in (True, False):
+        monkeypatch.setattr(fbwd, "USE_WIN_EX", stored)
+        va, vvs, vsig = fragments_backward(dev, fr, attr, v_out, v_win=v_w, sigma=0.7)
+        out[stored] = (va.get(), vvs.get(), vsig)
+    # not the same bits: fragment_bwd.cl may contract the edge functions b_k = 1 + A dx + B dy into fused multiply-adds
+    # where raster.cl may not (FP_CONTRACT OFF there), so its own exp is of a distance an ulp or so away
+    # (measured: at most 3e-8 of the largest value in float32, 1e-16 in float64)
+    tol = 1e-6 if real == np.float32 else 1e-13
+    for k in (0, 1):
+        scale = np.abs(out[False][k]).max()
+        np.testing.assert_allclose(out[True][k], out[False][k], rtol=0, atol=tol * scale)
+    assert out[True][2] == pytest.approx(out[False][2], rel=tol * 10) and out[True][2] != 0
+    # another sigma than the rasterizer's: the stored exp is not that window's, so it is not read
+    other = {}
+    for stored in (True, False):
+        monkeypatch.setattr(fbwd, "USE_WIN_EX", stored)
+        other[stored] = fragments_backward(dev, fr, attr, v_out, v_win=v_w, sigma=0.9)[1].get()
+    np.testing.assert_array_equal(other[True], other[False])
+    # a pruned list carries none
+    from triplet_cl.ops.interpolate import interpolate
+    from triplet_cl.ops.prune import prune_fragments
+
+    opaque = np.full((len(V), 1), 0.999, real)
+    pr, _, _ = prune_fragments(dev, fr, interpolate(dev, opaque, fr), 0, fr.win, 0.9)
+    assert pr.P < fr.P and pr.win_ex is None
+
+
 def test_backward_is_deterministic(device, rng):
     V, F = soup(rng, M=300, size=0.3)
     V = V.astype(np.float32)

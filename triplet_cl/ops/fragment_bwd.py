@@ -71,6 +71,9 @@ def corners_to_vertices(device: Device, mesh: DeviceMesh, corner_a: cla.Array, c
 #: the attribute channels one at a time in ``fragment_bwd`` (the reference the vector chunks are tested against
 #: bit for bit: ``tests/test_raster.py``); False, the default: eight, four and two at a time
 SCALAR_CHANNELS = False
+#: read the window's exp from the forward (``Fragments.win_ex``) where it is there; False: take it again in
+#: ``fragment_bwd`` (the reference the stored one is tested against, ``tests/test_raster.py``)
+USE_WIN_EX = True
 
 
 def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=None, v_bary=None,
@@ -134,13 +137,18 @@ def fragments_backward(device: Device, frags: Fragments, attr=None, v_attr_frag=
         opt["v_depth"] = vd
     if vw is not None:
         opt["v_win"] = vw
+    # the forward's exp of the window (Fragments.win_ex), where the window is the rasterizer's own (its sigma)
+    win_ex = vw is not None and geometry and frags.win_ex is not None and sigma == frags.sigma and USE_WIN_EX
+    if win_ex:
+        opt["win_ex"] = frags.win_ex
     if geometry:
         opt.update(partial_mom=device_empty(q, (max(E, 1), MOMENTS), real, allocator=alloc),
                    v_sigma_tile=device_empty(q, T, real, allocator=alloc))
     else:
         opt["v_bary_out"] = device_empty(q, (max(frags.P, 1), 2), real, allocator=alloc)[:frags.P]
     defines = {"TILE": TILE, "ATTR": bool(C), "V_BARY_IN": vb is not None, "V_DEPTH": vd is not None,
-               "V_WIN": vw is not None, "GEOMETRY": bool(geometry), "SCALAR_CHANNELS": SCALAR_CHANNELS}
+               "V_WIN": vw is not None, "WIN_EX": win_ex, "GEOMETRY": bool(geometry),
+               "SCALAR_CHANNELS": SCALAR_CHANNELS}
     launch(device, "fragment_bwd", "fragment_bwd", (T,), (1,), defines=defines, real=real,
            entry_setup=frags.entry_setup, F=frags.mesh.F, tile_off=frags.tile_off, frag_face=frags.face,
            frag_entry=frags.entry, frag_bary=frags.bary, frag_depth=frags.depth, frag_count=frags.count,

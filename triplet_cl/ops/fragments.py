@@ -58,6 +58,9 @@ class Fragments:
     soft_edges: bool = False  # the window covers only some edges (rasterize(soft_edges=...))
     off: cla.Array | None = None  # [H*W + 1] first row of each pixel's fragments
     P: int = 0  # number of fragments
+    # [P] exp(-sigma d) of each window (win = 1 - win_ex) where the rasterizer computed it in its own pass: the adjoint
+    # reads it instead of taking the exp again (fragment_bwd.cl WIN_EX); None: the adjoint computes it
+    win_ex: cla.Array | None = None
 
     @property
     def num_tiles(self) -> int:

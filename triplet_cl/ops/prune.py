@@ -68,7 +68,8 @@ def prune_fragments(device: Device, frags: Fragments, fa: cla.Array, alpha_col: 
         buf(fa2, q))
     count2 = count2.reshape(frags.count.shape)
     out = replace(frags, face=face2, entry=entry2, bary=bary2, depth=depth2, count=count2, off=off2, P=P2,
-                  win=win2 if frags.win is not None else None)
+                  win=win2 if frags.win is not None else None, win_ex=None)  # (the adjoint takes the window's exp
+    # again: where pruning runs, the mesh stage's, only silhouette fragments have one)
     return out, fa2, win2
 
 

@@ -135,6 +135,7 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
            entry_rows=b.entry_rows, width=width, height=height, tiles_x=tiles_x, K=K, far=far,
            frag_entry=s_entry, frag_depth=s_depth, frag_count=count)
     off, P, out = _packed_arrays(device, count, real, bool(sigma))
+    win_ex = None
     if P:
         win_in_pack = bool(sigma) and WINDOW_IN_PACK
         launch(device, "raster", "pack_raster_fragments", *grid_1d(npx),
@@ -143,12 +144,14 @@ def rasterize(device: Device, vs, mesh: DeviceMesh, width: int, height: int, K: 
                s_entry=s_entry, s_depth=s_depth, entry_face=b.entry_face, entry_setup=b.entry_setup,
                **_pack_outputs(out))
         if sigma and not win_in_pack:  # the packing wrote each fragment's soft-edge distance; the exp in vector lanes
+            win_ex = device_empty(q, max(P, 1), real, allocator=alloc)
             launch(device, "raster", "window_from_distance", *grid_1d(P), defines={"TILE": TILE, "WINDOW": True},
-                   real=real, P=P, sigma=sigma, win=out[4])
+                   real=real, P=P, sigma=sigma, win=out[4], win_ex=win_ex)
+            win_ex = device_head(win_ex, P)
     face, entry, bary, depth, win = (None if a is None else device_head(a, P) for a in out)
     return Fragments(width, height, K, tiles_x, tiles_y, b.num_entries, real, face, entry, bary, depth, count,
                      b.tile_off, b.face_off, b.face_entries, vs, mesh, win, sigma, b.entry_setup, b.entry_face,
-                     soft_edges is not None, off, P)
+                     soft_edges is not None, off, P, win_ex)
 
 
 def pack_fragment_lists(device: Device, count: cla.Array, K: int, face, entry, bary, depth, win=None):
