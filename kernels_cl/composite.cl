@@ -21,6 +21,15 @@
 #ifndef C_MAX
 #define C_MAX 16
 #endif
+/* NC: the channel count compiled in (ops/composite.py: every launch; the runtime argument C is then unused), so the
+ * channel loops unroll and the pixel's sums stay in registers; the same operations in the same order as the loops
+ * over the runtime C (tests/test_raster.py, bit for bit). (has_win stays a runtime value: compiled in, the adjoint's
+ * 1 - alpha win became one fused multiply-add, its T no longer the forward's to the bit.) */
+#ifdef NC
+#define CH NC
+#else
+#define CH C
+#endif
 
 __kernel void composite_fwd(__global const REAL* feat,      // [P, C]      
                             __global const REAL* alpha,     // [P]      
@@ -36,7 +45,7 @@ __kernel void composite_fwd(__global const REAL* feat,      // [P, C]
     const int pix = get_global_id(0);
     if (pix >= npix) return;
     REAL acc[C_MAX];
-    for (int c = 0; c < C; ++c) acc[c] = (REAL)0;
+    for (int c = 0; c < CH; ++c) acc[c] = (REAL)0;
     REAL T = (REAL)1;
     const int cnt = frag_count[pix];
     int n = 0;
@@ -44,12 +53,12 @@ __kernel void composite_fwd(__global const REAL* feat,      // [P, C]
         const int o = frag_off[pix] + i;
         const REAL a = has_win ? alpha[o] * win[o] : alpha[o];
         const REAL w = a * T;
-        for (int c = 0; c < C; ++c) acc[c] += feat[(long)o * C + c] * w;
+        for (int c = 0; c < CH; ++c) acc[c] += feat[(long)o * CH + c] * w;
         T *= (REAL)1 - a;
         n = i + 1;
         if (T < t_min) break;
     }
-    for (int c = 0; c < C; ++c) out[pix * C + c] = acc[c] + bg[c] * T;
+    for (int c = 0; c < CH; ++c) out[pix * CH + c] = acc[c] + bg[c] * T;
     trans[pix] = T;
     n_contrib[pix] = n;
 }
@@ -71,7 +80,7 @@ __kernel void composite_bwd(__global const REAL* feat,      // [P, C]
     if (pix >= npix) return;
     const int n = n_contrib[pix];
     REAL vo[C_MAX], R[C_MAX];
-    for (int c = 0; c < C; ++c) { vo[c] = v_out[pix * C + c]; R[c] = bg[c]; }
+    for (int c = 0; c < CH; ++c) { vo[c] = v_out[pix * CH + c]; R[c] = bg[c]; }
     const REAL va = has_vacc ? v_acc[pix] : (REAL)0;
     /* first pass: T_i of every composited fragment, parked in v_alpha (no division by 1 - a_i) */
     REAL T = (REAL)1;
@@ -88,9 +97,9 @@ __kernel void composite_bwd(__global const REAL* feat,      // [P, C]
         const REAL wv = has_win ? win[o] : (REAL)1;
         const REAL a = ab * wv;
         REAL dot = (REAL)0;
-        for (int c = 0; c < C; ++c) {
-            const REAL f = feat[(long)o * C + c];
-            v_feat[(long)o * C + c] = vo[c] * a * T;
+        for (int c = 0; c < CH; ++c) {
+            const REAL f = feat[(long)o * CH + c];
+            v_feat[(long)o * CH + c] = vo[c] * a * T;
             dot += vo[c] * (f - R[c]);
             R[c] = f * a + ((REAL)1 - a) * R[c];
         }
@@ -103,7 +112,7 @@ __kernel void composite_bwd(__global const REAL* feat,      // [P, C]
     const int cnt = frag_count[pix];
     for (int i = n; i < cnt; ++i) {
         const int o = frag_off[pix] + i;
-        for (int c = 0; c < C; ++c) v_feat[(long)o * C + c] = (REAL)0;
+        for (int c = 0; c < CH; ++c) v_feat[(long)o * CH + c] = (REAL)0;
         v_alpha[o] = (REAL)0;
         if (has_win) v_winout[o] = (REAL)0;
     }

@@ -523,6 +523,36 @@ def test_composite_with_window_and_early_stop(device64, rng):
     np.testing.assert_allclose(fr.to_hwk(v_win)[ok], (ra * alpha)[ok], atol=1e-10)
 
 
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+@pytest.mark.parametrize("C", [1, 3, 4, 7])
+def test_composite_compiled_channels_are_the_runtime_bits(device, device64, rng, monkeypatch, real, C):
+    """The composite pair with its channel count and the window's presence compiled in (the default) gives the
+    runtime loops' values bit for bit (``ops.composite.COMPILED_CHANNELS`` False), with and without a window and
+    early termination."""
+    from triplet_cl.ops import composite as comp_mod
+
+    dev = device if real == np.float32 else device64
+    V, F = soup(rng, M=160)
+    _, _, _, fr = run_raster(dev, V, F, 6, real=real, sigma=3.0)
+    feat = rng.uniform(0, 1, (fr.P, C)).astype(real)
+    alpha = rng.uniform(0.5, 0.99, fr.P).astype(real)
+    v_img = rng.standard_normal((H, W, C)).astype(real)
+    v_acc = rng.standard_normal((H, W)).astype(real)
+    bg = rng.uniform(0, 1, C)
+    for win in (None, fr.win):
+        out = {}
+        for compiled in (True, False):
+            monkeypatch.setattr(comp_mod, "COMPILED_CHANNELS", compiled)
+            img, trans, ncon = composite(dev, fr, feat, alpha, bg, win=win, t_min=0.2)
+            vf, va, vw, vb = composite_backward(dev, fr, feat, alpha, bg, ncon, trans, v_img, v_acc=v_acc, win=win,
+                                                bg_grad=True)
+            out[compiled] = [img.get(), trans.get(), ncon.get(), vf.get(), va.get(), vb] + \
+                ([vw.get()] if vw is not None else [])
+        for a, b in zip(out[True], out[False], strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert (out[True][2] < fr.count.get()).any()  # early termination somewhere
+
+
 # ------------------------------------------------------------------------------------------------ whole chain
 
 

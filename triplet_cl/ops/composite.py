@@ -74,10 +74,19 @@ def composite(device: Device, frags: Fragments, feat, alpha, bg, win=None, t_min
     out = device_empty(q, (H, W, C), real, allocator=alloc)
     trans = device_empty(q, (H, W), real, allocator=alloc)
     ncon = device_empty(q, (H, W), np.int32, allocator=alloc)
-    device.kernel("composite", "composite_fwd", {"C_MAX": c_max(C)}, real)(
+    device.kernel("composite", "composite_fwd", _defines(C), real)(
         q, (npix,), None, buf(f, q), buf(a, q), buf(w, q), frags.count.data, bgd.data, np.int32(npix), frags.off.data,
         np.int32(C), np.int32(w is not None), real.type(t_min), out.data, trans.data, ncon.data)
     return out, trans, ncon
+
+
+#: the channel count compiled into the composite kernels (unrolled channel loops, the pixel's sums in registers: the
+#: same bits as the runtime loops, ``tests/test_raster.py``); False: the runtime count (the reference)
+COMPILED_CHANNELS = True
+
+
+def _defines(C: int) -> dict:
+    return {"C_MAX": c_max(C), "NC": C} if COMPILED_CHANNELS else {"C_MAX": c_max(C)}
 
 
 def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_contrib, trans, v_image,
@@ -108,7 +117,7 @@ def composite_backward(device: Device, frags: Fragments, feat, alpha, bg, n_cont
     v_feat = device_rows(device, (P, C), real)
     v_alpha = device_rows(device, P, real)
     v_win = device_rows(device, P, real) if w is not None else None
-    device.kernel("composite", "composite_bwd", {"C_MAX": c_max(C)}, real)(
+    device.kernel("composite", "composite_bwd", _defines(C), real)(
         q, (H * W,), None, buf(f, q), buf(a, q), buf(w, q), n_contrib.data, frags.count.data, bgd.data, g.data,
         buf(va, q), np.int32(H * W), frags.off.data, np.int32(C), np.int32(w is not None), np.int32(va is not None),
         buf(v_feat, q), buf(v_alpha, q), buf(v_win, q))
