@@ -160,6 +160,7 @@ inline void store_rgba(const REAL4 v, __global REAL* rgb, __global REAL* a, cons
 #define ROW_SPAN (7 * F + NTAP)                 /* rows_down8: the samples eight outputs read */
 #define UP_DLO (FIRST_OUTPUT(0, GR))             /* up passes: the first output read, relative to the first */
 #define UP_SPAN (8 + (F - 1 + GR) / F - UP_DLO) /* rows_up8: the outputs its 8 F samples read */
+#define UP_SPAN1 (UP_SPAN - 7)                 /* cols_upF: the outputs one output's F rows read */
 
 __kernel void gauss4_rows_down8(__global const REAL* rgb,      // [O, L F, 3]
                                 __global const REAL* a,        // [O, L F]
@@ -235,10 +236,10 @@ __kernel void gauss4_cols_upF(__global const REAL* v_rgb,     // [L, W, 3]
     const int p = get_global_id(0);
     if (p >= L * W) return;
     const int m = p / W, w = p - m * W;
-    REAL4 v[UP_SPAN - 7];
-    REAL n[UP_SPAN - 7], wj[NTAP];
+    REAL4 v[UP_SPAN1];
+    REAL n[UP_SPAN1], wj[NTAP];
     for (int j = 0; j < NTAP; ++j) wj[j] = wt[j];
-    for (int k = 0; k < UP_SPAN - 7; ++k) {
+    for (int k = 0; k < UP_SPAN1; ++k) {
         const int l = m + UP_DLO + k;
         const bool in = l >= 0 && l < L;
         const size_t i = (size_t)(in ? l : 0) * W + w;
