@@ -761,3 +761,36 @@ def test_instant_ngp_per_frame_sizes_must_agree_within_a_split(tmp_path):
     with pytest.raises(DatasetError, match="0002.png: image is 10x6 but 0000.png in the same train split is 8x6: every "
                                            "image of a split must have one size"):
         load_dataset(tmp_path)
+
+
+def _opaque_alpha_copy(tmp_path, transparent_pixel: bool):
+    """A NeRF folder whose images are RGBA with alpha 255 everywhere (an RGBA export of ordinary photos); with
+    ``transparent_pixel`` one pixel of one test image is transparent."""
+    written = fac.make_nerf(tmp_path, {"train": 3, "test": 2})
+    for split, recs in written.items():
+        for k, (_, _, px) in enumerate(recs):
+            px = px.copy()
+            px[..., 3] = 1.0
+            if transparent_pixel and split == "test" and k == 1:
+                px[2, 3, 3] = 0.0
+            fac.write_image(tmp_path / split / f"r_{k}.png", px)
+    return written
+
+
+def test_fully_opaque_alpha_is_dropped_with_a_warning(tmp_path):
+    written = _opaque_alpha_copy(tmp_path, transparent_pixel=False)
+    with pytest.warns(DatasetWarning, match="fully opaque, so it masks nothing"):
+        ds = load_dataset(tmp_path)
+    assert not ds.has_alpha
+    assert all(v.alpha is None for split in ("train", "test") for v in ds[split])
+    for view, (_, _, px) in zip(ds.train, written["train"], strict=True):  # the colour is kept as stored
+        np.testing.assert_allclose(view.rgb, px[..., :3], atol=Q8)
+
+
+def test_alpha_kept_when_any_image_is_transparent_anywhere(tmp_path):
+    _opaque_alpha_copy(tmp_path, transparent_pixel=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DatasetWarning)
+        ds = load_dataset(tmp_path)
+    assert ds.has_alpha and all(v.alpha is not None for v in ds.train)
+    assert float(ds.test[1].alpha.min()) == 0.0

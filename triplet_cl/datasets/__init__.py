@@ -19,6 +19,7 @@ from .base import (
     DatasetWarning,
     View,
     composite_background,
+    drop_opaque_alpha,
     holdout_split,
     resolve_background,
 )
@@ -134,6 +135,7 @@ def load_dataset(path, format: str = "auto", downscale: int | str = 1, backgroun
         ds = load_colmap(path, downscale, split_holdout)
     else:
         raise ValueError(f"format must be 'auto' or one of {FORMATS}, got {format!r}")
+    drop_opaque_alpha(ds)  # an RGBA export of ordinary photos: alpha 255 everywhere masks nothing
     ds.background = background
     if auto is not None:  # the factor the first image chose (1 for a dataset without images)
         ds.downscale = auto.factor or 1

@@ -274,6 +274,29 @@ def warn_missing(where, missing: Sequence[str], total: int, what: str) -> None:
                       DatasetWarning, stacklevel=4)
 
 
+OPAQUE_ALPHA = 1.0 - 0.5 / 65535.0  # an alpha channel at or above this everywhere (255 in 8 bits, 65535 in 16) masks nothing
+
+
+def drop_opaque_alpha(ds: Dataset) -> bool:
+    """Images whose alpha channel is fully opaque in every pixel of every image that has one (an RGBA export of
+    ordinary photos) carry no object mask: their alpha is dropped (``View.alpha`` None), so the capture is trained
+    as photos with their background in the picture (the automatic background and shell, the mesh's crop) instead of
+    as an object cut out over white, and a :class:`DatasetWarning` says so. A dataset where any image is transparent
+    anywhere keeps every alpha. Returns whether it dropped them."""
+    views = [v for vs in ds.splits.values() for v in vs]
+    with_alpha = [v for v in views if v.alpha is not None]
+    if not with_alpha or any(float(np.min(v.alpha)) < OPAQUE_ALPHA for v in with_alpha if v.alpha.size):
+        return False
+    ds.splits = {k: [dataclasses.replace(v, alpha=None) for v in vs] for k, vs in ds.splits.items()}
+    import warnings
+
+    warnings.warn(f"{ds.root}: the alpha channel of every image ({len(with_alpha)} with one) is fully opaque, so it "
+                  "masks nothing: the photos are trained as photos with their background (no alpha); cut the "
+                  "object out (transparent background) to train it over a plain background instead",
+                  DatasetWarning, stacklevel=3)
+    return True
+
+
 # ---- splits -------------------------------------------------------------------------------------
 def holdout_split(views: Sequence[View], every: int | None) -> dict[str, list[View]]:
     """LLFF-style hold-out: views sorted by name, every ``every``-th one (index % every == 0) goes
