@@ -274,7 +274,8 @@ def warn_missing(where, missing: Sequence[str], total: int, what: str) -> None:
                       DatasetWarning, stacklevel=4)
 
 
-OPAQUE_ALPHA = 1.0 - 0.5 / 65535.0  # an alpha channel at or above this everywhere (255 in 8 bits, 65535 in 16) masks nothing
+# an alpha channel at or above this everywhere (255 in 8 bits, 65535 in 16) masks nothing
+OPAQUE_ALPHA = 1.0 - 0.5 / 65535.0
 
 
 def drop_opaque_alpha(ds: Dataset) -> bool:
