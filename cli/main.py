@@ -240,6 +240,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     for note in (tr.background_note, tr.shell_note, tr.downscale_note):
         if note:
             print(f"  {note}")
+    if getattr(args, "init_points", None) is not None and not args.resume:
+        from triplet_cl.train import MIN_INIT_POINTS, num_sfm_points
+
+        if num_sfm_points(tr.ds) >= MIN_INIT_POINTS:  # (battery 10: ignored without a word)
+            print(f"  --init-points {args.init_points} unused: the soup starts from the dataset's "
+                  f"{num_sfm_points(tr.ds)} SfM points (one triangle each)")
     try:
         _raise_if_terminated()
         metrics = tr.train()

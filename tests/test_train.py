@@ -271,10 +271,14 @@ def test_sparse_points_are_capped_by_the_face_budget(rng):
     assert len(initial_scene(cfg3, ds, np.random.default_rng(0)).F) == 5000
 
 
-def test_config_refuses_initial_triangles_over_the_budget():
+def test_initial_triangles_over_the_budget_are_refused_before_any_work(tmp_path):
     cfg = TrainConfig(init_points=5000, density=replace(TrainConfig().density, max_faces=1000))
-    with pytest.raises(ValueError, match=r"init_points \(5000\).*max_faces \(1000\)"):
-        cfg.validate()
+    cfg.validate()  # init_points counts only for a dataset without SfM points: the Trainer checks it on the data
+    with pytest.raises(ValueError, match=r"init_points \(--init-points, 5000\).*max_faces \(--max-faces, 1000\)"):
+        Trainer(str(DEMO), tmp_path / "run", cfg, quiet=True)
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match=r"background_shell \(1001\) exceeds the face budget max_faces \(1000\)"):
+        replace(cfg, background_shell=1001).validate()
 
 
 def test_device_budget_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
@@ -519,6 +523,23 @@ def _with_sfm_points(monkeypatch, n: int = 300):
     monkeypatch.setattr(train_mod, "load_dataset", with_points)
 
 
+def test_init_points_on_a_dataset_with_sfm_points_is_named_unused(tmp_path, monkeypatch, capsys):
+    """``--init-points`` on a capture whose soup starts from its SfM points: the command says it is unused (battery
+    10: ignored without a word), and it takes nothing from the shell's share of the budget."""
+    import warnings
+
+    data = _demo_without_alpha(tmp_path / "rgb")
+    _with_sfm_points(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = cli_main(["train", str(data), "--out", str(tmp_path / "run"), "--iterations", "1", "--init-points",
+                       "150000", "--max-faces", "150000", "--faces-per-pixel", "8"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "--init-points 150000 unused: the soup starts from the dataset's 300 SfM points" in out
+    assert "background shell: 4000 triangles" in out
+
+
 def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path, monkeypatch):
     """``--background auto`` and ``--background-shell auto`` (the defaults) for photos without alpha: a random
     background and AUTO_BACKGROUND_SHELL triangles on the far sphere, resolved and saved as what they chose; photos
@@ -559,14 +580,23 @@ def test_photos_without_alpha_get_a_random_background_and_a_shell(tmp_path, monk
         tr.train()  # (two steps: a checkpoint to resume)
         again = Trainer(None, tmp_path / "run", resume=True, quiet=True)  # the saved number, not "auto" again
         assert again.cfg.background_shell == AUTO_BACKGROUND_SHELL
-        # the face budget leaves room for fewer: the shell takes what is left beside the initial triangles
+        # a tight face budget: the shell takes at most half of it, the SfM points are thinned to the rest
         tight = Trainer(str(data), tmp_path / "tight", replace(cfg, density=replace(cfg.density, max_faces=1300)),
                         quiet=True)
-        assert tight.cfg.background_shell == 1000 and "all that --max-faces leaves" in tight.shell_note
+        assert tight.cfg.background_shell == 650 and "half of --max-faces" in tight.shell_note
+        assert len(tight.scene.F) == 300 + 650
         full = Trainer(str(data), tmp_path / "full", replace(cfg, density=replace(cfg.density, max_faces=300)),
+                       quiet=True)
+        assert full.cfg.background_shell == 150 and len(full.scene.F) == 300
+        # init_points does not count with SfM points (battery 10: 200000 of them dropped the shell, "--init-points
+        # 200000 fill --max-faces 200000", and a small --max-faces was refused over a default the soup never used)
+        many = Trainer(str(data), tmp_path / "many", replace(cfg, init_points=5000,
+                                                             density=replace(cfg.density, max_faces=2000)), quiet=True)
+        assert many.cfg.background_shell == 1000 and len(many.scene.F) == 300 + 1000
+        none = Trainer(str(data), tmp_path / "none", replace(cfg, density=replace(cfg.density, max_faces=1,
+                                                                                  min_faces=0)),
                        quiet=True)  # no room at all: none, and the command says why
-        assert full.cfg.background_shell == 0
-        assert "none (auto: --init-points 300 fill --max-faces 300" in full.shell_note
+        assert none.cfg.background_shell == 0 and "--max-faces 1 leaves no room" in none.shell_note
         mine = Trainer(str(data), tmp_path / "mine", replace(cfg, background_shell=7, background="white"), quiet=True)
         assert mine.cfg.background_shell == 7 and mine.cfg.background == "white" and mine.shell_note is None
         # a background the user chose white: no automatic shell (white with the shell made the worst mesh)

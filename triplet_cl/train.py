@@ -446,10 +446,11 @@ class TrainConfig:
             raise ValueError(f"extent_frame and hold_irradiance must be booleans, got {self.extent_frame!r} and "
                              f"{self.hold_irradiance!r}")
         mf = self.density.max_faces
-        if mf is not None and self.init_points + (0 if shell == "auto" else shell) > mf:
-            raise ValueError(f"init_points ({self.init_points}) + background_shell ({self.background_shell}) exceed "
-                             f"the face budget max_faces ({mf}): density control would prune them at once; give at "
-                             "most the budget, or raise max_faces")
+        # init_points counts only for a dataset without SfM points: the Trainer checks it once the dataset is read
+        # (check_initial_budget); SfM points are thinned to what the shell leaves (initial_budget)
+        if mf is not None and shell != "auto" and shell > mf:
+            raise ValueError(f"background_shell ({shell}) exceeds the face budget max_faces ({mf}): density control "
+                             "would prune it at once; give at most the budget, or raise max_faces")
         bad = {k: getattr(self, k) for k in Priors.off() if not getattr(self, k) >= 0}
         if bad or self.prior_k < 1 or not 0 <= self.prior_roughness_target <= 1:
             raise ValueError(f"prior weights must be >= 0, prior_k >= 1, prior_roughness_target in [0, 1]; got "
@@ -566,14 +567,16 @@ def auto_background_shell(cfg: TrainConfig, ds: Dataset) -> int:
     (:func:`photo_backdrop`) or over a background the user chose white or black (measured worse with the shell,
     bench/results/photos_defaults_pocl_2026-11-28.txt); none without SfM points either (:data:`MIN_SHELL_POINTS`):
     the mesh is cropped to the object only where they locate it (mesh/roi.py), and uncropped, the far shell would
-    widen the extraction's volume to six camera distances. Never more than the face budget leaves beside
-    ``init_points`` (:meth:`TrainConfig.validate`'s rule; SfM points are thinned to fit, :func:`initial_budget`)."""
+    widen the extraction's volume to six camera distances. Never more than half the face budget: the soup starts
+    from the SfM points (``init_points`` unused), thinned to what the shell leaves (:func:`initial_budget`)."""
     if not ds.train or ds.has_alpha or cfg.background != "random":
         return 0
     if num_sfm_points(ds) < MIN_SHELL_POINTS:
         return 0
     mf = cfg.density.max_faces
-    return AUTO_BACKGROUND_SHELL if mf is None else int(max(0, min(AUTO_BACKGROUND_SHELL, mf - cfg.init_points)))
+    # the soup starts from the SfM points (init_points unused), thinned to what the shell leaves of the budget: the
+    # shell takes at most half of it
+    return AUTO_BACKGROUND_SHELL if mf is None else int(min(AUTO_BACKGROUND_SHELL, mf // 2))
 
 
 def auto_background_shell_note(cfg: TrainConfig, ds: Dataset) -> str | None:
@@ -581,7 +584,7 @@ def auto_background_shell_note(cfg: TrainConfig, ds: Dataset) -> str | None:
     why a real capture over a random background got none; None where no shell was to be expected."""
     n = cfg.background_shell
     if n:
-        capped = ", all that --max-faces leaves beside --init-points" if n < AUTO_BACKGROUND_SHELL else ""
+        capped = ", half of --max-faces" if n < AUTO_BACKGROUND_SHELL else ""
         return (f"background shell: {n} triangles on a far sphere for the sky / walls (auto; photos without "
                 f"alpha{capped}; --background-shell 0 for none)")
     if ds.has_alpha or cfg.background != "random":
@@ -590,8 +593,22 @@ def auto_background_shell_note(cfg: TrainConfig, ds: Dataset) -> str | None:
         return (f"background shell: none (auto: the dataset has {num_sfm_points(ds)} SfM points, fewer than the "
                 f"{MIN_SHELL_POINTS} that locate the object to crop the mesh to; --background-shell N to add one "
                 "anyway)")
-    return (f"background shell: none (auto: --init-points {cfg.init_points} fill --max-faces "
-            f"{cfg.density.max_faces}; give --background-shell N with room for it)")
+    return (f"background shell: none (auto: --max-faces {cfg.density.max_faces} leaves no room for one; give "
+            "--background-shell N)")
+
+
+def check_initial_budget(cfg: TrainConfig, ds: Dataset) -> None:
+    """A dataset without SfM points starts from ``init_points`` random triangles, and the background shell joins
+    them: together they must fit the face budget (density control would prune them at once). A ``ValueError`` naming
+    the fields and the command's options otherwise; nothing to check when the soup starts from SfM points (thinned to
+    the budget, :func:`initial_budget`) or without a budget."""
+    mf, shell = cfg.density.max_faces, cfg.background_shell
+    if mf is None or num_sfm_points(ds) >= MIN_INIT_POINTS or shell == "auto":
+        return
+    if cfg.init_points + shell > mf:
+        raise ValueError(f"init_points (--init-points, {cfg.init_points}) + background_shell (--background-shell, "
+                         f"{shell}) exceed the face budget max_faces (--max-faces, {mf}): density control would "
+                         "prune them at once; give at most the budget, or raise --max-faces")
 
 
 def frame_radius(ds: Dataset) -> float:
@@ -1041,6 +1058,7 @@ class Trainer:
         if self.cfg.background_shell == "auto":
             self.cfg = replace(self.cfg, background_shell=auto_background_shell(self.cfg, self.ds))
             shell_note = auto_background_shell_note(self.cfg, self.ds)
+        check_initial_budget(self.cfg, self.ds)  # init_points counts only without SfM points
         ds_note = None
         if self.cfg.downscale == "auto":
             self.cfg = replace(self.cfg, downscale=self.ds.downscale)
