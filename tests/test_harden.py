@@ -2816,3 +2816,59 @@ def test_integer_options_take_no_underscores_and_huge_textures_warn(run, capsys)
             warnings.simplefilter("always")
             _check_options(args)
         assert any("many viewers" in str(w.message) for w in got) == warned, size
+
+
+# ---- library calls named instead of failing deep inside (battery 10's "low" leftovers, session 61) ----------------
+@pytest.mark.parametrize("call, match", [
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 0, 64, 64), r"fov_x_deg .*\(0, 180\)"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 180, 64, 64), r"fov_x_deg .*\(0, 180\)"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), float("nan"), 64, 64), r"fov_x_deg"),
+    (lambda C: C.look_at((1, 2, 3), (1, 2, 3), (0, 1, 0), 40, 64, 64), r"eye and target are the same point"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0), (0, 1, 0), 40, 64, 64), r"target must be 3 finite numbers"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 64.5, 64), r"width must be a whole number"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 0, 64), r"at least 1x1"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 64, 64).scaled(0), r"factor must be a finite number > 0"),
+    (lambda C: C.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 64, 64).scaled(-1), r"factor must be a finite number"),
+])
+def test_camera_refusals_name_the_argument(call, match):
+    from triplet_cl.camera import Camera
+
+    with pytest.raises(ValueError, match=match):
+        call(Camera)
+
+
+def test_render_settings_and_render_arguments_are_named():
+    from triplet_cl.camera import Camera
+    from triplet_cl.lights import PointLight
+    from triplet_cl.render import RenderSettings, render
+    from triplet_cl.scene import Scene
+
+    assert RenderSettings(background="white").background == (1.0, 1.0, 1.0)  # the names the options use
+    assert RenderSettings(background="black").background == (0.0, 0.0, 0.0)
+    assert RenderSettings(background=0.5).background == (0.5, 0.5, 0.5)
+    assert RenderSettings(background=np.float32([0.25, 0.5, 1.0])).background == (0.25, 0.5, 1.0)
+    assert RenderSettings(K=np.int64(8)).K == 8
+    for bad in ("random", "grey", (1, 1), (0, np.nan, 0), "1,1,1"):
+        with pytest.raises(ValueError, match="background must be"):
+            RenderSettings(background=bad)
+    for bad in (2.5, "30", True, 0, 1025):
+        with pytest.raises(ValueError, match=r"K must be in \[1, 1024\]"):
+            RenderSettings(K=bad)
+    V = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], np.float32)
+    F = np.array([[0, 1, 2]])
+    scene = Scene.from_arrays(V, F, lights=PointLight((0, 0, 3), (10, 10, 10)))  # one light alone is a list of one
+    assert len(scene.lights) == 1
+    cam = Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 16, 16)
+    with pytest.raises(TypeError, match="settings must be a RenderSettings"):
+        render(scene, cam, settings={"K": 4})
+    with pytest.raises(TypeError, match="device must be a Device"):
+        render(scene, cam, device="0:0")
+    with pytest.raises(TypeError, match="render takes a Scene and a Camera"):
+        render(cam, scene)
+    img = render(scene, cam, RenderSettings(K=4, background="black")).image
+    assert img.shape == (16, 16, 3) and np.isfinite(img).all()
+
+
+def test_load_dataset_takes_a_numpy_integer_downscale():
+    ds = load_dataset(DEMO, downscale=np.int64(2))
+    assert ds.downscale == 2 and ds.train[0].width == 48

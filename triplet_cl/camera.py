@@ -73,12 +73,17 @@ class Camera:
             if not math.isfinite(v):
                 raise ValueError(f"camera {n} must be finite, got {v}")
             object.__setattr__(self, n, v)
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        for n in ("width", "height"):  # a whole number of pixels (64.5 was truncated without a word)
+            v = getattr(self, n)
+            if isinstance(v, bool) or not (isinstance(v, int | np.integer)
+                                           or (isinstance(v, float | np.floating) and float(v).is_integer())):
+                raise ValueError(f"camera {n} must be a whole number of pixels, got {v!r}")
         if int(self.width) < 1 or int(self.height) < 1:
             raise ValueError(f"camera image size must be at least 1x1, got {self.width}x{self.height}")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if not 0 < self.near < self.far:
             raise ValueError(f"camera needs 0 < near < far, got near={self.near}, far={self.far}")
 
@@ -132,7 +137,16 @@ class Camera:
                 near: float = DEFAULT_NEAR, far: float = DEFAULT_FAR) -> Camera:
         """A camera at ``eye`` looking at ``target`` (``up`` appears upwards in the image)."""
         eye, target, up = (np.asarray(x, dtype=np.float64) for x in (eye, target, up))
+        fov = float(fov_x_deg)
+        if not (math.isfinite(fov) and 0 < fov < 180):
+            raise ValueError(f"look_at: fov_x_deg must be a horizontal field of view in (0, 180) degrees, got "
+                             f"{fov_x_deg!r}")
+        for n, a in (("eye", eye), ("target", target), ("up", up)):
+            if a.shape != (3,) or not np.isfinite(a).all():
+                raise ValueError(f"look_at: {n} must be 3 finite numbers, got {a.tolist()!r}")
         z = target - eye
+        if np.linalg.norm(z) < 1e-12:
+            raise ValueError(f"look_at: eye and target are the same point {eye.tolist()}: no viewing direction")
         z /= np.linalg.norm(z)
         x = np.cross(z, up)  # image x to the right, y (= z × x) points down
         if np.linalg.norm(x) < 1e-12:
@@ -165,6 +179,8 @@ class Camera:
 
     def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by ``factor`` (e.g. 0.25 for ¼ resolution)."""
+        if isinstance(factor, bool) or not (math.isfinite(float(factor)) and factor > 0):
+            raise ValueError(f"scaled: factor must be a finite number > 0, got {factor!r}")
         w = max(1, int(round(self.width * factor)))
         h = max(1, int(round(self.height * factor)))
         sx, sy = w / self.width, h / self.height

@@ -109,6 +109,11 @@ class RenderSettings:
     prune: bool = False
 
     def __post_init__(self):
+        from .ops.raster import K_LIMIT
+
+        if isinstance(self.K, bool) or not isinstance(self.K, int | np.integer) or not 1 <= self.K <= K_LIMIT:
+            raise ValueError(f"K must be in [1, {K_LIMIT}] (an integer: fragments kept per pixel), got {self.K!r}")
+        self.background = settings_background(self.background)
         if self.attributes not in ("device", "host"):
             raise ValueError(f"attributes must be 'device' or 'host', got {self.attributes!r}")
         if self.transfer not in TRANSFERS:
@@ -129,6 +134,25 @@ class RenderSettings:
         if not isinstance(self.downsample, (int, np.integer)) or not 1 <= self.downsample <= 16:
             raise ValueError(f"downsample must be an integer in [1, 16], got {self.downsample!r}")
         downsample_op.check_pixel_sigma("pixel_sigma", self.pixel_sigma)
+
+
+def settings_background(background) -> tuple:
+    """``RenderSettings.background`` as three finite floats: ``"white"`` / ``"black"`` (the names the dataset and
+    training options use), one number (grey) or three; anything else a ``ValueError`` naming the field."""
+    if isinstance(background, str):
+        named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+        if background not in named:
+            raise ValueError(f"background must be 'white', 'black' or three numbers (RGB), got {background!r}")
+        return named[background]
+    try:
+        rgb = np.asarray(background, np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        rgb = None
+    if rgb is not None and rgb.shape == (1,):  # one number: grey (as the datasets' resolve_background)
+        rgb = np.repeat(rgb, 3)
+    if rgb is None or rgb.shape != (3,) or not np.isfinite(rgb).all():
+        raise ValueError(f"background must be 'white', 'black' or three finite numbers (RGB), got {background!r}")
+    return tuple(float(x) for x in rgb)
 
 
 def _upload(device: Device, a: np.ndarray) -> cla.Array:
@@ -850,7 +874,15 @@ def render(scene: Scene, camera: Camera, settings: RenderSettings | None = None,
         :class:`RenderResult` with ``image [H, W, 3]`` and ``alpha [H, W]`` (numpy);
         ``result.backward(v_image)`` returns the gradient of every scene parameter.
     """
-    s = settings or RenderSettings()
+    s = RenderSettings() if settings is None else settings
+    if not isinstance(s, RenderSettings):
+        raise TypeError(f"settings must be a RenderSettings (e.g. RenderSettings(**{{...}}) for a dict), got "
+                        f"{type(s).__name__}")
+    if device is not None and not isinstance(device, Device):
+        raise TypeError(f"device must be a Device (triplet_cl.device.get_device(...) takes a name or an index), got "
+                        f"{type(device).__name__} {device!r}")
+    if not isinstance(scene, Scene) or not isinstance(camera, Camera):
+        raise TypeError(f"render takes a Scene and a Camera, got {type(scene).__name__} and {type(camera).__name__}")
     d = device or get_device()
     d.release_held()  # the pool's free lists kept bounded: the last render's buffers are back in it by now
     N = scene.V.shape[0]

@@ -22,7 +22,7 @@ import numpy as np
 
 from .activations import inverse_softplus, logit  # noqa: F401  (re-exported: their home is activations)
 from .autodiff import Param
-from .lights import pack_lights, unpack_lights
+from .lights import Light, pack_lights, unpack_lights
 from .materials import DEFAULT_BRDF, get_brdf
 from .ops.common import check_faces, check_real
 
@@ -66,6 +66,8 @@ class Scene:
         mat = check_real("material", mat, (n, cm), dtype)
         al = np.full((n, 1), logit(alpha_init)) if alpha is None else alpha
         al = check_real("alpha", al, (n, 1), dtype)
+        if isinstance(lights, Light):  # one light given alone
+            lights = [lights]
         lights = list(lights or [])
         table = pack_lights(lights)
         lp = Param(table.params.astype(dtype), "light_params") if len(table.params) else None
