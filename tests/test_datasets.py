@@ -453,6 +453,36 @@ def _write_oriented_jpeg(path, pixels, orientation):
     out.close()
 
 
+def test_exif_orientation_named_by_colmap_and_for_colmap_poses(tmp_path):
+    """``triplet colmap`` names the photos an EXIF orientation turns (battery 10: solved without a word), and a
+    COLMAP dataset's warning says its cameras fit the stored pixels (COLMAP solved on them) instead of asking to
+    rotate the files."""
+    from triplet_cl.camera import Camera
+    from triplet_cl.datasets.images import load_views
+    from triplet_cl.datasets.sfm import warn_exif_orientation
+
+    paths = []
+    for i, o in enumerate((6, 1, 8)):
+        paths.append(tmp_path / f"IMG_{i}.jpg")
+        _write_oriented_jpeg(paths[-1], fac.image_pixels(i), o)
+    with pytest.warns(DatasetWarning, match=r"2 of the 3 photos carry an EXIF orientation \(IMG_0.jpg: 6, shown "
+                                            r"rotated 90° clockwise.*structure from motion solves on the pixels as "
+                                            r"stored.*exiftran -ai"):
+        assert warn_exif_orientation(paths) == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DatasetWarning)
+        assert warn_exif_orientation([paths[1]]) == 0
+
+    def cam(w, h):
+        return Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, w, h)
+
+    records = [(p.stem, p, cam) for p in paths]
+    with pytest.warns(DatasetWarning, match=r"COLMAP's cameras were solved on those pixels and fit them"):
+        load_views(records, 1, "train", stored_pixel_poses=True)
+    with pytest.warns(DatasetWarning, match=r"if the poses were made for the photos as viewers show them"):
+        load_views(records, 1, "train")
+
+
 def test_exif_orientation_is_named(tmp_path):
     """Photos whose EXIF orientation has viewers show them turned are read as stored (as COLMAP and instant-ngp
     read them), with one warning naming the tag; one stored sideways among the others: the size error says why."""

@@ -414,6 +414,6 @@ def load_colmap(root, downscale: int = 1, split_holdout: int | None = 8, images:
     warn_missing(img_dir, missing, len(imgs), f"images of {img_path.name}")
     if not records:
         raise DatasetError(img_dir, f"no images left: none of the {len(imgs)} image files of {img_path.name} exists")
-    views, spaces = load_views(records, downscale, "train")
+    views, spaces = load_views(records, downscale, "train", stored_pixel_poses=True)  # COLMAP reads stored pixels
     return Dataset(root, "colmap", holdout_split(views, split_holdout), points=points, colors=colors,
                    color_space=merge_color_spaces(root, spaces), downscale=downscale, held_out=split_holdout or None)

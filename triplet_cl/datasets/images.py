@@ -375,7 +375,7 @@ def read_images(paths: list[Path], downscale: int = 1, workers: int | None = Non
         return list(pool.map(lambda p: read_image(p, downscale), paths))
 
 
-def load_views(records, downscale: int = 1, split: str = "train"):
+def load_views(records, downscale: int = 1, split: str = "train", stored_pixel_poses: bool = False):
     """Read the images of one split and build its views.
 
     ``records`` are ``(name, image_path, make_camera)`` with ``make_camera(width, height)`` →
@@ -417,11 +417,16 @@ def load_views(records, downscale: int = 1, split: str = "train"):
         from .base import DatasetWarning
 
         name, o = turned[0]
-        warnings.warn(f"{Path(records[0][1]).parent}: {len(turned)} of {len(records)} {split} images carry an EXIF "
-                      f"orientation ({name}: {o}, shown {EXIF_ORIENTATIONS[o]} by image viewers); triplet reads the "
-                      "pixels as stored, as COLMAP and instant-ngp do, so the cameras must be those of the stored "
-                      "pixels: if the poses were made for the photos as viewers show them, rotate the files themselves "
-                      "(e.g. exiftran -ai or mogrify -auto-orient)", DatasetWarning, stacklevel=2)
+        head = (f"{Path(records[0][1]).parent}: {len(turned)} of {len(records)} {split} images carry an EXIF "
+                f"orientation ({name}: {o}, shown {EXIF_ORIENTATIONS[o]} by image viewers); triplet reads the "
+                "pixels as stored, as COLMAP and instant-ngp do")
+        if stored_pixel_poses:  # COLMAP solved on the same stored pixels: nothing to do (battery 10)
+            tail = (": COLMAP's cameras were solved on those pixels and fit them; the renders and the mesh are those "
+                    "of the stored pixels, not of the photos as viewers show them")
+        else:
+            tail = (", so the cameras must be those of the stored pixels: if the poses were made for the photos as "
+                    "viewers show them, rotate the files themselves (e.g. exiftran -ai or mogrify -auto-orient)")
+        warnings.warn(head + tail, DatasetWarning, stacklevel=2)
     bare = [v for v in views if v.alpha is None]
     if bare and len(bare) < len(views):  # a mix: those views' background would be trained as the object
         import warnings
