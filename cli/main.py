@@ -240,6 +240,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     for note in (tr.background_note, tr.shell_note, tr.downscale_note):
         if note:
             print(f"  {note}")
+    if not args.resume and args.overwrite and cwd_inside is not None:  # the shell's folder is the deleted old run
+        print(f"  note: your shell's working folder was inside the old run, which --overwrite replaces: run `cd "
+              f"{out / cwd_inside}` (or `cd .`) afterwards to be in the new one")
     if getattr(args, "init_points", None) is not None and not args.resume:
         from triplet_cl.train import MIN_INIT_POINTS, num_sfm_points
 

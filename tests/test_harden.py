@@ -2050,9 +2050,11 @@ def test_overwrite_of_the_current_folder(run, tmp_path, capsys, monkeypatch):
     data = tmp_path / "data"
     shutil.copytree(DEMO, data)
     monkeypatch.chdir(run)
-    rc, err, _ = _run_cli(["train", "../data", "--out", ".", "--overwrite", *TINY_RUN], capsys)
+    rc, err, out = _run_cli(["train", "../data", "--out", ".", "--overwrite", *TINY_RUN], capsys)
     assert rc == 0, err
     assert json.loads((run / "metrics.json").read_text())["iterations"] == 4
+    # the user's shell is left in the deleted old folder (battery 10): the command says how to get back
+    assert "your shell's working folder was inside the old run" in out and f"cd {run.resolve()}" in out
 
 
 @pytest.mark.parametrize("value, want", [(1e300, "expected coordinates within"), (1e6, "farther from the cameras")])
