@@ -132,6 +132,8 @@ def test_sfm_solves_synthetic_capture(capture, tmp_path, monkeypatch):
     # the mapper's callback counts steps, not photos ("registered 25 of 16 photos", battery 9)
     assert any("mapping step" in ln for ln in lines) and not any("registered" in ln for ln in lines), lines
     assert any(ln.startswith("  features: ") for ln in lines), lines  # seconds so far (and photos done)
+    # (the photos done are read from COLMAP's database without a lock, best effort: a reader's lock made COLMAP's
+    # writes fail, a photo's features lost or the process aborted; with this 0.05 s heartbeat, one run in three)
     mask = os.umask(0)
     os.umask(mask)
     assert (out.stat().st_mode & 0o777) == 0o777 & ~mask  # not mkdtemp's 0700 (battery 9)
@@ -378,3 +380,41 @@ def test_the_heartbeat_reads_the_database_read_only_and_survives_a_closed_pipe(t
     with sfm_mod._heartbeat(closed, "features", lambda: 1, 3, every=0.01):
         _time.sleep(0.1)
     assert errors == []
+
+
+def test_progress_count_takes_no_lock_on_colmap_s_database(tmp_path):
+    """The heartbeat's count of the photos done reads COLMAP's database while COLMAP writes it: a reader's shared
+    lock made COLMAP's next write fail ("database is locked", not retried: a photo's features lost, or an abort).
+    The read now takes no lock: a writer that needs the exclusive lock gets it while the count's connection is
+    open."""
+    import sqlite3
+
+    import triplet_cl.datasets.sfm as sfm_mod
+
+    db = tmp_path / "database.db"
+    con = sqlite3.connect(db, timeout=0)
+    con.execute("CREATE TABLE keypoints (image_id INTEGER)")
+    con.executemany("INSERT INTO keypoints VALUES (?)", [(i,) for i in range(5)])
+    con.commit()
+    assert sfm_mod._rows(db, "keypoints") == 5 and sfm_mod._rows(db, "keypoints", 3) == 3
+    assert sfm_mod._rows(tmp_path / "missing.db", "keypoints") is None
+    real_connect = sqlite3.connect
+    held = []
+
+    def connect_and_hold(*a, **kw):  # the count's connection stays open (as if read just when COLMAP commits)
+        c = real_connect(*a, **kw)
+        c.execute("BEGIN")
+        c.execute("SELECT COUNT(*) FROM keypoints").fetchone()
+        held.append(c)
+        return c
+
+    sqlite3.connect = connect_and_hold
+    try:
+        sfm_mod._rows(db, "keypoints")  # closes it; hold a second one open across the write
+        reader = connect_and_hold(db.absolute().as_uri() + "?mode=ro&immutable=1", uri=True)
+    finally:
+        sqlite3.connect = real_connect
+    con.execute("INSERT INTO keypoints VALUES (5)")
+    con.commit()  # "database is locked" here with a locking reader (timeout 0, as COLMAP's write failed)
+    reader.close()
+    assert sfm_mod._rows(db, "keypoints") == 6
