@@ -44,6 +44,7 @@ its reference in ``tests/reference/shade.py`` (and ``tests/reference/trace.py`` 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -151,7 +152,7 @@ class Light:
 
     @property
     def num_params(self) -> int:
-        return int(sum(int(np.prod(s)) for s in self.param_shapes().values()))
+        return sum(math.prod(s) for s in self.param_shapes().values())
 
     def flat_params(self) -> np.ndarray:
         """The parameters, concatenated (each flattened row-major): ``[num_params]`` float64."""
@@ -162,7 +163,7 @@ class Light:
     def _split(self, flat: np.ndarray) -> dict[str, np.ndarray]:
         out, off = {}, 0
         for n, shape in self.param_shapes().items():
-            k = int(np.prod(shape))
+            k = math.prod(shape)
             out[n] = np.asarray(flat[off:off + k]).reshape(shape).copy()
             off += k
         return out
@@ -177,7 +178,7 @@ class Light:
         for n, shape in self.param_shapes().items():
             if n == name:
                 return off
-            off += int(np.prod(shape))
+            off += math.prod(shape)
         raise KeyError(f"{type(self).__name__} has no parameter {name!r} (parameters: {self.PARAMS})")
 
     def inactive_mask(self) -> np.ndarray:
@@ -457,9 +458,8 @@ class LightTable:
     @property
     def shadowed(self) -> np.ndarray:
         """Indices (in light order) of the lights that cast ray-traced shadows: ``[NV]``."""
-        if not len(self.ints):
-            return np.zeros(0, np.int64)
-        return np.nonzero(np.isin(self.ints[:, 0], shadow_casting_types()))[0]
+        casters = shadow_casting_types()  # (a few lights: a loop, not np.isin's ~0.5 ms, four times a step)
+        return np.array([i for i, t in enumerate(self.ints[:, 0].tolist()) if t in casters], np.int64)
 
     @property
     def num_shadowed(self) -> int:
@@ -513,7 +513,7 @@ def relative_lr_scales(lights, floor: float = 1e-3, position: float = 1.0, exten
     out = []
     for lt in _check_lights(lights):
         for n, shape in lt.param_shapes().items():
-            k = int(np.prod(shape))
+            k = math.prod(shape)
             v = np.asarray(getattr(lt, n), np.float64)
             out.append(np.full(k, max(float(np.abs(v).max()) if v.size else 0.0, floor) if n in lt.RADIOMETRIC
                                else (position if n == "position" else 1.0)))
@@ -558,7 +558,7 @@ def _map_radiometric(lights, params: np.ndarray, fn) -> np.ndarray:
     off = 0
     for lt in _check_lights(lights):
         for n, shape in lt.param_shapes().items():
-            k = int(np.prod(shape))
+            k = math.prod(shape)
             if n in lt.RADIOMETRIC:
                 out[off:off + k] = np.broadcast_to(fn(out[off:off + k].reshape(shape)), shape).reshape(-1)
             off += k
