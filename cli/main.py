@@ -389,6 +389,7 @@ def cmd_relight(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out} is a file; expected a folder")
     _lock_if_writing_into(run, args.out is None)
     tr = _load_run(args)
+    tr.warn_if_dataset_changed()  # another capture at the run's path is refused (battery 11)
     rl = Relighter(tr, args.stage, args.renderer, args.shadows)
     # the default folder of a split other than test is the split's own (battery 9: `--split train` then `--split
     # test` mixed both splits' r_0.png ... in RUN/relight/SET/), as render's renders/SPLIT/

@@ -2294,6 +2294,31 @@ def test_eval_after_the_test_split_vanished_warns(tmp_path, demo_copy, capsys):
         assert rc == 0 and "may hold views the run trained on" in err and err.count("\n") == 1, err
 
 
+def test_another_capture_at_the_run_s_dataset_path_is_refused(tmp_path, demo_copy, capsys):
+    """Another capture with as many training views put where the run's dataset was: eval scored the run against it
+    (9.8 dB into metrics.json), render and relight rendered it, without a word (battery 11). Refused before anything
+    is written, as train --resume and extract refuse it."""
+    data = tmp_path / "data"
+    shutil.copytree(demo_copy, data)
+    run = tmp_path / "run"
+    assert cli_main(["train", str(data), "--out", str(run), *TINY_RUN]) == 0
+    capsys.readouterr()
+    before = (run / "metrics.json").read_bytes()
+    p = data / "transforms_train.json"  # the same frames under other names (another capture's files)
+    d = json.loads(p.read_text())
+    for k, f in enumerate(d["frames"]):
+        src = data / (f["file_path"].lstrip("./") + ".png")
+        src.rename(data / "train" / f"other_{k}.png")
+        f["file_path"] = f"./train/other_{k}"
+    p.write_text(json.dumps(d))
+    for argv in (["eval", run], ["render", run, "--out", tmp_path / "r"],
+                 ["relight", run, "--lights", run / "lights.json", "--out", tmp_path / "l"]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "was trained on other training views" in err and "another capture" in err, (argv, err)
+    assert (run / "metrics.json").read_bytes() == before
+    assert not (tmp_path / "r").exists() and not (tmp_path / "l").exists()
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""

@@ -1670,7 +1670,16 @@ class Trainer:
             raise RunError(path, f"was trained on {was}, the dataset {self.data} now has {n} (another dataset, or "
                                  f"frames added or removed since): {action} with the dataset the run was made with "
                                  "(config.json's \"data\"), or start a new run")
-        saved_id, saved_cams = self._resumed_id  # checkpoints written before they were saved: the count above only
+        what = self._views_mismatch()
+        if what is not None:
+            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
+                                 f"({what}): {action} with the dataset the run was made with (config.json's "
+                                 "\"data\"), or start a new run")
+
+    def _views_mismatch(self) -> str | None:
+        """What differs between the loaded checkpoint's training views and the dataset's (their names, size,
+        cameras), or None (the same, or a checkpoint from before they were saved)."""
+        saved_id, saved_cams = self._resumed_id  # checkpoints written before they were saved: the count only
         what = None
         if isinstance(saved_id, dict):
             mine = self._views_id()
@@ -1682,27 +1691,33 @@ class Trainer:
                 what = f"it was trained on {was[0]}x{was[1]} photos and the dataset's are {now[0]}x{now[1]}"
         if what is None and saved_cams is not None and not same_cameras(saved_cams, training_cameras(self.ds)):
             what = "the training views' cameras (poses or intrinsics) are not the ones it was trained with"
-        if what is not None:
-            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
-                                 f"({what}): {action} with the dataset the run was made with (config.json's "
-                                 "\"data\"), or start a new run")
+        return what
 
     def warn_if_dataset_changed(self) -> None:
         """Evaluating or rendering a run whose dataset's training split changed since it was trained is allowed (new
         test views), but its test split may then hold views it trained on (a battery: ``transforms_test.json``
         removed, the hold-out of the training views became the test split and metrics.json was rewritten from it):
-        say so, one warning line."""
+        say so, one warning line. As many training views but not the same ones (their names, size or cameras:
+        another capture put at the run's path) is refused (:class:`RunError`, before anything is written)."""
         import warnings
 
         from .datasets.base import DatasetWarning
 
         if self._resumed_from is None:
             return
-        saved_n, n = self._resumed_from[1], len(self.ds.train)
+        path, saved_n = self._resumed_from
+        n = len(self.ds.train)
         if saved_n is not None and saved_n != n:
             warnings.warn(DatasetWarning(f"the run was trained on {saved_n} training views and the dataset "
                                          f"{self.data} now has {n}: its test split may hold views the run trained on "
                                          "(a transforms_test.json removed or added since?)"), stacklevel=2)
+            return
+        what = self._views_mismatch()  # as many views, but not the same: another dataset at the run's path (battery
+        if what is not None:  # 11: eval scored another object, 9.8 dB, into metrics.json without a word)
+            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
+                                 f"({what}): its renders and scores would be of another capture; point the run at "
+                                 "the dataset it was made with (config.json's \"data\", or `triplet train --resume` "
+                                 "with DATA), or start a new run")
 
     def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
         """The checkpoint belongs to this configuration and this dataset's training views, and holds what it needs,
