@@ -260,7 +260,16 @@ def cmd_train(args: argparse.Namespace) -> int:
         tr.evaluate("train", write_renders=True)
     print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
           f"{metrics.get('wall_time_s', 0):.0f} s")
-    print(f"results in {out}/: triplets.ply, lights.json, renders/test/, metrics.json, checkpoints/, train.log")
+    from triplet_cl.mesh.refine import MESH_STATE
+
+    kept = "" if (out / MESH_STATE).is_file() else "lights.json, "  # a mesh stage's lights.json is kept
+    print(f"results in {out}/: triplets.ply, {kept}renders/test/, metrics.json, checkpoints/, train.log")
+    stale = (metrics.get("mesh") or {}).get("stale") if isinstance(metrics.get("mesh"), dict) else None
+    if stale and not args.mesh_stage:  # a resumed run with a mesh stage (battery 11: its metrics, lights replaced)
+        print(f"warning: the run's mesh (mesh_stage.npz, mesh.*, lights.json) was made from the soup at iteration "
+              f"{stale['made_from_iterations']}, not from this one ({stale['soup_iterations']}): it is kept as it "
+              f"was (metrics.json's \"mesh\" marked stale); remake it with: triplet extract "
+              f"{shlex.quote(str(out))}", file=sys.stderr)
     if args.mesh_stage:
         return _run_mesh_stage(tr, mesh_cfg)
     return 0

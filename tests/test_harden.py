@@ -2319,6 +2319,32 @@ def test_another_capture_at_the_run_s_dataset_path_is_refused(tmp_path, demo_cop
     assert not (tmp_path / "r").exists() and not (tmp_path / "l").exists()
 
 
+def test_resume_keeps_a_mesh_stage_s_metrics_and_lights_and_says_it_is_stale(tmp_path, capsys):
+    """`train --resume` on a run with a mesh stage dropped the mesh's metrics and put the soup's lights in lights.json
+    beside the mesh's files, without a word (battery 11). The mesh's section is kept (marked stale when the soup
+    trained on), lights.json stays the mesh's, and the command says how to remake the mesh."""
+    run = tmp_path / "run"
+    assert cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN]) == 0
+    (run / "mesh_stage.npz").write_bytes(b"a mesh stage's state")  # (only its presence is read here)
+    m = json.loads((run / "metrics.json").read_text())
+    m["mesh"] = {"psnr": 33.3, "chamfer_to_gt": 0.005}
+    (run / "metrics.json").write_text(json.dumps(m))
+    mesh_lights = '{"lights": [{"type": "AmbientLight", "color": [0.1, 0.1, 0.1]}]}'
+    (run / "lights.json").write_text(mesh_lights)
+    capsys.readouterr()
+    rc, err, out = _run_cli(["train", "--resume", "--out", run, "--iterations", "4"], capsys)  # nothing to train
+    assert rc == 0 and "stale" not in err, err
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["mesh"] == {"psnr": 33.3, "chamfer_to_gt": 0.005} and (run / "lights.json").read_text() == mesh_lights
+    rc, err, out = _run_cli(["train", "--resume", "--out", run, "--iterations", "6"], capsys)
+    assert rc == 0 and "made from the soup at iteration 4, not from this one (6)" in err, err
+    assert f"triplet extract {run}" in err
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["iterations"] == 6 and m["mesh"]["psnr"] == 33.3
+    assert m["mesh"]["stale"] == {"made_from_iterations": 4, "soup_iterations": 6}
+    assert (run / "lights.json").read_text() == mesh_lights
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""

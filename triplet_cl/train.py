@@ -1465,11 +1465,36 @@ class Trainer:
         self.save_checkpoint()
         return self.finish(wall)
 
+    def mesh_made_from(self) -> dict | None:
+        """A mesh stage's record in this run (``mesh_stage.npz`` present): ``{"mesh": the metrics' "mesh" section or
+        None, "iterations": the soup's iterations when it was made (metrics.json's, or None)}``; None without one."""
+        from .mesh.refine import MESH_STATE
+
+        if not (self.run_dir / MESH_STATE).is_file():
+            return None
+        try:
+            old = json.loads((self.run_dir / "metrics.json").read_text())
+        except (OSError, ValueError):
+            old = {}
+        if not isinstance(old, dict):
+            old = {}
+        mesh = old.get("mesh") if isinstance(old.get("mesh"), dict) else None
+        its = old.get("iterations") if isinstance(old.get("iterations"), int) else None
+        return {"mesh": mesh, "iterations": its}
+
     def finish(self, wall: float | None = None) -> dict:
-        """Write triplets.ply, lights.json, test renders and metrics.json."""
-        self.export_scene()
+        """Write triplets.ply, lights.json, test renders and metrics.json. In a run with a mesh stage (a resumed one)
+        its metrics' "mesh" section is kept, marked ``stale`` when the soup trained on since it was made, and
+        lights.json (the mesh's lights, which its exports carry) is left as the stage wrote it (battery 11: a resume
+        dropped the mesh's metrics and put the soup's lights beside the mesh's files, without a word)."""
+        made = self.mesh_made_from()
+        self.export_scene(lights=made is None)
         metrics = self.evaluate(write_renders=True)
         metrics.update({"iterations": self.it, "faces": len(self.scene.F)})
+        if made is not None and made["mesh"] is not None:
+            metrics["mesh"] = dict(made["mesh"])
+            if made["iterations"] != self.it:
+                metrics["mesh"]["stale"] = {"made_from_iterations": made["iterations"], "soup_iterations": self.it}
         if self.metallic_probe is not None:  # (a resumed run's from its checkpoint)
             metrics["metallic_probe"] = self.metallic_probe
         if wall is not None:
@@ -1486,7 +1511,8 @@ class Trainer:
         return metrics
 
     # ---- outputs -------------------------------------------------------------------------------
-    def export_scene(self) -> None:
+    def export_scene(self, lights: bool = True) -> None:
+        """triplets.ply and (``lights``) lights.json of the current soup."""
         from .activations import sigmoid
 
         s = self.scene
@@ -1495,7 +1521,8 @@ class Trainer:
         attrs.update(brdf.split(brdf.activate(s.material.data)))  # every attribute (Blinn-Phong's shininess too)
         write_soup_ply(self.run_dir / "triplets.ply", s.V.data, s.F, attrs,
                        albedo_space="linear" if self.cfg.color == "linear" else "srgb")
-        write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
+        if lights:
+            write_json(self.run_dir / "lights.json", lights_to_json(s.current_lights(), check_finite=False))
 
     def evaluate(self, split: str = "test", write_renders: bool = False, out_dir=None) -> dict:
         """PSNR / SSIM of every view of ``split`` (rendered at full resolution, K after warm-up)."""
