@@ -281,6 +281,10 @@ def _load_run(args):
 
     tr = Trainer(None, Path(args.run), device=get_device(args.device), resume=True, quiet=True)
     tr.view_progress = True  # quiet (no training bar, no notes), but a bar per rendered view on a terminal
+    if tr.it < tr.cfg.iterations:  # (battery 11: extract, eval and render used a stopped soup without a word)
+        print(f"warning: {args.run}: training stopped at iteration {tr.it} of {tr.cfg.iterations} (interrupted?): "
+              f"this is the unfinished soup; finish it with: triplet train --resume --out "
+              f"{shlex.quote(str(args.run))}", file=sys.stderr)
     return tr
 
 

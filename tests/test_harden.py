@@ -2345,6 +2345,21 @@ def test_resume_keeps_a_mesh_stage_s_metrics_and_lights_and_says_it_is_stale(tmp
     assert (run / "lights.json").read_text() == mesh_lights
 
 
+def test_commands_on_an_unfinished_soup_say_so(tmp_path, capsys):
+    """A run stopped at 61 of 150 iterations: extract, eval and render used its soup without a word (battery 11)."""
+    run = tmp_path / "run"
+    assert cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN]) == 0
+    (run / "checkpoints" / "ckpt_0000004.npz").unlink()  # as if stopped after the checkpoint at 2
+    (run / "checkpoints" / "latest").write_text("ckpt_0000002.npz")
+    capsys.readouterr()
+    rc, err, _ = _run_cli(["eval", run], capsys)
+    assert rc == 0 and "training stopped at iteration 2 of 4" in err and f"train --resume --out {run}" in err, err
+    rc, err, _ = _run_cli(["train", "--resume", "--out", run], capsys)
+    assert rc == 0
+    rc, err, _ = _run_cli(["eval", run], capsys)
+    assert rc == 0 and "stopped" not in err, err
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""
