@@ -2360,6 +2360,19 @@ def test_commands_on_an_unfinished_soup_say_so(tmp_path, capsys):
     assert rc == 0 and "stopped" not in err, err
 
 
+def test_a_finished_run_without_its_checkpoints_is_named_as_such(tmp_path, capsys):
+    """Checkpoints deleted from a finished run (to save space): the advice was "a run stopped before its first
+    checkpoint starts again with --overwrite", which would delete the run and its mesh (battery 11)."""
+    run = tmp_path / "run"
+    assert cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN]) == 0
+    shutil.rmtree(run / "checkpoints")
+    (run / "mesh_stage.npz").write_bytes(b"a mesh stage's state")
+    capsys.readouterr()
+    rc, err, _ = _run_cli(["eval", run], capsys)
+    assert rc == 2 and "the run finished (metrics.json) but its checkpoints were removed" in err, err
+    assert "not --overwrite: it would delete this run, mesh included" in err and "triplet export" in err, err
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""

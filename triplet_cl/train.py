@@ -1582,9 +1582,19 @@ class Trainer:
             raise FileNotFoundError(f"{ck} is a file, not the run's checkpoints folder: the run's trained state is "
                                     "not there (move the file away, or start again with --overwrite)")
         if not found:
-            raise FileNotFoundError(f"no checkpoint in {self.run_dir / 'checkpoints'}: the run's trained state (every "
-                                    "command that reads a run loads it; triplets.ply alone is an export of it); a run "
-                                    "stopped before its first checkpoint starts again with --overwrite")
+            head = (f"no checkpoint in {self.run_dir / 'checkpoints'}: the run's trained state (every command that "
+                    "reads a run loads it; triplets.ply alone is an export of it)")
+            if (self.run_dir / "metrics.json").is_file():  # a finished run whose checkpoints were deleted (battery
+                # 11: advised --overwrite, which would delete its mesh too)
+                from .mesh.refine import MESH_STATE
+
+                has_mesh = (self.run_dir / MESH_STATE).is_file()
+                raise FileNotFoundError(
+                    f"{head}: the run finished (metrics.json) but its checkpoints were removed, so eval, render, "
+                    "relight and extract cannot load it; restore the checkpoints folder, or train it again into a "
+                    "new --out (not --overwrite: it would delete this run" + (", mesh included" if has_mesh else "")
+                    + ")" + ("; `triplet export` still works from its mesh (mesh_stage.npz)" if has_mesh else ""))
+            raise FileNotFoundError(f"{head}; a run stopped before its first checkpoint starts again with --overwrite")
         return found[-1]
 
     def save_checkpoint(self) -> Path:
