@@ -2373,6 +2373,22 @@ def test_a_finished_run_without_its_checkpoints_is_named_as_such(tmp_path, capsy
     assert "not --overwrite: it would delete this run, mesh included" in err and "triplet export" in err, err
 
 
+def test_a_run_left_aside_by_a_killed_overwrite_is_named(tmp_path, capsys):
+    """SIGKILL early in `train --overwrite` leaves RUN empty and the old run in .RUN.overwritten.XXXX/RUN, where no
+    message pointed (battery 11: "is not a run directory", as if lost): the commands on RUN name it and the way back."""
+    run = tmp_path / "run"
+    assert cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN]) == 0
+    holder = tmp_path / ".run.overwritten.abc123"
+    holder.mkdir()
+    run.rename(holder / "run")
+    run.mkdir()  # what the killed process had claimed
+    capsys.readouterr()
+    for argv in (["eval", run], ["export", run], ["train", "--resume", "--out", run]):
+        rc, err, _ = _run_cli(argv, capsys)
+        assert rc == 2 and "an interrupted --overwrite left the previous run in" in err, (argv, err)
+        assert str(holder / "run") in err and "mv " in err, err
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""

@@ -51,14 +51,39 @@ def is_run_dir(path) -> bool:
     return isinstance(d, dict) and "train" in d
 
 
+def overwritten_leftovers(run_dir) -> list[Path]:
+    """Old runs an interrupted ``--overwrite`` left beside ``run_dir`` (:func:`replacing_run` moves the old run into
+    ``.NAME.overwritten.XXXX/NAME`` and puts it back on an error, but a killed process cannot): newest first."""
+    run = Path(run_dir)
+    try:
+        found = [h / run.name for h in run.resolve().parent.glob(f".{run.name}.overwritten.*")
+                 if (h / run.name / CONFIG).is_file()]
+    except OSError:
+        return []
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+def leftover_hint(run_dir) -> str:
+    """``"; ..."``: where an interrupted ``--overwrite`` left the previous run and how to put it back, or ``""``."""
+    left = overwritten_leftovers(run_dir)
+    if not left:
+        return ""
+    import shlex
+
+    return (f"; an interrupted --overwrite left the previous run in {left[0]}: put it back with `rm -r "
+            f"{shlex.quote(str(run_dir))} && mv {shlex.quote(str(left[0]))} {shlex.quote(str(run_dir))}` (or delete "
+            f"{left[0].parent} if it is not wanted)")
+
+
 def read_run_config(run_dir) -> dict:
     """``config.json`` of a run as ``{"data": str, "format": str, "train": dict, ...}``, checked."""
     path = Path(run_dir) / CONFIG
     if not Path(run_dir).is_dir():
         raise RunError(run_dir, "is not a run directory (" + ("it is a file, not a folder)" if Path(run_dir).exists()
-                                                              else "the folder does not exist)"))
+                                                              else "the folder does not exist)")
+                       + leftover_hint(run_dir))
     if not path.is_file():
-        raise RunError(run_dir, f"is not a run directory (no {CONFIG})")
+        raise RunError(run_dir, f"is not a run directory (no {CONFIG})" + leftover_hint(run_dir))
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:

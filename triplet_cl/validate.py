@@ -728,7 +728,9 @@ def validate_args(args) -> None:
         writable = cmd in ("eval", "extract") or not getattr(args, "out", None)
         if cmd == "export":  # reads only mesh_stage.npz: a run directory, whatever its config.json holds
             if not (Path(args.run) / "config.json").is_file():
-                raise RunError(args.run, "is not a run directory (no config.json)")
+                from .runs import leftover_hint
+
+                raise RunError(args.run, "is not a run directory (no config.json)" + leftover_hint(args.run))
             if writable:
                 check_writable_dir(args.run, "RUN")
         else:
