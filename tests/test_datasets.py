@@ -824,3 +824,22 @@ def test_alpha_kept_when_any_image_is_transparent_anywhere(tmp_path):
         ds = load_dataset(tmp_path)
     assert ds.has_alpha and all(v.alpha is not None for v in ds.train)
     assert float(ds.test[1].alpha.min()) == 0.0
+
+
+def test_blank_images_are_named(tmp_path):
+    """A fully transparent training image and an opaque black test image were trained on and scored without a word
+    (battery 11): one warning each, naming them."""
+    written = fac.make_nerf(tmp_path, {"train": 3, "test": 2})
+    px = written["train"][1][2].copy()
+    px[..., 3] = 0.0
+    fac.write_image(tmp_path / "train" / "r_1.png", px)
+    px = written["test"][0][2].copy()
+    px[..., :3], px[..., 3] = 0.0, 1.0
+    fac.write_image(tmp_path / "test" / "r_0.png", px)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = load_dataset(tmp_path)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, DatasetWarning)]
+    assert any("1 of 3 train images are fully transparent" in m and "r_1.png" in m and "trained" in m for m in msgs)
+    assert any("1 of 2 test images are black and opaque" in m and "r_0.png" in m and "scored" in m for m in msgs)
+    assert len(ds.train) == 3 and len(ds.test) == 2  # used as they are
