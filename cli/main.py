@@ -271,7 +271,7 @@ def cmd_train(args: argparse.Namespace) -> int:
               f"was (metrics.json's \"mesh\" marked stale); remake it with: triplet extract "
               f"{shlex.quote(str(out))}", file=sys.stderr)
     if args.mesh_stage:
-        return _run_mesh_stage(tr, mesh_cfg)
+        return _run_mesh_stage(tr, mesh_cfg, args)
     return 0
 
 
@@ -563,7 +563,29 @@ def _formats(text: str) -> tuple:
     return parse_formats("--formats", text)
 
 
-def _run_mesh_stage(tr, cfg) -> int:
+def _mesh_flags(args) -> list[str]:
+    """The mesh options given on the command line, as flags (for the hint after an interruption: config.json keeps
+    no mesh options, and a bare `triplet extract RUN` runs the defaults; battery 11)."""
+    p = argparse.ArgumentParser(add_help=False)
+    _add_mesh_options(p)
+    out = []
+    for a in p._actions:
+        v = getattr(args, a.dest, None) if a.option_strings else None
+        if v is None or v is False:
+            continue
+        flag = a.option_strings[-1]
+        if v is True:
+            out.append(flag)
+        elif isinstance(v, tuple | list):
+            out += [flag, ",".join(map(str, v)) if a.dest == "formats" else " ".join(map(str, v))]
+        else:
+            out += [flag, str(v)]
+        if len(out) > 1 and out[-1].startswith("-") and out[-2] == flag:  # a negative value: one token
+            out[-2:] = [f"{flag}={out[-1]}"]
+    return out
+
+
+def _run_mesh_stage(tr, cfg, args=None) -> int:
     from triplet_cl.mesh.refine import MeshStage
 
     stage = MeshStage(tr, cfg)
@@ -572,8 +594,10 @@ def _run_mesh_stage(tr, cfg) -> int:
         _raise_if_terminated()
         m = stage.run()
     except KeyboardInterrupt:  # the soup is complete and saved; the stage's files are written at its end only
+        flags = " ".join(shlex.quote(f) for f in _mesh_flags(args)) if args is not None else ""
         print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: triplet extract "
-              f"{shlex.quote(str(tr.run_dir))} (with the same mesh options, if any)", file=sys.stderr)
+              f"{shlex.quote(str(tr.run_dir))}" + (f" {flags}" if flags else "")
+              + ("" if args is not None else " (with the same mesh options, if any)"), file=sys.stderr)
         return _interrupted_status()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
     if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees
@@ -651,7 +675,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     _check_bbox_seen(cfg, tr)
     _check_bbox_holds_soup(cfg, tr)
     tr.quiet = False
-    return _run_mesh_stage(tr, cfg)
+    return _run_mesh_stage(tr, cfg, args)
 
 
 def cmd_export(args: argparse.Namespace) -> int:

@@ -2389,6 +2389,26 @@ def test_a_run_left_aside_by_a_killed_overwrite_is_named(tmp_path, capsys):
         assert str(holder / "run") in err and "mv " in err, err
 
 
+def test_an_interrupted_mesh_stage_s_hint_repeats_its_options(tmp_path, capsys, monkeypatch):
+    """"run it again with: triplet extract RUN (with the same mesh options, if any)": config.json keeps no mesh
+    options, so the bare command ran 600 steps instead of the 30 asked (battery 11). The hint now carries them."""
+    from triplet_cl.mesh.refine import MeshStage
+
+    run = tmp_path / "run"
+    assert cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN]) == 0
+
+    def stop(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(MeshStage, "run", stop)
+    capsys.readouterr()
+    rc = cli_main(["extract", str(run), "--mesh-iterations", "30", "--mesh-light-phase", "0", "--formats", "glb,obj",
+                   "--mesh-faces", "2000"])
+    err = capsys.readouterr().err
+    assert rc == 130 and f"triplet extract {run} --mesh-faces 2000 --mesh-iterations 30 --mesh-light-phase 0" in err
+    assert "--formats glb,obj" in err and "if any" not in err, err
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""
