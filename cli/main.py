@@ -595,9 +595,16 @@ def _run_mesh_stage(tr, cfg, args=None) -> int:
         m = stage.run()
     except KeyboardInterrupt:  # the soup is complete and saved; the stage's files are written at its end only
         flags = " ".join(shlex.quote(f) for f in _mesh_flags(args)) if args is not None else ""
-        print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: triplet extract "
-              f"{shlex.quote(str(tr.run_dir))}" + (f" {flags}" if flags else "")
-              + ("" if args is not None else " (with the same mesh options, if any)"), file=sys.stderr)
+        again = (f"triplet extract {shlex.quote(str(tr.run_dir))}" + (f" {flags}" if flags else "")
+                 + ("" if args is not None else " (with the same mesh options, if any)"))
+        if getattr(stage, "state_saved", False):  # (battery 11: a mixed mesh left without a word)
+            print(f"\ninterrupted in the mesh stage's last phase: the new mesh is saved (mesh_stage.npz replaced) but "
+                  f"its files (mesh.*, lights.json, textures, metrics.json's \"mesh\") may still be the previous "
+                  f"extract's: write them with: triplet export {shlex.quote(str(tr.run_dir))}, or redo the stage: "
+                  f"{again}", file=sys.stderr)
+        else:
+            print(f"\ninterrupted in the mesh stage (the trained soup is complete); run it again with: {again}",
+                  file=sys.stderr)
         return _interrupted_status()
     chamfer = f", Chamfer to gt_mesh {m['chamfer_to_gt']:.4f}" if "chamfer_to_gt" in m else ""
     if (m.get("gt_buried_fraction") or 0) > 0:  # a reference of overlapping parts: also against what a camera sees

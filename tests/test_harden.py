@@ -2408,6 +2408,15 @@ def test_an_interrupted_mesh_stage_s_hint_repeats_its_options(tmp_path, capsys, 
     assert rc == 130 and f"triplet extract {run} --mesh-faces 2000 --mesh-iterations 30 --mesh-light-phase 0" in err
     assert "--formats glb,obj" in err and "if any" not in err, err
 
+    def stop_after_save(self):  # the new mesh saved, its files not yet written (battery 11: a mixed mesh, no word)
+        self.state_saved = True
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(MeshStage, "run", stop_after_save)
+    assert cli_main(["extract", str(run), "--mesh-iterations", "30"]) == 130
+    err = capsys.readouterr().err
+    assert "the new mesh is saved (mesh_stage.npz replaced)" in err and f"triplet export {run}" in err, err
+
 
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):

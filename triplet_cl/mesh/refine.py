@@ -1340,6 +1340,7 @@ class MeshStage:
     # ---- persistence ---------------------------------------------------------------------------
     def save_state(self) -> Path:
         save_mesh_state(self.run_dir / MESH_STATE, self.scene, self.cfg)
+        self.state_saved = True  # (an interruption after this: the new state beside the previous exports)
         return self.run_dir / MESH_STATE
 
     def _write_metrics(self, mesh_metrics: dict) -> None:
