@@ -257,7 +257,9 @@ def cmd_train(args: argparse.Namespace) -> int:
               f"continue with: triplet train --resume --out {shlex.quote(str(out))}", file=sys.stderr)
         return _interrupted_status()
     if args.save_train_renders:
+        _AFTER_TRAINING[0] = out  # (read by main's handler if interrupted here)
         tr.evaluate("train", write_renders=True)
+        _AFTER_TRAINING[0] = None
     print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
           f"{metrics.get('wall_time_s', 0):.0f} s")
     from triplet_cl.mesh.refine import MESH_STATE
@@ -1084,8 +1086,32 @@ def _dispatch(args) -> int:
         print(f"triplet {args.command}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(_interrupted_message(args), file=sys.stderr)
         return _interrupted_status()
+
+
+_AFTER_TRAINING: list = [None]  # the run folder once `train` has trained and saved it (its renders come next)
+
+
+def _interrupted_message(args) -> str:
+    """What an interruption the command did not handle itself left behind (battery 11: a bare "interrupted" after a
+    half-written export or training renders)."""
+    run = getattr(args, "run", None) or getattr(args, "out", None)
+    q = shlex.quote(str(run)) if run is not None else "RUN"
+    if args.command == "train" and _AFTER_TRAINING[0] is not None:
+        return (f"interrupted after training: the run is complete (metrics.json, triplets.ply, checkpoints), its "
+                f"training renders may not be: write them with: triplet render {shlex.quote(str(_AFTER_TRAINING[0]))} "
+                "--split train")
+    if args.command == "export":
+        return ("interrupted: the export's folder may hold some files of this export beside older ones: run the same "
+                "command again to write them all")
+    if args.command in ("render", "relight"):
+        return ("interrupted: the output folder holds the views written so far (the others missing, or an older "
+                "command's): run the same command again")
+    if args.command == "eval":
+        return (f"interrupted: {q}/metrics.json is unchanged (written at the end); relit images written so far (with "
+                "--out) stay")
+    return "interrupted"
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -2418,6 +2418,29 @@ def test_an_interrupted_mesh_stage_s_hint_repeats_its_options(tmp_path, capsys, 
     assert "the new mesh is saved (mesh_stage.npz replaced)" in err and f"triplet export {run}" in err, err
 
 
+def test_interruptions_after_the_training_and_in_export_say_what_is_left(tmp_path, capsys, monkeypatch):
+    """A bare "interrupted" after the last checkpoint (the training renders 3 of 40) or in an export (mesh.glb new,
+    mesh.obj old) said nothing of what was left (battery 11)."""
+    from triplet_cl.train import Trainer
+
+    run = tmp_path / "run"
+
+    def stop(self, split="test", write_renders=False, out_dir=None):
+        if split == "train":
+            raise KeyboardInterrupt
+        return real(self, split, write_renders, out_dir)
+
+    real = Trainer.evaluate
+    monkeypatch.setattr(Trainer, "evaluate", stop)
+    rc = cli_main(["train", str(DEMO), "--out", str(run), *TINY_RUN, "--save-train-renders"])
+    err = capsys.readouterr().err
+    assert rc == 130 and "interrupted after training: the run is complete" in err, err
+    assert f"triplet render {run} --split train" in err, err
+    from triplet_cl.cli import main as cm
+
+    assert "command again" in cm._interrupted_message(cm.build_parser().parse_args(["export", str(run)]))
+
+
 def test_a_new_out_created_meanwhile_is_refused(tmp_path, capsys, monkeypatch):
     """Two trains started together into one new --out both ran into it (config.json of one, checkpoints of the other):
     the folder is claimed with an exclusive mkdir; the second is refused."""
