@@ -1329,6 +1329,9 @@ def test_eval_relight_missing_references_fail_before_any_work(run, tmp_path, cap
     rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
     assert rc == 2 and "sets.a.images" in err and "no image for the test view" in err, err
     assert _tree(run) == before
+    (rd / "a" / "r_0.png").mkdir()  # a folder where the image should be: named as such (battery 11)
+    rc, err, _ = _run_cli(["eval", run, "--relight", rd], capsys)
+    assert rc == 2 and "r_0.png: a folder, not the image of the test view" in err, err
 
 
 def test_colmap_paths_are_checked_before_any_work(tmp_path, demo_copy, capsys):

@@ -723,6 +723,10 @@ def check_references(relight_dir, view_names, env_degree: int | None = None, siz
             raise LightFileError(spec, where, f"{folder}: " + ("a file, not a folder" if folder.exists()
                                                                else "folder not found"))
         missing = [n for n in view_names if not (folder / f"{Path(n).name}.png").is_file()]
+        dirs = [n for n in missing if (folder / f"{Path(n).name}.png").is_dir()]
+        if dirs:  # (battery 11: named as missing)
+            raise LightFileError(spec, where, f"{folder / (Path(dirs[0]).name + '.png')}: a folder, not the image of "
+                                              f"the test view {dirs[0]}")
         if missing:
             raise LightFileError(spec, where, f"{folder}: no image for the test view(s) "
                                               f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} "
