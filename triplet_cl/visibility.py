@@ -239,7 +239,7 @@ def _shadow_rays(scene: Scene) -> np.ndarray:
     packed parameters at the offsets of their layout (packing the current lights for them took ~0.5 ms a step)."""
     lights = scene.lights
     params = scene.light_params.data if scene.light_params is not None else None
-    key = tuple((type(lt).__name__, lt.num_params) for lt in lights)
+    key = tuple((type(lt), lt.num_params) for lt in lights)
     offsets = _RAY_OFFSETS.get(key)
     if offsets is None:
         offsets = _RAY_OFFSETS[key] = pack_lights(lights).shadow_ray_offsets
