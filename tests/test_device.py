@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pyopencl as cl
-import pyopencl.array as cla
 import pytest
 from triplet_cl.cli.main import main as cli_main
 
@@ -200,43 +199,3 @@ def test_release_memory_waits_for_a_large_process(device):
     assert pool.held_blocks == held
     device.release_memory(min_resident=1)
     assert pool.held_blocks == 0
-
-
-def test_programs_come_from_pyopencl_s_binary_cache(device, tmp_path, monkeypatch):
-    """A driver that caches builds itself (PoCL) made PyOpenCL skip its binary cache, and PoCL's own cost ~0.2 s a
-    program on every build (preprocessing and hashing the source): programs now go through PyOpenCL's binary cache,
-    whose key covers the included headers (a changed header rebuilds); PYOPENCL_NO_CACHE still builds from the
-    source."""
-    import pyopencl.cache as pcache
-
-    (tmp_path / "common").mkdir()
-    (tmp_path / "common" / "val.h").write_text("#define VAL 2.0f\n")
-    (tmp_path / "twice.cl").write_text('#include "val.h"\n__kernel void twice(__global float* x) '
-                                       "{ x[get_global_id(0)] *= VAL; }\n")
-    monkeypatch.setattr(devmod, "kernel_dir", lambda: tmp_path)
-    calls = []
-    real = pcache.create_built_program_from_source_cached
-
-    def spy(*a, **kw):
-        kw["cache_dir"] = str(tmp_path / "cache")
-        prg, cached = real(*a, **kw)
-        calls.append(cached)
-        return prg, cached
-
-    monkeypatch.setattr(pcache, "create_built_program_from_source_cached", spy)
-
-    def run() -> np.ndarray:
-        d = Device(device.info, device.platform, device.cl_device)  # a fresh memo: built again
-        x = cla.to_device(d.queue, np.ones(4, np.float32))
-        d.kernel("twice", "twice")(d.queue, (4,), None, x.data)
-        return x.get()
-
-    np.testing.assert_array_equal(run(), 2.0)
-    np.testing.assert_array_equal(run(), 2.0)
-    assert calls == [False, True]  # built once, then the binary
-    (tmp_path / "common" / "val.h").write_text("#define VAL 3.0f\n")
-    np.testing.assert_array_equal(run(), 3.0)  # the header is in the key
-    assert calls[-1] is False
-    monkeypatch.setenv("PYOPENCL_NO_CACHE", "1")
-    np.testing.assert_array_equal(run(), 3.0)
-    assert len(calls) == 3  # not asked

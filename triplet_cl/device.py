@@ -12,8 +12,8 @@ them) or a case-insensitive substring of ``"<platform name> <device name>"`` (``
 
 Programs are built from ``kernels_cl/<name>.cl`` with ``-I kernels_cl/common`` and ``-D`` defines
 (always ``-DREAL=float|double``), memoised per (file, options) on each :class:`Device` and cached on
-disk by PyOpenCL's binary cache (its key covers the source, the options, the device and driver and
-every header found on the ``-I`` path; :meth:`Device._cached_build`).
+disk by PyOpenCL (its cache key covers the source, the options, the device and every header found
+on the ``-I`` path).
 """
 
 from __future__ import annotations
@@ -296,44 +296,18 @@ class Device:
         return prg
 
     def build_source(self, source: str, options: tuple[str, ...], label: str) -> cl.Program:
-        """Build OpenCL C ``source``; a failure raises :class:`KernelBuildError` with the log. Through PyOpenCL's
-        binary cache (:meth:`_cached_build`) where it works, else from the source."""
-        prg = None
+        """Build OpenCL C ``source``; a failure raises :class:`KernelBuildError` with the log."""
+        prg = cl.Program(self.ctx, source)
         try:
-            prg = self._cached_build(source, options)
-            if prg is None:
-                prg = cl.Program(self.ctx, source)
-                prg.build(options=list(options), devices=[self.cl_device])
+            prg.build(options=list(options), devices=[self.cl_device])
         except (cl.RuntimeError, cl.LogicError, cl.Error) as exc:
             log = ""
             try:
-                log = prg.get_build_info(self.cl_device, cl.program_build_info.LOG) if prg is not None else ""
+                log = prg.get_build_info(self.cl_device, cl.program_build_info.LOG)
             except Exception:  # noqa: BLE001 - the log is best effort; the exception text has it too
                 pass
             raise KernelBuildError(label, list(options), (log or "").strip() or str(exc), self.name) from exc
         return prg
-
-    def _cached_build(self, source: str, options: tuple[str, ...]) -> cl.Program | None:
-        """The program built through PyOpenCL's on-disk binary cache (``pyopencl.cache``: keyed by the source, the
-        options, the device and driver, and every header it includes from the ``-I`` path), or None where that
-        cache is off (``PYOPENCL_NO_CACHE``), unavailable or its folder unusable (the caller then builds from the
-        source). Why: for a driver that caches builds itself (PoCL, NVIDIA), ``Program.build`` skips PyOpenCL's cache,
-        and PoCL's own still preprocesses and hashes the source on every build: ~0.2 s a program (the demo builds 27),
-        against ~10 ms from the binary (bench/results/kernel_binary_cache_pocl_2026-11-29.txt)."""
-        if os.environ.get("PYOPENCL_NO_CACHE"):
-            return None
-        try:
-            from pyopencl.cache import create_built_program_from_source_cached
-
-            opts, include_path = cl.Program._process_build_options(self.ctx, list(options))
-        except (ImportError, AttributeError, TypeError):  # another PyOpenCL: the plain build
-            return None
-        try:
-            raw, _ = create_built_program_from_source_cached(self.ctx, source, opts, [self.cl_device],
-                                                             include_path=include_path)
-        except OSError:  # the cache folder cannot be made or written: the plain build
-            return None
-        return cl.Program(raw)
 
     def _build(self, name: str, options: tuple[str, ...]) -> cl.Program:
         path = kernel_dir() / f"{name}.cl"
