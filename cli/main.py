@@ -257,16 +257,21 @@ def cmd_train(args: argparse.Namespace) -> int:
               f"continue with: triplet train --resume --out {shlex.quote(str(out))}", file=sys.stderr)
         return _interrupted_status()
     if args.save_train_renders:
-        _AFTER_TRAINING[0] = out  # (read by main's handler if interrupted here)
-        tr.evaluate("train", write_renders=True)
-        _AFTER_TRAINING[0] = None
+        try:
+            tr.evaluate("train", write_renders=True)
+        except KeyboardInterrupt:  # (battery 11: a bare "interrupted", the renders 3 of 40)
+            print(f"\ninterrupted after training: the run is complete (metrics.json, triplets.ply, checkpoints), its "
+                  f"training renders may not be: write them with: triplet render {shlex.quote(str(out))} --split "
+                  "train", file=sys.stderr)
+            return _interrupted_status()
     print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {metrics['faces']} triplets, "
           f"{metrics.get('wall_time_s', 0):.0f} s")
     from triplet_cl.mesh.refine import MESH_STATE
 
     kept = "" if (out / MESH_STATE).is_file() else "lights.json, "  # a mesh stage's lights.json is kept
     print(f"results in {out}/: triplets.ply, {kept}renders/test/, metrics.json, checkpoints/, train.log")
-    stale = (metrics.get("mesh") or {}).get("stale") if isinstance(metrics.get("mesh"), dict) else None
+    mesh = metrics.get("mesh")
+    stale = mesh.get("stale") if isinstance(mesh, dict) else None
     if stale and not args.mesh_stage:  # a resumed run with a mesh stage (battery 11: its metrics, lights replaced)
         print(f"warning: the run's mesh (mesh_stage.npz, mesh.*, lights.json) was made from the soup at iteration "
               f"{stale['made_from_iterations']}, not from this one ({stale['soup_iterations']}): it is kept as it "
@@ -1090,18 +1095,9 @@ def _dispatch(args) -> int:
         return _interrupted_status()
 
 
-_AFTER_TRAINING: list = [None]  # the run folder once `train` has trained and saved it (its renders come next)
-
-
 def _interrupted_message(args) -> str:
     """What an interruption the command did not handle itself left behind (battery 11: a bare "interrupted" after a
-    half-written export or training renders)."""
-    run = getattr(args, "run", None) or getattr(args, "out", None)
-    q = shlex.quote(str(run)) if run is not None else "RUN"
-    if args.command == "train" and _AFTER_TRAINING[0] is not None:
-        return (f"interrupted after training: the run is complete (metrics.json, triplets.ply, checkpoints), its "
-                f"training renders may not be: write them with: triplet render {shlex.quote(str(_AFTER_TRAINING[0]))} "
-                "--split train")
+    half-written export)."""
     if args.command == "export":
         return ("interrupted: the export's folder may hold some files of this export beside older ones: run the same "
                 "command again to write them all")
@@ -1109,8 +1105,8 @@ def _interrupted_message(args) -> str:
         return ("interrupted: the output folder holds the views written so far (the others missing, or an older "
                 "command's): run the same command again")
     if args.command == "eval":
-        return (f"interrupted: {q}/metrics.json is unchanged (written at the end); relit images written so far (with "
-                "--out) stay")
+        return (f"interrupted: {shlex.quote(str(args.run))}/metrics.json is unchanged (written at the end); relit "
+                "images written so far (with --out) stay")
     return "interrupted"
 
 

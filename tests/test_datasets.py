@@ -459,7 +459,7 @@ def test_exif_orientation_named_by_colmap_and_for_colmap_poses(tmp_path):
     rotate the files."""
     from triplet_cl.camera import Camera
     from triplet_cl.datasets.images import load_views
-    from triplet_cl.datasets.sfm import warn_exif_orientation
+    from triplet_cl.datasets.sfm import photo_headers, warn_exif_orientation
 
     paths = []
     for i, o in enumerate((6, 1, 8)):
@@ -468,10 +468,10 @@ def test_exif_orientation_named_by_colmap_and_for_colmap_poses(tmp_path):
     with pytest.warns(DatasetWarning, match=r"2 of the 3 photos carry an EXIF orientation \(IMG_0.jpg: 6, shown "
                                             r"rotated 90° clockwise.*structure from motion solves on the pixels as "
                                             r"stored.*exiftran -ai"):
-        assert warn_exif_orientation(paths) == 2
+        assert warn_exif_orientation(photo_headers(paths)) == 2
     with warnings.catch_warnings():
         warnings.simplefilter("error", DatasetWarning)
-        assert warn_exif_orientation([paths[1]]) == 0
+        assert warn_exif_orientation(photo_headers([paths[1]])) == 0
 
     def cam(w, h):
         return Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, w, h)

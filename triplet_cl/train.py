@@ -1709,9 +1709,12 @@ class Trainer:
                                  "(config.json's \"data\"), or start a new run")
         what = self._views_mismatch()
         if what is not None:
-            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
-                                 f"({what}): {action} with the dataset the run was made with (config.json's "
-                                 "\"data\"), or start a new run")
+            raise self._other_views(path, what, f"{action} with the dataset the run was made with (config.json's "
+                                                "\"data\"), or start a new run")
+
+    def _other_views(self, path, what: str, advice: str) -> RunError:
+        return RunError(path, f"was trained on other training views than the dataset {self.data} holds ({what}): "
+                              f"{advice}")
 
     def _views_mismatch(self) -> str | None:
         """What differs between the loaded checkpoint's training views and the dataset's (their names, size,
@@ -1751,10 +1754,9 @@ class Trainer:
             return
         what = self._views_mismatch()  # as many views, but not the same: another dataset at the run's path (battery
         if what is not None:  # 11: eval scored another object, 9.8 dB, into metrics.json without a word)
-            raise RunError(path, f"was trained on other training views than the dataset {self.data} holds "
-                                 f"({what}): its renders and scores would be of another capture; point the run at "
-                                 "the dataset it was made with (config.json's \"data\", or `triplet train --resume` "
-                                 "with DATA), or start a new run")
+            raise self._other_views(path, what, "its renders and scores would be of another capture; point the run "
+                                                "at the dataset it was made with (config.json's \"data\", or "
+                                                "`triplet train --resume` with DATA), or start a new run")
 
     def _check_checkpoint(self, path, a: dict, meta: dict) -> None:
         """The checkpoint belongs to this configuration and this dataset's training views, and holds what it needs,

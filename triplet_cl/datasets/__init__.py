@@ -120,16 +120,16 @@ def load_dataset(path, format: str = "auto", downscale: int | str = 1, backgroun
             test view; 0/None keeps all views for training.
     """
     auto = None
+    if isinstance(downscale, np.integer):
+        downscale = int(downscale)
     if isinstance(downscale, str) and downscale == "auto":
         auto = downscale = AutoDownscale()
-    elif isinstance(downscale, bool) or not isinstance(downscale, int | np.integer) or downscale < 1:
+    elif isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
         raise ValueError(f"downscale must be a positive integer or 'auto', got {downscale!r}")
     if split_holdout is not None and (isinstance(split_holdout, bool) or not isinstance(split_holdout, int)
                                       or split_holdout < 0 or split_holdout == 1):
         raise ValueError(f"split_holdout must be 0/None (no hold-out) or an integer >= 2, got {split_holdout!r}")
     resolve_background(background)  # validate early
-    if isinstance(downscale, np.integer):
-        downscale = int(downscale)
     fmt = detect_format(path) if format == "auto" else format
     if fmt == "nerf":
         ds = load_nerf(path, downscale, split_holdout)

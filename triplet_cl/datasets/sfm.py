@@ -112,43 +112,38 @@ def _has_photos(folder: Path) -> bool:
                                    for p in folder.iterdir())
 
 
-def photo_sizes(photos) -> dict[Path, tuple[int, int]]:
-    """``{path: (width, height)}`` read from the files' headers (OpenImageIO)."""
+def photo_headers(photos) -> dict[Path, tuple[int, int, int]]:
+    """``{path: (width, height, EXIF orientation)}`` read from the files' headers (OpenImageIO), each file opened
+    once."""
     import OpenImageIO as oiio
 
-    sizes = {}
+    out = {}
     for p in photos:
         inp = oiio.ImageInput.open(str(p))
         if inp is None:
             raise DatasetError(p, f"cannot read the image: {oiio.geterror() or 'unknown format'}")
         try:
             spec = inp.spec()
-            sizes[p] = (int(spec.width), int(spec.height))
+            out[p] = (int(spec.width), int(spec.height), int(spec.get_int_attribute("Orientation", 1)))
         finally:
             inp.close()
-    return sizes
+    return out
 
 
-def warn_exif_orientation(photos) -> int:
+def photo_sizes(photos) -> dict[Path, tuple[int, int]]:
+    """``{path: (width, height)}`` read from the files' headers (:func:`photo_headers`)."""
+    return {p: (w, h) for p, (w, h, _) in photo_headers(photos).items()}
+
+
+def warn_exif_orientation(headers: dict) -> int:
     """A :class:`DatasetWarning` when photos carry an EXIF orientation other than 1 (a phone's portrait shot: viewers
     show the stored pixels turned): COLMAP solves on the stored pixels and ``train`` reads the same pixels, so the
     cameras fit them, but the whole capture is then worked as stored, not as viewers show it (battery 10: solved
-    without a word). Returns how many photos carry one."""
-    import OpenImageIO as oiio
-
+    without a word). ``headers``: :func:`photo_headers`'s. Returns how many photos carry one."""
     from .images import EXIF_ORIENTATIONS
 
-    turned = []
-    for p in photos:
-        inp = oiio.ImageInput.open(str(p))
-        if inp is None:
-            continue  # photo_sizes names an unreadable file
-        try:
-            o = int(inp.spec().get_int_attribute("Orientation", 1))
-        finally:
-            inp.close()
-        if o in EXIF_ORIENTATIONS:
-            turned.append((p.name, o))
+    photos = list(headers)
+    turned = [(p.name, o) for p, (_, _, o) in headers.items() if o in EXIF_ORIENTATIONS]
     if turned:
         import warnings
 
@@ -218,8 +213,9 @@ def run_sfm(images_dir, out_dir, *, camera_model: str = "SIMPLE_RADIAL", max_fea
     if len(photos) < 3:
         raise DatasetError(images_dir, f"only {len(photos)} image(s); structure from motion needs at least 3 "
                                        "overlapping photos (20 or more around an object)")
-    width, height = check_one_size(photo_sizes(photos), images_dir)
-    warn_exif_orientation(photos)
+    headers = photo_headers(photos)
+    width, height = check_one_size({p: (w, h) for p, (w, h, _) in headers.items()}, images_dir)
+    warn_exif_orientation(headers)
     warn_duplicate_photos(photos)
     pycolmap = _pycolmap()
     _quiet_colmap(pycolmap, verbose)
@@ -346,7 +342,7 @@ def _rows(db: Path, table: str, most: int | None = None) -> int | None:
     just then): a progress count only. Opened ``immutable``: SQLite then takes no lock at all. A reader's shared lock
     made COLMAP's next write fail with "database is locked", which COLMAP does not retry: a photo's features were
     lost (15 of 16 photos registered) or the process aborted (std::terminate), the test's 0.05 s heartbeat catching
-    it one run in three here. Without locks a read may see a write half done: a count off for a moment, or an
+    it about one run in two here. Without locks a read may see a write half done: a count off for a moment, or an
     error (None)."""
     import sqlite3
 
@@ -611,4 +607,5 @@ def _write_text_model(folder: Path, cameras: dict, images: dict) -> Path:
 
 
 __all__ = ["CAMERA_MODELS", "IMAGE_EXTENSIONS", "REGISTER_HELP", "SFM_EXTENSIONS", "cache_root", "check_one_size",
-           "list_photos", "photo_sizes", "remove_dead_work_dirs", "run_sfm", "undistort_model", "undistorted_model"]
+           "list_photos", "photo_headers", "photo_sizes", "remove_dead_work_dirs", "run_sfm", "undistort_model",
+           "undistorted_model"]
