@@ -31,7 +31,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from triplet_cl.activations import normalize, normalize_bwd
 from triplet_cl.autodiff import Function
 from triplet_cl.ops.common import check_faces
 from triplet_cl.topology import edge_adjacent_faces
@@ -110,38 +109,66 @@ class FaceNormalConsistency(Function):
         self.faces = check_faces("faces", f, n).astype(np.int64)
         self.pairs = edge_adjacent_faces(self.faces)  # [P, 2]
         self.scale = _scale(reduction, len(self.pairs))
-        self._to_faces = RowScatter(len(self.faces), np.concatenate([self.pairs[:, 0], self.pairs[:, 1]]))
+        # the faces' corners and the pairs' faces as contiguous index columns: every array below is a column of one
+        # component (gathers of 1-D arrays, sums of three columns) instead of [K, 3] rows (fancy row gathers, numpy's
+        # slow reductions over a last axis of 3): 17.7 -> 5.5 ms a call on spot's 61k-face mesh, the same bits
+        self._corners = [np.ascontiguousarray(self.faces[:, i]) for i in range(3)]
+        self._a, self._b = np.ascontiguousarray(self.pairs[:, 0]), np.ascontiguousarray(self.pairs[:, 1])
+        self._to_faces = RowScatter(len(self.faces), np.concatenate([self._a, self._b]))
         self._to_vertices = RowScatter(n, self.faces.reshape(-1))
 
     def forward(self, ctx, vertices):
         v = _check_attr("vertices", vertices, cols=3)
         if self.faces.size and self.faces.max() >= len(v):
             raise ValueError(f"vertices has {len(v)} rows but faces index up to {int(self.faces.max())}")
-        tri = v[self.faces]  # [M, 3, 3]
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        c = np.cross(e1, e2)
-        n = normalize(c, FACE_NORMAL_EPS)
-        a, b = self.pairs[:, 0], self.pairs[:, 1]
-        x = 1.0 - np.sum(n[a] * n[b], axis=1)
+        f0, f1, f2 = self._corners
+        vc = [np.ascontiguousarray(v[:, j]) for j in range(3)]
+        p0 = [x[f0] for x in vc]
+        e1 = [x[f1] - q for x, q in zip(vc, p0, strict=True)]  # tri[:, 1] - tri[:, 0], per component
+        e2 = [x[f2] - q for x, q in zip(vc, p0, strict=True)]
+        c = _cross_cols(e1, e2)
+        ss = _sum3([q * q for q in c])  # np.sum(c * c, axis=-1): ((c0² + c1²) + c2²)
+        r = np.sqrt(ss + FACE_NORMAL_EPS)
+        n = [q / r for q in c]  # normalize(c, FACE_NORMAL_EPS)
+        a, b = self._a, self._b
+        x = 1.0 - _sum3([q[a] * q[b] for q in n])
         k = self.kappa
-        ctx.save(len(v), e1, e2, c, n, x, k)
+        ctx.save(len(v), e1, e2, c, ss, n, x, k)
         if k is not None:
             return np.asarray(np.sum(k * np.log1p(x / k) + x**5 / 5) * self.scale)
         return np.asarray(np.sum(x) * self.scale)
 
     def backward(self, ctx, v_out):
-        num_v, e1, e2, c, n, x, k = ctx.saved
-        a, b = self.pairs[:, 0], self.pairs[:, 1]
+        num_v, e1, e2, c, ss, n, x, k = ctx.saved
+        a, b = self._a, self._b
         s = -float(v_out) * self.scale
         if k is not None:  # ρ'(x) per pair
-            s = (s * (1.0 / (1.0 + x / k) + x**4))[:, None]
-        v_n = self._to_faces(np.concatenate([s * n[b], s * n[a]]))
-        v_c = normalize_bwd(c, v_n, FACE_NORMAL_EPS)
-        v_e1, v_e2 = np.cross(e2, v_c), np.cross(v_c, e1)  # adjoints of c = e1 × e2
-        corner = np.stack([-(v_e1 + v_e2), v_e1, v_e2], axis=1)  # [M, 3, 3]
+            s = s * (1.0 / (1.0 + x / k) + x**4)
+        v_n = self._to_faces(np.stack([np.concatenate([s * q[b], s * q[a]]) for q in n], axis=1))
+        v_n = [np.ascontiguousarray(v_n[:, j]) for j in range(3)]
+        # normalize_bwd(c, v_n, FACE_NORMAL_EPS): inv = 1 / sqrt(|c|² + eps), y = c inv, (v_n − y (y·v_n)) inv
+        inv = 1.0 / np.sqrt(ss + FACE_NORMAL_EPS)
+        y = [q * inv for q in c]
+        yv = _sum3([p * q for p, q in zip(y, v_n, strict=True)])
+        v_c = [(q - p * yv) * inv for p, q in zip(y, v_n, strict=True)]
+        v_e1, v_e2 = _cross_cols(e2, v_c), _cross_cols(v_c, e1)  # adjoints of c = e1 × e2
+        # the corners' rows in the order of faces.reshape(-1): [M, 3 corners, 3 components]
+        corner = np.stack([np.stack([-(p + q), p, q], axis=1) for p, q in zip(v_e1, v_e2, strict=True)], axis=2)
         if num_v != self._to_vertices.num_rows:
             return _scatter_rows(num_v, self.faces.reshape(-1), corner.reshape(-1, 3))
         return self._to_vertices(corner.reshape(-1, 3))
+
+
+def _sum3(cols):
+    """``np.sum(stack(cols, -1), axis=-1)`` for three columns, in numpy's order for a last axis of 3: ``(c0 + c1) + c2``
+    (checked bit for bit against it, ``tests/test_regularizers.py``)."""
+    return (cols[0] + cols[1]) + cols[2]
+
+
+def _cross_cols(p, q):
+    """``np.cross`` of two vectors given as columns: numpy's own operations (``p1 q2 − p2 q1``, ``p2 q0 − p0 q2``,
+    ``p0 q1 − p1 q0``)."""
+    return [p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]]
 
 
 def face_normal_consistency(vertices, faces, reduction: str = "mean", kappa: float | None = None):
@@ -248,20 +275,36 @@ class MaterialGTV(Function):
             raise ValueError(f"weights must be finite, >= 0, with shape [{len(self.edges)}] (one per mesh edge), "
                              f"got shape {list(w.shape)}")
         self.sqrt_w = 2.0 * np.sqrt(w)[:, None]  # both directions of the double sum
+        self._e0, self._e1 = np.ascontiguousarray(self.edges[:, 0]), np.ascontiguousarray(self.edges[:, 1])
         self.reduction = reduction
-        self._scatter = None
+        self._scatters: dict = {}  # per dtype, _signed_scatter's matrix
 
     def forward(self, ctx, x):
         x = _check_attr("x", x, num_rows=self.num_vertices)
         ctx.scale = _scale(self.reduction, 2 * len(self.edges) * x.shape[1])
-        ctx.diff = x[self.edges[:, 0]] - x[self.edges[:, 1]]
+        # np.take: the rows x[i] of a fancy index, ~5x faster for [E, C] rows (1.9 -> 0.5 ms on spot's 91k edges)
+        ctx.diff = np.take(x, self._e0, axis=0) - np.take(x, self._e1, axis=0)
         return np.asarray(np.sum(self.sqrt_w * np.abs(ctx.diff)) * ctx.scale)
 
     def backward(self, ctx, v_out):
         g = self.sqrt_w * np.sign(ctx.diff) * (float(v_out) * ctx.scale)
-        if self._scatter is None:
-            self._scatter = RowScatter(self.num_vertices, np.concatenate([self.edges[:, 0], self.edges[:, 1]]))
-        return self._scatter(np.concatenate([g, -g]))
+        return self._signed_scatter(g)
+
+    def _signed_scatter(self, g: np.ndarray) -> np.ndarray:
+        """``RowScatter(concat([e0, e1]))(concat([g, -g]))`` without the ``[2E, C]`` concatenation: a ``[N, E]`` matrix
+        of ±1 whose rows hold their entries in that concatenation's order (edges as ``e0`` first, then as ``e1``; built
+        as CSR arrays, so scipy keeps the order), so each row sums the same terms in the same order from 0 (× ±1 is
+        exact): bit for bit, ~1 ms less a call on spot's mesh."""
+        m = self._scatters.get(g.dtype.str)
+        if m is None:
+            E, n = len(self.edges), self.num_vertices
+            pos = np.concatenate([self._e0, self._e1])  # the row of each position of the concatenation
+            order = np.argsort(pos, kind="stable")  # by row, then by position (stable)
+            indptr = np.concatenate([[0], np.cumsum(np.bincount(pos, minlength=n))]).astype(np.int64)
+            data = np.where(order < E, 1.0, -1.0).astype(g.dtype)
+            m = self._scatters[g.dtype.str] = sp.csr_matrix((data, (order % E).astype(np.int64), indptr),
+                                                            shape=(n, E))
+        return np.asarray(m @ g).astype(g.dtype, copy=False)
 
 
 def material_gtv(x, faces, weights=None, reduction: str = "mean"):
