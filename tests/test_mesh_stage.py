@@ -903,3 +903,14 @@ def test_photometric_backward_is_the_host_loss_on_the_device(device, rng, size, 
     assert dev_loss == host_loss
     for a, b in zip(dev_g, host_g, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_face_mean_norm_is_numpys_row_form_bit_for_bit(rng):
+    from triplet_cl.mesh.refine import face_mean_norm
+
+    for dt in (np.float64, np.float32):
+        g = rng.standard_normal((500, 3)).astype(dt) * rng.choice([0.0, 1e-20, 1.0, 1e20], (500, 1)).astype(dt)
+        F = rng.integers(0, 500, (900, 3))
+        want = np.linalg.norm(g, axis=1)[F].mean(axis=1)
+        got = face_mean_norm(g, F)
+        assert got.dtype == want.dtype and np.array_equal(got, want)

@@ -51,6 +51,15 @@ MESH_STATE = "mesh_stage.npz"
 AO_MODES = ("auto", "learned", "computed")  # MeshConfig.ao
 
 
+def face_mean_norm(g: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """``[M]``: the mean over each face's corners of its vertices' gradient norms, the bits of
+    ``np.linalg.norm(g, axis=1)[F].mean(axis=1)`` (numpy sums a last axis of 3 as ``(x0 + x1) + x2``) from columns:
+    2.1 -> 0.3 ms a mesh step on spot's 61k faces (``tests/test_mesh_stage.py``)."""
+    c = [np.ascontiguousarray(g[:, j]) for j in range(3)]
+    n = np.sqrt((c[0] * c[0] + c[1] * c[1]) + c[2] * c[2])
+    return ((n[F[:, 0]] + n[F[:, 1]]) + n[F[:, 2]]) / 3
+
+
 def supersample_for(width: int, height: int, factor: int, max_pixels: int) -> int:
     """``factor`` lowered (to 1 at least) until a ``width × height`` render supersampled by it holds at most
     ``max_pixels`` pixels."""
@@ -1139,7 +1148,7 @@ class MeshStage:
                 r, img, _ = self.render(scene, cam, bg, vis=vis, bounce=bounce)
                 loss = photometric_backward(r, target, tc.ssim_lambda)
                 gV = np.asarray(scene.V.grad, np.float64)
-                grad_acc += np.linalg.norm(gV, axis=1)[scene.F].mean(axis=1)
+                grad_acc += face_mean_norm(gV, scene.F)
                 reg_loss = reg.apply(scene, reg_job.result())
                 tie_ambient_gradient(scene.material, amb)
                 if held_cols and scene.material.grad is not None:
