@@ -199,3 +199,32 @@ def test_release_memory_waits_for_a_large_process(device):
     assert pool.held_blocks == held
     device.release_memory(min_resident=1)
     assert pool.held_blocks == 0
+
+
+def test_kernels_declare_their_scalar_types(device):
+    # session 62: PyOpenCL hands an undeclared numpy scalar to clSetKernelArg through the buffer protocol (~7 µs an
+    # argument on every launch, ~120 a training step); Device.kernel declares the by-value parameters' types from the
+    # signature, so a launch packs them. The same bytes reach the kernel: numpy scalars of the declared types and plain
+    # Python numbers give bit-identical results, which the undeclared path could not take at all (a Python float has
+    # no fixed size)
+    import pyopencl.array as cla
+
+    k = device.kernel("adam", "adam_step", real=np.float32)
+    assert devmod.declare_scalar_types(k, "adam", "adam_step", None, np.float32)
+    rng = np.random.default_rng(3)
+    x0, m0, v0, g = (rng.standard_normal(100).astype(np.float32) for _ in range(4))
+    v0 = np.abs(v0)
+    scalars = (1.0, 0.9, 0.1, 0.999, 0.001, 0.01, 0.5, 1e-8)
+    outs = []
+    for conv in (np.float32, float):
+        arrs = [cla.to_device(device.queue, a.copy()) for a in (x0, m0, v0)]
+        flag = cla.zeros(device.queue, 1, np.int32)
+        k(device.queue, (128,), None, *[a.data for a in arrs], cla.to_device(device.queue, g).data, np.int32(100),
+          *(conv(s) for s in scalars), flag.data)
+        outs.append([a.get() for a in arrs])
+    for a, b in zip(*outs, strict=True):
+        assert np.array_equal(a, b) and not np.array_equal(a, x0)
+    # a signature the parser cannot read (columns.cl: a macro in the parameter list), or one whose parameter count is
+    # not the built kernel's, leaves the kernel undeclared (the plain path)
+    assert not devmod.declare_scalar_types(k, "columns", "merge_columns", None, np.float32)
+    assert not devmod.declare_scalar_types(k, "density", "face_stats_add", None, np.float32)
