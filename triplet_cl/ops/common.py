@@ -371,7 +371,7 @@ def _bind(params, conv, args: dict, queue, where: str) -> list:
     if len(args) != len(conv) or any(name not in args for name, _ in conv):
         missing = [p.name for p in params if p.name not in args]
         extra = sorted(set(args) - {p.name for p in params})
-        sig = ", ".join(f"{p.ctype}{'*' if p.kind != 'scalar' else ''} {p.name}" for p in params)
+        sig = ", ".join(f"{p.ctype} {p.name}" for p in params)  # a pointer's ctype holds its '*'
         raise ValueError(f"{where}: missing arguments {missing}, unknown arguments {extra}; signature ({sig})")
     out = []
     for name, t in conv:
