@@ -242,6 +242,7 @@ def test_render_through_lanes_matches_shade_cl(device64, rng, monkeypatch):
 
     monkeypatch.setattr(shade_op, "launch", spy)
     monkeypatch.setattr(shade_op, "lanes_supported", lambda dev, inp: shade_op.lanes_cover(inp))  # a GPU too
+    monkeypatch.setattr(shade_op, "_lanes_verdicts", lambda dev: _Checked())  # no first-use check: the lanes alone
     r = render(scene, cam(), settings, device64)
     scene.zero_grad()
     grads = {k: np.array(v) for k, v in r.backward(w[..., :3], w[..., 3]).items()}
@@ -295,3 +296,72 @@ def test_lanes_rows_without_cotangent_give_zeros_whatever_they_hold(device64, rn
     assert not got[2][np.ix_(dead, cols)].any()
     assert np.isfinite(got[2][np.ix_(~dead, cols)]).all() and np.isfinite(got[3]).all()
     np.testing.assert_allclose(got[3], want[3], rtol=1e-10, atol=1e-12 * np.abs(want[3]).max())
+
+
+def _any_device(verdicts):
+    """``lanes_supported`` on any device (a GPU too: the tests' cross-check), with the verdicts of ``verdicts``."""
+    return lambda dev, inp: shade_op.lanes_cover(inp) and verdicts.get(shade_op._lanes_key(inp)) is not False
+
+
+class _Checked(dict):
+    """A verdict table in which every variant has passed its check."""
+
+    def get(self, key, default=None):
+        return True
+
+
+@pytest.mark.parametrize("real", [np.float32, np.float64])
+def test_first_use_check_keeps_a_variant_that_matches_shade_cl(device64, rng, monkeypatch, real):
+    # the default path's first forward and backward of a variant also run shade.cl and compare (LANES_CHECK_TOL); on
+    # this device they agree: the variant is kept, and the values returned are the lanes kernel's own, bit for bit
+    verdicts = {}
+    monkeypatch.setattr(shade_op, "_lanes_verdicts", lambda dev: verdicts)
+    monkeypatch.setattr(shade_op, "lanes_supported", _any_device(verdicts))
+    pinp, _, _ = packed_case(device64, rng, LIGHT_SETS["point_ambient"](), 333, real, True)
+    q = device64.queue
+    v_rgb, v_a = rng.standard_normal((333, 3)).astype(real), rng.standard_normal(333).astype(real)
+    rgb, alpha = shade_op.forward_packed(device64, pinp)
+    assert verdicts == {shade_op._lanes_key(pinp): "fwd"}
+    v_fa, v_par = shade_op.backward_packed(device64, pinp, cla.to_device(q, v_rgb), cla.to_device(q, v_a))
+    assert verdicts == {shade_op._lanes_key(pinp): True}
+    want = run(device64, pinp, v_rgb, v_a, True)
+    assert np.array_equal(rgb.get(), want[0]) and np.array_equal(alpha.get(), want[1])
+    assert np.array_equal(v_fa.get(), want[2]) and np.array_equal(np.asarray(v_par), want[3])
+
+
+def test_first_use_check_drops_a_variant_that_disagrees(device64, rng, monkeypatch):
+    # a build of shade_lanes.cl whose adjoint is off (Intel's CPU runtime: a point light then an ambient one, albedo
+    # and metallic adjoints 1-30 % off) is caught on its first backward: a warning, shade.cl's values returned, and
+    # shade.cl for that variant from then on
+    verdicts = {}
+    monkeypatch.setattr(shade_op, "_lanes_verdicts", lambda dev: verdicts)
+    monkeypatch.setattr(shade_op, "lanes_supported", _any_device(verdicts))
+    real_bwd = shade_op._launch_lanes_backward
+
+    def off(dev, inp, v_rgb, v_alpha, v_fa, deferred):  # the material block's adjoint 2 % off
+        out = real_bwd(dev, inp, v_rgb, v_alpha, v_fa, deferred)
+        c0, n = inp.blocks["MAT"]
+        h = v_fa.get()
+        h[:, c0:c0 + n] *= 1.02
+        v_fa.set(h)
+        return out
+
+    monkeypatch.setattr(shade_op, "_launch_lanes_backward", off)
+    pinp, _, _ = packed_case(device64, rng, LIGHT_SETS["point_ambient"](), 96, np.float64, False)
+    q = device64.queue
+    v_rgb, v_a = rng.standard_normal((96, 3)), rng.standard_normal(96)
+    shade_op.forward_packed(device64, pinp)
+    with pytest.warns(RuntimeWarning, match="shade_lanes.cl's adjoint disagrees with shade.cl"):
+        v_fa, v_par = shade_op.backward_packed(device64, pinp, cla.to_device(q, v_rgb), cla.to_device(q, v_a))
+    assert verdicts == {shade_op._lanes_key(pinp): False}
+    want = run(device64, pinp, v_rgb, v_a, False)  # shade.cl
+    c0, n = pinp.blocks["MAT"]
+    assert np.array_equal(v_fa.get()[:, c0:c0 + n], want[2][:, c0:c0 + n])
+    assert not shade_op.lanes_supported(device64, pinp)
+    calls = []
+    real_launch = shade_op.launch
+    monkeypatch.setattr(shade_op, "launch", lambda dev, f, k, *a, **kw: calls.append(k) or real_launch(dev, f, k, *a,
+                                                                                                       **kw))
+    shade_op.forward_packed(device64, pinp)
+    shade_op.backward_packed(device64, pinp, cla.to_device(q, v_rgb), cla.to_device(q, v_a))
+    assert calls == ["shade_fwd", "shade_bwd"]
