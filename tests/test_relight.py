@@ -319,3 +319,16 @@ def test_a_light_set_with_an_unknown_key_is_refused(tmp_path):
         load_light_sets(p)
     p.write_text(json.dumps({"sets": {"a": {"lights": [pt], "_note": "mine", "description": "x"}}}))
     assert len(load_light_sets(p)) == 1
+
+
+def test_non_finite_relit_render_is_named_before_scoring():
+    # session 62: on Intel's CPU runtime a soup relit under an SH environment came out NaN in some processes, and
+    # `eval --relight` stopped with the loss's own "pred must be finite"; now the set and the view are named
+    from triplet_cl.relight import check_finite_render
+
+    check_finite_render(np.zeros((4, 4, 3), np.float32), "set 'a', view 'r_0'")  # finite: nothing to say
+    img = np.zeros((4, 4, 3), np.float32)
+    img[1, 2] = np.nan
+    img[3, 3, 0] = np.inf
+    with pytest.raises(ValueError, match=r"relit render of set 'env', view 'test/r_1' holds 4 NaN/Inf value\(s\)"):
+        check_finite_render(img, "set 'env', view 'test/r_1'")

@@ -546,6 +546,16 @@ def _mesh_config(path):
                              "again") from None
 
 
+def check_finite_render(img: np.ndarray, what: str) -> None:
+    """Refuse a relit render with NaN/Inf in it, naming the set and view, before anything is scored or written (the
+    losses' own input check said only "pred must be finite"; a PNG of NaN is garbage): finite materials and lights
+    can still shade to NaN, e.g. a run trained with wrong gradients (bench/results/intel_lanes_check_2026-11-29.txt)."""
+    bad = int(np.size(img) - np.count_nonzero(np.isfinite(img)))
+    if bad:
+        raise ValueError(f"the relit render of {what} holds {bad} NaN/Inf value(s): the run's materials and lights do "
+                         "not shade to finite colours under these lights; nothing was scored or written for it")
+
+
 def straight(img: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:
     """Un-composite ``background`` from an image: the straight colour of an RGBA PNG."""
     a = np.clip(alpha, 0, 1)[..., None]
@@ -565,6 +575,7 @@ def relight_run(relighter: Relighter, light_set: LightSet, out_dir, split: str =
 
     for v, fname in view_progress(zip(views, render_files(views), strict=True), f"relight {light_set.name}"):
         img, alpha = relighter.render(scene, v.camera, bg)
+        check_finite_render(img, f"set {light_set.name!r}, view {v.name!r}")
         p = Path(out_dir) / fname
         write_png(p, np.clip(straight(img, alpha, bg), 0, 1), np.clip(alpha, 0, 1))
         out.append(p)
@@ -814,6 +825,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
             rgb, a = ref(ls.images, v)
             target = rgb * a[..., None] + bg * (1 - a[..., None])
             img, alpha = relighter.render(scene, v.camera, bg)
+            check_finite_render(img, f"set {ls.name!r}, view {v.name!r}")
             img = np.clip(img, 0, 1)
             per.append({"name": v.name, "psnr": psnr(img, target),
                         "ssim": float(ssim(img.astype(np.float64), target.astype(np.float64), padding="valid"))})
@@ -830,6 +842,7 @@ def evaluate_relight(relighter: Relighter, relight_dir, env_degree: int | None =
         for v, fname in view_progress(zip(views, render_files(views), strict=True), "albedo"):
             rgb, a = ref(spec.parent / alb, v)
             pred, pa = relighter.render_albedo(v.camera)
+            check_finite_render(pred, f"the albedo, view {v.name!r}")
             preds.append(pred)
             gts.append(rgb)
             masks.append(a > 0.5)
