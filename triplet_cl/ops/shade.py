@@ -25,7 +25,7 @@ work-item in vector lanes (:func:`lanes_supported`); ``shade.cl`` stays the refe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pyopencl as cl
@@ -115,6 +115,8 @@ class ShadeInputs:
     #: the packed path (:func:`packed_inputs`): pos, nrm, mat (, vlight, vis) are the same ``[P, C]`` array of
     #: packed fragment attributes, ``{"POS" | "NRM" | "MAT" | "VL" | "VIS" | "ALPHA": (first column, width)}``
     blocks: dict | None = None
+    #: :func:`_lanes_key` of these inputs, once computed (a forward and its backward ask for it several times)
+    lanes_key: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def P(self) -> int:
@@ -346,8 +348,11 @@ LANES_CHECK_TOL = 1e-3
 
 
 def _lanes_key(inp: ShadeInputs) -> tuple:
-    """The compiled variant of ``shade_lanes.cl`` that ``inp`` runs (its build defines and real)."""
-    return tuple(sorted((k, repr(v)) for k, v in _lanes_defines(inp).items())), np.dtype(inp.real).str
+    """The compiled variant of ``shade_lanes.cl`` that ``inp`` runs (its build defines and real), kept on ``inp``
+    (~10 µs to form)."""
+    if inp.lanes_key is None:
+        inp.lanes_key = tuple(sorted((k, repr(v)) for k, v in _lanes_defines(inp).items())), np.dtype(inp.real).str
+    return inp.lanes_key
 
 
 def _lanes_verdicts(dev: Device) -> dict:
